@@ -1,0 +1,174 @@
+"""The typed HDF5 artifact format (see docs/format.md).
+
+``load(path, kind=None)`` validates and returns a typed artifact; ``save(path, kind, manifest, arrays)`` writes
+one atomically; ``make_manifest`` fills the common provenance fields; ``is_up_to_date`` decides whether a stage
+can be skipped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cdrb_cli import __version__
+from cdrb_cli.artifacts.core import (
+    ArtifactBase,
+    atomic_path,
+    check_shapes,
+    load_arrays,
+    read_h5,
+    sha256_file,
+    validate_manifest,
+    write_h5,
+)
+from cdrb_cli.artifacts.kinds import (
+    KINDS,
+    SCHEMA_VERSIONS,
+    Buffer,
+    BufferManifest,
+    Demos,
+    DemosManifest,
+    Eval,
+    EvalManifest,
+    ManifestBase,
+    Model,
+    ModelManifest,
+    ParentRef,
+    Plans,
+    PlansManifest,
+)
+from cdrb_cli.errors import BadInput
+from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
+
+__all__ = [
+    "load",
+    "save",
+    "make_manifest",
+    "parent_ref",
+    "is_up_to_date",
+    "check_output",
+    "prepare_output",
+    "sha256_file",
+    "atomic_path",
+    "KINDS",
+    "SCHEMA_VERSIONS",
+    "ArtifactBase",
+    "Demos",
+    "Buffer",
+    "Model",
+    "Plans",
+    "Eval",
+    "ManifestBase",
+    "DemosManifest",
+    "BufferManifest",
+    "ModelManifest",
+    "PlansManifest",
+    "EvalManifest",
+    "ParentRef",
+]
+
+
+def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
+    """Open ``path``, validate it completely, and return the typed artifact. Raises :class:`ArtifactError`
+    (a :class:`BadInput`, exit code 2) with a one-line message for anything that is not a valid artifact."""
+    path = Path(path)
+    f, found_kind, _version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS)
+    try:
+        cls = KINDS[found_kind]
+        manifest = validate_manifest(path, cls.manifest_cls, manifest_data, lenient)
+        check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
+        arrays = load_arrays(path, datasets)
+    finally:
+        f.close()
+    return cls(manifest, arrays, path=path, sha256=sha256_file(path))
+
+
+def save(path: str | Path, artifact_or_kind, manifest=None, arrays: Mapping[str, np.ndarray] | None = None) -> Path:
+    """Write an artifact atomically (temp file in the same folder, fsync, rename). Accepts either an
+    :class:`ArtifactBase` or ``(kind, manifest, arrays)``."""
+    if isinstance(artifact_or_kind, ArtifactBase):
+        kind, manifest, arrays = artifact_or_kind.kind, artifact_or_kind.manifest, artifact_or_kind.arrays
+    else:
+        kind = artifact_or_kind
+    assert manifest is not None and arrays is not None
+    if manifest.kind != kind:
+        raise ValueError(f"manifest kind {manifest.kind} != {kind}")
+    return write_h5(path, kind, SCHEMA_VERSIONS[kind], manifest, arrays)
+
+
+def parent_ref(artifact: ArtifactBase) -> ParentRef:
+    assert artifact.path is not None and artifact.sha256 is not None
+    return ParentRef(kind=artifact.kind, path=str(artifact.path.resolve()), sha256=artifact.sha256)
+
+
+def make_manifest(kind: str, *, env, config, seed: int, parents: Sequence[ArtifactBase] = (), **fields: Any):
+    """Build a manifest of ``kind`` with the common provenance fields filled in."""
+    cls = KINDS[kind].manifest_cls
+    return cls(
+        kind=kind,
+        schema_version=SCHEMA_VERSIONS[kind],
+        cdrb_version=__version__,
+        created_at=now_utc(),
+        argv=command_line(),
+        seed=seed,
+        git_sha=git_sha(),
+        versions=library_versions(),
+        parents=[parent_ref(p) for p in parents],
+        env=env,
+        config=config,
+        **fields,
+    )
+
+
+def is_up_to_date(path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None) -> bool:
+    """True when ``path`` holds a valid, finished ``kind`` artifact made with the same config (and env) from the
+    same parents."""
+    path = Path(path)
+    if not path.exists():
+        return False
+    try:
+        art = load(path, kind)
+    except BadInput:
+        return False
+    if art.manifest.config != config or (env is not None and art.manifest.env != env):
+        return False
+    state = getattr(art.manifest, "state", None)
+    if state is not None and not state.finished:
+        return False
+    have = [p.sha256 for p in art.manifest.parents]
+    return have == [p.sha256 for p in parents]
+
+
+def prepare_output(path: str | Path, kind: str, force: bool, config, parents=(), env=None, flag: str = "--out") -> bool:
+    """Decide whether a stage must run: False (skip) when ``path`` is already up to date; True when it is absent
+    or ``force`` is set. An existing file made differently is an error unless ``force``."""
+    from cdrb_cli import ui
+
+    path = Path(path)
+    if path.exists() and not force and not path.is_dir():
+        if is_up_to_date(path, kind, config, parents, env):
+            ui.log(f"[green]{path}[/green] is up to date (same config and inputs): skipped; --force redoes it")
+            return False
+        raise BadInput(
+            f"{flag} {path}: file exists and was not made by this exact command",
+            hint="pass --force to overwrite it, or choose another path",
+        )
+    check_output(path, force=True, flag=flag)
+    return True
+
+
+def check_output(path: str | Path, force: bool, flag: str = "--out") -> Path:
+    """Validate an output path before any work starts: its folder must exist and, unless ``force``, it must not
+    hold a file already."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise BadInput(f"{flag} {path}: folder {folder} does not exist", hint="create it or choose another path")
+    if path.is_dir():
+        raise BadInput(f"{flag} {path}: is a folder", hint="give a file name such as model.h5")
+    if path.exists() and not force:
+        raise BadInput(f"{flag} {path}: file exists", hint="pass --force to overwrite it, or choose another path")
+    return path

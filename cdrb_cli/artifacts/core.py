@@ -1,0 +1,384 @@
+"""The generic machinery of the artifact format: layout checks, atomic writes, validated reads, hashing.
+
+Layout (see docs/format.md for the full specification):
+
+* root attributes ``cdrb_kind`` (str) and ``cdrb_schema_version`` ("MAJOR.MINOR");
+* ``/manifest``: a scalar fixed-length byte string holding the manifest as ASCII JSON;
+* numeric datasets (float, signed/unsigned integer or bool) at the paths each kind declares.
+
+Reading checks, in order and before loading any array: that the file is HDF5, that it is a cdrb artifact, its
+kind, its schema major version, the manifest (size, JSON, pydantic), every dataset's dtype and declared size, and
+the shapes each kind requires. Only then are arrays read; float arrays must be finite.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import tempfile
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import h5py
+import numpy as np
+from pydantic import ValidationError
+
+from cdrb_cli.errors import ArtifactError, BadInput
+from cdrb_cli.schema_base import Record
+
+KIND_ATTR = "cdrb_kind"
+VERSION_ATTR = "cdrb_schema_version"
+MANIFEST = "manifest"
+
+#: the manifest is read only when its declared size is below this
+MAX_MANIFEST_BYTES = 16 * 2**20
+#: arrays are read only when their declared total size is below both this and FILE_EXPANSION x the file size
+MAX_TOTAL_BYTES = int(os.environ.get("CDRB_MAX_ARTIFACT_BYTES", 16 * 2**30))
+FILE_EXPANSION = 64
+#: at most this many objects (groups + datasets) per file
+MAX_OBJECTS = 20_000
+
+_ALLOWED_KINDS = "fiub"  # float, signed int, unsigned int, bool
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """A dataset a kind requires (or allows): its path, numpy dtype kinds, and shape.
+
+    A shape entry is an int (exact), a str naming a symbol (bound from the manifest, or by the first dataset that
+    uses it, and then checked for consistency), or None (any length)."""
+
+    name: str
+    dtype: str
+    shape: tuple[int | str | None, ...]
+    required: bool = True
+
+
+@dataclass(frozen=True)
+class GroupSpec:
+    """Every dataset under ``prefix`` must have one of the ``dtype`` kinds; ``required`` asks for at least one."""
+
+    prefix: str
+    dtype: str
+    required: bool = True
+
+
+def sha256_file(path: str | Path, chunk: int = 2**20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def parse_version(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"(\d{1,6})\.(\d{1,6})", text)
+    if not m:
+        raise ValueError(text)
+    return int(m.group(1)), int(m.group(2))
+
+
+# ------------------------------------------------------------------------------------------------ writing
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success fsync it and rename it over ``path`` atomically.
+
+    On any exception (or a crash) the previous content of ``path`` is untouched and the temporary file is removed
+    (after a hard crash a ``.NAME.tmp-*`` file may remain; it is never mistaken for an artifact)."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        raise BadInput(f"{path}: folder {folder} does not exist", hint="create it first or choose another --out")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=folder)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        _before_rename_hook(tmp, path)
+        os.replace(tmp, path)
+        _fsync_dir(folder)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _before_rename_hook(tmp: Path, final: Path) -> None:
+    """Test hook: ``CDRB_CRASH_BEFORE_RENAME=1`` simulates a crash between writing and renaming."""
+    if os.environ.get("CDRB_CRASH_BEFORE_RENAME") == "1":
+        os._exit(86)
+
+
+def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays: Mapping[str, np.ndarray]) -> Path:
+    """Write an artifact atomically. ``arrays`` maps dataset paths (``a/b``) to numeric arrays."""
+    path = Path(path)
+    text = manifest.model_dump_json()
+    payload = text.encode("ascii", errors="strict") if text.isascii() else json.dumps(
+        json.loads(text), ensure_ascii=True
+    ).encode("ascii")
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w", track_order=True) as f:
+            f.attrs[KIND_ATTR] = kind
+            f.attrs[VERSION_ATTR] = version
+            f.create_dataset(MANIFEST, data=np.bytes_(payload))
+            for name, value in arrays.items():
+                arr = np.asarray(value)
+                if arr.dtype.kind not in _ALLOWED_KINDS:
+                    raise TypeError(f"dataset {name}: dtype {arr.dtype} is not numeric")
+                if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+                    raise ValueError(f"dataset {name}: refusing to write non-finite values")
+                f.create_dataset(name, data=arr)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------ reading
+def _open(path: Path) -> h5py.File:
+    if not path.exists():
+        raise BadInput(f"{path}: no such file", hint="check the path")
+    if path.is_dir():
+        raise BadInput(f"{path}: is a folder, not an artifact file", hint="pass the .h5 file")
+    if not os.access(path, os.R_OK):
+        raise BadInput(f"{path}: permission denied", hint="make the file readable")
+    try:
+        if not h5py.is_hdf5(str(path)):
+            raise ArtifactError(f"{path}: not an HDF5 file", hint="pass a file written by a cdrb command")
+        return h5py.File(path, "r")
+    except ArtifactError:
+        raise
+    except Exception as exc:  # h5py raises OSError and friends for truncated / corrupt files
+        raise ArtifactError(
+            f"{path}: HDF5 file is truncated or corrupt ({type(exc).__name__})",
+            hint="re-create it with the command that wrote it",
+        ) from None
+
+
+def _attr_str(f: h5py.File, name: str) -> str | None:
+    if name not in f.attrs:
+        return None
+    value = f.attrs[name]
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", errors="replace")
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value.item()
+        if isinstance(value, bytes):
+            value = value.decode("utf-8", errors="replace")
+    return value if isinstance(value, str) and len(value) < 64 else None
+
+
+def _walk(f: h5py.File) -> dict[str, h5py.Dataset]:
+    """All datasets by path, without following links out of the file; refuses files with too many objects."""
+    found: dict[str, h5py.Dataset] = {}
+    count = 0
+
+    def visit(group: h5py.Group, prefix: str) -> None:
+        nonlocal count
+        for key in group.keys():
+            count += 1
+            if count > MAX_OBJECTS:
+                raise ArtifactError(f"{f.filename}: more than {MAX_OBJECTS} HDF5 objects", hint="not a cdrb artifact")
+            link = group.get(key, getlink=True)
+            name = f"{prefix}{key}"
+            if not isinstance(link, h5py.HardLink):
+                raise ArtifactError(f"{f.filename}: {name} is an external or soft link", hint="links are not allowed")
+            obj = group[key]
+            if isinstance(obj, h5py.Group):
+                visit(obj, name + "/")
+            elif isinstance(obj, h5py.Dataset):
+                found[name] = obj
+
+    visit(f, "")
+    return found
+
+
+def read_h5(path: str | Path, expected_kind: str | None, current_versions: Mapping[str, str]):
+    """Open and validate the generic part of an artifact.
+
+    Returns ``(kind, version, manifest_dict, datasets, lenient)`` where ``datasets`` maps dataset paths to open
+    h5py datasets (the file stays open; the caller reads and closes it through :func:`load_arrays`)."""
+    path = Path(path)
+    f = _open(path)
+    try:
+        kind = _attr_str(f, KIND_ATTR)
+        version_text = _attr_str(f, VERSION_ATTR)
+        if kind is None or version_text is None:
+            raise ArtifactError(
+                f"{path}: HDF5 file is not a cdrb artifact (no {KIND_ATTR}/{VERSION_ATTR} attributes)",
+                hint="pass a file written by a cdrb command",
+            )
+        if kind not in current_versions:
+            raise ArtifactError(f"{path}: unknown artifact kind {kind!r}", hint=f"known: {', '.join(current_versions)}")
+        if expected_kind is not None and kind != expected_kind:
+            raise ArtifactError(
+                f"{path}: is a '{kind}' artifact, but a '{expected_kind}' artifact is needed here",
+                hint=f"pass the {expected_kind} file",
+            )
+        try:
+            major, minor = parse_version(version_text)
+        except ValueError:
+            raise ArtifactError(f"{path}: malformed schema version {version_text!r}", hint="re-create the file") from None
+        cur_major, cur_minor = parse_version(current_versions[kind])
+        if major > cur_major:
+            raise ArtifactError(
+                f"{path}: {kind} schema {version_text} is newer than this cdrb reads ({current_versions[kind]})",
+                hint=f"upgrade cdrb to a release that reads {kind} schema {major}.x",
+            )
+        if major < cur_major:
+            raise ArtifactError(
+                f"{path}: {kind} schema {version_text} is older than this cdrb reads ({current_versions[kind]})",
+                hint="re-create the artifact with this cdrb version (no migration exists for it yet)",
+            )
+        lenient = minor > cur_minor
+        datasets = _walk(f)
+        man = datasets.pop(MANIFEST, None)
+        if man is None:
+            raise ArtifactError(f"{path}: has no /{MANIFEST} dataset", hint="re-create it with the command that wrote it")
+        if man.shape != () or man.dtype.kind != "S" or man.dtype.itemsize > MAX_MANIFEST_BYTES:
+            raise ArtifactError(
+                f"{path}: /{MANIFEST} must be a scalar byte string under {MAX_MANIFEST_BYTES} bytes",
+                hint="re-create it with the command that wrote it",
+            )
+        try:
+            manifest = json.loads(man[()].decode("ascii"))
+        except (UnicodeDecodeError, ValueError, OSError):
+            raise ArtifactError(f"{path}: /{MANIFEST} is not valid JSON", hint="re-create it") from None
+        if not isinstance(manifest, dict):
+            raise ArtifactError(f"{path}: /{MANIFEST} is not a JSON object", hint="re-create it")
+        if manifest.get("kind") != kind:
+            raise ArtifactError(f"{path}: manifest kind {manifest.get('kind')!r} differs from {KIND_ATTR} {kind!r}")
+        total = 0
+        for name, ds in datasets.items():
+            dt = ds.dtype
+            if dt.kind not in _ALLOWED_KINDS or dt.fields is not None or dt.subdtype is not None or dt.itemsize > 8:
+                raise ArtifactError(f"{path}: dataset /{name} has non-numeric dtype {dt}", hint="not a cdrb artifact")
+            if ds.shape is None:
+                raise ArtifactError(f"{path}: dataset /{name} has no shape (empty dataspace)", hint="re-create it")
+            total += int(np.prod(ds.shape, dtype=np.float64)) * dt.itemsize
+        limit = min(MAX_TOTAL_BYTES, FILE_EXPANSION * path.stat().st_size + 2**20)
+        if total > limit:
+            raise ArtifactError(
+                f"{path}: datasets declare {total / 2**20:.0f} MiB, more than this file can hold ({limit / 2**20:.0f} MiB)",
+                hint="the file is corrupt or hostile; re-create it",
+            )
+        return f, kind, version_text, manifest, datasets, lenient
+    except BaseException:
+        f.close()
+        raise
+
+
+def check_shapes(
+    path: Path,
+    datasets: Mapping[str, h5py.Dataset],
+    specs: tuple[DatasetSpec, ...],
+    groups: tuple[GroupSpec, ...],
+    dims: dict[str, int],
+) -> None:
+    """Check required datasets, their dtype kinds and their shapes against ``specs`` and the symbols ``dims``."""
+    bound = dict(dims)
+    for spec in specs:
+        ds = datasets.get(spec.name)
+        if ds is None:
+            if spec.required:
+                raise ArtifactError(f"{path}: missing dataset /{spec.name}", hint="re-create the artifact")
+            continue
+        if ds.dtype.kind not in spec.dtype:
+            raise ArtifactError(f"{path}: dataset /{spec.name} has dtype {ds.dtype}, expected kind {spec.dtype!r}")
+        if len(ds.shape) != len(spec.shape):
+            raise ArtifactError(f"{path}: dataset /{spec.name} has shape {ds.shape}, expected {len(spec.shape)} dims")
+        for axis, (want, got) in enumerate(zip(spec.shape, ds.shape)):
+            if want is None:
+                continue
+            if isinstance(want, str):
+                if want not in bound:
+                    bound[want] = got
+                    continue
+                want_n = bound[want]
+            else:
+                want_n = want
+            if got != want_n:
+                raise ArtifactError(
+                    f"{path}: dataset /{spec.name} axis {axis} has length {got}, expected {want_n}"
+                    + (f" ({want})" if isinstance(want, str) else "")
+                )
+    for group in groups:
+        members = [n for n in datasets if n.startswith(group.prefix)]
+        if group.required and not members:
+            raise ArtifactError(f"{path}: no datasets under /{group.prefix}", hint="re-create the artifact")
+        for name in members:
+            if datasets[name].dtype.kind not in group.dtype:
+                raise ArtifactError(f"{path}: dataset /{name} has dtype {datasets[name].dtype}")
+
+
+def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for name, ds in datasets.items():
+        try:
+            arr = ds[()]
+        except Exception as exc:
+            raise ArtifactError(f"{path}: dataset /{name} cannot be read ({type(exc).__name__}); the file is corrupt") from None
+        arr = np.asarray(arr)
+        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+            raise ArtifactError(f"{path}: dataset /{name} contains NaN or inf", hint="re-create the artifact")
+        out[name] = arr
+    return out
+
+
+def validate_manifest(path: Path, manifest_cls: type[Record], data: dict[str, Any], lenient: bool) -> Record:
+    try:
+        return manifest_cls.model_validate(data, context={"lenient": lenient})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first.get("loc", ())) or "(root)"
+        raise ArtifactError(
+            f"{path}: manifest field '{where}' is invalid: {first.get('msg', 'invalid')}"
+            + (f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""),
+            hint="re-create the artifact",
+        ) from None
+
+
+class ArtifactBase:
+    """A validated artifact in memory: ``manifest`` (pydantic) and ``arrays`` (numpy, by dataset path)."""
+
+    kind: ClassVar[str]
+    manifest_cls: ClassVar[type[Record]]
+    datasets: ClassVar[tuple[DatasetSpec, ...]] = ()
+    groups: ClassVar[tuple[GroupSpec, ...]] = ()
+
+    def __init__(self, manifest, arrays: Mapping[str, np.ndarray], path: Path | None = None, sha256: str | None = None):
+        self.manifest = manifest
+        self.arrays = dict(arrays)
+        self.path = Path(path) if path is not None else None
+        self.sha256 = sha256
+
+    @classmethod
+    def dims(cls, manifest) -> dict[str, int]:
+        """Symbols the dataset shapes are checked against, from the manifest."""
+        return {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.arrays[name]
+
+    def __repr__(self) -> str:
+        where = f" {self.path}" if self.path else ""
+        return f"<cdrb {self.kind} artifact{where}: {len(self.arrays)} datasets>"

@@ -1,0 +1,233 @@
+"""The five artifact kinds: their manifests, required datasets and typed accessors."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.artifacts.core import ArtifactBase, DatasetSpec, GroupSpec
+from cdrb_cli.configs import (
+    ClusterConfig,
+    ClusterSummary,
+    CollectConfig,
+    CollectSummary,
+    EvalConfig,
+    EvalSummary,
+    PlanConfig,
+    PlanSummary,
+    TrainConfig,
+    TrainState,
+)
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.schema_base import Record
+
+#: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise
+SCHEMA_VERSIONS = {"demos": "1.0", "buffer": "1.0", "model": "1.0", "plans": "1.0", "eval": "1.0"}
+
+
+class ParentRef(Record):
+    """An input artifact: its kind, the path it was read from, and the sha256 of its bytes."""
+
+    kind: str
+    path: str
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+
+
+class ManifestBase(Record):
+    kind: str
+    schema_version: str = Field(pattern=r"^\d+\.\d+$")
+    cdrb_version: str
+    created_at: str
+    argv: list[str]
+    seed: int
+    git_sha: str | None = None
+    versions: dict[str, str]
+    parents: list[ParentRef]
+    env: EnvSpec
+
+
+class DemosManifest(ManifestBase):
+    kind: Literal["demos"] = "demos"
+    config: CollectConfig
+    summary: CollectSummary
+
+
+class BufferManifest(ManifestBase):
+    kind: Literal["buffer"] = "buffer"
+    config: ClusterConfig
+    summary: ClusterSummary
+
+
+class ModelManifest(ManifestBase):
+    kind: Literal["model"] = "model"
+    config: TrainConfig
+    state: TrainState
+
+
+class PlansManifest(ManifestBase):
+    kind: Literal["plans"] = "plans"
+    config: PlanConfig
+    summary: PlanSummary
+    method: str
+
+
+class EvalManifest(ManifestBase):
+    kind: Literal["eval"] = "eval"
+    config: EvalConfig
+    summary: EvalSummary
+
+
+# ------------------------------------------------------------------------------------------------ typed artifacts
+class Demos(ArtifactBase):
+    """Expert demonstrations: flat step arrays plus an episode index.
+
+    Episode ``e`` occupies rows ``start[e] : start[e] + length[e]`` of every ``steps/*`` array; its rows are the
+    states s_0..s_T, and ``actions[i]`` is the action taken in state ``observations[i]`` (zero on the final row)."""
+
+    kind = "demos"
+    manifest_cls = DemosManifest
+    datasets = (
+        DatasetSpec("steps/observations", "f", ("N", "obs_dim")),
+        DatasetSpec("steps/actions", "f", ("N", "action_dim")),
+        DatasetSpec("steps/desired_goals", "f", ("N", "goal_dim")),
+        DatasetSpec("episodes/start", "i", ("E",)),
+        DatasetSpec("episodes/length", "i", ("E",)),
+        DatasetSpec("episodes/seed", "i", ("E",)),
+        DatasetSpec("episodes/success", "b", ("E",)),
+        DatasetSpec("episodes/valid", "b", ("E",)),
+    )
+
+    @classmethod
+    def dims(cls, manifest):
+        e = manifest.env
+        return {"obs_dim": e.obs_dim, "action_dim": e.action_dim, "goal_dim": e.goal_dim}
+
+    observations = property(lambda self: self.arrays["steps/observations"])
+    actions = property(lambda self: self.arrays["steps/actions"])
+    desired_goals = property(lambda self: self.arrays["steps/desired_goals"])
+    episode_start = property(lambda self: self.arrays["episodes/start"])
+    episode_length = property(lambda self: self.arrays["episodes/length"])
+    episode_seed = property(lambda self: self.arrays["episodes/seed"])
+    episode_success = property(lambda self: self.arrays["episodes/success"])
+    episode_valid = property(lambda self: self.arrays["episodes/valid"])
+
+    @property
+    def n_episodes(self) -> int:
+        return int(self.episode_start.shape[0])
+
+    def episode(self, e: int) -> tuple[np.ndarray, np.ndarray]:
+        s, n = int(self.episode_start[e]), int(self.episode_length[e])
+        return self.observations[s : s + n], self.actions[s : s + n]
+
+    def episode_ids(self, split: str) -> np.ndarray:
+        if split == "all":
+            return np.arange(self.n_episodes)
+        mask = self.episode_valid if split == "valid" else ~self.episode_valid
+        return np.flatnonzero(mask)
+
+
+class Buffer(ArtifactBase):
+    """The replay buffer CDRB diffuses through: ``points`` (K, D) in normalized feature space, each a real
+    demonstration state (``source_index`` rows of the demos), and the normalizer that defines that space."""
+
+    kind = "buffer"
+    manifest_cls = BufferManifest
+    datasets = (
+        DatasetSpec("points", "f", ("K", "feature_dim")),
+        DatasetSpec("source_index", "i", ("K",)),
+        DatasetSpec("normalizer/low", "f", ("feature_dim",)),
+        DatasetSpec("normalizer/high", "f", ("feature_dim",)),
+    )
+
+    @classmethod
+    def dims(cls, manifest):
+        e = manifest.env
+        d = e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
+        return {"feature_dim": d}
+
+    points = property(lambda self: self.arrays["points"])
+    source_index = property(lambda self: self.arrays["source_index"])
+    low = property(lambda self: self.arrays["normalizer/low"])
+    high = property(lambda self: self.arrays["normalizer/high"])
+
+
+class Model(ArtifactBase):
+    """A trained (or training) planner: weights, EMA weights, optimizer state, normalizer, training curve, and,
+    for CDRB, the buffer points it diffuses through. Self-contained for ``plan`` and ``eval``."""
+
+    kind = "model"
+    manifest_cls = ModelManifest
+    datasets = (
+        DatasetSpec("normalizer/low", "f", ("feature_dim",)),
+        DatasetSpec("normalizer/high", "f", ("feature_dim",)),
+        DatasetSpec("curve/step", "i", ("C",)),
+        DatasetSpec("curve/loss", "f", ("C",)),
+        DatasetSpec("curve/valid_loss", "f", ("C",), required=False),
+        DatasetSpec("buffer/points", "f", ("K", "feature_dim"), required=False),
+    )
+    groups = (GroupSpec("weights/", "f"), GroupSpec("ema/", "f"), GroupSpec("optim/", "fi", required=False))
+
+    @classmethod
+    def dims(cls, manifest):
+        e = manifest.env
+        d = e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
+        return {"feature_dim": d}
+
+    def tensors(self, prefix: str) -> dict[str, np.ndarray]:
+        p = prefix.rstrip("/") + "/"
+        return {k[len(p) :]: v for k, v in self.arrays.items() if k.startswith(p)}
+
+
+class Plans(ArtifactBase):
+    """Planned trajectories ``plans`` (P, H, D) in raw feature units, with the start/goal each pair was given."""
+
+    kind = "plans"
+    manifest_cls = PlansManifest
+    datasets = (
+        DatasetSpec("plans", "f", ("P", "H", "feature_dim")),
+        DatasetSpec("pair_index", "i", ("P",)),
+        DatasetSpec("starts", "f", ("Q", "obs_dim")),
+        DatasetSpec("goals", "f", ("Q", "obs_dim")),
+        DatasetSpec("in_wall", "b", ("P", "H")),
+        DatasetSpec("iterates", "f", ("P", None, "H", "feature_dim"), required=False),
+        DatasetSpec("iterate_steps", "i", (None,), required=False),
+    )
+
+    @classmethod
+    def dims(cls, manifest):
+        return {"obs_dim": manifest.env.obs_dim}
+
+    plans = property(lambda self: self.arrays["plans"])
+    starts = property(lambda self: self.arrays["starts"])
+    goals = property(lambda self: self.arrays["goals"])
+
+
+class Eval(ArtifactBase):
+    """Closed-loop evaluation: one row per episode (over all seeds) and a summary in the manifest."""
+
+    kind = "eval"
+    manifest_cls = EvalManifest
+    datasets = (
+        DatasetSpec("episodes/seed", "i", ("E",)),
+        DatasetSpec("episodes/episode_seed", "i", ("E",)),
+        DatasetSpec("episodes/success", "b", ("E",)),
+        DatasetSpec("episodes/steps", "i", ("E",)),
+        DatasetSpec("episodes/final_distance", "f", ("E",)),
+        DatasetSpec("episodes/plan_in_wall_fraction", "f", ("E",)),
+        DatasetSpec("episodes/executed_collision", "b", ("E",)),
+        DatasetSpec("episodes/path_length", "f", ("E",)),
+        DatasetSpec("episodes/expert_path_length", "f", ("E",)),
+        DatasetSpec("episodes/plan_seconds", "f", ("E",)),
+        DatasetSpec("episodes/start", "f", ("E", "obs_dim")),
+        DatasetSpec("episodes/goal", "f", ("E", "goal_dim")),
+        DatasetSpec("plans", "f", ("E", "H", "feature_dim"), required=False),
+    )
+
+    @classmethod
+    def dims(cls, manifest):
+        return {"obs_dim": manifest.env.obs_dim, "goal_dim": manifest.env.goal_dim}
+
+
+KINDS: dict[str, type[ArtifactBase]] = {c.kind: c for c in (Demos, Buffer, Model, Plans, Eval)}

@@ -1,0 +1,41 @@
+"""The project's error types and exit codes.
+
+Every failure a user can cause is a :class:`BadInput` (exit code 2); a run that starts well but cannot finish is a
+:class:`RunFailed` (exit code 1). Both carry a one-line message naming the file or flag and, where one exists, the fix.
+"""
+
+from __future__ import annotations
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+class CdrbError(Exception):
+    """Base class of every error cdrb reports to a user. ``str(err)`` is a single line."""
+
+    exit_code = EXIT_FAILED
+
+    def __init__(self, message: str, hint: str | None = None):
+        self.message = " ".join(str(message).split())
+        self.hint = " ".join(hint.split()) if hint else None
+        super().__init__(self.line())
+
+    def line(self) -> str:
+        return f"{self.message} ({self.hint})" if self.hint else self.message
+
+
+class BadInput(CdrbError):
+    """A flag, argument or input file is wrong; nothing was written. Exit code 2."""
+
+    exit_code = EXIT_BAD_INPUT
+
+
+class ArtifactError(BadInput):
+    """A file is not a valid cdrb artifact of the expected kind and version."""
+
+
+class RunFailed(CdrbError):
+    """The inputs were valid but the run could not complete (e.g. a diverging loss). Exit code 1."""
+
+    exit_code = EXIT_FAILED

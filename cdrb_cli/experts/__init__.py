@@ -1,0 +1,1 @@
+"""Experts that produce demonstrations: the scripted maze planner and stable-baselines3 SAC(+HER) policies."""

@@ -1,0 +1,74 @@
+"""What every artifact records about how it was made: versions, git sha, command line, time."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import functools
+import platform
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+from cdrb_cli import __version__
+
+_TRACKED = (
+    "numpy",
+    "h5py",
+    "pydantic",
+    "torch",
+    "mujoco",
+    "gymnasium",
+    "gymnasium-robotics",
+    "stable-baselines3",
+    "scikit-learn",
+    "scipy",
+    "diffusers",
+)
+
+
+@functools.lru_cache(maxsize=1)
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries that shape results (read from package metadata; nothing is imported)."""
+    out = {"cdrb": __version__, "python": platform.python_version()}
+    for name in _TRACKED:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def git_sha() -> str | None:
+    """The git commit of the cdrb source tree, with ``-dirty`` when it has uncommitted changes; None outside git."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return None
+    try:
+        proc = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--verify", "-q", "HEAD"], capture_output=True, text=True, timeout=5
+        )
+        sha = proc.stdout.strip()
+        if proc.returncode != 0 or len(sha) != 40:
+            return None
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+        ).stdout.strip()
+        return sha + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def now_utc() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def command_line() -> list[str]:
+    argv = list(sys.argv)
+    if argv:
+        argv[0] = Path(argv[0]).name
+    return argv

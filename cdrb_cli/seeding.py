@@ -1,0 +1,32 @@
+"""Seeds: every random choice in cdrb derives from the command's ``--seed`` through numpy SeedSequences, so that
+an episode, a training step or an evaluation is reproducible from (seed, stream, index) alone."""
+
+from __future__ import annotations
+
+import numpy as np
+
+# distinct streams so that, e.g., evaluation episodes never reuse the demonstrations' start/goal draws
+STREAM_COLLECT = 1
+STREAM_EVAL = 2
+STREAM_TRAIN = 3
+STREAM_PLAN = 4
+STREAM_CLUSTER = 5
+
+
+def episode_seeds(seed: int, n: int, stream: int) -> np.ndarray:
+    """``n`` 31-bit seeds for episodes 0..n-1 of ``stream`` under ``seed``."""
+    ss = np.random.SeedSequence([int(seed) & 0xFFFFFFFF, stream])
+    return ss.generate_state(max(n, 1), dtype=np.uint64)[:n].astype(np.int64) & 0x7FFFFFFF
+
+
+def step_rng(seed: int, stream: int, step: int) -> np.random.Generator:
+    """A fresh generator for one step (training step, planning batch...), independent of what ran before."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, stream, int(step)]))
+
+
+def torch_generator(rng: np.random.Generator, device="cpu"):
+    import torch
+
+    g = torch.Generator(device=device)
+    g.manual_seed(int(rng.integers(0, 2**63 - 1)))
+    return g

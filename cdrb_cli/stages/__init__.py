@@ -1,0 +1,1 @@
+"""Library functions behind each CLI command: collect, cluster, train, plan, evaluate, report, pipeline."""

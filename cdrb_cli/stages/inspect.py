@@ -1,0 +1,64 @@
+"""`cdrb inspect`: validate an artifact and describe it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from rich.table import Table
+
+from cdrb_cli import ui
+from cdrb_cli.artifacts import load
+
+
+def describe(path: str | Path) -> dict[str, Any]:
+    art = load(path)
+    m = art.manifest
+    summary = getattr(m, "summary", None) or getattr(m, "state", None)
+    return {
+        "path": str(path),
+        "kind": art.kind,
+        "schema_version": m.schema_version,
+        "valid": True,
+        "sha256": art.sha256,
+        "created_at": m.created_at,
+        "cdrb_version": m.cdrb_version,
+        "git_sha": m.git_sha,
+        "seed": m.seed,
+        "argv": m.argv,
+        "env": m.env.id,
+        "parents": [p.model_dump() for p in m.parents],
+        "summary": summary.model_dump() if summary is not None else None,
+        "config": m.config.model_dump(),
+        "datasets": {k: {"shape": list(v.shape), "dtype": str(v.dtype)} for k, v in sorted(art.arrays.items())},
+    }
+
+
+def render(info: dict[str, Any]) -> None:
+    out = ui.stdout_console()
+    out.print(f"[bold]{info['path']}[/bold]: valid cdrb [bold]{info['kind']}[/bold] artifact, schema {info['schema_version']}")
+    meta = Table.grid(padding=(0, 2))
+    for key in ("env", "created_at", "cdrb_version", "git_sha", "seed", "sha256"):
+        meta.add_row(key, str(info[key]))
+    meta.add_row("command", " ".join(info["argv"]))
+    out.print(meta)
+    if info["parents"]:
+        out.print("[bold]parents[/bold]")
+        for p in info["parents"]:
+            out.print(f"  {p['kind']:7s} {p['sha256'][:12]}  {p['path']}")
+    if info["summary"]:
+        out.print("[bold]summary[/bold]")
+        for k, v in info["summary"].items():
+            if isinstance(v, float):
+                v = f"{v:.4g}"
+            elif isinstance(v, (list, dict)) and len(str(v)) > 100:
+                v = str(v)[:100] + "..."
+            out.print(f"  {k}: {v}")
+    table = Table("dataset", "shape", "dtype", box=None, header_style="bold")
+    shown = [(k, v) for k, v in info["datasets"].items() if not k.startswith(("weights/", "ema/", "optim/"))]
+    for k, v in shown:
+        table.add_row("/" + k, "x".join(map(str, v["shape"])) or "scalar", v["dtype"])
+    hidden = len(info["datasets"]) - len(shown)
+    if hidden:
+        table.add_row(f"(+{hidden} weight/optimizer tensors)", "", "")
+    out.print(table)

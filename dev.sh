@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Set-up and everyday tasks. On a fresh machine:
+#   ./dev.sh demo    install into .venv, then run the end-to-end demo (`cdrb quickstart`)
+#   ./dev.sh test    install into .venv, then run the test suite (what CI runs)
+set -euo pipefail
+cd "$(dirname "$0")"
+VENV=${CDRB_VENV:-.venv}
+
+setup() {
+  if [ ! -x "$VENV/bin/python" ]; then
+    python3 -m venv "$VENV"
+  fi
+  # torch first, pinned: 2.13.0 is a local CPU build here; a bare `torch` requirement would pull CUDA wheels.
+  "$VENV/bin/python" -m pip install -q torch==2.13.0
+  "$VENV/bin/python" -m pip install -q -e ".[dev]"
+}
+
+case "${1:-}" in
+  setup) setup ;;
+  demo)  setup; shift; "$VENV/bin/cdrb" quickstart "$@" ;;
+  test)  setup; shift; "$VENV/bin/python" -m pytest -q "$@" ;;
+  *) echo "usage: ./dev.sh {setup|demo|test} [args...]" >&2; exit 2 ;;
+esac
