@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -81,7 +80,9 @@ app.add_typer(schema_app, name="schema")
 
 
 @schema_app.command("export")
-def schema_export(folder: Path = typer.Argument(Path("schemas"), help="Folder to write <kind>.v<major>.schema.json into.")):
+def schema_export(
+    folder: Path = typer.Argument(Path("schemas"), help="Folder to write <kind>.v<major>.schema.json into."),
+):
     """Export one JSON Schema per artifact kind and major version (the files committed under schemas/)."""
     from cdrb_cli.artifacts.schema import export
 
@@ -105,7 +106,7 @@ EnvArg = typer.Argument(None, help="Environment id (see `cdrb envs`); omit it wi
 MapOpt = typer.Option(None, "--maze-map", help="A maze map text file: rows of # wall, . free, S start, G goal, C both.")
 
 
-def _spec(env: Optional[str], maze_map: Optional[Path]):
+def _spec(env: str | None, maze_map: Path | None):
     from cdrb_cli.envs.registry import make_spec
 
     return make_spec(env, maze_map)
@@ -114,7 +115,7 @@ def _spec(env: Optional[str], maze_map: Optional[Path]):
 @app.command()
 def envs(
     as_json: bool = JsonOpt,
-    maze_map: Optional[Path] = MapOpt,
+    maze_map: Path | None = MapOpt,
 ) -> None:
     """List the environments: dimensions, default plan horizon and stride, episode limit.
 
@@ -124,34 +125,68 @@ def envs(
     rows = list_envs()
     if maze_map is not None:
         spec = _spec(None, maze_map)
-        rows.append({"id": spec.id, "description": f"map file {maze_map}", "obs_dim": spec.obs_dim,
-                     "action_dim": spec.action_dim, "goal_dim": spec.goal_dim, "horizon": spec.horizon,
-                     "plan_stride": spec.plan_stride, "plan_env_steps": spec.plan_env_steps,
-                     "episode_limit": spec.episode_limit, "success_radius": spec.success_radius})
+        rows.append(
+            {
+                "id": spec.id,
+                "description": f"map file {maze_map}",
+                "obs_dim": spec.obs_dim,
+                "action_dim": spec.action_dim,
+                "goal_dim": spec.goal_dim,
+                "horizon": spec.horizon,
+                "plan_stride": spec.plan_stride,
+                "plan_env_steps": spec.plan_env_steps,
+                "episode_limit": spec.episode_limit,
+                "success_radius": spec.success_radius,
+            }
+        )
     if as_json:
         ui.emit(rows, as_json=True)
         return
     from rich.table import Table
 
-    table = Table("id", "state", "action", "goal", "horizon", "stride", "limit", "success r", "description",
-                  header_style="bold", box=None)
+    table = Table(
+        "id",
+        "state",
+        "action",
+        "goal",
+        "horizon",
+        "stride",
+        "limit",
+        "success r",
+        "description",
+        header_style="bold",
+        box=None,
+    )
     for r in rows:
-        table.add_row(r["id"], str(r["obs_dim"]), str(r["action_dim"]), str(r["goal_dim"]), str(r["horizon"]),
-                      str(r["plan_stride"]), str(r["episode_limit"]), f"{r['success_radius']:g}", r["description"])
+        table.add_row(
+            r["id"],
+            str(r["obs_dim"]),
+            str(r["action_dim"]),
+            str(r["goal_dim"]),
+            str(r["horizon"]),
+            str(r["plan_stride"]),
+            str(r["episode_limit"]),
+            f"{r['success_radius']:g}",
+            r["description"],
+        )
     ui.stdout_console().print(table)
 
 
 # ------------------------------------------------------------------------------------------------ collect
 @app.command()
 def collect(
-    env: Optional[str] = EnvArg,
+    env: str | None = EnvArg,
     episodes: int = typer.Option(1000, "--episodes", "-n", min=1, help="Number of demonstrations."),
     expert: str = typer.Option("planner", "--expert", help="planner (scripted, default) or sac (needs --policy)."),
-    policy: Optional[Path] = typer.Option(None, "--policy", help="SB3 SAC zip from `cdrb expert train` (--expert sac)."),
-    valid_fraction: float = typer.Option(0.1, "--valid-fraction", min=0.0, max=0.9, help="Episodes held out for validation."),
-    maze_map: Optional[Path] = MapOpt,
+    policy: Path | None = typer.Option(
+        None, "--policy", help="SB3 SAC zip from `cdrb expert train` (--expert sac)."
+    ),
+    valid_fraction: float = typer.Option(
+        0.1, "--valid-fraction", min=0.0, max=0.9, help="Episodes held out for validation."
+    ),
+    maze_map: Path | None = MapOpt,
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
-    plot: Optional[Path] = typer.Option(None, "--plot", help="Also draw the maze and a sample of demos to this PNG."),
+    plot: Path | None = typer.Option(None, "--plot", help="Also draw the maze and a sample of demos to this PNG."),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -161,7 +196,8 @@ def collect(
     The scripted planner expert takes a random shortest grid route (both gaps next to a goal get used), smooths it
     and comes to rest at the goal. Example: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan]"""
     from cdrb_cli.artifacts import prepare_output
-    from cdrb_cli.stages.collect import collect as run_collect, collect_config
+    from cdrb_cli.stages.collect import collect as run_collect
+    from cdrb_cli.stages.collect import collect_config
 
     if expert not in ("planner", "sac"):
         raise BadInput(f"--expert {expert!r}: unknown expert", hint="use planner or sac")
@@ -190,17 +226,20 @@ def collect(
 
 
 # ------------------------------------------------------------------------------------------------ expert
-expert_app = typer.Typer(help="Train stable-baselines3 experts (SAC + HER) for `cdrb collect --expert sac`.",
-                         no_args_is_help=True)
+expert_app = typer.Typer(
+    help="Train stable-baselines3 experts (SAC + HER) for `cdrb collect --expert sac`.", no_args_is_help=True
+)
 app.add_typer(expert_app, name="expert")
 
 
 @expert_app.command("train")
 def expert_train(
-    env: Optional[str] = EnvArg,
-    steps: int = typer.Option(100_000, "--steps", min=1, help="Environment steps (the paper used 1M: hours on 2 cores)."),
+    env: str | None = EnvArg,
+    steps: int = typer.Option(
+        100_000, "--steps", min=1, help="Environment steps (the paper used 1M: hours on 2 cores)."
+    ),
     her: bool = typer.Option(True, "--her/--no-her", help="Hindsight experience replay (future strategy, 4 goals)."),
-    maze_map: Optional[Path] = MapOpt,
+    maze_map: Path | None = MapOpt,
     out: Path = typer.Option(Path("expert.zip"), "--out", "-o", help="SB3 zip to write."),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
@@ -247,7 +286,7 @@ def _error(text: str) -> None:
     sys.stderr.flush()
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 1 failed run, 2 bad input)."""
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args

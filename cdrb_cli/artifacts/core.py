@@ -135,9 +135,11 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
     """Write an artifact atomically. ``arrays`` maps dataset paths (``a/b``) to numeric arrays."""
     path = Path(path)
     text = manifest.model_dump_json()
-    payload = text.encode("ascii", errors="strict") if text.isascii() else json.dumps(
-        json.loads(text), ensure_ascii=True
-    ).encode("ascii")
+    payload = (
+        text.encode("ascii", errors="strict")
+        if text.isascii()
+        else json.dumps(json.loads(text), ensure_ascii=True).encode("ascii")
+    )
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w", track_order=True) as f:
             f.attrs[KIND_ATTR] = kind
@@ -237,7 +239,9 @@ def read_h5(path: str | Path, expected_kind: str | None, current_versions: Mappi
         try:
             major, minor = parse_version(version_text)
         except ValueError:
-            raise ArtifactError(f"{path}: malformed schema version {version_text!r}", hint="re-create the file") from None
+            raise ArtifactError(
+                f"{path}: malformed schema version {version_text!r}", hint="re-create the file"
+            ) from None
         cur_major, cur_minor = parse_version(current_versions[kind])
         if major > cur_major:
             raise ArtifactError(
@@ -253,7 +257,9 @@ def read_h5(path: str | Path, expected_kind: str | None, current_versions: Mappi
         datasets = _walk(f)
         man = datasets.pop(MANIFEST, None)
         if man is None:
-            raise ArtifactError(f"{path}: has no /{MANIFEST} dataset", hint="re-create it with the command that wrote it")
+            raise ArtifactError(
+                f"{path}: has no /{MANIFEST} dataset", hint="re-create it with the command that wrote it"
+            )
         if man.shape != () or man.dtype.kind != "S" or man.dtype.itemsize > MAX_MANIFEST_BYTES:
             raise ArtifactError(
                 f"{path}: /{MANIFEST} must be a scalar byte string under {MAX_MANIFEST_BYTES} bytes",
@@ -278,7 +284,8 @@ def read_h5(path: str | Path, expected_kind: str | None, current_versions: Mappi
         limit = min(MAX_TOTAL_BYTES, FILE_EXPANSION * path.stat().st_size + 2**20)
         if total > limit:
             raise ArtifactError(
-                f"{path}: datasets declare {total / 2**20:.0f} MiB, more than this file can hold ({limit / 2**20:.0f} MiB)",
+                f"{path}: datasets declare {total / 2**20:.0f} MiB, "
+                f"more than this file can hold ({limit / 2**20:.0f} MiB)",
                 hint="the file is corrupt or hostile; re-create it",
             )
         return f, kind, version_text, manifest, datasets, lenient
@@ -336,7 +343,9 @@ def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, n
         try:
             arr = ds[()]
         except Exception as exc:
-            raise ArtifactError(f"{path}: dataset /{name} cannot be read ({type(exc).__name__}); the file is corrupt") from None
+            raise ArtifactError(
+                f"{path}: dataset /{name} cannot be read ({type(exc).__name__}); the file is corrupt"
+            ) from None
         arr = np.asarray(arr)
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise ArtifactError(f"{path}: dataset /{name} contains NaN or inf", hint="re-create the artifact")

@@ -73,7 +73,9 @@ def load_map_file(path: str | Path) -> MazeLayout:
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise BadInput(f"--maze-map {path}: cannot read it as text ({type(exc).__name__})", hint="pass a text file") from None
+        raise BadInput(
+            f"--maze-map {path}: cannot read it as text ({type(exc).__name__})", hint="pass a text file"
+        ) from None
     return parse_map(text, name=path.stem, source=str(path))
 
 

@@ -69,7 +69,9 @@ def make_spec(env_id: str | None, maze_map: str | Path | None = None) -> EnvSpec
     if env_id is None:
         raise BadInput("no environment given", hint=f"pass one of {', '.join(STOCK_LAYOUTS)} or --maze-map FILE")
     if env_id not in STOCK_LAYOUTS:
-        raise BadInput(f"unknown environment {env_id!r}", hint=f"choose one of {', '.join(STOCK_LAYOUTS)}, or --maze-map FILE")
+        raise BadInput(
+            f"unknown environment {env_id!r}", hint=f"choose one of {', '.join(STOCK_LAYOUTS)}, or --maze-map FILE"
+        )
     return maze_spec(env_id, stock_layout(env_id))
 
 

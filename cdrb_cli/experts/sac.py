@@ -53,7 +53,8 @@ def train_sac(spec: EnvSpec, steps: int, seed: int, out: Path, her: bool = True,
     model = SAC(
         "MultiInputPolicy",
         env,
-        learning_starts=min(learning_starts, max(steps // 2, 1)),
+        # HER samples goals from finished episodes: start learning only after the first full episode
+        learning_starts=max(learning_starts, spec.episode_limit + 1),
         batch_size=256,
         gamma=0.99,
         seed=seed,
@@ -90,9 +91,11 @@ class SacExpert:
 
         path = Path(policy_path)
         if not path.is_file():
-            raise BadInput(f"--policy {path}: no such file", hint="train one with `cdrb expert train ENV --out expert.zip`")
-        try:
-            self.model = SAC.load(str(path), device="cpu")
+            raise BadInput(
+                f"--policy {path}: no such file", hint="train one with `cdrb expert train ENV --out expert.zip`"
+            )
+        try:  # SB3 needs an env to rebuild a model trained with a HerReplayBuffer
+            self.model = SAC.load(str(path), env=_training_env(spec, 0), device="cpu")
         except Exception as exc:
             raise BadInput(
                 f"--policy {path}: not a stable-baselines3 SAC policy zip ({type(exc).__name__})",
@@ -105,7 +108,8 @@ class SacExpert:
             dims = None
         if dims != (spec.obs_dim, spec.goal_dim):
             raise BadInput(
-                f"--policy {path}: policy observes {dims}, but {spec.id} has (obs {spec.obs_dim}, goal {spec.goal_dim})",
+                f"--policy {path}: policy observes {dims}, "
+                f"but {spec.id} has (obs {spec.obs_dim}, goal {spec.goal_dim})",
                 hint="train the expert on this environment",
             )
         self.spec = spec

@@ -75,7 +75,9 @@ def collect_config(
             raise BadInput("--expert sac needs --policy FILE", hint="train one with `cdrb expert train ENV`")
         if not Path(policy).is_file():
             raise BadInput(f"--policy {policy}: no such file", hint="train one with `cdrb expert train ENV`")
-        expert_cfg = SacExpertConfig(policy_path=str(Path(policy).resolve()), policy_sha256=artifacts.sha256_file(policy))
+        expert_cfg = SacExpertConfig(
+            policy_path=str(Path(policy).resolve()), policy_sha256=artifacts.sha256_file(policy)
+        )
     return CollectConfig(env=spec.id, episodes=episodes, expert=expert_cfg, valid_fraction=valid_fraction, seed=seed)
 
 

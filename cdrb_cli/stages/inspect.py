@@ -36,7 +36,9 @@ def describe(path: str | Path) -> dict[str, Any]:
 
 def render(info: dict[str, Any]) -> None:
     out = ui.stdout_console()
-    out.print(f"[bold]{info['path']}[/bold]: valid cdrb [bold]{info['kind']}[/bold] artifact, schema {info['schema_version']}")
+    out.print(
+        f"[bold]{info['path']}[/bold]: valid cdrb [bold]{info['kind']}[/bold] artifact, schema {info['schema_version']}"
+    )
     meta = Table.grid(padding=(0, 2))
     for key in ("env", "created_at", "cdrb_version", "git_sha", "seed", "sha256"):
         meta.add_row(key, str(info[key]))

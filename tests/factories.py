@@ -1,0 +1,169 @@
+"""Small, valid artifacts of every kind, built directly (no training), for format and fault tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cdrb_cli import artifacts
+from cdrb_cli.configs import (
+    CDRBParams,
+    ClusterConfig,
+    ClusterSummary,
+    CollectConfig,
+    CollectSummary,
+    EvalConfig,
+    EvalSummary,
+    PlanConfig,
+    PlannerExpertConfig,
+    PlanSummary,
+    SeedResult,
+    TrainConfig,
+    TrainState,
+    UNetConfig,
+)
+from cdrb_cli.envs.registry import make_spec
+
+KINDS = ("demos", "buffer", "model", "plans", "eval")
+
+
+def spec():
+    return make_spec("maze-tight")
+
+
+def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: int = 0):
+    """(manifest, arrays) for a valid artifact of ``kind``; ``n`` scales the array sizes."""
+    rng = rng or np.random.default_rng(seed)
+    env = spec()
+    f32 = lambda *shape: rng.standard_normal(shape).astype(np.float32)
+    if kind == "demos":
+        lengths = rng.integers(2, 6, size=n)
+        starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        N = int(lengths.sum())
+        cfg = CollectConfig(env=env.id, episodes=n, expert=PlannerExpertConfig(), seed=seed)
+        summ = CollectSummary(
+            episodes=n,
+            steps=N,
+            success_rate=1.0,
+            mean_length=float(lengths.mean()),
+            max_length=int(lengths.max()),
+            states_in_walls=0,
+            train_episodes=n,
+            valid_episodes=0,
+            routes={"1,1": {"N": n}},
+            wall_time_s=0.1,
+        )
+        arrays = {
+            "steps/observations": f32(N, 4),
+            "steps/actions": f32(N, 2),
+            "steps/desired_goals": f32(N, 2),
+            "episodes/start": starts.astype(np.int64),
+            "episodes/length": lengths.astype(np.int64),
+            "episodes/seed": rng.integers(0, 2**31 - 1, size=n),
+            "episodes/success": np.ones(n, dtype=bool),
+            "episodes/valid": np.zeros(n, dtype=bool),
+        }
+        return artifacts.make_manifest("demos", env=env, config=cfg, seed=seed, summary=summ), arrays
+    if kind == "buffer":
+        cfg = ClusterConfig(k=n, seed=seed)
+        summ = ClusterSummary(points=n, source_states=10 * n, feature_dim=4, diameter=1.5, inertia=0.3, wall_time_s=0.1)
+        arrays = {
+            "points": np.clip(f32(n, 4), -1, 1),
+            "source_index": rng.integers(0, 10 * n, size=n),
+            "normalizer/low": -np.ones(4, np.float32),
+            "normalizer/high": np.ones(4, np.float32),
+        }
+        return artifacts.make_manifest("buffer", env=env, config=cfg, seed=seed, summary=summ), arrays
+    if kind == "model":
+        cfg = TrainConfig(
+            method=CDRBParams(d_max=2.0, diffusion_steps=8),
+            net=UNetConfig(dim=8, dim_mults=[1, 2]),
+            preset="custom",
+            features="state",
+            horizon=8,
+            stride=2,
+            steps=10,
+            batch_size=4,
+            lr=1e-3,
+            seed=seed,
+        )
+        arrays = {
+            "weights/layer.weight": f32(n, 3),
+            "weights/layer.bias": f32(n),
+            "ema/layer.weight": f32(n, 3),
+            "ema/layer.bias": f32(n),
+            "normalizer/low": -np.ones(4, np.float32),
+            "normalizer/high": np.ones(4, np.float32),
+            "curve/step": np.arange(n, dtype=np.int64),
+            "curve/loss": np.abs(f32(n)),
+            "buffer/points": np.clip(f32(n, 4), -1, 1),
+        }
+        return artifacts.make_manifest(
+            "model", env=env, config=cfg, seed=seed, state=TrainState(step=10, finished=True)
+        ), arrays
+    if kind == "plans":
+        P, H = n, 8
+        cfg = PlanConfig(sampler="alg1", n=1, seed=seed)
+        summ = PlanSummary(
+            pairs=P,
+            plans=P,
+            in_wall_fraction=0.0,
+            plans_with_wall_states=0,
+            seconds_per_batch=0.1,
+            seconds_per_plan=0.01,
+            device="cpu",
+        )
+        arrays = {
+            "plans": f32(P, H, 4),
+            "pair_index": np.arange(P, dtype=np.int64),
+            "starts": f32(P, 4),
+            "goals": f32(P, 4),
+            "in_wall": np.zeros((P, H), dtype=bool),
+        }
+        return artifacts.make_manifest("plans", env=env, config=cfg, seed=seed, summary=summ, method="cdrb"), arrays
+    if kind == "eval":
+        E = n
+        cfg = EvalConfig(episodes=E, seeds=[0], sampler="alg1", seed=seed)
+        per = SeedResult(
+            seed=0,
+            episodes=E,
+            success_rate=1.0,
+            in_wall_fraction=0.0,
+            executed_collision_rate=0.0,
+            path_length_ratio=1.0,
+            plan_seconds=0.1,
+        )
+        summ = EvalSummary(
+            method="cdrb",
+            model_preset="quick",
+            success_mean=1.0,
+            success_std=0.0,
+            in_wall_mean=0.0,
+            in_wall_std=0.0,
+            executed_collision_mean=0.0,
+            path_length_ratio_mean=1.0,
+            plan_seconds_mean=0.1,
+            per_seed=[per],
+            wall_time_s=1.0,
+        )
+        arrays = {
+            "episodes/seed": np.zeros(E, dtype=np.int64),
+            "episodes/episode_seed": rng.integers(0, 2**31 - 1, size=E),
+            "episodes/success": np.ones(E, dtype=bool),
+            "episodes/steps": rng.integers(1, 300, size=E),
+            "episodes/final_distance": np.abs(f32(E)),
+            "episodes/plan_in_wall_fraction": np.zeros(E, np.float32),
+            "episodes/executed_collision": np.zeros(E, dtype=bool),
+            "episodes/path_length": np.abs(f32(E)),
+            "episodes/expert_path_length": np.abs(f32(E)),
+            "episodes/plan_seconds": np.abs(f32(E)),
+            "episodes/start": f32(E, 4),
+            "episodes/goal": f32(E, 2),
+        }
+        return artifacts.make_manifest("eval", env=env, config=cfg, seed=seed, summary=summ), arrays
+    raise KeyError(kind)
+
+
+def write(path, kind: str, **kw):
+    manifest, arrays = build(kind, **kw)
+    artifacts.save(path, kind, manifest, arrays)
+    return path

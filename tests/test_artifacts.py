@@ -1,0 +1,259 @@
+"""The artifact format: round trips, validation order, and every kind of bad file (issue #2)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from cdrb_cli import artifacts
+from cdrb_cli.errors import ArtifactError, BadInput
+from tests.factories import KINDS, build, write
+
+
+def _same(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+        assert a[k].dtype == b[k].dtype, k
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_round_trip_every_kind(tmp_path, kind):
+    manifest, arrays = build(kind)
+    path = artifacts.save(tmp_path / f"{kind}.h5", kind, manifest, arrays)
+    art = artifacts.load(path)
+    assert art.kind == kind and type(art) is artifacts.KINDS[kind]
+    assert art.manifest == manifest
+    _same(art.arrays, {k: np.asarray(v) for k, v in arrays.items()})
+    assert len(art.sha256) == 64 and art.sha256 == artifacts.sha256_file(path)
+    # the package-level API returns the same typed object
+    import cdrb_cli
+
+    assert type(cdrb_cli.load(path, kind=kind)) is type(art)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(KINDS), n=st.integers(1, 12), seed=st.integers(0, 2**31 - 1))
+def test_round_trip_property(tmp_path, kind, n, seed):
+    manifest, arrays = build(kind, rng=np.random.default_rng(seed), n=n, seed=seed)
+    path = artifacts.save(tmp_path / f"{kind}-{n}-{seed}.h5", kind, manifest, arrays)
+    art = artifacts.load(path, kind)
+    assert art.manifest == manifest
+    assert art.manifest.seed == seed
+    _same(art.arrays, {k: np.asarray(v) for k, v in arrays.items()})
+
+
+def test_manifest_records_provenance(tmp_path):
+    path = write(tmp_path / "d.h5", "demos")
+    m = artifacts.load(path).manifest
+    assert m.schema_version == artifacts.SCHEMA_VERSIONS["demos"]
+    assert m.versions["cdrb"] and m.versions["numpy"] and m.versions["h5py"]
+    assert m.env.id == "maze-tight" and m.created_at and m.argv
+
+
+def test_parents_record_sha256(tmp_path):
+    demos = artifacts.load(write(tmp_path / "d.h5", "demos"))
+    manifest, arrays = build("buffer")
+    manifest = manifest.model_copy(update={"parents": [artifacts.parent_ref(demos)]})
+    buf = artifacts.load(artifacts.save(tmp_path / "b.h5", "buffer", manifest, arrays))
+    assert buf.manifest.parents[0].sha256 == artifacts.sha256_file(tmp_path / "d.h5")
+    assert buf.manifest.parents[0].kind == "demos"
+
+
+# ------------------------------------------------------------------------------------------------ bad files
+def _err(path, kind=None) -> str:
+    with pytest.raises(ArtifactError) as info:
+        artifacts.load(path, kind)
+    msg = str(info.value)
+    assert "\n" not in msg and str(path) in msg
+    assert info.value.exit_code == 2
+    return msg
+
+
+def test_not_hdf5(tmp_path):
+    p = tmp_path / "x.h5"
+    p.write_bytes(b"this is not hdf5 at all" * 10)
+    assert "not an HDF5 file" in _err(p)
+
+
+def test_truncated(tmp_path):
+    p = write(tmp_path / "d.h5", "demos", n=50)
+    data = p.read_bytes()
+    for cut in (len(data) // 2, len(data) - 100, 600):
+        q = tmp_path / f"cut{cut}.h5"
+        q.write_bytes(data[:cut])
+        msg = _err(q)
+        assert "truncated" in msg or "corrupt" in msg or "not an HDF5" in msg
+
+
+def test_plain_hdf5_is_not_an_artifact(tmp_path):
+    p = tmp_path / "plain.h5"
+    with h5py.File(p, "w") as f:
+        f["x"] = np.arange(3)
+    assert "not a cdrb artifact" in _err(p)
+
+
+def test_wrong_kind(tmp_path):
+    p = write(tmp_path / "b.h5", "buffer")
+    msg = _err(p, "demos")
+    assert "'buffer' artifact" in msg and "'demos'" in msg
+
+
+def _rewrite_attr(p, name, value):
+    with h5py.File(p, "r+") as f:
+        f.attrs[name] = value
+
+
+def test_newer_major_is_refused(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    _rewrite_attr(p, "cdrb_schema_version", "2.0")
+    msg = _err(p)
+    assert "newer" in msg and "upgrade cdrb" in msg
+
+
+def test_newer_minor_with_unknown_field_is_read(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        m = json.loads(f["manifest"][()].decode())
+        m["future_field"] = {"x": 1}
+        m["summary"]["future_stat"] = 3
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+        f.attrs["cdrb_schema_version"] = "1.7"
+    art = artifacts.load(p)
+    assert art.manifest.summary.episodes == 5
+    # the same unknown field under the current minor version is an error
+    _rewrite_attr(p, "cdrb_schema_version", "1.0")
+    msg = _err(p)
+    assert "future_" in msg and "Extra inputs" in msg
+
+
+def test_invalid_manifest(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        m = json.loads(f["manifest"][()].decode())
+        m["summary"]["episodes"] = "many"
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+    msg = _err(p)
+    assert "summary.episodes" in msg
+
+
+def test_manifest_not_json(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        del f["manifest"]
+        f["manifest"] = np.bytes_(b"{not json")
+    assert "not valid JSON" in _err(p)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_missing_dataset(tmp_path, kind):
+    p = write(tmp_path / f"{kind}.h5", kind)
+    manifest, arrays = build(kind)
+    name = next(s.name for s in artifacts.KINDS[kind].datasets if s.required)
+    with h5py.File(p, "r+") as f:
+        del f[name]
+    assert f"missing dataset /{name}" in _err(p)
+
+
+def test_inconsistent_shapes(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        a = f["steps/actions"][()]
+        del f["steps/actions"]
+        f["steps/actions"] = a[:-1]
+    assert "steps/actions" in _err(p)
+
+
+def test_state_dimension_checked_against_env(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        o = f["steps/observations"][()]
+        del f["steps/observations"]
+        f["steps/observations"] = o[:, :3]
+    assert "obs_dim" in _err(p)
+
+
+def test_nan_in_data(tmp_path):
+    p = write(tmp_path / "b.h5", "buffer")
+    with h5py.File(p, "r+") as f:
+        f["points"][0, 0] = np.nan
+    assert "NaN" in _err(p)
+
+
+def test_object_dtype_rejected(tmp_path):
+    p = write(tmp_path / "b.h5", "buffer")
+    with h5py.File(p, "r+") as f:
+        f.create_dataset("evil", data=np.array([b"x", b"y"], dtype=object), dtype=h5py.string_dtype())
+    assert "non-numeric dtype" in _err(p)
+
+
+def test_huge_declared_shape_rejected_before_reading(tmp_path):
+    p = write(tmp_path / "b.h5", "buffer")
+    with h5py.File(p, "r+") as f:
+        f.create_dataset("huge", shape=(10**6, 10**6), dtype="f4", chunks=(1, 1024))  # 4 TB declared, nothing stored
+    msg = _err(p)
+    assert "declare" in msg
+
+
+def test_external_link_rejected(tmp_path):
+    other = write(tmp_path / "other.h5", "buffer")
+    p = write(tmp_path / "b.h5", "buffer")
+    with h5py.File(p, "r+") as f:
+        f["linked"] = h5py.ExternalLink(str(other), "/points")
+    assert "link" in _err(p)
+
+
+def test_missing_file_and_folder(tmp_path):
+    with pytest.raises(BadInput, match="no such file"):
+        artifacts.load(tmp_path / "absent.h5")
+    with pytest.raises(BadInput, match="is a folder"):
+        artifacts.load(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------------ atomic writes
+def test_write_failure_leaves_previous_artifact(tmp_path):
+    p = write(tmp_path / "d.h5", "demos", seed=1)
+    before = p.read_bytes()
+    manifest, arrays = build("demos", seed=2)
+    arrays["steps/observations"] = arrays["steps/observations"].copy()
+    arrays["steps/observations"][0, 0] = np.inf  # the writer refuses non-finite data mid-write
+    with pytest.raises(ValueError):
+        artifacts.save(p, "demos", manifest, arrays)
+    assert p.read_bytes() == before
+    assert [x.name for x in tmp_path.iterdir()] == ["d.h5"]  # no temp file left behind
+
+
+def test_crash_between_write_and_rename_keeps_previous(tmp_path):
+    p = write(tmp_path / "d.h5", "demos", seed=1)
+    before = p.read_bytes()
+    code = "from tests.factories import write; import sys; write(sys.argv[1], 'demos', seed=2, n=7)"
+    env = dict(os.environ, CDRB_CRASH_BEFORE_RENAME="1")
+    proc = subprocess.run([sys.executable, "-c", code, str(p)], env=env, cwd=os.getcwd(), capture_output=True)
+    assert proc.returncode == 86  # the simulated crash
+    assert p.read_bytes() == before
+    assert artifacts.load(p).manifest.seed == 1
+    leftovers = [x.name for x in tmp_path.iterdir() if x.name != "d.h5"]
+    assert all(name.startswith(".d.h5.tmp-") for name in leftovers)
+
+
+def test_up_to_date_logic(tmp_path):
+    demos = artifacts.load(write(tmp_path / "d.h5", "demos"))
+    manifest, arrays = build("buffer")
+    manifest = manifest.model_copy(update={"parents": [artifacts.parent_ref(demos)]})
+    out = artifacts.save(tmp_path / "b.h5", "buffer", manifest, arrays)
+    assert artifacts.is_up_to_date(out, "buffer", manifest.config, [demos])
+    other_cfg = manifest.config.model_copy(update={"k": 7})
+    assert not artifacts.is_up_to_date(out, "buffer", other_cfg, [demos])
+    demos2 = artifacts.load(write(tmp_path / "d2.h5", "demos", seed=5))
+    assert not artifacts.is_up_to_date(out, "buffer", manifest.config, [demos2])
+    assert not artifacts.is_up_to_date(tmp_path / "missing.h5", "buffer", manifest.config, [demos])

@@ -1,0 +1,79 @@
+"""CLI conventions: help, version, inspect, exit codes, one-line errors, stdout hygiene (issue #2)."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from cdrb_cli import __version__
+from cdrb_cli.cli import main
+from tests.factories import KINDS, write
+
+COMMANDS = ["collect", "cluster", "train", "plan", "eval", "report", "quickstart", "inspect", "schema", "envs"]
+
+
+def test_help_lists_every_command(cdrb):
+    r = cdrb("--help")
+    assert r.returncode == 0
+    for name in COMMANDS:
+        assert name in r.stdout
+
+
+def test_version(cdrb):
+    r = cdrb("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"cdrb {__version__}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_inspect_every_kind(tmp_path, cdrb, kind):
+    p = write(tmp_path / f"{kind}.h5", kind)
+    r = cdrb("inspect", p)
+    assert r.returncode == 0, r.stderr
+    assert f"valid cdrb {kind} artifact" in r.stdout
+    j = cdrb("inspect", p, "--json")
+    info = json.loads(j.stdout)
+    assert info["kind"] == kind and info["valid"] and info["sha256"] and info["datasets"]
+
+
+def test_inspect_bad_files_exit_2_with_one_line(tmp_path, cdrb):
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"\x00" * 100)
+    plain = tmp_path / "plain.h5"
+    with h5py.File(plain, "w") as f:
+        f["x"] = np.ones(2)
+    newer = write(tmp_path / "newer.h5", "demos")
+    with h5py.File(newer, "r+") as f:
+        f.attrs["cdrb_schema_version"] = "9.0"
+    for path, needle in [
+        (junk, "not an HDF5"),
+        (plain, "not a cdrb artifact"),
+        (newer, "upgrade cdrb"),
+        (tmp_path / "absent.h5", "no such file"),
+    ]:
+        before = sorted(x.name for x in tmp_path.iterdir())
+        r = cdrb("inspect", path)
+        assert r.returncode == 2, r.stderr
+        assert needle in r.stderr and r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+        assert r.stdout == ""
+        assert sorted(x.name for x in tmp_path.iterdir()) == before
+
+
+def test_usage_errors_exit_2(cdrb):
+    r = cdrb("inspect", "--no-such-flag")
+    assert r.returncode == 2 and r.stderr.startswith("error:") and r.stderr.count("\n") == 1
+    r = cdrb("no-such-command")
+    assert r.returncode == 2
+
+
+def test_debug_shows_traceback(tmp_path, cdrb):
+    r = cdrb("--debug", "inspect", tmp_path / "absent.h5")
+    assert r.returncode != 0 and "Traceback" in r.stderr
+
+
+def test_main_returns_exit_codes(tmp_path, capsys):
+    assert main(["--version"]) == 0
+    assert main(["inspect", str(tmp_path / "nope.h5")]) == 2
+    assert "no such file" in capsys.readouterr().err

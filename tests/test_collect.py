@@ -1,0 +1,107 @@
+"""The scripted expert and `cdrb collect` (issue #3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+from cdrb_cli.configs import PlannerExpertConfig
+from cdrb_cli.envs.maze import in_collision
+from cdrb_cli.envs.pointmaze import PointMaze
+from cdrb_cli.envs.registry import make_spec
+from cdrb_cli.experts.maze_planner import MazeExpert
+from cdrb_cli.stages.collect import collect, collect_config, draw_start_goal, rollout
+
+
+@pytest.mark.parametrize("env_id", ["maze", "maze-tight"])
+def test_expert_succeeds_without_touching_walls(env_id):
+    spec = make_spec(env_id)
+    env, expert = PointMaze(spec), MazeExpert(spec, PlannerExpertConfig())
+    rng = np.random.default_rng(1)
+    lengths = []
+    for ep in range(40):
+        s, g = draw_start_goal(env.geometry, rng)
+        S, A, goal, ok = rollout(env, expert, spec, 1000 + ep, s, g, spec.episode_limit)
+        assert ok, f"episode {ep} failed"
+        assert not in_collision(S, spec.obstacles).any()
+        assert np.linalg.norm(S[-1, :2] - goal) < 0.05 and np.linalg.norm(S[-1, 2:]) < 0.1  # comes to rest
+        assert np.all(np.abs(A) <= 1.0)
+        lengths.append(len(S))
+    # every demo fits in one plan of the default horizon
+    assert max(lengths) <= spec.horizon * spec.plan_stride
+
+
+def test_collect_artifact_and_multimodality(tmp_path):
+    spec = make_spec("maze-tight")
+    cfg = collect_config(spec, episodes=120, seed=3)
+    demos = collect(spec, cfg, tmp_path / "d.h5")
+    s = demos.manifest.summary
+    assert s.success_rate == 1.0 and s.states_in_walls == 0
+    assert s.train_episodes + s.valid_episodes == 120 and s.valid_episodes == 12
+    # episodes index the flat arrays exactly
+    assert demos.episode_start[0] == 0
+    assert (demos.episode_start[1:] == np.cumsum(demos.episode_length)[:-1]).all()
+    assert demos.observations.shape[0] == demos.episode_length.sum()
+    # each goal is reached through more than one gap (the data is multimodal)
+    for goal, routes in s.routes.items():
+        assert len([k for k, v in routes.items() if v > 0]) >= 2, (goal, routes)
+    # the same seed gives the same data
+    again = collect(spec, cfg, tmp_path / "d2.h5")
+    np.testing.assert_array_equal(again.observations, demos.observations)
+    np.testing.assert_array_equal(again.episode_seed, demos.episode_seed)
+
+
+def test_cli_collect_custom_map_end_to_end(tmp_path, cdrb):
+    m = tmp_path / "corridor.txt"
+    m.write_text("#######\n#S...G#\n#.###.#\n#.....#\n#######\n")
+    out, png = tmp_path / "c.h5", tmp_path / "c.png"
+    r = cdrb("collect", "--maze-map", m, "-n", "20", "--out", out, "--plot", png, "--seed", "4")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(out)  # stdout carries only the path
+    assert png.stat().st_size > 1000
+    demos = artifacts.load(out, "demos")
+    assert demos.manifest.env.id == "map:corridor" and demos.manifest.env.maze.rows[1] == "#S...G#"
+    assert demos.manifest.summary.success_rate == 1.0 and demos.manifest.summary.states_in_walls == 0
+    # re-running the same command is a no-op; a different command refuses to overwrite
+    again = cdrb("collect", "--maze-map", m, "-n", "20", "--out", out, "--seed", "4")
+    assert again.returncode == 0 and "up to date" in again.stderr
+    other = cdrb("collect", "--maze-map", m, "-n", "21", "--out", out, "--seed", "4")
+    assert other.returncode == 2 and "--force" in other.stderr
+
+
+def test_cli_collect_bad_inputs(tmp_path, cdrb):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("#####\n#S.G#\n###\n")
+    cases = [
+        (("collect", "--maze-map", bad, "-n", "2"), "ragged"),
+        (("collect", "moon", "-n", "2"), "unknown environment"),
+        (("collect", "maze", "-n", "0"), "--episodes"),
+        (("collect", "maze", "--expert", "sac", "-n", "2"), "--policy"),
+        (("collect", "maze", "--expert", "magic", "-n", "2"), "--expert"),
+        (("collect", "maze", "-n", "2", "--out", tmp_path / "no" / "d.h5"), "does not exist"),
+    ]
+    for args, needle in cases:
+        r = cdrb(*args, cwd=tmp_path)
+        assert r.returncode == 2, (args, r.stderr)
+        assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert r.stdout == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.txt"]  # nothing written
+
+
+def test_sac_expert_train_and_collect_tiny_budget(tmp_path, cdrb):
+    """The SB3 SAC+HER path end to end on a tiny budget (a useful expert needs ~1M steps: docs/environments.md)."""
+    policy = tmp_path / "expert.zip"
+    r = cdrb("expert", "train", "umaze", "--steps", "400", "--out", policy, "--seed", "1")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(policy) and policy.stat().st_size > 0
+    out = tmp_path / "sac.h5"
+    r = cdrb("collect", "umaze", "--expert", "sac", "--policy", policy, "-n", "2", "--out", out)
+    assert r.returncode == 0, r.stderr
+    demos = artifacts.load(out, "demos")
+    cfg = demos.manifest.config.expert
+    assert cfg.kind == "sac" and cfg.policy_sha256 == artifacts.sha256_file(policy)
+    assert demos.n_episodes == 2 and demos.observations.shape[1] == 4
+    # a file that is not an SB3 zip is refused with exit code 2
+    r = cdrb("collect", "umaze", "--expert", "sac", "--policy", out, "-n", "2", "--out", tmp_path / "x.h5")
+    assert r.returncode == 2 and "not a stable-baselines3" in r.stderr

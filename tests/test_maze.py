@@ -1,0 +1,115 @@
+"""Maze maps, geometry and the collision check (issue #3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdrb_cli.envs.maze import MazeGeometry, box_distance, in_collision, parse_map
+from cdrb_cli.envs.registry import BALL_RADIUS, list_envs, make_spec
+from cdrb_cli.errors import BadInput
+
+GOOD = """
+// a small test map
+#####
+#S.G#
+#####
+"""
+
+
+def test_parse_good_map():
+    layout = parse_map(GOOD, "t")
+    g = MazeGeometry(layout)
+    assert (g.n_rows, g.n_cols) == (3, 5)
+    assert g.start_cells.tolist() == [[1, 1]] and g.goal_cells.tolist() == [[1, 3]]
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("#####\n#S.G#\n####\n", "ragged"),
+        ("#####\n#S.X#\n#####\n", "unknown map character 'X'"),
+        ("#####\n#..G#\n#####\n", "no start cell"),
+        ("#####\n#S..#\n#####\n", "no goal cell"),
+        ("", "empty"),
+        ("#####\n#S#G#\n#####\n", "no goal cell can be reached"),
+        ("##\n#S\n", "at least 3x3"),
+    ],
+)
+def test_parse_bad_maps(text, needle):
+    with pytest.raises(BadInput) as info:
+        parse_map(text, "bad", source="bad.txt")
+    assert needle in str(info.value) and "bad.txt" in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_bad_map_error_names_line(tmp_path):
+    with pytest.raises(BadInput, match=r"bad.txt:3:4: unknown map character"):
+        parse_map("#####\n#S.G#\n#..?#\n#####\n", "bad", source="bad.txt")
+
+
+def test_start_or_goal_marked_on_a_wall_is_impossible_by_construction():
+    # a start/goal cell *is* a free cell in this format; a wall cannot also be a start
+    layout = parse_map("#####\n#SCG#\n#####\n", "c")
+    g = MazeGeometry(layout)
+    assert all(g.free[tuple(c)] for c in np.vstack([g.start_cells, g.goal_cells]))
+
+
+def test_cell_xy_round_trip():
+    g = MazeGeometry(make_spec("maze-tight").maze)
+    cells = np.argwhere(np.ones((15, 15), bool))
+    xy = g.cell_to_xy(cells)
+    assert np.allclose(g.cell_to_xy([7, 7]), [0, 0]) and np.allclose(g.cell_to_xy([1, 13]), [6, 6])
+    np.testing.assert_array_equal(g.xy_to_cell(xy), cells)
+
+
+def test_collision_just_inside_and_outside_a_wall():
+    spec = make_spec("maze-tight")
+    r, eps = BALL_RADIUS, 1e-4
+    # the top ring wall covers y in [2.5, 3.5] for x in [-3.5, -0.5]; the 1-cell gap is x in [-0.5, 0.5]
+    pts = np.array(
+        [
+            [-2.0, 3.0],  # deep inside the wall
+            [-2.0, 2.5 - r + eps],  # ball just overlapping the wall face
+            [-2.0, 2.5 - r - eps],  # ball just clear of it
+            [0.5 - r - eps, 3.0],  # in the gap, just clear of its right edge
+            [0.5 - r + eps, 3.0],  # in the gap, just touching the right edge
+            [0.0, 3.0],  # centre of the gap
+            [0.0, 0.0],  # centre of the maze
+            [7.6, 0.0],  # outside the map
+        ]
+    )
+    states = np.concatenate([pts, np.zeros((len(pts), 2))], axis=1)
+    expected = [True, True, False, False, True, False, False, True]
+    assert in_collision(states, spec.obstacles).tolist() == expected
+    # batched plans (P, H, D) give the same answers
+    assert in_collision(states.reshape(2, 4, 4), spec.obstacles).ravel().tolist() == expected
+
+
+def test_box_distance_matches_brute_force():
+    rng = np.random.default_rng(0)
+    centers, halves = rng.normal(size=(5, 2)), rng.uniform(0.1, 1, size=(5, 2))
+    pts = rng.normal(size=(200, 2)) * 2
+    d = box_distance(pts, centers, halves)
+    # brute force: densely sample each box and take the nearest sample
+    grid = np.linspace(-1, 1, 201)
+    samples = np.concatenate(
+        [c + np.stack(np.meshgrid(grid * h[0], grid * h[1]), -1).reshape(-1, 2) for c, h in zip(centers, halves)]
+    )
+    brute = np.linalg.norm(pts[:, None] - samples[None], axis=-1).min(1)
+    assert np.all(d <= brute + 1e-9) and np.all(brute - d < 0.01)
+
+
+def test_bfs_and_stock_envs():
+    g = MazeGeometry(make_spec("maze-tight").maze)
+    d = g.bfs((7, 7))
+    assert d[7, 7] == 0 and d[4, 7] == 3 and d[1, 13] > 0 and d[0, 0] == -1
+    ids = [e["id"] for e in list_envs()]
+    assert ids[:2] == ["maze", "maze-tight"]
+    spec = make_spec("maze")
+    assert spec.horizon == 168 and spec.plan_stride == 2 and spec.success_radius == 0.45
+
+
+def test_unknown_env():
+    with pytest.raises(BadInput, match="unknown environment"):
+        make_spec("moon")

@@ -1,0 +1,48 @@
+"""The committed JSON Schemas must match the pydantic models, and validate real manifests."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+from cdrb_cli.artifacts import schema
+from tests.factories import KINDS, build
+
+SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
+
+
+def test_committed_schemas_do_not_drift():
+    stale = schema.drift(SCHEMAS)
+    assert not stale, f"run `cdrb schema export schemas` (stale: {stale})"
+
+
+def test_drift_is_detected(tmp_path):
+    schema.export(tmp_path)
+    assert schema.drift(tmp_path) == []
+    victim = next(tmp_path.glob("demos.v*.schema.json"))
+    victim.write_text(victim.read_text().replace('"episodes"', '"episodez"', 1))
+    assert schema.drift(tmp_path) == [victim.name]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_manifests_validate_against_committed_schema(kind):
+    manifest, _ = build(kind)
+    doc = json.loads(next(SCHEMAS.glob(f"{kind}.v*.schema.json")).read_text())
+    jsonschema.validate(json.loads(manifest.model_dump_json()), doc)
+    bad = json.loads(manifest.model_dump_json())
+    bad["seed"] = "not an int"
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, doc)
+
+
+def test_cli_export_and_check(tmp_path, cdrb):
+    r = cdrb("schema", "export", tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert len(r.stdout.split()) == len(KINDS)
+    assert cdrb("schema", "check", tmp_path).returncode == 0
+    (tmp_path / "eval.v1.schema.json").write_text("{}")
+    r = cdrb("schema", "check", tmp_path)
+    assert r.returncode == 1 and "eval.v1.schema.json" in r.stderr
