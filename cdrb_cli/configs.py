@@ -156,6 +156,9 @@ class TrainConfig(Record):
     ema_every: int = Field(10, gt=0)
     checkpoint_every: int = Field(500, gt=0)
     split: Literal["train", "all"] = "train"
+    start_fraction: float = Field(
+        0.9, ge=0, le=1, description="share of training windows that start at an episode's first state"
+    )
     seed: int
 
 

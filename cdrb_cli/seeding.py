@@ -11,6 +11,7 @@ STREAM_EVAL = 2
 STREAM_TRAIN = 3
 STREAM_PLAN = 4
 STREAM_CLUSTER = 5
+STREAM_VALID = 6
 
 
 def episode_seeds(seed: int, n: int, stream: int) -> np.ndarray:

@@ -27,3 +27,18 @@ def run_cdrb(*args, cwd=None, env=None, timeout=600):
 @pytest.fixture
 def cdrb():
     return run_cdrb
+
+
+@pytest.fixture(scope="session")
+def small_data(tmp_path_factory):
+    """A small Maze Tight dataset shared by the training tests: 40 demos and a 100-point buffer."""
+    from cdrb_cli.configs import ClusterConfig
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.stages.cluster import cluster
+    from cdrb_cli.stages.collect import collect, collect_config
+
+    root = tmp_path_factory.mktemp("data")
+    spec = make_spec("maze-tight")
+    demos = collect(spec, collect_config(spec, episodes=40, seed=0, valid_fraction=0.1), root / "demos.h5")
+    buffer = cluster(demos, ClusterConfig(k=100, seed=0), root / "buffer.h5")
+    return demos, buffer

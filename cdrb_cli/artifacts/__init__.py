@@ -40,7 +40,7 @@ from cdrb_cli.artifacts.kinds import (
     Plans,
     PlansManifest,
 )
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import ArtifactError, BadInput
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
 
 __all__ = [
@@ -75,15 +75,22 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     """Open ``path``, validate it completely, and return the typed artifact. Raises :class:`ArtifactError`
     (a :class:`BadInput`, exit code 2) with a one-line message for anything that is not a valid artifact."""
     path = Path(path)
-    f, found_kind, _version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS)
     try:
-        cls = KINDS[found_kind]
-        manifest = validate_manifest(path, cls.manifest_cls, manifest_data, lenient)
-        check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
-        arrays = load_arrays(path, datasets)
-    finally:
-        f.close()
-    return cls(manifest, arrays, path=path, sha256=sha256_file(path))
+        f, found_kind, _version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS)
+        try:
+            cls = KINDS[found_kind]
+            manifest = validate_manifest(path, cls.manifest_cls, manifest_data, lenient)
+            check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
+            arrays = load_arrays(path, datasets)
+        finally:
+            f.close()
+        return cls(manifest, arrays, path=path, sha256=sha256_file(path))
+    except BadInput:
+        raise
+    except Exception as exc:  # anything else the HDF5 library raises on a damaged file
+        raise ArtifactError(
+            f"{path}: HDF5 file is corrupt ({type(exc).__name__})", hint="re-create it with the command that wrote it"
+        ) from None
 
 
 def save(path: str | Path, artifact_or_kind, manifest=None, arrays: Mapping[str, np.ndarray] | None = None) -> Path:

@@ -313,6 +313,8 @@ def check_shapes(
             raise ArtifactError(f"{path}: dataset /{spec.name} has dtype {ds.dtype}, expected kind {spec.dtype!r}")
         if len(ds.shape) != len(spec.shape):
             raise ArtifactError(f"{path}: dataset /{spec.name} has shape {ds.shape}, expected {len(spec.shape)} dims")
+        if spec.required and 0 in ds.shape:
+            raise ArtifactError(f"{path}: dataset /{spec.name} is empty (shape {ds.shape})", hint="re-create it")
         for axis, (want, got) in enumerate(zip(spec.shape, ds.shape)):
             if want is None:
                 continue

@@ -164,7 +164,8 @@ class Model(ArtifactBase):
         DatasetSpec("normalizer/high", "f", ("feature_dim",)),
         DatasetSpec("curve/step", "i", ("C",)),
         DatasetSpec("curve/loss", "f", ("C",)),
-        DatasetSpec("curve/valid_loss", "f", ("C",), required=False),
+        DatasetSpec("curve/valid_step", "i", ("V",), required=False),
+        DatasetSpec("curve/valid_loss", "f", ("V",), required=False),
         DatasetSpec("buffer/points", "f", ("K", "feature_dim"), required=False),
     )
     groups = (GroupSpec("weights/", "f"), GroupSpec("ema/", "f"), GroupSpec("optim/", "fi", required=False))

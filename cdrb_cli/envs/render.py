@@ -140,3 +140,101 @@ def _save(fig, path: str | Path) -> Path:
         fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
     _plt().close(fig)
     return path
+
+
+# ------------------------------------------------------------------------------------------------ rollouts
+def choose_gl_backend() -> str:
+    """Pick MUJOCO_GL before MuJoCo is first imported: the user's choice, else OSMesa when its library is
+    installed (software rendering, works headless), else EGL (GPU machines)."""
+    import ctypes.util
+    import os
+
+    if "MUJOCO_GL" not in os.environ:
+        os.environ["MUJOCO_GL"] = "osmesa" if ctypes.util.find_library("OSMesa") else "egl"
+        if os.environ["MUJOCO_GL"] == "osmesa":
+            os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    return os.environ["MUJOCO_GL"]
+
+
+def _mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360) -> list[np.ndarray]:
+    """Top-down MuJoCo frames of the ball following ``states`` (raises when no GL context can be made)."""
+    import mujoco
+
+    from cdrb_cli.envs.pointmaze import PointMaze
+
+    env = PointMaze(spec)
+    env.env.goal = np.asarray(goal, dtype=np.float64)
+    env.env.update_target_site_pos()
+    model, data = env.env.point_env.model, env.env.point_env.data
+    renderer = mujoco.Renderer(model, size, size)
+    cam = mujoco.MjvCamera()
+    cam.lookat[:] = [0.0, 0.0, 0.0]
+    extent = max(np.abs(spec.obstacles.low).max(), np.abs(spec.obstacles.high).max())
+    cam.distance, cam.elevation, cam.azimuth = 2.9 * extent, -90.0, 90.0
+    frames = []
+    try:
+        for s in states[::every]:
+            env.set_state(s)
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera=cam)
+            frames.append(renderer.render().copy())
+    finally:
+        renderer.close()
+        env.close()
+    return frames
+
+
+def _matplotlib_frames(spec: EnvSpec, plan, states, goal, every: int) -> list[np.ndarray]:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(4, 4), dpi=80)
+    draw_maze(ax, spec)
+    ax.plot(plan[:, 0], plan[:, 1], "-", color="#1f77b4", lw=1.2, alpha=0.8, label="plan")
+    ax.plot(goal[0], goal[1], "*", ms=12, mfc="gold", mec="black")
+    (trail,) = ax.plot([], [], "-", color="#d62728", lw=1.2, label="executed")
+    (ball,) = ax.plot([], [], "o", ms=6, color="#d62728")
+    ax.legend(loc="upper center", fontsize=7, ncol=2, frameon=False)
+    fig.tight_layout()
+    frames = []
+    for t in range(0, len(states), every):
+        trail.set_data(states[: t + 1, 0], states[: t + 1, 1])
+        ball.set_data([states[t, 0]], [states[t, 1]])
+        fig.canvas.draw()
+        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+    plt.close(fig)
+    return frames
+
+
+def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 4) -> list[Path]:
+    """One GIF per executed episode ``(plan, states, goal, success)``: MuJoCo frames where offscreen rendering
+    works, otherwise (with a message saying why) matplotlib frames of the plan and the executed path."""
+    from PIL import Image
+
+    from cdrb_cli import ui
+    from cdrb_cli.artifacts import atomic_path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    use_mujoco = True
+    written = []
+    for i, (plan, states, goal, ok) in enumerate(episodes):
+        frames = None
+        if use_mujoco:
+            try:
+                frames = _mujoco_frames(spec, states, goal, every)
+            except Exception as exc:  # no GL context on this machine
+                import os
+
+                use_mujoco = False
+                ui.warn(
+                    f"MuJoCo offscreen rendering is unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}: "
+                    f"{type(exc).__name__}); drawing the rollouts with matplotlib instead "
+                    "(install libosmesa6, or use a machine with EGL, for MuJoCo frames)"
+                )
+        if frames is None:
+            frames = _matplotlib_frames(spec, plan, states, goal, every)
+        path = folder / f"{label or 'rollout'}_{i:02d}_{'success' if ok else 'fail'}.gif"
+        images = [Image.fromarray(f) for f in frames]
+        with atomic_path(path) as tmp:
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=40, loop=0)
+        written.append(path)
+    return written

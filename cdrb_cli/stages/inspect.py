@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.table import Table
+from rich.text import Text
 
 from cdrb_cli import ui
 from cdrb_cli.artifacts import load
@@ -34,32 +35,44 @@ def describe(path: str | Path) -> dict[str, Any]:
     }
 
 
+def safe(value: Any, limit: int = 200) -> Text:
+    """Untrusted manifest text for the terminal: no rich markup, no control characters (ANSI escapes), bounded."""
+    text = "".join(ch if ch.isprintable() else "?" for ch in str(value))
+    if len(text) > limit:
+        text = text[:limit] + f"... ({len(text) - limit} more characters)"
+    return Text(text)
+
+
 def render(info: dict[str, Any]) -> None:
+    """Human-readable description on stdout. Every string from the file goes through :func:`safe`."""
     out = ui.stdout_console()
     out.print(
-        f"[bold]{info['path']}[/bold]: valid cdrb [bold]{info['kind']}[/bold] artifact, schema {info['schema_version']}"
+        Text.assemble(
+            safe(info["path"]),
+            ": valid cdrb ",
+            (str(info["kind"]), "bold"),
+            f" artifact, schema {info['schema_version']}",
+        )
     )
     meta = Table.grid(padding=(0, 2))
     for key in ("env", "created_at", "cdrb_version", "git_sha", "seed", "sha256"):
-        meta.add_row(key, str(info[key]))
-    meta.add_row("command", " ".join(info["argv"]))
+        meta.add_row(key, safe(info[key]))
+    meta.add_row("command", safe(" ".join(map(str, info["argv"])), 400))
     out.print(meta)
     if info["parents"]:
-        out.print("[bold]parents[/bold]")
+        out.print(Text("parents", "bold"))
         for p in info["parents"]:
-            out.print(f"  {p['kind']:7s} {p['sha256'][:12]}  {p['path']}")
+            out.print(Text("  ") + safe(f"{p['kind']:7s} {p['sha256'][:12]}  {p['path']}"))
     if info["summary"]:
-        out.print("[bold]summary[/bold]")
+        out.print(Text("summary", "bold"))
         for k, v in info["summary"].items():
             if isinstance(v, float):
                 v = f"{v:.4g}"
-            elif isinstance(v, (list, dict)) and len(str(v)) > 100:
-                v = str(v)[:100] + "..."
-            out.print(f"  {k}: {v}")
+            out.print(Text("  ") + safe(f"{k}: {v}", 120))
     table = Table("dataset", "shape", "dtype", box=None, header_style="bold")
     shown = [(k, v) for k, v in info["datasets"].items() if not k.startswith(("weights/", "ema/", "optim/"))]
     for k, v in shown:
-        table.add_row("/" + k, "x".join(map(str, v["shape"])) or "scalar", v["dtype"])
+        table.add_row(safe("/" + k), "x".join(map(str, v["shape"])) or "scalar", v["dtype"])
     hidden = len(info["datasets"]) - len(shown)
     if hidden:
         table.add_row(f"(+{hidden} weight/optimizer tensors)", "", "")

@@ -1,0 +1,73 @@
+"""Plan quality and latency of several models on the same start/goal pairs, side by side in one run.
+
+For each model: the fraction of planned states inside walls over N protocol pairs (seeded: identical pairs for
+every model), the share of plans touching a wall, and the planning time per plan at batch 1 and batch 64.
+
+Usage: python benchmarks/planning.py MODEL.h5 [MODEL.h5 ...] [--pairs 200] [--seed 0] [--markdown]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cdrb_cli import artifacts
+from cdrb_cli.envs.maze import in_collision
+from cdrb_cli.envs.protocol import draw_pairs, goal_state, pair_states
+from cdrb_cli.seeding import STREAM_PLAN
+from cdrb_cli.stages.plan import sample_plans
+from cdrb_cli.stages.train import load_planner
+
+
+def measure(model_path: Path, pairs: int, seed: int, timing_plans: int = 16) -> dict:
+    model = artifacts.load(model_path, "model")
+    spec = model.manifest.env
+    method, ema = load_planner(model)
+    starts, goals = pair_states(spec, draw_pairs(spec, pairs, seed, STREAM_PLAN))
+    goals = goal_state(spec, goals)
+    plans, *_ = sample_plans(method, ema, starts, goals, 1, seed, batch_size=64)
+    wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
+    times = {}
+    for batch in (1, 64):
+        n = timing_plans if batch == 1 else 64 * 2
+        s, g = starts[np.arange(n) % pairs], goals[np.arange(n) % pairs]
+        sample_plans(method, ema, s[:batch], g[:batch], 1, seed, batch_size=batch)  # warm-up
+        t = time.perf_counter()
+        sample_plans(method, ema, s, g, 1, seed, batch_size=batch)
+        times[batch] = (time.perf_counter() - t) / n
+    cfg = model.manifest.config
+    return {
+        "model": str(model_path),
+        "method": cfg.method.name,
+        "preset": cfg.preset,
+        "sampler": getattr(cfg.method, "sampler", "direct"),
+        "steps": getattr(cfg.method, "diffusion_steps", 1),
+        "in_wall": float(wall.mean()),
+        "plans_touching": float(wall.any(axis=1).mean()),
+        "ms_per_plan_b1": 1000 * times[1],
+        "ms_per_plan_b64": 1000 * times[64],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("models", nargs="+", type=Path)
+    ap.add_argument("--pairs", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    rows = [measure(m, args.pairs, args.seed) for m in args.models]
+    print(f"| method | sampler (steps) | planned states in walls | plans touching a wall | ms/plan batch 1 | "
+          f"ms/plan batch 64 |  ({args.pairs} pairs, seed {args.seed})")
+    print("|---|---|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['method']} ({r['preset']}) | {r['sampler']} ({r['steps']}) | {100 * r['in_wall']:.2f}% | "
+              f"{100 * r['plans_touching']:.1f}% | {r['ms_per_plan_b1']:.1f} | {r['ms_per_plan_b64']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

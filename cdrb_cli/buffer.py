@@ -1,0 +1,320 @@
+"""The replay buffer CDRB diffuses through: features, normalizer, k-means with snapping, and the degradation D.
+
+* :class:`Normalizer` maps each feature to [-1, 1] by its min/max over the demonstrations.
+* :func:`kmeans_buffer` clusters the buffer and replaces every centroid by its nearest real buffer state, so the
+  buffer contains only known good states.
+* :class:`BallSampler` is the degradation D(tau, k): every non-pinned state is replaced by a buffer state drawn
+  **uniformly from the buffer points strictly inside the ball** of radius eps_k around it (the state is kept when
+  that ball is empty). It is exact and never materializes a (queries, K, D) tensor:
+
+  1. *rejection rounds*: ``tries`` uniform buffer indices per query; the first one inside the ball is taken.
+     Conditioned on acceptance, a uniform draw is uniform over ball ∩ buffer;
+  2. *exact enumeration* for queries with no accepted candidate: brute-force squared distances in query chunks
+     (small K) or a KD-tree ball query (large K), then a uniform pick among the points inside.
+
+  Both branches draw from the same uniform distribution with independent randomness, so their mixture is exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cdrb_cli.envs.spec import EnvSpec
+
+SCHEDULES = ("linear", "log", "sqrt", "sigmoid")
+
+
+# ------------------------------------------------------------------------------------------------ features
+def feature_dim(spec: EnvSpec, features: str) -> int:
+    return spec.obs_dim + (spec.action_dim if features == "state-action" else 0)
+
+
+def demo_features(demos, features: str) -> np.ndarray:
+    """Per-step feature rows of a demos artifact: observations, optionally followed by actions."""
+    obs = demos.observations
+    if features == "state-action":
+        return np.concatenate([obs, demos.actions], axis=1)
+    return obs
+
+
+def split_rows(demos, split: str) -> np.ndarray:
+    """Row indices (into the flat step arrays) of the episodes in ``split`` (train / valid / all)."""
+    eps = demos.episode_ids(split)
+    starts, lengths = demos.episode_start[eps], demos.episode_length[eps]
+    if len(eps) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.concatenate([np.arange(s, s + n) for s, n in zip(starts, lengths)])
+
+
+@dataclass(frozen=True)
+class Normalizer:
+    """Per-feature min/max scaling to [-1, 1]; a constant feature maps to 0."""
+
+    low: np.ndarray
+    high: np.ndarray
+
+    @classmethod
+    def fit(cls, x: np.ndarray) -> Normalizer:
+        return cls(low=x.min(axis=0).astype(np.float32), high=x.max(axis=0).astype(np.float32))
+
+    @property
+    def center(self) -> np.ndarray:
+        return (self.low.astype(np.float64) + self.high) / 2
+
+    @property
+    def half(self) -> np.ndarray:
+        h = (self.high.astype(np.float64) - self.low) / 2
+        return np.where(h > 0, h, 1.0)
+
+    def normalize(self, x):
+        return _apply(x, lambda c, h, v: (v - c) / h, self)
+
+    def unnormalize(self, z):
+        return _apply(z, lambda c, h, v: v * h + c, self)
+
+    def allclose(self, other: Normalizer, rtol: float = 1e-5) -> bool:
+        return (
+            self.low.shape == other.low.shape
+            and np.allclose(self.low, other.low, rtol=rtol, atol=1e-6)
+            and np.allclose(self.high, other.high, rtol=rtol, atol=1e-6)
+        )
+
+
+def _apply(x, fn, norm: Normalizer):
+    try:
+        import torch
+
+        if isinstance(x, torch.Tensor):
+            c = torch.as_tensor(norm.center, dtype=x.dtype, device=x.device)
+            h = torch.as_tensor(norm.half, dtype=x.dtype, device=x.device)
+            return fn(c, h, x)
+    except ImportError:  # pragma: no cover
+        pass
+    x = np.asarray(x)
+    out = fn(norm.center, norm.half, x.astype(np.float64))
+    return out.astype(x.dtype if x.dtype.kind == "f" else np.float64)
+
+
+# ------------------------------------------------------------------------------------------------ clustering
+def kmeans_buffer(
+    points: np.ndarray, k: int, seed: int, n_init: int = 1, max_iter: int = 100, fit_sample: int = 100_000
+) -> tuple[np.ndarray, float]:
+    """Indices of ``k`` real points representing ``points``: k-means (scikit-learn, fitted on at most
+    ``fit_sample`` random points), each centroid snapped to its nearest point of the full set (duplicates
+    dropped). Returns (sorted unique indices, inertia of the fit)."""
+    from scipy.spatial import cKDTree
+    from sklearn.cluster import KMeans
+
+    rng = np.random.default_rng(seed)
+    fit = points if len(points) <= fit_sample else points[rng.choice(len(points), fit_sample, replace=False)]
+    km = KMeans(n_clusters=k, n_init=n_init, max_iter=max_iter, random_state=seed)
+    km.fit(fit.astype(np.float32))
+    _, idx = cKDTree(points).query(km.cluster_centers_.astype(np.float64))
+    return np.unique(idx), float(km.inertia_)
+
+
+def diameter(points: np.ndarray, exact_limit: int = 20_000, chunk: int = 2048) -> float:
+    """Largest pairwise Euclidean distance (exact up to ``exact_limit`` points; beyond that the diagonal of the
+    bounding box, an upper bound)."""
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) > exact_limit:
+        return float(np.linalg.norm(p.max(0) - p.min(0)))
+    sq = (p * p).sum(1)
+    best = 0.0
+    for a in range(0, len(p), chunk):
+        q = p[a : a + chunk]
+        d2 = (q * q).sum(1)[:, None] - 2 * q @ p.T + sq[None]
+        best = max(best, float(d2.max()))
+    return float(np.sqrt(max(best, 0.0)))
+
+
+# ------------------------------------------------------------------------------------------------ schedule
+def radii(schedule: str, d_max: float, steps: int) -> np.ndarray:
+    """eps_k for k = 0..steps-1: 0 at k = 0 and d_max at k = steps-1.
+
+    linear: k/(T-1) d_max (the paper's); sqrt: sqrt(k/(T-1)) d_max; log: log-spaced from d_max/100 (most steps
+    use small balls); sigmoid: a logistic ramp centred at T/2."""
+    if schedule not in SCHEDULES:
+        raise ValueError(f"unknown schedule {schedule!r}")
+    s = np.arange(steps, dtype=np.float64) / max(steps - 1, 1)
+    if schedule == "linear":
+        f = s
+    elif schedule == "sqrt":
+        f = np.sqrt(s)
+    elif schedule == "log":
+        f = np.exp(np.log(0.01) * (1.0 - s))
+    else:
+        g = 1 / (1 + np.exp(-12 * (s - 0.5)))
+        f = (g - g[0]) / (g[-1] - g[0])
+    eps = f * d_max
+    eps[0] = 0.0
+    return eps
+
+
+# ------------------------------------------------------------------------------------------------ sampler
+class BallSampler:
+    """Exact uniform sampling from ball ∩ buffer, vectorized and chunked (see the module docstring).
+
+    ``points`` (K, D) are buffer states in normalized space; ``eps`` (T,) the radius of each diffusion step.
+    ``strategy``: ``auto`` (rejection rounds, then KD-tree enumeration of the small balls that remain) or
+    ``brute`` (chunked exact enumeration of every query: slower, the reference for tests)."""
+
+    def __init__(self, points: np.ndarray, eps: np.ndarray, strategy: str = "auto", chunk_elems: int = 2_000_000):
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self.sq = (self.points * self.points).sum(1)
+        self.eps = np.asarray(eps, dtype=np.float64)
+        if strategy not in ("auto", "brute"):
+            raise ValueError(strategy)
+        self.strategy = strategy
+        # Rejection costs ~1/p tries for a ball holding a fraction p of the buffer; enumeration costs ~p K. They
+        # balance near p ~ 1/sqrt(K): try up to ~4 sqrt(K) candidates, then enumerate what is left (small balls).
+        self.first_tries = 32
+        self.max_tries = int(np.ceil(4 * np.sqrt(self.K)))
+        self.chunk_elems = chunk_elems
+        self._tree = None
+        # squared distances from 256 probe points to (a sample of) the buffer, sorted: the fraction of the buffer
+        # within r of a typical buffer point is then one binary search
+        prng = np.random.default_rng(0)
+        probe = self.points[prng.choice(self.K, size=min(self.K, 256), replace=False)]
+        ref = self.points if self.K <= 16384 else self.points[prng.choice(self.K, size=16384, replace=False)]
+        d2 = (probe * probe).sum(1)[:, None] - 2 * probe @ ref.T + (ref * ref).sum(1)[None]
+        self._probe_d2 = np.sort(d2.ravel())
+
+    def ball_fraction(self, radius):
+        """Mean fraction of the buffer inside a ball of ``radius`` around a buffer point (estimated from 256
+        probes). Used only to choose between rejection and enumeration, never to decide what is drawn."""
+        r = np.asarray(radius, dtype=np.float64)
+        return np.searchsorted(self._probe_d2, r * r, side="left") / self._probe_d2.size
+
+    @property
+    def K(self) -> int:
+        return self.points.shape[0]
+
+    # -------------------------------------------------------------- core
+    def sample(self, x: np.ndarray, radius: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """For each query row ``x[q]`` return the index of a buffer point drawn uniformly from
+        {j : |points[j] - x[q]| < radius[q]}, or -1 when that set is empty."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        r2 = np.square(np.asarray(radius, dtype=np.float64))
+        out = np.full(len(x), -1, dtype=np.int64)
+        todo = np.flatnonzero(r2 > 0)
+        if self.strategy == "brute":
+            if todo.size:
+                out[todo] = self._enumerate_brute(x[todo], r2[todo], rng)
+            return out
+        if self.strategy == "auto":
+            # balls expected to hold fewer than ~sqrt(K) points are enumerated directly; the rest try rejection first
+            levels, inverse = np.unique(r2[todo], return_inverse=True)
+            level_big = self.ball_fraction(np.sqrt(levels)) * np.sqrt(self.K) >= 1.0
+            big = level_big[inverse.reshape(-1)]
+            small, todo = todo[~big], todo[big]
+            if small.size:
+                out[small] = self._enumerate_tree(x[small], r2[small], rng)
+            tries, used = self.first_tries, 0
+            while todo.size and used < self.max_tries:
+                tries = min(tries, self.max_tries - used)
+                hit_idx = self._rejection_round(x[todo], r2[todo], tries, rng)
+                got = hit_idx >= 0
+                out[todo[got]] = hit_idx[got]
+                todo = todo[~got]
+                used += tries
+                tries *= 4
+        if todo.size:
+            out[todo] = self._enumerate_tree(x[todo], r2[todo], rng)
+        return out
+
+    def _rejection_round(self, x: np.ndarray, r2: np.ndarray, tries: int, rng: np.random.Generator) -> np.ndarray:
+        """``tries`` uniform candidates per query; the first inside the ball, or -1."""
+        out = np.full(len(x), -1, dtype=np.int64)
+        rows = max(1, self.chunk_elems // (tries * self.points.shape[1]))
+        for a in range(0, len(x), rows):
+            q, qr2 = x[a : a + rows], r2[a : a + rows]
+            cand = rng.integers(0, self.K, size=(len(q), tries))
+            diff = self.points[cand] - q[:, None, :]
+            inside = np.einsum("qtd,qtd->qt", diff, diff) < qr2[:, None]
+            hit = inside.any(axis=1)
+            first = inside.argmax(axis=1)
+            out[a : a + rows] = np.where(hit, cand[np.arange(len(q)), first], -1)
+        return out
+
+    def _enumerate_brute(self, x: np.ndarray, r2: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        out = np.full(len(x), -1, dtype=np.int64)
+        rows = max(1, self.chunk_elems // max(self.K, 1))
+        tol = 1e-9
+        for a in range(0, len(x), rows):
+            q = x[a : a + rows]
+            qr2 = r2[a : a + rows, None]
+            d2 = (q * q).sum(1)[:, None] - 2.0 * (q @ self.points.T) + self.sq[None]  # (rows, K), float64
+            inside = d2 < qr2 - tol
+            # the expanded formula may misjudge points within rounding distance of the sphere: recompute those
+            # exactly from differences
+            near = np.abs(d2 - qr2) <= tol
+            if near.any():
+                qi, kj = np.nonzero(near)
+                dd = self.points[kj] - q[qi]
+                inside[qi, kj] = np.einsum("nd,nd->n", dd, dd) < qr2[qi, 0]
+            counts = inside.sum(axis=1)
+            ok = counts > 0
+            pick = np.floor(rng.random(len(q)) * counts).astype(np.int64)  # uniform rank among the inside points
+            cums = np.cumsum(inside, axis=1)
+            chosen = (cums > pick[:, None]).argmax(axis=1)
+            res = np.where(ok, chosen, -1)
+            out[a : a + rows] = res
+        return out
+
+    def _enumerate_tree(self, x: np.ndarray, r2: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """All buffer points inside each ball via a KD-tree k-nearest query bounded by the radius (vectorized in
+        C); a query whose ball may hold more than k points is repeated with 4k."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        out = np.full(len(x), -1, dtype=np.int64)
+        expected = 3.0 * self.K / max(self.max_tries, 1)  # balls left after rejection are about this small
+        kmax = int(min(self.K, max(16, 2 ** int(np.ceil(np.log2(expected + 1))))))
+        todo = np.argsort(r2, kind="stable")  # similar radii together: one distance bound per chunk
+        while todo.size:
+            q, qr2 = x[todo], r2[todo]
+            rows = max(1, self.chunk_elems // kmax)
+            saturated = np.zeros(len(q), dtype=bool)
+            for a in range(0, len(q), rows):
+                sl = slice(a, a + rows)
+                own = np.sqrt(qr2[sl]) * (1 + 1e-9) + 1e-12  # a superset of each open ball; filtered exactly below
+                dist, idx = self._tree.query(q[sl], k=kmax, distance_upper_bound=float(own.max()))
+                dist, idx = np.asarray(dist).reshape(-1, kmax), np.asarray(idx).reshape(-1, kmax)
+                # neighbours come sorted by distance: if the k-th is still inside the ball, there may be more
+                saturated[sl] = (dist[:, -1] <= own) & (kmax < self.K)
+                valid = idx < self.K
+                safe = np.where(valid, idx, 0)
+                dd = self.points[safe] - q[sl][:, None, :]
+                valid &= np.einsum("qkd,qkd->qk", dd, dd) < qr2[sl, None]
+                counts = valid.sum(axis=1)
+                pick = np.floor(rng.random(len(counts)) * counts).astype(np.int64)
+                chosen = (np.cumsum(valid, axis=1) > pick[:, None]).argmax(axis=1)
+                out[todo[sl]] = np.where(counts > 0, idx[np.arange(len(counts)), chosen], -1)
+            todo = todo[saturated]  # these balls may hold more than kmax points: enumerate again, wider
+            kmax = min(self.K, kmax * 4)
+        return out
+
+    # -------------------------------------------------------------- trajectories
+    def degrade(self, traj: np.ndarray, k, rng: np.random.Generator, pinned=(0, -1)) -> np.ndarray:
+        """D(traj, k): ``traj`` (B, H, D) normalized, ``k`` an int or (B,) ints. Positions in ``pinned`` are left
+        unchanged (start and goal); a state whose ball is empty is kept."""
+        traj = np.asarray(traj, dtype=np.float64)
+        B, H, D = traj.shape
+        k = np.broadcast_to(np.asarray(k, dtype=np.int64), (B,))
+        free = np.ones(H, dtype=bool)
+        free[list(pinned)] = False
+        x = traj[:, free, :].reshape(-1, D)
+        radius = np.repeat(self.eps[k], int(free.sum()))
+        idx = self.sample(x, radius, rng)
+        y = np.where((idx >= 0)[:, None], self.points[np.maximum(idx, 0)], x)
+        out = traj.copy()
+        out[:, free, :] = y.reshape(B, -1, D)
+        return out
+
+    def random_states(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+        """Buffer states drawn uniformly (the sampling prior): array of ``shape + (D,)``."""
+        return self.points[rng.integers(0, self.K, size=shape)]

@@ -1,0 +1,57 @@
+"""`cdrb cluster`: build the replay buffer CDRB diffuses through."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cdrb_cli import artifacts, ui
+from cdrb_cli.buffer import Normalizer, demo_features, diameter, kmeans_buffer, split_rows
+from cdrb_cli.configs import ClusterConfig, ClusterSummary
+from cdrb_cli.errors import BadInput
+
+
+def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
+    """Normalize the demos' features (min-max to [-1, 1]), run k-means, snap centroids to real states."""
+    t0 = time.time()
+    feats = demo_features(demos, config.features).astype(np.float64)
+    # the normalizer always comes from the training split, so it matches what `cdrb train` computes
+    train_rows = split_rows(demos, "train")
+    rows = train_rows if config.split == "train" else split_rows(demos, "all")
+    if rows.size == 0:
+        raise BadInput(f"{demos.path}: no {config.split} episodes to cluster", hint="collect more episodes")
+    norm = Normalizer.fit(feats[train_rows])
+    z = norm.normalize(feats[rows])
+    if config.k > len(rows):
+        raise BadInput(
+            f"--k {config.k}: larger than the {len(rows)} buffer states", hint=f"use --k {len(rows)} or less (0 = all)"
+        )
+    inertia = None
+    with ui.progress(transient=True) as bar:
+        bar.add_task(f"k-means k={config.k}" if config.k else "full buffer", total=None, info="")
+        if config.k == 0:
+            keep = np.arange(len(rows))
+        else:
+            keep, inertia = kmeans_buffer(z, config.k, seed=config.seed, n_init=config.n_init, max_iter=config.max_iter)
+    points = z[keep].astype(np.float32)
+    summary = ClusterSummary(
+        points=int(len(points)),
+        source_states=int(len(rows)),
+        feature_dim=int(points.shape[1]),
+        diameter=round(diameter(points), 6),
+        inertia=inertia,
+        wall_time_s=round(time.time() - t0, 3),
+    )
+    manifest = artifacts.make_manifest(
+        "buffer", env=demos.manifest.env, config=config, seed=config.seed, parents=[demos], summary=summary
+    )
+    arrays = {
+        "points": points,
+        "source_index": rows[keep].astype(np.int64),
+        "normalizer/low": norm.low,
+        "normalizer/high": norm.high,
+    }
+    artifacts.save(out, "buffer", manifest, arrays)
+    return artifacts.load(out, "buffer")

@@ -1,0 +1,138 @@
+"""`cdrb quickstart`: the whole pipeline on an embedded default, resumable.
+
+collect -> cluster -> train (CDRB and Diffuser, `quick`) -> eval -> report. Every stage writes its artifact
+atomically and is skipped when that artifact is up to date (same config, same parents); an interrupted training
+resumes from its last checkpoint. So interrupting at any point and re-running loses nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cdrb_cli import artifacts, ui
+from cdrb_cli.configs import ClusterConfig, EvalConfig
+
+
+@dataclass
+class QuickstartResult:
+    folder: Path
+    report: str
+    pictures: list[Path] = field(default_factory=list)
+    artifacts: dict[str, Path] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def _stage(n: int, total: int, text: str) -> None:
+    ui.log(f"[bold cyan][{n}/{total}][/bold cyan] {text}")
+
+
+def quickstart(
+    folder: Path,
+    env: str = "maze-tight",
+    episodes: int = 1000,
+    k: int = 1000,
+    methods: tuple[str, ...] = ("cdrb", "diffuser"),
+    seeds: tuple[int, ...] = (0, 1),
+    eval_episodes: int = 50,
+    steps: int | None = None,
+    seed: int = 0,
+    device="cpu",
+    videos: int = 0,
+) -> QuickstartResult:
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.stages.cluster import cluster
+    from cdrb_cli.stages.collect import collect, collect_config
+    from cdrb_cli.stages.evaluate import evaluate
+    from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
+    from cdrb_cli.stages.train import resolve_config, train
+
+    t0 = time.time()
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    total = 3 + 2 * len(methods)
+    step = 0
+    spec = make_spec(env)
+    paths: dict[str, Path] = {}
+
+    step += 1
+    _stage(step, total, f"collect {episodes} scripted-expert demos on {env}")
+    demos_path = paths["demos"] = folder / "demos.h5"
+    ccfg = collect_config(spec, episodes, seed=seed)
+    if not artifacts.is_up_to_date(demos_path, "demos", ccfg, env=spec):
+        collect(spec, ccfg, demos_path)
+    else:
+        ui.log("  up to date")
+    demos = artifacts.load(demos_path, "demos")
+
+    step += 1
+    _stage(step, total, f"cluster the replay buffer (k={k})")
+    buffer_path = paths["buffer"] = folder / "buffer.h5"
+    kcfg = ClusterConfig(k=k, seed=seed)
+    if not artifacts.is_up_to_date(buffer_path, "buffer", kcfg, [demos]):
+        cluster(demos, kcfg, buffer_path)
+    else:
+        ui.log("  up to date")
+    buffer = artifacts.load(buffer_path, "buffer")
+
+    models = {}
+    for method in methods:
+        step += 1
+        _stage(step, total, f"train {method} (quick preset)")
+        b = buffer if method == "cdrb" else None
+        cfg = resolve_config(demos, b, method, preset="quick", seed=seed, steps=steps)
+        out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
+        parents = [demos] + ([b] if b is not None else [])
+        if artifacts.is_up_to_date(out, "model", cfg, parents):
+            ui.log("  up to date")
+        else:
+            resume = _resumable(out, cfg, parents)
+            if resume:
+                ui.log(f"  resuming the checkpoint in {out}")
+            train(demos, b, cfg, out, resume=resume, device=device)
+        models[method] = artifacts.load(out, "model")
+
+    evals = []
+    for method in methods:
+        step += 1
+        _stage(step, total, f"evaluate {method}: {len(seeds)} seeds x {eval_episodes} episodes")
+        ecfg = EvalConfig(
+            episodes=eval_episodes,
+            seeds=list(seeds),
+            sampler=getattr(models[method].manifest.config.method, "sampler", "direct"),
+            seed=seed,
+        )
+        out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
+        if artifacts.is_up_to_date(out, "eval", ecfg, [models[method]]):
+            ui.log("  up to date")
+        else:
+            evaluate(
+                models[method], ecfg, out, device=device, video_dir=folder / "videos" if videos else None, videos=videos
+            )
+        evals.append(artifacts.load(out, "eval"))
+
+    step += 1
+    _stage(step, total, "report")
+    rows = collect_rows(evals)
+    text = render(rows, "markdown", paper=True)
+    with artifacts.atomic_path(folder / "report.md") as tmp:
+        tmp.write_text(text)
+    pictures = [plot_bars(rows, folder / "results.png"), plot_side_by_side(evals, folder / "plans.png")]
+    from cdrb_cli.envs.render import plot_demos
+
+    pictures.append(plot_demos(demos, folder / "demos.png"))
+    paths["report"] = folder / "report.md"
+    return QuickstartResult(folder=folder, report=text, pictures=pictures, artifacts=paths, seconds=time.time() - t0)
+
+
+def _resumable(out: Path, cfg, parents) -> bool:
+    """True when ``out`` holds an unfinished checkpoint of exactly this training."""
+    if not out.exists():
+        return False
+    try:
+        m = artifacts.load(out, "model")
+    except Exception:
+        return False
+    same = m.manifest.config == cfg and [p.sha256 for p in m.manifest.parents] == [p.sha256 for p in parents]
+    return same and not m.manifest.state.finished

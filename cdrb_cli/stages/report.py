@@ -1,0 +1,220 @@
+"""`cdrb report`: a Table-1-style comparison of eval artifacts, and pictures.
+
+Rows are environments, columns methods; cells are success rate mean ± std over seeds. A second table gives the
+safety and efficiency columns: planned states inside walls, executed collisions, normalized path length and
+planning time. Evals are only compared when their protocols match (same seeds, episodes per seed, controller,
+protocol and episode length); anything else is an error, never a silent average.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from cdrb_cli.errors import BadInput
+
+PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) for the two mazes
+    "maze": {
+        "mlp": (74.22, 3.81),
+        "diffuser": (100.0, 0.0),
+        "diffusion-bc": (90.13, 1.21),
+        "diffusion-ql": (100.0, 0.0),
+        "cdrb": (95.33, 2.05),
+    },
+    "maze-tight": {
+        "mlp": (38.29, 1.80),
+        "diffuser": (97.00, 0.82),
+        "diffusion-bc": (89.21, 1.20),
+        "diffusion-ql": (84.02, 3.86),
+        "cdrb": (98.00, 0.00),
+    },
+}
+METHOD_ORDER = ["mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"]
+ENV_NAMES = {"maze": "Maze", "maze-tight": "Maze Tight"}
+
+
+def _protocol(ev) -> tuple:
+    c = ev.manifest.config
+    return (tuple(c.seeds), c.episodes, c.controller, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
+
+
+def method_label(ev) -> str:
+    s = ev.manifest.summary
+    return s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
+
+
+def collect_rows(evals) -> list[dict]:
+    """One row per eval artifact; errors on mixed protocols within an environment or duplicate columns."""
+    by_env: dict[str, list] = {}
+    for ev in evals:
+        by_env.setdefault(ev.manifest.env.id, []).append(ev)
+    rows = []
+    for env_id, group in by_env.items():
+        protos = {_protocol(ev) for ev in group}
+        if len(protos) > 1:
+            first, second = sorted(protos, key=str)[:2]
+            raise BadInput(
+                f"eval files for {env_id} use different protocols ({_describe(first)} vs {_describe(second)})",
+                hint="evaluate every model with the same --seeds, --episodes and --controller",
+            )
+        seen: dict[str, Path] = {}
+        for ev in group:
+            label = method_label(ev)
+            if label in seen:
+                raise BadInput(
+                    f"{ev.path} and {seen[label]} are both {label} on {env_id}",
+                    hint="pass one eval per method and environment",
+                )
+            seen[label] = ev.path
+            s = ev.manifest.summary
+            rows.append(
+                {
+                    "env": env_id,
+                    "method": label,
+                    "base_method": s.method,
+                    "preset": s.model_preset,
+                    "seeds": len(ev.manifest.config.seeds),
+                    "episodes": ev.manifest.config.episodes,
+                    "success_mean": 100 * s.success_mean,
+                    "success_std": 100 * s.success_std,
+                    "in_wall_mean": 100 * s.in_wall_mean,
+                    "in_wall_std": 100 * s.in_wall_std,
+                    "collision_mean": 100 * s.executed_collision_mean,
+                    "path_ratio": s.path_length_ratio_mean,
+                    "plan_ms": 1000 * s.plan_seconds_mean,
+                    "path": str(ev.path),
+                }
+            )
+    return rows
+
+
+def _describe(p) -> str:
+    return f"seeds {list(p[0])}, {p[1]} episodes, {p[2]} controller"
+
+
+def _order(methods):
+    return sorted(
+        methods, key=lambda m: (METHOD_ORDER.index(m.split(" ")[0]) if m.split(" ")[0] in METHOD_ORDER else 99, m)
+    )
+
+
+def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
+    if fmt == "json":
+        return json.dumps(rows, indent=2)
+    if fmt == "csv":
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+        return buf.getvalue()
+    envs = list(dict.fromkeys(r["env"] for r in rows))
+    methods = _order(dict.fromkeys(r["method"] for r in rows))
+    cell = {(r["env"], r["method"]): r for r in rows}
+    lines = ["| Success rate (%) | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
+    for env in envs:
+        vals = []
+        best = max((cell[(env, m)]["success_mean"] for m in methods if (env, m) in cell), default=None)
+        for m in methods:
+            r = cell.get((env, m))
+            if r is None:
+                vals.append("–")
+                continue
+            v = f"{r['success_mean']:.2f} ± {r['success_std']:.2f}"
+            vals.append(f"**{v}**" if r["success_mean"] == best else v)
+        lines.append(f"| {ENV_NAMES.get(env, env)} | " + " | ".join(vals) + " |")
+        if paper and env in PAPER_TABLE1:
+            pv = [
+                f"{PAPER_TABLE1[env][m.split(' ')[0]][0]:.2f} ± {PAPER_TABLE1[env][m.split(' ')[0]][1]:.2f}"
+                if m.split(" ")[0] in PAPER_TABLE1[env]
+                else "–"
+                for m in methods
+            ]
+            lines.append(f"| {ENV_NAMES.get(env, env)} (paper) | " + " | ".join(pv) + " |")
+    lines += [
+        "",
+        "| env | method | seeds x episodes | success (%) | planned states in walls (%) | "
+        "executed collisions (%) | path length / expert | plan time (ms) |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for env in envs:
+        for m in methods:
+            r = cell.get((env, m))
+            if r is None:
+                continue
+            ratio = f"{r['path_ratio']:.2f}" if r["path_ratio"] is not None else "–"
+            lines.append(
+                f"| {ENV_NAMES.get(env, env)} | {m} | {r['seeds']} x {r['episodes']} | "
+                f"{r['success_mean']:.1f} ± {r['success_std']:.1f} | "
+                f"{r['in_wall_mean']:.2f} ± {r['in_wall_std']:.2f} | "
+                f"{r['collision_mean']:.1f} | {ratio} | {r['plan_ms']:.1f} |"
+            )
+    text = "\n".join(lines) + "\n"
+    if fmt == "table":
+        return text.replace("**", "")
+    return text
+
+
+def plot_bars(rows: list[dict], path) -> Path:
+    from cdrb_cli.envs.render import _plt, _save
+
+    plt = _plt()
+    envs = list(dict.fromkeys(r["env"] for r in rows))
+    methods = _order(dict.fromkeys(r["method"] for r in rows))
+    cell = {(r["env"], r["method"]): r for r in rows}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    width = 0.8 / max(len(methods), 1)
+    x = np.arange(len(envs))
+    for i, m in enumerate(methods):
+        for ax, key, std in ((axes[0], "success_mean", "success_std"), (axes[1], "in_wall_mean", "in_wall_std")):
+            vals = [cell[(e, m)][key] if (e, m) in cell else np.nan for e in envs]
+            errs = [cell[(e, m)][std] if (e, m) in cell else 0 for e in envs]
+            ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=m)
+    for ax, title in ((axes[0], "success rate (%)"), (axes[1], "planned states inside walls (%)")):
+        ax.set_xticks(x)
+        ax.set_xticklabels([ENV_NAMES.get(e, e) for e in envs])
+        ax.set_title(title, fontsize=10)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].set_ylim(0, 105)
+    axes[0].legend(fontsize=8)
+    return _save(fig, path)
+
+
+def plot_side_by_side(evals, path, n: int = 12) -> Path:
+    """The plans of every method for the same start/goal pairs (the first ``n`` episodes of the first seed)."""
+    from cdrb_cli.envs.maze import in_collision
+    from cdrb_cli.envs.render import GOAL_COLOURS, _plt, _save, draw_maze
+
+    evals = [ev for ev in evals if "plans" in ev.arrays]
+    if not evals:
+        raise BadInput("none of the eval files holds plans", hint="run `cdrb eval` without --no-plans")
+    envs = list(dict.fromkeys(ev.manifest.env.id for ev in evals))
+    if len(envs) > 1:
+        raise BadInput("--plans-plot needs evals of a single environment", hint=f"got {', '.join(envs)}")
+    evals = sorted(evals, key=lambda ev: _order([method_label(ev)])[0])
+    evals.sort(
+        key=lambda ev: (
+            METHOD_ORDER.index(ev.manifest.summary.method) if ev.manifest.summary.method in METHOD_ORDER else 99
+        )
+    )
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(evals), figsize=(4.6 * len(evals), 4.8), squeeze=False)
+    for ax, ev in zip(axes[0], evals):
+        spec = ev.manifest.env
+        plans = ev.arrays["plans"][:n]
+        draw_maze(ax, spec)
+        wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
+        for i, p in enumerate(plans):
+            ax.plot(p[:, 0], p[:, 1], "-", lw=1.0, alpha=0.85, color=GOAL_COLOURS[i % len(GOAL_COLOURS)])
+        if wall.any():
+            ax.plot(plans[wall][:, 0], plans[wall][:, 1], "x", color="red", ms=3)
+        ax.plot(plans[:, 0, 0], plans[:, 0, 1], "o", ms=4, mfc="white", mec="black")
+        ax.plot(plans[:, -1, 0], plans[:, -1, 1], "*", ms=9, mfc="gold", mec="black")
+        s = ev.manifest.summary
+        ax.set_title(
+            f"{method_label(ev)}: success {100 * s.success_mean:.0f}%, in walls {100 * s.in_wall_mean:.1f}%", fontsize=9
+        )
+    return _save(fig, path)

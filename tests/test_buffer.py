@@ -1,0 +1,146 @@
+"""The replay buffer and the degradation D: exactness (uniform over ball ∩ buffer), pinning, schedules,
+normalizer, k-means snapping (issue #4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chisquare
+
+from cdrb_cli.buffer import BallSampler, Normalizer, diameter, kmeans_buffer, radii
+
+
+def _inside(points, x, r):
+    return np.flatnonzero(((points - x) ** 2).sum(1) < r * r)
+
+
+def _check_uniform(idx, points, x, r):
+    inside = _inside(points, x, r)
+    assert len(inside) >= 5, "test set-up: the ball should hold several points"
+    drawn = idx[idx >= 0]
+    assert len(drawn) == len(idx), "a non-empty ball must always give a buffer point"
+    outside = np.setdiff1d(np.unique(drawn), inside)
+    assert outside.size == 0, f"drew points outside the ball: {outside}"
+    counts = np.bincount(drawn, minlength=len(points))[inside]
+    assert counts.min() > 0
+    p = chisquare(counts).pvalue
+    assert p > 1e-3, f"draws are not uniform over ball ∩ buffer (chi-square p={p:.2g}, counts {counts})"
+
+
+@pytest.mark.parametrize("strategy", ["auto", "brute"])
+@pytest.mark.parametrize("radius", [0.35, 0.6, 1.5])
+def test_ball_draws_are_uniform_over_ball_and_buffer(strategy, radius):
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-1, 1, size=(300, 3))
+    x = np.array([0.1, -0.2, 0.05])
+    s = BallSampler(points, np.array([0.0, radius]), strategy=strategy)
+    n = 30_000
+    idx = s.sample(np.repeat(x[None], n, 0), np.full(n, radius), np.random.default_rng(2))
+    _check_uniform(idx, points, x, radius)
+
+
+def test_tree_enumeration_is_exact_when_balls_overflow_k():
+    """The KD-tree branch starts with a small k; balls holding more points are enumerated again, wider."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1, 1, size=(400, 2))
+    x, r = np.array([0.0, 0.0]), 0.5  # ~80 points, more than the first k
+    s = BallSampler(points, np.array([0.0, r]))
+    n = 20_000
+    idx = s._enumerate_tree(np.repeat(x[None], n, 0), np.full(n, r * r), np.random.default_rng(4))
+    _check_uniform(idx, points, x, r)
+
+
+def test_mixed_queries_each_uniform():
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1, 1, size=(500, 2))
+    xs = np.array([[0.3, 0.3], [-0.5, 0.1]])
+    rs = np.array([0.25, 0.8])
+    n = 20_000
+    q = np.repeat(xs, n, 0)
+    idx = BallSampler(points, np.array([0.0, 1.0])).sample(q, np.repeat(rs, n), np.random.default_rng(6))
+    for i in range(2):
+        _check_uniform(idx[i * n : (i + 1) * n], points, xs[i], rs[i])
+
+
+def test_ball_is_strict_and_empty_ball_keeps_the_state():
+    points = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.0], [3.0, 3.0]])
+    s = BallSampler(points, np.array([0.0, 1.0]))
+    idx = s.sample(np.zeros((2000, 2)), np.ones(2000), np.random.default_rng(0))
+    assert set(idx.tolist()) == {2}  # points at distance exactly 1 are not strictly inside
+    far = np.full((10, 2), -5.0)
+    assert (s.sample(far, np.ones(10), np.random.default_rng(0)) == -1).all()
+    traj = np.full((1, 4, 2), -5.0)
+    np.testing.assert_array_equal(s.degrade(traj, 1, np.random.default_rng(0)), traj)
+
+
+def test_degrade_pins_ends_and_step_zero_is_identity():
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-1, 1, size=(1000, 4))
+    eps = radii("linear", 2.0, 16)
+    s = BallSampler(points, eps)
+    traj = rng.uniform(-1, 1, size=(8, 12, 4))
+    ks = rng.integers(1, 16, size=8)
+    out = s.degrade(traj, ks, rng)
+    np.testing.assert_array_equal(out[:, 0], traj[:, 0])
+    np.testing.assert_array_equal(out[:, -1], traj[:, -1])
+    for b in range(8):
+        for h in range(1, 11):
+            d = np.linalg.norm(out[b, h] - traj[b, h])
+            is_point = np.any(np.all(points == out[b, h], axis=1))
+            assert (is_point and d < eps[ks[b]]) or np.array_equal(out[b, h], traj[b, h])
+    np.testing.assert_array_equal(s.degrade(traj, 0, rng), traj)
+    # same seed, same draws
+    a = s.degrade(traj, ks, np.random.default_rng(11))
+    b = s.degrade(traj, ks, np.random.default_rng(11))
+    np.testing.assert_array_equal(a, b)
+
+
+def test_large_buffer_path_matches_brute_distribution():
+    """K = 20,000 exercises rejection rounds and the KD-tree; both agree with brute force in distribution."""
+    rng = np.random.default_rng(8)
+    points = rng.normal(size=(20_000, 2)) * 0.5
+    x, r = np.array([0.2, 0.1]), 0.03  # a small ball: ~10 points
+    s = BallSampler(points, np.array([0.0, r]))
+    n = 8000
+    idx = s.sample(np.repeat(x[None], n, 0), np.full(n, r), np.random.default_rng(9))
+    _check_uniform(idx, points, x, r)
+    r2 = 0.4  # a big ball: rejection sampling
+    idx = s.sample(np.repeat(x[None], 40_000, 0), np.full(40_000, r2), np.random.default_rng(10))
+    drawn = idx[idx >= 0]
+    assert np.all(np.linalg.norm(points[drawn] - x, axis=1) < r2)
+    inside = _inside(points, x, r2)
+    counts = np.bincount(drawn, minlength=len(points))[inside]
+    # ~3,000 points, ~13 draws each: compare the spread with a multinomial's rather than a full chi-square
+    assert abs(counts.mean() - len(drawn) / len(inside)) < 1e-9
+    assert 0.7 < counts.var() / counts.mean() < 1.3
+
+
+@pytest.mark.parametrize("schedule", ["linear", "log", "sqrt", "sigmoid"])
+def test_schedules(schedule):
+    eps = radii(schedule, 3.0, 32)
+    assert eps[0] == 0 and np.isclose(eps[-1], 3.0) and np.all(np.diff(eps[1:]) > 0)
+    if schedule == "linear":
+        np.testing.assert_allclose(eps, np.arange(32) / 31 * 3.0)
+
+
+def test_normalizer_round_trip_and_constant_feature():
+    x = np.array([[0.0, 5.0, 1.0], [2.0, -5.0, 1.0], [1.0, 0.0, 1.0]])
+    n = Normalizer.fit(x)
+    z = n.normalize(x)
+    assert z.min(0)[:2].tolist() == [-1, -1] and z.max(0)[:2].tolist() == [1, 1]
+    assert np.all(z[:, 2] == 0)
+    np.testing.assert_allclose(n.unnormalize(z), x, atol=1e-6)
+    import torch
+
+    torch.testing.assert_close(n.normalize(torch.tensor(x)), torch.tensor(z))
+
+
+def test_kmeans_snaps_to_real_states_and_diameter():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, size=(3000, 2))
+    keep, inertia = kmeans_buffer(pts, 50, seed=0)
+    assert len(keep) <= 50 and len(keep) > 40 and inertia > 0
+    assert keep.max() < 3000  # indices of real points
+    small = pts[:300]
+    brute = max(np.linalg.norm(a - b) for a in small for b in small)
+    assert np.isclose(diameter(small), brute)

@@ -1,0 +1,197 @@
+"""Evaluation, controllers, report and the miniature quickstart (issue #6)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+from cdrb_cli.configs import EvalConfig
+from cdrb_cli.envs.controllers import make_controller
+from cdrb_cli.envs.pointmaze import PointMaze
+from cdrb_cli.envs.protocol import draw_pairs, pair_states
+from cdrb_cli.envs.registry import make_spec
+from cdrb_cli.experts.maze_planner import MazeExpert
+from cdrb_cli.stages.collect import rollout
+from cdrb_cli.stages.evaluate import evaluate, run_episode
+from cdrb_cli.stages.train import resolve_config, train
+from tests.test_train import TINY
+
+
+@pytest.mark.parametrize("controller", ["pd", "inverse-dynamics"])
+def test_controllers_track_expert_plans(controller):
+    """Replaying an expert episode as a stride-2 plan reaches the goal and tracks it closely."""
+    spec = make_spec("maze-tight")
+    env = PointMaze(spec)
+    ctrl = make_controller(controller, spec.plan_stride, env.dynamics)
+    for s, sc, gc in draw_pairs(spec, 8, seed=3):
+        S, _, goal, ok = rollout(env, MazeExpert(spec), spec, s, sc, gc, spec.episode_limit)
+        plan = S[:: spec.plan_stride]
+        ctrl.reset(plan)
+        res = run_episode(env, spec, s, sc, gc, ctrl.act, spec.episode_limit)
+        assert res["success"] and not res["collision"]
+        executed = res["states"][: spec.plan_stride * (len(plan) - 1) + 1 : spec.plan_stride, :2]
+        err = np.linalg.norm(executed - plan[: len(executed), :2], axis=1)
+        # inverse dynamics is exact wherever the interpolated target needs no more than the maximum force
+        assert err.max() < (0.1 if controller == "inverse-dynamics" else 0.25), err.max()
+
+
+def test_inverse_dynamics_is_exact_on_reachable_targets():
+    spec = make_spec("maze")
+    env = PointMaze(spec)
+    ctrl = make_controller("inverse-dynamics", 1, env.dynamics)
+    obs, _ = env.reset(0, (7, 7), (1, 1))
+    t = np.arange(30)[:, None] * env.dynamics["dt"]
+    # constant acceleration of 5 m/s^2 (the ball can do about 24): every target is reachable in one step
+    plan = np.concatenate([obs[None, :2] + 0.5 * 5.0 * t**2 * np.array([[0.8, 0.6]]), np.zeros((30, 2))], axis=1)
+    ctrl.reset(plan)
+    for step in range(29):
+        obs = env.step(ctrl.act(obs, step))
+        np.testing.assert_allclose(obs[:2], plan[step + 1, :2], atol=1e-9)
+
+
+def test_protocol_pairs_are_central_starts_and_corner_goals():
+    spec = make_spec("maze-tight")
+    pairs = draw_pairs(spec, 50, seed=0)
+    starts = np.array([p[1] for p in pairs])
+    goals = {tuple(p[2]) for p in pairs}
+    assert starts.min() >= 5 and starts.max() <= 9
+    assert goals <= {(1, 1), (1, 13), (13, 1), (13, 13)} and len(goals) == 4
+    s1, g1 = pair_states(spec, pairs)
+    s2, g2 = pair_states(spec, draw_pairs(spec, 50, seed=0))
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(g1, g2)
+    assert np.all(np.abs(s1[:, 2:]) == 0)
+
+
+@pytest.fixture(scope="module")
+def evals(small_data, tmp_path_factory):
+    demos, buffer = small_data
+    root = tmp_path_factory.mktemp("evals")
+    out = {}
+    for method in ("cdrb", "diffuser", "mlp"):
+        b = buffer if method == "cdrb" else None
+        kw = dict(TINY) if method != "mlp" else dict(horizon=16, batch_size=8)
+        # horizon 16 at stride 10 covers 160 env steps: enough structure for a smoke test
+        model = train(
+            demos,
+            b,
+            resolve_config(demos, b, method, steps=20, checkpoint_every=20, stride=10, **kw),
+            root / f"m-{method}.h5",
+        )
+        cfg = EvalConfig(
+            episodes=4, seeds=[0, 1], sampler={"cdrb": "alg1", "diffuser": "ddpm", "mlp": "direct"}[method], seed=0
+        )
+        out[method] = evaluate(model, cfg, root / f"e-{method}.h5")
+    return out
+
+
+def test_eval_artifact_contents(evals):
+    ev = evals["cdrb"]
+    a = ev.arrays
+    assert a["episodes/success"].shape == (8,) and set(a["episodes/seed"].tolist()) == {0, 1}
+    assert a["plans"].shape[0] == 8
+    s = ev.manifest.summary
+    assert len(s.per_seed) == 2 and np.isclose(s.success_mean, a["episodes/success"].mean())
+    assert np.isclose(s.in_wall_mean, a["episodes/plan_in_wall_fraction"].mean())
+    assert np.all(a["episodes/expert_path_length"] > 0)
+    # the same seeds give the same start/goal pairs for every method
+    for other in ("diffuser", "mlp"):
+        np.testing.assert_array_equal(evals[other].arrays["episodes/start"], a["episodes/start"])
+        np.testing.assert_array_equal(evals[other].arrays["episodes/goal"], a["episodes/goal"])
+
+
+def test_report_formats_and_pictures(evals, tmp_path, cdrb):
+    paths = [evals[m].path for m in ("cdrb", "diffuser", "mlp")]
+    r = cdrb(
+        "report",
+        *paths,
+        "--format",
+        "markdown",
+        "--paper",
+        "--plot",
+        tmp_path / "bars.png",
+        "--plans-plot",
+        tmp_path / "plans.png",
+    )
+    assert r.returncode == 0, r.stderr
+    assert "| Maze Tight |" in r.stdout and "Maze Tight (paper)" in r.stdout and "98.00 ± 0.00" in r.stdout
+    for name in ("bars.png", "plans.png"):
+        assert (tmp_path / name).stat().st_size > 5000
+    rows = json.loads(cdrb("report", *paths, "--format", "json").stdout)
+    assert {row["method"] for row in rows} == {"cdrb", "diffuser", "mlp"}
+    csv_text = cdrb("report", *paths, "--format", "csv").stdout
+    assert csv_text.splitlines()[0].startswith("env,method")
+    r = cdrb("report", *paths, "--out", tmp_path / "r.md")
+    assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "r.md")
+
+
+def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
+    ev = evals["cdrb"]
+    cfg = ev.manifest.config.model_copy(update={"seeds": [0]})
+    other = ev.manifest.model_copy(update={"config": cfg, "summary": evals["diffuser"].manifest.summary})
+    artifacts.save(tmp_path / "other.h5", "eval", other, ev.arrays)
+    r = cdrb("report", ev.path, tmp_path / "other.h5")
+    assert r.returncode == 2 and "different protocols" in r.stderr
+    r = cdrb("report", ev.path, ev.path)
+    assert r.returncode == 2 and "both cdrb" in r.stderr
+
+
+def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):
+    demos, _ = small_data
+    model = evals["cdrb"].manifest.parents[0].path
+    for args, needle in [
+        (["--seeds", "a,b"], "--seeds"),
+        (["--seeds", "1,1"], "repeated"),
+        (["--controller", "magic"], "--controller"),
+        (["--sampler", "ddpm"], "--sampler"),
+        (["--episodes", "0"], "--episodes"),
+    ]:
+        r = cdrb("eval", model, *args, "--out", tmp_path / "e.h5")
+        assert r.returncode == 2 and needle in r.stderr, (args, r.stderr)
+    r = cdrb("eval", demos.path, "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "'model' artifact" in r.stderr
+    assert not (tmp_path / "e.h5").exists()
+
+
+@pytest.mark.slow
+def test_miniature_quickstart_end_to_end_and_rerun(tmp_path, cdrb):
+    out = tmp_path / "qs"
+    args = [
+        "quickstart",
+        "--out",
+        out,
+        "--episodes",
+        "30",
+        "--k",
+        "50",
+        "--steps",
+        "20",
+        "--seeds",
+        "0",
+        "--eval-episodes",
+        "3",
+        "--methods",
+        "cdrb,diffuser,mlp",
+    ]
+    r = cdrb(*args)
+    assert r.returncode == 0, r.stderr
+    assert "| Maze Tight |" in r.stdout
+    for name in (
+        "demos.h5",
+        "buffer.h5",
+        "model-cdrb.h5",
+        "model-diffuser.h5",
+        "eval-cdrb.h5",
+        "report.md",
+        "results.png",
+        "plans.png",
+        "demos.png",
+    ):
+        assert (out / name).exists(), name
+    before = {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5")}
+    again = cdrb(*args)
+    assert again.returncode == 0 and again.stderr.count("up to date") == 8
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5")} == before

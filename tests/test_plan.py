@@ -1,0 +1,96 @@
+"""Planning: start and goal held exactly, bad points refused, iterates, pictures (issue #4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+from cdrb_cli.stages.train import resolve_config, train
+from tests.test_train import TINY
+
+
+@pytest.fixture(scope="module")
+def tiny_models(small_data, tmp_path_factory):
+    demos, buffer = small_data
+    root = tmp_path_factory.mktemp("models")
+    out = {}
+    for method in ("cdrb", "diffuser", "mlp"):
+        b = buffer if method == "cdrb" else None
+        kw = dict(TINY) if method != "mlp" else dict(horizon=16, batch_size=8)
+        cfg = resolve_config(demos, b, method, steps=30, checkpoint_every=30, **kw)
+        out[method] = train(demos, b, cfg, root / f"{method}.h5")
+    return out
+
+
+@pytest.mark.parametrize("method", ["cdrb", "diffuser", "mlp"])
+def test_start_and_goal_held_exactly(tiny_models, tmp_path, cdrb, method):
+    model = tiny_models[method]
+    out = tmp_path / "p.h5"
+    r = cdrb(
+        "plan",
+        model.path,
+        "--start",
+        "0.3,-0.2",
+        "--start",
+        "1,1,0.5,-0.5",
+        "--goal",
+        "6,6",
+        "--goal",
+        "-6,-6",
+        "--n",
+        "3",
+        "--out",
+        out,
+        "--show-steps",
+        "2",
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(out)
+    p = artifacts.load(out, "plans")
+    plans = p.plans
+    assert plans.shape == (6, 16, 4)
+    starts = np.array([[0.3, -0.2, 0, 0], [1, 1, 0.5, -0.5]], dtype=np.float32)
+    goals = np.array([[6, 6, 0, 0], [-6, -6, 0, 0]], dtype=np.float32)
+    np.testing.assert_array_equal(plans[:, 0, :4], starts[p.arrays["pair_index"]])
+    np.testing.assert_array_equal(plans[:, -1, :4], goals[p.arrays["pair_index"]])
+    if method != "mlp":
+        assert p.arrays["iterates"].shape[:2] == (6, 2)
+
+
+def test_protocol_pairs_and_plot(tiny_models, tmp_path, cdrb):
+    out, png = tmp_path / "p.h5", tmp_path / "p.png"
+    r = cdrb("plan", tiny_models["cdrb"].path, "--pairs", "5", "--out", out, "--plot", png, "--show-steps", "3")
+    assert r.returncode == 0, r.stderr
+    p = artifacts.load(out)
+    s = p.manifest.summary
+    assert s.pairs == 5 and 0 <= s.in_wall_fraction <= 1 and png.stat().st_size > 5000
+    np.testing.assert_array_equal(p.arrays["in_wall"].mean(), np.float64(s.in_wall_fraction))
+    # the same seed draws the same pairs
+    r = cdrb("plan", tiny_models["diffuser"].path, "--pairs", "5", "--out", tmp_path / "q.h5")
+    q = artifacts.load(tmp_path / "q.h5")
+    np.testing.assert_array_equal(p.starts, q.starts)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--start", "-3,3", "--goal", "6,6"], "inside a wall"),
+        (["--start", "0,0", "--goal", "9,0"], "outside the map"),
+        (["--start", "0,0", "--goal", "0.45,3"], "inside a wall"),
+        (["--start", "0,0,1", "--goal", "6,6"], "expected 2 or 4 numbers"),
+        (["--start", "a,b", "--goal", "6,6"], "not a list of numbers"),
+        (["--start", "0,0"], "no start/goal"),
+        (["--start", "0,0", "--goal", "6,6", "--sampler", "ddpm"], "--sampler"),
+    ],
+)
+def test_bad_points(tiny_models, tmp_path, cdrb, args, needle):
+    r = cdrb("plan", tiny_models["cdrb"].path, *args, "--out", tmp_path / "p.h5")
+    assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "p.h5").exists()
+
+
+def test_plan_refuses_non_model(small_data, tmp_path, cdrb):
+    demos, _ = small_data
+    r = cdrb("plan", demos.path, "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
+    assert r.returncode == 2 and "'model' artifact is needed" in r.stderr

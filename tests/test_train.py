@@ -1,0 +1,208 @@
+"""Training: the loss decreases, checkpoints resume bit for bit (also after SIGKILL), bad inputs are refused
+(issue #4)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+from cdrb_cli.errors import BadInput
+from cdrb_cli.stages.train import resolve_config, train
+
+TINY = dict(dim=8, dim_mults=[1, 2], horizon=16, diffusion=8, batch_size=8, lr=2e-3)
+TINY_FLAGS = [
+    "--dim",
+    "8",
+    "--dim-mults",
+    "1,2",
+    "--horizon",
+    "16",
+    "--diffusion-steps",
+    "8",
+    "--batch-size",
+    "8",
+    "--lr",
+    "2e-3",
+    "--device",
+    "cpu",
+]
+
+
+def _weights(model):
+    return {k: v for k, v in model.arrays.items() if k.startswith(("weights/", "ema/", "optim/"))}
+
+
+def test_cdrb_learns_to_restore(small_data, tmp_path):
+    """After a short training the restorer beats two baselines on held-out windows at mid and large k: the
+    identity (returning the degraded input) and the straight line from start to goal."""
+    import torch
+
+    from cdrb_cli.data import WindowSampler
+    from cdrb_cli.stages.train import load_planner
+
+    demos, buffer = small_data
+    # stride 10: a 16-state window spans 160 env steps, long enough to turn through the maze
+    cfg = resolve_config(demos, buffer, "cdrb", steps=600, checkpoint_every=200, stride=10, **TINY)
+    model = train(demos, buffer, cfg, tmp_path / "m.h5")
+    loss = model.arrays["curve/loss"]
+    assert model.manifest.state.finished and model.manifest.state.step == 600
+    assert loss[-5:].mean() < loss[:5].mean()
+    assert "buffer/points" in model.arrays and model.arrays["buffer/points"].shape == buffer.points.shape
+    assert [p.kind for p in model.manifest.parents] == ["demos", "buffer"]
+    method, ema = load_planner(model)
+    tau = torch.from_numpy(
+        WindowSampler(demos, "state", method.normalizer, cfg.horizon, cfg.stride, "valid").episode_windows()
+    )
+    rng = np.random.default_rng(0)
+    start, goal = method.ends(tau, method.obs_dim)
+    w = torch.linspace(0, 1, tau.shape[1])[None, :, None]
+    line = start[:, None] * (1 - w) + goal[:, None] * w
+    err_line = float(((line - tau[..., : method.obs_dim]) ** 2).mean())
+    for k in (4, 6, 7):
+        noisy = method.pin(method._degrade(tau, k, rng), start, goal)
+        with torch.no_grad():
+            pred = method.pin(ema(noisy, torch.full((len(tau),), k)), start, goal)
+        err_model = float(((pred - tau) ** 2).mean())
+        err_identity = float(((noisy - tau) ** 2).mean())
+        assert err_model < 0.5 * err_identity and err_model < err_line, (k, err_model, err_identity, err_line)
+
+
+@pytest.mark.parametrize("method", ["cdrb", "diffuser", "mlp"])
+def test_resume_continues_to_the_same_result(small_data, tmp_path, method):
+    demos, buffer = small_data
+    b = buffer if method == "cdrb" else None
+    kw = dict(TINY) if method != "mlp" else dict(horizon=16, batch_size=8, lr=2e-3)
+    full = train(demos, b, resolve_config(demos, b, method, steps=40, checkpoint_every=10, **kw), tmp_path / "a.h5")
+    half = resolve_config(demos, b, method, steps=20, checkpoint_every=10, **kw)
+    train(demos, b, half, tmp_path / "b.h5")
+    rest = resolve_config(demos, b, method, steps=40, checkpoint_every=10, **kw)
+    resumed = train(demos, b, rest, tmp_path / "b.h5", resume=True)
+    wa, wb = _weights(full), _weights(resumed)
+    assert wa.keys() == wb.keys()
+    for k in wa:
+        np.testing.assert_array_equal(wa[k], wb[k], err_msg=k)
+    np.testing.assert_array_equal(full.arrays["curve/loss"], resumed.arrays["curve/loss"])
+
+
+def test_kill_and_resume_matches_uninterrupted(small_data, tmp_path, cdrb):
+    demos, buffer = small_data
+    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "300", "--checkpoint-every", "10", *TINY_FLAGS]
+    ref = tmp_path / "ref.h5"
+    r = cdrb(*args, "--out", ref)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "killed.h5"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", *map(str, args), "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=dict(os.environ),
+    )
+    step = 0
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+        if out.exists():
+            try:
+                step = artifacts.load(out, "model").manifest.state.step
+            except BadInput:
+                continue  # never happens with atomic writes; tolerated only while polling
+            if step >= 60:
+                break
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = artifacts.load(out, "model").manifest.state
+    assert not killed_at.finished and 60 <= killed_at.step < 300, killed_at
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith("killed.h5") and p.name != "killed.h5"]
+    r = cdrb(*args, "--out", out)  # without --resume an unfinished checkpoint is not overwritten
+    assert r.returncode == 2 and "--resume" in r.stderr
+    r = cdrb(*args, "--out", out, "--resume")
+    assert r.returncode == 0, r.stderr
+    a, b = _weights(artifacts.load(ref)), _weights(artifacts.load(out))
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    # re-running the finished command is a no-op
+    r = cdrb(*args, "--out", out)
+    assert r.returncode == 0 and "up to date" in r.stderr
+
+
+def test_nan_loss_stops_and_keeps_last_checkpoint(small_data, tmp_path, monkeypatch):
+    import torch
+
+    from cdrb_cli.errors import RunFailed
+    from cdrb_cli.methods.cdrb import CDRB
+
+    demos, buffer = small_data
+    out = tmp_path / "m.h5"
+    cfg = resolve_config(demos, buffer, "cdrb", steps=30, checkpoint_every=10, **TINY)
+    real = CDRB.loss
+    calls = {"n": 0}
+
+    def poisoned(self, batch, rng):
+        loss = real(self, batch, rng)
+        if not torch.is_grad_enabled():  # validation losses at checkpoints
+            return loss
+        calls["n"] += 1
+        return loss * torch.tensor(float("nan")) if calls["n"] == 25 else loss
+
+    monkeypatch.setattr(CDRB, "loss", poisoned)
+    with pytest.raises(RunFailed, match="diverged at step 25"):
+        train(demos, buffer, cfg, out)
+    kept = artifacts.load(out, "model")
+    assert kept.manifest.state.step == 20 and not kept.manifest.state.finished
+    assert all(np.all(np.isfinite(v)) for v in _weights(kept).values())
+
+
+def test_refuses_mismatched_buffer(small_data, tmp_path):
+    from cdrb_cli.configs import ClusterConfig
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.stages.cluster import cluster
+    from cdrb_cli.stages.collect import collect, collect_config
+
+    demos, buffer = small_data
+    spec = make_spec("maze")
+    other = collect(spec, collect_config(spec, episodes=6, seed=1), tmp_path / "other.h5")
+    other_buf = cluster(other, ClusterConfig(k=20, seed=0), tmp_path / "ob.h5")
+    cfg = resolve_config(demos, other_buf, "cdrb", steps=5, **TINY)
+    with pytest.raises(BadInput, match="made for env 'maze'"):
+        train(demos, other_buf, cfg, tmp_path / "m.h5")
+    spec_t = make_spec("maze-tight")
+    other_t = collect(spec_t, collect_config(spec_t, episodes=6, seed=5), tmp_path / "other_t.h5")
+    buf_t = cluster(other_t, ClusterConfig(k=20, seed=0), tmp_path / "obt.h5")
+    with pytest.raises(BadInput, match="normalizer does not match"):
+        train(demos, buf_t, resolve_config(demos, buf_t, "cdrb", steps=5, **TINY), tmp_path / "m2.h5")
+
+
+def test_config_errors(small_data):
+    demos, buffer = small_data
+    with pytest.raises(BadInput, match="needs a multiple of 2"):
+        resolve_config(demos, buffer, "cdrb", **{**TINY, "horizon": 15})
+    with pytest.raises(BadInput, match="needs --buffer"):
+        resolve_config(demos, None, "cdrb")
+    with pytest.raises(BadInput, match="must be positive"):
+        resolve_config(demos, buffer, "cdrb", steps=-3)
+
+
+def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
+    demos, buffer = small_data
+    cases = [
+        (["--steps", "-1"], "--steps"),
+        (["--horizon", "30", "--dim-mults", "1,2,4"], "multiple of 4"),
+        (["--method", "magic"], "--method"),
+        (["--schedule", "cubic"], "--schedule"),
+        (["--buffer", demos.path], "'demos' artifact"),
+    ]
+    for extra, needle in cases:
+        args = ["train", demos.path, "--out", tmp_path / "m.h5"]
+        if "--buffer" not in extra:
+            args += ["--buffer", buffer.path]
+        r = cdrb(*args, *extra)
+        assert r.returncode == 2 and needle in r.stderr, (extra, r.stderr)
+        assert r.stderr.count("\n") == 1
+    assert not any(tmp_path.iterdir())
