@@ -61,12 +61,16 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
     rows = [measure(m, args.pairs, args.seed) for m in args.models]
-    print(f"| method | sampler (steps) | planned states in walls | plans touching a wall | ms/plan batch 1 | "
-          f"ms/plan batch 64 |  ({args.pairs} pairs, seed {args.seed})")
+    print(
+        f"| method | sampler (steps) | planned states in walls | plans touching a wall | ms/plan batch 1 | "
+        f"ms/plan batch 64 |  ({args.pairs} pairs, seed {args.seed})"
+    )
     print("|---|---|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['method']} ({r['preset']}) | {r['sampler']} ({r['steps']}) | {100 * r['in_wall']:.2f}% | "
-              f"{100 * r['plans_touching']:.1f}% | {r['ms_per_plan_b1']:.1f} | {r['ms_per_plan_b64']:.2f} |")
+        print(
+            f"| {r['method']} ({r['preset']}) | {r['sampler']} ({r['steps']}) | {100 * r['in_wall']:.2f}% | "
+            f"{100 * r['plans_touching']:.1f}% | {r['ms_per_plan_b1']:.1f} | {r['ms_per_plan_b64']:.2f} |"
+        )
 
 
 if __name__ == "__main__":

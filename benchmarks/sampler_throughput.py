@@ -17,6 +17,7 @@ import argparse
 import json
 import platform
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -83,14 +84,14 @@ def main() -> None:
             for regime in ("training (k ~ U{1..T-1})", "sampling (one k per call)"):
                 ks = rng.integers(1, T, size=batch) if regime.startswith("training") else np.full(batch, T // 2)
                 n = batch * H
-                t_ours = bench(lambda: ours.degrade(x, ks, rng), args.repeats)
+                t_ours = bench(partial(ours.degrade, x, ks, rng), args.repeats)
                 row = {"K": K, "batch": batch, "queries": n, "regime": regime, "ours_states_per_s": n / t_ours}
                 mem = n * (K + 1) * 4 * 4 * 2  # the (BH, K, D) difference and (BH, K+1, D) gather, float32
                 if batch <= ref_batch:
                     xt = torch.as_tensor(x, dtype=torch.float32)
                     rt = torch.as_tensor(eps[ks], dtype=torch.float32)
                     gen = torch.Generator().manual_seed(0)
-                    t_ref = bench(lambda: reference_degrade(xt, buf_t, rt, gen), args.repeats)
+                    t_ref = bench(partial(reference_degrade, xt, buf_t, rt, gen), args.repeats)
                     row["reference_states_per_s"] = n / t_ref
                     row["speedup"] = t_ref / t_ours
                 else:
@@ -98,11 +99,19 @@ def main() -> None:
                 row["reference_tensor_GiB"] = mem / 2**30
                 results.append(row)
                 ref = row["reference_states_per_s"]
-                print(f"K={K:>7,} batch={batch:>3} {regime:28s} ours {n / t_ours:>12,.0f} states/s   reference "
-                      + (f"{ref:>12,.0f} states/s  ({row['speedup']:.1f}x)" if ref else
-                         f"{'not run':>12s} (needs {mem / 2**30:,.0f} GiB)"))
-    meta = {"machine": f"{platform.processor() or platform.machine()}, torch threads 2", "torch": torch.__version__,
-            "results": results}
+                print(
+                    f"K={K:>7,} batch={batch:>3} {regime:28s} ours {n / t_ours:>12,.0f} states/s   reference "
+                    + (
+                        f"{ref:>12,.0f} states/s  ({row['speedup']:.1f}x)"
+                        if ref
+                        else f"{'not run':>12s} (needs {mem / 2**30:,.0f} GiB)"
+                    )
+                )
+    meta = {
+        "machine": f"{platform.processor() or platform.machine()}, torch threads 2",
+        "torch": torch.__version__,
+        "results": results,
+    }
     if args.json:
         args.json.write_text(json.dumps(meta, indent=2))
 
