@@ -321,6 +321,12 @@ def train(
     features: str | None = typer.Option(None, "--features", help="state or state-action (CDRB: the buffer's)."),
     dim: int | None = typer.Option(None, "--dim", help="U-Net base width (preset: quick 16, paper 32)."),
     dim_mults: str | None = typer.Option(None, "--dim-mults", help="U-Net width multipliers, e.g. 1,4,8."),
+    residual: bool | None = typer.Option(
+        None, "--residual/--no-residual", help="U-Net output = input + correction (preset: quick on, paper off)."
+    ),
+    loss_weight_power: float | None = typer.Option(
+        None, "--loss-weight-power", help="CDRB: weight samples by (eps_1/eps_k)^p (preset: quick 1, paper 0)."
+    ),
     batch_size: int | None = typer.Option(None, "--batch-size", help="Windows per step (preset)."),
     lr: float | None = typer.Option(None, "--lr", help="Adam learning rate (preset)."),
     checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Save a checkpoint every N steps."),
@@ -395,6 +401,8 @@ def train(
         dim=dim,
         dim_mults=mults,
         start_fraction=start_fraction,
+        residual=residual,
+        loss_weight_power=loss_weight_power,
         batch_size=batch_size,
         lr=lr,
         checkpoint_every=checkpoint_every,

@@ -88,6 +88,7 @@ class UNetConfig(Record):
     dim_mults: list[int] = Field(default_factory=lambda: [1, 4, 8])
     kernel_size: int = Field(5, gt=0)
     groups: int = Field(8, gt=0)
+    residual: bool = Field(False, description="predict x0 as the input plus a correction (x_k + f(x_k, k))")
 
 
 class TransformerConfig(Record):
@@ -120,6 +121,9 @@ class CDRBParams(Record):
     d_max: float = Field(gt=0, description="largest ball radius, in normalized feature space")
     diffusion_steps: int = Field(gt=1)
     sampler: Literal["alg1", "alg2"] = "alg1"
+    loss_weight_power: float = Field(
+        0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
+    )
 
 
 class DiffuserParams(Record):

@@ -46,7 +46,12 @@ class CDRB(Method):
         k = rng.integers(1, self.T, size=B)
         noisy = self.pin(self._degrade(batch, k, rng), start, goal)
         pred = self.pin(self.net(noisy, torch.as_tensor(k, device=batch.device)), start, goal)
-        return torch.mean((pred - batch) ** 2)
+        per_sample = torch.mean((pred - batch) ** 2, dim=(1, 2))
+        p = self.config.method.loss_weight_power
+        if p > 0:
+            w = torch.as_tensor((self.eps[1] / self.eps[k]) ** p, dtype=per_sample.dtype, device=per_sample.device)
+            return torch.sum(w * per_sample) / torch.sum(w)
+        return per_sample.mean()
 
     @torch.no_grad()
     def sample(self, net, start, goal, rng, sampler=None, steps=None, keep_iterates=0) -> SampleResult:

@@ -73,6 +73,7 @@ class TemporalUNet(nn.Module):
                 )
             )
         self.head = nn.Sequential(ConvNormAct(dim, dim, k, g), nn.Conv1d(dim, feature_dim, 1))
+        self.residual = config.residual
 
     def forward(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         emb = self.step_embedding(k)
@@ -87,4 +88,5 @@ class TemporalUNet(nn.Module):
         for block1, block2, up in self.up:
             h = torch.cat([h, skips.pop()], dim=1)
             h = up(block2(block1(h, emb), emb))
-        return self.head(h).transpose(1, 2)
+        out = self.head(h).transpose(1, 2)
+        return x + out if self.residual else out

@@ -20,7 +20,7 @@ from cdrb_cli.configs import CDRBParams, DiffuserParams, MLPParams, TrainConfig,
 from cdrb_cli.data import WindowSampler
 from cdrb_cli.errors import BadInput, RunFailed
 from cdrb_cli.nets import horizon_multiple
-from cdrb_cli.presets import diffusion_steps, net_config, train_defaults
+from cdrb_cli.presets import cdrb_loss_weight_power, diffusion_steps, net_config, train_defaults
 from cdrb_cli.seeding import STREAM_TRAIN, STREAM_VALID, step_rng
 
 
@@ -40,6 +40,8 @@ def resolve_config(
     seed: int = 0,
     dim: int | None = None,
     dim_mults: list[int] | None = None,
+    residual: bool | None = None,
+    loss_weight_power: float | None = None,
     **overrides,
 ) -> TrainConfig:
     """The full TrainConfig from a method, a preset and any overrides, checked against the inputs."""
@@ -70,6 +72,10 @@ def resolve_config(
                 f"--dim {net_cfg.dim}: must be a multiple of {net_cfg.groups}, mults positive",
                 hint="e.g. --dim 32 --dim-mults 1,4,8",
             )
+    if residual is not None:
+        if net != "unet":
+            raise BadInput("--residual/--no-residual apply to --net unet", hint="omit them")
+        net_cfg = net_cfg.model_copy(update={"residual": residual})
     horizon = horizon or spec.horizon
     stride = stride or spec.plan_stride
     mult = horizon_multiple(net_cfg)
@@ -83,7 +89,12 @@ def resolve_config(
         raise BadInput(f"--diffusion-steps {T}: must be at least 2", hint="use e.g. 32")
     if method == "cdrb":
         diam = buffer.manifest.summary.diameter
-        params = CDRBParams(schedule=schedule, d_max=d_max or diam, diffusion_steps=T)
+        params = CDRBParams(
+            schedule=schedule,
+            d_max=d_max or diam,
+            diffusion_steps=T,
+            loss_weight_power=cdrb_loss_weight_power(preset) if loss_weight_power is None else loss_weight_power,
+        )
     elif method == "diffuser":
         params = DiffuserParams(diffusion_steps=T)
     elif method == "mlp":
