@@ -31,12 +31,16 @@ def main() -> None:
     t = time.time()
     stats = run_faults(root, args.kills, args.seed)
     crashed = crash_before_rename(root)
-    print(f"| fault | stage | injected | output absent | unfinished checkpoint left | corrupt outputs | "
-          f"re-run differs from uninterrupted | temp files left |  ({time.time() - t:.0f}s)")
+    print(
+        f"| fault | stage | injected | output absent | unfinished checkpoint left | corrupt outputs | "
+        f"re-run differs from uninterrupted | temp files left |  ({time.time() - t:.0f}s)"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for name, s in stats.items():
-        print(f"| SIGKILL at a random moment | {name} | {s.kills} | {s.killed_before_output} | "
-              f"{s.killed_with_checkpoint} | {s.output_corrupt} | {s.rerun_mismatch} | {s.temp_files_left} |")
+        print(
+            f"| SIGKILL at a random moment | {name} | {s.kills} | {s.killed_before_output} | "
+            f"{s.killed_with_checkpoint} | {s.output_corrupt} | {s.rerun_mismatch} | {s.temp_files_left} |"
+        )
     for name, ok in crashed.items():
         print(f"| crash between write and rename | {name} | 1 | – | – | {0 if ok else 1} | – | – |")
 

@@ -23,29 +23,30 @@ from cdrb_cli.stages.plan import sample_plans
 from cdrb_cli.stages.train import load_planner
 
 
-def measure(model_path: Path, pairs: int, seed: int, timing_plans: int = 16) -> dict:
+def measure(model_path: Path, pairs: int, seed: int, timing_plans: int = 16, sampler=None, steps=None) -> dict:
     model = artifacts.load(model_path, "model")
     spec = model.manifest.env
     method, ema = load_planner(model)
     starts, goals = pair_states(spec, draw_pairs(spec, pairs, seed, STREAM_PLAN))
     goals = goal_state(spec, goals)
-    plans, *_ = sample_plans(method, ema, starts, goals, 1, seed, batch_size=64)
+    kw = dict(sampler=sampler, steps=steps)
+    plans, *_ = sample_plans(method, ema, starts, goals, 1, seed, batch_size=64, **kw)
     wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
     times = {}
     for batch in (1, 64):
         n = timing_plans if batch == 1 else 64 * 2
         s, g = starts[np.arange(n) % pairs], goals[np.arange(n) % pairs]
-        sample_plans(method, ema, s[:batch], g[:batch], 1, seed, batch_size=batch)  # warm-up
+        sample_plans(method, ema, s[:batch], g[:batch], 1, seed, batch_size=batch, **kw)  # warm-up
         t = time.perf_counter()
-        sample_plans(method, ema, s, g, 1, seed, batch_size=batch)
+        sample_plans(method, ema, s, g, 1, seed, batch_size=batch, **kw)
         times[batch] = (time.perf_counter() - t) / n
     cfg = model.manifest.config
     return {
         "model": str(model_path),
         "method": cfg.method.name,
         "preset": cfg.preset,
-        "sampler": getattr(cfg.method, "sampler", "direct"),
-        "steps": getattr(cfg.method, "diffusion_steps", 1),
+        "sampler": sampler or getattr(cfg.method, "sampler", "direct"),
+        "steps": steps or getattr(cfg.method, "diffusion_steps", 1),
         "in_wall": float(wall.mean()),
         "plans_touching": float(wall.any(axis=1).mean()),
         "ms_per_plan_b1": 1000 * times[1],
@@ -58,9 +59,15 @@ def main() -> None:
     ap.add_argument("models", nargs="+", type=Path)
     ap.add_argument("--pairs", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--fast-steps", type=int, default=0, help="also time diffusion models with this many steps")
     args = ap.parse_args()
     torch.set_num_threads(2)
-    rows = [measure(m, args.pairs, args.seed) for m in args.models]
+    rows = []
+    for m in args.models:
+        rows.append(measure(m, args.pairs, args.seed))
+        if args.fast_steps and rows[-1]["method"] != "mlp":
+            fast = "ddim" if rows[-1]["method"] == "diffuser" else None
+            rows.append(measure(m, args.pairs, args.seed, sampler=fast, steps=args.fast_steps))
     print(
         f"| method | sampler (steps) | planned states in walls | plans touching a wall | ms/plan batch 1 | "
         f"ms/plan batch 64 |  ({args.pairs} pairs, seed {args.seed})"

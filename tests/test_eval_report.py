@@ -130,13 +130,41 @@ def test_report_formats_and_pictures(evals, tmp_path, cdrb):
 
 def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
     ev = evals["cdrb"]
-    cfg = ev.manifest.config.model_copy(update={"seeds": [0]})
+    # another method evaluated with other episodes per seed
+    cfg = ev.manifest.config.model_copy(update={"episodes": 7})
     other = ev.manifest.model_copy(update={"config": cfg, "summary": evals["diffuser"].manifest.summary})
     artifacts.save(tmp_path / "other.h5", "eval", other, ev.arrays)
     r = cdrb("report", ev.path, tmp_path / "other.h5")
     assert r.returncode == 2 and "different protocols" in r.stderr
+    # another method evaluated on other seeds
+    summ = evals["diffuser"].manifest.summary
+    summ = summ.model_copy(update={"per_seed": [p.model_copy(update={"seed": 9}) for p in summ.per_seed[:1]]})
+    artifacts.save(tmp_path / "seeds.h5", "eval", ev.manifest.model_copy(update={"summary": summ}), ev.arrays)
+    r = cdrb("report", ev.path, tmp_path / "seeds.h5")
+    assert r.returncode == 2 and "different protocols" in r.stderr and "seeds" in r.stderr
+    # the same seeds twice for one method
     r = cdrb("report", ev.path, ev.path)
-    assert r.returncode == 2 and "both cdrb" in r.stderr
+    assert r.returncode == 2 and "more than one eval file" in r.stderr
+
+
+def test_report_pools_one_eval_per_training_seed(evals, tmp_path, cdrb):
+    """Table-1 style: one model per training seed, each evaluated on its own seed, pooled as seeds."""
+    paths = []
+    for method in ("cdrb", "diffuser"):
+        ev = evals[method]
+        for seed in (0, 1):
+            summ = ev.manifest.summary
+            per = [p for p in summ.per_seed if p.seed == seed]
+            m = ev.manifest.model_copy(update={"summary": summ.model_copy(update={"per_seed": per})})
+            path = tmp_path / f"{method}-{seed}.h5"
+            artifacts.save(path, "eval", m, ev.arrays)
+            paths.append(path)
+    rows = json.loads(cdrb("report", *paths, "--format", "json").stdout)
+    by = {r["method"]: r for r in rows}
+    for method in ("cdrb", "diffuser"):
+        per = evals[method].manifest.summary.per_seed
+        assert by[method]["seeds"] == 2
+        assert np.isclose(by[method]["success_mean"], 100 * np.mean([p.success_rate for p in per]))
 
 
 def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):

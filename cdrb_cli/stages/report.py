@@ -39,7 +39,7 @@ ENV_NAMES = {"maze": "Maze", "maze-tight": "Maze Tight"}
 
 def _protocol(ev) -> tuple:
     c = ev.manifest.config
-    return (tuple(c.seeds), c.episodes, c.controller, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
+    return (c.episodes, c.controller, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
 
 
 def method_label(ev) -> str:
@@ -48,52 +48,69 @@ def method_label(ev) -> str:
 
 
 def collect_rows(evals) -> list[dict]:
-    """One row per eval artifact; errors on mixed protocols within an environment or duplicate columns."""
-    by_env: dict[str, list] = {}
+    """One row per (environment, method). Several evals of one method (e.g. one per training seed) are pooled as
+    separate seeds; within an environment every method must use the same protocol and the same evaluation seeds,
+    and a seed may appear once per method. Anything else is an error, never a silent average."""
+    groups: dict[tuple[str, str], list] = {}
     for ev in evals:
-        by_env.setdefault(ev.manifest.env.id, []).append(ev)
+        groups.setdefault((ev.manifest.env.id, method_label(ev)), []).append(ev)
+    by_env: dict[str, dict[str, list]] = {}
+    for (env_id, label), group in groups.items():
+        by_env.setdefault(env_id, {})[label] = group
     rows = []
-    for env_id, group in by_env.items():
-        protos = {_protocol(ev) for ev in group}
+    for env_id, methods in by_env.items():
+        protos = {_protocol(ev) for group in methods.values() for ev in group}
         if len(protos) > 1:
             first, second = sorted(protos, key=str)[:2]
             raise BadInput(
                 f"eval files for {env_id} use different protocols ({_describe(first)} vs {_describe(second)})",
-                hint="evaluate every model with the same --seeds, --episodes and --controller",
+                hint="evaluate every model with the same --episodes and --controller",
             )
-        seen: dict[str, Path] = {}
-        for ev in group:
-            label = method_label(ev)
-            if label in seen:
+        seed_sets = {}
+        for label, group in methods.items():
+            seeds = [r.seed for ev in group for r in ev.manifest.summary.per_seed]
+            if len(seeds) != len(set(seeds)):
+                dup = sorted({x for x in seeds if seeds.count(x) > 1})
                 raise BadInput(
-                    f"{ev.path} and {seen[label]} are both {label} on {env_id}",
-                    hint="pass one eval per method and environment",
+                    f"{label} on {env_id}: evaluation seed(s) {dup} appear in more than one eval file",
+                    hint="pass one eval per method and seed",
                 )
-            seen[label] = ev.path
-            s = ev.manifest.summary
+            seed_sets[label] = tuple(sorted(seeds))
+        if len(set(seed_sets.values())) > 1:
+            (la, sa), (lb, sb) = list(seed_sets.items())[:2]
+            raise BadInput(
+                f"eval files for {env_id} use different protocols (seeds {list(sa)} for {la} vs {list(sb)} for {lb})",
+                hint="evaluate every method on the same --seeds",
+            )
+        for label, group in methods.items():
+            per = [r for ev in group for r in ev.manifest.summary.per_seed]
+            succ = np.array([r.success_rate for r in per])
+            wall = np.array([r.in_wall_fraction for r in per])
+            ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
+            first = group[0]
             rows.append(
                 {
                     "env": env_id,
                     "method": label,
-                    "base_method": s.method,
-                    "preset": s.model_preset,
-                    "seeds": len(ev.manifest.config.seeds),
-                    "episodes": ev.manifest.config.episodes,
-                    "success_mean": 100 * s.success_mean,
-                    "success_std": 100 * s.success_std,
-                    "in_wall_mean": 100 * s.in_wall_mean,
-                    "in_wall_std": 100 * s.in_wall_std,
-                    "collision_mean": 100 * s.executed_collision_mean,
-                    "path_ratio": s.path_length_ratio_mean,
-                    "plan_ms": 1000 * s.plan_seconds_mean,
-                    "path": str(ev.path),
+                    "base_method": first.manifest.summary.method,
+                    "preset": first.manifest.summary.model_preset,
+                    "seeds": len(per),
+                    "episodes": first.manifest.config.episodes,
+                    "success_mean": 100 * float(succ.mean()),
+                    "success_std": 100 * float(succ.std()),
+                    "in_wall_mean": 100 * float(wall.mean()),
+                    "in_wall_std": 100 * float(wall.std()),
+                    "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
+                    "path_ratio": float(np.mean(ratios)) if ratios else None,
+                    "plan_ms": 1000 * float(np.mean([r.plan_seconds for r in per])),
+                    "path": ";".join(str(ev.path) for ev in group),
                 }
             )
     return rows
 
 
 def _describe(p) -> str:
-    return f"seeds {list(p[0])}, {p[1]} episodes, {p[2]} controller"
+    return f"{p[0]} episodes per seed, {p[1]} controller, {p[4]}-step episodes"
 
 
 def _order(methods):

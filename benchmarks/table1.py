@@ -1,0 +1,253 @@
+"""The paper's Table 1 maze rows (and an ablation table), run through the public CLI.
+
+Grid: environments x methods x seeds. Per environment: `cdrb collect` (N demos), `cdrb cluster`; per method and
+seed: `cdrb train --seed S` then `cdrb eval --seeds S --episodes E`; finally `cdrb report` over everything.
+Every stage is skipped when its artifact is up to date (the CLI's own rule), and an unfinished training is
+resumed, so the script can be stopped and restarted at any time. Wall time of every stage goes to
+``OUT/timings.json``.
+
+    python benchmarks/table1.py --out runs/table1                         # quick preset, 5 seeds, 8k demos
+    python benchmarks/table1.py --out runs/paper --preset paper           # the paper's settings (wants a GPU)
+    python benchmarks/table1.py --out runs/tiny --tiny                    # a 2-minute smoke run of the same code
+    python benchmarks/table1.py --out runs/table1 --ablations             # + the Maze Tight ablations
+    python benchmarks/table1.py --out runs/table1 --write-docs            # + tables/figures into docs/
+
+With --write-docs the Table 1 report replaces the block between ``<!-- table1:begin -->`` and
+``<!-- table1:end -->`` of docs/benchmarks.md (ablations: ``<!-- ablations:... -->``); figures go to
+docs/figures/ and CSVs to docs/results/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+DOCS = ROOT / "docs"
+
+# Maze Tight ablations the paper shows only as figures (quick preset; one training seed each)
+ABLATIONS = {
+    "k=1000 (default)": [],
+    "k=100": ["--buffer-k", "100"],
+    "full buffer": ["--buffer-k", "0"],
+    "log schedule": ["--schedule", "log"],
+    "transformer": ["--net", "transformer"],
+    "state-action": ["--buffer-features", "state-action"],
+}
+
+
+def run(cmd: list, log: dict, key: str) -> str:
+    t = time.time()
+    proc = subprocess.run([sys.executable, "-m", "cdrb_cli", *map(str, cmd)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        sys.stderr.write(proc.stderr)
+        raise SystemExit(f"failed: cdrb {' '.join(map(str, cmd))}")
+    skipped = "up to date" in proc.stderr
+    log[key] = {"seconds": round(time.time() - t, 2), "skipped": skipped, "cmd": "cdrb " + " ".join(map(str, cmd))}
+    print(f"{'skip' if skipped else 'done'} {time.time() - t:7.1f}s  cdrb {' '.join(map(str, cmd))}", flush=True)
+    return proc.stdout.strip()
+
+
+def unfinished(path: Path) -> bool:
+    if not path.exists():
+        return False
+    from cdrb_cli import artifacts
+
+    try:
+        return not artifacts.load(path, "model").manifest.state.finished
+    except Exception:
+        return False
+
+
+def train_eval(
+    folder: Path, demos: Path, buffer: Path, method: str, seed: int, args, log, tag: str, extra: list | None = None
+) -> Path:
+    model = folder / f"{tag}-s{seed}.h5"
+    cmd = [
+        "train",
+        demos,
+        "--method",
+        method,
+        "--preset",
+        args.preset,
+        "--seed",
+        seed,
+        "--out",
+        model,
+        "--device",
+        args.device,
+    ]
+    if method == "cdrb":
+        cmd += ["--buffer", buffer]
+    cmd += list(args.train_extra) + list(extra or [])
+    if unfinished(model):
+        cmd.append("--resume")
+    run(cmd, log, f"train {folder.name} {tag} s{seed}")
+    ev = folder / f"eval-{tag}-s{seed}.h5"
+    run(
+        ["eval", model, "--seeds", seed, "--episodes", args.eval_episodes, "--out", ev, "--device", args.device],
+        log,
+        f"eval {folder.name} {tag} s{seed}",
+    )
+    return ev
+
+
+def prepare_env(env: str, out: Path, args, log, k: int = 1000, features: str = "state") -> tuple[Path, Path]:
+    folder = out / env
+    folder.mkdir(parents=True, exist_ok=True)
+    demos = folder / "demos.h5"
+    run(["collect", env, "-n", args.demos, "--seed", 0, "--out", demos], log, f"collect {env}")
+    buffer = folder / f"buffer-k{k}-{features}.h5"
+    run(
+        ["cluster", demos, "--k", k, "--features", features, "--seed", 0, "--out", buffer],
+        log,
+        f"cluster {env} k{k} {features}",
+    )
+    return demos, buffer
+
+
+def replace_block(text: str, name: str, block: str) -> str:
+    pattern = re.compile(rf"<!-- {name}:begin -->.*?<!-- {name}:end -->", re.S)
+    new = f"<!-- {name}:begin -->\n{block.rstrip()}\n<!-- {name}:end -->"
+    if not pattern.search(text):
+        return text.rstrip() + "\n\n" + new + "\n"
+    return pattern.sub(lambda _: new, text)
+
+
+def hardware() -> str:
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            return f"GPU {torch.cuda.get_device_name(0)}"
+    except ImportError:
+        pass
+    import os
+
+    return f"CPU only, {os.cpu_count()} cores ({platform.machine()})"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "table1")
+    ap.add_argument("--envs", default="maze,maze-tight")
+    ap.add_argument("--methods", default="mlp,diffuser,cdrb")
+    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--demos", type=int, default=8000)
+    ap.add_argument("--eval-episodes", type=int, default=100)
+    ap.add_argument("--preset", default="quick", choices=["quick", "paper"])
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--tiny", action="store_true", help="smoke-test settings (tiny nets, few demos/episodes)")
+    ap.add_argument("--ablations", action="store_true")
+    ap.add_argument("--skip-grid", action="store_true", help="only the ablations")
+    ap.add_argument("--write-docs", action="store_true")
+    args = ap.parse_args()
+    args.train_extra = []
+    if args.tiny:
+        args.demos, args.eval_episodes = min(args.demos, 40), min(args.eval_episodes, 3)
+        args.train_extra = [
+            "--steps",
+            "20",
+            "--horizon",
+            "16",
+            "--stride",
+            "10",
+            "--dim",
+            "8",
+            "--dim-mults",
+            "1,2",
+            "--diffusion-steps",
+            "8",
+            "--batch-size",
+            "8",
+        ]
+    args.out.mkdir(parents=True, exist_ok=True)
+    timings_path = args.out / "timings.json"
+    log = json.loads(timings_path.read_text()) if timings_path.exists() else {}
+    seeds = [int(s) for s in args.seeds.split(",")]
+    methods = args.methods.split(",")
+    t0 = time.time()
+    evals = []
+    try:
+        if not args.skip_grid:
+            for env in args.envs.split(","):
+                demos, buffer = prepare_env(env, args.out, args, log)
+                for seed in seeds:
+                    for method in methods:
+                        evals.append(train_eval(args.out / env, demos, buffer, method, seed, args, log, method))
+        ablation_evals = {}
+        if args.ablations:
+            env = "maze-tight"
+            for name, flags in ABLATIONS.items():
+                flags = list(flags)
+                k, features = 1000, "state"
+                if "--buffer-k" in flags:
+                    k = int(flags[flags.index("--buffer-k") + 1])
+                    del flags[flags.index("--buffer-k") : flags.index("--buffer-k") + 2]
+                if "--buffer-features" in flags:
+                    features = flags[flags.index("--buffer-features") + 1]
+                    del flags[flags.index("--buffer-features") : flags.index("--buffer-features") + 2]
+                demos, buffer = prepare_env(env, args.out, args, log, k=k, features=features)
+                default = not flags and k == 1000 and features == "state"
+                tag = "cdrb" if default else "abl-" + re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
+                ablation_evals[name] = train_eval(
+                    args.out / env, demos, buffer, "cdrb", seeds[0], args, log, tag, flags
+                )
+    finally:
+        timings_path.write_text(json.dumps(log, indent=2))
+    print(f"total {(time.time() - t0) / 60:.1f} min", flush=True)
+
+    report_md = args.out / "table1.md"
+    if evals:
+        figs = DOCS / "figures" if args.write_docs else args.out
+        figs.mkdir(parents=True, exist_ok=True)
+        run(
+            ["report", *evals, "--format", "markdown", "--paper", "--out", report_md, "--plot", figs / "table1.png"],
+            log,
+            "report",
+        )
+        csv = (DOCS / "results" if args.write_docs else args.out) / "table1.csv"
+        csv.parent.mkdir(parents=True, exist_ok=True)
+        run(["report", *evals, "--format", "csv", "--out", csv], log, "report csv")
+    if args.write_docs:
+        text = (DOCS / "benchmarks.md").read_text()
+        if evals:
+            stage_time = {}
+            for key, v in log.items():
+                stage = key.split(" ")[0]
+                stage_time[stage] = stage_time.get(stage, 0.0) + (0 if v["skipped"] else v["seconds"])
+            body = report_md.read_text()
+            meta = (
+                f"\n*Run: `python benchmarks/table1.py --preset {args.preset} --demos {args.demos} --seeds "
+                f"{args.seeds} --eval-episodes {args.eval_episodes}` on {hardware()}; wall time per stage "
+                f"(summed): " + ", ".join(f"{k} {v / 60:.1f} min" for k, v in stage_time.items()) + ". "
+                "Commands and per-stage times: docs/results/table1_timings.json.*\n"
+            )
+            text = replace_block(text, "table1", body + meta)
+            (DOCS / "results" / "table1_timings.json").write_text(json.dumps(log, indent=2))
+        if args.ablations:
+            from cdrb_cli import artifacts
+
+            lines = [
+                "| Maze Tight ablation (CDRB, quick preset, seed 0) | success (%) | planned states in walls (%) "
+                "| executed collisions (%) | plan time (ms) |",
+                "|---|---:|---:|---:|---:|",
+            ]
+            for name, path in ablation_evals.items():
+                s = artifacts.load(path, "eval").manifest.summary
+                lines.append(
+                    f"| {name} | {100 * s.success_mean:.1f} | {100 * s.in_wall_mean:.2f} | "
+                    f"{100 * s.executed_collision_mean:.1f} | {1000 * s.plan_seconds_mean:.1f} |"
+                )
+            text = replace_block(text, "ablations", "\n".join(lines) + "\n")
+        (DOCS / "benchmarks.md").write_text(text)
+
+
+if __name__ == "__main__":
+    main()

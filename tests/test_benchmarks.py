@@ -1,0 +1,58 @@
+"""The benchmark scripts run end to end on tiny settings (the same code paths as the recorded runs)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.slow
+def test_table1_script_tiny(tmp_path):
+    out = tmp_path / "t1"
+    cmd = [
+        sys.executable,
+        str(ROOT / "benchmarks" / "table1.py"),
+        "--tiny",
+        "--out",
+        str(out),
+        "--envs",
+        "maze-tight",
+        "--methods",
+        "mlp,cdrb",
+        "--seeds",
+        "0,1",
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    table = (out / "table1.md").read_text()
+    assert "| Maze Tight |" in table and "Maze Tight (paper)" in table
+    assert (out / "timings.json").exists() and (out / "table1.png").stat().st_size > 5000
+    # a second run skips every stage
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0
+    assert (
+        "done" not in [line.split()[0] for line in again.stdout.splitlines() if line.startswith(("done", "skip"))][:-2]
+    )
+
+
+def test_planning_script(tmp_path, small_data):
+    from cdrb_cli.stages.train import resolve_config, train
+    from tests.test_train import TINY
+
+    demos, buffer = small_data
+    model = train(
+        demos, buffer, resolve_config(demos, buffer, "cdrb", steps=10, checkpoint_every=10, **TINY), tmp_path / "m.h5"
+    )
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "planning.py"), str(model.path), "--pairs", "4"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "| cdrb (quick) | alg1 (8) |" in proc.stdout
