@@ -85,7 +85,7 @@ def train_eval(
     ]
     if method == "cdrb":
         cmd += ["--buffer", buffer]
-    cmd += list(args.train_extra) + list(extra or [])
+    cmd += list(args.train_extra) + (list(args.unet_extra) if method != "mlp" else []) + list(extra or [])
     if unfinished(model):
         cmd.append("--resume")
     run(cmd, log, f"train {folder.name} {tag} s{seed}")
@@ -148,25 +148,11 @@ def main() -> None:
     ap.add_argument("--skip-grid", action="store_true", help="only the ablations")
     ap.add_argument("--write-docs", action="store_true")
     args = ap.parse_args()
-    args.train_extra = []
+    args.train_extra, args.unet_extra = [], []
     if args.tiny:
         args.demos, args.eval_episodes = min(args.demos, 40), min(args.eval_episodes, 3)
-        args.train_extra = [
-            "--steps",
-            "20",
-            "--horizon",
-            "16",
-            "--stride",
-            "10",
-            "--dim",
-            "8",
-            "--dim-mults",
-            "1,2",
-            "--diffusion-steps",
-            "8",
-            "--batch-size",
-            "8",
-        ]
+        args.train_extra = "--steps 20 --horizon 16 --stride 10 --diffusion-steps 8 --batch-size 8".split()
+        args.unet_extra = "--dim 8 --dim-mults 1,2".split()
     args.out.mkdir(parents=True, exist_ok=True)
     timings_path = args.out / "timings.json"
     log = json.loads(timings_path.read_text()) if timings_path.exists() else {}

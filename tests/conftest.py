@@ -6,6 +6,8 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# the test artifacts are small: a read that takes longer than this is a hang (see artifacts._guarded_probe)
+os.environ.setdefault("CDRB_READ_TIMEOUT", "10")
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -114,7 +114,10 @@ def _paths(obj, prefix=()):
             yield from _paths(v, prefix + (i,))
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+# derandomized: CI runs the same 300 cases every time (random campaigns are run by hand: --hypothesis-seed=N)
+@settings(
+    max_examples=300, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(data=st.data())
 def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
     kind = data.draw(st.sampled_from(KINDS))
@@ -145,7 +148,8 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
     elif mutation == "attrs":
         with h5py.File(p, "r+") as f:
             name = data.draw(st.sampled_from(["cdrb_kind", "cdrb_schema_version"]))
-            no_nul = st.text(st.characters(blacklist_characters="\x00"), max_size=12)  # HDF5 strings cannot hold NUL
+            # what HDF5 can store as a string attribute: no NUL, no lone surrogates
+            no_nul = st.text(st.characters(blacklist_characters="\x00", blacklist_categories=("Cs",)), max_size=12)
             f.attrs[name] = data.draw(no_nul | st.sampled_from(["1.9", "0.1", "demos", "model"]))
     else:
         with h5py.File(p, "r+") as f:

@@ -7,6 +7,10 @@ can be skipped.
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -73,8 +77,65 @@ __all__ = [
 
 def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     """Open ``path``, validate it completely, and return the typed artifact. Raises :class:`ArtifactError`
-    (a :class:`BadInput`, exit code 2) with a one-line message for anything that is not a valid artifact."""
+    (a :class:`BadInput`, exit code 2) with a one-line message for anything that is not a valid artifact.
+
+    The file is first read in a forked child process with a time limit (:func:`_guarded_probe`): the HDF5
+    library can loop forever or crash on some corrupted files, and that must not hang or kill cdrb."""
     path = Path(path)
+    _guarded_probe(path, kind)
+    return _load(path, kind)
+
+
+def _read_timeout(path: Path) -> float:
+    base = float(os.environ.get("CDRB_READ_TIMEOUT", "30"))
+    try:
+        size = path.stat().st_size
+    except OSError:
+        size = 0
+    return base + size / 50e6  # plus a second per 50 MB
+
+
+def _guarded_probe(path: Path, kind: str | None) -> None:
+    """Read and validate ``path`` in a forked child. If the child hangs past the time limit or dies from a
+    signal, raise :class:`ArtifactError`; otherwise return (the caller then reads the file itself, and gets the
+    same errors the child got). Disabled where ``os.fork`` is unavailable or ``CDRB_READ_GUARD=0``."""
+    if not hasattr(os, "fork") or os.environ.get("CDRB_READ_GUARD") == "0" or not path.is_file():
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # fork with threads: the child only reads the file
+        pid = os.fork()
+    if pid == 0:  # child: read everything, report only through the exit status
+        code = 0
+        try:
+            _load(path, kind)
+        except BadInput:
+            code = 2
+        except BaseException:
+            code = 3
+        os._exit(code)
+    deadline = time.monotonic() + _read_timeout(path)
+    delay = 0.0005
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise ArtifactError(
+                f"{path}: reading it did not finish in {_read_timeout(path):.0f} s; the file is corrupt or hostile",
+                hint="re-create it with the command that wrote it",
+            )
+        time.sleep(delay)
+        delay = min(delay * 2, 0.05)
+    if os.WIFSIGNALED(status):
+        raise ArtifactError(
+            f"{path}: the HDF5 library crashed reading it (signal {os.WTERMSIG(status)}); the file is corrupt",
+            hint="re-create it with the command that wrote it",
+        )
+
+
+def _load(path: Path, kind: str | None) -> ArtifactBase:
     try:
         f, found_kind, _version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS)
         try:
