@@ -20,6 +20,7 @@ except ImportError:  # pragma: no cover
     from click import exceptions as click_exc
 
 from cdrb_cli import __version__, ui
+from cdrb_cli.configs import DEFAULT_MAX_LAG
 from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, BadInput, CdrbError
 
 app = typer.Typer(
@@ -194,7 +195,7 @@ def collect(
 
     The scripted planner expert takes a random shortest grid route (both gaps next to a goal get used), smooths it
     and comes to rest at the goal. Example: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan]"""
-    from cdrb_cli.artifacts import prepare_output
+    from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.collect import collect as run_collect
     from cdrb_cli.stages.collect import collect_config
 
@@ -202,12 +203,7 @@ def collect(
         raise BadInput(f"--expert {expert!r}: unknown expert", hint="use planner or sac")
     spec = _spec(env, maze_map)
     config = collect_config(spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction)
-    if prepare_output(out, "demos", force, config, env=spec):
-        demos = run_collect(spec, config, out)
-    else:
-        from cdrb_cli.artifacts import load
-
-        demos = load(out, "demos")
+    demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out), env=spec)
     s = demos.manifest.summary
     ui.log(
         f"{spec.id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "
@@ -254,7 +250,7 @@ def expert_train(
 
 
 # ------------------------------------------------------------------------------------------------ cluster
-def _load(path: Path, kind: str, flag: str | None = None):
+def _load(path: Path, kind: str):
     from cdrb_cli.artifacts import load
 
     return load(path, kind)
@@ -277,7 +273,7 @@ def cluster(
     Features are normalized to [-1, 1] per dimension (min/max over the training demos); k-means (scikit-learn)
     picks K representatives and each centroid is snapped to its nearest real demo state, so every buffer state
     is a known good state. Example: [cyan]cdrb cluster demos.h5 --k 1000 --plot buffer.png[/cyan]"""
-    from cdrb_cli.artifacts import prepare_output
+    from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import ClusterConfig
     from cdrb_cli.stages.cluster import cluster as run_cluster
 
@@ -287,10 +283,7 @@ def cluster(
         raise BadInput(f"--split {split!r}: unknown", hint="use train or all")
     d = _load(demos, "demos")
     config = ClusterConfig(k=k, features=features, split=split, seed=seed)
-    if prepare_output(out, "buffer", force, config, parents=[d]):
-        buf = run_cluster(d, config, out)
-    else:
-        buf = _load(out, "buffer")
+    buf = produce(out, "buffer", force, config, lambda: run_cluster(d, config, out), parents=[d])
     sm = buf.manifest.summary
     ui.log(
         f"buffer: {sm.points} states from {sm.source_states} ({features}), diameter {sm.diameter:.3f}, "
@@ -455,7 +448,7 @@ def plan(
 
     CDRB (Algorithm 1): start from random buffer states, then repeatedly restore and re-degrade with shrinking
     balls. Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 --n 8 --plot plans.png --show-steps 4[/cyan]"""
-    from cdrb_cli.artifacts import prepare_output
+    from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import PlanConfig
     from cdrb_cli.envs.protocol import draw_pairs, goal_state, pair_states
     from cdrb_cli.seeding import STREAM_PLAN
@@ -492,11 +485,14 @@ def plan(
     config = PlanConfig(
         sampler=chosen, n=n, sample_steps=sample_steps, use_ema=not raw_weights, keep_iterates=show_steps, seed=seed
     )
-    if prepare_output(out, "plans", force, config, parents=[m]):
-        dev = setup_torch(device)
-        result = make_plans(m, s_arr, g_arr, config, out, device=dev, batch_size=batch_size)
-    else:
-        result = _load(out, "plans")
+    result = produce(
+        out,
+        "plans",
+        force,
+        config,
+        lambda: make_plans(m, s_arr, g_arr, config, out, device=setup_torch(device), batch_size=batch_size),
+        parents=[m],
+    )
     sm = result.manifest.summary
     ui.log(
         f"{sm.plans} plans for {sm.pairs} pairs: {sm.in_wall_fraction:.2%} of planned states inside walls "
@@ -540,6 +536,13 @@ def eval_cmd(
     episodes: int = typer.Option(100, "--episodes", "-n", min=1, help="Episodes per evaluation seed."),
     seeds: str = typer.Option("0,1,2,3,4", "--seeds", help="Evaluation seeds (each draws its own start/goal pairs)."),
     controller: str = typer.Option("pd", "--controller", help="pd (kp 10, kd 1) or inverse-dynamics."),
+    max_lag: float = typer.Option(
+        DEFAULT_MAX_LAG,
+        "--max-lag",
+        min=0.0,
+        help="Pause the plan's clock while the ball lags more than this many metres behind it; 0: follow the "
+        "plan on the environment's clock.",
+    ),
     sampler: str | None = typer.Option(None, "--sampler", help="Override the model's sampler (alg1/alg2, ddpm/ddim)."),
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with raw instead of EMA weights."),
@@ -562,7 +565,7 @@ def eval_cmd(
         from cdrb_cli.envs.render import choose_gl_backend
 
         choose_gl_backend()  # before MuJoCo is imported
-    from cdrb_cli.artifacts import prepare_output
+    from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import EvalConfig
     from cdrb_cli.stages.evaluate import evaluate
     from cdrb_cli.torch_utils import setup_torch
@@ -584,16 +587,21 @@ def eval_cmd(
         episodes=episodes,
         seeds=seed_list,
         controller=controller,
+        max_lag=max_lag or None,
         sampler=chosen,
         sample_steps=sample_steps,
         use_ema=not raw_weights,
         seed=seed,
     )
-    if prepare_output(out, "eval", force, config, parents=[m]):
-        dev = setup_torch(device)
-        ev = evaluate(m, config, out, device=dev, video_dir=video, videos=videos if video is not None else 0)
-    else:
-        ev = _load(out, "eval")
+    n_videos = videos if video is not None else 0
+    ev = produce(
+        out,
+        "eval",
+        force,
+        config,
+        lambda: evaluate(m, config, out, device=setup_torch(device), video_dir=video, videos=n_videos),
+        parents=[m],
+    )
     s = ev.manifest.summary
     ui.log(
         f"{s.method} on {m.manifest.env.id}: success {100 * s.success_mean:.1f} ± {100 * s.success_std:.1f}% "

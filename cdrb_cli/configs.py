@@ -196,12 +196,18 @@ class PlanSummary(Record):
 
 
 # --------------------------------------------------------------------------------------------- eval
+DEFAULT_MAX_LAG = 0.6  # m; `cdrb eval --max-lag` and quickstart (see envs/controllers.py, docs/benchmarks.md)
+
+
 class EvalConfig(Record):
     episodes: int = Field(gt=0, description="episodes per seed")
     seeds: list[int]
     controller: Literal["pd", "inverse-dynamics"] = "pd"
     kp: float = 10.0
     kd: float = 1.0
+    max_lag: float | None = Field(
+        None, gt=0, description="plan clock pauses while the ball lags more than this (m); None: time-indexed (1.0)"
+    )
     sampler: str
     sample_steps: int | None = None
     use_ema: bool = True

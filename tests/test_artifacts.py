@@ -136,6 +136,20 @@ def test_newer_minor_with_unknown_field_is_read(tmp_path):
     assert "future_" in msg and "Extra inputs" in msg
 
 
+def test_older_minor_reads_with_the_field_it_lacked_as_its_old_meaning(tmp_path):
+    # eval 1.1 added config.max_lag; a 1.0 file (no such field) followed plans on the environment's clock
+    p = write(tmp_path / "e.h5", "eval")
+    with h5py.File(p, "r+") as f:
+        m = json.loads(f["manifest"][()].decode())
+        m["config"].pop("max_lag", None)
+        m["schema_version"] = "1.0"
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+        f.attrs["cdrb_schema_version"] = "1.0"
+    art = artifacts.load(p, "eval")
+    assert art.manifest.schema_version == "1.0" and art.manifest.config.max_lag is None
+
+
 def test_invalid_manifest(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
     with h5py.File(p, "r+") as f:

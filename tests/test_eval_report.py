@@ -38,6 +38,48 @@ def test_controllers_track_expert_plans(controller):
         assert err.max() < (0.1 if controller == "inverse-dynamics" else 0.25), err.max()
 
 
+def test_plan_clock_pauses_while_the_ball_lags():
+    spec = make_spec("maze")
+    env = PointMaze(spec)
+    plan = np.zeros((10, 4))
+    plan[:, 0] = np.arange(10.0)  # 1 m between planned states
+    timed = make_controller("pd", 2, env.dynamics)
+    gated = make_controller("pd", 2, env.dynamics, max_lag=0.6)
+    for c in (timed, gated):
+        c.reset(plan)
+    at_start = np.zeros(4)
+    assert [timed.plan_time(at_start, t) for t in range(5)] == [0, 1, 2, 3, 4]
+    # the ball stays at x = 0, 1 m from the next planned state: the gated clock never starts
+    assert [gated.plan_time(at_start, t) for t in range(5)] == [0, 0, 0, 0, 0]
+    # on the target it advances one step per environment step, and reset() restarts it
+    on_target = np.array([1.0, 0, 0, 0])
+    assert [gated.plan_time(on_target, t) for t in range(2)] == [1, 2]
+    gated.reset(plan)
+    assert gated.clock == 0
+    with pytest.raises(ValueError):
+        make_controller("pd", 2, env.dynamics, max_lag=0.0)
+
+
+def test_gated_clock_follows_plans_too_fast_to_track_on_time():
+    """Expert plans replayed at 3x speed: on the environment's clock the ball falls behind and cuts corners into
+    walls; with the clock gated it follows the same states to the goal."""
+    spec = make_spec("maze-tight")
+    env = PointMaze(spec)
+    results = {}
+    for lag in (None, 0.6):
+        ctrl = make_controller("pd", spec.plan_stride, env.dynamics, max_lag=lag)
+        ok = collisions = 0
+        for s, sc, gc in draw_pairs(spec, 8, seed=3):
+            S, _, _, _ = rollout(env, MazeExpert(spec), spec, s, sc, gc, spec.episode_limit)
+            ctrl.reset(S[:: 3 * spec.plan_stride])
+            res = run_episode(env, spec, s, sc, gc, ctrl.act, spec.episode_limit)
+            ok += res["success"]
+            collisions += res["collision"]
+        results[lag] = (ok, collisions)
+    assert results[0.6][0] == 8 and results[0.6][1] <= 1, results
+    assert results[None][1] >= 4, results  # the failure mode the gate exists for
+
+
 def test_inverse_dynamics_is_exact_on_reachable_targets():
     spec = make_spec("maze")
     env = PointMaze(spec)

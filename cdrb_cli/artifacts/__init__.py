@@ -228,6 +228,14 @@ def prepare_output(path: str | Path, kind: str, force: bool, config, parents=(),
     return True
 
 
+def produce(path: str | Path, kind: str, force: bool, config, build, parents=(), env=None):
+    """Run ``build()`` (which writes ``path``) unless ``path`` is already up to date; return the artifact either
+    way. The skip rule is :func:`prepare_output`'s."""
+    if prepare_output(path, kind, force, config, parents=parents, env=env):
+        return build()
+    return load(path, kind)
+
+
 def check_output(path: str | Path, force: bool, flag: str = "--out") -> Path:
     """Validate an output path before any work starts: its folder must exist and, unless ``force``, it must not
     hold a file already."""

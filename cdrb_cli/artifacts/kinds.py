@@ -24,7 +24,7 @@ from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise
-SCHEMA_VERSIONS = {"demos": "1.0", "buffer": "1.0", "model": "1.0", "plans": "1.0", "eval": "1.0"}
+SCHEMA_VERSIONS = {"demos": "1.0", "buffer": "1.0", "model": "1.0", "plans": "1.0", "eval": "1.1"}
 
 
 class ParentRef(Record):

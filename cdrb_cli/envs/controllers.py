@@ -9,6 +9,12 @@ A plan is H states, one every ``stride`` environment steps. At environment step 
   p' = p + h v'; clipped to the action bounds.
 
 After the plan's last state both hold the goal.
+
+**The plan clock.** By default the reference runs on the environment's clock (plan time t / stride). With
+``max_lag`` set, the clock pauses while the ball is more than ``max_lag`` metres from the state it is being driven
+to, so a ball that lags (after a fast first step, or around a corner) catches up along the plan instead of cutting
+across toward a reference that has run ahead. The official CDRB executor gates progress the same way (a waypoint
+is left when reached, or after at most 5 steps).
 """
 
 from __future__ import annotations
@@ -19,12 +25,27 @@ import numpy as np
 class Controller:
     name = "base"
 
-    def __init__(self, stride: int):
-        self.stride = stride
+    def __init__(self, stride: int, max_lag: float | None = None):
+        if max_lag is not None and max_lag <= 0:
+            raise ValueError(f"max_lag must be positive or None, got {max_lag}")
+        self.stride, self.max_lag = stride, max_lag
         self.plan = np.zeros((1, 4))
+        self.clock = 0
 
     def reset(self, plan: np.ndarray) -> None:
         self.plan = np.asarray(plan, dtype=np.float64)
+        self.clock = 0
+
+    def _target_index(self, step: int) -> int:
+        return min(step // self.stride + 1, len(self.plan) - 1)
+
+    def plan_time(self, obs: np.ndarray, t: int) -> int:
+        """The plan time (in environment steps) to track at environment step ``t``."""
+        if self.max_lag is None:
+            return t
+        if np.linalg.norm(self.plan[self._target_index(self.clock), :2] - obs[:2]) < self.max_lag:
+            self.clock += 1
+        return self.clock
 
     def act(self, obs: np.ndarray, t: int) -> np.ndarray:
         raise NotImplementedError
@@ -33,13 +54,12 @@ class Controller:
 class PDController(Controller):
     name = "pd"
 
-    def __init__(self, stride: int, kp: float = 10.0, kd: float = 1.0):
-        super().__init__(stride)
+    def __init__(self, stride: int, kp: float = 10.0, kd: float = 1.0, max_lag: float | None = None):
+        super().__init__(stride, max_lag)
         self.kp, self.kd = kp, kd
 
     def act(self, obs, t):
-        i = min(t // self.stride + 1, len(self.plan) - 1)
-        target = self.plan[i]
+        target = self.plan[self._target_index(self.plan_time(obs, t))]
         u = self.kp * (target[:2] - obs[:2]) + self.kd * (target[2:4] - obs[2:4])
         return np.clip(u, -1.0, 1.0)
 
@@ -47,8 +67,8 @@ class PDController(Controller):
 class InverseDynamicsController(Controller):
     name = "inverse-dynamics"
 
-    def __init__(self, stride: int, mass: float, damping: float, gear: float, dt: float):
-        super().__init__(stride)
+    def __init__(self, stride: int, mass: float, damping: float, gear: float, dt: float, max_lag: float | None = None):
+        super().__init__(stride, max_lag)
         self.m, self.c, self.g, self.h = mass, damping, gear, dt
 
     def _position_at(self, step: float) -> np.ndarray:
@@ -60,16 +80,18 @@ class InverseDynamicsController(Controller):
 
     def act(self, obs, t):
         p, v = obs[:2], obs[2:4]
-        v_next = (self._position_at(t + 1) - p) / self.h
+        v_next = (self._position_at(self.plan_time(obs, t) + 1) - p) / self.h
         u = ((v_next - v) * (self.m + self.h * self.c) / self.h + self.c * v) / self.g
         return np.clip(u, -1.0, 1.0)
 
 
-def make_controller(name: str, stride: int, dynamics: dict, kp: float = 10.0, kd: float = 1.0) -> Controller:
+def make_controller(
+    name: str, stride: int, dynamics: dict, kp: float = 10.0, kd: float = 1.0, max_lag: float | None = None
+) -> Controller:
     if name == "pd":
-        return PDController(stride, kp, kd)
+        return PDController(stride, kp, kd, max_lag)
     if name == "inverse-dynamics":
         return InverseDynamicsController(
-            stride, dynamics["mass"], dynamics["damping"], dynamics["gear"], dynamics["dt"]
+            stride, dynamics["mass"], dynamics["damping"], dynamics["gear"], dynamics["dt"], max_lag
         )
     raise ValueError(name)

@@ -66,7 +66,9 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     method, ema = load_planner(model, device=device)
     net = ema if config.use_ema else method.net
     env = PointMaze(spec)
-    ctrl = make_controller(config.controller, model.manifest.config.stride, env.dynamics, config.kp, config.kd)
+    ctrl = make_controller(
+        config.controller, model.manifest.config.stride, env.dynamics, config.kp, config.kd, config.max_lag
+    )
     steps = spec.episode_limit + config.extra_steps
     rows: dict[str, list] = {
         k: []

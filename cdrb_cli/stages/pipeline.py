@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cdrb_cli import artifacts, ui
-from cdrb_cli.configs import ClusterConfig, EvalConfig
+from cdrb_cli.configs import DEFAULT_MAX_LAG, ClusterConfig, EvalConfig
 
 
 @dataclass
@@ -100,6 +100,7 @@ def quickstart(
         ecfg = EvalConfig(
             episodes=eval_episodes,
             seeds=list(seeds),
+            max_lag=DEFAULT_MAX_LAG,
             sampler=getattr(models[method].manifest.config.method, "sampler", "direct"),
             seed=seed,
         )

@@ -39,7 +39,7 @@ ENV_NAMES = {"maze": "Maze", "maze-tight": "Maze Tight"}
 
 def _protocol(ev) -> tuple:
     c = ev.manifest.config
-    return (c.episodes, c.controller, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
+    return (c.episodes, c.controller, c.max_lag, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
 
 
 def method_label(ev) -> str:
