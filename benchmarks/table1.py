@@ -23,6 +23,7 @@ import argparse
 import json
 import platform
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -179,6 +180,8 @@ def main() -> None:
         args.train_extra = "--steps 20 --horizon 16 --stride 10 --diffusion-steps 8 --batch-size 8".split()
         args.unet_extra = "--dim 8 --dim-mults 1,2".split()
     args.out.mkdir(parents=True, exist_ok=True)
+    # a `kill` (SIGTERM) must still run the `finally` below that saves the timings
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     timings_path = args.out / "timings.json"
     log = json.loads(timings_path.read_text()) if timings_path.exists() else {}
     seeds = [int(s) for s in args.seeds.split(",")]
