@@ -96,7 +96,8 @@ def train_eval(
     ]
     if method == "cdrb":
         cmd += ["--buffer", buffer]
-    cmd += list(args.train_extra) + (list(args.unet_extra) if method != "mlp" else []) + list(extra or [])
+    unet = method != "mlp" and "transformer" not in (extra or [])
+    cmd += list(args.train_extra) + (list(args.unet_extra) if unet else []) + list(extra or [])
     if unfinished(model):
         cmd.append("--resume")
     run(cmd, log, f"train {folder.name} {tag} s{seed}")
@@ -253,12 +254,14 @@ def main() -> None:
                     "table above uses the default gated clock, `--max-lag 0.6`):\n\n"
                     + (args.out / "table1-timed.md").read_text()
                 )
+            flags = (" --timed-too" if args.timed_too else "") + (" --ablations" if args.ablations else "")
             meta = (
                 f"\n*Run: `python benchmarks/table1.py --preset {args.preset} --demos {args.demos} --seeds "
-                f"{args.seeds} --eval-episodes {args.eval_episodes}{' --timed-too' if args.timed_too else ''}` on "
-                f"{hardware()}; wall time per stage "
-                f"(summed): " + ", ".join(f"{k} {v / 60:.1f} min" for k, v in stage_time.items()) + ". "
-                "Commands and per-stage times: docs/results/table1_timings.json.*\n"
+                f"{args.seeds} --eval-episodes {args.eval_episodes}{flags}` on {hardware()}; wall time per stage "
+                f"(summed): "
+                + ", ".join(f"{k} {v / 60:.1f} min" for k, v in stage_time.items())
+                + (" (train includes the ablation models)" if args.ablations else "")
+                + ". Commands and per-stage times: docs/results/table1_timings.json.*\n"
             )
             text = replace_block(text, "table1", body + meta)
             (DOCS / "results" / "table1_timings.json").write_text(json.dumps(log, indent=2))
