@@ -1,7 +1,7 @@
 """The typed HDF5 artifact format (see docs/format.md).
 
 ``load(path, kind=None)`` validates and returns a typed artifact; ``save(path, kind, manifest, arrays)`` writes
-one atomically; ``make_manifest`` fills the common provenance fields; ``is_up_to_date`` decides whether a stage
+one atomically; ``make_manifest`` fills the common provenance fields; ``find_up_to_date`` decides whether a stage
 can be skipped.
 """
 
@@ -54,7 +54,8 @@ __all__ = [
     "parent_ref",
     "is_up_to_date",
     "check_output",
-    "prepare_output",
+    "produce",
+    "find_up_to_date",
     "sha256_file",
     "atomic_path",
     "KINDS",
@@ -113,7 +114,8 @@ def _guarded_probe(path: Path, kind: str | None) -> None:
         except BaseException:
             code = 3
         os._exit(code)
-    deadline = time.monotonic() + _read_timeout(path)
+    limit = _read_timeout(path)
+    deadline = time.monotonic() + limit
     delay = 0.0005
     while True:
         done, status = os.waitpid(pid, os.WNOHANG)
@@ -123,7 +125,7 @@ def _guarded_probe(path: Path, kind: str | None) -> None:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
             raise ArtifactError(
-                f"{path}: reading it did not finish in {_read_timeout(path):.0f} s; the file is corrupt or hostile",
+                f"{path}: reading it did not finish in {limit:.0f} s; the file is corrupt or hostile",
                 hint="re-create it with the command that wrote it",
             )
         time.sleep(delay)
@@ -191,49 +193,51 @@ def make_manifest(kind: str, *, env, config, seed: int, parents: Sequence[Artifa
     )
 
 
-def is_up_to_date(path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None) -> bool:
-    """True when ``path`` holds a valid, finished ``kind`` artifact made with the same config (and env) from the
-    same parents."""
+def find_up_to_date(
+    path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None
+) -> ArtifactBase | None:
+    """The artifact at ``path`` when it is a valid, finished ``kind`` artifact made with the same config (and env)
+    from the same parents; else None."""
     path = Path(path)
-    if not path.exists():
-        return False
+    if not path.is_file():
+        return None
     try:
         art = load(path, kind)
     except BadInput:
-        return False
+        return None
     if art.manifest.config != config or (env is not None and art.manifest.env != env):
-        return False
+        return None
     state = getattr(art.manifest, "state", None)
     if state is not None and not state.finished:
-        return False
-    have = [p.sha256 for p in art.manifest.parents]
-    return have == [p.sha256 for p in parents]
+        return None
+    if [p.sha256 for p in art.manifest.parents] != [p.sha256 for p in parents]:
+        return None
+    return art
 
 
-def prepare_output(path: str | Path, kind: str, force: bool, config, parents=(), env=None, flag: str = "--out") -> bool:
-    """Decide whether a stage must run: False (skip) when ``path`` is already up to date; True when it is absent
-    or ``force`` is set. An existing file made differently is an error unless ``force``."""
+def is_up_to_date(path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None) -> bool:
+    """True when ``path`` holds a valid, finished ``kind`` artifact made with the same config (and env) from the
+    same parents."""
+    return find_up_to_date(path, kind, config, parents, env) is not None
+
+
+def produce(path: str | Path, kind: str, force: bool, config, build, parents=(), env=None, flag: str = "--out"):
+    """Run ``build()`` (which writes ``path`` and returns its artifact) unless ``path`` is already up to date;
+    return the artifact either way. An existing file made differently is an error unless ``force``."""
     from cdrb_cli import ui
 
     path = Path(path)
     if path.exists() and not force and not path.is_dir():
-        if is_up_to_date(path, kind, config, parents, env):
-            ui.log(f"[green]{path}[/green] is up to date (same config and inputs): skipped; --force redoes it")
-            return False
-        raise BadInput(
-            f"{flag} {path}: file exists and was not made by this exact command",
-            hint="pass --force to overwrite it, or choose another path",
-        )
+        art = find_up_to_date(path, kind, config, parents, env)
+        if art is None:
+            raise BadInput(
+                f"{flag} {path}: file exists and was not made by this exact command",
+                hint="pass --force to overwrite it, or choose another path",
+            )
+        ui.log(f"[green]{path}[/green] is up to date (same config and inputs): skipped; --force redoes it")
+        return art
     check_output(path, force=True, flag=flag)
-    return True
-
-
-def produce(path: str | Path, kind: str, force: bool, config, build, parents=(), env=None):
-    """Run ``build()`` (which writes ``path``) unless ``path`` is already up to date; return the artifact either
-    way. The skip rule is :func:`prepare_output`'s."""
-    if prepare_output(path, kind, force, config, parents=parents, env=env):
-        return build()
-    return load(path, kind)
+    return build()
 
 
 def check_output(path: str | Path, force: bool, flag: str = "--out") -> Path:

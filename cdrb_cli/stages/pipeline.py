@@ -60,21 +60,13 @@ def quickstart(
     _stage(step, total, f"collect {episodes} scripted-expert demos on {env}")
     demos_path = paths["demos"] = folder / "demos.h5"
     ccfg = collect_config(spec, episodes, seed=seed)
-    if not artifacts.is_up_to_date(demos_path, "demos", ccfg, env=spec):
-        collect(spec, ccfg, demos_path)
-    else:
-        ui.log("  up to date")
-    demos = artifacts.load(demos_path, "demos")
+    demos = _up_to_date(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
 
     step += 1
     _stage(step, total, f"cluster the replay buffer (k={k})")
     buffer_path = paths["buffer"] = folder / "buffer.h5"
     kcfg = ClusterConfig(k=k, seed=seed)
-    if not artifacts.is_up_to_date(buffer_path, "buffer", kcfg, [demos]):
-        cluster(demos, kcfg, buffer_path)
-    else:
-        ui.log("  up to date")
-    buffer = artifacts.load(buffer_path, "buffer")
+    buffer = _up_to_date(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
 
     models = {}
     for method in methods:
@@ -84,14 +76,13 @@ def quickstart(
         cfg = resolve_config(demos, b, method, preset="quick", seed=seed, steps=steps)
         out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
         parents = [demos] + ([b] if b is not None else [])
-        if artifacts.is_up_to_date(out, "model", cfg, parents):
-            ui.log("  up to date")
-        else:
+        model = _up_to_date(out, "model", cfg, parents)
+        if model is None:
             resume = _resumable(out, cfg, parents)
             if resume:
                 ui.log(f"  resuming the checkpoint in {out}")
-            train(demos, b, cfg, out, resume=resume, device=device)
-        models[method] = artifacts.load(out, "model")
+            model = train(demos, b, cfg, out, resume=resume, device=device)
+        models[method] = model
 
     evals = []
     for method in methods:
@@ -105,13 +96,12 @@ def quickstart(
             seed=seed,
         )
         out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
-        if artifacts.is_up_to_date(out, "eval", ecfg, [models[method]]):
-            ui.log("  up to date")
-        else:
-            evaluate(
+        ev = _up_to_date(out, "eval", ecfg, [models[method]])
+        if ev is None:
+            ev = evaluate(
                 models[method], ecfg, out, device=device, video_dir=folder / "videos" if videos else None, videos=videos
             )
-        evals.append(artifacts.load(out, "eval"))
+        evals.append(ev)
 
     step += 1
     _stage(step, total, "report")
@@ -125,6 +115,14 @@ def quickstart(
     pictures.append(plot_demos(demos, folder / "demos.png"))
     paths["report"] = folder / "report.md"
     return QuickstartResult(folder=folder, report=text, pictures=pictures, artifacts=paths, seconds=time.time() - t0)
+
+
+def _up_to_date(path: Path, kind: str, config, parents=(), env=None):
+    """The artifact at ``path`` if this run can reuse it (logged), else None."""
+    art = artifacts.find_up_to_date(path, kind, config, parents, env)
+    if art is not None:
+        ui.log("  up to date")
+    return art
 
 
 def _resumable(out: Path, cfg, parents) -> bool:
