@@ -20,7 +20,6 @@ except ImportError:  # pragma: no cover
     from click import exceptions as click_exc
 
 from cdrb_cli import __version__, ui
-from cdrb_cli.configs import DEFAULT_MAX_LAG
 from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, BadInput, CdrbError
 
 app = typer.Typer(
@@ -340,7 +339,7 @@ def train(
     are pinned. The model is checkpointed into --out every --checkpoint-every steps: after a crash,
     [cyan]--resume[/cyan] continues to exactly the result of an uninterrupted run.
     Example: [cyan]cdrb train demos.h5 --buffer buffer.h5 --method cdrb --preset quick[/cyan]"""
-    from cdrb_cli.artifacts import is_up_to_date, load
+    from cdrb_cli.artifacts import find_up_to_date
     from cdrb_cli.presets import PRESETS
     from cdrb_cli.stages.train import resolve_config
     from cdrb_cli.stages.train import train as run_train
@@ -402,9 +401,9 @@ def train(
     )
     parents = [d] + ([b] if b is not None else [])
     if out.exists() and not force and not resume:
-        if is_up_to_date(out, "model", config, parents):
+        model = find_up_to_date(out, "model", config, parents)
+        if model is not None:
             ui.log(f"[green]{out}[/green] is up to date (same config and inputs): skipped; --force redoes it")
-            model = load(out, "model")
             ui.emit({"path": str(out), "state": model.manifest.state.model_dump()} if as_json else out, as_json=as_json)
             return
         raise BadInput(f"--out {out}: file exists", hint="pass --resume to continue it, --force to overwrite it")
@@ -536,12 +535,13 @@ def eval_cmd(
     episodes: int = typer.Option(100, "--episodes", "-n", min=1, help="Episodes per evaluation seed."),
     seeds: str = typer.Option("0,1,2,3,4", "--seeds", help="Evaluation seeds (each draws its own start/goal pairs)."),
     controller: str = typer.Option("pd", "--controller", help="pd (kp 10, kd 1) or inverse-dynamics."),
-    max_lag: float = typer.Option(
-        DEFAULT_MAX_LAG,
+    max_lag: float | None = typer.Option(
+        None,  # configs.DEFAULT_MAX_LAG, resolved below so that start-up does not import the configs
         "--max-lag",
         min=0.0,
-        help="Pause the plan's clock while the ball lags more than this many metres behind it; 0: follow the "
-        "plan on the environment's clock.",
+        show_default=False,
+        help="Pause the plan's clock while the ball lags more than this many metres behind it (default 0.6); 0: "
+        "follow the plan on the environment's clock.",
     ),
     sampler: str | None = typer.Option(None, "--sampler", help="Override the model's sampler (alg1/alg2, ddpm/ddim)."),
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
@@ -566,7 +566,7 @@ def eval_cmd(
 
         choose_gl_backend()  # before MuJoCo is imported
     from cdrb_cli.artifacts import produce
-    from cdrb_cli.configs import EvalConfig
+    from cdrb_cli.configs import DEFAULT_MAX_LAG, EvalConfig
     from cdrb_cli.stages.evaluate import evaluate
     from cdrb_cli.torch_utils import setup_torch
 
@@ -587,7 +587,7 @@ def eval_cmd(
         episodes=episodes,
         seeds=seed_list,
         controller=controller,
-        max_lag=max_lag or None,
+        max_lag=(DEFAULT_MAX_LAG if max_lag is None else max_lag) or None,
         sampler=chosen,
         sample_steps=sample_steps,
         use_ema=not raw_weights,

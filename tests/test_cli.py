@@ -22,6 +22,17 @@ def test_help_lists_every_command(cdrb):
         assert name in r.stdout
 
 
+def test_eval_help_states_the_max_lag_default():
+    import typer
+
+    from cdrb_cli.cli import app
+    from cdrb_cli.configs import DEFAULT_MAX_LAG
+
+    eval_cmd = typer.main.get_command(app).commands["eval"]
+    (opt,) = [p for p in eval_cmd.params if p.name == "max_lag"]
+    assert f"(default {DEFAULT_MAX_LAG})" in opt.help
+
+
 def test_version(cdrb):
     r = cdrb("--version")
     assert r.returncode == 0 and r.stdout.strip() == f"cdrb {__version__}"
