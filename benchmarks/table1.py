@@ -32,14 +32,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 
-# Maze Tight ablations the paper shows only as figures (quick preset; one training seed each)
+# Maze Tight ablations the paper shows only as figures (quick preset; one training seed each):
+# name -> (buffer k, buffer features, extra `cdrb train` flags)
 ABLATIONS = {
-    "k=1000 (default)": [],
-    "k=100": ["--buffer-k", "100"],
-    "full buffer": ["--buffer-k", "0"],
-    "log schedule": ["--schedule", "log"],
-    "transformer": ["--net", "transformer"],
-    "state-action": ["--buffer-features", "state-action"],
+    "k=1000 (default)": (1000, "state", []),
+    "k=100": (100, "state", []),
+    "full buffer": (0, "state", []),
+    "log schedule": (1000, "state", ["--schedule", "log"]),
+    "transformer": (1000, "state", ["--net", "transformer"]),
+    "state-action": (1000, "state-action", []),
 }
 
 
@@ -78,7 +79,9 @@ def train_eval(
     tag: str,
     extra: list | None = None,
     timed: bool = False,
-) -> Path:
+) -> tuple[Path, Path | None]:
+    """Train (or resume, or skip) one model and evaluate it; with ``timed`` also with the plan on the environment's
+    clock. Returns the eval path(s)."""
     model = folder / f"{tag}-s{seed}.h5"
     cmd = [
         "train",
@@ -101,22 +104,18 @@ def train_eval(
     if unfinished(model):
         cmd.append("--resume")
     run(cmd, log, f"train {folder.name} {tag} s{seed}")
-    ev = folder / f"eval-{tag}-s{seed}.h5"
-    run(
-        ["eval", model, "--seeds", seed, "--episodes", args.eval_episodes, "--out", ev, "--device", args.device],
-        log,
-        f"eval {folder.name} {tag} s{seed}",
-    )
-    if timed:
-        timed_ev = folder / f"eval-{tag}-s{seed}-timed.h5"
+    clocks = [("", [])] + ([("-timed", ["--max-lag", 0])] if timed else [])
+    paths = []
+    for suffix, clock_flags in clocks:
+        ev = folder / f"eval-{tag}-s{seed}{suffix}.h5"
         run(
-            ["eval", model, "--seeds", seed, "--episodes", args.eval_episodes, "--max-lag", 0, "--out", timed_ev]
+            ["eval", model, "--seeds", seed, "--episodes", args.eval_episodes, *clock_flags, "--out", ev]
             + ["--device", args.device],
             log,
-            f"eval-timed {folder.name} {tag} s{seed}",
+            f"eval{suffix} {folder.name} {tag} s{seed}",
         )
-        args.timed_evals.append(timed_ev)
-    return ev
+        paths.append(ev)
+    return paths[0], (paths[1] if timed else None)
 
 
 def prepare_env(env: str, out: Path, args, log, k: int = 1000, features: str = "state") -> tuple[Path, Path]:
@@ -175,7 +174,6 @@ def main() -> None:
     )
     args = ap.parse_args()
     args.train_extra, args.unet_extra = [], []
-    args.timed_evals = []
     if args.tiny:
         args.demos, args.eval_episodes = min(args.demos, 40), min(args.eval_episodes, 3)
         args.train_extra = "--steps 20 --horizon 16 --stride 10 --diffusion-steps 8 --batch-size 8".split()
@@ -188,34 +186,27 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",")]
     methods = args.methods.split(",")
     t0 = time.time()
-    evals = []
+    evals, timed_evals = [], []
     try:
         if not args.skip_grid:
             for env in args.envs.split(","):
                 demos, buffer = prepare_env(env, args.out, args, log)
                 for seed in seeds:
                     for method in methods:
-                        evals.append(
-                            train_eval(
-                                args.out / env, demos, buffer, method, seed, args, log, method, timed=args.timed_too
-                            )
+                        ev, timed_ev = train_eval(
+                            args.out / env, demos, buffer, method, seed, args, log, method, timed=args.timed_too
                         )
+                        evals.append(ev)
+                        if timed_ev is not None:
+                            timed_evals.append(timed_ev)
         ablation_evals = {}
         if args.ablations:
             env = "maze-tight"
-            for name, flags in ABLATIONS.items():
-                flags = list(flags)
-                k, features = 1000, "state"
-                if "--buffer-k" in flags:
-                    k = int(flags[flags.index("--buffer-k") + 1])
-                    del flags[flags.index("--buffer-k") : flags.index("--buffer-k") + 2]
-                if "--buffer-features" in flags:
-                    features = flags[flags.index("--buffer-features") + 1]
-                    del flags[flags.index("--buffer-features") : flags.index("--buffer-features") + 2]
+            for name, (k, features, flags) in ABLATIONS.items():
                 demos, buffer = prepare_env(env, args.out, args, log, k=k, features=features)
                 default = not flags and k == 1000 and features == "state"
                 tag = "cdrb" if default else "abl-" + re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
-                ablation_evals[name] = train_eval(
+                ablation_evals[name], _ = train_eval(
                     args.out / env, demos, buffer, "cdrb", seeds[0], args, log, tag, flags
                 )
     finally:
@@ -234,9 +225,9 @@ def main() -> None:
         csv = (DOCS / "results" if args.write_docs else args.out) / "table1.csv"
         csv.parent.mkdir(parents=True, exist_ok=True)
         run(["report", *evals, "--format", "csv", "--out", csv], log, "report csv")
-        if args.timed_evals:
+        if timed_evals:
             run(
-                ["report", *args.timed_evals, "--format", "markdown", "--out", args.out / "table1-timed.md"],
+                ["report", *timed_evals, "--format", "markdown", "--out", args.out / "table1-timed.md"],
                 log,
                 "report timed",
             )
@@ -248,7 +239,7 @@ def main() -> None:
                 stage = key.split(" ")[0]
                 stage_time[stage] = stage_time.get(stage, 0.0) + (0 if v["skipped"] else v["seconds"])
             body = report_md.read_text()
-            if args.timed_evals:
+            if timed_evals:
                 body += (
                     "\n**The same models with the plan on the environment's clock** (`cdrb eval --max-lag 0`; the "
                     "table above uses the default gated clock, `--max-lag 0.6`):\n\n"
