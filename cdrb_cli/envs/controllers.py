@@ -40,7 +40,8 @@ class Controller:
         return min(step // self.stride + 1, len(self.plan) - 1)
 
     def plan_time(self, obs: np.ndarray, t: int) -> int:
-        """The plan time (in environment steps) to track at environment step ``t``."""
+        """The plan time (in environment steps) to track at environment step ``t``. With ``max_lag`` this advances
+        the gated clock, so call it once per environment step (``act`` does)."""
         if self.max_lag is None:
             return t
         if np.linalg.norm(self.plan[self._target_index(self.clock), :2] - obs[:2]) < self.max_lag:
