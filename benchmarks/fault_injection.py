@@ -16,9 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from tests.fault_harness import crash_before_rename, run_faults  # noqa: E402
+from fault_harness import crash_before_rename, run_faults  # noqa: E402
 
 
 def main() -> None:

@@ -16,36 +16,39 @@ import numpy as np
 import torch
 
 from cdrb_cli import artifacts
-from cdrb_cli.envs.maze import in_collision
-from cdrb_cli.envs.protocol import draw_pairs, goal_state, pair_states
+from cdrb_cli.envs.registry import family_of
+from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_PLAN
-from cdrb_cli.stages.plan import sample_plans
-from cdrb_cli.stages.train import load_planner
+from cdrb_cli.stages.evaluate import reset_states
+from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
 def measure(model_path: Path, pairs: int, seed: int, timing_plans: int = 16, sampler=None, steps=None) -> dict:
     model = artifacts.load(model_path, "model")
     spec = model.manifest.env
-    method, ema = load_planner(model)
-    starts, goals = pair_states(spec, draw_pairs(spec, pairs, seed, STREAM_PLAN))
-    goals = goal_state(spec, goals)
+    family = family_of(spec)
+    method = load_planner(model)  # EMA weights
+    env = family.make_env(spec)
+    starts, goals = reset_states(env, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
+    env.close()
+    goals = family.goal_state(spec, goals)
     kw = dict(sampler=sampler, steps=steps)
-    plans, *_ = sample_plans(method, ema, starts, goals, 1, seed, batch_size=64, **kw)
-    wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
+    plans, *_ = sample_plans(method, starts, goals, 1, seed, batch_size=64, **kw)
+    wall = family.in_collision(spec, plans[..., : spec.obs_dim])
     times = {}
     for batch in (1, 64):
         n = timing_plans if batch == 1 else 64 * 2
         s, g = starts[np.arange(n) % pairs], goals[np.arange(n) % pairs]
-        sample_plans(method, ema, s[:batch], g[:batch], 1, seed, batch_size=batch, **kw)  # warm-up
+        sample_plans(method, s[:batch], g[:batch], 1, seed, batch_size=batch, **kw)  # warm-up
         t = time.perf_counter()
-        sample_plans(method, ema, s, g, 1, seed, batch_size=batch, **kw)
+        sample_plans(method, s, g, 1, seed, batch_size=batch, **kw)
         times[batch] = (time.perf_counter() - t) / n
     cfg = model.manifest.config
     return {
         "model": str(model_path),
         "method": cfg.method.name,
         "preset": cfg.preset,
-        "sampler": sampler or getattr(cfg.method, "sampler", "direct"),
+        "sampler": sampler or cfg.method.sampler,
         "steps": steps or getattr(cfg.method, "diffusion_steps", 1),
         "in_wall": float(wall.mean()),
         "plans_touching": float(wall.any(axis=1).mean()),
@@ -65,8 +68,9 @@ def main() -> None:
     rows = []
     for m in args.models:
         rows.append(measure(m, args.pairs, args.seed))
-        if args.fast_steps and rows[-1]["method"] != "mlp":
-            fast = "ddim" if rows[-1]["method"] == "diffuser" else None
+        samplers = METHODS.get(rows[-1]["method"]).samplers
+        if args.fast_steps and len(samplers) > 1:  # a diffusion method: time it with fewer denoising steps too
+            fast = "ddim" if "ddim" in samplers else None  # Diffuser's fast sampler; CDRB keeps its own
             rows.append(measure(m, args.pairs, args.seed, sampler=fast, steps=args.fast_steps))
     print(
         f"| method | sampler (steps) | planned states in walls | plans touching a wall | ms/plan batch 1 | "

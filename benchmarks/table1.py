@@ -38,7 +38,7 @@ ABLATIONS = {
     "k=1000 (default)": (1000, "state", []),
     "k=100": (100, "state", []),
     "full buffer": (0, "state", []),
-    "log schedule": (1000, "state", ["--schedule", "log"]),
+    "log schedule": (1000, "state", ["--set", "method.schedule=log"]),
     "transformer": (1000, "state", ["--net", "transformer"]),
     "state-action": (1000, "state-action", []),
 }
@@ -97,10 +97,15 @@ def train_eval(
         "--device",
         args.device,
     ]
-    if method == "cdrb":
+    from cdrb_cli.methods.registry import METHODS
+
+    entry = METHODS.get(method)
+    if entry.needs_buffer:
         cmd += ["--buffer", buffer]
-    unet = method != "mlp" and "transformer" not in (extra or [])
-    cmd += list(args.train_extra) + (list(args.unet_extra) if unet else []) + list(extra or [])
+    unet = entry.default_net == "unet" and "transformer" not in (extra or [])
+    diffusion = "diffusion_steps" in entry.params.model_fields
+    cmd += args.train_extra + (args.unet_extra if unet else []) + (args.diffusion_extra if diffusion else [])
+    cmd += list(extra or [])
     if unfinished(model):
         cmd.append("--resume")
     run(cmd, log, f"train {folder.name} {tag} s{seed}")
@@ -157,7 +162,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "table1")
     ap.add_argument("--envs", default="maze,maze-tight")
-    ap.add_argument("--methods", default="mlp,diffuser,cdrb")
+    ap.add_argument("--methods", default=None, help="comma-separated (default: every registered method)")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--demos", type=int, default=8000)
     ap.add_argument("--eval-episodes", type=int, default=100)
@@ -173,18 +178,23 @@ def main() -> None:
         help="also evaluate every grid model with the plan on the environment's clock (--max-lag 0)",
     )
     args = ap.parse_args()
-    args.train_extra, args.unet_extra = [], []
+    args.train_extra, args.unet_extra, args.diffusion_extra = [], [], []
     if args.tiny:
         args.demos, args.eval_episodes = min(args.demos, 40), min(args.eval_episodes, 3)
-        args.train_extra = "--steps 20 --horizon 16 --stride 10 --diffusion-steps 8 --batch-size 8".split()
-        args.unet_extra = "--dim 8 --dim-mults 1,2".split()
+        args.train_extra = ["--steps", "20"] + [
+            a for kv in ("horizon=16", "stride=10", "batch_size=8") for a in ("--set", kv)
+        ]
+        args.unet_extra = [a for kv in ("net.dim=8", "net.dim_mults=1,2") for a in ("--set", kv)]
+        args.diffusion_extra = ["--set", "method.diffusion_steps=8"]
     args.out.mkdir(parents=True, exist_ok=True)
     # a `kill` (SIGTERM) must still run the `finally` below that saves the timings
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     timings_path = args.out / "timings.json"
     log = json.loads(timings_path.read_text()) if timings_path.exists() else {}
     seeds = [int(s) for s in args.seeds.split(",")]
-    methods = args.methods.split(",")
+    from cdrb_cli.methods.registry import METHODS
+
+    methods = args.methods.split(",") if args.methods else METHODS.names()
     t0 = time.time()
     evals, timed_evals = [], []
     try:

@@ -10,7 +10,10 @@ validates any cdrb artifact and returns a typed object::
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
+
+#: the command's name
+PROG = "cdrb"
 
 __all__ = ["__version__", "load"]
 

@@ -3,44 +3,25 @@ so a pipeline can tell whether a stage is up to date (same config, same parents)
 
 from __future__ import annotations
 
+import typing
 from typing import Annotated, Literal
 
 from pydantic import Field
 
+from cdrb_cli.envs.family import ControllerConfig, ExpertConfig
+from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS
+from cdrb_cli.methods.registry import METHODS, MethodParams
+from cdrb_cli.registry import Dispatch, RegisteredName
 from cdrb_cli.schema_base import Record
 
 Features = Literal["state", "state-action"]
 
 
 # --------------------------------------------------------------------------------------------- collect
-class PlannerExpertConfig(Record):
-    """The scripted maze expert: randomized shortest grid path, line-of-sight smoothing, speed-profiled pursuit."""
-
-    kind: Literal["planner"] = "planner"
-    max_speed: float = Field(6.0, gt=0, description="cruise speed, m/s (the env clips each axis at 5)")
-    max_accel: float = Field(18.0, gt=0, description="braking deceleration used for the speed profile, m/s^2")
-    gain: float = Field(3.0, gt=0, description="velocity-tracking gain (action per m/s of error)")
-    clearance: float = Field(0.3, ge=0, description="minimum distance kept from wall boxes when smoothing, m")
-    switch_radius: float = Field(0.6, gt=0, description="distance at which a waypoint counts as passed, m")
-    stop_gain: float = Field(10.0, gt=0, description="speed per metre of distance on the final approach, 1/s")
-    settle_radius: float = Field(0.05, gt=0, description="episode ends once this close to the goal...")
-    settle_speed: float = Field(0.1, gt=0, description="...and slower than this, m/s")
-
-
-class SacExpertConfig(Record):
-    kind: Literal["sac"] = "sac"
-    policy_path: str
-    policy_sha256: str
-    deterministic: bool = True
-
-
-ExpertConfig = Annotated[PlannerExpertConfig | SacExpertConfig, Field(discriminator="kind")]
-
-
 class CollectConfig(Record):
     env: str
     episodes: int = Field(gt=0)
-    expert: ExpertConfig
+    expert: Annotated[ExpertConfig, Dispatch(EXPERTS, key="kind", attr="config")]
     valid_fraction: float = Field(0.1, ge=0, lt=1)
     seed: int
 
@@ -51,7 +32,7 @@ class CollectSummary(Record):
     success_rate: float
     mean_length: float
     max_length: int
-    states_in_walls: int
+    states_in_walls: int = Field(description="demonstration states inside an obstacle (walls, for mazes)")
     train_episodes: int
     valid_episodes: int
     routes: dict[str, dict[str, int]] = Field(
@@ -84,10 +65,12 @@ class UNetConfig(Record):
     """Diffuser's temporal U-Net: Conv1d over time, GroupNorm, Mish, sinusoidal step embedding."""
 
     kind: Literal["unet"] = "unet"
-    dim: int = Field(32, gt=0)
-    dim_mults: list[int] = Field(default_factory=lambda: [1, 4, 8])
-    kernel_size: int = Field(5, gt=0)
-    groups: int = Field(8, gt=0)
+    dim: int = Field(32, gt=0, description="base width (channels of the first level); a multiple of groups")
+    dim_mults: list[int] = Field(
+        default_factory=lambda: [1, 4, 8], min_length=1, description="width multiplier of each level"
+    )
+    kernel_size: int = Field(5, gt=0, description="temporal convolution kernel")
+    groups: int = Field(8, gt=0, description="GroupNorm groups")
     residual: bool = Field(False, description="predict x0 as the input plus a correction (x_k + f(x_k, k))")
 
 
@@ -95,75 +78,48 @@ class TransformerConfig(Record):
     """A temporal transformer over planned states (the paper's architecture ablation)."""
 
     kind: Literal["transformer"] = "transformer"
-    d_model: int = Field(128, gt=0)
-    n_layers: int = Field(8, gt=0)
-    n_heads: int = Field(4, gt=0)
-    ff_dim: int = Field(512, gt=0)
+    d_model: int = Field(128, gt=0, description="token width; a multiple of n_heads")
+    n_layers: int = Field(8, gt=0, description="encoder layers")
+    n_heads: int = Field(4, gt=0, description="attention heads")
+    ff_dim: int = Field(512, gt=0, description="feed-forward width")
 
 
 class MLPConfig(Record):
     """(start, goal) -> whole trajectory in one pass (the paper's MLP baseline)."""
 
     kind: Literal["mlp"] = "mlp"
-    hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
+    hidden: list[int] = Field(default_factory=lambda: [512, 512, 512], description="hidden layer widths")
 
 
 NetConfig = Annotated[UNetConfig | TransformerConfig | MLPConfig, Field(discriminator="kind")]
 
 
-# --------------------------------------------------------------------------------------------- methods
-Schedule = Literal["linear", "log", "sqrt", "sigmoid"]
-
-
-class CDRBParams(Record):
-    name: Literal["cdrb"] = "cdrb"
-    schedule: Schedule = "linear"
-    d_max: float = Field(gt=0, description="largest ball radius, in normalized feature space")
-    diffusion_steps: int = Field(gt=1)
-    sampler: Literal["alg1", "alg2"] = "alg1"
-    loss_weight_power: float = Field(
-        0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
-    )
-
-
-class DiffuserParams(Record):
-    name: Literal["diffuser"] = "diffuser"
-    diffusion_steps: int = Field(gt=1)
-    beta_schedule: Literal["cosine", "linear"] = "cosine"
-    predict: Literal["x0", "epsilon"] = "x0"
-    clip_denoised: bool = True
-    sampler: Literal["ddpm", "ddim"] = "ddpm"
-    ddim_steps: int = Field(16, gt=0)
-
-
-class MLPParams(Record):
-    name: Literal["mlp"] = "mlp"
-
-
-MethodParams = Annotated[CDRBParams | DiffuserParams | MLPParams, Field(discriminator="name")]
-
-
 # --------------------------------------------------------------------------------------------- train
 class TrainConfig(Record):
-    method: MethodParams
-    net: NetConfig
-    preset: Literal["quick", "paper", "custom"]
-    features: Features
+    """Everything `cdrb train` needs besides its inputs. Every field can be set with ``--set KEY=VALUE`` or a
+    ``--config`` file (``cdrb config train`` lists them); presets give the defaults."""
+
+    method: Annotated[MethodParams, Dispatch(METHODS, key="name", attr="params")] = Field(
+        description="the method and its own hyper-parameters (method.name picks it: `cdrb train --method`)"
+    )
+    net: NetConfig = Field(description="the network (net.kind picks it: `cdrb train --net`)")
+    preset: Literal["quick", "paper", "custom"] = Field(description="the preset the defaults came from")
+    features: Features = Field(description="state, or state-action (actions appended to each planned state)")
     horizon: int = Field(gt=1, description="planned states per trajectory")
     stride: int = Field(gt=0, description="environment steps per planned state")
-    steps: int = Field(gt=0)
-    batch_size: int = Field(gt=0)
-    lr: float = Field(gt=0)
-    grad_clip: float | None = Field(1.0, description="max gradient norm; null disables clipping")
-    ema_decay: float = Field(0.995, ge=0, lt=1)
+    steps: int = Field(gt=0, description="gradient steps")
+    batch_size: int = Field(gt=0, description="training windows per gradient step")
+    lr: float = Field(gt=0, allow_inf_nan=False, description="Adam learning rate")
+    grad_clip: float | None = Field(1.0, gt=0, description="max gradient norm; null disables clipping")
+    ema_decay: float = Field(0.995, ge=0, lt=1, description="decay of the exponential moving average of the weights")
     ema_start: int = Field(500, ge=0, description="the EMA copies the weights until this step")
-    ema_every: int = Field(10, gt=0)
-    checkpoint_every: int = Field(500, gt=0)
-    split: Literal["train", "all"] = "train"
+    ema_every: int = Field(10, gt=0, description="update the EMA every this many steps")
+    checkpoint_every: int = Field(500, gt=0, description="write a checkpoint into --out every this many steps")
+    split: Literal["train", "all"] = Field("train", description="episodes trained on: train, or all (no validation)")
     start_fraction: float = Field(
         0.9, ge=0, le=1, description="share of training windows that start at an episode's first state"
     )
-    seed: int
+    seed: int = Field(description="network initialization and every training draw (`--seed`)")
 
 
 class TrainState(Record):
@@ -176,10 +132,14 @@ class TrainState(Record):
 
 
 # --------------------------------------------------------------------------------------------- plan
+#: a sampler name that some registered method offers (which ones a model accepts is its method's business)
+SamplerName = Annotated[str, RegisteredName(METHODS, values=lambda entry: entry.samplers)]
+
+
 class PlanConfig(Record):
-    sampler: str
+    sampler: SamplerName
     n: int = Field(gt=0, description="plans per start/goal pair")
-    sample_steps: int | None = None
+    sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = True
     keep_iterates: int = Field(0, ge=0)
     seed: int
@@ -188,7 +148,7 @@ class PlanConfig(Record):
 class PlanSummary(Record):
     pairs: int
     plans: int
-    in_wall_fraction: float
+    in_wall_fraction: float = Field(description="planned states inside an obstacle (walls, for mazes)")
     plans_with_wall_states: int
     seconds_per_batch: float
     seconds_per_plan: float
@@ -196,23 +156,17 @@ class PlanSummary(Record):
 
 
 # --------------------------------------------------------------------------------------------- eval
-DEFAULT_MAX_LAG = 0.6  # m; `cdrb eval --max-lag` and quickstart (see envs/controllers.py, docs/benchmarks.md)
-
-
 class EvalConfig(Record):
     episodes: int = Field(gt=0, description="episodes per seed")
-    seeds: list[int]
-    controller: Literal["pd", "inverse-dynamics"] = "pd"
-    kp: float = 10.0
-    kd: float = 1.0
-    max_lag: float | None = Field(
-        None, gt=0, description="plan clock pauses while the ball lags more than this (m); None: time-indexed (1.0)"
+    seeds: list[int] = Field(min_length=1, description="evaluation seeds (each draws its own start/goal pairs)")
+    controller: Annotated[ControllerConfig, Dispatch(CONTROLLERS, key="name", attr="config")] = Field(
+        description="the controller that executes each plan, and its settings"
     )
-    sampler: str
-    sample_steps: int | None = None
+    sampler: SamplerName
+    sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = True
     extra_steps: int = Field(0, ge=0, description="env steps executed beyond the plan, holding its last state")
-    protocol: str = "centre-start/corner-goal"
+    protocol: str = Field(description="the family's start/goal protocol")
     seed: int
 
 
@@ -238,3 +192,9 @@ class EvalSummary(Record):
     plan_seconds_mean: float
     per_seed: list[SeedResult]
     wall_time_s: float
+
+
+def net_kinds() -> list[str]:
+    """The ``kind`` of every network config (`cdrb train --net` choices)."""
+    union = typing.get_args(NetConfig)[0]
+    return [typing.get_args(m.model_fields["kind"].annotation)[0] for m in typing.get_args(union)]

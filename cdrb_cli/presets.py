@@ -1,4 +1,9 @@
-"""Training presets.
+"""Training presets, as config values.
+
+A preset is a set of values for the training config: the method-independent fields below (:data:`TRAIN`), the
+network of each kind (:data:`NETS`), and each method's own values, which live with the method
+(``MethodEntry.presets``, e.g. CDRB's T and loss weighting). Any of them can be overridden with ``--set KEY=VALUE``
+or ``--config FILE``; the resolved config is recorded in the model artifact.
 
 * ``paper``: the reference settings (temporal U-Net dim 32, mults (1, 4, 8), T = 128 diffusion steps, batch 64,
   lr 2e-4, 20k steps, EMA 0.995). Hours on 2 CPU cores; minutes on a GPU.
@@ -7,47 +12,29 @@
   code's option, p = 1): a few minutes on 2 CPU cores. These two choices were measured on Maze Tight
   (docs/design.md): together they cut planned in-wall states from 0.48% to 0.09% for CDRB, and the residual
   output lifts Diffuser from 35% to 76% success, so every method gets it.
-
-Every field can be overridden by a flag; the resolved config is recorded in the model artifact.
 """
 
 from __future__ import annotations
 
-from cdrb_cli.configs import MLPConfig, TransformerConfig, UNetConfig
-
 PRESETS = ("quick", "paper")
+DEFAULT_PRESET = "quick"
 
-_TRAIN = {
+TRAIN = {
     "quick": dict(steps=3000, batch_size=32, lr=1e-3, ema_decay=0.99, ema_start=200, ema_every=1, checkpoint_every=500),
     "paper": dict(
         steps=20000, batch_size=64, lr=2e-4, ema_decay=0.995, ema_start=2000, ema_every=10, checkpoint_every=1000
     ),
 }
-_DIFFUSION_STEPS = {"quick": 32, "paper": 128}
-_CDRB_LOSS_WEIGHT_POWER = {"quick": 1.0, "paper": 0.0}
 
-
-def net_config(kind: str, preset: str):
-    if kind == "unet":
-        if preset == "quick":
-            return UNetConfig(dim=16, dim_mults=[1, 2, 4], residual=True)
-        return UNetConfig(dim=32, dim_mults=[1, 4, 8])
-    if kind == "transformer":
-        if preset == "quick":
-            return TransformerConfig(d_model=64, n_layers=4, n_heads=4, ff_dim=256)
-        return TransformerConfig(d_model=128, n_layers=8, n_heads=4, ff_dim=512)
-    if kind == "mlp":
-        return MLPConfig(hidden=[512, 512, 512])
-    raise ValueError(kind)
-
-
-def train_defaults(preset: str) -> dict:
-    return dict(_TRAIN[preset])
-
-
-def diffusion_steps(preset: str) -> int:
-    return _DIFFUSION_STEPS[preset]
-
-
-def cdrb_loss_weight_power(preset: str) -> float:
-    return _CDRB_LOSS_WEIGHT_POWER[preset]
+NETS = {
+    "quick": {
+        "unet": dict(dim=16, dim_mults=[1, 2, 4], residual=True),
+        "transformer": dict(d_model=64, n_layers=4, n_heads=4, ff_dim=256),
+        "mlp": dict(hidden=[512, 512, 512]),
+    },
+    "paper": {
+        "unet": dict(dim=32, dim_mults=[1, 4, 8]),
+        "transformer": dict(d_model=128, n_layers=8, n_heads=4, ff_dim=512),
+        "mlp": dict(hidden=[512, 512, 512]),
+    },
+}

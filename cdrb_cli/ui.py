@@ -67,3 +67,23 @@ def progress(transient: bool = False):
     ]
     with Progress(*columns, console=err, transient=transient, disable=_quiet) as p:
         yield p
+
+
+def table(rows: list[dict], columns: list[tuple[str, str]]) -> None:
+    """Print ``rows`` as a table on stdout: ``columns`` = [(header, key)]."""
+    from rich.table import Table
+
+    t = Table(*[header for header, _ in columns], header_style="bold", box=None)
+    for r in rows:
+        t.add_row(*[_cell(r.get(key)) for _, key in columns])
+    stdout_console().print(t)
+
+
+def _cell(value: Any):
+    from rich.text import Text
+
+    if isinstance(value, bool):
+        return Text("yes" if value else "no")
+    if isinstance(value, float):
+        return Text(f"{value:g}")
+    return Text("" if value is None else str(value))

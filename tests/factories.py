@@ -6,7 +6,6 @@ import numpy as np
 
 from cdrb_cli import artifacts
 from cdrb_cli.configs import (
-    CDRBParams,
     ClusterConfig,
     ClusterSummary,
     CollectConfig,
@@ -14,14 +13,16 @@ from cdrb_cli.configs import (
     EvalConfig,
     EvalSummary,
     PlanConfig,
-    PlannerExpertConfig,
     PlanSummary,
     SeedResult,
     TrainConfig,
     TrainState,
     UNetConfig,
 )
+from cdrb_cli.envs.pointmaze.controllers import PDConfig
+from cdrb_cli.envs.pointmaze.expert import PlannerExpertConfig
 from cdrb_cli.envs.registry import make_spec
+from cdrb_cli.methods.cdrb import CDRBParams
 
 KINDS = ("demos", "buffer", "model", "plans", "eval")
 
@@ -87,10 +88,10 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
             seed=seed,
         )
         arrays = {
-            "weights/layer.weight": f32(n, 3),
-            "weights/layer.bias": f32(n),
-            "ema/layer.weight": f32(n, 3),
-            "ema/layer.bias": f32(n),
+            "weights/net/layer.weight": f32(n, 3),
+            "weights/net/layer.bias": f32(n),
+            "ema/net/layer.weight": f32(n, 3),
+            "ema/net/layer.bias": f32(n),
             "normalizer/low": -np.ones(4, np.float32),
             "normalizer/high": np.ones(4, np.float32),
             "curve/step": np.arange(n, dtype=np.int64),
@@ -122,7 +123,9 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
         return artifacts.make_manifest("plans", env=env, config=cfg, seed=seed, summary=summ, method="cdrb"), arrays
     if kind == "eval":
         E = n
-        cfg = EvalConfig(episodes=E, seeds=[0], sampler="alg1", seed=seed)
+        cfg = EvalConfig(
+            episodes=E, seeds=[0], controller=PDConfig(), sampler="alg1", protocol="centre-start/corner-goal", seed=seed
+        )
         per = SeedResult(
             seed=0,
             episodes=E,

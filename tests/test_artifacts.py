@@ -114,7 +114,7 @@ def _rewrite_attr(p, name, value):
 
 def test_newer_major_is_refused(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    _rewrite_attr(p, "cdrb_schema_version", "2.0")
+    _rewrite_attr(p, "cdrb_schema_version", "3.0")
     msg = _err(p)
     assert "newer" in msg and "upgrade cdrb" in msg
 
@@ -127,27 +127,20 @@ def test_newer_minor_with_unknown_field_is_read(tmp_path):
         m["summary"]["future_stat"] = 3
         del f["manifest"]
         f["manifest"] = np.bytes_(json.dumps(m).encode())
-        f.attrs["cdrb_schema_version"] = "1.7"
+        f.attrs["cdrb_schema_version"] = "2.7"
     art = artifacts.load(p)
     assert art.manifest.summary.episodes == 5
     # the same unknown field under the current minor version is an error
-    _rewrite_attr(p, "cdrb_schema_version", "1.0")
+    _rewrite_attr(p, "cdrb_schema_version", "2.0")
     msg = _err(p)
     assert "future_" in msg and "Extra inputs" in msg
 
 
-def test_older_minor_reads_with_the_field_it_lacked_as_its_old_meaning(tmp_path):
-    # eval 1.1 added config.max_lag; a 1.0 file (no such field) followed plans on the environment's clock
-    p = write(tmp_path / "e.h5", "eval")
-    with h5py.File(p, "r+") as f:
-        m = json.loads(f["manifest"][()].decode())
-        m["config"].pop("max_lag", None)
-        m["schema_version"] = "1.0"
-        del f["manifest"]
-        f["manifest"] = np.bytes_(json.dumps(m).encode())
-        f.attrs["cdrb_schema_version"] = "1.0"
-    art = artifacts.load(p, "eval")
-    assert art.manifest.schema_version == "1.0" and art.manifest.config.max_lag is None
+def test_older_major_without_a_migration_is_refused(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    _rewrite_attr(p, "cdrb_schema_version", "0.9")
+    msg = _err(p)
+    assert "older than this cdrb reads" in msg and "no migration" in msg
 
 
 def test_invalid_manifest(tmp_path):

@@ -42,13 +42,11 @@ def test_table1_script_tiny(tmp_path):
 
 
 def test_planning_script(tmp_path, small_data):
-    from cdrb_cli.stages.train import resolve_config, train
-    from tests.test_train import TINY
+    from cdrb_cli.stages.train import train, train_config
+    from tests.test_train import tiny
 
     demos, buffer = small_data
-    model = train(
-        demos, buffer, resolve_config(demos, buffer, "cdrb", steps=10, checkpoint_every=10, **TINY), tmp_path / "m.h5"
-    )
+    model = train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=10)), tmp_path / "m.h5")
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "planning.py"), str(model.path), "--pairs", "4"],
         capture_output=True,

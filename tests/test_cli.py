@@ -12,7 +12,20 @@ from cdrb_cli import __version__
 from cdrb_cli.cli import main
 from tests.factories import KINDS, write
 
-COMMANDS = ["collect", "cluster", "train", "plan", "eval", "report", "quickstart", "inspect", "schema", "envs"]
+COMMANDS = [
+    "collect",
+    "cluster",
+    "train",
+    "plan",
+    "eval",
+    "report",
+    "quickstart",
+    "inspect",
+    "schema",
+    "envs",
+    "methods",
+    "config",
+]
 
 
 def test_help_lists_every_command(cdrb):
@@ -26,11 +39,12 @@ def test_eval_help_states_the_max_lag_default():
     import typer
 
     from cdrb_cli.cli import app
-    from cdrb_cli.configs import DEFAULT_MAX_LAG
+    from cdrb_cli.envs.pointmaze.controllers import DEFAULT_MAX_LAG, InverseDynamicsConfig, PDConfig
 
     eval_cmd = typer.main.get_command(app).commands["eval"]
     (opt,) = [p for p in eval_cmd.params if p.name == "max_lag"]
-    assert f"(default {DEFAULT_MAX_LAG})" in opt.help
+    assert f"default {DEFAULT_MAX_LAG} m" in opt.help
+    assert PDConfig().max_lag == InverseDynamicsConfig().max_lag == DEFAULT_MAX_LAG
 
 
 def test_version(cdrb):

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
-from cdrb_cli.configs import PlannerExpertConfig
-from cdrb_cli.envs.maze import in_collision
-from cdrb_cli.envs.pointmaze import PointMaze
+from cdrb_cli.envs.family import Episode
+from cdrb_cli.envs.geometry import in_boxes
+from cdrb_cli.envs.pointmaze.env import PointMaze
+from cdrb_cli.envs.pointmaze.expert import MazeExpert, PlannerExpertConfig
 from cdrb_cli.envs.registry import make_spec
-from cdrb_cli.experts.maze_planner import MazeExpert
-from cdrb_cli.stages.collect import collect, collect_config, draw_start_goal, rollout
+from cdrb_cli.stages.collect import collect, collect_config, rollout
 
 
 @pytest.mark.parametrize("env_id", ["maze", "maze-tight"])
@@ -21,10 +21,10 @@ def test_expert_succeeds_without_touching_walls(env_id):
     rng = np.random.default_rng(1)
     lengths = []
     for ep in range(40):
-        s, g = draw_start_goal(env.geometry, rng)
-        S, A, goal, ok = rollout(env, expert, spec, 1000 + ep, s, g, spec.episode_limit)
+        s, g = env.geometry.draw_start_goal(rng)
+        S, A, goal, ok = rollout(env, expert, spec, Episode(1000 + ep, tuple(s), tuple(g)), spec.episode_limit)
         assert ok, f"episode {ep} failed"
-        assert not in_collision(S, spec.obstacles).any()
+        assert not in_boxes(S, spec.obstacles).any()
         assert np.linalg.norm(S[-1, :2] - goal) < 0.05 and np.linalg.norm(S[-1, 2:]) < 0.1  # comes to rest
         assert np.all(np.abs(A) <= 1.0)
         lengths.append(len(S))
@@ -61,7 +61,7 @@ def test_cli_collect_custom_map_end_to_end(tmp_path, cdrb):
     assert r.stdout.strip() == str(out)  # stdout carries only the path
     assert png.stat().st_size > 1000
     demos = artifacts.load(out, "demos")
-    assert demos.manifest.env.id == "map:corridor" and demos.manifest.env.maze.rows[1] == "#S...G#"
+    assert demos.manifest.env.id == "map:corridor" and demos.manifest.env.scene.maze.rows[1] == "#S...G#"
     assert demos.manifest.summary.success_rate == 1.0 and demos.manifest.summary.states_in_walls == 0
     # re-running the same command is a no-op; a different command refuses to overwrite
     again = cdrb("collect", "--maze-map", m, "-n", "20", "--out", out, "--seed", "4")

@@ -8,16 +8,20 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
-from cdrb_cli.configs import EvalConfig
-from cdrb_cli.envs.controllers import make_controller
-from cdrb_cli.envs.pointmaze import PointMaze
-from cdrb_cli.envs.protocol import draw_pairs, pair_states
-from cdrb_cli.envs.registry import make_spec
-from cdrb_cli.experts.maze_planner import MazeExpert
+from cdrb_cli.envs.family import Episode
+from cdrb_cli.envs.pointmaze.controllers import DEFAULT_MAX_LAG, make_controller
+from cdrb_cli.envs.pointmaze.env import PointMaze
+from cdrb_cli.envs.pointmaze.expert import MazeExpert
+from cdrb_cli.envs.registry import family_of, make_spec
+from cdrb_cli.seeding import STREAM_EVAL
 from cdrb_cli.stages.collect import rollout
-from cdrb_cli.stages.evaluate import evaluate, run_episode
-from cdrb_cli.stages.train import resolve_config, train
-from tests.test_train import TINY
+from cdrb_cli.stages.evaluate import eval_config, evaluate, reset_states, run_episode
+from cdrb_cli.stages.train import train, train_config
+from tests.test_train import tiny
+
+
+def draw_pairs(spec, n, seed):
+    return family_of(spec).draw_episodes(spec, n, seed, STREAM_EVAL)
 
 
 @pytest.mark.parametrize("controller", ["pd", "inverse-dynamics"])
@@ -26,13 +30,13 @@ def test_controllers_track_expert_plans(controller):
     spec = make_spec("maze-tight")
     env = PointMaze(spec)
     ctrl = make_controller(controller, spec.plan_stride, env.dynamics)
-    for s, sc, gc in draw_pairs(spec, 8, seed=3):
-        S, _, goal, ok = rollout(env, MazeExpert(spec), spec, s, sc, gc, spec.episode_limit)
+    for ep in draw_pairs(spec, 8, seed=3):
+        S, _, goal, ok = rollout(env, MazeExpert(spec), spec, ep, spec.episode_limit)
         plan = S[:: spec.plan_stride]
         ctrl.reset(plan)
-        res = run_episode(env, spec, s, sc, gc, ctrl.act, spec.episode_limit)
-        assert res["success"] and not res["collision"]
-        executed = res["states"][: spec.plan_stride * (len(plan) - 1) + 1 : spec.plan_stride, :2]
+        res = run_episode(env, spec, ep, ctrl.act, spec.episode_limit)
+        assert res.success and not res.collision
+        executed = res.states[: spec.plan_stride * (len(plan) - 1) + 1 : spec.plan_stride, :2]
         err = np.linalg.norm(executed - plan[: len(executed), :2], axis=1)
         # inverse dynamics is exact wherever the interpolated target needs no more than the maximum force
         assert err.max() < (0.1 if controller == "inverse-dynamics" else 0.25), err.max()
@@ -69,12 +73,12 @@ def test_gated_clock_follows_plans_too_fast_to_track_on_time():
     for lag in (None, 0.6):
         ctrl = make_controller("pd", spec.plan_stride, env.dynamics, max_lag=lag)
         ok = collisions = 0
-        for s, sc, gc in draw_pairs(spec, 8, seed=3):
-            S, _, _, _ = rollout(env, MazeExpert(spec), spec, s, sc, gc, spec.episode_limit)
+        for ep in draw_pairs(spec, 8, seed=3):
+            S, _, _, _ = rollout(env, MazeExpert(spec), spec, ep, spec.episode_limit)
             ctrl.reset(S[:: 3 * spec.plan_stride])
-            res = run_episode(env, spec, s, sc, gc, ctrl.act, spec.episode_limit)
-            ok += res["success"]
-            collisions += res["collision"]
+            res = run_episode(env, spec, ep, ctrl.act, spec.episode_limit)
+            ok += res.success
+            collisions += res.collision
         results[lag] = (ok, collisions)
     assert results[0.6][0] == 8 and results[0.6][1] <= 1, results
     assert results[None][1] >= 4, results  # the failure mode the gate exists for
@@ -84,7 +88,7 @@ def test_inverse_dynamics_is_exact_on_reachable_targets():
     spec = make_spec("maze")
     env = PointMaze(spec)
     ctrl = make_controller("inverse-dynamics", 1, env.dynamics)
-    obs, _ = env.reset(0, (7, 7), (1, 1))
+    obs, _ = env.reset(Episode(0, (7, 7), (1, 1)))
     t = np.arange(30)[:, None] * env.dynamics["dt"]
     # constant acceleration of 5 m/s^2 (the ball can do about 24): every target is reachable in one step
     plan = np.concatenate([obs[None, :2] + 0.5 * 5.0 * t**2 * np.array([[0.8, 0.6]]), np.zeros((30, 2))], axis=1)
@@ -97,12 +101,12 @@ def test_inverse_dynamics_is_exact_on_reachable_targets():
 def test_protocol_pairs_are_central_starts_and_corner_goals():
     spec = make_spec("maze-tight")
     pairs = draw_pairs(spec, 50, seed=0)
-    starts = np.array([p[1] for p in pairs])
-    goals = {tuple(p[2]) for p in pairs}
+    starts = np.array([p.start for p in pairs])
+    goals = {p.goal for p in pairs}
     assert starts.min() >= 5 and starts.max() <= 9
     assert goals <= {(1, 1), (1, 13), (13, 1), (13, 13)} and len(goals) == 4
-    s1, g1 = pair_states(spec, pairs)
-    s2, g2 = pair_states(spec, draw_pairs(spec, 50, seed=0))
+    s1, g1 = reset_states(PointMaze(spec), pairs)
+    s2, g2 = reset_states(PointMaze(spec), draw_pairs(spec, 50, seed=0))
     np.testing.assert_array_equal(s1, s2)
     np.testing.assert_array_equal(g1, g2)
     assert np.all(np.abs(s1[:, 2:]) == 0)
@@ -115,17 +119,15 @@ def evals(small_data, tmp_path_factory):
     out = {}
     for method in ("cdrb", "diffuser", "mlp"):
         b = buffer if method == "cdrb" else None
-        kw = dict(TINY) if method != "mlp" else dict(horizon=16, batch_size=8)
         # horizon 16 at stride 10 covers 160 env steps: enough structure for a smoke test
         model = train(
             demos,
             b,
-            resolve_config(demos, b, method, steps=20, checkpoint_every=20, stride=10, **kw),
+            train_config(demos, b, method, tiny(method, steps=20, checkpoint_every=20, stride=10)),
             root / f"m-{method}.h5",
         )
-        cfg = EvalConfig(
-            episodes=4, seeds=[0, 1], sampler={"cdrb": "alg1", "diffuser": "ddpm", "mlp": "direct"}[method], seed=0
-        )
+        cfg = eval_config(model, 4, [0, 1])
+        assert cfg.sampler == model.manifest.config.method.sampler and cfg.controller.max_lag == DEFAULT_MAX_LAG
         out[method] = evaluate(model, cfg, root / f"e-{method}.h5")
     return out
 
@@ -216,7 +218,9 @@ def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):
         (["--seeds", "a,b"], "--seeds"),
         (["--seeds", "1,1"], "repeated"),
         (["--controller", "magic"], "--controller"),
-        (["--sampler", "ddpm"], "--sampler"),
+        (["--sampler", "ddpm"], "--sampler ddpm: cdrb models use alg1, alg2"),
+        (["--sampler", "magic"], "not a known sampler"),
+        (["--controller", "inverse-dynamics", "--set", "controller.kp=3"], "unknown setting 'controller.kp'"),
         (["--episodes", "0"], "--episodes"),
     ]:
         r = cdrb("eval", model, *args, "--out", tmp_path / "e.h5")

@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from benchmarks.fault_harness import crash_before_rename, run_faults
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
 from tests.factories import KINDS, write
-from tests.fault_harness import crash_before_rename, run_faults
 
 PACKAGE = Path(__file__).resolve().parent.parent / "cdrb_cli"
 
@@ -55,8 +55,10 @@ def _absurd_manifest(path, mutate):
 @pytest.mark.parametrize(
     "mutate, needle",
     [
-        (lambda m: m["env"]["maze"].update(rows=["#" * 5000] * 3), "env.maze.rows"),
-        (lambda m: m["env"]["maze"].update(rows=["#####", "#S.G#", "#####"] * 40), "env.maze.rows"),
+        (lambda m: m["env"]["scene"]["maze"].update(rows=["#" * 5000] * 3), "env.scene.maze.rows"),
+        (lambda m: m["env"]["scene"]["maze"].update(rows=["#####", "#S.G#", "#####"] * 40), "env.scene.maze.rows"),
+        (lambda m: m["env"]["scene"].update(family="moon"), "unknown environment family 'moon'"),
+        (lambda m: m["config"]["expert"].update(kind="oracle"), "unknown expert 'oracle'"),
         (lambda m: m["env"].update(id="x" * 10_000), "env.id"),
         (lambda m: m["env"]["obstacles"].update(centers=[[0, 0]] * 30_000), "env.obstacles.centers"),
         (lambda m: m["env"].update(obs_dim=10**9), "env.obs_dim"),

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdrb_cli.envs.maze import MazeGeometry, box_distance, in_collision, parse_map
-from cdrb_cli.envs.registry import BALL_RADIUS, list_envs, make_spec
+from cdrb_cli.envs.geometry import box_distance, in_boxes
+from cdrb_cli.envs.pointmaze import BALL_RADIUS
+from cdrb_cli.envs.pointmaze.maze import MazeGeometry, parse_map
+from cdrb_cli.envs.registry import family_of, list_envs, make_spec
 from cdrb_cli.errors import BadInput
 
 GOOD = """
@@ -56,7 +58,7 @@ def test_start_or_goal_marked_on_a_wall_is_impossible_by_construction():
 
 
 def test_cell_xy_round_trip():
-    g = MazeGeometry(make_spec("maze-tight").maze)
+    g = MazeGeometry(make_spec("maze-tight").scene.maze)
     cells = np.argwhere(np.ones((15, 15), bool))
     xy = g.cell_to_xy(cells)
     assert np.allclose(g.cell_to_xy([7, 7]), [0, 0]) and np.allclose(g.cell_to_xy([1, 13]), [6, 6])
@@ -81,9 +83,10 @@ def test_collision_just_inside_and_outside_a_wall():
     )
     states = np.concatenate([pts, np.zeros((len(pts), 2))], axis=1)
     expected = [True, True, False, False, True, False, False, True]
-    assert in_collision(states, spec.obstacles).tolist() == expected
-    # batched plans (P, H, D) give the same answers
-    assert in_collision(states.reshape(2, 4, 4), spec.obstacles).ravel().tolist() == expected
+    assert in_boxes(states, spec.obstacles).tolist() == expected
+    # batched plans (P, H, D) give the same answers, and the family's test is this one
+    assert in_boxes(states.reshape(2, 4, 4), spec.obstacles).ravel().tolist() == expected
+    assert family_of(spec).in_collision(spec, states).tolist() == expected
 
 
 def test_box_distance_matches_brute_force():
@@ -101,7 +104,7 @@ def test_box_distance_matches_brute_force():
 
 
 def test_bfs_and_stock_envs():
-    g = MazeGeometry(make_spec("maze-tight").maze)
+    g = MazeGeometry(make_spec("maze-tight").scene.maze)
     d = g.bfs((7, 7))
     assert d[7, 7] == 0 and d[4, 7] == 3 and d[1, 13] > 0 and d[0, 0] == -1
     ids = [e["id"] for e in list_envs()]

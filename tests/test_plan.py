@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
-from cdrb_cli.stages.train import resolve_config, train
-from tests.test_train import TINY
+from cdrb_cli.stages.train import train, train_config
+from tests.test_train import tiny
 
 
 @pytest.fixture(scope="module")
@@ -17,8 +17,7 @@ def tiny_models(small_data, tmp_path_factory):
     out = {}
     for method in ("cdrb", "diffuser", "mlp"):
         b = buffer if method == "cdrb" else None
-        kw = dict(TINY) if method != "mlp" else dict(horizon=16, batch_size=8)
-        cfg = resolve_config(demos, b, method, steps=30, checkpoint_every=30, **kw)
+        cfg = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=30))
         out[method] = train(demos, b, cfg, root / f"{method}.h5")
     return out
 

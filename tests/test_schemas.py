@@ -8,6 +8,7 @@ from pathlib import Path
 import jsonschema
 import pytest
 
+from cdrb_cli import artifacts
 from cdrb_cli.artifacts import schema
 from tests.factories import KINDS, build
 
@@ -22,7 +23,7 @@ def test_committed_schemas_do_not_drift():
 def test_drift_is_detected(tmp_path):
     schema.export(tmp_path)
     assert schema.drift(tmp_path) == []
-    victim = next(tmp_path.glob("demos.v*.schema.json"))
+    victim = tmp_path / "demos.v2.schema.json"
     victim.write_text(victim.read_text().replace('"episodes"', '"episodez"', 1))
     assert schema.drift(tmp_path) == [victim.name]
 
@@ -30,7 +31,8 @@ def test_drift_is_detected(tmp_path):
 @pytest.mark.parametrize("kind", KINDS)
 def test_manifests_validate_against_committed_schema(kind):
     manifest, _ = build(kind)
-    doc = json.loads(next(SCHEMAS.glob(f"{kind}.v*.schema.json")).read_text())
+    major = artifacts.SCHEMA_VERSIONS[kind].split(".")[0]
+    doc = json.loads((SCHEMAS / f"{kind}.v{major}.schema.json").read_text())
     jsonschema.validate(json.loads(manifest.model_dump_json()), doc)
     bad = json.loads(manifest.model_dump_json())
     bad["seed"] = "not an int"
@@ -43,6 +45,6 @@ def test_cli_export_and_check(tmp_path, cdrb):
     assert r.returncode == 0, r.stderr
     assert len(r.stdout.split()) == len(KINDS)
     assert cdrb("schema", "check", tmp_path).returncode == 0
-    (tmp_path / "eval.v1.schema.json").write_text("{}")
+    (tmp_path / "eval.v2.schema.json").write_text("{}")
     r = cdrb("schema", "check", tmp_path)
-    assert r.returncode == 1 and "eval.v1.schema.json" in r.stderr
+    assert r.returncode == 1 and "eval.v2.schema.json" in r.stderr

@@ -14,25 +14,25 @@ import pytest
 
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.train import resolve_config, train
+from cdrb_cli.stages.train import train, train_config
 
-TINY = dict(dim=8, dim_mults=[1, 2], horizon=16, diffusion=8, batch_size=8, lr=2e-3)
+#: tiny settings of the diffusion methods (U-Net), and of the MLP
+TINY = {"net.dim": 8, "net.dim_mults": [1, 2], "horizon": 16, "method.diffusion_steps": 8, "batch_size": 8, "lr": 2e-3}
+TINY_MLP = {"horizon": 16, "batch_size": 8, "lr": 2e-3}
 TINY_FLAGS = [
-    "--dim",
-    "8",
-    "--dim-mults",
-    "1,2",
-    "--horizon",
-    "16",
-    "--diffusion-steps",
-    "8",
-    "--batch-size",
-    "8",
-    "--lr",
-    "2e-3",
-    "--device",
-    "cpu",
+    *("--set", "net.dim=8"),
+    *("--set", "net.dim_mults=1,2"),
+    *("--set", "horizon=16"),
+    *("--set", "method.diffusion_steps=8"),
+    *("--set", "batch_size=8"),
+    *("--set", "lr=2e-3"),
+    *("--device", "cpu"),
 ]
+
+
+def tiny(method: str, **settings) -> dict:
+    """The tiny settings of ``method`` plus ``settings``."""
+    return {**(TINY_MLP if method == "mlp" else TINY), **settings}
 
 
 def _weights(model):
@@ -45,21 +45,20 @@ def test_cdrb_learns_to_restore(small_data, tmp_path):
     import torch
 
     from cdrb_cli.data import WindowSampler
-    from cdrb_cli.stages.train import load_planner
+    from cdrb_cli.methods.checkpoint import load_method
 
     demos, buffer = small_data
     # stride 10: a 16-state window spans 160 env steps, long enough to turn through the maze
     # the paper's plain set-up (no residual output, unweighted loss): the test is about learning to restore
-    cfg = resolve_config(
-        demos, buffer, "cdrb", steps=600, checkpoint_every=200, stride=10, residual=False, loss_weight_power=0.0, **TINY
-    )
+    plain = {"net.residual": False, "method.loss_weight_power": 0.0}
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=600, checkpoint_every=200, stride=10, **plain))
     model = train(demos, buffer, cfg, tmp_path / "m.h5")
     loss = model.arrays["curve/loss"]
     assert model.manifest.state.finished and model.manifest.state.step == 600
     assert loss[-5:].mean() < loss[:5].mean()
     assert "buffer/points" in model.arrays and model.arrays["buffer/points"].shape == buffer.points.shape
     assert [p.kind for p in model.manifest.parents] == ["demos", "buffer"]
-    method, ema = load_planner(model)
+    method = load_method(model)  # the EMA weights
     tau = torch.from_numpy(
         WindowSampler(demos, "state", method.normalizer, cfg.horizon, cfg.stride, "valid").episode_windows()
     )
@@ -71,7 +70,7 @@ def test_cdrb_learns_to_restore(small_data, tmp_path):
     for k in (4, 6, 7):
         noisy = method.pin(method._degrade(tau, k, rng), start, goal)
         with torch.no_grad():
-            pred = method.pin(ema(noisy, torch.full((len(tau),), k)), start, goal)
+            pred = method.pin(method.net(noisy, torch.full((len(tau),), k)), start, goal)
         err_model = float(((pred - tau) ** 2).mean())
         err_identity = float(((noisy - tau) ** 2).mean())
         assert err_model < 0.5 * err_identity and err_model < err_line, (k, err_model, err_identity, err_line)
@@ -81,11 +80,12 @@ def test_cdrb_learns_to_restore(small_data, tmp_path):
 def test_resume_continues_to_the_same_result(small_data, tmp_path, method):
     demos, buffer = small_data
     b = buffer if method == "cdrb" else None
-    kw = dict(TINY) if method != "mlp" else dict(horizon=16, batch_size=8, lr=2e-3)
-    full = train(demos, b, resolve_config(demos, b, method, steps=40, checkpoint_every=10, **kw), tmp_path / "a.h5")
-    half = resolve_config(demos, b, method, steps=20, checkpoint_every=10, **kw)
+    full = train(
+        demos, b, train_config(demos, b, method, tiny(method, steps=40, checkpoint_every=10)), tmp_path / "a.h5"
+    )
+    half = train_config(demos, b, method, tiny(method, steps=20, checkpoint_every=10))
     train(demos, b, half, tmp_path / "b.h5")
-    rest = resolve_config(demos, b, method, steps=40, checkpoint_every=10, **kw)
+    rest = train_config(demos, b, method, tiny(method, steps=40, checkpoint_every=10))
     resumed = train(demos, b, rest, tmp_path / "b.h5", resume=True)
     wa, wb = _weights(full), _weights(resumed)
     assert wa.keys() == wb.keys()
@@ -96,7 +96,7 @@ def test_resume_continues_to_the_same_result(small_data, tmp_path, method):
 
 def test_kill_and_resume_matches_uninterrupted(small_data, tmp_path, cdrb):
     demos, buffer = small_data
-    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "300", "--checkpoint-every", "10", *TINY_FLAGS]
+    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "300", "--set", "checkpoint_every=10", *TINY_FLAGS]
     ref = tmp_path / "ref.h5"
     r = cdrb(*args, "--out", ref)
     assert r.returncode == 0, r.stderr
@@ -143,7 +143,7 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(small_data, tmp_path, monkeypa
 
     demos, buffer = small_data
     out = tmp_path / "m.h5"
-    cfg = resolve_config(demos, buffer, "cdrb", steps=30, checkpoint_every=10, **TINY)
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=30, checkpoint_every=10))
     real = CDRB.loss
     calls = {"n": 0}
 
@@ -172,33 +172,40 @@ def test_refuses_mismatched_buffer(small_data, tmp_path):
     spec = make_spec("maze")
     other = collect(spec, collect_config(spec, episodes=6, seed=1), tmp_path / "other.h5")
     other_buf = cluster(other, ClusterConfig(k=20, seed=0), tmp_path / "ob.h5")
-    cfg = resolve_config(demos, other_buf, "cdrb", steps=5, **TINY)
+    cfg = train_config(demos, other_buf, "cdrb", tiny("cdrb", steps=5))
     with pytest.raises(BadInput, match="made for env 'maze'"):
         train(demos, other_buf, cfg, tmp_path / "m.h5")
     spec_t = make_spec("maze-tight")
     other_t = collect(spec_t, collect_config(spec_t, episodes=6, seed=5), tmp_path / "other_t.h5")
     buf_t = cluster(other_t, ClusterConfig(k=20, seed=0), tmp_path / "obt.h5")
     with pytest.raises(BadInput, match="normalizer does not match"):
-        train(demos, buf_t, resolve_config(demos, buf_t, "cdrb", steps=5, **TINY), tmp_path / "m2.h5")
+        train(demos, buf_t, train_config(demos, buf_t, "cdrb", tiny("cdrb", steps=5)), tmp_path / "m2.h5")
 
 
 def test_config_errors(small_data):
     demos, buffer = small_data
-    with pytest.raises(BadInput, match="needs a multiple of 2"):
-        resolve_config(demos, buffer, "cdrb", **{**TINY, "horizon": 15})
+    with pytest.raises(BadInput, match="a multiple of 2"):
+        train_config(demos, buffer, "cdrb", tiny("cdrb", horizon=15))
     with pytest.raises(BadInput, match="needs --buffer"):
-        resolve_config(demos, None, "cdrb")
-    with pytest.raises(BadInput, match="must be positive"):
-        resolve_config(demos, buffer, "cdrb", steps=-3)
+        train_config(demos, None, "cdrb")
+    with pytest.raises(BadInput, match="steps=-3: Input should be greater than 0"):
+        train_config(demos, buffer, "cdrb", {"steps": -3})
+    with pytest.raises(BadInput, match="unknown setting 'method.schedule'"):
+        train_config(demos, None, "mlp", {"method.schedule": "log"})  # a CDRB setting is no MLP setting
+    with pytest.raises(BadInput, match="the mlp method uses --net mlp"):
+        train_config(demos, None, "mlp", {"net.kind": "unet"})
 
 
 def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
     demos, buffer = small_data
     cases = [
         (["--steps", "-1"], "--steps"),
-        (["--horizon", "30", "--dim-mults", "1,2,4"], "multiple of 4"),
+        (["--set", "horizon=30", "--set", "net.dim_mults=1,2,4"], "multiple of 4"),
         (["--method", "magic"], "--method"),
-        (["--schedule", "cubic"], "--schedule"),
+        (["--set", "method.schedule=cubic"], "--set method.schedule=cubic: Input should be"),
+        (["--set", "net.dimm=3"], "unknown setting 'net.dimm'"),
+        (["--set", "net.dim"], "expected KEY=VALUE"),
+        (["--horizon", "30"], "--set horizon=VALUE"),  # the pre-0.2 flags point to their config field
         (["--buffer", demos.path], "'demos' artifact"),
     ]
     for extra, needle in cases:

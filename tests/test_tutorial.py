@@ -16,7 +16,8 @@ TUTORIAL = Path(__file__).resolve().parent.parent / "docs" / "tutorial.md"
 TINY = {
     r"--episodes 1000": "--episodes 24",
     r"--k 1000": "--k 60",
-    r"--steps 3000": "--steps 10 --horizon 16 --stride 10 --dim 8 --dim-mults 1,2 --diffusion-steps 8",
+    r"--steps 3000": "--steps 10 --set horizon=16 --set stride=10 --set net.dim=8 --set net.dim_mults=1,2 "
+    "--set method.diffusion_steps=8",
     r"--seeds 0,1 --episodes 50": "--seeds 0 --episodes 2",
     r"--n 8 --show-steps 4": "--n 2 --show-steps 2",
 }

@@ -12,6 +12,7 @@ import signal
 import time
 import warnings
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from cdrb_cli.artifacts.kinds import (
     Plans,
     PlansManifest,
 )
+from cdrb_cli.artifacts.migrations import can_migrate, migrate_arrays, migrate_manifest
 from cdrb_cli.errors import ArtifactError, BadInput
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
 
@@ -53,6 +55,8 @@ __all__ = [
     "make_manifest",
     "parent_ref",
     "is_up_to_date",
+    "existing",
+    "Existing",
     "check_output",
     "produce",
     "find_up_to_date",
@@ -139,15 +143,23 @@ def _guarded_probe(path: Path, kind: str | None) -> None:
 
 def _load(path: Path, kind: str | None) -> ArtifactBase:
     try:
-        f, found_kind, _version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS)
+        f, found_kind, version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS, can_migrate)
         try:
             cls = KINDS[found_kind]
+            major = int(version.split(".")[0])
+            old = major < int(SCHEMA_VERSIONS[found_kind].split(".")[0])
+            if old:
+                manifest_data = migrate_manifest(found_kind, major, manifest_data)
             manifest = validate_manifest(path, cls.manifest_cls, manifest_data, lenient)
             check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
             arrays = load_arrays(path, datasets)
+            if old:
+                arrays = migrate_arrays(found_kind, major, arrays)
         finally:
             f.close()
-        return cls(manifest, arrays, path=path, sha256=sha256_file(path))
+        art = cls(manifest, arrays, path=path, sha256=sha256_file(path))
+        art.migrated_from = version if old else None
+        return art
     except BadInput:
         raise
     except Exception as exc:  # anything else the HDF5 library raises on a damaged file
@@ -193,32 +205,69 @@ def make_manifest(kind: str, *, env, config, seed: int, parents: Sequence[Artifa
     )
 
 
+@dataclass(frozen=True)
+class Existing:
+    """What an output path holds, compared with the run about to write it (see :func:`existing`).
+
+    ``status`` is one of ``missing`` (no file), ``invalid`` (not a valid artifact of the kind), ``different``
+    (made by another config, environment or inputs), ``resumable`` (a training checkpoint this run may continue:
+    same inputs and config up to the fields in ``resumable``, not past this run's steps) or ``up-to-date``
+    (this very run, finished). ``reason`` says why it is not up to date."""
+
+    status: str
+    artifact: ArtifactBase | None = None
+    reason: str = ""
+
+    @property
+    def up_to_date(self) -> bool:
+        return self.status == "up-to-date"
+
+
+def existing(
+    path: str | Path,
+    kind: str,
+    config,
+    parents: Sequence[ArtifactBase] = (),
+    env=None,
+    resumable: Sequence[str] = ("steps",),
+) -> Existing:
+    """The one rule for "can this stage be skipped, or continued?", used by every command, quickstart and
+    ``--resume``: same kind, config (and env), same parents (by sha256) and, for training, finished."""
+    path = Path(path)
+    if not path.is_file():
+        return Existing("missing", reason="it does not exist")
+    try:
+        art = load(path, kind)
+    except BadInput as exc:
+        return Existing("invalid", reason=exc.message)
+    if [p.sha256 for p in art.manifest.parents] != [p.sha256 for p in parents]:
+        return Existing("different", art, "it was made from other inputs")
+    if env is not None and art.manifest.env != env:
+        return Existing("different", art, "it was made for another environment")
+    state = getattr(art.manifest, "state", None)
+    if art.manifest.config == config and (state is None or state.finished):
+        return Existing("up-to-date", art)
+    if state is not None:
+        mine = {f: getattr(config, f) for f in resumable}
+        if art.manifest.config.model_copy(update=mine) == config:
+            if state.step > getattr(config, "steps", state.step):
+                return Existing("different", art, f"it is already at step {state.step}, past --steps")
+            return Existing("resumable", art, f"it is a checkpoint at step {state.step}")
+    return Existing("different", art, "it was made with a different config")
+
+
 def find_up_to_date(
     path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None
 ) -> ArtifactBase | None:
-    """The artifact at ``path`` when it is a valid, finished ``kind`` artifact made with the same config (and env)
-    from the same parents; else None."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    try:
-        art = load(path, kind)
-    except BadInput:
-        return None
-    if art.manifest.config != config or (env is not None and art.manifest.env != env):
-        return None
-    state = getattr(art.manifest, "state", None)
-    if state is not None and not state.finished:
-        return None
-    if [p.sha256 for p in art.manifest.parents] != [p.sha256 for p in parents]:
-        return None
-    return art
+    """The artifact at ``path`` when it is up to date for this run (:func:`existing`); else None."""
+    found = existing(path, kind, config, parents, env)
+    return found.artifact if found.up_to_date else None
 
 
 def is_up_to_date(path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None) -> bool:
     """True when ``path`` holds a valid, finished ``kind`` artifact made with the same config (and env) from the
     same parents."""
-    return find_up_to_date(path, kind, config, parents, env) is not None
+    return existing(path, kind, config, parents, env).up_to_date
 
 
 def produce(path: str | Path, kind: str, force: bool, config, build, parents=(), env=None, flag: str = "--out"):
@@ -228,14 +277,14 @@ def produce(path: str | Path, kind: str, force: bool, config, build, parents=(),
 
     path = Path(path)
     if path.exists() and not force and not path.is_dir():
-        art = find_up_to_date(path, kind, config, parents, env)
-        if art is None:
+        found = existing(path, kind, config, parents, env)
+        if not found.up_to_date:
             raise BadInput(
-                f"{flag} {path}: file exists and was not made by this exact command",
+                f"{flag} {path}: file exists and was not made by this exact command ({found.reason})",
                 hint="pass --force to overwrite it, or choose another path",
             )
         ui.log(f"[green]{path}[/green] is up to date (same config and inputs): skipped; --force redoes it")
-        return art
+        return found.artifact
     check_output(path, force=True, flag=flag)
     return build()
 

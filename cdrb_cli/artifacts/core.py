@@ -214,11 +214,17 @@ def _walk(f: h5py.File) -> dict[str, h5py.Dataset]:
     return found
 
 
-def read_h5(path: str | Path, expected_kind: str | None, current_versions: Mapping[str, str]):
+def read_h5(
+    path: str | Path,
+    expected_kind: str | None,
+    current_versions: Mapping[str, str],
+    can_migrate=lambda kind, major: False,
+):
     """Open and validate the generic part of an artifact.
 
-    Returns ``(kind, version, manifest_dict, datasets, lenient)`` where ``datasets`` maps dataset paths to open
-    h5py datasets (the file stays open; the caller reads and closes it through :func:`load_arrays`)."""
+    Returns ``(file, kind, version, manifest_dict, datasets, lenient)`` where ``datasets`` maps dataset paths to
+    open h5py datasets (the file stays open; the caller reads and closes it through :func:`load_arrays`). An older
+    major version is accepted when ``can_migrate(kind, major)``; the caller then migrates what it read."""
     path = Path(path)
     f = _open(path)
     try:
@@ -248,7 +254,7 @@ def read_h5(path: str | Path, expected_kind: str | None, current_versions: Mappi
                 f"{path}: {kind} schema {version_text} is newer than this cdrb reads ({current_versions[kind]})",
                 hint=f"upgrade cdrb to a release that reads {kind} schema {major}.x",
             )
-        if major < cur_major:
+        if major < cur_major and not can_migrate(kind, major):
             raise ArtifactError(
                 f"{path}: {kind} schema {version_text} is older than this cdrb reads ({current_versions[kind]})",
                 hint="re-create the artifact with this cdrb version (no migration exists for it yet)",
@@ -375,6 +381,8 @@ class ArtifactBase:
     manifest_cls: ClassVar[type[Record]]
     datasets: ClassVar[tuple[DatasetSpec, ...]] = ()
     groups: ClassVar[tuple[GroupSpec, ...]] = ()
+    #: the schema version of the file when it was read through a migration (None: current)
+    migrated_from: str | None = None
 
     def __init__(self, manifest, arrays: Mapping[str, np.ndarray], path: Path | None = None, sha256: str | None = None):
         self.manifest = manifest

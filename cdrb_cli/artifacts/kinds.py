@@ -23,8 +23,9 @@ from cdrb_cli.configs import (
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.schema_base import Record
 
-#: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise
-SCHEMA_VERSIONS = {"demos": "1.0", "buffer": "1.0", "model": "1.0", "plans": "1.0", "eval": "1.1"}
+#: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
+#: add a migration from the old major to artifacts/migrations.py)
+SCHEMA_VERSIONS = {"demos": "2.0", "buffer": "2.0", "model": "2.0", "plans": "2.0", "eval": "2.0"}
 
 
 class ParentRef(Record):
@@ -154,8 +155,9 @@ class Buffer(ArtifactBase):
 
 
 class Model(ArtifactBase):
-    """A trained (or training) planner: weights, EMA weights, optimizer state, normalizer, training curve, and,
-    for CDRB, the buffer points it diffuses through. Self-contained for ``plan`` and ``eval``."""
+    """A trained (or training) method: the weights of each of its modules (``weights/<module>/...``), their EMA
+    copies, each optimizer's state, the normalizer, the training curve, and, for CDRB, the buffer points it
+    diffuses through. Self-contained for ``plan`` and ``eval`` (see :mod:`cdrb_cli.methods.checkpoint`)."""
 
     kind = "model"
     manifest_cls = ModelManifest

@@ -1,5 +1,6 @@
-"""Task side: environment specs, maze geometry, gymnasium construction, controllers, pictures."""
+"""Task side: environment families (:mod:`cdrb_cli.envs.family`), their registry, the generic EnvSpec and obstacle
+geometry, and pictures. Each family lives in a subpackage (``pointmaze/``)."""
 
-from cdrb_cli.envs.spec import BoxObstacles, EnvSpec, MazeLayout
+from cdrb_cli.envs.spec import BoxObstacles, EnvSpec
 
-__all__ = ["EnvSpec", "MazeLayout", "BoxObstacles"]
+__all__ = ["EnvSpec", "BoxObstacles"]

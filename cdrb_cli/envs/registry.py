@@ -1,98 +1,88 @@
-"""Environment ids -> EnvSpec. Stock ids: maze, maze-tight (the paper's), umaze, medium, large; any map file via
-``--maze-map FILE`` (id ``map:<file stem>``)."""
+"""The task side's registries and the environment catalogue.
+
+* :data:`FAMILIES`: environment families (:class:`cdrb_cli.envs.family.EnvFamily` instances) by name;
+* :data:`EXPERTS`: demonstrators by name (a family lists the ones it accepts);
+* :data:`CONTROLLERS`: plan-executing controllers by name (likewise).
+
+An env id (``maze-tight``) belongs to the family that lists it in ``env_ids()``; a file (a maze map) to the
+family whose ``spec_from_file`` reads it. :func:`make_spec` and :func:`list_envs` are what the CLI calls.
+"""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from cdrb_cli.envs.maze import STOCK_LAYOUTS, MazeGeometry, load_map_file, stock_layout
-from cdrb_cli.envs.spec import EnvSpec, MazeLayout
 from cdrb_cli.errors import BadInput
+from cdrb_cli.registry import Registry
 
-# PointMaze physics (gymnasium-robotics): 100 Hz, ball radius 0.1 m, stock success radius 0.45 m.
-POINTMAZE_DT = 0.01
-BALL_RADIUS = 0.1
-SUCCESS_RADIUS = 0.45
-PLAN_STRIDE = 2
+if TYPE_CHECKING:
+    from cdrb_cli.envs.family import ControllerEntry, EnvFamily, ExpertEntry
+    from cdrb_cli.envs.spec import EnvSpec
 
-DESCRIPTIONS = {
-    "maze": "CDRB Maze: 15x15, ring of walls with 3-cell gaps; centre starts, corner goals",
-    "maze-tight": "CDRB Maze Tight: the same ring with 1-cell gaps",
-    "umaze": "gymnasium-robotics U-maze (5x5)",
-    "medium": "gymnasium-robotics medium maze (8x8), any free cell start/goal",
-    "large": "gymnasium-robotics large maze (9x12), any free cell start/goal",
-}
-
-# The paper's two mazes use its plan length (168 planned states); at stride 2 that is 336 env steps, enough for the
-# expert's slowest episodes (docs/environments.md).
-_PAPER = {"maze": (168, 400), "maze-tight": (168, 400)}
+FAMILIES: Registry[EnvFamily] = Registry("environment family", {"pointmaze": "cdrb_cli.envs.pointmaze"})
+EXPERTS: Registry[ExpertEntry] = Registry(
+    "expert", {"planner": "cdrb_cli.envs.pointmaze.expert", "sac": "cdrb_cli.experts.sac"}
+)
+CONTROLLERS: Registry[ControllerEntry] = Registry(
+    "controller",
+    {"pd": "cdrb_cli.envs.pointmaze.controllers", "inverse-dynamics": "cdrb_cli.envs.pointmaze.controllers"},
+)
 
 
-def _timing_for(layout: MazeLayout) -> tuple[int, int]:
-    """Default (horizon, episode_limit) for a layout, from its longest start->goal grid path: the scripted expert
-    needs about 25 env steps per cell plus ~90 to accelerate and settle (measured on the stock maps)."""
-    cells = MazeGeometry(layout).longest_start_goal_path()
-    limit = int(math.ceil((120 + 28 * cells * layout.cell_size) / 50.0) * 50)
-    horizon = int(math.ceil((limit - 40) / PLAN_STRIDE / 8.0) * 8)
-    return horizon, limit
+def family_of(spec: EnvSpec) -> EnvFamily:
+    """The family that made ``spec``."""
+    return FAMILIES.get(spec.family)
 
 
-def maze_spec(env_id: str, layout: MazeLayout) -> EnvSpec:
-    horizon, limit = _PAPER.get(env_id, None) or _timing_for(layout)
-    geom = MazeGeometry(layout)
-    return EnvSpec(
-        id=env_id,
-        family="pointmaze",
-        obs_dim=4,
-        action_dim=2,
-        goal_dim=2,
-        state_labels=["x", "y", "vx", "vy"],
-        goal_dims=[0, 1],
-        horizon=horizon,
-        plan_stride=PLAN_STRIDE,
-        episode_limit=limit,
-        success_radius=SUCCESS_RADIUS,
-        dt=POINTMAZE_DT,
-        obstacles=geom.obstacles(BALL_RADIUS),
-        maze=layout,
-    )
+def _env_index() -> dict[str, EnvFamily]:
+    index: dict[str, EnvFamily] = {}
+    for fam in FAMILIES.entries():
+        for env_id in fam.env_ids():
+            index.setdefault(env_id, fam)
+    return index
 
 
-def make_spec(env_id: str | None, maze_map: str | Path | None = None) -> EnvSpec:
-    """The EnvSpec of a stock id, or of a map file (then ``env_id`` may be None or ``map``)."""
-    if maze_map is not None:
+def make_spec(env_id: str | None, map_file: str | Path | None = None) -> EnvSpec:
+    """The EnvSpec of a registered env id, or of a map file (``--maze-map``; then ``env_id`` may be None or
+    ``map``)."""
+    if map_file is not None:
         if env_id not in (None, "map", "custom"):
             raise BadInput(f"ENV {env_id!r} and --maze-map both given", hint="pass one of them (or ENV 'map')")
-        layout = load_map_file(maze_map)
-        return maze_spec(f"map:{layout.name}", layout)
+        path = Path(map_file)
+        if not path.exists():
+            raise BadInput(f"--maze-map {path}: no such file", hint="check the path")
+        for fam in FAMILIES.entries():
+            spec = fam.spec_from_file(path)
+            if spec is not None:
+                return spec
+        raise BadInput(f"--maze-map {path}: no environment family reads this file", hint="pass a maze map")
+    index = _env_index()
     if env_id is None:
-        raise BadInput("no environment given", hint=f"pass one of {', '.join(STOCK_LAYOUTS)} or --maze-map FILE")
-    if env_id not in STOCK_LAYOUTS:
-        raise BadInput(
-            f"unknown environment {env_id!r}", hint=f"choose one of {', '.join(STOCK_LAYOUTS)}, or --maze-map FILE"
-        )
-    return maze_spec(env_id, stock_layout(env_id))
+        raise BadInput("no environment given", hint=f"pass one of {', '.join(index)} or --maze-map FILE")
+    if env_id not in index:
+        raise BadInput(f"unknown environment {env_id!r}", hint=f"choose one of {', '.join(index)}, or --maze-map FILE")
+    return index[env_id].make_spec(env_id)
 
 
-def list_envs() -> list[dict]:
-    out = []
-    for env_id in STOCK_LAYOUTS:
-        s = make_spec(env_id)
-        out.append(
-            {
-                "id": env_id,
-                "description": DESCRIPTIONS[env_id],
-                "obs_dim": s.obs_dim,
-                "action_dim": s.action_dim,
-                "goal_dim": s.goal_dim,
-                "horizon": s.horizon,
-                "plan_stride": s.plan_stride,
-                "plan_env_steps": s.plan_env_steps,
-                "episode_limit": s.episode_limit,
-                "success_radius": s.success_radius,
-                "starts": int(len(MazeGeometry(s.maze).start_cells)),
-                "goals": int(len(MazeGeometry(s.maze).goal_cells)),
-            }
-        )
-    return out
+def describe(spec: EnvSpec, description: str) -> dict[str, Any]:
+    """One row of `cdrb envs`: the common facts of a spec, then its family's own."""
+    return {
+        "id": spec.id,
+        "family": spec.family,
+        "description": description,
+        "obs_dim": spec.obs_dim,
+        "action_dim": spec.action_dim,
+        "goal_dim": spec.goal_dim,
+        "horizon": spec.horizon,
+        "plan_stride": spec.plan_stride,
+        "plan_env_steps": spec.plan_env_steps,
+        "episode_limit": spec.episode_limit,
+        "success_radius": spec.success_radius,
+        **family_of(spec).details(spec),
+    }
+
+
+def list_envs() -> list[dict[str, Any]]:
+    """A row per registered env id, family by family."""
+    return [describe(fam.make_spec(i), text) for fam in FAMILIES.entries() for i, text in fam.env_ids().items()]

@@ -1,49 +1,23 @@
 """The EnvSpec: everything an artifact needs to rebuild and check its environment.
 
 Every artifact embeds the EnvSpec it was made for, so a later stage can rebuild the exact environment and refuse
-inputs made for another one. The spec is generic: a state vector of any dimension, a set of axis-aligned box
-obstacles over some of its dimensions (the maze walls, or later Fetch walls), and a goal given in the positions.
+inputs made for another one. The spec is generic: a state vector of any dimension, the goal as some of its
+dimensions, a set of axis-aligned box obstacles over some of its dimensions, and ``scene``, the part only its
+family reads (for PointMaze: the map and the reset noise), typed by the family that registered it.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
+from cdrb_cli.envs.family import Scene
+from cdrb_cli.envs.registry import FAMILIES
+from cdrb_cli.registry import Dispatch
 from cdrb_cli.schema_base import Record
 
-MAP_CHARS = {"#": "wall", ".": "free", "S": "start", "G": "goal", "C": "start and goal"}
-
-
-MAX_MAP_SIDE = 100
 MAX_BOXES = 20_000
-
-
-class MazeLayout(Record):
-    """A grid maze: ``rows`` of ``#`` wall, ``.`` free, ``S`` start cell, ``G`` goal cell, ``C`` start+goal cell."""
-
-    name: str = Field(max_length=200)
-    rows: list[str] = Field(min_length=3, max_length=MAX_MAP_SIDE)
-    cell_size: float = Field(1.0, gt=0, le=100)
-
-    @field_validator("rows")
-    @classmethod
-    def _check_rows(cls, rows: list[str]) -> list[str]:
-        width = len(rows[0])
-        if not 3 <= width <= MAX_MAP_SIDE or any(len(r) != width for r in rows):
-            raise ValueError(f"rows must all have the same length, 3..{MAX_MAP_SIDE}")
-        if any(ch not in MAP_CHARS for r in rows for ch in r):
-            raise ValueError(f"rows may only contain {''.join(MAP_CHARS)}")
-        return rows
-
-    @property
-    def n_rows(self) -> int:
-        return len(self.rows)
-
-    @property
-    def n_cols(self) -> int:
-        return len(self.rows[0])
 
 
 class BoxObstacles(Record):
@@ -72,25 +46,24 @@ class BoxObstacles(Record):
 
 
 class EnvSpec(Record):
-    id: str = Field(
-        max_length=200, description="environment id, e.g. 'maze-tight', or 'map:<name>' for a --maze-map file"
+    id: str = Field(max_length=200, description="environment id, e.g. 'maze-tight', or 'map:<name>' for a map file")
+    scene: Annotated[Scene, Dispatch(FAMILIES, key="family", attr="scene_type")] = Field(
+        description="the family's own part of the spec; scene.family names the family"
     )
-    family: Literal["pointmaze"] = "pointmaze"
     obs_dim: int = Field(gt=0, le=1024)
     action_dim: int = Field(gt=0, le=1024)
     goal_dim: int = Field(gt=0, le=1024)
     state_labels: list[str]
     goal_dims: list[int] = Field(description="indices of the state that the goal is compared with")
+    pinned_dims: list[int] | None = Field(
+        None, description="indices of the state pinned at a plan's start and goal; null: the whole state"
+    )
     horizon: int = Field(gt=1, description="default plan length in planned states")
     plan_stride: int = Field(gt=0, description="environment steps per planned state")
     episode_limit: int = Field(gt=0, description="environment steps per episode")
     success_radius: float = Field(gt=0)
     dt: float = Field(gt=0, description="seconds per environment step")
     obstacles: BoxObstacles
-    maze: MazeLayout | None = None
-    position_noise: float = Field(
-        0.25, ge=0, description="uniform noise (per axis, in cells) added to start and goal cell centres at reset"
-    )
 
     @model_validator(mode="after")
     def _check_dims(self) -> EnvSpec:
@@ -98,11 +71,26 @@ class EnvSpec(Record):
             raise ValueError("state_labels must have obs_dim entries")
         if len(self.goal_dims) != self.goal_dim or any(not 0 <= d < self.obs_dim for d in self.goal_dims):
             raise ValueError("goal_dims must be goal_dim indices into the state")
+        if self.pinned_dims is not None and (
+            not self.pinned_dims
+            or any(not 0 <= d < self.obs_dim for d in self.pinned_dims)
+            or len(set(self.pinned_dims)) != len(self.pinned_dims)
+        ):
+            raise ValueError("pinned_dims must be distinct indices into the state")
         if any(not 0 <= d < self.obs_dim for d in self.obstacles.dims):
             raise ValueError("obstacles.dims must index the state")
         if self.horizon > 100_000 or self.episode_limit > 10_000_000:
             raise ValueError("horizon / episode_limit out of range")
         return self
+
+    @property
+    def family(self) -> str:
+        return self.scene.family
+
+    @property
+    def pin_dims(self) -> list[int]:
+        """The state indices pinned at a plan's ends (``pinned_dims``, or every state dimension)."""
+        return list(range(self.obs_dim)) if self.pinned_dims is None else list(self.pinned_dims)
 
     @property
     def plan_env_steps(self) -> int:

@@ -1,4 +1,5 @@
-"""Goal-conditioned stable-baselines3 SAC (+HER) experts for PointMaze (the paper's expert type).
+"""Goal-conditioned stable-baselines3 SAC (+HER) experts (the paper's expert type), for any family that provides a
+goal-conditioned gymnasium env (``EnvFamily.make_gym_env``).
 
 ``train_sac`` trains one (``cdrb expert train``); ``SacExpert`` rolls one out inside ``cdrb collect --expert sac``.
 Policies are stored in stable-baselines3's own zip format. Note: loading an SB3 zip unpickles parts of it, so cdrb
@@ -10,28 +11,28 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from cdrb_cli import ui
-from cdrb_cli.envs.pointmaze import CELL_CODES, import_gymnasium_robotics
+from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
+from cdrb_cli.envs.registry import EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 
 
+class SacExpertConfig(ExpertConfig):
+    """A stable-baselines3 SAC policy zip from `cdrb expert train`, by path and sha256."""
+
+    kind: Literal["sac"] = "sac"
+    policy_path: str
+    policy_sha256: str
+    deterministic: bool = True
+
+
 def _training_env(spec: EnvSpec, seed: int):
-    gym = import_gymnasium_robotics()
-    maze_map = [[CELL_CODES[c] for c in row] for row in spec.maze.rows]
-    env = gym.make(
-        "PointMaze_UMaze-v3",
-        maze_map=maze_map,
-        continuing_task=False,
-        reward_type="sparse",
-        max_episode_steps=spec.episode_limit,
-    )
-    env.unwrapped.position_noise_range = spec.position_noise
-    env.reset(seed=seed)
-    return env
+    return family_of(spec).make_gym_env(spec, seed)
 
 
 def train_sac(spec: EnvSpec, steps: int, seed: int, out: Path, her: bool = True, learning_starts: int = 1000) -> Path:
@@ -86,6 +87,10 @@ def train_sac(spec: EnvSpec, steps: int, seed: int, out: Path, her: bool = True,
 class SacExpert:
     """Rolls out a trained SB3 policy; the episode ends at the first success (SAC policies do not come to rest)."""
 
+    @classmethod
+    def from_config(cls, spec: EnvSpec, config: SacExpertConfig) -> SacExpert:
+        return cls(spec, config.policy_path, deterministic=config.deterministic)
+
     def __init__(self, spec: EnvSpec, policy_path: str | Path, deterministic: bool = True):
         from stable_baselines3 import SAC
 
@@ -116,7 +121,7 @@ class SacExpert:
         self.deterministic = deterministic
         self.goal = np.zeros(spec.goal_dim)
 
-    def reset(self, start_xy, goal_xy, rng: np.random.Generator) -> None:
+    def reset(self, state, goal_xy, rng: np.random.Generator) -> None:
         self.goal = np.asarray(goal_xy, dtype=np.float64)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -129,4 +134,20 @@ class SacExpert:
         return np.asarray(action, dtype=np.float64)
 
     def settled(self, obs: np.ndarray, goal: np.ndarray) -> bool:
-        return bool(np.linalg.norm(obs[self.spec.goal_dims] - goal) <= self.spec.success_radius)
+        return bool(family_of(self.spec).success(self.spec, obs, goal))
+
+
+def configure(policy: Path | None) -> SacExpertConfig:
+    """The expert config of ``cdrb collect --expert sac --policy FILE``."""
+    from cdrb_cli.artifacts import sha256_file
+
+    if policy is None:
+        raise BadInput("--expert sac needs --policy FILE", hint="train one with `cdrb expert train ENV`")
+    if not Path(policy).is_file():
+        raise BadInput(f"--policy {policy}: no such file", hint="train one with `cdrb expert train ENV`")
+    return SacExpertConfig(policy_path=str(Path(policy).resolve()), policy_sha256=sha256_file(policy))
+
+
+EXPERTS.register(
+    ExpertEntry("sac", SacExpertConfig, SacExpert.from_config, configure, "a stable-baselines3 SAC(+HER) policy")
+)

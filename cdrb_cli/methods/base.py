@@ -1,16 +1,38 @@
-"""The interface every planning method implements."""
+"""The interface every method implements, and the defaults most of them use.
+
+A method owns its networks (:meth:`Method.modules`), their optimizers (:meth:`Method.make_optimizers`), one
+training update (:meth:`Method.update`: any number of losses, backward passes and optimizer steps), and its
+sampler. The training loop (``stages/train.py``) and the checkpoint (``methods/checkpoint.py``) only go through
+these, so a method with an actor, twin critics, target networks and two optimizers fits as well as a planner with
+one network. Two kinds exist:
+
+* a :class:`Planner` samples whole trajectories from a start to a goal (executed by the family's controller);
+* a :class:`Policy` acts every environment step (``act``), closed loop.
+
+Everything here runs in normalized feature space (``normalizer``: per-feature min/max to [-1, 1]); the state comes
+first in a feature vector, then the action when ``features == "state-action"``.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
-import torch
 
 from cdrb_cli.buffer import Normalizer, feature_dim
 from cdrb_cli.configs import TrainConfig
 from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.lazy import torch
 from cdrb_cli.nets import build_net
+
+
+class NonFiniteLoss(Exception):
+    """Raised by :meth:`Method.update` before any weight changes when a loss is NaN or infinite."""
+
+    def __init__(self, value: float):
+        super().__init__(value)
+        self.value = value
 
 
 @dataclass
@@ -22,14 +44,12 @@ class SampleResult:
 
 
 class Method:
-    """A planner over trajectories of ``horizon`` states with ``feature_dim`` features (the state first, then
-    the action when ``features == "state-action"``), in normalized space. The first and last planned states are
-    pinned to the start and goal states."""
+    """Networks, losses and a training update for one method (see the module docstring)."""
 
-    name = "base"
-    samplers: tuple[str, ...] = ()
+    name: ClassVar[str] = "base"
+    kind: ClassVar[str] = "planner"
 
-    def __init__(self, config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, device="cpu"):
+    def __init__(self, config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, buffer_points=None, device="cpu"):
         self.config = config
         self.spec = spec
         self.normalizer = normalizer
@@ -37,27 +57,73 @@ class Method:
         self.obs_dim = spec.obs_dim
         self.feature_dim = feature_dim(spec, config.features)
         self.horizon = config.horizon
-        self.net = build_net(config.net, self.feature_dim, self.horizon, cond_dim=self.obs_dim).to(self.device)
+        pinned = spec.pin_dims
+        self.pinned = slice(0, self.obs_dim) if pinned == list(range(self.obs_dim)) else pinned
+        self.build(buffer_points)
+
+    def build(self, buffer_points) -> None:
+        """Create the networks (the default: one trajectory network ``self.net``)."""
+        self.net = build_net(self.config.net, self.feature_dim, self.horizon, cond_dim=self.obs_dim).to(self.device)
+
+    # -------------------------------------------------------------- training
+    def modules(self) -> dict[str, torch.nn.Module]:
+        """Every network whose weights the model artifact keeps, by name."""
+        return {"net": self.net}
+
+    def ema_modules(self) -> tuple[str, ...]:
+        """The modules the training loop keeps an exponential moving average of (sampling uses the averages)."""
+        return tuple(self.modules())
+
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """Every optimizer the checkpoint keeps, by name."""
+        return {"net": torch.optim.Adam(self.net.parameters(), lr=self.config.lr)}
+
+    def loss(self, batch: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        """The training loss of a batch (also the validation loss)."""
+        raise NotImplementedError
+
+    def update(self, batch: torch.Tensor, rng: np.random.Generator, optimizers: dict) -> float:
+        """One training update; returns the loss to log. Raises :class:`NonFiniteLoss` before touching weights."""
+        loss = self.loss(batch, rng)
+        if not torch.isfinite(loss):
+            raise NonFiniteLoss(float(loss.detach()))
+        opt = optimizers["net"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.config.grad_clip:
+            torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.config.grad_clip)
+        opt.step()
+        return float(loss.detach())
+
+    def extra_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays the model artifact must carry for sampling (e.g. the CDRB buffer)."""
+        return {}
+
+    def eval(self) -> Method:
+        for m in self.modules().values():
+            m.eval()
+        return self
 
     # -------------------------------------------------------------- pinning
     def pin(self, x: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-        """Overwrite the state part of the first and last planned states (a new tensor; exact copies)."""
+        """Overwrite the pinned dimensions of the first and last planned states (a new tensor; exact copies)."""
         x = x.clone()
-        x[:, 0, : self.obs_dim] = start
-        x[:, -1, : self.obs_dim] = goal
+        x[:, 0, self.pinned] = start[:, self.pinned]
+        x[:, -1, self.pinned] = goal[:, self.pinned]
         return x
 
     @staticmethod
     def ends(batch: torch.Tensor, obs_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
         return batch[:, 0, :obs_dim], batch[:, -1, :obs_dim]
 
-    # -------------------------------------------------------------- to implement
-    def loss(self, batch: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-        raise NotImplementedError
+
+class Planner(Method):
+    """A method that samples whole trajectories; the first and last states are pinned to the start and goal."""
+
+    kind = "planner"
 
     def sample(
         self,
-        net: torch.nn.Module,
         start: torch.Tensor,
         goal: torch.Tensor,
         rng: np.random.Generator,
@@ -65,11 +131,25 @@ class Method:
         steps: int | None = None,
         keep_iterates: int = 0,
     ) -> SampleResult:
+        """Plans for normalized start and goal states (P, obs_dim), with the current weights."""
+        with torch.no_grad():
+            return self._sample(start, goal, rng, sampler or self.config.method.sampler, steps, keep_iterates)
+
+    def _sample(self, start, goal, rng, sampler: str, steps: int | None, keep_iterates: int) -> SampleResult:
         raise NotImplementedError
 
-    def extra_arrays(self) -> dict[str, np.ndarray]:
-        """Arrays the model artifact must carry for sampling (e.g. the CDRB buffer)."""
-        return {}
+
+class Policy(Method):
+    """A method that acts every environment step, closed loop: ``reset`` once per batch of episodes, then
+    ``act`` with the current raw states and goals (n, obs_dim) / (n, goal_dim); returns raw actions."""
+
+    kind = "policy"
+
+    def reset(self, n: int, rng: np.random.Generator) -> None:
+        """Start ``n`` episodes (clears any action chunk or history)."""
+
+    def act(self, states: np.ndarray, goals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        raise NotImplementedError
 
 
 def keep_schedule(total: int, keep: int) -> set[int]:
@@ -77,3 +157,10 @@ def keep_schedule(total: int, keep: int) -> set[int]:
     if keep <= 0 or total <= 0:
         return set()
     return {int(round(i)) for i in np.linspace(0, total - 1, min(keep, total))}
+
+
+def build_method(config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, buffer_points=None, device="cpu"):
+    """The method a config names, built from the registry."""
+    from cdrb_cli.methods.registry import METHODS
+
+    return METHODS.get(config.method.name).method(config, spec, normalizer, buffer_points, device)

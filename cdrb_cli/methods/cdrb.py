@@ -12,20 +12,40 @@ available for ablations. ``steps`` < T-1 runs the same updates on an evenly spac
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
-import torch
+from pydantic import Field
 
 from cdrb_cli.buffer import BallSampler, radii
-from cdrb_cli.methods.base import Method, SampleResult, keep_schedule
+from cdrb_cli.lazy import torch
+from cdrb_cli.methods.base import Planner, SampleResult, keep_schedule
+from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
 
 
-class CDRB(Method):
+class CDRBParams(MethodParams):
+    name: Literal["cdrb"] = "cdrb"
+    schedule: Literal["linear", "log", "sqrt", "sigmoid"] = Field(
+        "linear", description="how the ball radius eps_k grows with k"
+    )
+    d_max: float = Field(
+        gt=0, description="largest ball radius, in normalized feature space (default: the buffer's diameter)"
+    )
+    diffusion_steps: int = Field(gt=1, description="T, the number of diffusion steps")
+    sampler: Literal["alg1", "alg2"] = Field(
+        "alg1", description="alg1: re-degrade the restored plan (as released); alg2: cold diffusion's update"
+    )
+    loss_weight_power: float = Field(
+        0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
+    )
+
+
+class CDRB(Planner):
     name = "cdrb"
-    samplers = ("alg1", "alg2")
 
-    def __init__(self, config, spec, normalizer, buffer_points: np.ndarray, device="cpu"):
-        super().__init__(config, spec, normalizer, device)
-        p = config.method
+    def build(self, buffer_points) -> None:
+        super().build(buffer_points)
+        p = self.config.method
         if buffer_points is None or len(buffer_points) == 0:
             raise ValueError("CDRB needs buffer points")
         self.T = p.diffusion_steps
@@ -53,11 +73,7 @@ class CDRB(Method):
             return torch.sum(w * per_sample) / torch.sum(w)
         return per_sample.mean()
 
-    @torch.no_grad()
-    def sample(self, net, start, goal, rng, sampler=None, steps=None, keep_iterates=0) -> SampleResult:
-        sampler = sampler or self.config.method.sampler
-        if sampler not in self.samplers:
-            raise ValueError(f"CDRB sampler must be one of {self.samplers}")
+    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
         P = start.shape[0]
         ks = np.arange(self.T - 1, 0, -1)
         if steps is not None and steps < len(ks):
@@ -71,10 +87,26 @@ class CDRB(Method):
             if i in keep:
                 kept.append((int(k), x.clone()))
             kk = torch.full((P,), int(k), device=start.device, dtype=torch.long)
-            x0 = self.pin(net(x, kk), start, goal)
+            x0 = self.pin(self.net(x, kk), start, goal)
             if sampler == "alg1":
                 x = self._degrade(x0, int(k_next), rng)
             else:
                 x = x - self._degrade(x0, int(k), rng) + self._degrade(x0, int(k_next), rng)
             x = self.pin(x, start, goal)
         return SampleResult(plans=x0, iterates=kept)
+
+
+METHODS.register(
+    MethodEntry(
+        name="cdrb",
+        params=CDRBParams,
+        method=CDRB,
+        needs_buffer=True,
+        presets={
+            "quick": {"diffusion_steps": 32, "loss_weight_power": 1.0},
+            "paper": {"diffusion_steps": 128, "loss_weight_power": 0.0},
+        },
+        data_defaults=lambda spec, buffer: {"d_max": buffer.diameter} if buffer is not None else {},
+        description="cold diffusion through the replay buffer (the paper's method)",
+    )
+)

@@ -14,10 +14,14 @@ The schedulers are the `diffusers` library's DDPMScheduler / DDIMScheduler.
 
 from __future__ import annotations
 
-import numpy as np
-import torch
+from typing import Literal
 
-from cdrb_cli.methods.base import Method, SampleResult, keep_schedule
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.lazy import torch
+from cdrb_cli.methods.base import Planner, SampleResult, keep_schedule
+from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
 from cdrb_cli.seeding import torch_generator
 
 _BETAS = {"cosine": "squaredcos_cap_v2", "linear": "linear"}
@@ -30,13 +34,22 @@ def _schedulers():
     return DDPMScheduler, DDIMScheduler
 
 
-class Diffuser(Method):
-    name = "diffuser"
-    samplers = ("ddpm", "ddim")
+class DiffuserParams(MethodParams):
+    name: Literal["diffuser"] = "diffuser"
+    diffusion_steps: int = Field(gt=1, description="T, the number of diffusion steps")
+    beta_schedule: Literal["cosine", "linear"] = Field("cosine", description="the DDPM noise schedule")
+    predict: Literal["x0", "epsilon"] = Field("x0", description="what the network predicts")
+    clip_denoised: bool = Field(True, description="clip the predicted x0 to [-1, 1] when sampling")
+    sampler: Literal["ddpm", "ddim"] = Field("ddpm", description="ddpm (the true posterior) or ddim (eta = 0)")
+    ddim_steps: int = Field(16, gt=0, description="steps of the ddim sampler when --sample-steps is not given")
 
-    def __init__(self, config, spec, normalizer, device="cpu"):
-        super().__init__(config, spec, normalizer, device)
-        p = config.method
+
+class Diffuser(Planner):
+    name = "diffuser"
+
+    def build(self, buffer_points) -> None:
+        super().build(buffer_points)
+        p = self.config.method
         self.T = p.diffusion_steps
         ddpm_cls, _ = _schedulers()
         self.train_sched = ddpm_cls(
@@ -78,11 +91,7 @@ class Diffuser(Method):
             sched.set_timesteps(min(steps or p.ddim_steps, self.T))
         return sched
 
-    @torch.no_grad()
-    def sample(self, net, start, goal, rng, sampler=None, steps=None, keep_iterates=0) -> SampleResult:
-        sampler = sampler or self.config.method.sampler
-        if sampler not in self.samplers:
-            raise ValueError(f"Diffuser sampler must be one of {self.samplers}")
+    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
         sched = self._sampler(sampler, steps)
         gen = torch_generator(rng)
         P = start.shape[0]
@@ -94,10 +103,21 @@ class Diffuser(Method):
             if i in keep:
                 kept.append((int(t), x.clone()))
             tt = torch.full((P,), int(t), device=start.device, dtype=torch.long)
-            out = net(x, tt)
+            out = self.net(x, tt)
             if self.config.method.predict == "x0":
                 out = self.pin(out, start, goal)
             kwargs = {"eta": 0.0} if sampler == "ddim" else {}
             x = sched.step(out, int(t), x, generator=gen, **kwargs).prev_sample
             x = self.pin(x, start, goal)
         return SampleResult(plans=x, iterates=kept)
+
+
+METHODS.register(
+    MethodEntry(
+        name="diffuser",
+        params=DiffuserParams,
+        method=Diffuser,
+        presets={"quick": {"diffusion_steps": 32}, "paper": {"diffusion_steps": 128}},
+        description="Gaussian DDPM over trajectories with in-painting (Janner et al. 2022)",
+    )
+)

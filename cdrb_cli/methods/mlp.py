@@ -3,20 +3,38 @@ demonstration windows. Deterministic: n plans for the same pair are identical.""
 
 from __future__ import annotations
 
-import torch
+from typing import Literal
 
-from cdrb_cli.methods.base import Method, SampleResult
+from pydantic import Field
+
+from cdrb_cli.lazy import torch
+from cdrb_cli.methods.base import Planner, SampleResult
+from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
 
 
-class MLPPlanner(Method):
+class MLPParams(MethodParams):
+    name: Literal["mlp"] = "mlp"
+    sampler: Literal["direct"] = Field("direct", description="one forward pass")
+
+
+class MLPPlanner(Planner):
     name = "mlp"
-    samplers = ("direct",)
 
     def loss(self, batch, rng):
         start, goal = self.ends(batch, self.obs_dim)
         pred = self.pin(self.net(start, goal), start, goal)
         return torch.mean((pred - batch) ** 2)
 
-    @torch.no_grad()
-    def sample(self, net, start, goal, rng, sampler=None, steps=None, keep_iterates=0) -> SampleResult:
-        return SampleResult(plans=self.pin(net(start, goal), start, goal))
+    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
+        return SampleResult(plans=self.pin(self.net(start, goal), start, goal))
+
+
+METHODS.register(
+    MethodEntry(
+        name="mlp",
+        params=MLPParams,
+        method=MLPPlanner,
+        nets=("mlp",),
+        description="(start, goal) -> the whole trajectory in one pass (the paper's MLP baseline)",
+    )
+)

@@ -8,52 +8,28 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import artifacts, ui
-from cdrb_cli.configs import CollectConfig, CollectSummary, PlannerExpertConfig, SacExpertConfig
-from cdrb_cli.envs.maze import MazeGeometry, in_collision
-from cdrb_cli.envs.pointmaze import PointMaze
+from cdrb_cli.configs import CollectConfig, CollectSummary
+from cdrb_cli.envs.family import Env, Episode, Expert
+from cdrb_cli.envs.registry import EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
-from cdrb_cli.errors import BadInput, RunFailed
-from cdrb_cli.seeding import STREAM_COLLECT, episode_seeds
-
-_COMPASS = ["E", "NE", "N", "NW", "W", "SW", "S", "SE"]
+from cdrb_cli.errors import BadInput
+from cdrb_cli.seeding import STREAM_COLLECT
 
 
-def draw_start_goal(geom: MazeGeometry, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A start cell and a different, reachable goal cell, uniformly (the protocol shared by collect and eval)."""
-    starts, goals = geom.start_cells, geom.goal_cells
-    for _ in range(1000):
-        s = starts[int(rng.integers(len(starts)))]
-        g = goals[int(rng.integers(len(goals)))]
-        if (s != g).any() and geom.bfs(g)[tuple(s)] >= 0:
-            return s, g
-    raise RunFailed("could not draw a start/goal pair: no goal cell is reachable from the start cells")
-
-
-def exit_label(geom: MazeGeometry, states: np.ndarray) -> str:
-    """The compass direction (from the start region's centre) of the first non-start cell an episode enters."""
-    starts = {tuple(c) for c in geom.start_cells.tolist()}
-    centre = geom.start_cells.mean(axis=0)
-    for cell in geom.xy_to_cell(states[:, :2]):
-        if tuple(cell.tolist()) not in starts:
-            di, dj = cell - centre
-            angle = np.arctan2(-di, dj)
-            return _COMPASS[int(np.round(angle / (np.pi / 4))) % 8]
-    return "none"
-
-
-def rollout(env: PointMaze, expert, spec: EnvSpec, seed: int, start_cell, goal_cell, limit: int):
+def rollout(env: Env, expert: Expert, spec: EnvSpec, episode: Episode, limit: int):
     """One episode: returns (states (T+1, obs), actions (T+1, act) with a zero last row, goal, success)."""
-    rng = np.random.default_rng(seed)
-    obs, goal = env.reset(seed, start_cell, goal_cell)
-    expert.reset(obs[spec.goal_dims], goal, rng)
+    family = family_of(spec)
+    rng = np.random.default_rng(episode.seed)
+    obs, goal = env.reset(episode)
+    expert.reset(obs, goal, rng)
     states, actions = [obs], []
-    success = np.linalg.norm(obs[spec.goal_dims] - goal) <= spec.success_radius
+    success = bool(family.success(spec, obs, goal))
     for _ in range(limit):
         a = expert.act(obs)
         obs = env.step(a)
         actions.append(a)
         states.append(obs)
-        success = success or np.linalg.norm(obs[spec.goal_dims] - goal) <= spec.success_radius
+        success = success or bool(family.success(spec, obs, goal))
         if expert.settled(obs, goal):
             break
     actions.append(np.zeros(spec.action_dim))
@@ -64,20 +40,19 @@ def collect_config(
     spec: EnvSpec,
     episodes: int,
     seed: int = 0,
-    expert: str = "planner",
+    expert: str | None = None,
     policy: Path | None = None,
     valid_fraction: float = 0.1,
 ) -> CollectConfig:
-    if expert == "planner":
-        expert_cfg = PlannerExpertConfig()
-    else:
-        if policy is None:
-            raise BadInput("--expert sac needs --policy FILE", hint="train one with `cdrb expert train ENV`")
-        if not Path(policy).is_file():
-            raise BadInput(f"--policy {policy}: no such file", hint="train one with `cdrb expert train ENV`")
-        expert_cfg = SacExpertConfig(
-            policy_path=str(Path(policy).resolve()), policy_sha256=artifacts.sha256_file(policy)
+    """The config of ``cdrb collect``: ``expert`` is one of the family's experts (default: its first)."""
+    family = family_of(spec)
+    name = expert or family.experts[0]
+    if name not in family.experts:
+        raise BadInput(
+            f"--expert {name!r}: not an expert of the {family.name} environments",
+            hint=f"use {', '.join(family.experts)}",
         )
+    expert_cfg = EXPERTS.get(name, "--expert").configure(policy)
     return CollectConfig(env=spec.id, episodes=episodes, expert=expert_cfg, valid_fraction=valid_fraction, seed=seed)
 
 
@@ -85,27 +60,18 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path) -> artifacts.Demos:
     """Roll out the configured expert for ``config.episodes`` episodes and write the demos artifact to ``out``."""
     t0 = time.time()
     seed, episodes, valid_fraction = config.seed, config.episodes, config.valid_fraction
-    env = PointMaze(spec)
-    geom = env.geometry
-    if config.expert.kind == "planner":
-        from cdrb_cli.experts.maze_planner import MazeExpert
+    family = family_of(spec)
+    env = family.make_env(spec)
+    agent = EXPERTS.get(config.expert.kind).build(spec, config.expert)
 
-        agent = MazeExpert(spec, config.expert)
-    else:
-        from cdrb_cli.experts.sac import SacExpert
-
-        agent = SacExpert(spec, config.expert.policy_path, deterministic=config.expert.deterministic)
-
-    seeds = episode_seeds(seed, episodes, STREAM_COLLECT)
+    plan = family.draw_episodes(spec, episodes, seed, STREAM_COLLECT)
     all_states, all_actions, all_goals, starts, lengths, success = [], [], [], [], [], []
     routes: dict[str, dict[str, int]] = {}
     total = 0
     with ui.progress() as bar:
         task = bar.add_task(f"collect {spec.id}", total=episodes, info="")
-        for e, ep_seed in enumerate(seeds):
-            cell_rng = np.random.default_rng([int(ep_seed), 7])
-            start_cell, goal_cell = draw_start_goal(geom, cell_rng)
-            S, A, goal, ok = rollout(env, agent, spec, int(ep_seed), start_cell, goal_cell, spec.episode_limit)
+        for e, episode in enumerate(plan):
+            S, A, goal, ok = rollout(env, agent, spec, episode, spec.episode_limit)
             starts.append(total)
             lengths.append(len(S))
             total += len(S)
@@ -113,15 +79,16 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path) -> artifacts.Demos:
             all_actions.append(A)
             all_goals.append(np.repeat(goal[None], len(S), axis=0))
             success.append(ok)
-            key = f"{int(goal_cell[0])},{int(goal_cell[1])}"
-            label = exit_label(geom, S)
-            routes.setdefault(key, {})
-            routes[key][label] = routes[key].get(label, 0) + 1
+            route = family.route(spec, S, goal)
+            if route is not None:
+                group, label = route
+                routes.setdefault(group, {})
+                routes[group][label] = routes[group].get(label, 0) + 1
             if e % 20 == 0 or e == episodes - 1:
                 bar.update(task, completed=e + 1, info=f"success {np.mean(success):.1%}")
     env.close()
     observations = np.concatenate(all_states).astype(np.float32)
-    in_walls = int(in_collision(observations, spec.obstacles).sum())
+    in_walls = int(family.in_collision(spec, observations).sum())
     split_rng = np.random.default_rng([seed, STREAM_COLLECT, 99])
     n_valid = int(round(valid_fraction * episodes))
     valid = np.zeros(episodes, dtype=bool)
@@ -146,7 +113,7 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path) -> artifacts.Demos:
         "steps/desired_goals": np.concatenate(all_goals).astype(np.float32),
         "episodes/start": np.array(starts, dtype=np.int64),
         "episodes/length": lengths_arr,
-        "episodes/seed": seeds.astype(np.int64),
+        "episodes/seed": np.array([ep.seed for ep in plan], dtype=np.int64),
         "episodes/success": np.array(success, dtype=bool),
         "episodes/valid": valid,
     }

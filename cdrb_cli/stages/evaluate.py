@@ -1,105 +1,142 @@
-"""`cdrb eval`: plan once per episode, execute the plan with a controller in MuJoCo, and measure.
+"""`cdrb eval`: plan once per episode, execute the plan with a controller in the simulator, and measure.
 
-Protocol: for each evaluation seed, ``episodes`` start/goal pairs are drawn by :mod:`cdrb_cli.envs.protocol`
-(start cell uniform over the map's start cells, goal cell uniform over its goal cells, stock reset noise), so
-every method sees the same pairs for the same seed. Each episode: plan from the reset state to (goal, at rest),
-execute the plan for ``spec.episode_limit`` environment steps (holding the goal after the plan ends), and record
-success (within ``spec.success_radius`` at any step), steps to success, final distance, the fraction of planned
-states inside walls, whether the executed path touched a wall, path length until success (also the scripted
-expert's on the same reset, for the normalized path length) and planning time.
+Protocol: for each evaluation seed, ``episodes`` start/goal pairs are drawn by the environment's family
+(:meth:`~cdrb_cli.envs.family.EnvFamily.draw_episodes`), so every method sees the same pairs for the same seed.
+Each episode: plan from the reset state to the goal state the family pins (for mazes: the goal at rest), execute
+the plan for ``spec.episode_limit`` environment steps (the controller holds the goal after the plan ends), and
+record an :class:`EpisodeResult`: success (the family's test, at any step), steps to success, final distance, the
+fraction of planned states inside obstacles, whether the executed path touched one, path length until success
+(and the family's default expert's on the same reset, for the normalized path length) and planning time.
 """
 
 from __future__ import annotations
 
 import time
+import typing
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.configs import EvalConfig, EvalSummary, SeedResult
-from cdrb_cli.envs.controllers import make_controller
-from cdrb_cli.envs.maze import in_collision
-from cdrb_cli.envs.pointmaze import PointMaze
-from cdrb_cli.envs.protocol import draw_pairs, goal_state, pair_states
+from cdrb_cli.envs.family import Env, EnvFamily, Episode
+from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
+from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_EVAL
+from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
-def run_episode(env: PointMaze, spec, seed, start_cell, goal_cell, policy, steps: int):
-    """Execute ``policy(obs, t) -> action`` from the seeded reset; returns per-episode measurements."""
-    obs, goal = env.reset(seed, start_cell, goal_cell)
-    states = [obs]
-    for t in range(steps):
-        obs = env.step(policy(obs, t))
-        states.append(obs)
-    S = np.array(states)
-    dist = np.linalg.norm(S[:, spec.goal_dims] - goal[None], axis=1)
-    hits = np.flatnonzero(dist <= spec.success_radius)
-    first = int(hits[0]) if hits.size else None
-    seg = np.linalg.norm(np.diff(S[:, :2], axis=0), axis=1)
-    length = float(seg[: first if first is not None else len(seg)].sum())
+@dataclass(frozen=True)
+class Rollout:
+    """One executed episode: the states visited and what they show."""
+
+    states: np.ndarray
+    success: bool
+    steps: int
+    final_distance: float
+    collision: bool
+    path_length: float
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """One evaluation episode, as stored in the eval artifact's ``episodes/*`` datasets."""
+
+    seed: int
+    episode_seed: int
+    success: bool
+    steps: int
+    final_distance: float
+    plan_in_wall_fraction: float
+    executed_collision: bool
+    path_length: float
+    expert_path_length: float
+    plan_seconds: float
+    start: np.ndarray
+    goal: np.ndarray
+
+
+_DTYPES = {int: np.int64, float: np.float64, bool: np.bool_, np.ndarray: np.float32}
+
+
+def episode_arrays(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
+    """The ``episodes/<field>`` datasets of a list of results (one row per episode)."""
     return {
-        "success": first is not None,
-        "steps": first if first is not None else steps,
-        "final_distance": float(dist[-1]),
-        "collision": bool(in_collision(S, spec.obstacles).any()),
-        "path_length": length,
-        "states": S,
+        f"episodes/{name}": np.asarray([getattr(r, name) for r in results], dtype=_DTYPES[hint])
+        for name, hint in typing.get_type_hints(EpisodeResult).items()
     }
 
 
-def expert_path_length(env, spec, seed, start_cell, goal_cell) -> float:
-    from cdrb_cli.experts.maze_planner import MazeExpert
+def run_episode(
+    env: Env, spec: EnvSpec, episode: Episode, act: Callable[[np.ndarray, int], np.ndarray], steps: int
+) -> Rollout:
+    """Execute ``act(state, t) -> action`` from the episode's seeded reset for ``steps`` steps, and measure."""
+    family = family_of(spec)
+    obs, goal = env.reset(episode)
+    states = [obs]
+    for t in range(steps):
+        obs = env.step(act(obs, t))
+        states.append(obs)
+    S = np.array(states)
+    hits = np.flatnonzero(family.success(spec, S, goal))
+    first = int(hits[0]) if hits.size else None
+    return Rollout(
+        states=S,
+        success=first is not None,
+        steps=first if first is not None else steps,
+        final_distance=float(np.linalg.norm(S[:, spec.goal_dims] - goal[None], axis=1)[-1]),
+        collision=bool(family.in_collision(spec, S).any()),
+        path_length=family.path_length(spec, S if first is None else S[: first + 1]),
+    )
 
-    expert = MazeExpert(spec)
-    obs, goal = env.reset(seed, start_cell, goal_cell)
-    expert.reset(obs[:2], goal, np.random.default_rng(seed))
-    res = run_episode(env, spec, seed, start_cell, goal_cell, lambda o, t: expert.act(o), spec.episode_limit)
-    return res["path_length"]
+
+def reset_states(env: Env, episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray]:
+    """Start states (n, obs_dim) and goals (n, goal_dim) exactly as the environment resets them."""
+    pairs = [env.reset(ep) for ep in episodes]
+    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+
+
+class ExpertReference:
+    """The family's default expert, run on an episode's reset, for the normalized path length."""
+
+    def __init__(self, family: EnvFamily, spec: EnvSpec):
+        entry = EXPERTS.get(family.experts[0])
+        self.spec, self.expert = spec, entry.build(spec, entry.config())
+
+    def path_length(self, env: Env, episode: Episode) -> float:
+        obs, goal = env.reset(episode)
+        self.expert.reset(obs, goal, np.random.default_rng(episode.seed))
+        return run_episode(
+            env, self.spec, episode, lambda o, t: self.expert.act(o), self.spec.episode_limit
+        ).path_length
 
 
 def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = True, video_dir=None, videos: int = 0):
-    from cdrb_cli.stages.plan import sample_plans
-    from cdrb_cli.stages.train import load_planner
-
     t0 = time.time()
     spec = model.manifest.env
-    method, ema = load_planner(model, device=device)
-    net = ema if config.use_ema else method.net
-    env = PointMaze(spec)
-    ctrl = make_controller(
-        config.controller, model.manifest.config.stride, env.dynamics, config.kp, config.kd, config.max_lag
+    family = family_of(spec)
+    method = load_planner(model, device=device, ema=config.use_ema)
+    METHODS.get(method.name).check_sampler(config.sampler)
+    env = family.make_env(spec)
+    controller = CONTROLLERS.get(config.controller.name).build(
+        spec, env, config.controller, model.manifest.config.stride
     )
+    expert = ExpertReference(family, spec)
     steps = spec.episode_limit + config.extra_steps
-    rows: dict[str, list] = {
-        k: []
-        for k in (
-            "seed",
-            "episode_seed",
-            "success",
-            "steps",
-            "final_distance",
-            "plan_in_wall_fraction",
-            "executed_collision",
-            "path_length",
-            "expert_path_length",
-            "plan_seconds",
-            "start",
-            "goal",
-        )
-    }
+    results: list[EpisodeResult] = []
     all_plans, per_seed, executed = [], [], []
-    total = len(config.seeds) * config.episodes
     with ui.progress() as bar:
-        task = bar.add_task(f"eval {method.name}", total=total, info="")
-        done = 0
+        task = bar.add_task(f"eval {method.name}", total=len(config.seeds) * config.episodes, info="")
         for seed in config.seeds:
-            pairs = draw_pairs(spec, config.episodes, seed, STREAM_EVAL)
-            starts, goals = pair_states(spec, pairs, env)
+            episodes = family.draw_episodes(spec, config.episodes, seed, STREAM_EVAL)
+            starts, goals = reset_states(env, episodes)
             plans, _, _, _, sec_batch = sample_plans(
                 method,
-                net,
                 starts,
-                goal_state(spec, goals),
+                family.goal_state(spec, goals),
                 1,
                 seed,
                 config.sampler,
@@ -108,43 +145,35 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
                 device=device,
             )
             sec_plan = sec_batch / len(plans)
-            in_wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
-            ok_seed = []
-            for e, (s, sc, gc) in enumerate(pairs):
-                ctrl.reset(plans[e])
-                res = run_episode(env, spec, s, sc, gc, ctrl.act, steps)
-                rows["seed"].append(seed)
-                rows["episode_seed"].append(s)
-                rows["success"].append(res["success"])
-                rows["steps"].append(res["steps"])
-                rows["final_distance"].append(res["final_distance"])
-                rows["plan_in_wall_fraction"].append(float(in_wall[e].mean()))
-                rows["executed_collision"].append(res["collision"])
-                rows["path_length"].append(res["path_length"])
-                rows["expert_path_length"].append(expert_path_length(env, spec, s, sc, gc))
-                rows["plan_seconds"].append(sec_plan)
-                rows["start"].append(starts[e])
-                rows["goal"].append(goals[e])
+            in_wall = family.in_collision(spec, plans[..., : spec.obs_dim])
+            for e, episode in enumerate(episodes):
+                controller.reset(plans[e])
+                run = run_episode(env, spec, episode, controller.act, steps)
+                results.append(
+                    EpisodeResult(
+                        seed=seed,
+                        episode_seed=episode.seed,
+                        success=run.success,
+                        steps=run.steps,
+                        final_distance=run.final_distance,
+                        plan_in_wall_fraction=float(in_wall[e].mean()),
+                        executed_collision=run.collision,
+                        path_length=run.path_length,
+                        expert_path_length=expert.path_length(env, episode),
+                        plan_seconds=sec_plan,
+                        start=starts[e],
+                        goal=goals[e],
+                    )
+                )
                 if len(executed) < videos:
-                    executed.append((plans[e], res["states"], goals[e], res["success"]))
-                ok_seed.append(res["success"])
-                done += 1
-                bar.update(task, completed=done, info=f"success {np.mean(rows['success']):.1%}")
+                    executed.append((plans[e], run.states, goals[e], run.success))
+                bar.update(task, advance=1, info=f"success {np.mean([r.success for r in results]):.1%}")
             all_plans.append(plans)
-            idx = np.flatnonzero(np.array(rows["seed"]) == seed)
-            per_seed.append(_seed_result(seed, rows, idx))
+            per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
     env.close()
-    arr = {f"episodes/{k}": np.asarray(v) for k, v in rows.items()}
-    arr["episodes/start"] = np.asarray(rows["start"], dtype=np.float32)
-    arr["episodes/goal"] = np.asarray(rows["goal"], dtype=np.float32)
-    for k in ("final_distance", "plan_in_wall_fraction", "path_length", "expert_path_length", "plan_seconds"):
-        arr[f"episodes/{k}"] = arr[f"episodes/{k}"].astype(np.float64)
-    for k in ("seed", "episode_seed", "steps"):
-        arr[f"episodes/{k}"] = arr[f"episodes/{k}"].astype(np.int64)
-    for k in ("success", "executed_collision"):
-        arr[f"episodes/{k}"] = arr[f"episodes/{k}"].astype(bool)
+    arrays = episode_arrays(results)
     if keep_plans:
-        arr["plans"] = np.concatenate(all_plans).astype(np.float32)
+        arrays["plans"] = np.concatenate(all_plans).astype(np.float32)
     succ = np.array([p.success_rate for p in per_seed])
     wall = np.array([p.in_wall_fraction for p in per_seed])
     ratios = [p.path_length_ratio for p in per_seed if p.path_length_ratio is not None]
@@ -164,7 +193,7 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
     )
-    artifacts.save(out, "eval", manifest, arr)
+    artifacts.save(out, "eval", manifest, arrays)
     if video_dir is not None and executed:
         from cdrb_cli.envs.render import rollout_gifs
 
@@ -172,15 +201,56 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     return artifacts.load(out, "eval")
 
 
-def _seed_result(seed: int, rows, idx) -> SeedResult:
-    succ = np.array(rows["success"])[idx]
-    ratio = np.array(rows["path_length"])[idx] / np.maximum(np.array(rows["expert_path_length"])[idx], 1e-9)
+def seed_result(seed: int, results: Sequence[EpisodeResult]) -> SeedResult:
+    succ = np.array([r.success for r in results])
+    ratio = np.array([r.path_length for r in results]) / np.maximum(
+        np.array([r.expert_path_length for r in results]), 1e-9
+    )
     return SeedResult(
         seed=int(seed),
-        episodes=int(len(idx)),
+        episodes=len(results),
         success_rate=float(succ.mean()),
-        in_wall_fraction=float(np.mean(np.array(rows["plan_in_wall_fraction"])[idx])),
-        executed_collision_rate=float(np.mean(np.array(rows["executed_collision"])[idx])),
+        in_wall_fraction=float(np.mean([r.plan_in_wall_fraction for r in results])),
+        executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
         path_length_ratio=float(ratio[succ].mean()) if succ.any() else None,
-        plan_seconds=float(np.mean(np.array(rows["plan_seconds"])[idx])),
+        plan_seconds=float(np.mean([r.plan_seconds for r in results])),
     )
+
+
+def eval_config(
+    model,
+    episodes: int,
+    seeds: Sequence[int],
+    controller: str | None = None,
+    settings: Sequence = (),
+    sampler: str | None = None,
+    sample_steps: int | None = None,
+    use_ema: bool = True,
+    seed: int = 0,
+) -> EvalConfig:
+    """The EvalConfig of ``cdrb eval`` for a model: the family's controller (default: its first) with its default
+    settings, the method's sampler (default: the model's), and ``settings`` (``--set controller.kp=20``,
+    ``--max-lag``) on top."""
+    from cdrb_cli.settings import apply, validate
+
+    spec = model.manifest.env
+    family = family_of(spec)
+    name = controller or family.controllers[0]
+    if name not in family.controllers:
+        raise BadInput(
+            f"--controller {name!r}: not a controller of the {family.name} environments",
+            hint=f"use {' or '.join(family.controllers)}",
+        )
+    entry = METHODS.get(model.manifest.config.method.name)
+    chosen = entry.check_sampler(sampler or model.manifest.config.method.sampler)
+    base = {
+        "episodes": episodes,
+        "seeds": list(seeds),
+        "controller": CONTROLLERS.get(name).config().model_dump(),
+        "sampler": chosen,
+        "sample_steps": sample_steps,
+        "use_ema": use_ema,
+        "protocol": family.protocol,
+        "seed": seed,
+    }
+    return validate(EvalConfig, apply(base, settings), settings, "eval")

@@ -20,6 +20,7 @@ def describe(path: str | Path) -> dict[str, Any]:
         "path": str(path),
         "kind": art.kind,
         "schema_version": m.schema_version,
+        "migrated_from": art.migrated_from,
         "valid": True,
         "sha256": art.sha256,
         "created_at": m.created_at,
@@ -28,6 +29,7 @@ def describe(path: str | Path) -> dict[str, Any]:
         "seed": m.seed,
         "argv": m.argv,
         "env": m.env.id,
+        "family": m.env.family,
         "parents": [p.model_dump() for p in m.parents],
         "summary": summary.model_dump() if summary is not None else None,
         "config": m.config.model_dump(),
@@ -52,10 +54,11 @@ def render(info: dict[str, Any]) -> None:
             ": valid cdrb ",
             (str(info["kind"]), "bold"),
             f" artifact, schema {info['schema_version']}",
+            " (read through a migration to the current schema)" if info.get("migrated_from") else "",
         )
     )
     meta = Table.grid(padding=(0, 2))
-    for key in ("env", "created_at", "cdrb_version", "git_sha", "seed", "sha256"):
+    for key in ("env", "family", "created_at", "cdrb_version", "git_sha", "seed", "sha256"):
         meta.add_row(key, safe(info[key]))
     meta.add_row("command", safe(" ".join(map(str, info["argv"])), 400))
     out.print(meta)

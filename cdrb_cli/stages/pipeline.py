@@ -1,18 +1,24 @@
 """`cdrb quickstart`: the whole pipeline on an embedded default, resumable.
 
 collect -> cluster -> train (CDRB and Diffuser, `quick`) -> eval -> report. Every stage writes its artifact
-atomically and is skipped when that artifact is up to date (same config, same parents); an interrupted training
-resumes from its last checkpoint. So interrupting at any point and re-running loses nothing.
+atomically and is skipped when that artifact is up to date (same config, same parents: the rule of
+:func:`cdrb_cli.artifacts.existing`); an interrupted training resumes from its last checkpoint. So interrupting at
+any point and re-running loses nothing.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from cdrb_cli import artifacts, ui
-from cdrb_cli.configs import DEFAULT_MAX_LAG, ClusterConfig, EvalConfig
+from cdrb_cli.configs import ClusterConfig
+
+#: the methods quickstart compares when none are given
+DEFAULT_METHODS = ("cdrb", "diffuser")
+DEFAULT_ENV = "maze-tight"
 
 
 @dataclass
@@ -28,13 +34,21 @@ def _stage(n: int, total: int, text: str) -> None:
     ui.log(f"[bold cyan][{n}/{total}][/bold cyan] {text}")
 
 
+def _reuse(path: Path, kind: str, config, parents=(), env=None):
+    """The artifact at ``path`` if this run can reuse it (logged), else None."""
+    art = artifacts.find_up_to_date(path, kind, config, parents, env)
+    if art is not None:
+        ui.log("  up to date")
+    return art
+
+
 def quickstart(
     folder: Path,
-    env: str = "maze-tight",
+    env: str = DEFAULT_ENV,
     episodes: int = 1000,
     k: int = 1000,
-    methods: tuple[str, ...] = ("cdrb", "diffuser"),
-    seeds: tuple[int, ...] = (0, 1),
+    methods: Sequence[str] = DEFAULT_METHODS,
+    seeds: Sequence[int] = (0, 1),
     eval_episodes: int = 50,
     steps: int | None = None,
     seed: int = 0,
@@ -42,11 +56,13 @@ def quickstart(
     videos: int = 0,
 ) -> QuickstartResult:
     from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.envs.render import plot_demos
+    from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.stages.cluster import cluster
     from cdrb_cli.stages.collect import collect, collect_config
-    from cdrb_cli.stages.evaluate import evaluate
+    from cdrb_cli.stages.evaluate import eval_config, evaluate
     from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
-    from cdrb_cli.stages.train import resolve_config, train
+    from cdrb_cli.stages.train import train, train_config
 
     t0 = time.time()
     folder = Path(folder)
@@ -57,46 +73,42 @@ def quickstart(
     paths: dict[str, Path] = {}
 
     step += 1
-    _stage(step, total, f"collect {episodes} scripted-expert demos on {env}")
+    _stage(step, total, f"collect {episodes} expert demos on {env}")
     demos_path = paths["demos"] = folder / "demos.h5"
     ccfg = collect_config(spec, episodes, seed=seed)
-    demos = _up_to_date(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
+    demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
 
     step += 1
     _stage(step, total, f"cluster the replay buffer (k={k})")
     buffer_path = paths["buffer"] = folder / "buffer.h5"
     kcfg = ClusterConfig(k=k, seed=seed)
-    buffer = _up_to_date(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
+    buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
 
     models = {}
     for method in methods:
         step += 1
         _stage(step, total, f"train {method} (quick preset)")
-        b = buffer if method == "cdrb" else None
-        cfg = resolve_config(demos, b, method, preset="quick", seed=seed, steps=steps)
+        b = buffer if METHODS.get(method).needs_buffer else None
+        cfg = train_config(demos, b, method, {"steps": steps} if steps else {}, seed=seed)
         out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
         parents = [demos] + ([b] if b is not None else [])
-        model = _up_to_date(out, "model", cfg, parents)
-        if model is None:
-            resume = _resumable(out, cfg, parents)
-            if resume:
+        found = artifacts.existing(out, "model", cfg, parents)
+        if found.up_to_date:
+            ui.log("  up to date")
+            model = found.artifact
+        else:
+            if found.status == "resumable":
                 ui.log(f"  resuming the checkpoint in {out}")
-            model = train(demos, b, cfg, out, resume=resume, device=device)
+            model = train(demos, b, cfg, out, resume=found.status == "resumable", device=device)
         models[method] = model
 
     evals = []
     for method in methods:
         step += 1
         _stage(step, total, f"evaluate {method}: {len(seeds)} seeds x {eval_episodes} episodes")
-        ecfg = EvalConfig(
-            episodes=eval_episodes,
-            seeds=list(seeds),
-            max_lag=DEFAULT_MAX_LAG,
-            sampler=getattr(models[method].manifest.config.method, "sampler", "direct"),
-            seed=seed,
-        )
+        ecfg = eval_config(models[method], eval_episodes, seeds, seed=seed)
         out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
-        ev = _up_to_date(out, "eval", ecfg, [models[method]])
+        ev = _reuse(out, "eval", ecfg, [models[method]])
         if ev is None:
             ev = evaluate(
                 models[method], ecfg, out, device=device, video_dir=folder / "videos" if videos else None, videos=videos
@@ -110,28 +122,6 @@ def quickstart(
     with artifacts.atomic_path(folder / "report.md") as tmp:
         tmp.write_text(text)
     pictures = [plot_bars(rows, folder / "results.png"), plot_side_by_side(evals, folder / "plans.png")]
-    from cdrb_cli.envs.render import plot_demos
-
     pictures.append(plot_demos(demos, folder / "demos.png"))
     paths["report"] = folder / "report.md"
     return QuickstartResult(folder=folder, report=text, pictures=pictures, artifacts=paths, seconds=time.time() - t0)
-
-
-def _up_to_date(path: Path, kind: str, config, parents=(), env=None):
-    """The artifact at ``path`` if this run can reuse it (logged), else None."""
-    art = artifacts.find_up_to_date(path, kind, config, parents, env)
-    if art is not None:
-        ui.log("  up to date")
-    return art
-
-
-def _resumable(out: Path, cfg, parents) -> bool:
-    """True when ``out`` holds an unfinished checkpoint of exactly this training."""
-    if not out.exists():
-        return False
-    try:
-        m = artifacts.load(out, "model")
-    except Exception:
-        return False
-    same = m.manifest.config == cfg and [p.sha256 for p in m.manifest.parents] == [p.sha256 for p in parents]
-    return same and not m.manifest.state.finished

@@ -8,50 +8,16 @@ import numpy as np
 
 from cdrb_cli import artifacts
 from cdrb_cli.configs import PlanConfig, PlanSummary
-from cdrb_cli.envs.maze import in_collision
-from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.envs.registry import family_of
 from cdrb_cli.errors import BadInput
+from cdrb_cli.methods.base import Planner
+from cdrb_cli.methods.checkpoint import load_method
+from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_PLAN, step_rng
 
 
-def parse_state(text: str, flag: str, spec: EnvSpec) -> np.ndarray:
-    """'x,y' (at rest) or a full state 'x,y,vx,vy' -> a state vector; one-line errors."""
-    try:
-        values = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
-    except ValueError:
-        raise BadInput(f"{flag} {text!r}: not a list of numbers", hint="write e.g. 0,0 or 0,0,0,0") from None
-    n_pos = len(spec.goal_dims)
-    if len(values) == n_pos:
-        state = np.zeros(spec.obs_dim)
-        state[spec.goal_dims] = values
-    elif len(values) == spec.obs_dim:
-        state = np.array(values)
-    else:
-        raise BadInput(f"{flag} {text!r}: expected {n_pos} or {spec.obs_dim} numbers", hint="write e.g. 0,0")
-    if not np.all(np.isfinite(state)):
-        raise BadInput(f"{flag} {text!r}: values must be finite", hint="write e.g. 0,0")
-    return state
-
-
-def check_state(state: np.ndarray, flag: str, spec: EnvSpec) -> None:
-    ob = spec.obstacles
-    pos = state[ob.dims]
-    if np.any(pos < np.asarray(ob.low)) or np.any(pos > np.asarray(ob.high)):
-        raise BadInput(
-            f"{flag} {','.join(f'{v:g}' for v in pos)}: outside the map "
-            f"(x in [{ob.low[0]:g}, {ob.high[0]:g}], y in [{ob.low[1]:g}, {ob.high[1]:g}])",
-            hint="choose a point inside the maze",
-        )
-    if in_collision(state[None], ob)[0]:
-        raise BadInput(
-            f"{flag} {','.join(f'{v:g}' for v in pos)}: inside a wall (the agent, radius {ob.inflate:g}, overlaps it)",
-            hint="choose a free point (`cdrb collect --plot` shows the map)",
-        )
-
-
 def sample_plans(
-    method,
-    net,
+    method: Planner,
     starts: np.ndarray,
     goals: np.ndarray,
     n: int,
@@ -82,8 +48,8 @@ def sample_plans(
         st = torch.as_tensor(s_norm[sl], dtype=torch.float32, device=device)
         gl = torch.as_tensor(g_norm[sl], dtype=torch.float32, device=device)
         t = time.perf_counter()
-        res = method.sample(net, st, gl, rng, sampler=sampler, steps=steps, keep_iterates=keep_iterates)
-        if device != "cpu" and torch.cuda.is_available():
+        res = method.sample(st, gl, rng, sampler=sampler, steps=steps, keep_iterates=keep_iterates)
+        if str(device) != "cpu" and torch.cuda.is_available():
             torch.cuda.synchronize()
         batch_times.append(time.perf_counter() - t)
         plans.append(norm.unnormalize(res.plans.cpu().numpy().astype(np.float64)))
@@ -91,23 +57,30 @@ def sample_plans(
             iters.append(np.stack([norm.unnormalize(x.cpu().numpy().astype(np.float64)) for _, x in res.iterates], 1))
             iter_steps = [k for k, _ in res.iterates]
     out = np.concatenate(plans)
-    out[:, 0, :obs] = s_raw  # pinned exactly in raw units too
-    out[:, -1, :obs] = g_raw
+    pinned = method.pinned
+    out[:, 0, pinned] = s_raw[:, pinned]  # pinned exactly in raw units too
+    out[:, -1, pinned] = g_raw[:, pinned]
     it = np.concatenate(iters) if iters else None
     return out, pair_index, it, iter_steps, float(np.mean(batch_times))
 
 
-def make_plans(model, starts, goals, config: PlanConfig, out, device="cpu", batch_size: int = 256):
-    from cdrb_cli.stages.train import load_planner
+def load_planner(model, device="cpu", ema: bool = True) -> Planner:
+    """The planner of a model artifact (a one-line error for a policy)."""
+    entry = METHODS.get(model.manifest.config.method.name)
+    if entry.kind != "planner":
+        raise BadInput(
+            f"{model.path}: {entry.name} is a policy (it acts step by step and makes no plans)",
+            hint="plan and eval need a planner; closed-loop evaluation of policies is not implemented yet",
+        )
+    return load_method(model, device=device, ema=ema)
 
+
+def make_plans(model, starts, goals, config: PlanConfig, out, device="cpu", batch_size: int = 256):
     spec = model.manifest.env
-    method, ema = load_planner(model, device=device)
-    net = ema if config.use_ema else method.net
-    if config.sampler not in method.samplers and method.samplers:
-        raise BadInput(f"--sampler {config.sampler}: {method.name} samplers are {', '.join(method.samplers)}")
+    method = load_planner(model, device=device, ema=config.use_ema)
+    METHODS.get(method.name).check_sampler(config.sampler)
     plans, pair_index, iterates, iter_steps, sec = sample_plans(
         method,
-        net,
         starts,
         goals,
         config.n,
@@ -118,7 +91,7 @@ def make_plans(model, starts, goals, config: PlanConfig, out, device="cpu", batc
         batch_size,
         device,
     )
-    in_wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
+    in_wall = family_of(spec).in_collision(spec, plans[..., : spec.obs_dim])
     summary = PlanSummary(
         pairs=int(len(starts)),
         plans=int(len(plans)),

@@ -33,13 +33,27 @@ PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) fo
         "cdrb": (98.00, 0.00),
     },
 }
-METHOD_ORDER = ["mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"]
-ENV_NAMES = {"maze": "Maze", "maze-tight": "Maze Tight"}
+
+
+def _env_name(spec) -> str:
+    """The family's display name of an environment ("Maze Tight")."""
+    from cdrb_cli.envs.registry import family_of
+
+    return family_of(spec).display_name(spec.id)
+
+
+def _rank(method: str) -> tuple[int, str]:
+    """Report columns follow the method registry's order (the paper's Table 1 order for the built-ins)."""
+    from cdrb_cli.methods.registry import METHODS
+
+    names = METHODS.names()
+    base = method.split(" ")[0]
+    return (names.index(base) if base in names else len(names), method)
 
 
 def _protocol(ev) -> tuple:
     c = ev.manifest.config
-    return (c.episodes, c.controller, c.max_lag, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
+    return (c.episodes, c.controller, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
 
 
 def method_label(ev) -> str:
@@ -104,19 +118,19 @@ def collect_rows(evals) -> list[dict]:
                     "path_ratio": float(np.mean(ratios)) if ratios else None,
                     "plan_ms": 1000 * float(np.mean([r.plan_seconds for r in per])),
                     "path": ";".join(str(ev.path) for ev in group),
+                    "env_name": _env_name(first.manifest.env),
                 }
             )
     return rows
 
 
 def _describe(p) -> str:
-    return f"{p[0]} episodes per seed, {p[1]} controller, {p[4]}-step episodes"
+    settings = ", ".join(f"{k} {v}" for k, v in p[1].model_dump().items() if k != "name")
+    return f"{p[0]} episodes per seed, {p[1].name} controller ({settings}), {p[4]}-step episodes"
 
 
 def _order(methods):
-    return sorted(
-        methods, key=lambda m: (METHOD_ORDER.index(m.split(" ")[0]) if m.split(" ")[0] in METHOD_ORDER else 99, m)
-    )
+    return sorted(methods, key=_rank)
 
 
 def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
@@ -131,6 +145,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
     envs = list(dict.fromkeys(r["env"] for r in rows))
     methods = _order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
+    name = {r["env"]: r["env_name"] for r in rows}
     lines = ["| Success rate (%) | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
     for env in envs:
         vals = []
@@ -142,7 +157,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
                 continue
             v = f"{r['success_mean']:.2f} ± {r['success_std']:.2f}"
             vals.append(f"**{v}**" if r["success_mean"] == best else v)
-        lines.append(f"| {ENV_NAMES.get(env, env)} | " + " | ".join(vals) + " |")
+        lines.append(f"| {name[env]} | " + " | ".join(vals) + " |")
         if paper and env in PAPER_TABLE1:
             pv = [
                 f"{PAPER_TABLE1[env][m.split(' ')[0]][0]:.2f} ± {PAPER_TABLE1[env][m.split(' ')[0]][1]:.2f}"
@@ -150,7 +165,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
                 else "–"
                 for m in methods
             ]
-            lines.append(f"| {ENV_NAMES.get(env, env)} (paper) | " + " | ".join(pv) + " |")
+            lines.append(f"| {name[env]} (paper) | " + " | ".join(pv) + " |")
     lines += [
         "",
         "| env | method | seeds x episodes | success (%) | planned states in walls (%) | "
@@ -164,7 +179,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
                 continue
             ratio = f"{r['path_ratio']:.2f}" if r["path_ratio"] is not None else "–"
             lines.append(
-                f"| {ENV_NAMES.get(env, env)} | {m} | {r['seeds']} x {r['episodes']} | "
+                f"| {name[env]} | {m} | {r['seeds']} x {r['episodes']} | "
                 f"{r['success_mean']:.1f} ± {r['success_std']:.1f} | "
                 f"{r['in_wall_mean']:.2f} ± {r['in_wall_std']:.2f} | "
                 f"{r['collision_mean']:.1f} | {ratio} | {r['plan_ms']:.1f} |"
@@ -176,12 +191,13 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
 
 
 def plot_bars(rows: list[dict], path) -> Path:
-    from cdrb_cli.envs.render import _plt, _save
+    from cdrb_cli.envs.render import pyplot, save_figure
 
-    plt = _plt()
+    plt = pyplot()
     envs = list(dict.fromkeys(r["env"] for r in rows))
     methods = _order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
+    name = {r["env"]: r["env_name"] for r in rows}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(envs))
@@ -192,18 +208,18 @@ def plot_bars(rows: list[dict], path) -> Path:
             ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=m)
     for ax, title in ((axes[0], "success rate (%)"), (axes[1], "planned states inside walls (%)")):
         ax.set_xticks(x)
-        ax.set_xticklabels([ENV_NAMES.get(e, e) for e in envs])
+        ax.set_xticklabels([name[e] for e in envs])
         ax.set_title(title, fontsize=10)
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylim(0, 105)
     axes[0].legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_side_by_side(evals, path, n: int = 12) -> Path:
     """The plans of every method for the same start/goal pairs (the first ``n`` episodes of the first seed)."""
-    from cdrb_cli.envs.maze import in_collision
-    from cdrb_cli.envs.render import GOAL_COLOURS, _plt, _save, draw_maze
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, pyplot, save_figure
 
     evals = [ev for ev in evals if "plans" in ev.arrays]
     if not evals:
@@ -211,27 +227,17 @@ def plot_side_by_side(evals, path, n: int = 12) -> Path:
     envs = list(dict.fromkeys(ev.manifest.env.id for ev in evals))
     if len(envs) > 1:
         raise BadInput("--plans-plot needs evals of a single environment", hint=f"got {', '.join(envs)}")
-    evals = sorted(evals, key=lambda ev: _order([method_label(ev)])[0])
-    evals.sort(
-        key=lambda ev: (
-            METHOD_ORDER.index(ev.manifest.summary.method) if ev.manifest.summary.method in METHOD_ORDER else 99
-        )
-    )
-    plt = _plt()
+    evals = sorted(evals, key=lambda ev: _rank(method_label(ev)))
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(evals), figsize=(4.6 * len(evals), 4.8), squeeze=False)
     for ax, ev in zip(axes[0], evals):
         spec = ev.manifest.env
         plans = ev.arrays["plans"][:n]
-        draw_maze(ax, spec)
-        wall = in_collision(plans[..., : spec.obs_dim], spec.obstacles)
-        for i, p in enumerate(plans):
-            ax.plot(p[:, 0], p[:, 1], "-", lw=1.0, alpha=0.85, color=GOAL_COLOURS[i % len(GOAL_COLOURS)])
-        if wall.any():
-            ax.plot(plans[wall][:, 0], plans[wall][:, 1], "x", color="red", ms=3)
-        ax.plot(plans[:, 0, 0], plans[:, 0, 1], "o", ms=4, mfc="white", mec="black")
-        ax.plot(plans[:, -1, 0], plans[:, -1, 1], "*", ms=9, mfc="gold", mec="black")
+        draw_scene(ax, spec)
+        draw_plans(ax, spec, plans, family_of(spec).in_collision(spec, plans[..., : spec.obs_dim]), markers=False)
+        draw_ends(ax, spec, plans[:, 0, : spec.obs_dim], plans[:, -1, : spec.obs_dim])
         s = ev.manifest.summary
         ax.set_title(
             f"{method_label(ev)}: success {100 * s.success_mean:.0f}%, in walls {100 * s.in_wall_mean:.1f}%", fontsize=9
         )
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -1,127 +1,48 @@
-"""`cdrb train`: learn a planner from demonstration windows; checkpoint into the model artifact; resume exactly.
+"""`cdrb train`: learn a method from demonstrations; checkpoint into the model artifact; resume exactly.
 
 Randomness at step s comes only from ``seed`` and ``s`` (batch choice, diffusion steps, degradations), and the
-model artifact holds weights, EMA weights and Adam moments: so killing training and running ``--resume``
-finishes with the same weights as an uninterrupted run (tests/test_train.py checks it bit for bit).
+model artifact holds every module's weights, their EMA copies and every optimizer's state: so killing training
+and running ``--resume`` finishes with the same weights as an uninterrupted run (tests/test_train.py checks it bit
+for bit). The loop knows nothing of the method beyond :class:`cdrb_cli.methods.base.Method`: its modules, its
+optimizers and its ``update``.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import time
+from collections.abc import Mapping
 from pathlib import Path
-
-import numpy as np
+from typing import Any
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, feature_dim, split_rows
-from cdrb_cli.configs import CDRBParams, DiffuserParams, MLPParams, TrainConfig, TrainState
+from cdrb_cli.configs import TrainConfig, TrainState
 from cdrb_cli.data import WindowSampler
 from cdrb_cli.errors import BadInput, RunFailed
-from cdrb_cli.nets import horizon_multiple
-from cdrb_cli.presets import cdrb_loss_weight_power, diffusion_steps, net_config, train_defaults
+from cdrb_cli.methods.base import NonFiniteLoss, build_method
+from cdrb_cli.methods.checkpoint import checkpoint_arrays, make_ema, restore
+from cdrb_cli.methods.config import resolve_train_config
+from cdrb_cli.methods.registry import METHODS, BufferInfo
 from cdrb_cli.seeding import STREAM_TRAIN, STREAM_VALID, step_rng
+from cdrb_cli.settings import Setting
 
 
-# ------------------------------------------------------------------------------------------------ config
-def resolve_config(
-    demos,
-    buffer,
-    method: str,
-    preset: str = "quick",
-    net: str | None = None,
-    features: str | None = None,
-    horizon: int | None = None,
-    stride: int | None = None,
-    diffusion: int | None = None,
-    schedule: str = "linear",
-    d_max: float | None = None,
-    seed: int = 0,
-    dim: int | None = None,
-    dim_mults: list[int] | None = None,
-    residual: bool | None = None,
-    loss_weight_power: float | None = None,
-    **overrides,
+def buffer_info(buffer) -> BufferInfo | None:
+    if buffer is None:
+        return None
+    return BufferInfo(features=buffer.manifest.config.features, diameter=buffer.manifest.summary.diameter)
+
+
+def train_config(
+    demos, buffer=None, method: str | None = None, settings: Mapping[str, Any] | None = None, seed: int = 0
 ) -> TrainConfig:
-    """The full TrainConfig from a method, a preset and any overrides, checked against the inputs."""
-    spec = demos.manifest.env
-    if method == "cdrb":
-        if buffer is None:
-            raise BadInput("--method cdrb needs --buffer BUFFER", hint="make one with `cdrb cluster DEMOS`")
-        if features is not None and features != buffer.manifest.config.features:
-            raise BadInput(
-                f"--features {features}: the buffer was clustered on {buffer.manifest.config.features!r} features",
-                hint="omit --features or re-cluster with the same --features",
-            )
-        features = buffer.manifest.config.features
-    features = features or (buffer.manifest.config.features if buffer is not None else "state")
-    if net is None:
-        net = "mlp" if method == "mlp" else "unet"
-    if method == "mlp" and net != "mlp":
-        raise BadInput(f"--net {net}: the MLP method uses --net mlp", hint="omit --net")
-    if method != "mlp" and net == "mlp":
-        raise BadInput("--net mlp is only for --method mlp", hint="use --net unet or transformer")
-    net_cfg = net_config(net, preset)
-    if dim is not None or dim_mults is not None:
-        if net != "unet":
-            raise BadInput("--dim/--dim-mults apply to --net unet", hint="omit them")
-        net_cfg = net_cfg.model_copy(update={k: v for k, v in (("dim", dim), ("dim_mults", dim_mults)) if v})
-        if net_cfg.dim % net_cfg.groups or any(m <= 0 for m in net_cfg.dim_mults):
-            raise BadInput(
-                f"--dim {net_cfg.dim}: must be a multiple of {net_cfg.groups}, mults positive",
-                hint="e.g. --dim 32 --dim-mults 1,4,8",
-            )
-    if residual is not None:
-        if net != "unet":
-            raise BadInput("--residual/--no-residual apply to --net unet", hint="omit them")
-        net_cfg = net_cfg.model_copy(update={"residual": residual})
-    horizon = horizon or spec.horizon
-    stride = stride or spec.plan_stride
-    mult = horizon_multiple(net_cfg)
-    if horizon % mult:
-        raise BadInput(
-            f"--horizon {horizon}: the U-Net with {len(net_cfg.dim_mults)} levels needs a multiple of {mult}",
-            hint=f"use {horizon + (-horizon) % mult}",
-        )
-    T = diffusion or diffusion_steps(preset)
-    if T < 2:
-        raise BadInput(f"--diffusion-steps {T}: must be at least 2", hint="use e.g. 32")
-    if method == "cdrb":
-        diam = buffer.manifest.summary.diameter
-        params = CDRBParams(
-            schedule=schedule,
-            d_max=d_max or diam,
-            diffusion_steps=T,
-            loss_weight_power=cdrb_loss_weight_power(preset) if loss_weight_power is None else loss_weight_power,
-        )
-    elif method == "diffuser":
-        params = DiffuserParams(diffusion_steps=T)
-    elif method == "mlp":
-        params = MLPParams()
-    else:
-        raise BadInput(f"--method {method!r}: unknown method", hint="use cdrb, diffuser or mlp")
-    fields = train_defaults(preset)
-    for key, value in overrides.items():
-        if value is not None:
-            fields[key] = value
-    if not 0 <= fields.get("start_fraction", 0.9) <= 1:
-        raise BadInput(f"--start-fraction {fields['start_fraction']}: must be in [0, 1]", hint="e.g. 0.5")
-    for key in ("steps", "batch_size", "checkpoint_every"):
-        if fields[key] <= 0:
-            raise BadInput(f"--{key.replace('_', '-')} {fields[key]}: must be positive", hint="pass a positive integer")
-    if fields["lr"] <= 0 or not math.isfinite(fields["lr"]):
-        raise BadInput(f"--lr {fields['lr']}: must be a positive number", hint="e.g. 2e-4")
-    return TrainConfig(
-        method=params,
-        net=net_cfg,
-        preset=preset,
-        features=features,
-        horizon=horizon,
-        stride=stride,
-        seed=seed,
-        **fields,
-    )
+    """The TrainConfig for these inputs, a method and ``settings`` (dotted keys: ``{"steps": 40, "net.dim": 8,
+    "preset": "paper"}``), as ``cdrb train DEMOS --buffer BUFFER --method M --set KEY=VALUE ...`` resolves it."""
+    items = [Setting(("method", "name"), method, f"--method {method}")] if method else []
+    for key, value in (settings or {}).items():
+        items.append(Setting(tuple(key.split(".")), value, f"{key}={value}"))
+    return resolve_train_config(demos.manifest.env, buffer_info(buffer), items, seed=seed)
 
 
 def check_inputs(demos, buffer, features: str) -> Normalizer:
@@ -150,73 +71,15 @@ def check_inputs(demos, buffer, features: str) -> Normalizer:
     return bnorm
 
 
-# ------------------------------------------------------------------------------------------------ state io
-def _state_arrays(method, ema, opt, normalizer, curve) -> dict[str, np.ndarray]:
-    arrays: dict[str, np.ndarray] = {}
-    for name, t in method.net.state_dict().items():
-        arrays[f"weights/{name}"] = t.detach().cpu().numpy()
-    for name, t in ema.state_dict().items():
-        arrays[f"ema/{name}"] = t.detach().cpu().numpy()
-    names = {id(p): n for n, p in method.net.named_parameters()}
-    for group in opt.param_groups:
-        for p in group["params"]:
-            st = opt.state.get(p)
-            if not st:
-                continue
-            n = names[id(p)]
-            arrays[f"optim/{n}/exp_avg"] = st["exp_avg"].detach().cpu().numpy()
-            arrays[f"optim/{n}/exp_avg_sq"] = st["exp_avg_sq"].detach().cpu().numpy()
-            arrays[f"optim/{n}/step"] = np.asarray(float(st["step"]), dtype=np.float64).reshape(1)
-    arrays["normalizer/low"] = normalizer.low.astype(np.float32)
-    arrays["normalizer/high"] = normalizer.high.astype(np.float32)
-    steps = np.array([c[0] for c in curve], dtype=np.int64)
-    arrays["curve/step"] = steps
-    arrays["curve/loss"] = np.array([c[1] for c in curve], dtype=np.float64)
-    checked = [c for c in curve if c[2] is not None]
-    if checked:
-        arrays["curve/valid_step"] = np.array([c[0] for c in checked], dtype=np.int64)
-        arrays["curve/valid_loss"] = np.array([c[2] for c in checked], dtype=np.float64)
-    arrays.update(method.extra_arrays())
-    return arrays
-
-
-def _load_tensors(module, tensors: dict[str, np.ndarray], where: str) -> None:
-    import torch
-
-    state = {k: torch.from_numpy(np.array(v)) for k, v in tensors.items()}
-    try:
-        module.load_state_dict(state, strict=True)
-    except RuntimeError as exc:
-        raise BadInput(f"{where}: weights do not fit the network in its config ({str(exc).splitlines()[0]})") from None
-
-
-def load_planner(model: artifacts.Model, device="cpu"):
-    """Rebuild the method of a model artifact with its EMA weights (and raw weights on ``method.net``)."""
-    from cdrb_cli.methods import build_method
-
-    cfg, spec = model.manifest.config, model.manifest.env
-    norm = Normalizer(low=model.arrays["normalizer/low"], high=model.arrays["normalizer/high"])
-    points = model.arrays.get("buffer/points")
-    if cfg.method.name == "cdrb" and points is None:
-        raise BadInput(f"{model.path}: CDRB model without /buffer/points", hint="re-train it")
-    method = build_method(cfg, spec, norm, points, device=device)
-    _load_tensors(method.net, model.tensors("weights"), str(model.path))
-    ema = copy.deepcopy(method.net)
-    _load_tensors(ema, model.tensors("ema"), str(model.path))
-    method.net.eval()
-    ema.eval()
-    return method, ema
-
-
-# ------------------------------------------------------------------------------------------------ training
 def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, device="cpu") -> artifacts.Model:
+    """Train ``config`` on the demos (and buffer), checkpointing into ``out``; with ``resume`` continue the
+    checkpoint there (same inputs and config, up to ``steps``)."""
     import torch
-
-    from cdrb_cli.methods import build_method
 
     spec = demos.manifest.env
     normalizer = check_inputs(demos, buffer, config.features)
-    points = buffer.points if (buffer is not None and config.method.name == "cdrb") else None
+    entry = METHODS.get(config.method.name)
+    points = buffer.points if (buffer is not None and entry.needs_buffer) else None
     torch.manual_seed(config.seed)  # network initialization
     method = build_method(config, spec, normalizer, points, device=device)
     windows = WindowSampler(
@@ -226,15 +89,25 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, d
     if config.split == "train" and len(demos.episode_ids("valid")):
         vw = WindowSampler(demos, config.features, normalizer, config.horizon, config.stride, "valid")
         valid_batch = torch.from_numpy(vw.episode_windows(64)).to(device)
-    ema = copy.deepcopy(method.net).requires_grad_(False)
-    opt = torch.optim.Adam(method.net.parameters(), lr=config.lr)
+    ema = make_ema(method)
+    optimizers = method.make_optimizers()
     parents = [demos] + ([buffer] if buffer is not None else [])
-    n_params = sum(p.numel() for p in method.net.parameters())
+    modules = method.modules()
+    n_params = sum(p.numel() for m in modules.values() for p in m.parameters())
     log_every = math.gcd(50, config.checkpoint_every)
     step, curve, wall = 0, [], 0.0
 
     if resume:
-        step, curve, wall = _restore(out, config, parents, method, ema, opt, device)
+        found = artifacts.existing(out, "model", config, parents)
+        if found.status not in ("resumable", "up-to-date"):
+            hint = (
+                "run without --resume to start training"
+                if found.status == "missing"
+                else "use the same flags and inputs, or --force"
+            )
+            raise BadInput(f"--resume: {out}: {found.reason}", hint=hint)
+        step, curve, wall = restore(found.artifact, method, ema, optimizers, device)
+        ui.log(f"resuming {out} from step {step}")
 
     def save(finished: bool, loss_value, valid_value) -> None:
         state = TrainState(
@@ -248,7 +121,7 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, d
         manifest = artifacts.make_manifest(
             "model", env=spec, config=config, seed=config.seed, parents=parents, state=state
         )
-        artifacts.save(out, "model", manifest, _state_arrays(method, ema, opt, normalizer, curve))
+        artifacts.save(out, "model", manifest, checkpoint_arrays(method, ema, optimizers, curve))
 
     def valid_loss() -> float | None:
         if valid_batch is None:
@@ -260,32 +133,24 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, d
     t0 = time.time() - wall
     running, count = 0.0, 0
     last_loss = curve[-1][1] if curve else None
-    method.net.train()
+    for m in modules.values():
+        m.train()
     with ui.progress() as bar:
         task = bar.add_task(f"train {config.method.name}", total=config.steps, completed=step, info="")
         while step < config.steps:
             rng = step_rng(config.seed, STREAM_TRAIN, step)
             batch = torch.from_numpy(windows.sample(config.batch_size, rng)).to(device)
-            loss = method.loss(batch, rng)
-            if not torch.isfinite(loss):
+            try:
+                loss = method.update(batch, rng, optimizers)
+            except NonFiniteLoss as exc:
                 raise RunFailed(
-                    f"training diverged at step {step + 1}: the loss is {float(loss.detach())}; "
+                    f"training diverged at step {step + 1}: the loss is {exc.value}; "
                     f"{out} keeps the last good checkpoint (step {_saved_step(out)})",
-                    hint="lower --lr, then `--resume` or `--force`",
-                )
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if config.grad_clip:
-                torch.nn.utils.clip_grad_norm_(method.net.parameters(), config.grad_clip)
-            opt.step()
+                    hint="lower the learning rate (--set lr=...), then `--resume` or `--force`",
+                ) from None
             step += 1
-            with torch.no_grad():
-                if step <= config.ema_start:
-                    ema.load_state_dict(method.net.state_dict())
-                elif step % config.ema_every == 0:
-                    for e, p in zip(ema.parameters(), method.net.parameters()):
-                        e.mul_(config.ema_decay).add_(p.detach(), alpha=1 - config.ema_decay)
-            running += float(loss.detach())
+            _update_ema(ema, modules, step, config)
+            running += loss
             count += 1
             if step % log_every == 0 or step == config.steps:
                 last_loss = running / count
@@ -299,50 +164,22 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, d
     return artifacts.load(out, "model")
 
 
+def _update_ema(ema: dict, modules: dict, step: int, config: TrainConfig) -> None:
+    """The EMA copies follow the weights exactly until ``ema_start``, then average every ``ema_every`` steps."""
+    import torch
+
+    with torch.no_grad():
+        for name, avg in ema.items():
+            live = modules[name]
+            if step <= config.ema_start:
+                avg.load_state_dict(live.state_dict())
+            elif step % config.ema_every == 0:
+                for e, p in zip(avg.parameters(), live.parameters()):
+                    e.mul_(config.ema_decay).add_(p.detach(), alpha=1 - config.ema_decay)
+
+
 def _saved_step(out: Path):
     try:
         return artifacts.load(out, "model").manifest.state.step
     except BadInput:
         return "none"
-
-
-def _restore(out: Path, config: TrainConfig, parents, method, ema, opt, device):
-    import torch
-
-    if not Path(out).exists():
-        raise BadInput(f"--resume: {out} does not exist", hint="run without --resume to start training")
-    model = artifacts.load(out, "model")
-    have = model.manifest.config
-    if have.model_copy(update={"steps": config.steps}) != config:
-        raise BadInput(f"--resume: {out} was trained with a different config", hint="use the same flags, or --force")
-    if [p.sha256 for p in model.manifest.parents] != [p.sha256 for p in parents]:
-        raise BadInput(f"--resume: {out} was trained from other demos/buffer", hint="use the same inputs, or --force")
-    if model.manifest.state.step > config.steps:
-        raise BadInput(f"--resume: {out} is already at step {model.manifest.state.step} > --steps {config.steps}")
-    _load_tensors(method.net, model.tensors("weights"), str(out))
-    _load_tensors(ema, model.tensors("ema"), str(out))
-    names = [n for n, _ in method.net.named_parameters()]
-    state = {}
-    optim = model.tensors("optim")
-    for i, n in enumerate(names):
-        if f"{n}/exp_avg" not in optim:
-            continue
-        state[i] = {
-            "step": torch.tensor(float(optim[f"{n}/step"][0])),
-            "exp_avg": torch.from_numpy(np.array(optim[f"{n}/exp_avg"])).to(device),
-            "exp_avg_sq": torch.from_numpy(np.array(optim[f"{n}/exp_avg_sq"])).to(device),
-        }
-    sd = opt.state_dict()
-    sd["state"] = state
-    opt.load_state_dict(sd)
-    steps = model.arrays["curve/step"].tolist()
-    losses = model.arrays["curve/loss"].tolist()
-    checked = dict(
-        zip(
-            model.arrays.get("curve/valid_step", np.zeros(0)).tolist(),
-            model.arrays.get("curve/valid_loss", np.zeros(0)).tolist(),
-        )
-    )
-    curve = [(s_, l_, checked.get(s_)) for s_, l_ in zip(steps, losses)]
-    ui.log(f"resuming {out} from step {model.manifest.state.step}")
-    return model.manifest.state.step, curve, model.manifest.state.wall_time_s

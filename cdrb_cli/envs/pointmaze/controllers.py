@@ -10,20 +10,50 @@ A plan is H states, one every ``stride`` environment steps. At environment step 
 
 After the plan's last state both hold the goal.
 
-**The plan clock.** By default the reference runs on the environment's clock (plan time t / stride). With
-``max_lag`` set, the clock pauses while the ball is more than ``max_lag`` metres from the state it is being driven
-to, so a ball that lags (after a fast first step, or around a corner) catches up along the plan instead of cutting
-across toward a reference that has run ahead. The official CDRB executor gates progress the same way (a waypoint
-is left when reached, or after at most 5 steps).
+**The plan clock.** Without ``max_lag`` the reference runs on the environment's clock (plan time t / stride).
+With ``max_lag`` set (the default, 0.6 m), the clock pauses while the ball is more than ``max_lag`` metres from the
+state it is being driven to, so a ball that lags (after a fast first step, or around a corner) catches up along the
+plan instead of cutting across toward a reference that has run ahead. The official CDRB executor also gates
+progress, but differently: it leaves a waypoint when reached or after at most 5 steps (a timeout this clock lacks).
 """
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
+from pydantic import Field
+
+from cdrb_cli.envs.family import Controller, ControllerConfig, ControllerEntry
+from cdrb_cli.envs.registry import CONTROLLERS
+
+#: metres; the default of ``max_lag`` (`cdrb eval --max-lag`; docs/design.md has the measurements behind it)
+DEFAULT_MAX_LAG = 0.6
+
+_MAX_LAG_HELP = (
+    "the plan clock pauses while the ball is more than this many metres from the state it is driven to; "
+    "null: follow the plan on the environment's clock"
+)
 
 
-class Controller:
-    name = "base"
+class PDConfig(ControllerConfig):
+    """u = clip(kp (p* - p) + kd (v* - v)) toward the next planned state."""
+
+    name: Literal["pd"] = "pd"
+    kp: float = Field(10.0, description="position gain")
+    kd: float = Field(1.0, description="velocity gain")
+    max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, description=_MAX_LAG_HELP)
+
+
+class InverseDynamicsConfig(ControllerConfig):
+    """The force that puts the ball exactly on the (interpolated) plan at the next step."""
+
+    name: Literal["inverse-dynamics"] = "inverse-dynamics"
+    max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, description=_MAX_LAG_HELP)
+
+
+class MazeController(Controller):
+    """Shared by the PointMaze controllers: the plan, its stride, and the (optionally gated) plan clock."""
 
     def __init__(self, stride: int, max_lag: float | None = None):
         if max_lag is not None and max_lag <= 0:
@@ -52,7 +82,7 @@ class Controller:
         raise NotImplementedError
 
 
-class PDController(Controller):
+class PDController(MazeController):
     name = "pd"
 
     def __init__(self, stride: int, kp: float = 10.0, kd: float = 1.0, max_lag: float | None = None):
@@ -65,7 +95,7 @@ class PDController(Controller):
         return np.clip(u, -1.0, 1.0)
 
 
-class InverseDynamicsController(Controller):
+class InverseDynamicsController(MazeController):
     name = "inverse-dynamics"
 
     def __init__(self, stride: int, mass: float, damping: float, gear: float, dt: float, max_lag: float | None = None):
@@ -88,7 +118,8 @@ class InverseDynamicsController(Controller):
 
 def make_controller(
     name: str, stride: int, dynamics: dict, kp: float = 10.0, kd: float = 1.0, max_lag: float | None = None
-) -> Controller:
+) -> MazeController:
+    """A controller by name with explicit settings (tests and scripts; `cdrb eval` goes through the registry)."""
     if name == "pd":
         return PDController(stride, kp, kd, max_lag)
     if name == "inverse-dynamics":
@@ -96,3 +127,23 @@ def make_controller(
             stride, dynamics["mass"], dynamics["damping"], dynamics["gear"], dynamics["dt"], max_lag
         )
     raise ValueError(name)
+
+
+def _pd(spec, env, config: PDConfig, stride: int) -> PDController:
+    return PDController(stride, config.kp, config.kd, config.max_lag)
+
+
+def _inverse_dynamics(spec, env, config: InverseDynamicsConfig, stride: int) -> InverseDynamicsController:
+    d = env.dynamics
+    return InverseDynamicsController(stride, d["mass"], d["damping"], d["gear"], d["dt"], config.max_lag)
+
+
+CONTROLLERS.register(ControllerEntry("pd", PDConfig, _pd, "PD toward the next planned state (kp 10, kd 1)"))
+CONTROLLERS.register(
+    ControllerEntry(
+        "inverse-dynamics",
+        InverseDynamicsConfig,
+        _inverse_dynamics,
+        "exact one-step inverse dynamics of the ball onto the interpolated plan",
+    )
+)

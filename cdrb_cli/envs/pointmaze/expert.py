@@ -11,11 +11,31 @@
 
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
+from typing import Literal
 
-from cdrb_cli.configs import PlannerExpertConfig
-from cdrb_cli.envs.maze import MazeGeometry, box_distance
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
+from cdrb_cli.envs.geometry import box_distance
+from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+from cdrb_cli.envs.registry import EXPERTS
 from cdrb_cli.envs.spec import EnvSpec
+
+
+class PlannerExpertConfig(ExpertConfig):
+    """The scripted maze expert: randomized shortest grid path, line-of-sight smoothing, speed-profiled pursuit."""
+
+    kind: Literal["planner"] = "planner"
+    max_speed: float = Field(6.0, gt=0, description="cruise speed, m/s (the env clips each axis at 5)")
+    max_accel: float = Field(18.0, gt=0, description="braking deceleration used for the speed profile, m/s^2")
+    gain: float = Field(3.0, gt=0, description="velocity-tracking gain (action per m/s of error)")
+    clearance: float = Field(0.3, ge=0, description="minimum distance kept from wall boxes when smoothing, m")
+    switch_radius: float = Field(0.6, gt=0, description="distance at which a waypoint counts as passed, m")
+    stop_gain: float = Field(10.0, gt=0, description="speed per metre of distance on the final approach, 1/s")
+    settle_radius: float = Field(0.05, gt=0, description="episode ends once this close to the goal...")
+    settle_speed: float = Field(0.1, gt=0, description="...and slower than this, m/s")
 
 
 def random_shortest_path(geom: MazeGeometry, start_cell, goal_cell, rng: np.random.Generator) -> list[tuple[int, int]]:
@@ -37,7 +57,7 @@ class MazeExpert:
     def __init__(self, spec: EnvSpec, config: PlannerExpertConfig | None = None):
         self.spec = spec
         self.cfg = config or PlannerExpertConfig()
-        self.geom = MazeGeometry(spec.maze)
+        self.geom = MazeGeometry(spec.scene.maze)
         self.centers, self.halves = self.geom.wall_boxes
         self.waypoints = np.zeros((0, 2))
         self.speed_cap = np.zeros(0)
@@ -62,8 +82,8 @@ class MazeExpert:
             i = j
         return np.array(out)
 
-    def reset(self, start_xy, goal_xy, rng: np.random.Generator) -> None:
-        start_xy, goal_xy = np.asarray(start_xy, float), np.asarray(goal_xy, float)
+    def reset(self, state, goal_xy, rng: np.random.Generator) -> None:
+        start_xy, goal_xy = np.asarray(state, float)[:2], np.asarray(goal_xy, float)
         start_cell = self.geom.xy_to_cell(start_xy)
         goal_cell = self.geom.xy_to_cell(goal_xy)
         self.cells = random_shortest_path(self.geom, start_cell, goal_cell, rng)
@@ -118,3 +138,18 @@ class MazeExpert:
         return bool(
             np.linalg.norm(obs[:2] - goal) < self.cfg.settle_radius and np.linalg.norm(obs[2:4]) < self.cfg.settle_speed
         )
+
+
+def _configure(policy: Path | None) -> PlannerExpertConfig:
+    return PlannerExpertConfig()
+
+
+EXPERTS.register(
+    ExpertEntry(
+        "planner",
+        PlannerExpertConfig,
+        MazeExpert,
+        _configure,
+        "scripted: a random shortest grid route, smoothed, tracked to rest at the goal",
+    )
+)

@@ -13,12 +13,42 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field, field_validator
 
-from cdrb_cli.envs.spec import MAP_CHARS, BoxObstacles, MazeLayout
-from cdrb_cli.errors import BadInput
+from cdrb_cli.envs.spec import BoxObstacles
+from cdrb_cli.errors import BadInput, RunFailed
+from cdrb_cli.schema_base import Record
 
 STOCK_LAYOUTS = ("maze", "maze-tight", "umaze", "medium", "large")
-MAX_CELLS = 100 * 100
+MAP_CHARS = {"#": "wall", ".": "free", "S": "start", "G": "goal", "C": "start and goal"}
+MAX_MAP_SIDE = 100
+MAX_CELLS = MAX_MAP_SIDE * MAX_MAP_SIDE
+
+
+class MazeLayout(Record):
+    """A grid maze: ``rows`` of ``#`` wall, ``.`` free, ``S`` start cell, ``G`` goal cell, ``C`` start+goal cell."""
+
+    name: str = Field(max_length=200)
+    rows: list[str] = Field(min_length=3, max_length=MAX_MAP_SIDE)
+    cell_size: float = Field(1.0, gt=0, le=100)
+
+    @field_validator("rows")
+    @classmethod
+    def _check_rows(cls, rows: list[str]) -> list[str]:
+        width = len(rows[0])
+        if not 3 <= width <= MAX_MAP_SIDE or any(len(r) != width for r in rows):
+            raise ValueError(f"rows must all have the same length, 3..{MAX_MAP_SIDE}")
+        if any(ch not in MAP_CHARS for r in rows for ch in r):
+            raise ValueError(f"rows may only contain {''.join(MAP_CHARS)}")
+        return rows
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.rows)
+
+    @property
+    def n_cols(self) -> int:
+        return len(self.rows[0])
 
 
 def _is_comment(line: str) -> bool:
@@ -80,7 +110,7 @@ def load_map_file(path: str | Path) -> MazeLayout:
 
 
 def stock_layout(name: str) -> MazeLayout:
-    text = resources.files("cdrb_cli.envs.maps").joinpath(f"{name}.txt").read_text()
+    text = resources.files("cdrb_cli.envs.pointmaze.maps").joinpath(f"{name}.txt").read_text()
     return parse_map(text, name=name, source=f"stock map {name}")
 
 
@@ -186,31 +216,27 @@ class MazeGeometry:
             high=[half_w, half_h],
         )
 
+    # -------------------------------------------------------------- protocol
+    def draw_start_goal(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """A start cell and a different, reachable goal cell, uniformly (the protocol shared by collect and eval)."""
+        starts, goals = self.start_cells, self.goal_cells
+        for _ in range(1000):
+            s = starts[int(rng.integers(len(starts)))]
+            g = goals[int(rng.integers(len(goals)))]
+            if (s != g).any() and self.bfs(g)[tuple(s)] >= 0:
+                return s, g
+        raise RunFailed("could not draw a start/goal pair: no goal cell is reachable from the start cells")
 
-def box_distance(points: np.ndarray, centers: np.ndarray, half_sizes: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """Euclidean distance from each point (..., d) to the nearest box (0 inside a box). Vectorized, chunked."""
-    pts = np.asarray(points, dtype=np.float64)
-    flat = pts.reshape(-1, pts.shape[-1])
-    out = np.empty(flat.shape[0], dtype=np.float64)
-    if centers.shape[0] == 0:
-        out[:] = np.inf
-        return out.reshape(pts.shape[:-1])
-    for a in range(0, flat.shape[0], chunk):
-        p = flat[a : a + chunk]
-        gap = np.abs(p[:, None, :] - centers[None]) - half_sizes[None]  # (n, M, d)
-        d = np.sqrt(np.square(np.maximum(gap, 0.0)).sum(-1))
-        out[a : a + chunk] = d.min(axis=1)
-    return out.reshape(pts.shape[:-1])
+    def exit_label(self, states: np.ndarray) -> str:
+        """The compass direction (from the start region's centre) of the first non-start cell a path enters."""
+        starts = {tuple(c) for c in self.start_cells.tolist()}
+        centre = self.start_cells.mean(axis=0)
+        for cell in self.xy_to_cell(states[:, :2]):
+            if tuple(cell.tolist()) not in starts:
+                di, dj = cell - centre
+                angle = np.arctan2(-di, dj)
+                return _COMPASS[int(np.round(angle / (np.pi / 4))) % 8]
+        return "none"
 
 
-def in_collision(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarray:
-    """Boolean mask over states (..., D): True where the agent (a ball of radius ``obstacles.inflate`` centred at
-    the state's obstacle dimensions) overlaps a wall box, or its centre lies outside the map bounds."""
-    states = np.asarray(states)
-    pts = states[..., obstacles.dims].astype(np.float64)
-    centers = np.asarray(obstacles.centers, dtype=np.float64).reshape(-1, len(obstacles.dims))
-    halves = np.asarray(obstacles.half_sizes, dtype=np.float64).reshape(-1, len(obstacles.dims))
-    hit = box_distance(pts, centers, halves) < obstacles.inflate
-    low, high = np.asarray(obstacles.low), np.asarray(obstacles.high)
-    outside = np.any((pts < low) | (pts > high), axis=-1)
-    return hit | outside
+_COMPASS = ["E", "NE", "N", "NW", "W", "SW", "S", "SE"]

@@ -12,7 +12,8 @@ import io
 
 import numpy as np
 
-from cdrb_cli.envs.maze import MazeGeometry
+from cdrb_cli.envs.family import Episode
+from cdrb_cli.envs.pointmaze.maze import MazeGeometry
 from cdrb_cli.envs.spec import EnvSpec
 
 CELL_CODES = {"#": 1, ".": 0, "S": "r", "G": "g", "C": "c"}
@@ -28,28 +29,31 @@ def import_gymnasium_robotics():
     return gymnasium
 
 
+def maze_map(spec: EnvSpec) -> list[list]:
+    """The spec's layout in gymnasium-robotics' ``maze_map`` encoding."""
+    return [[CELL_CODES[c] for c in row] for row in spec.scene.maze.rows]
+
+
 class PointMaze:
-    """One PointMaze instance. ``reset(seed, start_cell, goal_cell)`` then ``step(action)`` repeatedly."""
+    """One PointMaze instance: ``reset(episode)`` then ``step(action)`` repeatedly."""
 
     def __init__(self, spec: EnvSpec, render_mode: str | None = None):
-        if spec.maze is None:
-            raise ValueError("PointMaze needs an EnvSpec with a maze layout")
         gym = import_gymnasium_robotics()
         self.spec = spec
-        self.geometry = MazeGeometry(spec.maze)
-        maze_map = [[CELL_CODES[c] for c in row] for row in spec.maze.rows]
-        kwargs = dict(maze_map=maze_map, continuing_task=True, reset_target=False, max_episode_steps=spec.episode_limit)
+        self.geometry = MazeGeometry(spec.scene.maze)
+        kwargs = dict(
+            maze_map=maze_map(spec), continuing_task=True, reset_target=False, max_episode_steps=spec.episode_limit
+        )
         if render_mode:
             kwargs["render_mode"] = render_mode
         self._wrapped = gym.make("PointMaze_UMaze-v3", **kwargs)
         self.env = self._wrapped.unwrapped
-        self.env.position_noise_range = spec.position_noise
+        self.env.position_noise_range = spec.scene.position_noise
         self.goal = np.zeros(2)
 
-    def reset(self, seed: int, start_cell, goal_cell) -> tuple[np.ndarray, np.ndarray]:
-        obs, _ = self.env.reset(
-            seed=int(seed), options={"reset_cell": tuple(map(int, start_cell)), "goal_cell": tuple(map(int, goal_cell))}
-        )
+    def reset(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
+        options = {"reset_cell": tuple(map(int, episode.start)), "goal_cell": tuple(map(int, episode.goal))}
+        obs, _ = self.env.reset(seed=int(episode.seed), options=options)
         self.goal = np.array(obs["desired_goal"], dtype=np.float64)
         return np.array(obs["observation"], dtype=np.float64), self.goal.copy()
 
@@ -58,7 +62,7 @@ class PointMaze:
         return np.array(obs["observation"], dtype=np.float64)
 
     def set_state(self, state) -> None:
-        """Place the ball at ``state`` = (x, y, vx, vy) (used by tests and controllers' checks)."""
+        """Place the ball at ``state`` = (x, y, vx, vy) (used by tests and pictures)."""
         state = np.asarray(state, dtype=np.float64)
         self.env.point_env.set_state(state[:2].copy(), state[2:4].copy())
 
@@ -78,3 +82,18 @@ class PointMaze:
 
     def close(self) -> None:
         self._wrapped.close()
+
+
+def training_env(spec: EnvSpec, seed: int):
+    """The goal-conditioned gymnasium env RL experts train on: sparse reward, terminating on success."""
+    gym = import_gymnasium_robotics()
+    env = gym.make(
+        "PointMaze_UMaze-v3",
+        maze_map=maze_map(spec),
+        continuing_task=False,
+        reward_type="sparse",
+        max_episode_steps=spec.episode_limit,
+    )
+    env.unwrapped.position_noise_range = spec.scene.position_noise
+    env.reset(seed=seed)
+    return env

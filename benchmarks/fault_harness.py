@@ -1,8 +1,8 @@
 """Kill -9 at random points of real `cdrb` processes, then check that nothing valid was lost or corrupted and
 that re-running (with --resume for training) reproduces the uninterrupted result.
 
-Used by tests/test_faults.py (a few kills per command, in CI) and benchmarks/fault_injection.py (many kills,
-results recorded in docs/reliability.md)."""
+Used by benchmarks/fault_injection.py (many kills, results recorded in docs/reliability.md) and
+tests/test_faults.py (a few kills per command, in CI)."""
 
 from __future__ import annotations
 
@@ -29,22 +29,8 @@ def cdrb_cmd(*args) -> list[str]:
 
 def stage_commands(root: Path) -> dict[str, list]:
     """The commands under test (tiny settings), in pipeline order; each writes ``root/<name>.h5``."""
-    tiny = [
-        "--dim",
-        "8",
-        "--dim-mults",
-        "1,2",
-        "--horizon",
-        "16",
-        "--stride",
-        "10",
-        "--diffusion-steps",
-        "8",
-        "--batch-size",
-        "8",
-        "--device",
-        "cpu",
-    ]
+    settings = ["net.dim=8", "net.dim_mults=1,2", "horizon=16", "stride=10", "method.diffusion_steps=8"]
+    tiny = [arg for s in settings + ["batch_size=8", "checkpoint_every=10"] for arg in ("--set", s)]
     return {
         "collect": ["collect", "maze-tight", "-n", "40", "--seed", "1"],
         "cluster": ["cluster", root / "collect.h5", "--k", "80"],
@@ -55,9 +41,9 @@ def stage_commands(root: Path) -> dict[str, list]:
             root / "cluster.h5",
             "--steps",
             "150",
-            "--checkpoint-every",
-            "10",
             *tiny,
+            "--device",
+            "cpu",
         ],
         "eval": ["eval", root / "train.h5", "--seeds", "0,1", "--episodes", "4", "--device", "cpu"],
     }

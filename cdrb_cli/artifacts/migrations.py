@@ -1,0 +1,83 @@
+"""Reading artifacts written by older major schema versions: each migration turns an old manifest (JSON) and old
+arrays into the current layout, in memory; the file on disk (and so its sha256) is never changed.
+
+Schema 2 (cdrb 0.2, the families/registry redesign) changed, for every kind:
+
+* ``env``: ``family``, ``maze`` and ``position_noise`` moved into ``env.scene`` (the family's own part);
+* ``model``: tensors are kept per module (``weights/net/...``, ``ema/net/...``) and optimizer state per optimizer
+  and module (``optim/net/net/<parameter>/...``), so methods with several networks and optimizers fit;
+* ``eval``: the controller's settings moved into ``config.controller`` (a 1.0 file, written before the gated plan
+  clock existed, followed plans on the environment's clock: ``max_lag`` null).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+Manifest = dict
+Arrays = dict
+
+
+def _env_v1(env: dict) -> dict:
+    env = dict(env)
+    scene = {"family": env.pop("family", "pointmaze")}
+    for key in ("maze", "position_noise"):
+        if key in env:
+            scene[key] = env.pop(key)
+    env["scene"] = scene
+    return env
+
+
+def _manifest_v1(kind: str, m: Manifest) -> Manifest:
+    m = dict(m)
+    if isinstance(m.get("env"), dict):
+        m["env"] = _env_v1(m["env"])
+    if kind == "eval" and isinstance(m.get("config"), dict):
+        cfg = dict(m["config"])
+        name = cfg.pop("controller", "pd")
+        kp, kd = cfg.pop("kp", 10.0), cfg.pop("kd", 1.0)
+        max_lag = cfg.pop("max_lag", None)
+        controller = {"name": name, "max_lag": max_lag}
+        if name == "pd":
+            controller.update(kp=kp, kd=kd)
+        cfg["controller"] = controller
+        m["config"] = cfg
+    return m
+
+
+def _arrays_v1(kind: str, arrays: Arrays) -> Arrays:
+    if kind != "model":
+        return arrays
+    out = {}
+    for name, value in arrays.items():
+        head, _, rest = name.partition("/")
+        if head in ("weights", "ema"):
+            name = f"{head}/net/{rest}"
+        elif head == "optim":
+            param, _, key = rest.rpartition("/")
+            name = f"optim/net/net/{param}/{key}"
+            if key == "step":  # stored as a float64 (1,) array; torch keeps a float32 scalar
+                value = np.asarray(value, dtype=np.float32).reshape(())
+        out[name] = value
+    return out
+
+
+#: kind -> {old major: (manifest migration, arrays migration)}
+MIGRATIONS: dict[str, dict[int, tuple[Callable[[Manifest], Manifest], Callable[[Arrays], Arrays]]]] = {
+    kind: {1: (lambda m, k=kind: _manifest_v1(k, m), lambda a, k=kind: _arrays_v1(k, a))}
+    for kind in ("demos", "buffer", "model", "plans", "eval")
+}
+
+
+def can_migrate(kind: str, major: int) -> bool:
+    return major in MIGRATIONS.get(kind, {})
+
+
+def migrate_manifest(kind: str, major: int, manifest: Manifest) -> Manifest:
+    return MIGRATIONS[kind][major][0](manifest)
+
+
+def migrate_arrays(kind: str, major: int, arrays: Arrays) -> Arrays:
+    return MIGRATIONS[kind][major][1](arrays)

@@ -1,0 +1,244 @@
+"""The environment-family interface: everything the stages need to know about one kind of environment.
+
+An environment *family* (PointMaze; later Fetch) turns an env id into an :class:`~cdrb_cli.envs.spec.EnvSpec`,
+builds the environment for a spec, draws the start/goal pairs of a protocol stream, says which state a plan is
+pinned to, brings experts and controllers, tests states against its obstacles, and draws its scene. The stages
+(collect, plan, eval, report) only ever talk to an :class:`EnvFamily` looked up from ``spec.family``; they never
+name a family, a state index or a grid cell.
+
+To add a family: subclass :class:`EnvFamily` in one module, register an instance in
+:data:`cdrb_cli.envs.registry.FAMILIES` (one line in its ``builtins`` for a built-in family; ``FAMILIES.register``
+for a plugin), register its experts and controllers in ``EXPERTS`` / ``CONTROLLERS``. See docs/design.md.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+import numpy as np
+
+from cdrb_cli.errors import BadInput
+from cdrb_cli.schema_base import Record
+
+if TYPE_CHECKING:
+    from cdrb_cli.envs.spec import EnvSpec
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One start/goal draw of a protocol stream: the reset seed, and the family's own description of where the
+    episode starts and what it aims for (PointMaze: grid cells). Stages hand it back to the family's env and never
+    look inside."""
+
+    seed: int
+    start: tuple
+    goal: tuple
+
+
+class Env(Protocol):
+    """A family's environment: seeded resets from an :class:`Episode`, raw state vectors out."""
+
+    def reset(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
+        """Reset to ``episode``; returns (state (obs_dim,), goal (goal_dim,))."""
+
+    def step(self, action: np.ndarray) -> np.ndarray:
+        """Apply one action; returns the next state."""
+
+    def close(self) -> None: ...
+
+
+class Expert(Protocol):
+    """A demonstrator: ``reset`` once per episode, then ``act`` every step until ``settled`` (or the limit)."""
+
+    def reset(self, state: np.ndarray, goal: np.ndarray, rng: np.random.Generator) -> None: ...
+
+    def act(self, state: np.ndarray) -> np.ndarray: ...
+
+    def settled(self, state: np.ndarray, goal: np.ndarray) -> bool: ...
+
+
+class Controller(ABC):
+    """Executes a plan: ``reset(plan)`` with the plan's raw states (H, D), then ``act(state, t)`` every step."""
+
+    name: ClassVar[str] = "base"
+
+    @abstractmethod
+    def reset(self, plan: np.ndarray) -> None: ...
+
+    @abstractmethod
+    def act(self, state: np.ndarray, t: int) -> np.ndarray: ...
+
+
+class ExpertConfig(Record):
+    """Base of every expert's settings (stored in the demos artifact); subclasses fix ``kind``."""
+
+    kind: str
+
+
+class ControllerConfig(Record):
+    """Base of every controller's settings (stored in the eval artifact); subclasses fix ``name``."""
+
+    name: str
+
+
+@dataclass(frozen=True)
+class ExpertEntry:
+    """An expert: its settings record, how to build it for a spec, and how ``cdrb collect`` configures it
+    (``configure(policy_file)``; experts that need no file ignore it)."""
+
+    name: str
+    config: type[ExpertConfig]
+    build: Callable[[EnvSpec, Any], Expert]
+    configure: Callable[[Path | None], ExpertConfig]
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class ControllerEntry:
+    """A controller: its settings record and ``build(spec, env, config, stride) -> Controller``."""
+
+    name: str
+    config: type[ControllerConfig]
+    build: Callable[[EnvSpec, Env, Any, int], Controller]
+    description: str = ""
+
+
+class Scene(Record):
+    """Base of a family's own part of the EnvSpec (``spec.scene``); subclasses fix ``family``."""
+
+    family: str
+
+
+class EnvFamily(ABC):
+    """One kind of environment. Subclasses set the class attributes and implement the abstract methods; the other
+    methods have generic defaults that work for any state vector with box obstacles."""
+
+    #: registry key, stored in every spec as ``spec.scene.family``
+    name: ClassVar[str]
+    #: the family's part of the EnvSpec
+    scene_type: ClassVar[type[Scene]]
+    #: expert names this family accepts (EXPERTS registry); the first is the default
+    experts: ClassVar[tuple[str, ...]]
+    #: controller names this family accepts (CONTROLLERS registry); the first is the default
+    controllers: ClassVar[tuple[str, ...]]
+    #: name of the start/goal protocol, recorded in every eval artifact
+    protocol: ClassVar[str]
+    #: how a --start/--goal point is written, for help and errors
+    point_format: ClassVar[str] = "comma-separated numbers"
+
+    # -------------------------------------------------------------- environments
+    @abstractmethod
+    def env_ids(self) -> dict[str, str]:
+        """Stock environment ids -> one-line descriptions."""
+
+    @abstractmethod
+    def make_spec(self, env_id: str) -> EnvSpec:
+        """The EnvSpec of a stock id."""
+
+    def spec_from_file(self, path: Path) -> EnvSpec | None:
+        """The EnvSpec described by a file (e.g. a maze map), or None when this family reads no such files."""
+        return None
+
+    def display_name(self, env_id: str) -> str:
+        return env_id
+
+    def details(self, spec: EnvSpec) -> dict[str, Any]:
+        """Family-specific facts for ``cdrb envs --json``."""
+        return {}
+
+    @abstractmethod
+    def make_env(self, spec: EnvSpec) -> Env:
+        """A fresh environment for ``spec`` (close it when done)."""
+
+    def make_gym_env(self, spec: EnvSpec, seed: int):
+        """A goal-conditioned gymnasium env (dict observations, sparse reward, terminating on success) for
+        training reinforcement-learning experts."""
+        raise BadInput(f"{spec.id}: the {self.name} family has no gymnasium env for RL experts")
+
+    # -------------------------------------------------------------- protocol
+    @abstractmethod
+    def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
+        """``n`` episodes of protocol ``stream`` under ``seed``: the same for every method and run."""
+
+    def goal_state(self, spec: EnvSpec, goals: np.ndarray) -> np.ndarray:
+        """The states (n, obs_dim) plans are pinned to for goals (n, goal_dim): the goal at rest."""
+        goals = np.atleast_2d(goals)
+        out = np.zeros((goals.shape[0], spec.obs_dim))
+        out[:, spec.goal_dims] = goals
+        return out
+
+    def success(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """Per state (..., obs_dim): is the goal reached?"""
+        return np.linalg.norm(np.asarray(states)[..., spec.goal_dims] - goal, axis=-1) <= spec.success_radius
+
+    def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
+        """A --start/--goal value -> a state: goal coordinates (then at rest) or a full state."""
+        try:
+            values = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+        except ValueError:
+            raise BadInput(f"{flag} {text!r}: not a list of numbers", hint=f"write {self.point_format}") from None
+        n_pos = len(spec.goal_dims)
+        if len(values) == n_pos:
+            state = self.goal_state(spec, np.array(values))[0]
+        elif len(values) == spec.obs_dim:
+            state = np.array(values)
+        else:
+            raise BadInput(
+                f"{flag} {text!r}: expected {n_pos} or {spec.obs_dim} numbers", hint=f"write {self.point_format}"
+            )
+        if not np.all(np.isfinite(state)):
+            raise BadInput(f"{flag} {text!r}: values must be finite", hint=f"write {self.point_format}")
+        self.check_point(spec, state, flag)
+        return state
+
+    def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:
+        """Refuse a start/goal state the agent cannot be in (one-line :class:`BadInput`)."""
+        if self.in_collision(spec, state[None])[0]:
+            raise BadInput(f"{flag}: the state is inside an obstacle", hint="choose a free state")
+
+    # -------------------------------------------------------------- geometry
+    def in_collision(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
+        """Boolean mask over states (..., D): True where the agent overlaps an obstacle or leaves the workspace."""
+        from cdrb_cli.envs.geometry import in_boxes
+
+        return in_boxes(states, spec.obstacles)
+
+    def path_length(self, spec: EnvSpec, states: np.ndarray) -> float:
+        """Length of a path of states (T, D), measured in the goal dimensions."""
+        return float(np.linalg.norm(np.diff(np.asarray(states)[:, spec.goal_dims], axis=0), axis=1).sum())
+
+    def route(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> tuple[str, str] | None:
+        """(goal group, route label) of a demonstration, counted by ``cdrb collect`` to show multimodality."""
+        return None
+
+    # -------------------------------------------------------------- pictures
+    def xy(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
+        """The 2-D picture coordinates (..., 2) of states (..., D)."""
+        return np.asarray(states)[..., spec.goal_dims[:2]]
+
+    def goal_group(self, spec: EnvSpec, goal: np.ndarray) -> int:
+        """Which goal region ``goal`` belongs to (pictures colour demonstrations by it)."""
+        return 0
+
+    def draw_scene(self, ax, spec: EnvSpec) -> None:
+        """Draw the obstacles (and anything else fixed) on a matplotlib axes, in :meth:`xy` coordinates."""
+        from matplotlib.patches import Rectangle
+
+        from cdrb_cli.envs.geometry import box_arrays
+
+        ob = spec.obstacles
+        centers, halves = box_arrays(ob)
+        for c, h in zip(centers[:, :2], halves[:, :2]):
+            ax.add_patch(Rectangle(c - h, 2 * h[0], 2 * h[1], color="#555555", lw=0, zorder=1))
+        ax.set_xlim(ob.low[0], ob.high[0])
+        ax.set_ylim(ob.low[1], ob.high[1])
+        ax.set_aspect("equal")
+
+    def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
+        """Simulator frames of the agent following ``states`` (raise when the simulator cannot render here; the
+        caller then draws the rollout with matplotlib)."""
+        raise NotImplementedError(f"the {self.name} family renders no simulator frames")

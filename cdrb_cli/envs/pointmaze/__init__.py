@@ -1,0 +1,174 @@
+"""The PointMaze family: gymnasium-robotics' PointMaze on any grid map.
+
+Stock ids: ``maze`` and ``maze-tight`` (the paper's), ``umaze``, ``medium``, ``large`` (gymnasium-robotics'); any map
+file through ``--maze-map FILE`` (id ``map:<file stem>``). The state is (x, y, vx, vy), the goal (x, y); a plan is
+pinned to the whole start state and to the goal at rest. Protocol: a start cell drawn uniformly from the map's
+start cells and a different, reachable goal cell from its goal cells, then the stock reset noise.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.envs.family import EnvFamily, Episode, Scene
+from cdrb_cli.envs.pointmaze.maze import STOCK_LAYOUTS, MazeGeometry, MazeLayout, load_map_file, stock_layout
+from cdrb_cli.envs.registry import FAMILIES
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
+from cdrb_cli.seeding import episode_seeds
+
+# PointMaze physics (gymnasium-robotics): 100 Hz, ball radius 0.1 m, stock success radius 0.45 m.
+POINTMAZE_DT = 0.01
+BALL_RADIUS = 0.1
+SUCCESS_RADIUS = 0.45
+PLAN_STRIDE = 2
+
+DESCRIPTIONS = {
+    "maze": "CDRB Maze: 15x15, ring of walls with 3-cell gaps; centre starts, corner goals",
+    "maze-tight": "CDRB Maze Tight: the same ring with 1-cell gaps",
+    "umaze": "gymnasium-robotics U-maze (5x5)",
+    "medium": "gymnasium-robotics medium maze (8x8), any free cell start/goal",
+    "large": "gymnasium-robotics large maze (9x12), any free cell start/goal",
+}
+DISPLAY_NAMES = {"maze": "Maze", "maze-tight": "Maze Tight"}
+
+# The paper's two mazes use its plan length (168 planned states); at stride 2 that is 336 env steps, enough for the
+# expert's slowest episodes (docs/environments.md).
+_PAPER = {"maze": (168, 400), "maze-tight": (168, 400)}
+
+
+class PointMazeScene(Scene):
+    """The maze map and the reset noise."""
+
+    family: Literal["pointmaze"] = "pointmaze"
+    maze: MazeLayout
+    position_noise: float = Field(
+        0.25, ge=0, description="uniform noise (per axis, in cells) added to start and goal cell centres at reset"
+    )
+
+
+def _timing_for(layout: MazeLayout) -> tuple[int, int]:
+    """Default (horizon, episode_limit) for a layout, from its longest start->goal grid path: the scripted expert
+    needs about 25 env steps per cell plus ~90 to accelerate and settle (measured on the stock maps)."""
+    cells = MazeGeometry(layout).longest_start_goal_path()
+    limit = int(math.ceil((120 + 28 * cells * layout.cell_size) / 50.0) * 50)
+    horizon = int(math.ceil((limit - 40) / PLAN_STRIDE / 8.0) * 8)
+    return horizon, limit
+
+
+def maze_spec(env_id: str, layout: MazeLayout) -> EnvSpec:
+    horizon, limit = _PAPER.get(env_id, None) or _timing_for(layout)
+    geom = MazeGeometry(layout)
+    return EnvSpec(
+        id=env_id,
+        scene=PointMazeScene(maze=layout),
+        obs_dim=4,
+        action_dim=2,
+        goal_dim=2,
+        state_labels=["x", "y", "vx", "vy"],
+        goal_dims=[0, 1],
+        horizon=horizon,
+        plan_stride=PLAN_STRIDE,
+        episode_limit=limit,
+        success_radius=SUCCESS_RADIUS,
+        dt=POINTMAZE_DT,
+        obstacles=geom.obstacles(BALL_RADIUS),
+    )
+
+
+class PointMazeFamily(EnvFamily):
+    name = "pointmaze"
+    scene_type = PointMazeScene
+    experts = ("planner", "sac")
+    controllers = ("pd", "inverse-dynamics")
+    protocol = "centre-start/corner-goal"
+    point_format = "x,y (at rest) or x,y,vx,vy, e.g. 0,0"
+
+    # -------------------------------------------------------------- environments
+    def env_ids(self) -> dict[str, str]:
+        return {i: DESCRIPTIONS[i] for i in STOCK_LAYOUTS}
+
+    def make_spec(self, env_id: str) -> EnvSpec:
+        return maze_spec(env_id, stock_layout(env_id))
+
+    def spec_from_file(self, path: Path) -> EnvSpec:
+        layout = load_map_file(path)
+        return maze_spec(f"map:{layout.name}", layout)
+
+    def display_name(self, env_id: str) -> str:
+        return DISPLAY_NAMES.get(env_id, env_id)
+
+    def details(self, spec: EnvSpec) -> dict[str, Any]:
+        g = MazeGeometry(spec.scene.maze)
+        return {"starts": int(len(g.start_cells)), "goals": int(len(g.goal_cells))}
+
+    def make_env(self, spec: EnvSpec):
+        from cdrb_cli.envs.pointmaze.env import PointMaze
+
+        return PointMaze(spec)
+
+    def make_gym_env(self, spec: EnvSpec, seed: int):
+        from cdrb_cli.envs.pointmaze.env import training_env
+
+        return training_env(spec, seed)
+
+    # -------------------------------------------------------------- protocol
+    def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
+        geom = MazeGeometry(spec.scene.maze)
+        out = []
+        for s in episode_seeds(seed, n, stream):
+            start, goal = geom.draw_start_goal(np.random.default_rng([int(s), 7]))
+            out.append(Episode(int(s), tuple(int(v) for v in start), tuple(int(v) for v in goal)))
+        return out
+
+    def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:
+        ob = spec.obstacles
+        pos = state[ob.dims]
+        text = ",".join(f"{v:g}" for v in pos)
+        if np.any(pos < np.asarray(ob.low)) or np.any(pos > np.asarray(ob.high)):
+            raise BadInput(
+                f"{flag} {text}: outside the map "
+                f"(x in [{ob.low[0]:g}, {ob.high[0]:g}], y in [{ob.low[1]:g}, {ob.high[1]:g}])",
+                hint="choose a point inside the maze",
+            )
+        if self.in_collision(spec, state[None])[0]:
+            raise BadInput(
+                f"{flag} {text}: inside a wall (the agent, radius {ob.inflate:g}, overlaps it)",
+                hint="choose a free point (`cdrb collect --plot` shows the map)",
+            )
+
+    # -------------------------------------------------------------- geometry
+    def path_length(self, spec: EnvSpec, states: np.ndarray) -> float:
+        return float(np.linalg.norm(np.diff(np.asarray(states)[:, :2], axis=0), axis=1).sum())
+
+    def route(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> tuple[str, str]:
+        geom = MazeGeometry(spec.scene.maze)
+        cell = geom.xy_to_cell(goal)
+        return f"{int(cell[0])},{int(cell[1])}", geom.exit_label(states)
+
+    # -------------------------------------------------------------- pictures
+    def xy(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
+        return np.asarray(states)[..., :2]
+
+    def goal_group(self, spec: EnvSpec, goal: np.ndarray) -> int:
+        g = MazeGeometry(spec.scene.maze)
+        goals = g.cell_to_xy(g.goal_cells)
+        return int(np.argmin(np.linalg.norm(goals - np.asarray(goal)[None, :2], axis=1)))
+
+    def draw_scene(self, ax, spec: EnvSpec) -> None:
+        from cdrb_cli.envs.pointmaze.render import draw_maze
+
+        draw_maze(ax, spec)
+
+    def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
+        from cdrb_cli.envs.pointmaze.render import mujoco_frames
+
+        return mujoco_frames(spec, states, goal, every)
+
+
+FAMILIES.register(PointMazeFamily())

@@ -1,0 +1,64 @@
+"""PointMaze pictures: the maze drawn with matplotlib, and top-down MuJoCo frames of the ball."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cdrb_cli.envs.geometry import box_arrays
+from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+from cdrb_cli.envs.spec import EnvSpec
+
+
+def draw_maze(ax, spec: EnvSpec, show_cells: bool = True) -> None:
+    """Walls as grey boxes (their true extent), start cells green, goal cells red, agent-radius outline dotted."""
+    from matplotlib.patches import Rectangle
+
+    ob = spec.obstacles
+    centers, halves = box_arrays(ob)
+    if show_cells:
+        g = MazeGeometry(spec.scene.maze)
+        s = g.s
+        for cells, colour in ((g.start_cells, "#d8f3dc"), (g.goal_cells, "#ffd6d6")):
+            for c in cells:
+                x, y = g.cell_to_xy(c)
+                ax.add_patch(Rectangle((x - s / 2, y - s / 2), s, s, color=colour, lw=0, zorder=0))
+    for c, h in zip(centers, halves):
+        ax.add_patch(Rectangle(c - h, 2 * h[0], 2 * h[1], color="#555555", lw=0, zorder=1))
+        r = ob.inflate
+        if r > 0:
+            ax.add_patch(
+                Rectangle(c - h - r, 2 * (h[0] + r), 2 * (h[1] + r), fill=False, ls=":", lw=0.4, ec="#999999", zorder=1)
+            )
+    ax.set_xlim(ob.low[0], ob.high[0])
+    ax.set_ylim(ob.low[1], ob.high[1])
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360) -> list[np.ndarray]:
+    """Top-down MuJoCo frames of the ball following ``states`` (raises when no GL context can be made)."""
+    import mujoco
+
+    from cdrb_cli.envs.pointmaze.env import PointMaze
+
+    env = PointMaze(spec)
+    env.env.goal = np.asarray(goal, dtype=np.float64)
+    env.env.update_target_site_pos()
+    model, data = env.env.point_env.model, env.env.point_env.data
+    renderer = mujoco.Renderer(model, size, size)
+    cam = mujoco.MjvCamera()
+    cam.lookat[:] = [0.0, 0.0, 0.0]
+    extent = max(np.abs(spec.obstacles.low).max(), np.abs(spec.obstacles.high).max())
+    cam.distance, cam.elevation, cam.azimuth = 2.9 * extent, -90.0, 90.0
+    frames = []
+    try:
+        for s in states[::every]:
+            env.set_state(s)
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera=cam)
+            frames.append(renderer.render().copy())
+    finally:
+        renderer.close()
+        env.close()
+    return frames

@@ -1,0 +1,101 @@
+"""Resolving a training config: method + preset + the data + the user's settings -> one validated TrainConfig.
+
+Layers, later ones winning: the preset's values (:mod:`cdrb_cli.presets`, and the method's own presets); the
+defaults the data implies (horizon and stride from the environment, features from the buffer, and the method's
+``data_defaults``, e.g. CDRB's d_max = buffer diameter); then the user's settings in the order given
+(``--config`` file, ``--set``, the common flags). Errors name the setting the user typed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from cdrb_cli.configs import TrainConfig, UNetConfig
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
+from cdrb_cli.methods.registry import DEFAULT_METHOD, METHODS, BufferInfo, MethodEntry
+from cdrb_cli.nets import horizon_multiple
+from cdrb_cli.presets import DEFAULT_PRESET, NETS, PRESETS, TRAIN
+from cdrb_cli.settings import Setting, apply, lookup, validate
+
+
+def _source(setting: Setting | None, fallback: str) -> str:
+    return setting.source if setting is not None else fallback
+
+
+def choose(settings: Sequence[Setting]) -> tuple[MethodEntry, str, str]:
+    """The method entry, preset and net kind the settings ask for (with their defaults)."""
+    s_method = lookup(settings, ("method", "name"))
+    name = s_method.value if s_method is not None else DEFAULT_METHOD
+    if not isinstance(name, str) or name not in METHODS:
+        raise BadInput(f"{_source(s_method, '--method')}: unknown method", hint=f"use {', '.join(METHODS.names())}")
+    entry = METHODS.get(name)
+    s_preset = lookup(settings, ("preset",))
+    preset = s_preset.value if s_preset is not None else DEFAULT_PRESET
+    if preset not in PRESETS:
+        raise BadInput(f"{_source(s_preset, '--preset')}: unknown preset", hint=f"use {' or '.join(PRESETS)}")
+    s_net = lookup(settings, ("net", "kind"))
+    net = s_net.value if s_net is not None else entry.default_net
+    if net not in entry.nets:
+        raise BadInput(
+            f"{_source(s_net, '--net')}: the {entry.name} method uses --net {' or '.join(entry.nets)}",
+            hint="omit --net" if len(entry.nets) == 1 else f"use {' or '.join(entry.nets)}",
+        )
+    return entry, preset, net
+
+
+def defaults(entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: BufferInfo | None, seed: int) -> dict:
+    """The config a preset gives for this method, net, data and seed, before the user's settings."""
+    method = {"name": entry.name, **entry.presets.get(preset, {})}
+    if entry.data_defaults is not None:
+        method.update(entry.data_defaults(spec, buffer))
+    return {
+        **TRAIN[preset],
+        "method": method,
+        "net": {"kind": net, **NETS[preset][net]},
+        "preset": preset,
+        "features": buffer.features if buffer is not None else "state",
+        "horizon": spec.horizon,
+        "stride": spec.plan_stride,
+        "seed": seed,
+    }
+
+
+def resolve_train_config(
+    spec: EnvSpec, buffer: BufferInfo | None, settings: Sequence[Setting] = (), seed: int = 0
+) -> TrainConfig:
+    """The full TrainConfig for ``settings`` (``method.name``, ``preset``, ``net.kind`` and any field), checked
+    against the environment and the buffer."""
+    entry, preset, net = choose(settings)
+    if entry.needs_buffer and buffer is None:
+        raise BadInput(f"--method {entry.name} needs --buffer BUFFER", hint="make one with `cdrb cluster DEMOS`")
+    s_feat = lookup(settings, ("features",))
+    if entry.needs_buffer and s_feat is not None and s_feat.value != buffer.features:
+        raise BadInput(
+            f"{s_feat.source}: the buffer was clustered on {buffer.features!r} features",
+            hint="omit it, or re-cluster with the same --features",
+        )
+    config = validate(TrainConfig, apply(defaults(entry, preset, net, spec, buffer, seed), settings), settings, "train")
+    _check_net(config, settings)
+    return config
+
+
+def _check_net(config: TrainConfig, settings: Sequence[Setting]) -> None:
+    """Constraints between fields that pydantic does not see."""
+    net = config.net
+    if isinstance(net, UNetConfig):
+        if any(m <= 0 for m in net.dim_mults):
+            raise BadInput(f"{_source(lookup(settings, ('net', 'dim_mults')), 'net.dim_mults')}: must be positive")
+        if net.dim % net.groups:
+            where = _source(lookup(settings, ("net", "dim")), f"net.dim {net.dim}")
+            raise BadInput(f"{where}: must be a multiple of net.groups ({net.groups})", hint="e.g. --set net.dim=32")
+    if getattr(net, "kind", None) == "transformer" and net.d_model % net.n_heads:
+        where = _source(lookup(settings, ("net", "d_model")), f"net.d_model {net.d_model}")
+        raise BadInput(f"{where}: must be a multiple of net.n_heads ({net.n_heads})")
+    mult = horizon_multiple(net)
+    if config.horizon % mult:
+        where = _source(lookup(settings, ("horizon",)), f"horizon {config.horizon}")
+        raise BadInput(
+            f"{where}: the U-Net with {len(net.dim_mults)} levels needs a horizon that is a multiple of {mult}",
+            hint=f"use --set horizon={config.horizon + (-config.horizon) % mult}",
+        )

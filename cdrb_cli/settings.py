@@ -1,0 +1,204 @@
+"""Settings: how a user sets any field of a typed config from the command line, without a flag per field.
+
+* ``--set KEY=VALUE`` (repeatable): ``KEY`` is a dotted path into the config (``steps``, ``net.dim``,
+  ``method.schedule``; dashes may stand for underscores); ``VALUE`` is read as JSON when it parses
+  (``2e-4``, ``true``, ``null``, ``[1,4,8]``), as a list when it holds commas (``1,4,8``), else as text.
+* ``--config FILE``: a TOML or JSON file of the same keys, nested (``[net]`` / ``dim = 32``) or dotted.
+
+Every value keeps its *source* (``--set net.dim=7``, ``--config run.toml``, ``--steps``) so a value the config
+rejects is reported against what the user typed. The config's own fields and descriptions are the only
+declaration (``cdrb config`` lists them).
+"""
+
+from __future__ import annotations
+
+import json
+import types
+import typing
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from cdrb_cli.errors import BadInput
+
+Path_ = tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One value for one config field, and how the user gave it."""
+
+    path: Path_
+    value: Any
+    source: str
+
+    @property
+    def key(self) -> str:
+        return ".".join(self.path)
+
+
+def _key(text: str, source: str) -> Path_:
+    parts = tuple(p.strip().replace("-", "_") for p in text.split("."))
+    if not text.strip() or any(not p.isidentifier() for p in parts):
+        raise BadInput(f"{source}: {text!r} is not a setting name", hint="write KEY=VALUE, e.g. --set net.dim=32")
+    return parts
+
+
+def parse_value(text: str) -> Any:
+    """``--set`` value text -> a Python value (JSON first, then a comma list, then the text itself)."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        pass
+    if "," in text:
+        return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
+    return text
+
+
+def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
+    out = []
+    for item in items:
+        if "=" not in item:
+            raise BadInput(f"{flag} {item!r}: expected KEY=VALUE", hint=f"e.g. {flag} net.dim=32")
+        key, text = item.split("=", 1)
+        source = f"{flag} {item}"
+        out.append(Setting(_key(key, source), parse_value(text.strip()), source))
+    return out
+
+
+def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
+    out = []
+    for k, v in data.items():
+        path = prefix + _key(str(k), source)
+        if isinstance(v, dict):
+            out += _flatten(v, path, source)
+        else:
+            out.append(Setting(path, v, source))
+    return out
+
+
+def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
+    """Settings from a TOML (``.toml``) or JSON file."""
+    path = Path(path)
+    source = f"{flag} {path}"
+    if not path.is_file():
+        raise BadInput(f"{source}: no such file", hint="check the path")
+    try:
+        text = path.read_text(encoding="utf-8")
+        if path.suffix.lower() == ".json":
+            data = json.loads(text)
+        else:
+            try:
+                import tomllib
+            except ImportError:  # Python 3.10
+                import tomli as tomllib
+            data = tomllib.loads(text)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        kind = "JSON" if path.suffix.lower() == ".json" else "TOML"
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BadInput(
+            f"{source}: not valid {kind} ({first})", hint="fix the file; `cdrb config` prints a template"
+        ) from None
+    if not isinstance(data, dict):
+        raise BadInput(f"{source}: expected a table of settings", hint="write KEY = VALUE lines")
+    return _flatten(data, (), source)
+
+
+def lookup(settings: Sequence[Setting], path: Path_) -> Setting | None:
+    """The last setting for ``path`` (later settings override earlier ones)."""
+    found = None
+    for s in settings:
+        if s.path == path:
+            found = s
+    return found
+
+
+def apply(base: dict, settings: Iterable[Setting]) -> dict:
+    """A deep copy of ``base`` with every setting written in (later ones win)."""
+    out = json.loads(json.dumps(base))
+    for s in settings:
+        node = out
+        for part in s.path[:-1]:
+            if not isinstance(node.get(part), dict):
+                node[part] = {}
+            node = node[part]
+        node[s.path[-1]] = s.value
+    return out
+
+
+def source_of(settings: Sequence[Setting], loc: Sequence[Any]) -> Setting | None:
+    """The setting that wrote the field at ``loc`` (or a field inside it)."""
+    loc = tuple(str(x) for x in loc)
+    best = None
+    for s in settings:
+        n = min(len(s.path), len(loc))
+        if s.path[:n] == loc[:n]:
+            best = s
+    return best
+
+
+def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], what: str) -> BaseModel:
+    """``model.model_validate(data)``, with the first error reported against the setting that caused it."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        # tagged unions add the tag to the location (("net", "unet", "dim")): drop it
+        loc = _field_loc(model, err.get("loc", ()))
+        key = ".".join(str(p) for p in loc)
+        msg = err.get("msg", "invalid")
+        if err.get("type") == "extra_forbidden":
+            msg = f"unknown setting {key!r}"
+        setting = source_of(settings, loc)
+        where = setting.source if setting is not None else f"{what} {key}"
+        more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+        raise BadInput(f"{where}: {msg}{more}", hint=f"`cdrb config {what}` lists every setting") from None
+
+
+def _field_loc(model: type[BaseModel], loc: Sequence[Any]) -> list[Any]:
+    out: list[Any] = []
+    current: Any = model
+    for part in loc:
+        members = _union_members(current)
+        if members and any(_tag(m) == part for m in members):
+            current = next(m for m in members if _tag(m) == part)
+            continue
+        out.append(part)
+        fields = getattr(current, "model_fields", {}) if isinstance(current, type) else {}
+        current = fields[part].annotation if part in fields else None
+    return out
+
+
+def _union_members(tp: Any) -> list[type]:
+    origin = typing.get_origin(tp)
+    if origin is typing.Annotated:
+        return _union_members(typing.get_args(tp)[0])
+    if origin in (typing.Union, types.UnionType):
+        return [a for a in typing.get_args(tp) if isinstance(a, type) and issubclass(a, BaseModel)]
+    return []
+
+
+def _tag(model: type[BaseModel]) -> str | None:
+    for name in ("kind", "name"):
+        f = model.model_fields.get(name)
+        if f is not None and typing.get_origin(f.annotation) is typing.Literal:
+            return typing.get_args(f.annotation)[0]
+    return None
+
+
+# ------------------------------------------------------------------------------------------------ listing
+def type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is typing.Literal:
+        return " | ".join(str(a) for a in typing.get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return " | ".join(type_name(a) for a in typing.get_args(tp))
+    if origin is list:
+        (inner,) = typing.get_args(tp) or (Any,)
+        return f"list[{type_name(inner)}]"
+    if tp is type(None):
+        return "null"
+    return getattr(tp, "__name__", str(tp))

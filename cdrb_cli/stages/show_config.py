@@ -1,0 +1,179 @@
+"""`cdrb config`: every setting of a stage's config, with its type, default and description, read from the config
+records themselves (the single declaration of an option), as a table or as a TOML/JSON template for ``--config``."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import BaseModel
+
+from cdrb_cli.settings import Setting, type_name
+
+#: shown for defaults `cdrb train` fills in from its inputs
+FROM_DATA = "(from the data)"
+
+
+@dataclass(frozen=True)
+class Row:
+    key: str
+    type: str
+    default: Any
+    description: str
+
+
+def _rows(model: type[BaseModel], values: dict, prefix: str = "", skip=(), placeholders=None) -> list[Row]:
+    rows = []
+    placeholders = placeholders or {}
+    for name, f in model.model_fields.items():
+        if name in skip:
+            continue
+        key = prefix + name
+        if name in values:
+            default = values[name]
+        elif key in placeholders:
+            default = placeholders[key]
+        elif f.is_required():
+            default = FROM_DATA
+        else:
+            default = f.get_default(call_default_factory=True)
+        rows.append(Row(key, type_name(f.annotation), default, f.description or ""))
+    return rows
+
+
+def _train_rows(method: str | None, net: str | None, preset: str | None) -> list[Row]:
+    from cdrb_cli.configs import TrainConfig
+    from cdrb_cli.methods.config import choose
+    from cdrb_cli.presets import NETS, TRAIN
+
+    given = [
+        Setting(path, value, f"{flag} {value}")
+        for path, value, flag in ((("method", "name"), method, "--method"), (("net", "kind"), net, "--net"))
+        if value is not None
+    ] + ([Setting(("preset",), preset, f"--preset {preset}")] if preset else [])
+    entry, preset, net = choose(given)
+    net_cls = next(c for c in _net_classes() if c.model_fields["kind"].default == net)
+    top = {**TRAIN[preset], "preset": preset}
+    rows = [
+        Row("method.name", "str", entry.name, "the method (`cdrb methods`); --method sets it"),
+        *_rows(entry.params, dict(entry.presets.get(preset, {})), "method.", skip=("name",)),
+        Row("net.kind", "str", net, "the network; --net sets it"),
+        *_rows(net_cls, NETS[preset][net], "net.", skip=("kind",)),
+        *_rows(TrainConfig, top, skip=("method", "net"), placeholders={"seed": "(--seed)"}),
+    ]
+    return rows
+
+
+def _net_classes() -> list[type[BaseModel]]:
+    import typing
+
+    from cdrb_cli.configs import NetConfig
+
+    return list(typing.get_args(typing.get_args(NetConfig)[0]))
+
+
+def _eval_rows(controller: str | None) -> list[Row]:
+    from cdrb_cli.configs import EvalConfig
+    from cdrb_cli.envs.registry import CONTROLLERS
+
+    placeholders = {"seed": "(--seed)", "episodes": "(--episodes)", "seeds": "(--seeds)"}
+    rows = _rows(EvalConfig, {}, skip=("controller", "sampler", "protocol"), placeholders=placeholders)
+    rows.append(Row("sampler", "str", "(the model's)", "a sampler of the model's method (`cdrb methods`)"))
+    entries = [CONTROLLERS.get(controller, "--controller")] if controller else CONTROLLERS.entries()
+    for entry in entries:
+        rows.append(Row("controller.name", "str", entry.name, entry.description or "the controller; --controller"))
+        rows += _rows(entry.config, {}, "controller.", skip=("name",))
+    return rows
+
+
+def config_template(
+    stage: str, method: str | None = None, net: str | None = None, preset: str | None = None, controller=None
+) -> list[Row]:
+    """The settings of ``stage`` (train or eval) with their defaults for these choices."""
+    return _train_rows(method, net, preset) if stage == "train" else _eval_rows(controller)
+
+
+def settable_keys() -> list[str]:
+    """Every key `cdrb train --set` accepts, for any method and network."""
+    from cdrb_cli.configs import TrainConfig
+    from cdrb_cli.methods.registry import METHODS
+
+    keys = [k for k in TrainConfig.model_fields if k not in ("method", "net")]
+    keys += [f"method.{k}" for e in METHODS.entries() for k in e.params.model_fields]
+    keys += [f"net.{k}" for c in _net_classes() for k in c.model_fields]
+    return list(dict.fromkeys(keys))
+
+
+def _placeholder(value: Any) -> bool:
+    return isinstance(value, str) and value.startswith("(")
+
+
+def _nested(rows: list[Row]) -> dict:
+    """The settings with known defaults as nested objects (defaults that depend on the data are left out)."""
+    out: dict = {}
+    for r in rows:
+        if _placeholder(r.default):
+            continue
+        node = out
+        *parents, leaf = r.key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = r.default
+    return out
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return json.dumps(str(v))
+
+
+def _toml(rows: list[Row]) -> str:
+    """A TOML template: top-level keys first, then one table per section; defaults that depend on the data, and
+    null defaults (TOML has no null), are commented out."""
+    lines = ["# cdrb settings (read with --config FILE); `cdrb config --format table` describes each key", ""]
+    sections: dict[str, list[Row]] = {}
+    for r in rows:
+        head, _, rest = r.key.partition(".")
+        sections.setdefault(head if rest else "", []).append(r)
+    for section in ["", *[s for s in sections if s]]:
+        if section:
+            lines += ["", f"[{section}]"]
+        for r in sections.get(section, []):
+            leaf = r.key.split(".")[-1]
+            text = f"{leaf} = {_toml_value(r.default)}"
+            if r.default is None or _placeholder(r.default):
+                text = f"# {leaf} = ...  {r.default if r.default is not None else 'null'}"
+            lines.append(f"{text:<40} # {r.description}" if r.description else text)
+    return "\n".join(lines) + "\n"
+
+
+def render_template(rows: list[Row], fmt: str) -> str:
+    if fmt == "json":
+        return json.dumps(_nested(rows), indent=2) + "\n"
+    if fmt == "toml":
+        return _toml(rows)
+    from rich.console import Console
+    from rich.table import Table
+    from rich.text import Text
+
+    table = Table("key", "type", "default", "description", header_style="bold", box=None)
+    for r in rows:
+        table.add_row(Text(r.key), Text(r.type), Text(_plain(r.default)), Text(r.description))
+    console = Console(record=True, width=160, force_terminal=False)
+    with console.capture() as cap:
+        console.print(table)
+    return cap.get()
+
+
+def _plain(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, bool):
+        return str(v).lower()
+    return "null" if v is None else str(v)

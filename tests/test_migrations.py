@@ -1,0 +1,94 @@
+"""Artifacts written by cdrb 0.1 (schema 1.x, tests/data/v1) are read through migrations and give exactly the
+results they gave then: the same plans, the same evaluation, and the same weights when retrained."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+from cdrb_cli.configs import PlanConfig
+from cdrb_cli.stages.evaluate import evaluate
+from cdrb_cli.stages.plan import make_plans
+from cdrb_cli.stages.train import train, train_config
+
+V1 = Path(__file__).resolve().parent / "data" / "v1"
+KINDS = ("demos", "buffer", "model", "plans", "eval")
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_v1_kind_reads(kind):
+    art = artifacts.load(V1 / f"{kind}.h5", kind)
+    assert art.migrated_from is not None and art.migrated_from.startswith("1.")
+    assert art.manifest.env.family == "pointmaze" and art.manifest.env.scene.maze.name == "maze-tight"
+    assert art.manifest.env.pin_dims == [0, 1, 2, 3]
+
+
+def test_v1_model_layout_is_per_module():
+    m = artifacts.load(V1 / "model.h5")
+    assert all(
+        k.startswith(("weights/net/", "ema/net/", "optim/net/net/", "normalizer/", "curve/", "buffer/"))
+        for k in m.arrays
+    )
+    steps = [v for k, v in m.arrays.items() if k.startswith("optim/") and k.endswith("/step")]
+    assert steps and all(v.shape == () and v.dtype == np.float32 for v in steps)
+
+
+def test_v1_model_plans_exactly_as_before(tmp_path):
+    model = artifacts.load(V1 / "model.h5")
+    old = artifacts.load(V1 / "plans.h5")
+    cfg = PlanConfig(sampler="alg1", n=2, seed=3)
+    new = make_plans(model, old.starts.astype(np.float64), old.goals.astype(np.float64), cfg, tmp_path / "p.h5")
+    np.testing.assert_array_equal(new.plans, old.plans)
+    np.testing.assert_array_equal(new.arrays["in_wall"], old.arrays["in_wall"])
+
+
+def test_v1_model_evaluates_exactly_as_before(tmp_path):
+    model = artifacts.load(V1 / "model.h5")
+    old = artifacts.load(V1 / "eval.h5")
+    assert old.manifest.config.controller.name == "pd" and old.manifest.config.controller.max_lag == 0.6
+    new = evaluate(model, old.manifest.config, tmp_path / "e.h5")
+    assert new.arrays.keys() == old.arrays.keys()
+    for key in old.arrays:
+        if key != "episodes/plan_seconds":
+            np.testing.assert_array_equal(new.arrays[key], old.arrays[key], err_msg=key)
+    assert artifacts.find_up_to_date(V1 / "eval.h5", "eval", old.manifest.config, [model]) is not None
+
+
+def test_retraining_the_v1_config_gives_the_v1_weights(tmp_path):
+    demos, buffer = artifacts.load(V1 / "demos.h5"), artifacts.load(V1 / "buffer.h5")
+    old = artifacts.load(V1 / "model.h5")
+    settings = {"steps": 4, "checkpoint_every": 2, "net.dim": 8, "net.dim_mults": [1], "horizon": 16, "stride": 10}
+    cfg = train_config(demos, buffer, "cdrb", {**settings, "method.diffusion_steps": 4, "batch_size": 4})
+    assert cfg == old.manifest.config
+    new = train(demos, buffer, cfg, tmp_path / "m.h5")
+    assert new.arrays.keys() == old.arrays.keys()
+    for key in old.arrays:
+        np.testing.assert_array_equal(new.arrays[key], old.arrays[key], err_msg=key)
+
+
+def test_eval_1_0_had_no_gated_clock(tmp_path):
+    """eval 1.1 added max_lag; a 1.0 file (no such field) followed plans on the environment's clock."""
+    p = tmp_path / "e.h5"
+    shutil.copy(V1 / "eval.h5", p)
+    with h5py.File(p, "r+") as f:
+        m = json.loads(f["manifest"][()].decode())
+        m["config"].pop("max_lag")
+        m["schema_version"] = "1.0"
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+        f.attrs["cdrb_schema_version"] = "1.0"
+    art = artifacts.load(p, "eval")
+    assert art.migrated_from == "1.0" and art.manifest.config.controller.max_lag is None
+
+
+def test_cli_reads_v1_files(tmp_path, cdrb):
+    r = cdrb("inspect", V1 / "model.h5")
+    assert r.returncode == 0 and "read through a migration" in r.stdout
+    r = cdrb("plan", V1 / "model.h5", "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr

@@ -1,0 +1,124 @@
+"""A hyper-parameter is declared once, as a config field: --set, --config files, `cdrb config` and the errors all
+come from the config records (issue: one interface per axis)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import Setting, apply, lookup, parse_set, parse_value, read_config_file
+
+
+@pytest.mark.parametrize(
+    "text, value",
+    [
+        ("32", 32),
+        ("2e-4", 2e-4),
+        ("true", True),
+        ("null", None),
+        ("1,4,8", [1, 4, 8]),
+        ("[1, 4]", [1, 4]),
+        ("log", "log"),
+    ],
+)
+def test_values_parse_as_json_then_lists_then_text(text, value):
+    assert parse_value(text) == value
+
+
+def test_set_keys_and_precedence():
+    s = parse_set(["net.dim=8", "net.dim-mults=1,2", "net.dim=16"])
+    assert [x.path for x in s] == [("net", "dim"), ("net", "dim_mults"), ("net", "dim")]
+    assert lookup(s, ("net", "dim")).value == 16 and lookup(s, ("net", "dim")).source == "--set net.dim=16"
+    assert apply({"net": {"dim": 1, "kind": "unet"}, "steps": 3}, s) == {
+        "net": {"dim": 16, "kind": "unet", "dim_mults": [1, 2]},
+        "steps": 3,
+    }
+    for bad in ("net.dim", "=3", "a..b=1", "1x=2"):
+        with pytest.raises(BadInput, match="--set"):
+            parse_set([bad])
+
+
+def test_config_files(tmp_path):
+    toml = tmp_path / "run.toml"
+    toml.write_text('steps = 10\n"method.schedule" = "log"\n[net]\ndim = 8\n')
+    got = {s.key: (s.value, s.source) for s in read_config_file(toml)}
+    assert got == {
+        "steps": (10, f"--config {toml}"),
+        "method.schedule": ("log", f"--config {toml}"),
+        "net.dim": (8, f"--config {toml}"),
+    }
+    js = tmp_path / "run.json"
+    js.write_text(json.dumps({"net": {"dim": 8}}))
+    assert read_config_file(js) == [Setting(("net", "dim"), 8, f"--config {js}")]
+    bad = tmp_path / "bad.toml"
+    bad.write_text("steps = = 3\n")
+    with pytest.raises(BadInput, match="not valid TOML"):
+        read_config_file(bad)
+    with pytest.raises(BadInput, match="no such file"):
+        read_config_file(tmp_path / "absent.toml")
+
+
+def _dry(cdrb, demos, buffer, *args):
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--dry-run", *args)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_dry_run_layers_presets_data_and_settings(small_data, tmp_path, cdrb):
+    demos, buffer = small_data
+    base = _dry(cdrb, demos, buffer)
+    assert base["preset"] == "quick" and base["net"]["dim"] == 16 and base["method"]["diffusion_steps"] == 32
+    assert base["horizon"] == demos.manifest.env.horizon and base["method"]["d_max"] == buffer.manifest.summary.diameter
+    paper = _dry(cdrb, demos, buffer, "--preset", "paper")
+    assert (
+        paper["net"]["dim_mults"] == [1, 4, 8] and paper["method"]["diffusion_steps"] == 128 and paper["steps"] == 20000
+    )
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("steps = 7\n[net]\ndim = 24\n")
+    mixed = _dry(cdrb, demos, buffer, "--config", cfg, "--set", "net.dim=32", "--steps", "9")
+    assert mixed["net"]["dim"] == 32 and mixed["steps"] == 9  # the file < --set < the dedicated flags
+    assert not any(tmp_path.glob("*.h5"))
+
+
+def test_config_template_round_trips(small_data, tmp_path, cdrb):
+    """`cdrb config --format toml` is a valid --config file that reproduces the defaults."""
+    demos, buffer = small_data
+    for method, fmt in (("cdrb", "toml"), ("diffuser", "json")):
+        r = cdrb("config", "train", "--method", method, "--preset", "paper", "--format", fmt)
+        assert r.returncode == 0, r.stderr
+        path = tmp_path / f"{method}.{fmt}"
+        path.write_text(r.stdout)
+        extra = ["--buffer", buffer.path] if method == "cdrb" else []
+        a = json.loads(cdrb("train", demos.path, *extra, "--config", path, "--dry-run").stdout)
+        b = json.loads(cdrb("train", demos.path, *extra, "--method", method, "--preset", "paper", "--dry-run").stdout)
+        assert a == b
+
+
+def test_config_table_lists_every_field_with_its_description(cdrb):
+    from cdrb_cli.configs import TrainConfig
+    from cdrb_cli.methods.cdrb import CDRBParams
+
+    r = cdrb("config", "train")
+    assert r.returncode == 0
+    for name, f in TrainConfig.model_fields.items():
+        if name not in ("method", "net"):
+            assert name in r.stdout and f.description[:30] in r.stdout, name
+    for name in CDRBParams.model_fields:
+        assert f"method.{name}" in r.stdout
+    r = cdrb("config", "eval", "--controller", "pd")
+    assert "controller.kp" in r.stdout and "controller.max_lag" in r.stdout
+
+
+def test_eval_settings_name_the_flag(small_data, tmp_path, cdrb):
+    from cdrb_cli.stages.train import train, train_config
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    model = train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2)), tmp_path / "m.h5")
+    r = cdrb("eval", model.path, "--set", "controller.kp=fast", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "--set controller.kp=fast" in r.stderr and r.stderr.count("\n") == 1
+    r = cdrb("eval", model.path, "--max-lag", "-1", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "--max-lag" in r.stderr
+    assert not (tmp_path / "e.h5").exists()
