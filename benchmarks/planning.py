@@ -19,7 +19,6 @@ from cdrb_cli import artifacts
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_PLAN
-from cdrb_cli.stages.evaluate import reset_states
 from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
@@ -28,9 +27,7 @@ def measure(model_path: Path, pairs: int, seed: int, timing_plans: int = 16, sam
     spec = model.manifest.env
     family = family_of(spec)
     method = load_planner(model)  # EMA weights
-    env = family.make_env(spec)
-    starts, goals = reset_states(env, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
-    env.close()
+    starts, goals = family.reset_states(spec, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
     goals = family.goal_state(spec, goals)
     kw = dict(sampler=sampler, steps=steps)
     plans, *_ = sample_plans(method, starts, goals, 1, seed, batch_size=64, **kw)

@@ -162,7 +162,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "table1")
     ap.add_argument("--envs", default="maze,maze-tight")
-    ap.add_argument("--methods", default=None, help="comma-separated (default: every registered method)")
+    ap.add_argument("--methods", default=None, help="comma-separated (default: every registered planner)")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--demos", type=int, default=8000)
     ap.add_argument("--eval-episodes", type=int, default=100)
@@ -194,7 +194,9 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",")]
     from cdrb_cli.methods.registry import METHODS
 
-    methods = args.methods.split(",") if args.methods else METHODS.names()
+    methods = (
+        args.methods.split(",") if args.methods else [m for m in METHODS.names() if METHODS.get(m).kind == "planner"]
+    )
     t0 = time.time()
     evals, timed_evals = [], []
     try:

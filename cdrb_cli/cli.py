@@ -289,8 +289,8 @@ def collect(
         help="The demonstrator (default: the environment's scripted expert; `sac` needs --policy).",
     ),
     policy: Path | None = typer.Option(None, "--policy", help="A policy file for experts that need one (SB3 SAC zip)."),
-    valid_fraction: float = typer.Option(
-        0.1, "--valid-fraction", min=0.0, max=0.9, help="Episodes held out for validation."
+    valid_fraction: float | None = typer.Option(
+        None, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation (default 0.1)."
     ),
     maze_map: Path | None = MapOpt,
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
@@ -359,7 +359,7 @@ def expert_train(
 @app.command()
 def cluster(
     demos: Path = typer.Argument(..., help="Demos artifact from `cdrb collect`."),
-    k: int = typer.Option(1000, "--k", min=0, help="k-means clusters; 0 keeps the full buffer."),
+    k: int | None = typer.Option(None, "--k", min=0, help="k-means clusters (default 1000); 0 keeps the full buffer."),
     features: str = typer.Option(
         "state",
         "--features",
@@ -390,7 +390,7 @@ def cluster(
     from cdrb_cli.stages.cluster import cluster as run_cluster
 
     d = _load(demos, "demos")
-    config = ClusterConfig(k=k, features=features, split=split, seed=seed)
+    config = ClusterConfig(features=features, split=split, seed=seed, **({"k": k} if k is not None else {}))
     buf = produce(out, "buffer", force, config, lambda: run_cluster(d, config, out), parents=[d])
     sm = buf.manifest.summary
     ui.log(
@@ -463,7 +463,9 @@ def train(
     method: str | None = MethodOpt,
     net: str | None = NetOpt,
     preset: str | None = PresetOpt,
-    steps: int | None = typer.Option(None, "--steps", help="Gradient steps (preset: quick 3000, paper 20000)."),
+    steps: int | None = typer.Option(
+        None, "--steps", help="Gradient steps (default: the preset's; `cdrb config train`)."
+    ),
     sets: list[str] = SetOpt,
     config_file: Path | None = ConfigOpt,
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the resolved config as JSON and exit."),
@@ -483,10 +485,8 @@ def train(
     resolved config. The model is checkpointed into --out: after a crash, [cyan]--resume[/cyan] continues to
     exactly the result of an uninterrupted run.
     Example: [cyan]cdrb train demos.h5 --buffer buffer.h5 --set horizon=128 --set net.dim=32[/cyan]"""
-    from cdrb_cli import artifacts
-    from cdrb_cli.methods.config import resolve_train_config
-    from cdrb_cli.stages.train import buffer_info
-    from cdrb_cli.stages.train import train as run_train
+    from cdrb_cli.methods.config import buffer_info, resolve_train_config
+    from cdrb_cli.stages.train import train_or_resume
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--steps", steps)
@@ -497,23 +497,9 @@ def train(
     if dry_run:
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return
-    parents = [d] + ([b] if b is not None else [])
-    if resume and force:
-        raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
-    if out.exists() and not force:
-        found = artifacts.existing(out, "model", config, parents)
-        if found.up_to_date:
-            ui.log(f"[green]{out}[/green] is up to date (same config and inputs): skipped; --force redoes it")
-            ui.emit(
-                {"path": str(out), "state": found.artifact.manifest.state.model_dump()} if as_json else out,
-                as_json=as_json,
-            )
-            return
-        if not resume:
-            hint = "pass --resume to continue it" if found.status == "resumable" else "pass --force to overwrite it"
-            raise BadInput(f"--out {out}: file exists ({found.reason})", hint=f"{hint}, or --force to start over")
-    artifacts.check_output(out, force=True)
-    model = run_train(d, b, config, out, resume=resume, device=setup_torch(device))
+    model, done = train_or_resume(d, b, config, out, force=force, resume=resume, device=setup_torch(device))
+    if done == "up to date":
+        ui.log(f"[green]{out}[/green] is up to date (same config and inputs): skipped; --force redoes it")
     st = model.manifest.state
     ui.log(
         f"{config.method.name}: {st.step} steps, loss {st.loss:.4f}"
@@ -546,10 +532,15 @@ def config_cmd(
     """List every setting of a stage's config with its type, default and description.
 
     [cyan]cdrb config train --method cdrb --preset paper[/cyan] shows what [cyan]--set KEY=VALUE[/cyan] can change
-    for that method and preset; [cyan]--format toml[/cyan] writes a template for [cyan]--config FILE[/cyan].
-    Defaults that depend on the data (horizon, stride, features, CDRB's d_max) are filled in by `cdrb train`."""
+    for that method and preset; [cyan]--format toml[/cyan] writes a template for [cyan]cdrb train --config
+    FILE[/cyan]. Defaults that depend on the data (horizon, stride, features, CDRB's d_max) are filled in by
+    `cdrb train`. [cyan]cdrb config eval[/cyan] lists the controllers' settings (`cdrb eval --set`)."""
     from cdrb_cli.stages.show_config import config_template, render_template
 
+    if stage == "eval" and fmt != "table":
+        raise BadInput(
+            f"--format {fmt}: only train reads a --config file", hint="eval settings are --set keys: omit --format"
+        )
     template = config_template(stage, method=method, net=net, preset=preset, controller=controller)
     sys.stdout.write(render_template(template, fmt))
 
@@ -594,7 +585,6 @@ def plan(
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.seeding import STREAM_PLAN
-    from cdrb_cli.stages.evaluate import reset_states
     from cdrb_cli.stages.plan import make_plans
     from cdrb_cli.torch_utils import setup_torch
 
@@ -607,9 +597,7 @@ def plan(
     if pairs:
         if start or goal:
             raise BadInput("--pairs with --start/--goal", hint="give either explicit points or --pairs N")
-        env = family.make_env(spec)
-        s_arr, g = reset_states(env, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
-        env.close()
+        s_arr, g = family.reset_states(spec, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
         g_arr = family.goal_state(spec, g)
     else:
         if not start or not goal:
@@ -674,7 +662,8 @@ def eval_cmd(
         min=0.0,
         show_default=False,
         help="Shortcut for --set controller.max_lag: pause the plan's clock while the agent lags more than this "
-        "behind it (mazes: default 0.6 m); 0: follow the plan on the environment's clock.",
+        "behind it (default: the controller's, see `cdrb config eval`); 0: follow the plan on the environment's "
+        "clock.",
     ),
     sets: list[str] = typer.Option(
         [],
@@ -790,7 +779,7 @@ def quickstart(
     out: Path = typer.Option(Path("runs/quickstart"), "--out", "-o", help="Folder for every artifact and picture."),
     env: str | None = typer.Option(None, "--env", help="Environment id (default: Maze Tight; `cdrb envs`)."),
     episodes: int = typer.Option(1000, "--episodes", min=2, help="Demonstrations to collect."),
-    k: int = typer.Option(1000, "--k", min=0, help="Buffer size after k-means (0 = full buffer)."),
+    k: int | None = typer.Option(None, "--k", min=0, help="Buffer size after k-means (default 1000; 0 = full)."),
     methods: str | None = typer.Option(
         None, "--methods", help="Methods to train and compare, comma-separated (default: CDRB and Diffuser)."
     ),
@@ -809,15 +798,12 @@ def quickstart(
 
         choose_gl_backend()
     from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.stages.pipeline import DEFAULT_ENV, DEFAULT_METHODS
+    from cdrb_cli.stages.pipeline import DEFAULT_ENV, DEFAULT_METHODS, check_methods
     from cdrb_cli.stages.pipeline import quickstart as run_quickstart
     from cdrb_cli.torch_utils import setup_torch
 
     method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else DEFAULT_METHODS
-    for m in method_list:
-        _methods().get(m, "--methods")
-    if not method_list or len(set(method_list)) != len(method_list):
-        raise BadInput(f"--methods {methods!r}: give each method once", hint=f"e.g. {','.join(DEFAULT_METHODS)}")
+    check_methods(method_list, "--methods")
     make_spec(env or DEFAULT_ENV)
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out}: exists and is not a folder", hint="pass a folder path")

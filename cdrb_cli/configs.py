@@ -97,24 +97,25 @@ NetConfig = Annotated[UNetConfig | TransformerConfig | MLPConfig, Field(discrimi
 # --------------------------------------------------------------------------------------------- train
 class TrainConfig(Record):
     """Everything `cdrb train` needs besides its inputs. Every field can be set with ``--set KEY=VALUE`` or a
-    ``--config`` file (``cdrb config train`` lists them); presets give the defaults."""
+    ``--config`` file (``cdrb config train`` lists them); the presets (:mod:`cdrb_cli.presets`) give the values of
+    the fields that have no default here."""
 
     method: Annotated[MethodParams, Dispatch(METHODS, key="name", attr="params")] = Field(
         description="the method and its own hyper-parameters (method.name picks it: `cdrb train --method`)"
     )
     net: NetConfig = Field(description="the network (net.kind picks it: `cdrb train --net`)")
-    preset: Literal["quick", "paper", "custom"] = Field(description="the preset the defaults came from")
+    preset: Literal["quick", "paper"] = Field(description="the preset the defaults came from")
     features: Features = Field(description="state, or state-action (actions appended to each planned state)")
     horizon: int = Field(gt=1, description="planned states per trajectory")
     stride: int = Field(gt=0, description="environment steps per planned state")
     steps: int = Field(gt=0, description="gradient steps")
     batch_size: int = Field(gt=0, description="training windows per gradient step")
-    lr: float = Field(gt=0, allow_inf_nan=False, description="Adam learning rate")
+    lr: float = Field(gt=0, description="Adam learning rate")
     grad_clip: float | None = Field(1.0, gt=0, description="max gradient norm; null disables clipping")
-    ema_decay: float = Field(0.995, ge=0, lt=1, description="decay of the exponential moving average of the weights")
-    ema_start: int = Field(500, ge=0, description="the EMA copies the weights until this step")
-    ema_every: int = Field(10, gt=0, description="update the EMA every this many steps")
-    checkpoint_every: int = Field(500, gt=0, description="write a checkpoint into --out every this many steps")
+    ema_decay: float = Field(ge=0, lt=1, description="decay of the exponential moving average of the weights")
+    ema_start: int = Field(ge=0, description="the EMA copies the weights until this step")
+    ema_every: int = Field(gt=0, description="update the EMA every this many steps")
+    checkpoint_every: int = Field(gt=0, description="write a checkpoint into --out every this many steps")
     split: Literal["train", "all"] = Field("train", description="episodes trained on: train, or all (no validation)")
     start_fraction: float = Field(
         0.9, ge=0, le=1, description="share of training windows that start at an episode's first state"
@@ -133,7 +134,7 @@ class TrainState(Record):
 
 # --------------------------------------------------------------------------------------------- plan
 #: a sampler name that some registered method offers (which ones a model accepts is its method's business)
-SamplerName = Annotated[str, RegisteredName(METHODS, values=lambda entry: entry.samplers)]
+SamplerName = Annotated[str, RegisteredName(METHODS, values=lambda entry: entry.samplers, what="sampler")]
 
 
 class PlanConfig(Record):
@@ -194,7 +195,11 @@ class EvalSummary(Record):
     wall_time_s: float
 
 
+def net_classes() -> list[type[Record]]:
+    """Every network config record."""
+    return list(typing.get_args(typing.get_args(NetConfig)[0]))
+
+
 def net_kinds() -> list[str]:
     """The ``kind`` of every network config (`cdrb train --net` choices)."""
-    union = typing.get_args(NetConfig)[0]
-    return [typing.get_args(m.model_fields["kind"].annotation)[0] for m in typing.get_args(union)]
+    return [m.model_fields["kind"].default for m in net_classes()]

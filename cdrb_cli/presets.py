@@ -26,15 +26,12 @@ TRAIN = {
     ),
 }
 
+#: network values per preset and net kind; the net records' own defaults are the paper's settings
 NETS = {
     "quick": {
         "unet": dict(dim=16, dim_mults=[1, 2, 4], residual=True),
         "transformer": dict(d_model=64, n_layers=4, n_heads=4, ff_dim=256),
-        "mlp": dict(hidden=[512, 512, 512]),
+        "mlp": {},
     },
-    "paper": {
-        "unet": dict(dim=32, dim_mults=[1, 4, 8]),
-        "transformer": dict(d_model=128, n_layers=8, n_heads=4, ff_dim=512),
-        "mlp": dict(hidden=[512, 512, 512]),
-    },
+    "paper": {"unet": {}, "transformer": {}, "mlp": {}},
 }

@@ -3,11 +3,11 @@ experts, controllers).
 
 A :class:`Registry` knows its built-in entries by name and the module that declares each (``{"cdrb":
 "cdrb_cli.methods.cdrb"}``: one line per entry) and imports a module only when its name is first looked up; the
-module registers its entry when imported. So listing names costs nothing, and looking one up costs only that
-module's declarations. Other code adds entries with :meth:`Registry.register` (or :meth:`Registry.added` for the
-length of a ``with`` block), or ships them as plugins: modules named by the ``cdrb.plugins`` entry-point group or
-by the ``CDRB_PLUGINS`` environment variable (comma-separated module names) are imported before the first lookup
-of a name that is not built in.
+module registers its entry when imported. So listing the built-in names imports no built-in module, and looking
+one up costs only that module's declarations. Other code adds entries with :meth:`Registry.register` (or
+:meth:`Registry.added` for the length of a ``with`` block), or ships them as plugins: modules named by the
+``cdrb.plugins`` entry-point group or by the ``CDRB_PLUGINS`` environment variable (comma-separated module names)
+are imported before the first lookup of a name that is not built in.
 
 :class:`Dispatch` makes a pydantic field whose record type is chosen by a registry from a key inside the value
 (``{"name": "cdrb", ...}`` is validated as the params record that the ``cdrb`` method registered), so configs stay
@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any, Generic, TypeVar
 
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, RunFailed
 
 E = TypeVar("E")
 
@@ -33,11 +33,11 @@ _plugins_loaded = False
 
 
 def load_plugins() -> None:
-    """Import every plugin module once: the ``cdrb.plugins`` entry points, then ``$CDRB_PLUGINS``."""
+    """Import every plugin module once: the ``cdrb.plugins`` entry points, then ``$CDRB_PLUGINS``. A plugin that
+    fails to import is reported (one line) at every lookup that needs plugins, never skipped silently."""
     global _plugins_loaded
     if _plugins_loaded:
         return
-    _plugins_loaded = True
     from importlib.metadata import entry_points
 
     names = [(ep.value.split(":")[0], f"entry point {ep.name}") for ep in entry_points(group=PLUGIN_GROUP)]
@@ -50,6 +50,7 @@ def load_plugins() -> None:
                 f"plugin {module!r} ({source}) failed to import: {type(exc).__name__}: {exc}",
                 hint=f"fix the plugin or remove it from {source}",
             ) from None
+    _plugins_loaded = True
 
 
 class Registry(Generic[E]):
@@ -74,21 +75,32 @@ class Registry(Generic[E]):
 
     @contextmanager
     def added(self, *entries: E) -> Iterator[None]:
-        """Register ``entries`` for the duration of a ``with`` block (tests, notebooks)."""
-        for e in entries:
-            self.register(e)
+        """Register ``entries`` (replacing same-named ones) for the duration of a ``with`` block (tests,
+        notebooks); what was registered before under those names is restored afterwards."""
+        before = {self._key(e): self._entries.get(self._key(e)) for e in entries}
         try:
+            for e in entries:
+                self.register(e, replace=True)
             yield
         finally:
-            for e in entries:
-                self.unregister(self._key(e))
+            for name, previous in before.items():
+                if previous is None:
+                    self.unregister(name)
+                else:
+                    self._entries[name] = previous
 
     # -------------------------------------------------------------- looking up
     def _import(self, name: str) -> None:
         if name in self._entries:
             return
         if name in self.builtins:
-            importlib.import_module(self.builtins[name])
+            try:
+                importlib.import_module(self.builtins[name])
+            except Exception as exc:  # a broken installation: say which module, not "corrupt file"
+                raise RunFailed(
+                    f"the {self.what} {name!r} failed to load ({self.builtins[name]}): {type(exc).__name__}: {exc}",
+                    hint="reinstall cdrb",
+                ) from exc
         else:
             load_plugins()
 
@@ -143,7 +155,8 @@ class Dispatch:
         def validate(value: Any, info: Any) -> Any:
             if isinstance(value, BaseModel):
                 name = getattr(value, self.key, None)
-                if isinstance(name, str) and isinstance(value, self._safe_type(name)):
+                cls = self._safe_type(name) if isinstance(name, str) else None
+                if cls is not None and isinstance(value, cls):
                     return value
                 value = value.model_dump()
             if not isinstance(value, dict):
@@ -182,8 +195,8 @@ class RegisteredName:
     names (or, with ``values``, one of the strings ``values(entry)`` gives for some entry, e.g. a method's
     samplers). Its JSON Schema is an enum of the built-in values."""
 
-    def __init__(self, registry: Registry, values: Callable[[Any], Any] | None = None):
-        self.registry, self.values = registry, values
+    def __init__(self, registry: Registry, values: Callable[[Any], Any] | None = None, what: str | None = None):
+        self.registry, self.values, self.what = registry, values, what or registry.what
 
     def allowed(self, builtin_only: bool = False) -> list[str]:
         entries = self.registry.builtin_entries() if builtin_only else self.registry.entries()
@@ -197,7 +210,7 @@ class RegisteredName:
         def check(value: str) -> str:
             ok = value in self.registry if self.values is None else value in self.allowed()
             if not ok:
-                raise ValueError(f"unknown {self.registry.what} name {value!r} (known: {', '.join(self.allowed())})")
+                raise ValueError(f"unknown {self.what} {value!r} (known: {', '.join(self.allowed())})")
             return value
 
         return core_schema.no_info_after_validator_function(check, core_schema.str_schema())

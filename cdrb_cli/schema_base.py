@@ -8,11 +8,12 @@ from pydantic import BaseModel, ConfigDict, ValidationInfo, model_validator
 
 
 class Record(BaseModel):
-    """A strict, immutable record: unknown fields are an error, except when reading a newer *minor* schema
+    """A strict, immutable record: unknown fields and non-finite numbers are errors, except (for unknown fields)
+    when reading a newer *minor* schema
     version, where the reader passes ``context={"lenient": True}`` and unknown fields are dropped (minor versions
     only ever add optional fields, see docs/format.md)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, protected_namespaces=())
+    model_config = ConfigDict(extra="forbid", frozen=True, protected_namespaces=(), allow_inf_nan=False)
 
     @model_validator(mode="before")
     @classmethod

@@ -26,6 +26,9 @@ from cdrb_cli.errors import BadInput
 
 Path_ = tuple[str, ...]
 
+#: a --config file larger than this is refused (a settings file is a few lines)
+MAX_CONFIG_BYTES = 1 << 20
+
 
 @dataclass(frozen=True)
 class Setting:
@@ -69,6 +72,11 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
     return out
 
 
+def from_mapping(values: dict[str, Any], source: str = "settings") -> list[Setting]:
+    """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API."""
+    return [Setting(_key(str(k), f"{source} {k}"), v, f"{source} {k}={v}") for k, v in values.items()]
+
+
 def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
     out = []
     for k, v in data.items():
@@ -85,7 +93,10 @@ def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
     path = Path(path)
     source = f"{flag} {path}"
     if not path.is_file():
-        raise BadInput(f"{source}: no such file", hint="check the path")
+        what = "is not a regular file" if path.exists() else "no such file"
+        raise BadInput(f"{source}: {what}", hint="pass a TOML or JSON file")
+    if path.stat().st_size > MAX_CONFIG_BYTES:
+        raise BadInput(f"{source}: larger than {MAX_CONFIG_BYTES // 1024} KiB", hint="a settings file is a few lines")
     try:
         text = path.read_text(encoding="utf-8")
         if path.suffix.lower() == ".json":
@@ -96,7 +107,7 @@ def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
             except ImportError:  # Python 3.10
                 import tomli as tomllib
             data = tomllib.loads(text)
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         kind = "JSON" if path.suffix.lower() == ".json" else "TOML"
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BadInput(
@@ -152,6 +163,8 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
         msg = err.get("msg", "invalid")
         if err.get("type") == "extra_forbidden":
             msg = f"unknown setting {key!r}"
+        elif err.get("type") == "list_type":
+            msg += " (a list: write 1,4,8, or [512] for a single value)"
         setting = source_of(settings, loc)
         where = setting.source if setting is not None else f"{what} {key}"
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""

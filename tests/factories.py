@@ -78,13 +78,17 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
         cfg = TrainConfig(
             method=CDRBParams(d_max=2.0, diffusion_steps=8),
             net=UNetConfig(dim=8, dim_mults=[1, 2]),
-            preset="custom",
+            preset="quick",
             features="state",
             horizon=8,
             stride=2,
             steps=10,
             batch_size=4,
             lr=1e-3,
+            ema_decay=0.99,
+            ema_start=2,
+            ema_every=1,
+            checkpoint_every=5,
             seed=seed,
         )
         arrays = {

@@ -253,14 +253,38 @@ def test_crash_between_write_and_rename_keeps_previous(tmp_path):
     assert all(name.startswith(".d.h5.tmp-") for name in leftovers)
 
 
+def _up_to_date(*args):
+    return artifacts.existing(*args).up_to_date
+
+
 def test_up_to_date_logic(tmp_path):
     demos = artifacts.load(write(tmp_path / "d.h5", "demos"))
     manifest, arrays = build("buffer")
     manifest = manifest.model_copy(update={"parents": [artifacts.parent_ref(demos)]})
     out = artifacts.save(tmp_path / "b.h5", "buffer", manifest, arrays)
-    assert artifacts.is_up_to_date(out, "buffer", manifest.config, [demos])
+    assert _up_to_date(out, "buffer", manifest.config, [demos])
     other_cfg = manifest.config.model_copy(update={"k": 7})
-    assert not artifacts.is_up_to_date(out, "buffer", other_cfg, [demos])
+    assert not _up_to_date(out, "buffer", other_cfg, [demos])
     demos2 = artifacts.load(write(tmp_path / "d2.h5", "demos", seed=5))
-    assert not artifacts.is_up_to_date(out, "buffer", manifest.config, [demos2])
-    assert not artifacts.is_up_to_date(tmp_path / "missing.h5", "buffer", manifest.config, [demos])
+    assert not _up_to_date(out, "buffer", manifest.config, [demos2])
+    assert not _up_to_date(tmp_path / "missing.h5", "buffer", manifest.config, [demos])
+
+
+def test_existing_is_the_one_rule_for_skip_and_resume(tmp_path):
+    manifest, arrays = build("model")  # a finished model at step 10 of 10
+    cfg = manifest.config
+    out = artifacts.save(tmp_path / "m.h5", "model", manifest, arrays)
+    assert artifacts.existing(out, "model", cfg).status == "up-to-date"
+    assert artifacts.existing(out, "model", cfg.model_copy(update={"steps": 20})).status == "resumable"
+    fewer = artifacts.existing(out, "model", cfg.model_copy(update={"steps": 5}))
+    assert fewer.status == "different" and "past --steps" in fewer.reason
+    assert artifacts.existing(out, "model", cfg.model_copy(update={"lr": 0.5})).status == "different"
+    assert artifacts.existing(out, "model", cfg, [artifacts.load(write(tmp_path / "d.h5", "demos"))]).reason == (
+        "it was made from other inputs"
+    )
+    state = manifest.state.model_copy(update={"finished": False, "step": 4})
+    unfinished = artifacts.save(tmp_path / "u.h5", "model", manifest.model_copy(update={"state": state}), arrays)
+    assert artifacts.existing(unfinished, "model", cfg).status == "resumable"
+    (tmp_path / "junk.h5").write_bytes(b"not hdf5")
+    assert artifacts.existing(tmp_path / "junk.h5", "model", cfg).status == "invalid"
+    assert artifacts.existing(tmp_path / "none.h5", "model", cfg).status == "missing"

@@ -42,7 +42,8 @@ def test_table1_script_tiny(tmp_path):
 
 
 def test_planning_script(tmp_path, small_data):
-    from cdrb_cli.stages.train import train, train_config
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
     from tests.test_train import tiny
 
     demos, buffer = small_data

@@ -9,14 +9,15 @@ import pytest
 
 from cdrb_cli import artifacts
 from cdrb_cli.envs.family import Episode
-from cdrb_cli.envs.pointmaze.controllers import DEFAULT_MAX_LAG, make_controller
+from cdrb_cli.envs.pointmaze.controllers import DEFAULT_MAX_LAG, PDController
 from cdrb_cli.envs.pointmaze.env import PointMaze
 from cdrb_cli.envs.pointmaze.expert import MazeExpert
-from cdrb_cli.envs.registry import family_of, make_spec
+from cdrb_cli.envs.registry import CONTROLLERS, family_of, make_spec
+from cdrb_cli.methods.config import train_config
 from cdrb_cli.seeding import STREAM_EVAL
 from cdrb_cli.stages.collect import rollout
-from cdrb_cli.stages.evaluate import eval_config, evaluate, reset_states, run_episode
-from cdrb_cli.stages.train import train, train_config
+from cdrb_cli.stages.evaluate import eval_config, evaluate, run_episode
+from cdrb_cli.stages.train import train
 from tests.test_train import tiny
 
 
@@ -24,12 +25,18 @@ def draw_pairs(spec, n, seed):
     return family_of(spec).draw_episodes(spec, n, seed, STREAM_EVAL)
 
 
+def make_controller(name, stride, env, max_lag=None):
+    """A maze controller through the registry, with its default gains and the given plan clock."""
+    entry = CONTROLLERS.get(name)
+    return entry.build(env.spec, env, entry.config(max_lag=max_lag), stride)
+
+
 @pytest.mark.parametrize("controller", ["pd", "inverse-dynamics"])
 def test_controllers_track_expert_plans(controller):
     """Replaying an expert episode as a stride-2 plan reaches the goal and tracks it closely."""
     spec = make_spec("maze-tight")
     env = PointMaze(spec)
-    ctrl = make_controller(controller, spec.plan_stride, env.dynamics)
+    ctrl = make_controller(controller, spec.plan_stride, env)
     for ep in draw_pairs(spec, 8, seed=3):
         S, _, goal, ok = rollout(env, MazeExpert(spec), spec, ep, spec.episode_limit)
         plan = S[:: spec.plan_stride]
@@ -47,8 +54,8 @@ def test_plan_clock_pauses_while_the_ball_lags():
     env = PointMaze(spec)
     plan = np.zeros((10, 4))
     plan[:, 0] = np.arange(10.0)  # 1 m between planned states
-    timed = make_controller("pd", 2, env.dynamics)
-    gated = make_controller("pd", 2, env.dynamics, max_lag=0.6)
+    timed = make_controller("pd", 2, env)
+    gated = make_controller("pd", 2, env, max_lag=0.6)
     for c in (timed, gated):
         c.reset(plan)
     at_start = np.zeros(4)
@@ -61,7 +68,9 @@ def test_plan_clock_pauses_while_the_ball_lags():
     gated.reset(plan)
     assert gated.clock == 0
     with pytest.raises(ValueError):
-        make_controller("pd", 2, env.dynamics, max_lag=0.0)
+        make_controller("pd", 2, env, max_lag=0.0)  # the config refuses it
+    with pytest.raises(ValueError):
+        PDController(2, kp=10.0, kd=1.0, max_lag=0.0)  # and so does the controller
 
 
 def test_gated_clock_follows_plans_too_fast_to_track_on_time():
@@ -71,7 +80,7 @@ def test_gated_clock_follows_plans_too_fast_to_track_on_time():
     env = PointMaze(spec)
     results = {}
     for lag in (None, 0.6):
-        ctrl = make_controller("pd", spec.plan_stride, env.dynamics, max_lag=lag)
+        ctrl = make_controller("pd", spec.plan_stride, env, max_lag=lag)
         ok = collisions = 0
         for ep in draw_pairs(spec, 8, seed=3):
             S, _, _, _ = rollout(env, MazeExpert(spec), spec, ep, spec.episode_limit)
@@ -87,7 +96,7 @@ def test_gated_clock_follows_plans_too_fast_to_track_on_time():
 def test_inverse_dynamics_is_exact_on_reachable_targets():
     spec = make_spec("maze")
     env = PointMaze(spec)
-    ctrl = make_controller("inverse-dynamics", 1, env.dynamics)
+    ctrl = make_controller("inverse-dynamics", 1, env)
     obs, _ = env.reset(Episode(0, (7, 7), (1, 1)))
     t = np.arange(30)[:, None] * env.dynamics["dt"]
     # constant acceleration of 5 m/s^2 (the ball can do about 24): every target is reachable in one step
@@ -105,8 +114,9 @@ def test_protocol_pairs_are_central_starts_and_corner_goals():
     goals = {p.goal for p in pairs}
     assert starts.min() >= 5 and starts.max() <= 9
     assert goals <= {(1, 1), (1, 13), (13, 1), (13, 13)} and len(goals) == 4
-    s1, g1 = reset_states(PointMaze(spec), pairs)
-    s2, g2 = reset_states(PointMaze(spec), draw_pairs(spec, 50, seed=0))
+    family = family_of(spec)
+    s1, g1 = family.reset_states(spec, pairs)
+    s2, g2 = family.reset_states(spec, draw_pairs(spec, 50, seed=0), PointMaze(spec))
     np.testing.assert_array_equal(s1, s2)
     np.testing.assert_array_equal(g1, g2)
     assert np.all(np.abs(s1[:, 2:]) == 0)

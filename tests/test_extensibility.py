@@ -147,8 +147,8 @@ class WallFamily(EnvFamily):
 def toy_family():
     with (
         FAMILIES.added(WallFamily()),
-        EXPERTS.added(ExpertEntry("toy-detour", DetourConfig, DetourExpert, lambda policy: DetourConfig())),
-        CONTROLLERS.added(ControllerEntry("toy-follow", FollowConfig, lambda spec, env, cfg, stride: Follow(stride))),
+        EXPERTS.added(ExpertEntry(DetourConfig, DetourExpert, lambda policy: DetourConfig())),
+        CONTROLLERS.added(ControllerEntry(FollowConfig, lambda spec, env, cfg, stride: Follow(stride))),
     ):
         yield
 
@@ -162,8 +162,6 @@ class StraightParams(MethodParams):
 
 class Straight(Planner):
     """The straight line from start to goal plus a learned correction (an MLP of the start and goal)."""
-
-    name = "toy-straight"
 
     def _line(self, start, goal):
         w = torch.linspace(0, 1, self.horizon, device=start.device)[None, :, None]
@@ -180,9 +178,7 @@ class Straight(Planner):
         return SampleResult(plans=self._plan(start, goal))
 
 
-STRAIGHT = MethodEntry(
-    "toy-straight", StraightParams, Straight, nets=("mlp",), presets={"quick": {"bend": 1.0}}, description="a test"
-)
+STRAIGHT = MethodEntry(StraightParams, Straight, nets=("mlp",), presets={"quick": {"bend": 1.0}}, description="a test")
 
 
 @pytest.fixture
@@ -273,8 +269,6 @@ class Twin(Planner):
     """An actor (the planner) and a critic that scores plans, with their own optimizers (Adam and SGD with
     momentum), the critic without an EMA: the shape of Diffusion-QL's checkpoint."""
 
-    name = "toy-twin"
-
     def build(self, buffer_points):
         super().build(buffer_points)
         d = self.feature_dim * self.horizon
@@ -319,12 +313,13 @@ class Twin(Planner):
 
 @pytest.fixture
 def twin():
-    with METHODS.added(MethodEntry("toy-twin", TwinParams, Twin, nets=("mlp",))):
+    with METHODS.added(MethodEntry(TwinParams, Twin, nets=("mlp",))):
         yield
 
 
 def test_two_networks_two_optimizers_resume_bit_for_bit(twin, small_data, tmp_path):
-    from cdrb_cli.stages.train import train, train_config
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
 
     demos, _ = small_data
     settings = {"horizon": 16, "batch_size": 8, "net.hidden": [32], "checkpoint_every": 5}

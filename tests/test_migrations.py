@@ -13,9 +13,10 @@ import pytest
 
 from cdrb_cli import artifacts
 from cdrb_cli.configs import PlanConfig
+from cdrb_cli.methods.config import train_config
 from cdrb_cli.stages.evaluate import evaluate
 from cdrb_cli.stages.plan import make_plans
-from cdrb_cli.stages.train import train, train_config
+from cdrb_cli.stages.train import train
 
 V1 = Path(__file__).resolve().parent / "data" / "v1"
 KINDS = ("demos", "buffer", "model", "plans", "eval")

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
-from cdrb_cli.stages.train import train, train_config
+from cdrb_cli.methods.config import train_config
+from cdrb_cli.stages.train import train
 from tests.test_train import tiny
 
 
@@ -93,3 +94,27 @@ def test_plan_refuses_non_model(small_data, tmp_path, cdrb):
     demos, _ = small_data
     r = cdrb("plan", demos.path, "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
     assert r.returncode == 2 and "'model' artifact is needed" in r.stderr
+
+
+def test_a_pinned_subset_is_held_exactly_and_the_rest_is_planned(small_data):
+    """spec.pinned_dims: only those dimensions of the ends are pinned (Fetch pins positions, not velocities); CDRB
+    then degrades the end states too, so training sees what sampling does."""
+    import torch
+
+    from cdrb_cli.buffer import Normalizer
+    from cdrb_cli.methods.base import build_method
+    from cdrb_cli.stages.plan import sample_plans
+
+    demos, buffer = small_data
+    spec = demos.manifest.env.model_copy(update={"pinned_dims": [0, 1]})
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb"))
+    method = build_method(cfg, spec, Normalizer(low=buffer.low, high=buffer.high), buffer.points)
+    assert method.kept == () and method.pinned == [0, 1]
+    batch = torch.from_numpy(np.asarray(buffer.points[None, :16], dtype=np.float32)).repeat(4, 1, 1)
+    assert torch.isfinite(method.loss(batch, np.random.default_rng(0)))
+    starts = np.array([[0.3, -0.2, 0.7, -0.7]])
+    goals = np.array([[6.0, 6.0, 0.5, 0.5]])
+    plans, *_ = sample_plans(method, starts, goals, 3, seed=0)
+    np.testing.assert_array_equal(plans[:, 0, :2], np.repeat(starts[:, :2], 3, 0))
+    np.testing.assert_array_equal(plans[:, -1, :2], np.repeat(goals[:, :2], 3, 0))
+    assert not np.allclose(plans[:, 0, 2:], starts[0, 2:]) and not np.allclose(plans[:, -1, 2:], goals[0, 2:])

@@ -112,7 +112,8 @@ def test_config_table_lists_every_field_with_its_description(cdrb):
 
 
 def test_eval_settings_name_the_flag(small_data, tmp_path, cdrb):
-    from cdrb_cli.stages.train import train, train_config
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
     from tests.test_train import tiny
 
     demos, buffer = small_data

@@ -14,7 +14,8 @@ import pytest
 
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.train import train, train_config
+from cdrb_cli.methods.config import train_config
+from cdrb_cli.stages.train import train
 
 #: tiny settings of the diffusion methods (U-Net), and of the MLP
 TINY = {"net.dim": 8, "net.dim_mults": [1, 2], "horizon": 16, "method.diffusion_steps": 8, "batch_size": 8, "lr": 2e-3}

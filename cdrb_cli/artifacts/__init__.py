@@ -46,7 +46,7 @@ from cdrb_cli.artifacts.kinds import (
     PlansManifest,
 )
 from cdrb_cli.artifacts.migrations import can_migrate, migrate_arrays, migrate_manifest
-from cdrb_cli.errors import ArtifactError, BadInput
+from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
 
 __all__ = [
@@ -54,7 +54,6 @@ __all__ = [
     "save",
     "make_manifest",
     "parent_ref",
-    "is_up_to_date",
     "existing",
     "Existing",
     "check_output",
@@ -160,7 +159,7 @@ def _load(path: Path, kind: str | None) -> ArtifactBase:
         art = cls(manifest, arrays, path=path, sha256=sha256_file(path))
         art.migrated_from = version if old else None
         return art
-    except BadInput:
+    except CdrbError:  # our own errors (bad input, or a registry module that failed) keep their message
         raise
     except Exception as exc:  # anything else the HDF5 library raises on a damaged file
         raise ArtifactError(
@@ -262,12 +261,6 @@ def find_up_to_date(
     """The artifact at ``path`` when it is up to date for this run (:func:`existing`); else None."""
     found = existing(path, kind, config, parents, env)
     return found.artifact if found.up_to_date else None
-
-
-def is_up_to_date(path: str | Path, kind: str, config, parents: Sequence[ArtifactBase] = (), env=None) -> bool:
-    """True when ``path`` holds a valid, finished ``kind`` artifact made with the same config (and env) from the
-    same parents."""
-    return existing(path, kind, config, parents, env).up_to_date
 
 
 def produce(path: str | Path, kind: str, force: bool, config, build, parents=(), env=None, flag: str = "--out"):

@@ -259,7 +259,7 @@ def read_h5(
                 f"{path}: {kind} schema {version_text} is older than this cdrb reads ({current_versions[kind]})",
                 hint="re-create the artifact with this cdrb version (no migration exists for it yet)",
             )
-        lenient = minor > cur_minor
+        lenient = major == cur_major and minor > cur_minor  # an old major is migrated, then read strictly
         datasets = _walk(f)
         man = datasets.pop(MANIFEST, None)
         if man is None:

@@ -87,24 +87,31 @@ class ControllerConfig(Record):
 
 @dataclass(frozen=True)
 class ExpertEntry:
-    """An expert: its settings record, how to build it for a spec, and how ``cdrb collect`` configures it
-    (``configure(policy_file)``; experts that need no file ignore it)."""
+    """An expert: its settings record (whose ``kind`` Literal is the expert's name), how to build it for a spec,
+    and how ``cdrb collect`` configures it (``configure(policy_file)``; experts that need no file ignore it)."""
 
-    name: str
     config: type[ExpertConfig]
     build: Callable[[EnvSpec, Any], Expert]
     configure: Callable[[Path | None], ExpertConfig]
     description: str = ""
 
+    @property
+    def name(self) -> str:
+        return self.config.model_fields["kind"].default
+
 
 @dataclass(frozen=True)
 class ControllerEntry:
-    """A controller: its settings record and ``build(spec, env, config, stride) -> Controller``."""
+    """A controller: its settings record (whose ``name`` Literal is the controller's name) and
+    ``build(spec, env, config, stride) -> Controller``."""
 
-    name: str
     config: type[ControllerConfig]
     build: Callable[[EnvSpec, Env, Any, int], Controller]
     description: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.config.model_fields["name"].default
 
 
 class Scene(Record):
@@ -140,7 +147,8 @@ class EnvFamily(ABC):
         """The EnvSpec of a stock id."""
 
     def spec_from_file(self, path: Path) -> EnvSpec | None:
-        """The EnvSpec described by a file (e.g. a maze map), or None when this family reads no such files."""
+        """The EnvSpec described by a file (e.g. a maze map); None when this family reads no files of this kind
+        (the next family is asked); a one-line :class:`BadInput` when the file is of its kind but malformed."""
         return None
 
     def display_name(self, env_id: str) -> str:
@@ -171,9 +179,25 @@ class EnvFamily(ABC):
         out[:, spec.goal_dims] = goals
         return out
 
+    def distance(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """Per state (..., obs_dim): distance to the goal (Euclidean in the goal dimensions)."""
+        return np.linalg.norm(np.asarray(states)[..., spec.goal_dims] - goal, axis=-1)
+
     def success(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """Per state (..., obs_dim): is the goal reached?"""
-        return np.linalg.norm(np.asarray(states)[..., spec.goal_dims] - goal, axis=-1) <= spec.success_radius
+        """Per state (..., obs_dim): is the goal reached (within ``spec.success_radius``)?"""
+        return self.distance(spec, states, goal) <= spec.success_radius
+
+    def reset_states(self, spec: EnvSpec, episodes, env: Env | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Start states (n, obs_dim) and goals (n, goal_dim) of episodes, exactly as the environment resets them
+        (in ``env``, or in a fresh one)."""
+        own = env is None
+        env = env or self.make_env(spec)
+        try:
+            pairs = [env.reset(ep) for ep in episodes]
+        finally:
+            if own:
+                env.close()
+        return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
     def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
         """A --start/--goal value -> a state: goal coordinates (then at rest) or a full state."""
@@ -219,6 +243,10 @@ class EnvFamily(ABC):
     def xy(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
         """The 2-D picture coordinates (..., 2) of states (..., D)."""
         return np.asarray(states)[..., spec.goal_dims[:2]]
+
+    def speed(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray | None:
+        """A speed per state (pictures colour buffers by it), or None."""
+        return None
 
     def goal_group(self, spec: EnvSpec, goal: np.ndarray) -> int:
         """Which goal region ``goal`` belongs to (pictures colour demonstrations by it)."""

@@ -90,17 +90,16 @@ def plot_demos(demos, path: str | Path, n: int = 60, seed: int = 0) -> Path:
 
 
 def plot_buffer(buffer, path: str | Path) -> Path:
-    """The buffer's states on the scene, coloured by speed when the state has a velocity after the position."""
+    """The buffer's states on the scene, coloured by speed where the family gives one."""
     plt = pyplot()
     spec = buffer.manifest.env
     low, high = buffer.low, buffer.high
     raw = (buffer.points + 1) / 2 * (high - low) + low
     fig, ax = plt.subplots(figsize=(6, 6))
     draw_scene(ax, spec)
-    xy = family_of(spec).xy(spec, raw[:, : spec.obs_dim])
-    labels = spec.state_labels
-    vel = [i for i, name in enumerate(labels) if name.startswith("v")]
-    speed = np.linalg.norm(raw[:, vel], axis=1) if vel else None
+    fam = family_of(spec)
+    xy = fam.xy(spec, raw[:, : spec.obs_dim])
+    speed = fam.speed(spec, raw[:, : spec.obs_dim])
     sc = ax.scatter(xy[:, 0], xy[:, 1], s=4, c=speed, cmap="viridis", zorder=2)
     if speed is not None:
         fig.colorbar(sc, ax=ax, shrink=0.7, label="speed")
@@ -199,10 +198,12 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
                 import os
 
                 use_simulator = False
+                gl = os.environ.get("MUJOCO_GL")
                 ui.warn(
-                    f"simulator rendering is unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}: "
-                    f"{type(exc).__name__}); drawing the rollouts with matplotlib instead "
-                    "(install libosmesa6, or use a machine with EGL, for MuJoCo frames)"
+                    f"simulator frames are unavailable ({type(exc).__name__}"
+                    + (f", MUJOCO_GL={gl}" if gl else "")
+                    + "); drawing the rollouts with matplotlib instead "
+                    "(MuJoCo renders offscreen with libosmesa6 installed, or on a machine with EGL)"
                 )
         if frames is None:
             frames = _matplotlib_frames(spec, plan, states, goal, every)

@@ -148,6 +148,4 @@ def configure(policy: Path | None) -> SacExpertConfig:
     return SacExpertConfig(policy_path=str(Path(policy).resolve()), policy_sha256=sha256_file(policy))
 
 
-EXPERTS.register(
-    ExpertEntry("sac", SacExpertConfig, SacExpert.from_config, configure, "a stable-baselines3 SAC(+HER) policy")
-)
+EXPERTS.register(ExpertEntry(SacExpertConfig, SacExpert.from_config, configure, "a stable-baselines3 SAC(+HER) policy"))

@@ -46,8 +46,7 @@ class SampleResult:
 class Method:
     """Networks, losses and a training update for one method (see the module docstring)."""
 
-    name: ClassVar[str] = "base"
-    kind: ClassVar[str] = "planner"
+    kind: ClassVar[str] = "method"
 
     def __init__(self, config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, buffer_points=None, device="cpu"):
         self.config = config
@@ -60,6 +59,11 @@ class Method:
         pinned = spec.pin_dims
         self.pinned = slice(0, self.obs_dim) if pinned == list(range(self.obs_dim)) else pinned
         self.build(buffer_points)
+
+    @property
+    def name(self) -> str:
+        """The method's registered name (its params record's ``name``)."""
+        return self.config.method.name
 
     def build(self, buffer_points) -> None:
         """Create the networks (the default: one trajectory network ``self.net``)."""

@@ -41,8 +41,6 @@ class CDRBParams(MethodParams):
 
 
 class CDRB(Planner):
-    name = "cdrb"
-
     def build(self, buffer_points) -> None:
         super().build(buffer_points)
         p = self.config.method
@@ -52,12 +50,15 @@ class CDRB(Planner):
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = BallSampler(self.points, self.eps)
+        # the first and last states are left out of the degradation when the whole state is pinned there; when only
+        # some dimensions are (spec.pinned_dims), they are degraded like the rest and pinning restores those dims
+        self.kept = (0, -1) if isinstance(self.pinned, slice) else ()
 
     def extra_arrays(self):
         return {"buffer/points": self.points}
 
     def _degrade(self, x: torch.Tensor, k, rng: np.random.Generator) -> torch.Tensor:
-        y = self.ball.degrade(x.detach().cpu().numpy(), k, rng)
+        y = self.ball.degrade(x.detach().cpu().numpy(), k, rng, pinned=self.kept)
         return torch.from_numpy(y.astype(np.float32)).to(x.device)
 
     def loss(self, batch: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
@@ -98,7 +99,6 @@ class CDRB(Planner):
 
 METHODS.register(
     MethodEntry(
-        name="cdrb",
         params=CDRBParams,
         method=CDRB,
         needs_buffer=True,

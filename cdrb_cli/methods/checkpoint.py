@@ -22,8 +22,18 @@ from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import Method, build_method
 
 
-def _param_names(method: Method) -> dict[int, str]:
-    return {id(p): f"{m}/{n}" for m, module in method.modules().items() for n, p in module.named_parameters()}
+def _param_names(method: Method, optimizers: dict) -> dict[int, str]:
+    """``<module>/<parameter>`` of every parameter an optimizer updates (each must live in one of the method's
+    modules: that is where the checkpoint keeps it)."""
+    names = {id(p): f"{m}/{n}" for m, module in method.modules().items() for n, p in module.named_parameters()}
+    for o, opt in optimizers.items():
+        for group in opt.param_groups:
+            if any(id(p) not in names for p in group["params"]):
+                raise ValueError(
+                    f"{method.name}: optimizer {o!r} updates a parameter outside modules(); put it in a module "
+                    "(e.g. an nn.ParameterDict) so the checkpoint keeps it"
+                )
+    return names
 
 
 def checkpoint_arrays(method: Method, ema: dict, optimizers: dict, curve: list) -> dict[str, np.ndarray]:
@@ -35,7 +45,7 @@ def checkpoint_arrays(method: Method, ema: dict, optimizers: dict, curve: list) 
     for m, module in ema.items():
         for name, t in module.state_dict().items():
             arrays[f"ema/{m}/{name}"] = t.detach().cpu().numpy()
-    names = _param_names(method)
+    names = _param_names(method, optimizers)
     for o, opt in optimizers.items():
         for group in opt.param_groups:
             for p in group["params"]:
@@ -62,15 +72,11 @@ def _load_module(module, tensors: dict[str, np.ndarray], where: str) -> None:
         raise BadInput(f"{where}: weights do not fit the network in its config ({str(exc).splitlines()[0]})") from None
 
 
-def _tensors(model, prefix: str) -> dict[str, np.ndarray]:
-    return model.tensors(prefix)
-
-
 def load_weights(model, method: Method, prefix: str = "weights", modules=None) -> None:
     """Load ``prefix/<module>/...`` of a model artifact into the method's modules (or into ``modules``)."""
     targets = method.modules() if modules is None else modules
     for m, module in targets.items():
-        tensors = _tensors(model, f"{prefix}/{m}")
+        tensors = model.tensors(f"{prefix}/{m}")
         if not tensors:
             raise BadInput(f"{model.path}: no /{prefix}/{m} tensors for module {m!r}", hint="re-train the model")
         _load_module(module, tensors, str(model.path))
@@ -87,21 +93,27 @@ def restore(model, method: Method, ema: dict, optimizers: dict, device) -> tuple
     time so far)."""
     load_weights(model, method, "weights")
     load_weights(model, method, "ema", ema)
-    names = _param_names(method)
+    names = _param_names(method, optimizers)
     for o, opt in optimizers.items():
-        tensors = _tensors(model, f"optim/{o}")
+        tensors = model.tensors(f"optim/{o}")
         sd = opt.state_dict()
-        state = {}
+        state, used = {}, 0
         index = 0
         for group in opt.param_groups:
             for p in group["params"]:
                 prefix = names[id(p)] + "/"
                 entry = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
-                if entry:
+                if entry:  # a parameter that never had a gradient has no state
                     state[index] = {k: torch.from_numpy(np.array(v)).to(device) for k, v in entry.items()}
                     if "step" in state[index]:  # optimizers keep their step count on the CPU
                         state[index]["step"] = state[index]["step"].cpu()
+                    used += len(entry)
                 index += 1
+        if used != len(tensors):  # a stored tensor no parameter of this method claims
+            raise BadInput(
+                f"{model.path}: the state of optimizer {o!r} does not fit the method's parameters",
+                hint="train again with --force",
+            )
         sd["state"] = state
         opt.load_state_dict(sd)
     steps = model.arrays["curve/step"].tolist()

@@ -16,7 +16,7 @@ from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import DEFAULT_METHOD, METHODS, BufferInfo, MethodEntry
 from cdrb_cli.nets import horizon_multiple
 from cdrb_cli.presets import DEFAULT_PRESET, NETS, PRESETS, TRAIN
-from cdrb_cli.settings import Setting, apply, lookup, validate
+from cdrb_cli.settings import Setting, apply, from_mapping, lookup, validate
 
 
 def _source(setting: Setting | None, fallback: str) -> str:
@@ -61,11 +61,23 @@ def defaults(entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: B
     }
 
 
+def _check_keys(settings: Sequence[Setting]) -> None:
+    for s in settings:
+        if s.path in (("method",), ("net",)):
+            raise BadInput(
+                f"{s.source}: set the fields of {s.key} one by one",
+                hint=f"e.g. --set {s.key}.{'name' if s.key == 'method' else 'kind'}=... (or --{s.key})",
+            )
+        if s.path == ("seed",):
+            raise BadInput(f"{s.source}: the seed is --seed", hint="pass --seed N")
+
+
 def resolve_train_config(
     spec: EnvSpec, buffer: BufferInfo | None, settings: Sequence[Setting] = (), seed: int = 0
 ) -> TrainConfig:
     """The full TrainConfig for ``settings`` (``method.name``, ``preset``, ``net.kind`` and any field), checked
     against the environment and the buffer."""
+    _check_keys(settings)
     entry, preset, net = choose(settings)
     if entry.needs_buffer and buffer is None:
         raise BadInput(f"--method {entry.name} needs --buffer BUFFER", hint="make one with `cdrb cluster DEMOS`")
@@ -99,3 +111,21 @@ def _check_net(config: TrainConfig, settings: Sequence[Setting]) -> None:
             f"{where}: the U-Net with {len(net.dim_mults)} levels needs a horizon that is a multiple of {mult}",
             hint=f"use --set horizon={config.horizon + (-config.horizon) % mult}",
         )
+
+
+# ------------------------------------------------------------------------------------------------ from artifacts
+def buffer_info(buffer) -> BufferInfo | None:
+    """What resolution needs of a buffer artifact (None without one)."""
+    if buffer is None:
+        return None
+    return BufferInfo(features=buffer.manifest.config.features, diameter=buffer.manifest.summary.diameter)
+
+
+def train_config(demos, buffer=None, method: str | None = None, settings: dict | None = None, seed: int = 0):
+    """The TrainConfig for a demos artifact (and buffer), a method and ``settings`` (dotted keys: ``{"steps": 40,
+    "net.dim": 8, "preset": "paper"}``), as ``cdrb train DEMOS --buffer BUFFER --method M --set KEY=VALUE ...``
+    resolves it."""
+    items = from_mapping(settings or {})
+    if method is not None:
+        items.append(Setting(("method", "name"), method, f"--method {method}"))
+    return resolve_train_config(demos.manifest.env, buffer_info(buffer), items, seed=seed)

@@ -45,8 +45,6 @@ class DiffuserParams(MethodParams):
 
 
 class Diffuser(Planner):
-    name = "diffuser"
-
     def build(self, buffer_points) -> None:
         super().build(buffer_points)
         p = self.config.method
@@ -114,7 +112,6 @@ class Diffuser(Planner):
 
 METHODS.register(
     MethodEntry(
-        name="diffuser",
         params=DiffuserParams,
         method=Diffuser,
         presets={"quick": {"diffusion_steps": 32}, "paper": {"diffusion_steps": 128}},

@@ -18,8 +18,6 @@ class MLPParams(MethodParams):
 
 
 class MLPPlanner(Planner):
-    name = "mlp"
-
     def loss(self, batch, rng):
         start, goal = self.ends(batch, self.obs_dim)
         pred = self.pin(self.net(start, goal), start, goal)
@@ -31,7 +29,6 @@ class MLPPlanner(Planner):
 
 METHODS.register(
     MethodEntry(
-        name="mlp",
         params=MLPParams,
         method=MLPPlanner,
         nets=("mlp",),

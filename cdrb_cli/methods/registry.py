@@ -44,24 +44,31 @@ class BufferInfo:
 class MethodEntry:
     """A registered method.
 
-    * ``params``: its hyper-parameter record; ``method``: the class that trains and samples (a
-      :class:`cdrb_cli.methods.base.Method` subclass);
-    * ``kind``: ``planner`` (whole trajectories, executed by a controller) or ``policy`` (acts every step);
+    * ``params``: its hyper-parameter record (its ``name`` Literal is the method's name, its ``sampler`` Literal
+      the samplers it offers); ``method``: the class that trains and samples, a
+      :class:`~cdrb_cli.methods.base.Planner` (whole trajectories, executed by a controller) or
+      :class:`~cdrb_cli.methods.base.Policy` (acts every step) subclass;
     * ``needs_buffer``: training and sampling use the replay buffer (``cdrb train --buffer``);
     * ``nets``: the network kinds it accepts, default first;
     * ``presets``: preset name -> values of ``params`` fields;
     * ``data_defaults(spec, buffer)``: defaults that depend on the data (e.g. CDRB's d_max = buffer diameter).
     """
 
-    name: str
     params: type[MethodParams]
     method: type
-    kind: Literal["planner", "policy"] = "planner"
     needs_buffer: bool = False
     nets: tuple[str, ...] = ("unet", "transformer")
     presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     data_defaults: Callable[[EnvSpec, BufferInfo | None], dict[str, Any]] | None = None
     description: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.params.model_fields["name"].default
+
+    @property
+    def kind(self) -> Literal["planner", "policy"]:
+        return self.method.kind
 
     @property
     def samplers(self) -> tuple[str, ...]:

@@ -42,7 +42,7 @@ def collect_config(
     seed: int = 0,
     expert: str | None = None,
     policy: Path | None = None,
-    valid_fraction: float = 0.1,
+    valid_fraction: float | None = None,
 ) -> CollectConfig:
     """The config of ``cdrb collect``: ``expert`` is one of the family's experts (default: its first)."""
     family = family_of(spec)
@@ -53,7 +53,8 @@ def collect_config(
             hint=f"use {', '.join(family.experts)}",
         )
     expert_cfg = EXPERTS.get(name, "--expert").configure(policy)
-    return CollectConfig(env=spec.id, episodes=episodes, expert=expert_cfg, valid_fraction=valid_fraction, seed=seed)
+    split = {"valid_fraction": valid_fraction} if valid_fraction is not None else {}
+    return CollectConfig(env=spec.id, episodes=episodes, expert=expert_cfg, seed=seed, **split)
 
 
 def collect(spec: EnvSpec, config: CollectConfig, out: Path) -> artifacts.Demos:

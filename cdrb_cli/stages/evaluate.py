@@ -87,26 +87,27 @@ def run_episode(
         states=S,
         success=first is not None,
         steps=first if first is not None else steps,
-        final_distance=float(np.linalg.norm(S[:, spec.goal_dims] - goal[None], axis=1)[-1]),
+        final_distance=float(family.distance(spec, S, goal)[-1]),
         collision=bool(family.in_collision(spec, S).any()),
         path_length=family.path_length(spec, S if first is None else S[: first + 1]),
     )
 
 
-def reset_states(env: Env, episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray]:
-    """Start states (n, obs_dim) and goals (n, goal_dim) exactly as the environment resets them."""
-    pairs = [env.reset(ep) for ep in episodes]
-    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
-
-
 class ExpertReference:
-    """The family's default expert, run on an episode's reset, for the normalized path length."""
+    """The family's default expert, run on an episode's reset, for the normalized path length (0 when that
+    expert cannot run without a file: the ratio is then not reported)."""
 
     def __init__(self, family: EnvFamily, spec: EnvSpec):
         entry = EXPERTS.get(family.experts[0])
-        self.spec, self.expert = spec, entry.build(spec, entry.config())
+        try:
+            self.expert = entry.build(spec, entry.configure(None))
+        except BadInput:
+            self.expert = None
+        self.spec = spec
 
     def path_length(self, env: Env, episode: Episode) -> float:
+        if self.expert is None:
+            return 0.0
         obs, goal = env.reset(episode)
         self.expert.reset(obs, goal, np.random.default_rng(episode.seed))
         return run_episode(
@@ -132,7 +133,7 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
         task = bar.add_task(f"eval {method.name}", total=len(config.seeds) * config.episodes, info="")
         for seed in config.seeds:
             episodes = family.draw_episodes(spec, config.episodes, seed, STREAM_EVAL)
-            starts, goals = reset_states(env, episodes)
+            starts, goals = family.reset_states(spec, episodes, env)
             plans, _, _, _, sec_batch = sample_plans(
                 method,
                 starts,
@@ -203,16 +204,16 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
 
 def seed_result(seed: int, results: Sequence[EpisodeResult]) -> SeedResult:
     succ = np.array([r.success for r in results])
-    ratio = np.array([r.path_length for r in results]) / np.maximum(
-        np.array([r.expert_path_length for r in results]), 1e-9
-    )
+    expert = np.array([r.expert_path_length for r in results])
+    ratio = np.array([r.path_length for r in results]) / np.maximum(expert, 1e-9)
+    measured = succ & (expert > 0)  # successful episodes with an expert reference
     return SeedResult(
         seed=int(seed),
         episodes=len(results),
         success_rate=float(succ.mean()),
         in_wall_fraction=float(np.mean([r.plan_in_wall_fraction for r in results])),
         executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
-        path_length_ratio=float(ratio[succ].mean()) if succ.any() else None,
+        path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
         plan_seconds=float(np.mean([r.plan_seconds for r in results])),
     )
 
@@ -228,26 +229,35 @@ def eval_config(
     use_ema: bool = True,
     seed: int = 0,
 ) -> EvalConfig:
-    """The EvalConfig of ``cdrb eval`` for a model: the family's controller (default: its first) with its default
-    settings, the method's sampler (default: the model's), and ``settings`` (``--set controller.kp=20``,
-    ``--max-lag``) on top."""
-    from cdrb_cli.settings import apply, validate
+    """The EvalConfig of ``cdrb eval`` for a model: the family's controller (``controller``, else
+    ``--set controller.name=...``, else the family's first) with ``settings`` on its fields (``--set
+    controller.kp=20``, ``--max-lag``) and ``extra_steps``; the method's sampler (default: the model's)."""
+    from cdrb_cli.settings import apply, lookup, validate
 
+    for s in settings:
+        if s.path == ("controller",) or (s.path[0] != "controller" and s.path != ("extra_steps",)):
+            raise BadInput(
+                f"{s.source}: `cdrb eval --set` sets controller.<field> and extra_steps",
+                hint="episodes, seeds, sampler and the seed have their own flags (`cdrb eval --help`)",
+            )
     spec = model.manifest.env
     family = family_of(spec)
-    name = controller or family.controllers[0]
+    s_name = lookup(settings, ("controller", "name"))
+    if controller is not None and s_name is not None and s_name.value != controller:
+        raise BadInput(f"--controller {controller} and {s_name.source}", hint="name the controller once")
+    name = controller or (s_name.value if s_name is not None else family.controllers[0])
     if name not in family.controllers:
+        where = f"--controller {name!r}" if s_name is None or controller else s_name.source
         raise BadInput(
-            f"--controller {name!r}: not a controller of the {family.name} environments",
+            f"{where}: not a controller of the {family.name} environments",
             hint=f"use {' or '.join(family.controllers)}",
         )
     entry = METHODS.get(model.manifest.config.method.name)
-    chosen = entry.check_sampler(sampler or model.manifest.config.method.sampler)
     base = {
         "episodes": episodes,
         "seeds": list(seeds),
-        "controller": CONTROLLERS.get(name).config().model_dump(),
-        "sampler": chosen,
+        "controller": {"name": name},
+        "sampler": entry.check_sampler(sampler or model.manifest.config.method.sampler),
         "sample_steps": sample_steps,
         "use_ema": use_ema,
         "protocol": family.protocol,

@@ -21,6 +21,18 @@ DEFAULT_METHODS = ("cdrb", "diffuser")
 DEFAULT_ENV = "maze-tight"
 
 
+def check_methods(methods: Sequence[str], flag: str = "methods") -> None:
+    """Quickstart compares registered planners, each once."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.methods.registry import METHODS
+
+    if not methods or len(set(methods)) != len(methods):
+        raise BadInput(f"{flag} {','.join(methods)!r}: give each method once", hint=f"e.g. {','.join(DEFAULT_METHODS)}")
+    for m in methods:
+        if METHODS.get(m, flag).kind != "planner":
+            raise BadInput(f"{flag} {m}: a policy; quickstart compares planners", hint="leave it out")
+
+
 @dataclass
 class QuickstartResult:
     folder: Path
@@ -46,7 +58,7 @@ def quickstart(
     folder: Path,
     env: str = DEFAULT_ENV,
     episodes: int = 1000,
-    k: int = 1000,
+    k: int | None = None,
     methods: Sequence[str] = DEFAULT_METHODS,
     seeds: Sequence[int] = (0, 1),
     eval_episodes: int = 50,
@@ -57,12 +69,13 @@ def quickstart(
 ) -> QuickstartResult:
     from cdrb_cli.envs.registry import make_spec
     from cdrb_cli.envs.render import plot_demos
+    from cdrb_cli.methods.config import train_config
     from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.stages.cluster import cluster
     from cdrb_cli.stages.collect import collect, collect_config
     from cdrb_cli.stages.evaluate import eval_config, evaluate
     from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
-    from cdrb_cli.stages.train import train, train_config
+    from cdrb_cli.stages.train import train_or_resume
 
     t0 = time.time()
     folder = Path(folder)
@@ -79,9 +92,9 @@ def quickstart(
     demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
 
     step += 1
-    _stage(step, total, f"cluster the replay buffer (k={k})")
+    kcfg = ClusterConfig(seed=seed, **({"k": k} if k is not None else {}))
+    _stage(step, total, f"cluster the replay buffer (k={kcfg.k})")
     buffer_path = paths["buffer"] = folder / "buffer.h5"
-    kcfg = ClusterConfig(k=k, seed=seed)
     buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
 
     models = {}
@@ -91,16 +104,9 @@ def quickstart(
         b = buffer if METHODS.get(method).needs_buffer else None
         cfg = train_config(demos, b, method, {"steps": steps} if steps else {}, seed=seed)
         out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
-        parents = [demos] + ([b] if b is not None else [])
-        found = artifacts.existing(out, "model", cfg, parents)
-        if found.up_to_date:
-            ui.log("  up to date")
-            model = found.artifact
-        else:
-            if found.status == "resumable":
-                ui.log(f"  resuming the checkpoint in {out}")
-            model = train(demos, b, cfg, out, resume=found.status == "resumable", device=device)
-        models[method] = model
+        models[method], done = train_or_resume(demos, b, cfg, out, device=device, auto=True)
+        if done != "trained":
+            ui.log(f"  {done}")
 
     evals = []
     for method in methods:

@@ -43,7 +43,7 @@ def _rows(model: type[BaseModel], values: dict, prefix: str = "", skip=(), place
 
 
 def _train_rows(method: str | None, net: str | None, preset: str | None) -> list[Row]:
-    from cdrb_cli.configs import TrainConfig
+    from cdrb_cli.configs import TrainConfig, net_classes
     from cdrb_cli.methods.config import choose
     from cdrb_cli.presets import NETS, TRAIN
 
@@ -53,7 +53,7 @@ def _train_rows(method: str | None, net: str | None, preset: str | None) -> list
         if value is not None
     ] + ([Setting(("preset",), preset, f"--preset {preset}")] if preset else [])
     entry, preset, net = choose(given)
-    net_cls = next(c for c in _net_classes() if c.model_fields["kind"].default == net)
+    net_cls = next(c for c in net_classes() if c.model_fields["kind"].default == net)
     top = {**TRAIN[preset], "preset": preset}
     rows = [
         Row("method.name", "str", entry.name, "the method (`cdrb methods`); --method sets it"),
@@ -63,14 +63,6 @@ def _train_rows(method: str | None, net: str | None, preset: str | None) -> list
         *_rows(TrainConfig, top, skip=("method", "net"), placeholders={"seed": "(--seed)"}),
     ]
     return rows
-
-
-def _net_classes() -> list[type[BaseModel]]:
-    import typing
-
-    from cdrb_cli.configs import NetConfig
-
-    return list(typing.get_args(typing.get_args(NetConfig)[0]))
 
 
 def _eval_rows(controller: str | None) -> list[Row]:
@@ -96,12 +88,12 @@ def config_template(
 
 def settable_keys() -> list[str]:
     """Every key `cdrb train --set` accepts, for any method and network."""
-    from cdrb_cli.configs import TrainConfig
+    from cdrb_cli.configs import TrainConfig, net_classes
     from cdrb_cli.methods.registry import METHODS
 
     keys = [k for k in TrainConfig.model_fields if k not in ("method", "net")]
     keys += [f"method.{k}" for e in METHODS.entries() for k in e.params.model_fields]
-    keys += [f"net.{k}" for c in _net_classes() for k in c.model_fields]
+    keys += [f"net.{k}" for c in net_classes() for k in c.model_fields]
     return list(dict.fromkeys(keys))
 
 

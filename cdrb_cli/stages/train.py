@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, feature_dim, split_rows
@@ -22,27 +20,8 @@ from cdrb_cli.data import WindowSampler
 from cdrb_cli.errors import BadInput, RunFailed
 from cdrb_cli.methods.base import NonFiniteLoss, build_method
 from cdrb_cli.methods.checkpoint import checkpoint_arrays, make_ema, restore
-from cdrb_cli.methods.config import resolve_train_config
-from cdrb_cli.methods.registry import METHODS, BufferInfo
+from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_TRAIN, STREAM_VALID, step_rng
-from cdrb_cli.settings import Setting
-
-
-def buffer_info(buffer) -> BufferInfo | None:
-    if buffer is None:
-        return None
-    return BufferInfo(features=buffer.manifest.config.features, diameter=buffer.manifest.summary.diameter)
-
-
-def train_config(
-    demos, buffer=None, method: str | None = None, settings: Mapping[str, Any] | None = None, seed: int = 0
-) -> TrainConfig:
-    """The TrainConfig for these inputs, a method and ``settings`` (dotted keys: ``{"steps": 40, "net.dim": 8,
-    "preset": "paper"}``), as ``cdrb train DEMOS --buffer BUFFER --method M --set KEY=VALUE ...`` resolves it."""
-    items = [Setting(("method", "name"), method, f"--method {method}")] if method else []
-    for key, value in (settings or {}).items():
-        items.append(Setting(tuple(key.split(".")), value, f"{key}={value}"))
-    return resolve_train_config(demos.manifest.env, buffer_info(buffer), items, seed=seed)
 
 
 def check_inputs(demos, buffer, features: str) -> Normalizer:
@@ -71,9 +50,35 @@ def check_inputs(demos, buffer, features: str) -> Normalizer:
     return bnorm
 
 
-def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, device="cpu") -> artifacts.Model:
-    """Train ``config`` on the demos (and buffer), checkpointing into ``out``; with ``resume`` continue the
-    checkpoint there (same inputs and config, up to ``steps``)."""
+def train_or_resume(
+    demos, buffer, config: TrainConfig, out: Path, force: bool = False, resume: bool = False, device="cpu", auto=False
+) -> tuple[artifacts.Model, str]:
+    """Train into ``out`` according to what it holds (:func:`cdrb_cli.artifacts.existing`): reuse it when up to
+    date, continue it with ``resume`` (or ``auto``) when it is a checkpoint of this run, start over with ``force``
+    (or ``auto``, for a file of another run); refuse anything else. Returns the model and what was done:
+    ``up to date``, ``resumed`` or ``trained``."""
+    if resume and force:
+        raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
+    artifacts.check_output(out, force=True)
+    parents = [demos] + ([buffer] if buffer is not None else [])
+    found = artifacts.existing(out, "model", config, parents) if not force else artifacts.Existing("missing")
+    if found.up_to_date:
+        return found.artifact, "up to date"
+    if found.status == "resumable" and (resume or auto):
+        return train(demos, buffer, config, out, resume=found.artifact, device=device), "resumed"
+    if resume:
+        missing = found.status == "missing"
+        hint = "run without --resume to start training" if missing else "use the same inputs and settings, or --force"
+        raise BadInput(f"--resume: {out}: {found.reason}", hint=hint)
+    if found.status != "missing" and not auto:
+        hint = "pass --resume to continue it" if found.status == "resumable" else "pass --force to overwrite it"
+        raise BadInput(f"--out {out}: file exists ({found.reason})", hint=hint)
+    return train(demos, buffer, config, out, device=device), "trained"
+
+
+def train(demos, buffer, config: TrainConfig, out: Path, resume=False, device="cpu") -> artifacts.Model:
+    """Train ``config`` on the demos (and buffer), checkpointing into ``out``. ``resume``: True continues the
+    checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact."""
     import torch
 
     spec = demos.manifest.env
@@ -97,16 +102,13 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume: bool = False, d
     log_every = math.gcd(50, config.checkpoint_every)
     step, curve, wall = 0, [], 0.0
 
-    if resume:
+    if resume is True:
         found = artifacts.existing(out, "model", config, parents)
         if found.status not in ("resumable", "up-to-date"):
-            hint = (
-                "run without --resume to start training"
-                if found.status == "missing"
-                else "use the same flags and inputs, or --force"
-            )
-            raise BadInput(f"--resume: {out}: {found.reason}", hint=hint)
-        step, curve, wall = restore(found.artifact, method, ema, optimizers, device)
+            raise BadInput(f"--resume: {out}: {found.reason}", hint="use the same inputs and settings, or --force")
+        resume = found.artifact
+    if resume:
+        step, curve, wall = restore(resume, method, ema, optimizers, device)
         ui.log(f"resuming {out} from step {step}")
 
     def save(finished: bool, loss_value, valid_value) -> None:

@@ -143,17 +143,14 @@ class PointMazeFamily(EnvFamily):
             )
 
     # -------------------------------------------------------------- geometry
-    def path_length(self, spec: EnvSpec, states: np.ndarray) -> float:
-        return float(np.linalg.norm(np.diff(np.asarray(states)[:, :2], axis=0), axis=1).sum())
-
     def route(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> tuple[str, str]:
         geom = MazeGeometry(spec.scene.maze)
         cell = geom.xy_to_cell(goal)
         return f"{int(cell[0])},{int(cell[1])}", geom.exit_label(states)
 
     # -------------------------------------------------------------- pictures
-    def xy(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
-        return np.asarray(states)[..., :2]
+    def speed(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.asarray(states)[..., 2:4], axis=-1)
 
     def goal_group(self, spec: EnvSpec, goal: np.ndarray) -> int:
         g = MazeGeometry(spec.scene.maze)

@@ -40,8 +40,8 @@ class PDConfig(ControllerConfig):
     """u = clip(kp (p* - p) + kd (v* - v)) toward the next planned state."""
 
     name: Literal["pd"] = "pd"
-    kp: float = Field(10.0, description="position gain")
-    kd: float = Field(1.0, description="velocity gain")
+    kp: float = Field(10.0, ge=0, description="position gain")
+    kd: float = Field(1.0, ge=0, description="velocity gain")
     max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, description=_MAX_LAG_HELP)
 
 
@@ -78,14 +78,11 @@ class MazeController(Controller):
             self.clock += 1
         return self.clock
 
-    def act(self, obs: np.ndarray, t: int) -> np.ndarray:
-        raise NotImplementedError
-
 
 class PDController(MazeController):
     name = "pd"
 
-    def __init__(self, stride: int, kp: float = 10.0, kd: float = 1.0, max_lag: float | None = None):
+    def __init__(self, stride: int, kp: float, kd: float, max_lag: float | None = None):
         super().__init__(stride, max_lag)
         self.kp, self.kd = kp, kd
 
@@ -116,19 +113,6 @@ class InverseDynamicsController(MazeController):
         return np.clip(u, -1.0, 1.0)
 
 
-def make_controller(
-    name: str, stride: int, dynamics: dict, kp: float = 10.0, kd: float = 1.0, max_lag: float | None = None
-) -> MazeController:
-    """A controller by name with explicit settings (tests and scripts; `cdrb eval` goes through the registry)."""
-    if name == "pd":
-        return PDController(stride, kp, kd, max_lag)
-    if name == "inverse-dynamics":
-        return InverseDynamicsController(
-            stride, dynamics["mass"], dynamics["damping"], dynamics["gear"], dynamics["dt"], max_lag
-        )
-    raise ValueError(name)
-
-
 def _pd(spec, env, config: PDConfig, stride: int) -> PDController:
     return PDController(stride, config.kp, config.kd, config.max_lag)
 
@@ -138,10 +122,9 @@ def _inverse_dynamics(spec, env, config: InverseDynamicsConfig, stride: int) -> 
     return InverseDynamicsController(stride, d["mass"], d["damping"], d["gear"], d["dt"], config.max_lag)
 
 
-CONTROLLERS.register(ControllerEntry("pd", PDConfig, _pd, "PD toward the next planned state (kp 10, kd 1)"))
+CONTROLLERS.register(ControllerEntry(PDConfig, _pd, "PD toward the next planned state"))
 CONTROLLERS.register(
     ControllerEntry(
-        "inverse-dynamics",
         InverseDynamicsConfig,
         _inverse_dynamics,
         "exact one-step inverse dynamics of the ball onto the interpolated plan",

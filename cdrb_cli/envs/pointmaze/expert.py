@@ -146,7 +146,6 @@ def _configure(policy: Path | None) -> PlannerExpertConfig:
 
 EXPERTS.register(
     ExpertEntry(
-        "planner",
         PlannerExpertConfig,
         MazeExpert,
         _configure,
