@@ -40,26 +40,18 @@ app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
-SeedOpt = typer.Option(0, "--seed", help="Random seed; the same seed and inputs give the same artifact.")
+SeedOpt = typer.Option(
+    0, "--seed", min=0, max=2**32 - 1, help="Random seed (32-bit); the same seed and inputs give the same artifact."
+)
 ForceOpt = typer.Option(False, "--force", help="Overwrite --out if it exists (otherwise an existing file is an error).")
 JsonOpt = typer.Option(False, "--json", help="Print a JSON result on stdout instead of the path.")
 DeviceOpt = typer.Option("auto", "--device", help="auto (CUDA when present), cpu or cuda.")
 
 
 # ------------------------------------------------------------------------------------------------ choices
-def _registered(registry: Callable, what: str) -> Callable[[str], str]:
-    """A typer ``parser`` that accepts the names of a registry (loaded when the option is parsed)."""
-
-    def parse(value: str) -> str:
-        reg = registry()
-        if value not in reg:
-            raise ValueError(f"{value!r} is not a known {what} (choose one of {', '.join(reg.names())})")
-        return value
-
-    return parse
-
-
 def _choice(values: Callable[[], list[str]], what: str) -> Callable[[str], str]:
+    """A typer ``parser`` accepting the strings ``values()`` gives when the option is parsed (not at start-up)."""
+
     def parse(value: str) -> str:
         allowed = values()
         if value not in allowed:
@@ -67,6 +59,11 @@ def _choice(values: Callable[[], list[str]], what: str) -> Callable[[str], str]:
         return value
 
     return parse
+
+
+def _registered(registry: Callable, what: str) -> Callable[[str], str]:
+    """A typer ``parser`` accepting the names of a registry (plugins included)."""
+    return _choice(lambda: registry().names(), what)
 
 
 def _methods():
@@ -149,6 +146,8 @@ def _int_list(text: str, flag: str) -> list[int]:
         raise BadInput(f"{flag} is empty", hint="e.g. 0,1,2,3,4")
     if len(set(values)) != len(values):
         raise BadInput(f"{flag} {text!r}: repeated values", hint="list each seed once")
+    if any(not 0 <= v < 2**32 for v in values):
+        raise BadInput(f"{flag} {text!r}: seeds are 32-bit (0 to 4294967295)", hint="e.g. 0,1,2,3,4")
     return values
 
 
@@ -537,6 +536,10 @@ def config_cmd(
     `cdrb train`. [cyan]cdrb config eval[/cyan] lists the controllers' settings (`cdrb eval --set`)."""
     from cdrb_cli.stages.show_config import config_template, render_template
 
+    if stage == "eval" and (method or net or preset):
+        raise BadInput("--method/--net/--preset describe train settings", hint="use `cdrb config train ...`")
+    if stage == "train" and controller:
+        raise BadInput("--controller describes eval settings", hint="use `cdrb config eval --controller ...`")
     if stage == "eval" and fmt != "table":
         raise BadInput(
             f"--format {fmt}: only train reads a --config file", hint="eval settings are --set keys: omit --format"
@@ -704,6 +707,8 @@ def eval_cmd(
         raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
     settings = parse_set(sets)
     if max_lag is not None:
+        if any(s.path == ("controller", "max_lag") for s in settings):
+            raise BadInput("--max-lag with --set controller.max_lag", hint="give it once")
         settings.append(Setting(("controller", "max_lag"), max_lag or None, f"--max-lag {max_lag:g}"))
     m = _load(model, "model")
     config = eval_config(

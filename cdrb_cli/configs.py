@@ -6,7 +6,7 @@ from __future__ import annotations
 import typing
 from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from cdrb_cli.envs.family import ControllerConfig, ExpertConfig
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS
@@ -16,6 +16,10 @@ from cdrb_cli.schema_base import Record
 
 Features = Literal["state", "state-action"]
 
+#: seeds are 32-bit (numpy SeedSequence words; torch.manual_seed)
+MAX_SEED = 2**32 - 1
+Seed = Annotated[int, Field(ge=0, le=MAX_SEED)]
+
 
 # --------------------------------------------------------------------------------------------- collect
 class CollectConfig(Record):
@@ -23,7 +27,7 @@ class CollectConfig(Record):
     episodes: int = Field(gt=0)
     expert: Annotated[ExpertConfig, Dispatch(EXPERTS, key="kind", attr="config")]
     valid_fraction: float = Field(0.1, ge=0, lt=1)
-    seed: int
+    seed: Seed
 
 
 class CollectSummary(Record):
@@ -48,7 +52,7 @@ class ClusterConfig(Record):
     split: Literal["train", "all"] = "train"
     n_init: int = Field(1, gt=0)
     max_iter: int = Field(100, gt=0)
-    seed: int
+    seed: Seed
 
 
 class ClusterSummary(Record):
@@ -69,9 +73,16 @@ class UNetConfig(Record):
     dim_mults: list[int] = Field(
         default_factory=lambda: [1, 4, 8], min_length=1, description="width multiplier of each level"
     )
-    kernel_size: int = Field(5, gt=0, description="temporal convolution kernel")
+    kernel_size: int = Field(5, gt=0, le=31, description="temporal convolution kernel (odd)")
     groups: int = Field(8, gt=0, description="GroupNorm groups")
     residual: bool = Field(False, description="predict x0 as the input plus a correction (x_k + f(x_k, k))")
+
+    @field_validator("kernel_size")
+    @classmethod
+    def _odd(cls, k: int) -> int:
+        if k % 2 == 0:
+            raise ValueError("must be odd (the convolutions keep the sequence length with k // 2 padding)")
+        return k
 
 
 class TransformerConfig(Record):
@@ -106,7 +117,7 @@ class TrainConfig(Record):
     net: NetConfig = Field(description="the network (net.kind picks it: `cdrb train --net`)")
     preset: Literal["quick", "paper"] = Field(description="the preset the defaults came from")
     features: Features = Field(description="state, or state-action (actions appended to each planned state)")
-    horizon: int = Field(gt=1, description="planned states per trajectory")
+    horizon: int = Field(gt=1, le=100_000, description="planned states per trajectory")
     stride: int = Field(gt=0, description="environment steps per planned state")
     steps: int = Field(gt=0, description="gradient steps")
     batch_size: int = Field(gt=0, description="training windows per gradient step")
@@ -120,7 +131,7 @@ class TrainConfig(Record):
     start_fraction: float = Field(
         0.9, ge=0, le=1, description="share of training windows that start at an episode's first state"
     )
-    seed: int = Field(description="network initialization and every training draw (`--seed`)")
+    seed: Seed = Field(description="network initialization and every training draw (`--seed`)")
 
 
 class TrainState(Record):
@@ -143,7 +154,7 @@ class PlanConfig(Record):
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = True
     keep_iterates: int = Field(0, ge=0)
-    seed: int
+    seed: Seed
 
 
 class PlanSummary(Record):
@@ -159,20 +170,22 @@ class PlanSummary(Record):
 # --------------------------------------------------------------------------------------------- eval
 class EvalConfig(Record):
     episodes: int = Field(gt=0, description="episodes per seed")
-    seeds: list[int] = Field(min_length=1, description="evaluation seeds (each draws its own start/goal pairs)")
+    seeds: list[Seed] = Field(min_length=1, description="evaluation seeds (each draws its own start/goal pairs)")
     controller: Annotated[ControllerConfig, Dispatch(CONTROLLERS, key="name", attr="config")] = Field(
         description="the controller that executes each plan, and its settings"
     )
     sampler: SamplerName
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = True
-    extra_steps: int = Field(0, ge=0, description="env steps executed beyond the plan, holding its last state")
+    extra_steps: int = Field(
+        0, ge=0, le=1_000_000, description="env steps executed beyond the plan, holding its last state"
+    )
     protocol: str = Field(description="the family's start/goal protocol")
-    seed: int
+    seed: Seed
 
 
 class SeedResult(Record):
-    seed: int
+    seed: Seed
     episodes: int
     success_rate: float
     in_wall_fraction: float

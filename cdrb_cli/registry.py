@@ -45,7 +45,7 @@ def load_plugins() -> None:
     for module, source in names:
         try:
             importlib.import_module(module)
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:
             raise BadInput(
                 f"plugin {module!r} ({source}) failed to import: {type(exc).__name__}: {exc}",
                 hint=f"fix the plugin or remove it from {source}",
@@ -56,14 +56,23 @@ def load_plugins() -> None:
 class Registry(Generic[E]):
     """Entries of one kind (``what``, e.g. "method"), keyed by ``key(entry)``."""
 
-    def __init__(self, what: str, builtins: Mapping[str, str], key: Callable[[E], str] = lambda e: e.name):
+    def __init__(
+        self,
+        what: str,
+        builtins: Mapping[str, str],
+        entry_type: type | None = None,
+        key: Callable[[E], str] = lambda e: e.name,
+    ):
         self.what = what
         self.builtins = dict(builtins)
+        self.entry_type = entry_type
         self._key = key
         self._entries: dict[str, E] = {}
 
     # -------------------------------------------------------------- adding
     def register(self, entry: E, replace: bool = False) -> E:
+        if self.entry_type is not None and not isinstance(entry, self.entry_type):
+            raise TypeError(f"a {self.what} entry must be a {self.entry_type.__name__}, not {type(entry).__name__}")
         name = self._key(entry)
         if name in self._entries and not replace and self._entries[name] is not entry:
             raise ValueError(f"{self.what} {name!r} is registered already")

@@ -84,7 +84,7 @@ def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
         if isinstance(v, dict):
             out += _flatten(v, path, source)
         else:
-            out.append(Setting(path, v, source))
+            out.append(Setting(path, v, f"{source}: {'.'.join(path)}"))
     return out
 
 

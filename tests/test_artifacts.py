@@ -119,21 +119,37 @@ def test_newer_major_is_refused(tmp_path):
     assert "newer" in msg and "upgrade cdrb" in msg
 
 
-def test_newer_minor_with_unknown_field_is_read(tmp_path):
-    p = write(tmp_path / "d.h5", "demos")
+def _set_manifest(p, m, version):
+    m["schema_version"] = version
     with h5py.File(p, "r+") as f:
-        m = json.loads(f["manifest"][()].decode())
-        m["future_field"] = {"x": 1}
-        m["summary"]["future_stat"] = 3
         del f["manifest"]
         f["manifest"] = np.bytes_(json.dumps(m).encode())
-        f.attrs["cdrb_schema_version"] = "2.7"
+        f.attrs["cdrb_schema_version"] = version
+
+
+def test_newer_minor_with_unknown_field_is_read(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r") as f:
+        m = json.loads(f["manifest"][()].decode())
+    m["future_field"] = {"x": 1}
+    m["summary"]["future_stat"] = 3
+    _set_manifest(p, m, "2.7")
     art = artifacts.load(p)
     assert art.manifest.summary.episodes == 5
     # the same unknown field under the current minor version is an error
-    _rewrite_attr(p, "cdrb_schema_version", "2.0")
+    _set_manifest(p, m, "2.0")
     msg = _err(p)
     assert "future_" in msg and "Extra inputs" in msg
+
+
+def test_manifest_version_must_match_the_attribute(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        m = json.loads(f["manifest"][()].decode())
+        m["schema_version"] = "2.9"
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+    assert "differs from cdrb_schema_version" in _err(p)
 
 
 def test_older_major_without_a_migration_is_refused(tmp_path):

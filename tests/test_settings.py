@@ -45,13 +45,13 @@ def test_config_files(tmp_path):
     toml.write_text('steps = 10\n"method.schedule" = "log"\n[net]\ndim = 8\n')
     got = {s.key: (s.value, s.source) for s in read_config_file(toml)}
     assert got == {
-        "steps": (10, f"--config {toml}"),
-        "method.schedule": ("log", f"--config {toml}"),
-        "net.dim": (8, f"--config {toml}"),
+        "steps": (10, f"--config {toml}: steps"),
+        "method.schedule": ("log", f"--config {toml}: method.schedule"),
+        "net.dim": (8, f"--config {toml}: net.dim"),
     }
     js = tmp_path / "run.json"
     js.write_text(json.dumps({"net": {"dim": 8}}))
-    assert read_config_file(js) == [Setting(("net", "dim"), 8, f"--config {js}")]
+    assert read_config_file(js) == [Setting(("net", "dim"), 8, f"--config {js}: net.dim")]
     bad = tmp_path / "bad.toml"
     bad.write_text("steps = = 3\n")
     with pytest.raises(BadInput, match="not valid TOML"):
@@ -122,4 +122,58 @@ def test_eval_settings_name_the_flag(small_data, tmp_path, cdrb):
     assert r.returncode == 2 and "--set controller.kp=fast" in r.stderr and r.stderr.count("\n") == 1
     r = cdrb("eval", model.path, "--max-lag", "-1", "--out", tmp_path / "e.h5")
     assert r.returncode == 2 and "--max-lag" in r.stderr
+    r = cdrb("eval", model.path, "--max-lag", "0.5", "--set", "controller.max_lag=0.7", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "give it once" in r.stderr
+    r = cdrb("eval", model.path, "--seeds", str(2**40), "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "32-bit" in r.stderr
+    r = cdrb("eval", model.path, "--set", "episodes=3", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "controller.<field> and extra_steps" in r.stderr
     assert not (tmp_path / "e.h5").exists()
+
+
+def test_config_file_errors_name_the_key(small_data, tmp_path, cdrb):
+    demos, buffer = small_data
+    bad = tmp_path / "inf.toml"
+    bad.write_text("lr = inf\n")
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", bad, "--dry-run")
+    assert r.returncode == 2 and f"--config {bad}: lr: Input should be a finite number" in r.stderr
+
+
+def test_a_second_run_names_the_settings_that_differ(small_data, tmp_path, cdrb):
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import TINY_FLAGS, tiny
+
+    demos, buffer = small_data
+    out = tmp_path / "m.h5"
+    train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2)), out)
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--steps", "2", *TINY_FLAGS, "--set", "lr=0.1", "--out", out)
+    assert r.returncode == 2 and "other settings: lr" in r.stderr
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--steps", "4", *TINY_FLAGS, "--out", out)
+    assert r.returncode == 2 and "a finished model at step 2" in r.stderr and "--resume" in r.stderr
+
+
+@pytest.mark.parametrize(
+    "source, needle",
+    [
+        ("raise RuntimeError('boom')", "failed to import: RuntimeError: boom"),
+        ("import sys; sys.exit('bye')", "failed to import: SystemExit: bye"),
+        (
+            "from cdrb_cli.methods.registry import METHODS\nMETHODS.register(object())",
+            "a method entry must be a MethodEntry",
+        ),
+    ],
+)
+def test_broken_plugins_are_one_line(tmp_path, cdrb, source, needle):
+    (tmp_path / "myplugin.py").write_text(source + "\n")
+    env = {"CDRB_PLUGINS": "myplugin", "PYTHONPATH": str(tmp_path)}
+    r = cdrb("methods", env=env)
+    assert r.returncode == 2 and "plugin 'myplugin'" in r.stderr and needle in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1 and r.stdout == ""
+
+
+def test_options_of_the_other_stage_are_refused(cdrb):
+    assert cdrb("config", "eval", "--method", "mlp").returncode == 2
+    assert cdrb("config", "train", "--controller", "pd").returncode == 2
+    r = cdrb("config", "eval", "--format", "toml")
+    assert r.returncode == 2 and "only train reads a --config file" in r.stderr

@@ -207,6 +207,10 @@ def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
         (["--set", "net.dimm=3"], "unknown setting 'net.dimm'"),
         (["--set", "net.dim"], "expected KEY=VALUE"),
         (["--horizon", "30"], "--set horizon=VALUE"),  # the pre-0.2 flags point to their config field
+        (["--set", "net.kernel_size=4"], "must be odd"),
+        (["--set", "horizon=100000000000000000000000"], "less than or equal to 100000"),
+        (["--seed", str(2**70)], "--seed"),
+        (["--seed", "-1"], "--seed"),
         (["--buffer", demos.path], "'demos' artifact"),
     ]
     for extra, needle in cases:

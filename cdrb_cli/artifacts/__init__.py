@@ -91,7 +91,13 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
 
 
 def _read_timeout(path: Path) -> float:
-    base = float(os.environ.get("CDRB_READ_TIMEOUT", "30"))
+    text = os.environ.get("CDRB_READ_TIMEOUT", "30")
+    try:
+        base = float(text)
+    except ValueError:
+        base = float("nan")
+    if not base > 0 or base == float("inf"):
+        raise BadInput(f"CDRB_READ_TIMEOUT={text!r}: not a positive number of seconds", hint="unset it, or e.g. 30")
     try:
         size = path.stat().st_size
     except OSError:
@@ -251,8 +257,17 @@ def existing(
         if art.manifest.config.model_copy(update=mine) == config:
             if state.step > getattr(config, "steps", state.step):
                 return Existing("different", art, f"it is already at step {state.step}, past --steps")
-            return Existing("resumable", art, f"it is a checkpoint at step {state.step}")
-    return Existing("different", art, "it was made with a different config")
+            what = "a finished model" if state.finished else "a checkpoint"
+            return Existing("resumable", art, f"it is {what} at step {state.step}")
+    keys = _differences(art.manifest.config.model_dump(mode="json"), config.model_dump(mode="json"))
+    return Existing("different", art, f"it was made with other settings: {', '.join(keys[:4]) or 'config'}")
+
+
+def _differences(a, b, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two config dumps."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [k for key in dict.fromkeys([*a, *b]) for k in _differences(a.get(key), b.get(key), f"{prefix}{key}.")]
+    return [] if a == b else [prefix.rstrip(".")]
 
 
 def find_up_to_date(

@@ -279,6 +279,12 @@ def read_h5(
             raise ArtifactError(f"{path}: /{MANIFEST} is not a JSON object", hint="re-create it")
         if manifest.get("kind") != kind:
             raise ArtifactError(f"{path}: manifest kind {manifest.get('kind')!r} differs from {KIND_ATTR} {kind!r}")
+        if manifest.get("schema_version") != version_text:
+            raise ArtifactError(
+                f"{path}: manifest schema_version {str(manifest.get('schema_version'))[:20]!r} differs from "
+                f"{VERSION_ATTR} {version_text!r}",
+                hint="re-create the artifact",
+            )
         total = 0
         for name, ds in datasets.items():
             dt = ds.dtype

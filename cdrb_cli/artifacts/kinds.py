@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field
@@ -21,6 +21,8 @@ from cdrb_cli.configs import (
     TrainState,
 )
 from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.methods.registry import METHODS
+from cdrb_cli.registry import RegisteredName
 from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
@@ -71,7 +73,7 @@ class PlansManifest(ManifestBase):
     kind: Literal["plans"] = "plans"
     config: PlanConfig
     summary: PlanSummary
-    method: str
+    method: Annotated[str, RegisteredName(METHODS)]
 
 
 class EvalManifest(ManifestBase):

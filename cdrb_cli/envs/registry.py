@@ -13,20 +13,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from cdrb_cli.envs.family import ControllerEntry, EnvFamily, ExpertEntry
 from cdrb_cli.errors import BadInput
 from cdrb_cli.registry import Registry
 
 if TYPE_CHECKING:
-    from cdrb_cli.envs.family import ControllerEntry, EnvFamily, ExpertEntry
     from cdrb_cli.envs.spec import EnvSpec
 
-FAMILIES: Registry[EnvFamily] = Registry("environment family", {"pointmaze": "cdrb_cli.envs.pointmaze"})
+FAMILIES: Registry[EnvFamily] = Registry("environment family", {"pointmaze": "cdrb_cli.envs.pointmaze"}, EnvFamily)
 EXPERTS: Registry[ExpertEntry] = Registry(
-    "expert", {"planner": "cdrb_cli.envs.pointmaze.expert", "sac": "cdrb_cli.experts.sac"}
+    "expert", {"planner": "cdrb_cli.envs.pointmaze.expert", "sac": "cdrb_cli.experts.sac"}, ExpertEntry
 )
 CONTROLLERS: Registry[ControllerEntry] = Registry(
     "controller",
     {"pd": "cdrb_cli.envs.pointmaze.controllers", "inverse-dynamics": "cdrb_cli.envs.pointmaze.controllers"},
+    ControllerEntry,
 )
 
 

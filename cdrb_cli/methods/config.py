@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from cdrb_cli.configs import TrainConfig, UNetConfig
+from cdrb_cli.configs import TrainConfig, UNetConfig, net_kinds
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import DEFAULT_METHOD, METHODS, BufferInfo, MethodEntry
@@ -34,6 +34,11 @@ def choose(settings: Sequence[Setting]) -> tuple[MethodEntry, str, str]:
     preset = s_preset.value if s_preset is not None else DEFAULT_PRESET
     if preset not in PRESETS:
         raise BadInput(f"{_source(s_preset, '--preset')}: unknown preset", hint=f"use {' or '.join(PRESETS)}")
+    unknown = [n for n in entry.nets if n not in net_kinds()]
+    if unknown:
+        raise BadInput(
+            f"the {entry.name} method lists unknown nets {unknown}", hint=f"nets are {', '.join(net_kinds())}"
+        )
     s_net = lookup(settings, ("net", "kind"))
     net = s_net.value if s_net is not None else entry.default_net
     if net not in entry.nets:
@@ -82,7 +87,8 @@ def resolve_train_config(
     if entry.needs_buffer and buffer is None:
         raise BadInput(f"--method {entry.name} needs --buffer BUFFER", hint="make one with `cdrb cluster DEMOS`")
     s_feat = lookup(settings, ("features",))
-    if entry.needs_buffer and s_feat is not None and s_feat.value != buffer.features:
+    valid_feature = s_feat is not None and s_feat.value in ("state", "state-action")  # else validation names it
+    if entry.needs_buffer and valid_feature and s_feat.value != buffer.features:
         raise BadInput(
             f"{s_feat.source}: the buffer was clustered on {buffer.features!r} features",
             hint="omit it, or re-cluster with the same --features",

@@ -95,4 +95,5 @@ METHODS: Registry[MethodEntry] = Registry(
         "diffuser": "cdrb_cli.methods.diffuser",
         "cdrb": "cdrb_cli.methods.cdrb",
     },
+    MethodEntry,
 )

@@ -126,7 +126,7 @@ def collect_rows(evals) -> list[dict]:
 
 def _describe(p) -> str:
     settings = ", ".join(f"{k} {v}" for k, v in p[1].model_dump().items() if k != "name")
-    return f"{p[0]} episodes per seed, {p[1].name} controller ({settings}), {p[4]}-step episodes"
+    return f"{p[0]} episodes per seed, {p[1].name} controller ({settings}), protocol {p[2]}, {p[4]}-step episodes"
 
 
 def _order(methods):

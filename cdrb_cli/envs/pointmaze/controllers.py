@@ -40,8 +40,8 @@ class PDConfig(ControllerConfig):
     """u = clip(kp (p* - p) + kd (v* - v)) toward the next planned state."""
 
     name: Literal["pd"] = "pd"
-    kp: float = Field(10.0, ge=0, description="position gain")
-    kd: float = Field(1.0, ge=0, description="velocity gain")
+    kp: float = Field(10.0, ge=0, le=1e6, description="position gain")
+    kd: float = Field(1.0, ge=0, le=1e6, description="velocity gain")
     max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, description=_MAX_LAG_HELP)
 
 
