@@ -13,6 +13,7 @@ registered plugin is a valid choice too. Training hyper-parameters come from the
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +27,7 @@ except ImportError:  # pragma: no cover
     from click import exceptions as click_exc
 
 from cdrb_cli import PROG, __version__, ui
-from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, BadInput, CdrbError
+from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, BadInput, CdrbError
 
 app = typer.Typer(
     name=PROG,
@@ -549,6 +550,22 @@ def config_cmd(
 
 
 # ------------------------------------------------------------------------------------------------ plan
+PartialOpt = typer.Option(
+    False, "--allow-partial", help="Accept a model whose training did not finish (an interrupted checkpoint)."
+)
+
+
+def _trained_model(path: Path, allow_partial: bool):
+    m = _load(path, "model")
+    st = m.manifest.state
+    if not st.finished and not allow_partial:
+        raise BadInput(
+            f"{path}: training stopped at step {st.step} of {m.manifest.config.steps} (an unfinished checkpoint)",
+            hint="finish it with `cdrb train ... --resume`, or pass --allow-partial",
+        )
+    return m
+
+
 SamplerOpt = typer.Option(
     None,
     "--sampler",
@@ -570,6 +587,7 @@ def plan(
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with the raw weights instead of the EMA."),
+    allow_partial: bool = PartialOpt,
     show_steps: int = typer.Option(0, "--show-steps", min=0, help="Keep N intermediate iterates (drawn by --plot)."),
     batch_size: int = typer.Option(256, "--batch-size", min=1, help="Plans sampled together."),
     device: str = DeviceOpt,
@@ -592,7 +610,7 @@ def plan(
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--sample-steps", sample_steps)
-    m = _load(model, "model")
+    m = _trained_model(model, allow_partial)
     spec = m.manifest.env
     family = family_of(spec)
     entry = METHODS.get(m.manifest.config.method.name)
@@ -677,6 +695,7 @@ def eval_cmd(
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with raw instead of EMA weights."),
+    allow_partial: bool = PartialOpt,
     video: Path | None = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder."),
     videos: int = typer.Option(3, "--videos", min=1, help="How many rollout GIFs with --video."),
     device: str = DeviceOpt,
@@ -710,7 +729,7 @@ def eval_cmd(
         if any(s.path == ("controller", "max_lag") for s in settings):
             raise BadInput("--max-lag with --set controller.max_lag", hint="give it once")
         settings.append(Setting(("controller", "max_lag"), max_lag or None, f"--max-lag {max_lag:g}"))
-    m = _load(model, "model")
+    m = _trained_model(model, allow_partial)
     config = eval_config(
         m, episodes, seed_list, controller, settings, sampler, sample_steps, use_ema=not raw_weights, seed=seed
     )
@@ -860,9 +879,12 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     command = typer.main.get_command(app)
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
-        command.main(args=args, prog_name=PROG, standalone_mode=False)
-        return 0
+        code = command.main(args=args, prog_name=PROG, standalone_mode=False)
+        if code == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into a returned exit code 130
+            _interrupted(args)
+        return code if isinstance(code, int) else 0
     except typer.Exit as exc:
         return exc.exit_code
     except click_exc.UsageError as exc:
@@ -878,20 +900,32 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except typer.Abort:
         _error("aborted")
-        return 130
+        return EXIT_INTERRUPTED
     except CdrbError as exc:
         if debug:
             raise
         _error(exc.line())
         return exc.exit_code
     except KeyboardInterrupt:
-        _error("interrupted; artifacts already written are intact")
-        return 130
+        _interrupted(args)
+        return EXIT_INTERRUPTED
     except Exception as exc:  # a bug or an environment failure: still one line unless --debug
         if debug:
             raise
         _error(f"{type(exc).__name__}: {_one_line(str(exc))[:300]} (re-run with `cdrb --debug ...` for a traceback)")
         return EXIT_FAILED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum, frame) -> None:
+    """SIGTERM ends a run like Ctrl-C: temp files removed, one line, exit code 130."""
+    raise KeyboardInterrupt
+
+
+def _interrupted(args: list[str]) -> None:
+    resume = "; continue the training with --resume" if "train" in args or "quickstart" in args else ""
+    _error(f"interrupted; artifacts already written are intact{resume}")
 
 
 if __name__ == "__main__":

@@ -5,6 +5,10 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -173,3 +177,34 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
         assert "\n" not in str(exc)
         return
     assert art.kind in KINDS
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_interrupts_exit_130_with_one_line_and_partial_models_are_refused(small_data, tmp_path, cdrb, sig):
+    """Ctrl-C (or SIGTERM) during training: exit 130, one line saying how to continue, no temp file; the unfinished
+    checkpoint is not planned with unless asked (--allow-partial)."""
+    from tests.test_train import TINY_FLAGS
+
+    demos, buffer = small_data
+    out = tmp_path / "m.h5"
+    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "100000", "--set", "checkpoint_every=5"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", "-q", *map(str, args), *TINY_FLAGS, "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.time() + 120
+    while not out.exists() and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(sig)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and stdout == "", (proc.returncode, stderr)
+    assert stderr.startswith("error: interrupted") and "--resume" in stderr and stderr.count("\n") == 1, stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["m.h5"]
+    assert not artifacts.load(out, "model").manifest.state.finished
+    r = cdrb("plan", out, "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
+    assert r.returncode == 2 and "--allow-partial" in r.stderr and "unfinished" in r.stderr
+    r = cdrb("plan", out, "--start", "0,0", "--goal", "6,6", "--allow-partial", "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr
