@@ -230,16 +230,17 @@ def main() -> None:
         figs = DOCS / "figures" if args.write_docs else args.out
         figs.mkdir(parents=True, exist_ok=True)
         run(
-            ["report", *evals, "--format", "markdown", "--paper", "--out", report_md, "--plot", figs / "table1.png"],
+            ["report", *evals, "--format", "markdown", "--paper", "--out", report_md, "--plot", figs / "table1.png"]
+            + ["--force"],
             log,
             "report",
         )
         csv = (DOCS / "results" if args.write_docs else args.out) / "table1.csv"
         csv.parent.mkdir(parents=True, exist_ok=True)
-        run(["report", *evals, "--format", "csv", "--out", csv], log, "report csv")
+        run(["report", *evals, "--format", "csv", "--out", csv, "--force"], log, "report csv")
         if timed_evals:
             run(
-                ["report", *timed_evals, "--format", "markdown", "--out", args.out / "table1-timed.md"],
+                ["report", *timed_evals, "--format", "markdown", "--out", args.out / "table1-timed.md", "--force"],
                 log,
                 "report timed",
             )

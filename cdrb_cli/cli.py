@@ -152,6 +152,26 @@ def _int_list(text: str, flag: str) -> list[int]:
     return values
 
 
+PICTURES = (".png", ".pdf", ".svg")
+
+
+def _check_outputs(force: bool, inputs=(), **outputs: Path | None) -> None:
+    """Every output path of a command (``out=..., plot=...``), before any work: the rule of
+    :func:`cdrb_cli.artifacts.check_output`, pictures with a picture suffix, and no two outputs the same."""
+    from cdrb_cli.artifacts import check_output
+
+    given = {name: Path(p) for name, p in outputs.items() if p is not None}
+    seen: dict[Path, str] = {}
+    for name, path in given.items():
+        flag = "--" + name.replace("_", "-")
+        key = path.resolve()
+        if key in seen:
+            raise BadInput(f"{flag} {path}: the same file as {seen[key]}", hint="give each output its own path")
+        seen[key] = flag
+        if name != "out":  # --out is checked (and locked) by the stage that writes it
+            check_output(path, force, flag, inputs, suffixes=PICTURES)
+
+
 def _check_positive(flag: str, value) -> None:
     if value is not None and value <= 0:
         raise BadInput(f"{flag} {value}: must be positive", hint=f"pass {flag} N with N > 0")
@@ -307,6 +327,7 @@ def collect(
     from cdrb_cli.stages.collect import collect as run_collect
     from cdrb_cli.stages.collect import collect_config
 
+    _check_outputs(force, out=out, plot=plot)
     spec = _spec(env, maze_map)
     config = collect_config(spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction)
     demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out), env=spec)
@@ -346,12 +367,12 @@ def expert_train(
     force: bool = ForceOpt,
 ) -> None:
     """Train a goal-conditioned SAC(+HER) expert. About 11-15 ms per step on 2 CPU cores: 1M steps take 3-4 hours."""
-    from cdrb_cli.artifacts import check_output
+    from cdrb_cli.artifacts import claim_output
     from cdrb_cli.experts.sac import train_sac
 
     spec = _spec(env, maze_map)
-    check_output(out, force)
-    train_sac(spec, steps, seed, out, her=her)
+    with claim_output(out, force):
+        train_sac(spec, steps, seed, out, her=her)
     ui.emit(out)
 
 
@@ -389,6 +410,7 @@ def cluster(
     from cdrb_cli.configs import ClusterConfig
     from cdrb_cli.stages.cluster import cluster as run_cluster
 
+    _check_outputs(force, [demos], out=out, plot=plot)
     d = _load(demos, "demos")
     config = ClusterConfig(features=features, split=split, seed=seed, **({"k": k} if k is not None else {}))
     buf = produce(out, "buffer", force, config, lambda: run_cluster(d, config, out), parents=[d])
@@ -610,6 +632,7 @@ def plan(
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--sample-steps", sample_steps)
+    _check_outputs(force, [model], out=out, plot=plot)
     m = _trained_model(model, allow_partial)
     spec = m.manifest.env
     family = family_of(spec)
@@ -771,6 +794,7 @@ def report(
     out: Path | None = typer.Option(None, "--out", "-o", help="Write the report to this file (else stdout)."),
     plot: Path | None = typer.Option(None, "--plot", help="Bar chart of success and planned-in-obstacle rates (PNG)."),
     plans_plot: Path | None = typer.Option(None, "--plans-plot", help="Every method's plans for the same pairs (PNG)."),
+    force: bool = ForceOpt,
 ) -> None:
     """Compare eval artifacts in a Table-1-style report (success mean ± std over seeds, plus planned states in
     obstacles, executed collisions, path length and planning time), with optional pictures.
@@ -778,6 +802,11 @@ def report(
     Evals of one environment must share a protocol (seeds, episodes, controller); mixing is an error."""
     from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
 
+    _check_outputs(force, evals, out=out, plot=plot, plans_plot=plans_plot)
+    if out is not None:
+        from cdrb_cli.artifacts import check_output
+
+        check_output(out, force, "--out", evals)
     arts = [_load(p, "eval") for p in evals]
     rows = collect_rows(arts)
     text = render(rows, fmt, paper=paper)
@@ -788,9 +817,9 @@ def report(
         plot_side_by_side(arts, plans_plot)
         ui.log(f"picture: {plans_plot}")
     if out is not None:
-        from cdrb_cli.artifacts import atomic_path
+        from cdrb_cli.artifacts import atomic_path, claim_output
 
-        with atomic_path(out) as tmp:
+        with claim_output(out, force, "--out", evals), atomic_path(out) as tmp:
             tmp.write_text(text)
         ui.emit(out)
     else:

@@ -46,6 +46,7 @@ from cdrb_cli.artifacts.kinds import (
     PlansManifest,
 )
 from cdrb_cli.artifacts.migrations import can_migrate, migrate_arrays, migrate_manifest
+from cdrb_cli.artifacts.outputs import check_output, claim_output
 from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
 
@@ -57,6 +58,7 @@ __all__ = [
     "existing",
     "Existing",
     "check_output",
+    "claim_output",
     "produce",
     "find_up_to_date",
     "sha256_file",
@@ -291,21 +293,7 @@ def produce(path: str | Path, kind: str, force: bool, config, build, parents=(),
                 f"{flag} {path}: file exists and was not made by this exact command ({found.reason})",
                 hint="pass --force to overwrite it, or choose another path",
             )
-        ui.log(f"[green]{path}[/green] is up to date (same config and inputs): skipped; --force redoes it")
+        ui.log(f"{path} is up to date (same config and inputs): skipped; --force redoes it")
         return found.artifact
-    check_output(path, force=True, flag=flag)
-    return build()
-
-
-def check_output(path: str | Path, force: bool, flag: str = "--out") -> Path:
-    """Validate an output path before any work starts: its folder must exist and, unless ``force``, it must not
-    hold a file already."""
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise BadInput(f"{flag} {path}: folder {folder} does not exist", hint="create it or choose another path")
-    if path.is_dir():
-        raise BadInput(f"{flag} {path}: is a folder", hint="give a file name such as model.h5")
-    if path.exists() and not force:
-        raise BadInput(f"{flag} {path}: file exists", hint="pass --force to overwrite it, or choose another path")
-    return path
+    with claim_output(path, force=True, flag=flag, inputs=[p.path for p in parents]):
+        return build()

@@ -108,6 +108,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     if not folder.exists():
         raise BadInput(f"{path}: folder {folder} does not exist", hint="create it first or choose another --out")
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=folder)
+    os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a written file honours the umask like any other
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -123,6 +124,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         except FileNotFoundError:
             pass
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _before_rename_hook(tmp: Path, final: Path) -> None:

@@ -80,54 +80,56 @@ def quickstart(
     t0 = time.time()
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    total = 3 + 2 * len(methods)
-    step = 0
-    spec = make_spec(env)
-    paths: dict[str, Path] = {}
+    # one quickstart per folder at a time (the lock of its report covers the whole run)
+    with artifacts.claim_output(folder / "report.md", force=True):
+        total = 3 + 2 * len(methods)
+        step = 0
+        spec = make_spec(env)
+        paths: dict[str, Path] = {}
 
-    step += 1
-    _stage(step, total, f"collect {episodes} expert demos on {env}")
-    demos_path = paths["demos"] = folder / "demos.h5"
-    ccfg = collect_config(spec, episodes, seed=seed)
-    demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
-
-    step += 1
-    kcfg = ClusterConfig(seed=seed, **({"k": k} if k is not None else {}))
-    _stage(step, total, f"cluster the replay buffer (k={kcfg.k})")
-    buffer_path = paths["buffer"] = folder / "buffer.h5"
-    buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
-
-    models = {}
-    for method in methods:
         step += 1
-        _stage(step, total, f"train {method} (quick preset)")
-        b = buffer if METHODS.get(method).needs_buffer else None
-        cfg = train_config(demos, b, method, {"steps": steps} if steps else {}, seed=seed)
-        out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
-        models[method], done = train_or_resume(demos, b, cfg, out, device=device, auto=True)
-        if done != "trained":
-            ui.log(f"  {done}")
+        _stage(step, total, f"collect {episodes} expert demos on {env}")
+        demos_path = paths["demos"] = folder / "demos.h5"
+        ccfg = collect_config(spec, episodes, seed=seed)
+        demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
 
-    evals = []
-    for method in methods:
         step += 1
-        _stage(step, total, f"evaluate {method}: {len(seeds)} seeds x {eval_episodes} episodes")
-        ecfg = eval_config(models[method], eval_episodes, seeds, seed=seed)
-        out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
-        ev = _reuse(out, "eval", ecfg, [models[method]])
-        if ev is None:
-            ev = evaluate(
-                models[method], ecfg, out, device=device, video_dir=folder / "videos" if videos else None, videos=videos
-            )
-        evals.append(ev)
+        kcfg = ClusterConfig(seed=seed, **({"k": k} if k is not None else {}))
+        _stage(step, total, f"cluster the replay buffer (k={kcfg.k})")
+        buffer_path = paths["buffer"] = folder / "buffer.h5"
+        buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
 
-    step += 1
-    _stage(step, total, "report")
-    rows = collect_rows(evals)
-    text = render(rows, "markdown", paper=True)
-    with artifacts.atomic_path(folder / "report.md") as tmp:
-        tmp.write_text(text)
-    pictures = [plot_bars(rows, folder / "results.png"), plot_side_by_side(evals, folder / "plans.png")]
-    pictures.append(plot_demos(demos, folder / "demos.png"))
-    paths["report"] = folder / "report.md"
-    return QuickstartResult(folder=folder, report=text, pictures=pictures, artifacts=paths, seconds=time.time() - t0)
+        models = {}
+        for method in methods:
+            step += 1
+            _stage(step, total, f"train {method} (quick preset)")
+            b = buffer if METHODS.get(method).needs_buffer else None
+            cfg = train_config(demos, b, method, {"steps": steps} if steps else {}, seed=seed)
+            out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
+            models[method], done = train_or_resume(demos, b, cfg, out, device=device, auto=True)
+            if done != "trained":
+                ui.log(f"  {done}")
+
+        evals = []
+        for method in methods:
+            step += 1
+            _stage(step, total, f"evaluate {method}: {len(seeds)} seeds x {eval_episodes} episodes")
+            ecfg = eval_config(models[method], eval_episodes, seeds, seed=seed)
+            out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
+            ev = _reuse(out, "eval", ecfg, [models[method]])
+            if ev is None:
+                video_dir = folder / "videos" if videos else None
+                ev = evaluate(models[method], ecfg, out, device=device, video_dir=video_dir, videos=videos)
+            evals.append(ev)
+
+        step += 1
+        _stage(step, total, "report")
+        rows = collect_rows(evals)
+        text = render(rows, "markdown", paper=True)
+        with artifacts.atomic_path(folder / "report.md") as tmp:
+            tmp.write_text(text)
+        pictures = [plot_bars(rows, folder / "results.png"), plot_side_by_side(evals, folder / "plans.png")]
+        pictures.append(plot_demos(demos, folder / "demos.png"))
+        paths["report"] = folder / "report.md"
+        seconds = time.time() - t0
+        return QuickstartResult(folder=folder, report=text, pictures=pictures, artifacts=paths, seconds=seconds)

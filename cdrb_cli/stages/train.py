@@ -59,8 +59,12 @@ def train_or_resume(
     ``up to date``, ``resumed`` or ``trained``."""
     if resume and force:
         raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
-    artifacts.check_output(out, force=True)
     parents = [demos] + ([buffer] if buffer is not None else [])
+    with artifacts.claim_output(out, force=True, inputs=[p.path for p in parents]):
+        return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, device, auto)
+
+
+def _train_or_resume(demos, buffer, config, out, parents, force, resume, device, auto):
     found = artifacts.existing(out, "model", config, parents) if not force else artifacts.Existing("missing")
     if found.up_to_date:
         return found.artifact, "up to date"

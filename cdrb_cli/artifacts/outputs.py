@@ -1,0 +1,133 @@
+"""Output paths: the one rule every command follows before it writes a file (an artifact, a picture, a report).
+
+:func:`check_output` (before any work): the folder exists and is writable (a file is created and removed there,
+so a read-only filesystem or an immutable folder is found now, not after an hour of training); the path is not a
+folder, not a symbolic link, not a device or FIFO; it is none of the run's inputs; an existing file is an error
+unless ``--force``.
+
+:func:`claim_output` (for the whole run): the same checks, then an exclusive lock on ``.NAME.lock`` beside the
+output, so a second run writing the same path stops at once with the holder's pid instead of both "succeeding"
+with one result lost; under the lock, temp files left by a killed writer of that path are removed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from cdrb_cli.errors import BadInput
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover (Windows: no locking)
+    fcntl = None
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output(
+    path: str | Path,
+    force: bool,
+    flag: str = "--out",
+    inputs: Iterable[str | Path] = (),
+    suffixes: tuple[str, ...] = (),
+) -> Path:
+    """Validate an output path before any work starts (see the module docstring); returns it as a Path."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise BadInput(f"{flag} {path}: unsupported file type", hint=f"use {', '.join(suffixes)}")
+    if not folder.is_dir():
+        raise BadInput(f"{flag} {path}: folder {folder} does not exist", hint="create it or choose another path")
+    if path.is_symlink():
+        raise BadInput(f"{flag} {path}: is a symbolic link", hint="pass the path of a regular file")
+    if path.is_dir():
+        raise BadInput(f"{flag} {path}: is a folder", hint="give a file name such as model.h5")
+    if path.exists():
+        mode = path.stat().st_mode
+        if not stat.S_ISREG(mode):
+            raise BadInput(f"{flag} {path}: is not a regular file (a device or FIFO?)", hint="choose another path")
+        for item in inputs:
+            if _same(path, Path(item)):
+                raise BadInput(f"{flag} {path}: is an input of this command", hint="write to another path")
+        if not force:
+            raise BadInput(f"{flag} {path}: file exists", hint="pass --force to overwrite it, or choose another path")
+    _check_writable(folder, flag, path)
+    return path
+
+
+def _check_writable(folder: Path, flag: str, path: Path) -> None:
+    probe = folder / f".cdrb-probe-{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise BadInput(
+            f"{flag} {path}: cannot write in {folder} ({exc.strerror or type(exc).__name__})",
+            hint="choose a writable folder",
+        ) from None
+
+
+@contextlib.contextmanager
+def claim_output(
+    path: str | Path, force: bool, flag: str = "--out", inputs: Iterable[str | Path] = ()
+) -> Iterator[Path]:
+    """:func:`check_output`, then hold an exclusive lock on the output for the ``with`` block."""
+    path = check_output(path, force, flag, inputs)
+    with _locked(path, flag):
+        _remove_stale_temps(path)
+        yield path
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.lock")
+
+
+@contextlib.contextmanager
+def _locked(path: Path, flag: str) -> Iterator[None]:
+    if fcntl is None:  # pragma: no cover
+        yield
+        return
+    lock = _lock_path(path)
+    while True:
+        fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "another process"
+            os.close(fd)
+            raise BadInput(
+                f"{flag} {path}: another cdrb run is writing it (pid {holder})",
+                hint="wait for it to finish, or write to another path",
+            ) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino  # not a lock file its holder just removed
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(lock)
+        os.close(fd)
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Temp files of ``path`` left by a writer that was killed (we hold the lock: no other writer exists)."""
+    for tmp in path.parent.glob(f".{path.name}.tmp-*"):
+        with contextlib.suppress(OSError):
+            tmp.unlink()

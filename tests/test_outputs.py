@@ -1,0 +1,114 @@
+"""One rule for every output path (issue: hostile files and careless flags, round two): existing -> error unless
+--force; never an input of the same run; only regular files are replaced; pictures and reports checked before
+any work; one writer per output at a time; files honour the umask; temp files of a killed writer are cleaned."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cdrb_cli import artifacts
+from tests.factories import write
+
+
+def test_outputs_that_are_not_regular_files_or_are_inputs(tmp_path, cdrb):
+    demos = write(tmp_path / "d.h5", "demos")
+    fifo = tmp_path / "fifo.h5"
+    os.mkfifo(fifo)
+    link = tmp_path / "link.h5"
+    link.symlink_to(demos)
+    cases = [
+        (["cluster", demos, "--k", "2", "--out", fifo, "--force"], "is not a regular file"),
+        (["cluster", demos, "--k", "2", "--out", "/dev/null", "--force"], "is not a regular file"),
+        (["cluster", demos, "--k", "2", "--out", link, "--force"], "is a symbolic link"),
+        (["cluster", demos, "--k", "2", "--out", demos, "--force"], "is an input of this command"),
+    ]
+    for args, needle in cases:
+        r = cdrb(*args)
+        assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
+    assert fifo.is_fifo() and link.is_symlink() and artifacts.load(demos).kind == "demos"
+
+
+def test_report_out_follows_the_rule(tmp_path, cdrb):
+    ev = write(tmp_path / "e.h5", "eval")
+    before = ev.read_bytes()
+    r = cdrb("report", ev, "--out", ev, "--force")
+    assert r.returncode == 2 and "is an input" in r.stderr and ev.read_bytes() == before
+    out = tmp_path / "r.md"
+    out.write_text("mine")
+    r = cdrb("report", ev, "--out", out)
+    assert r.returncode == 2 and "--force" in r.stderr and out.read_text() == "mine"
+    assert cdrb("report", ev, "--out", out, "--force").returncode == 0 and "Success rate" in out.read_text()
+
+
+def test_pictures_are_checked_before_any_work(tmp_path, cdrb):
+    out = tmp_path / "d.h5"
+    for plot, needle in [
+        (tmp_path / "d.txt", "unsupported file type"),
+        (tmp_path / "nowhere" / "d.png", "does not exist"),
+        (out, "the same file as --out"),
+    ]:
+        r = cdrb("collect", "maze-tight", "-n", "2", "--out", out, "--plot", plot)
+        assert r.returncode == 2 and needle in r.stderr, r.stderr
+        assert not out.exists()
+    picture = tmp_path / "d.png"
+    picture.write_bytes(b"mine")
+    r = cdrb("collect", "maze-tight", "-n", "2", "--out", out, "--plot", picture)
+    assert r.returncode == 2 and "--plot" in r.stderr and not out.exists() and picture.read_bytes() == b"mine"
+
+
+@pytest.mark.skipif(shutil.which("chattr") is None, reason="needs chattr")
+def test_an_unwritable_folder_is_found_before_any_work(tmp_path, cdrb):
+    demos = write(tmp_path / "d.h5", "demos")
+    folder = tmp_path / "frozen"
+    folder.mkdir()
+    if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode != 0:
+        pytest.skip("the filesystem has no immutable attribute")
+    try:
+        r = cdrb("cluster", demos, "--k", "2", "--out", folder / "b.h5")
+        assert r.returncode == 2 and "cannot write in" in r.stderr, r.stderr
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)])
+
+
+def test_artifacts_honour_the_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        path = write(tmp_path / "d.h5", "demos")
+        assert path.stat().st_mode & 0o777 == 0o644
+        os.umask(0o077)
+        write(path, "demos", seed=3)
+        assert path.stat().st_mode & 0o777 == 0o600
+    finally:
+        os.umask(old)
+
+
+def test_two_runs_on_one_output_the_second_stops(small_data, tmp_path, cdrb):
+    from tests.test_train import TINY_FLAGS
+
+    demos, buffer = small_data
+    out = tmp_path / "m.h5"
+    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "100000", *TINY_FLAGS, "--out", out]
+    first = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", "-q", *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    try:
+        deadline = time.time() + 60
+        while not (tmp_path / ".m.h5.lock").exists() and time.time() < deadline:
+            time.sleep(0.05)
+        r = cdrb(*args)
+        assert r.returncode == 2 and f"another cdrb run is writing it (pid {first.pid})" in r.stderr, r.stderr
+    finally:
+        first.kill()
+        first.wait()
+    # a killed writer's temp files are removed by the next writer of the same output
+    stale = tmp_path / ".m.h5.tmp-stale"
+    stale.write_bytes(b"x" * 100)
+    r = cdrb(*[a if a != "100000" else "3" for a in args], "--force")
+    assert r.returncode == 0, r.stderr
+    assert not stale.exists() and not (tmp_path / ".m.h5.lock").exists()
