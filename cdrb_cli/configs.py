@@ -69,9 +69,9 @@ class UNetConfig(Record):
     """Diffuser's temporal U-Net: Conv1d over time, GroupNorm, Mish, sinusoidal step embedding."""
 
     kind: Literal["unet"] = "unet"
-    dim: int = Field(32, gt=0, description="base width (channels of the first level); a multiple of groups")
-    dim_mults: list[int] = Field(
-        default_factory=lambda: [1, 4, 8], min_length=1, description="width multiplier of each level"
+    dim: int = Field(32, gt=0, le=4096, description="base width (channels of the first level); a multiple of groups")
+    dim_mults: list[Annotated[int, Field(gt=0, le=64)]] = Field(
+        default_factory=lambda: [1, 4, 8], min_length=1, max_length=8, description="width multiplier of each level"
     )
     kernel_size: int = Field(5, gt=0, le=31, description="temporal convolution kernel (odd)")
     groups: int = Field(8, gt=0, description="GroupNorm groups")
@@ -89,17 +89,19 @@ class TransformerConfig(Record):
     """A temporal transformer over planned states (the paper's architecture ablation)."""
 
     kind: Literal["transformer"] = "transformer"
-    d_model: int = Field(128, gt=0, description="token width; a multiple of n_heads")
-    n_layers: int = Field(8, gt=0, description="encoder layers")
-    n_heads: int = Field(4, gt=0, description="attention heads")
-    ff_dim: int = Field(512, gt=0, description="feed-forward width")
+    d_model: int = Field(128, gt=0, le=4096, description="token width; a multiple of n_heads")
+    n_layers: int = Field(8, gt=0, le=64, description="encoder layers")
+    n_heads: int = Field(4, gt=0, le=64, description="attention heads")
+    ff_dim: int = Field(512, gt=0, le=65536, description="feed-forward width")
 
 
 class MLPConfig(Record):
     """(start, goal) -> whole trajectory in one pass (the paper's MLP baseline)."""
 
     kind: Literal["mlp"] = "mlp"
-    hidden: list[int] = Field(default_factory=lambda: [512, 512, 512], description="hidden layer widths")
+    hidden: list[Annotated[int, Field(gt=0, le=65536)]] = Field(
+        default_factory=lambda: [512, 512, 512], min_length=1, max_length=16, description="hidden layer widths"
+    )
 
 
 NetConfig = Annotated[UNetConfig | TransformerConfig | MLPConfig, Field(discriminator="kind")]
@@ -120,7 +122,7 @@ class TrainConfig(Record):
     horizon: int = Field(gt=1, le=100_000, description="planned states per trajectory")
     stride: int = Field(gt=0, description="environment steps per planned state")
     steps: int = Field(gt=0, description="gradient steps")
-    batch_size: int = Field(gt=0, description="training windows per gradient step")
+    batch_size: int = Field(gt=0, le=65536, description="training windows per gradient step")
     lr: float = Field(gt=0, description="Adam learning rate")
     grad_clip: float | None = Field(1.0, gt=0, description="max gradient norm; null disables clipping")
     ema_decay: float = Field(ge=0, lt=1, description="decay of the exponential moving average of the weights")

@@ -304,3 +304,24 @@ def test_existing_is_the_one_rule_for_skip_and_resume(tmp_path):
     (tmp_path / "junk.h5").write_bytes(b"not hdf5")
     assert artifacts.existing(tmp_path / "junk.h5", "model", cfg).status == "invalid"
     assert artifacts.existing(tmp_path / "none.h5", "model", cfg).status == "missing"
+
+
+def test_virtual_and_external_storage_are_refused(tmp_path):
+    """An 'artifact' whose dataset reads another file (external raw storage, or a virtual dataset) would leak
+    that file's content and escape the artifact's sha256."""
+    secret = tmp_path / "secret.bin"
+    np.arange(10, dtype=np.float64).tofile(secret)
+    external = write(tmp_path / "ext.h5", "eval")
+    with h5py.File(external, "r+") as f:
+        del f["episodes/final_distance"]
+        f.create_dataset("episodes/final_distance", shape=(5,), dtype="f8", external=[(str(secret), 0, 40)])
+    msg = _err(external)
+    assert "outside the file" in msg and "final_distance" in msg
+    virtual = write(tmp_path / "virt.h5", "eval")
+    source = write(tmp_path / "src.h5", "eval")
+    with h5py.File(virtual, "r+") as f:
+        del f["episodes/final_distance"]
+        layout = h5py.VirtualLayout(shape=(5,), dtype="f4")
+        layout[:] = h5py.VirtualSource(str(source), "episodes/final_distance", shape=(5,))
+        f.create_virtual_dataset("episodes/final_distance", layout)
+    assert "outside the file" in _err(virtual)

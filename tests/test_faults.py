@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import signal
@@ -129,7 +130,9 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
     kind = data.draw(st.sampled_from(KINDS))
     p = tmp_path / "f.h5"
     shutil.copy(pristine[kind], p)
-    mutation = data.draw(st.sampled_from(["bytes", "truncate", "manifest", "attrs", "dataset"]))
+    mutation = data.draw(
+        st.sampled_from(["bytes", "truncate", "manifest", "attrs", "dataset", "storage", "sparse", "sizes"])
+    )
     if mutation == "bytes":
         raw = bytearray(p.read_bytes())
         for _ in range(data.draw(st.integers(1, 8))):
@@ -157,6 +160,37 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
             # what HDF5 can store as a string attribute: no NUL, no lone surrogates
             no_nul = st.text(st.characters(blacklist_characters="\x00", blacklist_categories=("Cs",)), max_size=12)
             f.attrs[name] = data.draw(no_nul | st.sampled_from(["1.9", "0.1", "demos", "model"]))
+    elif mutation == "storage":  # a dataset whose data lives in another file: virtual or external raw storage
+        with h5py.File(p, "r+") as f:
+            names = []
+            f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) and n != "manifest" else None)
+            name = data.draw(st.sampled_from(names))
+            shape, dtype = f[name].shape, f[name].dtype
+            del f[name]
+            if data.draw(st.booleans()):
+                layout = h5py.VirtualLayout(shape=shape, dtype=dtype)
+                layout[...] = h5py.VirtualSource(str(pristine[kind]), name, shape=shape)
+                f.create_virtual_dataset(name, layout)
+            else:
+                outside = tmp_path / "outside.bin"
+                outside.write_bytes(b"\0" * (int(np.prod(shape)) * dtype.itemsize + 8))
+                f.create_dataset(name, shape=shape, dtype=dtype, external=[(str(outside), 0, h5py.h5f.UNLIMITED)])
+    elif mutation == "sparse":  # a hole at the end, and a chunked dataset declaring far more than is stored
+        with h5py.File(p, "r+") as f:
+            f.create_dataset("padding", shape=(data.draw(st.integers(10**5, 10**8)),), dtype="f8", chunks=(10**5,))
+        os.truncate(p, p.stat().st_size + data.draw(st.integers(0, 2**31)))
+    elif mutation == "sizes":  # a size in the config blown up (net widths, steps, horizon, T, k, ...)
+        with h5py.File(p, "r+") as f:
+            m = json.loads(f["manifest"][()].decode())
+            ints = [w for w in _paths(m.get("config", {})) if w and isinstance(_get(m["config"], w), int)]
+            if ints:
+                where = data.draw(st.sampled_from(ints))
+                node = m["config"]
+                for key in where[:-1]:
+                    node = node[key]
+                node[where[-1]] = data.draw(st.sampled_from([10**9, 2**40, 40_000, -1]))
+            del f["manifest"]
+            f["manifest"] = np.bytes_(json.dumps(m).encode())
     else:
         with h5py.File(p, "r+") as f:
             names = []
@@ -173,10 +207,20 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
                 f[name] = np.full(arr.shape, np.nan)
     try:
         art = artifacts.load(p)
+        if art.kind == "model":  # what plan and eval do next: never allocate what the config claims unchecked
+            from cdrb_cli.methods.checkpoint import load_method
+
+            load_method(art)
     except BadInput as exc:
         assert "\n" not in str(exc)
         return
     assert art.kind in KINDS
+
+
+def _get(obj, where):
+    for key in where:
+        obj = obj[key]
+    return obj
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -208,3 +252,63 @@ def test_interrupts_exit_130_with_one_line_and_partial_models_are_refused(small_
     assert r.returncode == 2 and "--allow-partial" in r.stderr and "unfinished" in r.stderr
     r = cdrb("plan", out, "--start", "0,0", "--goal", "6,6", "--allow-partial", "--out", tmp_path / "p.h5")
     assert r.returncode == 0, r.stderr
+
+
+def _rewrite_manifest(path, mutate):
+    with h5py.File(path, "r+") as f:
+        m = json.loads(f["manifest"][()].decode())
+        mutate(m)
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+
+
+def test_a_sparse_tail_does_not_lift_the_size_cap(tmp_path):
+    """64x the bytes the file really holds, not its apparent size: a hole at the end must not let a few KiB on disk
+    declare hundreds of MB of (fill-value) data."""
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:
+        f.create_dataset("extra", shape=(50_000_000,), dtype="f8", chunks=(1_000_000,))  # 400 MB, nothing stored
+    os.truncate(p, 200 * 2**20)  # a 200 MB apparent size, a few KiB on disk
+    assert p.stat().st_size == 200 * 2**20 and p.stat().st_blocks * 512 < 2**20
+    with pytest.raises(BadInput, match="more than this file can hold"):
+        artifacts.load(p)
+
+
+@pytest.fixture(scope="module")
+def trained(small_data, tmp_path_factory):
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    return train(
+        demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2)), tmp_path_factory.mktemp("m") / "m.h5"
+    )
+
+
+@pytest.mark.parametrize(
+    "mutate, needle",
+    [
+        (lambda m: m["config"]["net"].update(dim=40_000), "less than or equal to 4096"),
+        (lambda m: m["config"]["method"].update(diffusion_steps=2_000_000_000), "less than or equal to 100000"),
+        (lambda m: m["config"].update(method={"name": "mlp", "sampler": "direct"}), "the mlp method uses --net mlp"),
+        (lambda m: m["config"].update(horizon=15), "multiple of 2"),
+        (lambda m: m["state"].update(step=10**6), "past config.steps"),
+    ],
+)
+def test_model_configs_are_checked_when_read(trained, tmp_path, mutate, needle):
+    p = tmp_path / "m.h5"
+    shutil.copy(trained.path, p)
+    _rewrite_manifest(p, mutate)
+    with pytest.raises(BadInput, match=re.escape(needle)):
+        artifacts.load(p)
+
+
+def test_a_config_that_does_not_fit_its_weights_is_refused_before_building(trained, tmp_path, cdrb):
+    """net.dim 64 is a valid config, but the stored tensors were made with 8: refused from shapes alone (the
+    network is never allocated), naming a tensor."""
+    p = tmp_path / "m.h5"
+    shutil.copy(trained.path, p)
+    _rewrite_manifest(p, lambda m: m["config"]["net"].update(dim=64))
+    r = cdrb("plan", p, "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
+    assert r.returncode == 2 and "has shape" in r.stderr and "its config builds" in r.stderr, r.stderr

@@ -215,10 +215,24 @@ def _walk(f: h5py.File) -> dict[str, h5py.Dataset]:
             if isinstance(obj, h5py.Group):
                 visit(obj, name + "/")
             elif isinstance(obj, h5py.Dataset):
+                # a virtual dataset, or one whose raw data lives in another file, would read outside this file
+                # (and outside its sha256)
+                if obj.is_virtual or obj.external:
+                    raise ArtifactError(
+                        f"{f.filename}: dataset /{name} keeps its data outside the file (virtual or external storage)",
+                        hint="not a cdrb artifact",
+                    )
                 found[name] = obj
 
     visit(f, "")
     return found
+
+
+def _stored_bytes(path: Path) -> int:
+    """Bytes the file really occupies: a sparse file's apparent size (a hole at its end) would lift the cap."""
+    st = path.stat()
+    blocks = getattr(st, "st_blocks", None)
+    return st.st_size if blocks is None else min(st.st_size, 512 * blocks)
 
 
 def read_h5(
@@ -300,7 +314,7 @@ def read_h5(
             if ds.shape is None:
                 raise ArtifactError(f"{path}: dataset /{name} has no shape (empty dataspace)", hint="re-create it")
             total += int(np.prod(ds.shape, dtype=np.float64)) * dt.itemsize
-        limit = min(MAX_TOTAL_BYTES, FILE_EXPANSION * path.stat().st_size + 2**20)
+        limit = min(MAX_TOTAL_BYTES, FILE_EXPANSION * _stored_bytes(path) + 2**20)
         if total > limit:
             raise ArtifactError(
                 f"{path}: datasets declare {total / 2**20:.0f} MiB, "

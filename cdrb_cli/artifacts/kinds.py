@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from cdrb_cli.artifacts.core import ArtifactBase, DatasetSpec, GroupSpec
 from cdrb_cli.configs import (
@@ -67,6 +67,17 @@ class ModelManifest(ManifestBase):
     kind: Literal["model"] = "model"
     config: TrainConfig
     state: TrainState
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ModelManifest:
+        from cdrb_cli.methods.config import config_problem
+
+        problem = config_problem(self.config)
+        if problem is not None:
+            raise ValueError(f"config.{'.'.join(problem[0])}: {problem[1]}")
+        if self.state.step > self.config.steps:
+            raise ValueError(f"state.step {self.state.step} is past config.steps {self.config.steps}")
+        return self
 
 
 class PlansManifest(ManifestBase):

@@ -31,7 +31,7 @@ class CDRBParams(MethodParams):
     d_max: float = Field(
         gt=0, description="largest ball radius, in normalized feature space (default: the buffer's diameter)"
     )
-    diffusion_steps: int = Field(gt=1, description="T, the number of diffusion steps")
+    diffusion_steps: int = Field(gt=1, le=100_000, description="T, the number of diffusion steps")
     sampler: Literal["alg1", "alg2"] = Field(
         "alg1", description="alg1: re-degrade the restored plan (as released); alg2: cold diffusion's update"
     )

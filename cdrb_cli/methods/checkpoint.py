@@ -132,6 +132,32 @@ def normalizer_of(model) -> Normalizer:
     return Normalizer(low=model.arrays["normalizer/low"], high=model.arrays["normalizer/high"])
 
 
+def check_tensors(model, method_cls_args) -> None:
+    """The model's config against its stored tensors, before anything is allocated: the method is built on
+    PyTorch's meta device (shapes only, no memory) and every module's state_dict must match ``weights/`` and
+    ``ema/`` exactly, so a config whose sizes were tampered with (``net.dim`` 40,000) is refused with the tensor
+    it does not fit, instead of allocating gigabytes."""
+    with torch.device("meta"):
+        probe = build_method(*method_cls_args, device="meta")
+    expected: dict[str, tuple[int, ...]] = {}
+    for m, module in probe.modules().items():
+        for name, t in module.state_dict().items():
+            expected[f"weights/{m}/{name}"] = tuple(t.shape)
+            if m in probe.ema_modules():
+                expected[f"ema/{m}/{name}"] = tuple(t.shape)
+    stored = {k: tuple(v.shape) for k, v in model.arrays.items() if k.startswith(("weights/", "ema/"))}
+    for key in sorted(set(expected) | set(stored)):
+        if expected.get(key) != stored.get(key):
+            what = (
+                f"has no tensor /{key}"
+                if key not in stored
+                else f"tensor /{key} has shape {stored[key]}, but its config builds {expected[key]}"
+                if key in expected
+                else f"tensor /{key} belongs to no module of its config"
+            )
+            raise BadInput(f"{model.path}: {what}", hint="the weights do not fit the config: re-train the model")
+
+
 def load_method(model, device="cpu", ema: bool = True) -> Method:
     """Rebuild the method of a model artifact, ready to sample: its modules hold the EMA weights (``ema``) or the
     raw ones, in eval mode."""
@@ -142,7 +168,9 @@ def load_method(model, device="cpu", ema: bool = True) -> Method:
     points = model.arrays.get("buffer/points")
     if entry.needs_buffer and points is None:
         raise BadInput(f"{model.path}: {entry.name} model without /buffer/points", hint="re-train it")
-    method = build_method(cfg, spec, normalizer_of(model), points, device=device)
+    args = (cfg, spec, normalizer_of(model), points)
+    check_tensors(model, args)
+    method = build_method(*args, device=device)
     if ema:
         mods = method.modules()
         load_weights(model, method, "ema", {m: mods[m] for m in method.ema_modules()})

@@ -98,25 +98,36 @@ def resolve_train_config(
     return config
 
 
-def _check_net(config: TrainConfig, settings: Sequence[Setting]) -> None:
-    """Constraints between fields that pydantic does not see."""
+def config_problem(config: TrainConfig) -> tuple[tuple[str, ...], str, str] | None:
+    """A constraint between fields that pydantic does not see, as (the key to blame, message, hint); None when
+    the config is consistent. Checked when a config is resolved and when a model artifact is read."""
+    entry = METHODS.get(config.method.name)
     net = config.net
-    if isinstance(net, UNetConfig):
-        if any(m <= 0 for m in net.dim_mults):
-            raise BadInput(f"{_source(lookup(settings, ('net', 'dim_mults')), 'net.dim_mults')}: must be positive")
-        if net.dim % net.groups:
-            where = _source(lookup(settings, ("net", "dim")), f"net.dim {net.dim}")
-            raise BadInput(f"{where}: must be a multiple of net.groups ({net.groups})", hint="e.g. --set net.dim=32")
-    if getattr(net, "kind", None) == "transformer" and net.d_model % net.n_heads:
-        where = _source(lookup(settings, ("net", "d_model")), f"net.d_model {net.d_model}")
-        raise BadInput(f"{where}: must be a multiple of net.n_heads ({net.n_heads})")
+    if net.kind not in entry.nets:
+        return ("net", "kind"), f"the {entry.name} method uses --net {' or '.join(entry.nets)}", "re-train"
+    if isinstance(net, UNetConfig) and net.dim % net.groups:
+        return ("net", "dim"), f"must be a multiple of net.groups ({net.groups})", "e.g. --set net.dim=32"
+    if net.kind == "transformer" and net.d_model % net.n_heads:
+        return ("net", "d_model"), f"must be a multiple of net.n_heads ({net.n_heads})", "e.g. --set net.d_model=64"
     mult = horizon_multiple(net)
     if config.horizon % mult:
-        where = _source(lookup(settings, ("horizon",)), f"horizon {config.horizon}")
-        raise BadInput(
-            f"{where}: the U-Net with {len(net.dim_mults)} levels needs a horizon that is a multiple of {mult}",
-            hint=f"use --set horizon={config.horizon + (-config.horizon) % mult}",
+        return (
+            ("horizon",),
+            f"the U-Net with {len(net.dim_mults)} levels needs a horizon that is a multiple of {mult}",
+            f"use --set horizon={config.horizon + (-config.horizon) % mult}",
         )
+    return None
+
+
+def _check_net(config: TrainConfig, settings: Sequence[Setting]) -> None:
+    problem = config_problem(config)
+    if problem is not None:
+        key, message, hint = problem
+        value = config.model_dump()
+        for part in key:
+            value = value[part]
+        where = _source(lookup(settings, key), f"{'.'.join(key)} {value}")
+        raise BadInput(f"{where}: {message}", hint=hint)
 
 
 # ------------------------------------------------------------------------------------------------ from artifacts

@@ -36,7 +36,7 @@ def _schedulers():
 
 class DiffuserParams(MethodParams):
     name: Literal["diffuser"] = "diffuser"
-    diffusion_steps: int = Field(gt=1, description="T, the number of diffusion steps")
+    diffusion_steps: int = Field(gt=1, le=100_000, description="T, the number of diffusion steps")
     beta_schedule: Literal["cosine", "linear"] = Field("cosine", description="the DDPM noise schedule")
     predict: Literal["x0", "epsilon"] = Field("x0", description="what the network predicts")
     clip_denoised: bool = Field(True, description="clip the predicted x0 to [-1, 1] when sampling")
