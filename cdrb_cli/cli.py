@@ -521,7 +521,7 @@ def train(
         return
     model, done = train_or_resume(d, b, config, out, force=force, resume=resume, device=setup_torch(device))
     if done == "up to date":
-        ui.log(f"[green]{out}[/green] is up to date (same config and inputs): skipped; --force redoes it")
+        ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")
     st = model.manifest.state
     ui.log(
         f"{config.method.name}: {st.step} steps, loss {st.loss:.4f}"
@@ -885,7 +885,7 @@ def _one_line(text: str) -> str:
 
 
 def _error(text: str) -> None:
-    sys.stderr.write(f"error: {_one_line(text)}\n")
+    sys.stderr.write(f"error: {ui.plain(_one_line(text))}\n")
     sys.stderr.flush()
 
 

@@ -17,6 +17,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.text import Text
 
 err = Console(stderr=True, highlight=False, soft_wrap=True)
 
@@ -28,14 +29,23 @@ def set_quiet(value: bool) -> None:
     _quiet = value
 
 
+def plain(text: Any, limit: int | None = None) -> str:
+    """Text safe for a terminal: control characters (ANSI escapes, carriage returns...) replaced by '?', optionally
+    bounded. Every string that may come from a file or a path goes through it before it is printed."""
+    out = "".join(ch if ch.isprintable() or ch == "\n" else "?" for ch in str(text))
+    if limit is not None and len(out) > limit:
+        out = out[:limit] + f"... ({len(out) - limit} more characters)"
+    return out
+
+
 def log(message: str) -> None:
-    """A log line on stderr (rich markup allowed)."""
+    """A log line on stderr, printed as plain text (no markup is interpreted, control characters neutralized)."""
     if not _quiet:
-        err.print(message)
+        err.print(Text(plain(message)))
 
 
 def warn(message: str) -> None:
-    err.print(f"[yellow]warning:[/yellow] {message}")
+    err.print(Text("warning: ", style="yellow") + Text(plain(message)))
 
 
 def stdout_console():
@@ -57,13 +67,13 @@ def progress(transient: bool = False):
     """A rich progress display on stderr. Tasks may carry a ``info`` field shown after the bar."""
     columns = [
         SpinnerColumn(),
-        TextColumn("[bold]{task.description}"),
+        TextColumn("{task.description}", markup=False, style="bold"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
         TextColumn("eta"),
         TimeRemainingColumn(),
-        TextColumn("{task.fields[info]}"),
+        TextColumn("{task.fields[info]}", markup=False),
     ]
     with Progress(*columns, console=err, transient=transient, disable=_quiet) as p:
         yield p
@@ -80,10 +90,8 @@ def table(rows: list[dict], columns: list[tuple[str, str]]) -> None:
 
 
 def _cell(value: Any):
-    from rich.text import Text
-
     if isinstance(value, bool):
         return Text("yes" if value else "no")
     if isinstance(value, float):
         return Text(f"{value:g}")
-    return Text("" if value is None else str(value))
+    return Text("" if value is None else plain(value))

@@ -105,3 +105,15 @@ def test_sac_expert_train_and_collect_tiny_budget(tmp_path, cdrb):
     # a file that is not an SB3 zip is refused with exit code 2
     r = cdrb("collect", "umaze", "--expert", "sac", "--policy", out, "-n", "2", "--out", tmp_path / "x.h5")
     assert r.returncode == 2 and "not a stable-baselines3" in r.stderr
+
+
+def test_names_from_files_are_printed_as_plain_text(tmp_path, cdrb):
+    """Paths and names that look like rich markup or hold terminal escapes neither break a run nor reach the
+    terminal raw."""
+    m = tmp_path / "x\x1b[31m.txt"
+    m.write_text("#######\n#S...G#\n#######\n")
+    folder = tmp_path / "[" / "bold]"  # a picture path containing the markup closing tag "[/bold]"
+    folder.mkdir(parents=True)
+    r = cdrb("collect", "--maze-map", m, "-n", "2", "--out", tmp_path / "d.h5", "--plot", folder / "p.png")
+    assert r.returncode == 0, r.stderr
+    assert "map:x?[31m" in r.stderr and "\x1b" not in r.stderr and "[/bold]/p.png" in r.stderr

@@ -191,9 +191,9 @@ def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
     r = cdrb("report", ev.path, tmp_path / "other.h5")
     assert r.returncode == 2 and "different protocols" in r.stderr
     # another method evaluated on other seeds
-    summ = evals["diffuser"].manifest.summary
-    summ = summ.model_copy(update={"per_seed": [p.model_copy(update={"seed": 9}) for p in summ.per_seed[:1]]})
-    artifacts.save(tmp_path / "seeds.h5", "eval", ev.manifest.model_copy(update={"summary": summ}), ev.arrays)
+    other = evals["diffuser"]
+    arrays = {**other.arrays, "episodes/seed": np.where(other.arrays["episodes/seed"] == 1, 9, 0)}
+    artifacts.save(tmp_path / "seeds.h5", "eval", other.manifest, arrays)
     r = cdrb("report", ev.path, tmp_path / "seeds.h5")
     assert r.returncode == 2 and "different protocols" in r.stderr and "seeds" in r.stderr
     # the same seeds twice for one method
@@ -210,8 +210,10 @@ def test_report_pools_one_eval_per_training_seed(evals, tmp_path, cdrb):
             summ = ev.manifest.summary
             per = [p for p in summ.per_seed if p.seed == seed]
             m = ev.manifest.model_copy(update={"summary": summ.model_copy(update={"per_seed": per})})
+            keep = ev.arrays["episodes/seed"] == seed
+            arrays = {k: (v[keep] if k.startswith("episodes/") or k == "plans" else v) for k, v in ev.arrays.items()}
             path = tmp_path / f"{method}-{seed}.h5"
-            artifacts.save(path, "eval", m, ev.arrays)
+            artifacts.save(path, "eval", m, arrays)
             paths.append(path)
     rows = json.loads(cdrb("report", *paths, "--format", "json").stdout)
     by = {r["method"]: r for r in rows}
@@ -279,3 +281,22 @@ def test_miniature_quickstart_end_to_end_and_rerun(tmp_path, cdrb):
     again = cdrb(*args)
     assert again.returncode == 0 and again.stderr.count("up to date") == 8
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5")} == before
+
+
+def test_report_recomputes_from_the_episodes_and_prints_plain_text(evals, tmp_path, cdrb):
+    """A file claiming 100% in its summary with every episode failed reports what its episodes say; ids with
+    terminal escapes or rich markup are printed as plain text."""
+    ev = evals["mlp"]
+    summ = ev.manifest.summary
+    boast = summ.model_copy(
+        update={"success_mean": 1.0, "per_seed": [p.model_copy(update={"success_rate": 1.0}) for p in summ.per_seed]}
+    )
+    env = ev.manifest.env.model_copy(update={"id": "maze\x1b[2J[/bold]"})
+    arrays = {**ev.arrays, "episodes/success": np.zeros_like(ev.arrays["episodes/success"])}
+    artifacts.save(tmp_path / "boast.h5", "eval", ev.manifest.model_copy(update={"summary": boast, "env": env}), arrays)
+    r = cdrb("report", tmp_path / "boast.h5", "--format", "json")
+    assert r.returncode == 0, r.stderr
+    (row,) = json.loads(r.stdout)
+    assert row["success_mean"] == 0.0 and "\x1b" not in row["env"]
+    r = cdrb("report", tmp_path / "boast.h5")
+    assert r.returncode == 0 and "\x1b" not in r.stdout and "[/bold]" in r.stdout

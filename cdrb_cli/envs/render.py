@@ -41,6 +41,17 @@ def save_figure(fig, path: str | Path) -> Path:
     return path
 
 
+def label(text: str) -> str:
+    """Text from a file or a path, safe in a picture: no control characters, no mathtext ($)."""
+    from cdrb_cli.ui import plain
+
+    return plain(text).replace("$", r"\$")
+
+
+def set_title(ax, text: str, fontsize: float = 10) -> None:
+    ax.set_title(label(text), fontsize=fontsize)
+
+
 def draw_scene(ax, spec: EnvSpec) -> None:
     """The environment's scene (its family draws it)."""
     family_of(spec).draw_scene(ax, spec)
@@ -85,7 +96,7 @@ def plot_demos(demos, path: str | Path, n: int = 60, seed: int = 0) -> Path:
         ax.plot(xy[:, 0], xy[:, 1], "-", lw=0.8, alpha=0.7, color=colour, zorder=2)
         ax.plot(xy[0, 0], xy[0, 1], "o", ms=2.5, color=colour, zorder=3)
     s = demos.manifest.summary
-    ax.set_title(f"{spec.id}: {len(ids)} of {s.episodes} demos (success {s.success_rate:.1%})", fontsize=10)
+    set_title(ax, f"{spec.id}: {len(ids)} of {s.episodes} demos (success {s.success_rate:.1%})")
     return save_figure(fig, path)
 
 
@@ -103,7 +114,7 @@ def plot_buffer(buffer, path: str | Path) -> Path:
     sc = ax.scatter(xy[:, 0], xy[:, 1], s=4, c=speed, cmap="viridis", zorder=2)
     if speed is not None:
         fig.colorbar(sc, ax=ax, shrink=0.7, label="speed")
-    ax.set_title(f"{spec.id}: replay buffer, {len(raw)} states", fontsize=10)
+    set_title(ax, f"{spec.id}: replay buffer, {len(raw)} states")
     return save_figure(fig, path)
 
 
@@ -125,11 +136,11 @@ def plot_plans(
     fig, axes = plt.subplots(1, panels, figsize=(5 * panels, 5), squeeze=False)
     axes = axes[0]
 
-    def draw(ax, trajs, label, wall=None):
+    def draw(ax, trajs, title_, wall=None):
         draw_scene(ax, spec)
         draw_plans(ax, spec, trajs, wall)
         draw_ends(ax, spec, starts, goals)
-        ax.set_title(label, fontsize=9)
+        set_title(ax, title_, fontsize=9)
 
     if iterates is not None:
         for j in range(iterates.shape[1]):

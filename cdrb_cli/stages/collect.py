@@ -70,7 +70,7 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path) -> artifacts.Demos:
     routes: dict[str, dict[str, int]] = {}
     total = 0
     with ui.progress() as bar:
-        task = bar.add_task(f"collect {spec.id}", total=episodes, info="")
+        task = bar.add_task(ui.plain(f"collect {spec.id}", 60), total=episodes, info="")
         for e, episode in enumerate(plan):
             S, A, goal, ok = rollout(env, agent, spec, episode, spec.episode_limit)
             starts.append(total)

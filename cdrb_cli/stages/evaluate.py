@@ -70,6 +70,15 @@ def episode_arrays(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     }
 
 
+def episode_results(arrays: dict[str, np.ndarray]) -> list[EpisodeResult]:
+    """The inverse of :func:`episode_arrays`: the records of an eval artifact's ``episodes/*`` datasets."""
+    fields = list(typing.get_type_hints(EpisodeResult))
+    n = len(arrays["episodes/seed"])
+    cast = {np.ndarray: np.asarray, int: int, float: float, bool: bool}
+    hints = typing.get_type_hints(EpisodeResult)
+    return [EpisodeResult(**{f: cast[hints[f]](arrays[f"episodes/{f}"][i]) for f in fields}) for i in range(n)]
+
+
 def run_episode(
     env: Env, spec: EnvSpec, episode: Episode, act: Callable[[np.ndarray, int], np.ndarray], steps: int
 ) -> Rollout:

@@ -43,7 +43,7 @@ class QuickstartResult:
 
 
 def _stage(n: int, total: int, text: str) -> None:
-    ui.log(f"[bold cyan][{n}/{total}][/bold cyan] {text}")
+    ui.log(f"[{n}/{total}] {text}")
 
 
 def _reuse(path: Path, kind: str, config, parents=(), env=None):

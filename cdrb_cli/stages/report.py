@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
 
 PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) for the two mazes
@@ -61,6 +62,16 @@ def method_label(ev) -> str:
     return s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
 
 
+def per_seed(ev) -> list:
+    """The per-seed results of an eval artifact, recomputed from its per-episode datasets (never taken from the
+    manifest's summary, which a file may claim anything in)."""
+    from cdrb_cli.stages.evaluate import episode_results, seed_result
+
+    results = episode_results(ev.arrays)
+    seeds = list(dict.fromkeys(r.seed for r in results))
+    return [seed_result(s, [r for r in results if r.seed == s]) for s in seeds]
+
+
 def collect_rows(evals) -> list[dict]:
     """One row per (environment, method). Several evals of one method (e.g. one per training seed) are pooled as
     separate seeds; within an environment every method must use the same protocol and the same evaluation seeds,
@@ -82,7 +93,7 @@ def collect_rows(evals) -> list[dict]:
             )
         seed_sets = {}
         for label, group in methods.items():
-            seeds = [r.seed for ev in group for r in ev.manifest.summary.per_seed]
+            seeds = [r.seed for ev in group for r in per_seed(ev)]
             if len(seeds) != len(set(seeds)):
                 dup = sorted({x for x in seeds if seeds.count(x) > 1})
                 raise BadInput(
@@ -97,17 +108,17 @@ def collect_rows(evals) -> list[dict]:
                 hint="evaluate every method on the same --seeds",
             )
         for label, group in methods.items():
-            per = [r for ev in group for r in ev.manifest.summary.per_seed]
+            per = [r for ev in group for r in per_seed(ev)]
             succ = np.array([r.success_rate for r in per])
             wall = np.array([r.in_wall_fraction for r in per])
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
             first = group[0]
             rows.append(
                 {
-                    "env": env_id,
-                    "method": label,
-                    "base_method": first.manifest.summary.method,
-                    "preset": first.manifest.summary.model_preset,
+                    "env": ui.plain(env_id),
+                    "method": ui.plain(label),
+                    "base_method": ui.plain(first.manifest.summary.method),
+                    "preset": ui.plain(first.manifest.summary.model_preset),
                     "seeds": len(per),
                     "episodes": first.manifest.config.episodes,
                     "success_mean": 100 * float(succ.mean()),
@@ -117,8 +128,8 @@ def collect_rows(evals) -> list[dict]:
                     "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
                     "path_ratio": float(np.mean(ratios)) if ratios else None,
                     "plan_ms": 1000 * float(np.mean([r.plan_seconds for r in per])),
-                    "path": ";".join(str(ev.path) for ev in group),
-                    "env_name": _env_name(first.manifest.env),
+                    "path": ui.plain(";".join(str(ev.path) for ev in group)),
+                    "env_name": ui.plain(_env_name(first.manifest.env)),
                 }
             )
     return rows
@@ -191,7 +202,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
 
 
 def plot_bars(rows: list[dict], path) -> Path:
-    from cdrb_cli.envs.render import pyplot, save_figure
+    from cdrb_cli.envs.render import label, pyplot, save_figure
 
     plt = pyplot()
     envs = list(dict.fromkeys(r["env"] for r in rows))
@@ -205,10 +216,10 @@ def plot_bars(rows: list[dict], path) -> Path:
         for ax, key, std in ((axes[0], "success_mean", "success_std"), (axes[1], "in_wall_mean", "in_wall_std")):
             vals = [cell[(e, m)][key] if (e, m) in cell else np.nan for e in envs]
             errs = [cell[(e, m)][std] if (e, m) in cell else 0 for e in envs]
-            ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=m)
+            ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=label(m))
     for ax, title in ((axes[0], "success rate (%)"), (axes[1], "planned states inside walls (%)")):
         ax.set_xticks(x)
-        ax.set_xticklabels([name[e] for e in envs])
+        ax.set_xticklabels([label(name[e]) for e in envs])
         ax.set_title(title, fontsize=10)
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylim(0, 105)
@@ -219,7 +230,7 @@ def plot_bars(rows: list[dict], path) -> Path:
 def plot_side_by_side(evals, path, n: int = 12) -> Path:
     """The plans of every method for the same start/goal pairs (the first ``n`` episodes of the first seed)."""
     from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, pyplot, save_figure
+    from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, pyplot, save_figure, set_title
 
     evals = [ev for ev in evals if "plans" in ev.arrays]
     if not evals:
@@ -237,7 +248,7 @@ def plot_side_by_side(evals, path, n: int = 12) -> Path:
         draw_plans(ax, spec, plans, family_of(spec).in_collision(spec, plans[..., : spec.obs_dim]), markers=False)
         draw_ends(ax, spec, plans[:, 0, : spec.obs_dim], plans[:, -1, : spec.obs_dim])
         s = ev.manifest.summary
-        ax.set_title(
-            f"{method_label(ev)}: success {100 * s.success_mean:.0f}%, in walls {100 * s.in_wall_mean:.1f}%", fontsize=9
+        set_title(
+            ax, f"{method_label(ev)}: success {100 * s.success_mean:.0f}%, in walls {100 * s.in_wall_mean:.1f}%", 9
         )
     return save_figure(fig, path)
