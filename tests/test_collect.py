@@ -105,6 +105,42 @@ def test_sac_expert_train_and_collect_tiny_budget(tmp_path, cdrb):
     # a file that is not an SB3 zip is refused with exit code 2
     r = cdrb("collect", "umaze", "--expert", "sac", "--policy", out, "-n", "2", "--out", tmp_path / "x.h5")
     assert r.returncode == 2 and "not a stable-baselines3" in r.stderr
+    # a zip whose pickled entries would run code: nothing of it runs (replaced, or refused when unknown)
+    _malicious_zips_run_nothing(policy, tmp_path, cdrb)
+
+
+class _Payload:
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))  # unpickling it creates the marker file
+
+
+def _malicious_zips_run_nothing(policy, tmp_path, cdrb):
+    import base64
+    import json
+    import pickle
+    import zipfile
+
+    marker = tmp_path / "pwned"
+    evil = {":type:": "<class 'x'>", ":serialized:": base64.b64encode(pickle.dumps(_Payload(str(marker)))).decode()}
+    for key, needle in (("observation_space", None), ("lr_schedule", None), ("surprise", "pickled entries")):
+        bad = tmp_path / f"evil-{key}.zip"
+        with zipfile.ZipFile(policy) as src, zipfile.ZipFile(bad, "w") as dst:
+            for item in src.namelist():
+                content = src.read(item)
+                if item == "data":
+                    data = json.loads(content)
+                    data[key] = evil
+                    content = json.dumps(data).encode()
+                dst.writestr(item, content)
+        r = cdrb("collect", "umaze", "--expert", "sac", "--policy", bad, "-n", "1", "--out", tmp_path / f"{key}.h5")
+        assert not marker.exists(), f"the pickle in {key} ran"
+        if needle is None:
+            assert r.returncode == 0, r.stderr  # the replaced entry was never read
+        else:
+            assert r.returncode == 2 and needle in r.stderr
 
 
 def test_names_from_files_are_printed_as_plain_text(tmp_path, cdrb):

@@ -2,9 +2,11 @@
 goal-conditioned gymnasium env (``EnvFamily.make_gym_env``).
 
 ``train_sac`` trains one (``cdrb expert train``); ``SacExpert`` rolls one out inside ``cdrb collect --expert sac``.
-Policies are stored in stable-baselines3's own zip format. Note: loading an SB3 zip unpickles parts of it, so cdrb
-loads policies only from a path the user names on the command line, never from inside an artifact; the demos
-artifact records the policy's sha256.
+Policies are stored in stable-baselines3's own zip format. SB3 pickles some entries of it (spaces, schedules,
+classes); cdrb loads a zip without unpickling anything: it replaces every pickled entry with a value built from the
+environment (SB3's ``custom_objects``), refuses a zip with a pickled entry it does not know, and SB3 reads the
+weights with ``torch.load(weights_only=True)``. What a user still trusts in a zip: that its weights are the expert
+they mean. The demos artifact records the policy's sha256.
 """
 
 from __future__ import annotations
@@ -84,6 +86,74 @@ def train_sac(spec: EnvSpec, steps: int, seed: int, out: Path, her: bool = True,
     return out
 
 
+#: what cdrb puts in place of the entries SB3 pickles into a SAC zip (none is needed to act)
+_PICKLED = {
+    "policy_class",
+    "observation_space",
+    "action_space",
+    "lr_schedule",
+    "train_freq",
+    "replay_buffer_class",
+    "_last_obs",
+    "_last_episode_starts",
+    "_last_original_obs",
+    "ep_info_buffer",
+    "ep_success_buffer",
+}
+
+
+def _replacements(path: Path, spec: EnvSpec) -> dict:
+    """SB3's ``custom_objects`` for a SAC zip: a value for every entry it stored pickled (cloudpickle) in its
+    ``data`` JSON, built here from the environment, so that loading unpickles nothing. The policy weights are read
+    by SB3 with ``torch.load(weights_only=True)``. A zip with a pickled entry cdrb does not know is refused."""
+    import json
+    import zipfile
+
+    from stable_baselines3.common.buffers import DictReplayBuffer
+    from stable_baselines3.sac.policies import MultiInputPolicy
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = json.loads(z.read("data"))
+    except (zipfile.BadZipFile, KeyError, ValueError, OSError) as exc:
+        raise BadInput(
+            f"--policy {path}: not a stable-baselines3 SAC policy zip ({type(exc).__name__})",
+            hint="pass a file written by `cdrb expert train`",
+        ) from None
+    if not isinstance(data, dict):
+        raise BadInput(
+            f"--policy {path}: not a stable-baselines3 SAC policy zip", hint="pass a file of `cdrb expert train`"
+        )
+    pickled = {k for k, v in data.items() if isinstance(v, dict) and ":serialized:" in v}
+    unknown = sorted(pickled - _PICKLED)
+    if unknown:
+        raise BadInput(
+            f"--policy {path}: holds pickled entries cdrb will not load ({', '.join(unknown)[:200]})",
+            hint="pass a file written by `cdrb expert train`",
+        )
+    env = _training_env(spec, 0)
+    rate = data.get("learning_rate", 3e-4)
+    rate = float(rate) if isinstance(rate, (int, float)) else 3e-4
+    custom = {
+        "policy_class": MultiInputPolicy,
+        "observation_space": env.observation_space,
+        "action_space": env.action_space,
+        "lr_schedule": lambda _: rate,
+        "train_freq": (1, "step"),
+        # acting needs no replay buffer: a one-slot one, and no HER (which would need the env)
+        "replay_buffer_class": DictReplayBuffer,
+        "replay_buffer_kwargs": {},
+        "buffer_size": 1,
+        "_last_obs": None,
+        "_last_episode_starts": None,
+        "_last_original_obs": None,
+        "ep_info_buffer": None,
+        "ep_success_buffer": None,
+    }
+    env.close()
+    return custom
+
+
 class SacExpert:
     """Rolls out a trained SB3 policy; the episode ends at the first success (SAC policies do not come to rest)."""
 
@@ -99,12 +169,13 @@ class SacExpert:
             raise BadInput(
                 f"--policy {path}: no such file", hint="train one with `cdrb expert train ENV --out expert.zip`"
             )
-        try:  # SB3 needs an env to rebuild a model trained with a HerReplayBuffer
-            self.model = SAC.load(str(path), env=_training_env(spec, 0), device="cpu")
+        custom = _replacements(path, spec)  # every pickled entry of the zip, replaced: nothing is unpickled
+        try:
+            self.model = SAC.load(str(path), env=None, device="cpu", custom_objects=custom)
         except Exception as exc:
             raise BadInput(
-                f"--policy {path}: not a stable-baselines3 SAC policy zip ({type(exc).__name__})",
-                hint="pass a file written by `cdrb expert train`",
+                f"--policy {path}: not a stable-baselines3 SAC policy zip for {spec.id} ({type(exc).__name__})",
+                hint="pass a file written by `cdrb expert train` for this environment",
             ) from None
         space = self.model.observation_space
         try:
