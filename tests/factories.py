@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+
+import h5py
 import numpy as np
 
 from cdrb_cli import artifacts
@@ -82,7 +85,7 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
             features="state",
             horizon=8,
             stride=2,
-            steps=10,
+            steps=max(10, n),
             batch_size=4,
             lr=1e-3,
             ema_decay=0.99,
@@ -98,12 +101,12 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
             "ema/net/layer.bias": f32(n),
             "normalizer/low": -np.ones(4, np.float32),
             "normalizer/high": np.ones(4, np.float32),
-            "curve/step": np.arange(n, dtype=np.int64),
+            "curve/step": np.arange(1, n + 1, dtype=np.int64),
             "curve/loss": np.abs(f32(n)),
             "buffer/points": np.clip(f32(n, 4), -1, 1),
         }
         return artifacts.make_manifest(
-            "model", env=env, config=cfg, seed=seed, state=TrainState(step=10, finished=True)
+            "model", env=env, config=cfg, seed=seed, state=TrainState(step=max(10, n), finished=True)
         ), arrays
     if kind == "plans":
         P, H = n, 8
@@ -174,3 +177,26 @@ def write(path, kind: str, **kw):
     manifest, arrays = build(kind, **kw)
     artifacts.save(path, kind, manifest, arrays)
     return path
+
+
+@contextlib.contextmanager
+def tampered(path):
+    """Open an artifact for editing with h5py, and afterwards re-sign its content checksum as a hostile writer
+    would (the checksum catches damage, it is no signature): tests of deeper checks edit files through this."""
+    from cdrb_cli.artifacts.core import CHECKSUM_ATTR, content_sha256
+
+    with h5py.File(path, "r+") as f:
+        yield f
+        try:
+            sizes = []
+            f.visititems(lambda n, o: sizes.append(o.size * o.dtype.itemsize) if isinstance(o, h5py.Dataset) else None)
+            if sum(sizes) > 2**26:  # a size bomb: the reader refuses it before the checksum
+                return
+            payload = bytes(f["manifest"][()])
+            arrays = {}
+            f.visititems(
+                lambda n, o: arrays.__setitem__(n, o[()]) if isinstance(o, h5py.Dataset) and n != "manifest" else None
+            )
+            f.attrs[CHECKSUM_ATTR] = content_sha256(payload, arrays)
+        except Exception:  # something the reader refuses before the checksum anyway
+            pass

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from cdrb_cli import artifacts
 from cdrb_cli.errors import ArtifactError, BadInput
-from tests.factories import KINDS, build, write
+from tests.factories import KINDS, build, tampered, write
 
 
 def _same(a, b):
@@ -108,7 +108,7 @@ def test_wrong_kind(tmp_path):
 
 
 def _rewrite_attr(p, name, value):
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         f.attrs[name] = value
 
 
@@ -121,7 +121,7 @@ def test_newer_major_is_refused(tmp_path):
 
 def _set_manifest(p, m, version):
     m["schema_version"] = version
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         del f["manifest"]
         f["manifest"] = np.bytes_(json.dumps(m).encode())
         f.attrs["cdrb_schema_version"] = version
@@ -137,14 +137,14 @@ def test_newer_minor_with_unknown_field_is_read(tmp_path):
     art = artifacts.load(p)
     assert art.manifest.summary.episodes == 5
     # the same unknown field under the current minor version is an error
-    _set_manifest(p, m, "2.0")
+    _set_manifest(p, m, artifacts.SCHEMA_VERSIONS["demos"])
     msg = _err(p)
     assert "future_" in msg and "Extra inputs" in msg
 
 
 def test_manifest_version_must_match_the_attribute(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         m = json.loads(f["manifest"][()].decode())
         m["schema_version"] = "2.9"
         del f["manifest"]
@@ -161,7 +161,7 @@ def test_older_major_without_a_migration_is_refused(tmp_path):
 
 def test_invalid_manifest(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         m = json.loads(f["manifest"][()].decode())
         m["summary"]["episodes"] = "many"
         del f["manifest"]
@@ -172,7 +172,7 @@ def test_invalid_manifest(tmp_path):
 
 def test_manifest_not_json(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         del f["manifest"]
         f["manifest"] = np.bytes_(b"{not json")
     assert "not valid JSON" in _err(p)
@@ -183,14 +183,14 @@ def test_missing_dataset(tmp_path, kind):
     p = write(tmp_path / f"{kind}.h5", kind)
     manifest, arrays = build(kind)
     name = next(s.name for s in artifacts.KINDS[kind].datasets if s.required)
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         del f[name]
     assert f"missing dataset /{name}" in _err(p)
 
 
 def test_inconsistent_shapes(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         a = f["steps/actions"][()]
         del f["steps/actions"]
         f["steps/actions"] = a[:-1]
@@ -199,7 +199,7 @@ def test_inconsistent_shapes(tmp_path):
 
 def test_state_dimension_checked_against_env(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         o = f["steps/observations"][()]
         del f["steps/observations"]
         f["steps/observations"] = o[:, :3]
@@ -208,21 +208,21 @@ def test_state_dimension_checked_against_env(tmp_path):
 
 def test_nan_in_data(tmp_path):
     p = write(tmp_path / "b.h5", "buffer")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         f["points"][0, 0] = np.nan
     assert "NaN" in _err(p)
 
 
 def test_object_dtype_rejected(tmp_path):
     p = write(tmp_path / "b.h5", "buffer")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         f.create_dataset("evil", data=np.array([b"x", b"y"], dtype=object), dtype=h5py.string_dtype())
     assert "non-numeric dtype" in _err(p)
 
 
 def test_huge_declared_shape_rejected_before_reading(tmp_path):
     p = write(tmp_path / "b.h5", "buffer")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         f.create_dataset("huge", shape=(10**6, 10**6), dtype="f4", chunks=(1, 1024))  # 4 TB declared, nothing stored
     msg = _err(p)
     assert "declare" in msg
@@ -231,7 +231,7 @@ def test_huge_declared_shape_rejected_before_reading(tmp_path):
 def test_external_link_rejected(tmp_path):
     other = write(tmp_path / "other.h5", "buffer")
     p = write(tmp_path / "b.h5", "buffer")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         f["linked"] = h5py.ExternalLink(str(other), "/points")
     assert "link" in _err(p)
 
@@ -298,7 +298,7 @@ def test_existing_is_the_one_rule_for_skip_and_resume(tmp_path):
     assert artifacts.existing(out, "model", cfg, [artifacts.load(write(tmp_path / "d.h5", "demos"))]).reason == (
         "it was made from other inputs"
     )
-    state = manifest.state.model_copy(update={"finished": False, "step": 4})
+    state = manifest.state.model_copy(update={"finished": False, "step": 6})
     unfinished = artifacts.save(tmp_path / "u.h5", "model", manifest.model_copy(update={"state": state}), arrays)
     assert artifacts.existing(unfinished, "model", cfg).status == "resumable"
     (tmp_path / "junk.h5").write_bytes(b"not hdf5")
@@ -312,16 +312,59 @@ def test_virtual_and_external_storage_are_refused(tmp_path):
     secret = tmp_path / "secret.bin"
     np.arange(10, dtype=np.float64).tofile(secret)
     external = write(tmp_path / "ext.h5", "eval")
-    with h5py.File(external, "r+") as f:
+    with tampered(external) as f:
         del f["episodes/final_distance"]
         f.create_dataset("episodes/final_distance", shape=(5,), dtype="f8", external=[(str(secret), 0, 40)])
     msg = _err(external)
     assert "outside the file" in msg and "final_distance" in msg
     virtual = write(tmp_path / "virt.h5", "eval")
     source = write(tmp_path / "src.h5", "eval")
-    with h5py.File(virtual, "r+") as f:
+    with tampered(virtual) as f:
         del f["episodes/final_distance"]
         layout = h5py.VirtualLayout(shape=(5,), dtype="f4")
         layout[:] = h5py.VirtualSource(str(source), "episodes/final_distance", shape=(5,))
         f.create_virtual_dataset("episodes/final_distance", layout)
     assert "outside the file" in _err(virtual)
+
+
+@pytest.mark.parametrize(
+    "kind, name, value, needle",
+    [
+        ("demos", "episodes/start", lambda a: a - 1, "do not tile the steps"),
+        ("demos", "episodes/length", lambda a: a + 1, "do not tile the steps"),
+        ("buffer", "source_index", lambda a: a - 10**6, "negative rows"),
+        ("plans", "pair_index", lambda a: a + 100, "pair_index must lie"),
+        ("model", "curve/step", lambda a: a[::-1].copy(), "curve/step must increase"),
+        ("eval", "episodes/seed", lambda a: a + 7, "per seed of"),
+    ],
+)
+def test_indices_that_point_outside_the_data_are_refused(tmp_path, kind, name, value, needle):
+    """Shapes can be right while the indices are wrong (negative episode starts trained silently on wrong
+    windows): each kind checks its arrays against each other and the manifest."""
+    manifest, arrays = build(kind)
+    arrays[name] = value(arrays[name])
+    path = artifacts.save(tmp_path / f"{kind}.h5", kind, manifest, arrays)
+    assert needle in _err(path)
+
+
+def test_content_checksum_rules(tmp_path):
+    """From schema 2.1 the checksum is required; a 2.0 file (written before it existed) reads without one; a
+    checksum that is present is always checked."""
+    from cdrb_cli.artifacts.core import CHECKSUM_ATTR
+
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r+") as f:  # data changed behind the checksum's back
+        f["steps/actions"][0, 0] += 1.0
+    assert "does not match its checksum" in _err(p)
+    with h5py.File(p, "r+") as f:
+        del f.attrs[CHECKSUM_ATTR]
+    assert "has no content checksum" in _err(p)
+    with h5py.File(p, "r") as f:
+        m = json.loads(f["manifest"][()].decode())
+    _set_manifest(p, m, "2.0")
+    with h5py.File(p, "r+") as f:  # as the 2.0 writer made it: no checksum attribute
+        del f.attrs[CHECKSUM_ATTR]
+    assert artifacts.load(p).manifest.schema_version == "2.0"
+    with h5py.File(p, "r+") as f:
+        f.attrs[CHECKSUM_ATTR] = "0" * 64
+    assert "does not match its checksum" in _err(p)

@@ -185,15 +185,21 @@ def test_report_formats_and_pictures(evals, tmp_path, cdrb):
 def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
     ev = evals["cdrb"]
     # another method evaluated with other episodes per seed
-    cfg = ev.manifest.config.model_copy(update={"episodes": 7})
+    cfg = ev.manifest.config.model_copy(update={"episodes": 3})
     other = ev.manifest.model_copy(update={"config": cfg, "summary": evals["diffuser"].manifest.summary})
-    artifacts.save(tmp_path / "other.h5", "eval", other, ev.arrays)
+    seeds = ev.arrays["episodes/seed"]
+    keep = np.zeros(len(seeds), bool)
+    for s in np.unique(seeds):
+        keep[np.flatnonzero(seeds == s)[:3]] = True
+    arrays = {k: (v[keep] if k.startswith("episodes/") or k == "plans" else v) for k, v in ev.arrays.items()}
+    artifacts.save(tmp_path / "other.h5", "eval", other, arrays)
     r = cdrb("report", ev.path, tmp_path / "other.h5")
     assert r.returncode == 2 and "different protocols" in r.stderr
     # another method evaluated on other seeds
     other = evals["diffuser"]
     arrays = {**other.arrays, "episodes/seed": np.where(other.arrays["episodes/seed"] == 1, 9, 0)}
-    artifacts.save(tmp_path / "seeds.h5", "eval", other.manifest, arrays)
+    cfg = other.manifest.config.model_copy(update={"seeds": [0, 9]})
+    artifacts.save(tmp_path / "seeds.h5", "eval", other.manifest.model_copy(update={"config": cfg}), arrays)
     r = cdrb("report", ev.path, tmp_path / "seeds.h5")
     assert r.returncode == 2 and "different protocols" in r.stderr and "seeds" in r.stderr
     # the same seeds twice for one method
@@ -209,7 +215,8 @@ def test_report_pools_one_eval_per_training_seed(evals, tmp_path, cdrb):
         for seed in (0, 1):
             summ = ev.manifest.summary
             per = [p for p in summ.per_seed if p.seed == seed]
-            m = ev.manifest.model_copy(update={"summary": summ.model_copy(update={"per_seed": per})})
+            cfg = ev.manifest.config.model_copy(update={"seeds": [seed]})
+            m = ev.manifest.model_copy(update={"config": cfg, "summary": summ.model_copy(update={"per_seed": per})})
             keep = ev.arrays["episodes/seed"] == seed
             arrays = {k: (v[keep] if k.startswith("episodes/") or k == "plans" else v) for k, v in ev.arrays.items()}
             path = tmp_path / f"{method}-{seed}.h5"

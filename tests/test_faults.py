@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from benchmarks.fault_harness import crash_before_rename, run_faults
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
-from tests.factories import KINDS, write
+from tests.factories import KINDS, tampered, write
 
 PACKAGE = Path(__file__).resolve().parent.parent / "cdrb_cli"
 
@@ -50,7 +50,7 @@ def test_no_pickle_anywhere_in_the_package():
 
 
 def _absurd_manifest(path, mutate):
-    with h5py.File(path, "r+") as f:
+    with tampered(path) as f:
         m = json.loads(f["manifest"][()].decode())
         mutate(m)
         del f["manifest"]
@@ -68,6 +68,9 @@ def _absurd_manifest(path, mutate):
         (lambda m: m["env"]["obstacles"].update(centers=[[0, 0]] * 30_000), "env.obstacles.centers"),
         (lambda m: m["env"].update(obs_dim=10**9), "env.obs_dim"),
         (lambda m: m["env"]["obstacles"].update(low=[10, 10]), "env.obstacles"),
+        (lambda m: m["env"]["scene"].update(maze=None), "env.scene"),
+        (lambda m: m["summary"].update(success_rate=float("nan")), "summary.success_rate"),
+        (lambda m: m["config"].update(valid_fraction=float("inf")), "config.valid_fraction"),
     ],
 )
 def test_absurd_manifests_are_refused(tmp_path, mutate, needle):
@@ -87,7 +90,7 @@ def test_inspect_neutralizes_markup_and_terminal_escapes(tmp_path, cdrb):
 
 def test_empty_datasets_are_refused(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         for name in ("episodes/start", "episodes/length", "episodes/seed", "episodes/success", "episodes/valid"):
             dt = f[name].dtype
             del f[name]
@@ -142,7 +145,7 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
         raw = p.read_bytes()
         p.write_bytes(raw[: data.draw(st.integers(0, len(raw) - 1))])
     elif mutation == "manifest":
-        with h5py.File(p, "r+") as f:
+        with tampered(p) as f:
             m = json.loads(f["manifest"][()].decode())
             where = data.draw(st.sampled_from(list(_paths(m))[1:]))
             node = m
@@ -155,13 +158,13 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
             del f["manifest"]
             f["manifest"] = np.bytes_(json.dumps(m).encode())
     elif mutation == "attrs":
-        with h5py.File(p, "r+") as f:
+        with tampered(p) as f:
             name = data.draw(st.sampled_from(["cdrb_kind", "cdrb_schema_version"]))
             # what HDF5 can store as a string attribute: no NUL, no lone surrogates
             no_nul = st.text(st.characters(blacklist_characters="\x00", blacklist_categories=("Cs",)), max_size=12)
             f.attrs[name] = data.draw(no_nul | st.sampled_from(["1.9", "0.1", "demos", "model"]))
     elif mutation == "storage":  # a dataset whose data lives in another file: virtual or external raw storage
-        with h5py.File(p, "r+") as f:
+        with tampered(p) as f:
             names = []
             f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) and n != "manifest" else None)
             name = data.draw(st.sampled_from(names))
@@ -176,11 +179,11 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
                 outside.write_bytes(b"\0" * (int(np.prod(shape)) * dtype.itemsize + 8))
                 f.create_dataset(name, shape=shape, dtype=dtype, external=[(str(outside), 0, h5py.h5f.UNLIMITED)])
     elif mutation == "sparse":  # a hole at the end, and a chunked dataset declaring far more than is stored
-        with h5py.File(p, "r+") as f:
+        with tampered(p) as f:
             f.create_dataset("padding", shape=(data.draw(st.integers(10**5, 10**8)),), dtype="f8", chunks=(10**5,))
         os.truncate(p, p.stat().st_size + data.draw(st.integers(0, 2**31)))
     elif mutation == "sizes":  # a size in the config blown up (net widths, steps, horizon, T, k, ...)
-        with h5py.File(p, "r+") as f:
+        with tampered(p) as f:
             m = json.loads(f["manifest"][()].decode())
             ints = [w for w in _paths(m.get("config", {})) if w and isinstance(_get(m["config"], w), int)]
             if ints:
@@ -192,7 +195,7 @@ def test_fuzzed_files_give_an_artifact_or_our_error(pristine, tmp_path, data):
             del f["manifest"]
             f["manifest"] = np.bytes_(json.dumps(m).encode())
     else:
-        with h5py.File(p, "r+") as f:
+        with tampered(p) as f:
             names = []
             f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) and n != "manifest" else None)
             name = data.draw(st.sampled_from(names))
@@ -255,7 +258,7 @@ def test_interrupts_exit_130_with_one_line_and_partial_models_are_refused(small_
 
 
 def _rewrite_manifest(path, mutate):
-    with h5py.File(path, "r+") as f:
+    with tampered(path) as f:
         m = json.loads(f["manifest"][()].decode())
         mutate(m)
         del f["manifest"]
@@ -266,7 +269,7 @@ def test_a_sparse_tail_does_not_lift_the_size_cap(tmp_path):
     """64x the bytes the file really holds, not its apparent size: a hole at the end must not let a few KiB on disk
     declare hundreds of MB of (fill-value) data."""
     p = write(tmp_path / "d.h5", "demos")
-    with h5py.File(p, "r+") as f:
+    with tampered(p) as f:
         f.create_dataset("extra", shape=(50_000_000,), dtype="f8", chunks=(1_000_000,))  # 400 MB, nothing stored
     os.truncate(p, 200 * 2**20)  # a 200 MB apparent size, a few KiB on disk
     assert p.stat().st_size == 200 * 2**20 and p.stat().st_blocks * 512 < 2**20
@@ -312,3 +315,28 @@ def test_a_config_that_does_not_fit_its_weights_is_refused_before_building(train
     _rewrite_manifest(p, lambda m: m["config"]["net"].update(dim=64))
     r = cdrb("plan", p, "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
     assert r.returncode == 2 and "has shape" in r.stderr and "its config builds" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("kind", ["demos", "model", "eval"])
+def test_single_bit_flips_never_load_as_other_content(tmp_path, kind):
+    """The content checksum: a flipped bit anywhere gives our error or (a bit nobody reads) the same content."""
+    pristine = artifacts.load(write(tmp_path / "p.h5", kind, n=8))
+    raw = (tmp_path / "p.h5").read_bytes()
+    rng = np.random.default_rng(0)
+    loaded = 0
+    for i in range(50):
+        flipped = bytearray(raw)
+        at = int(rng.integers(len(raw)))
+        flipped[at] ^= 1 << int(rng.integers(8))
+        p = tmp_path / f"f{i}.h5"
+        p.write_bytes(bytes(flipped))
+        try:
+            art = artifacts.load(p)
+        except BadInput:
+            continue
+        loaded += 1
+        assert art.manifest == pristine.manifest, at
+        assert art.arrays.keys() == pristine.arrays.keys()
+        for name in art.arrays:
+            np.testing.assert_array_equal(art.arrays[name], pristine.arrays[name], err_msg=f"byte {at}: {name}")
+    assert loaded < 50  # most flips land in data the checksum covers

@@ -24,12 +24,15 @@ from cdrb_cli.artifacts.core import (
     atomic_path,
     check_shapes,
     load_arrays,
+    parse_version,
     read_h5,
     sha256_file,
     validate_manifest,
+    verify_content,
     write_h5,
 )
 from cdrb_cli.artifacts.kinds import (
+    CHECKSUM_SINCE,
     KINDS,
     SCHEMA_VERSIONS,
     Buffer,
@@ -48,7 +51,7 @@ from cdrb_cli.artifacts.kinds import (
 from cdrb_cli.artifacts.migrations import can_migrate, migrate_arrays, migrate_manifest
 from cdrb_cli.artifacts.outputs import check_output, claim_output
 from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
-from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
+from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc, text
 
 __all__ = [
     "load",
@@ -160,8 +163,12 @@ def _load(path: Path, kind: str | None) -> ArtifactBase:
             manifest = validate_manifest(path, cls.manifest_cls, manifest_data, lenient)
             check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
             arrays = load_arrays(path, datasets)
+            verify_content(path, f, arrays, required=parse_version(version) >= CHECKSUM_SINCE)
             if old:
                 arrays = migrate_arrays(found_kind, major, arrays)
+            problem = cls.check_data(manifest, arrays)
+            if problem is not None:
+                raise ArtifactError(f"{path}: {problem}", hint="the file is corrupt or hostile; re-create it")
         finally:
             f.close()
         art = cls(manifest, arrays, path=path, sha256=sha256_file(path))
@@ -190,7 +197,7 @@ def save(path: str | Path, artifact_or_kind, manifest=None, arrays: Mapping[str,
 
 def parent_ref(artifact: ArtifactBase) -> ParentRef:
     assert artifact.path is not None and artifact.sha256 is not None
-    return ParentRef(kind=artifact.kind, path=str(artifact.path.resolve()), sha256=artifact.sha256)
+    return ParentRef(kind=artifact.kind, path=text(artifact.path.resolve()), sha256=artifact.sha256)
 
 
 def make_manifest(kind: str, *, env, config, seed: int, parents: Sequence[ArtifactBase] = (), **fields: Any):

@@ -33,6 +33,7 @@ from cdrb_cli.schema_base import Record
 
 KIND_ATTR = "cdrb_kind"
 VERSION_ATTR = "cdrb_schema_version"
+CHECKSUM_ATTR = "cdrb_content_sha256"
 MANIFEST = "manifest"
 
 #: the manifest is read only when its declared size is below this
@@ -73,6 +74,18 @@ def sha256_file(path: str | Path, chunk: int = 2**20) -> str:
     with open(path, "rb") as f:
         while block := f.read(chunk):
             h.update(block)
+    return h.hexdigest()
+
+
+def content_sha256(manifest_payload: bytes, arrays: Mapping[str, np.ndarray]) -> str:
+    """The checksum of an artifact's content: the manifest's bytes, then every dataset (name, dtype, shape, bytes)
+    in name order. Stored in the ``cdrb_content_sha256`` attribute and verified on every read, so a flipped bit
+    anywhere in the data is an error instead of other numbers."""
+    h = hashlib.sha256(manifest_payload)
+    for name in sorted(arrays):
+        arr = np.ascontiguousarray(arrays[name])
+        h.update(f"\0{name}\0{arr.dtype.str}\0{arr.shape}\0".encode())
+        h.update(arr.tobytes())
     return h.hexdigest()
 
 
@@ -147,10 +160,12 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
         if text.isascii()
         else json.dumps(json.loads(text), ensure_ascii=True).encode("ascii")
     )
+    arrays = {name: np.asarray(value) for name, value in arrays.items()}
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w", track_order=True) as f:
             f.attrs[KIND_ATTR] = kind
             f.attrs[VERSION_ATTR] = version
+            f.attrs[CHECKSUM_ATTR] = content_sha256(payload, arrays)
             f.create_dataset(MANIFEST, data=np.bytes_(payload))
             for name, value in arrays.items():
                 arr = np.asarray(value)
@@ -372,6 +387,23 @@ def check_shapes(
                 raise ArtifactError(f"{path}: dataset /{name} has dtype {datasets[name].dtype}")
 
 
+def verify_content(path: Path, f: h5py.File, arrays: Mapping[str, np.ndarray], required: bool) -> None:
+    """Check the content checksum; a file of a schema older than the checksum (``required`` False) may lack it,
+    but one it carries is always checked."""
+    if CHECKSUM_ATTR not in f.attrs and not required:
+        return
+    stored = f.attrs.get(CHECKSUM_ATTR)
+    if isinstance(stored, bytes):
+        stored = stored.decode("ascii", errors="replace")
+    if not isinstance(stored, str):
+        raise ArtifactError(f"{path}: has no content checksum ({CHECKSUM_ATTR})", hint="re-create the artifact")
+    if stored != content_sha256(bytes(f[MANIFEST][()]), arrays):
+        raise ArtifactError(
+            f"{path}: content does not match its checksum (the file was changed or damaged)",
+            hint="re-create it with the command that wrote it",
+        )
+
+
 def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     for name, ds in datasets.items():
@@ -421,6 +453,11 @@ class ArtifactBase:
     def dims(cls, manifest) -> dict[str, int]:
         """Symbols the dataset shapes are checked against, from the manifest."""
         return {}
+
+    @classmethod
+    def check_data(cls, manifest, arrays: Mapping[str, np.ndarray]) -> str | None:
+        """What is inconsistent between the arrays and the manifest (a message), or None."""
+        return None
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.arrays[name]

@@ -27,7 +27,9 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.0", "buffer": "2.0", "model": "2.0", "plans": "2.0", "eval": "2.0"}
+SCHEMA_VERSIONS = {"demos": "2.1", "buffer": "2.1", "model": "2.1", "plans": "2.1", "eval": "2.1"}
+#: files of this version and later must carry the content checksum (older ones may; one present is always checked)
+CHECKSUM_SINCE = (2, 1)
 
 
 class ParentRef(Record):
@@ -127,6 +129,16 @@ class Demos(ArtifactBase):
     episode_success = property(lambda self: self.arrays["episodes/success"])
     episode_valid = property(lambda self: self.arrays["episodes/valid"])
 
+    @classmethod
+    def check_data(cls, manifest, arrays):
+        start, length = arrays["episodes/start"], arrays["episodes/length"]
+        n = arrays["steps/observations"].shape[0]
+        if (length < 1).any() or start[0] != 0 or (start[1:] != np.cumsum(length)[:-1]).any():
+            return "episodes/start and episodes/length do not tile the steps (episodes must follow each other)"
+        if int(length.sum()) != n:
+            return f"the episodes cover {int(length.sum())} steps, but there are {n}"
+        return None
+
     @property
     def n_episodes(self) -> int:
         return int(self.episode_start.shape[0])
@@ -161,6 +173,12 @@ class Buffer(ArtifactBase):
         d = e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
         return {"feature_dim": d}
 
+    @classmethod
+    def check_data(cls, manifest, arrays):
+        if (arrays["source_index"] < 0).any():
+            return "source_index holds negative rows"
+        return None
+
     points = property(lambda self: self.arrays["points"])
     source_index = property(lambda self: self.arrays["source_index"])
     low = property(lambda self: self.arrays["normalizer/low"])
@@ -191,6 +209,13 @@ class Model(ArtifactBase):
         d = e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
         return {"feature_dim": d}
 
+    @classmethod
+    def check_data(cls, manifest, arrays):
+        steps = arrays["curve/step"]
+        if (np.diff(steps) <= 0).any() or (steps > manifest.state.step).any() or (steps < 1).any():
+            return "curve/step must increase, from 1 to the model's step"
+        return None
+
     def tensors(self, prefix: str) -> dict[str, np.ndarray]:
         p = prefix.rstrip("/") + "/"
         return {k[len(p) :]: v for k, v in self.arrays.items() if k.startswith(p)}
@@ -214,6 +239,13 @@ class Plans(ArtifactBase):
     @classmethod
     def dims(cls, manifest):
         return {"obs_dim": manifest.env.obs_dim}
+
+    @classmethod
+    def check_data(cls, manifest, arrays):
+        index, pairs = arrays["pair_index"], arrays["starts"].shape[0]
+        if (index < 0).any() or (index >= pairs).any():
+            return f"pair_index must lie in [0, {pairs})"
+        return None
 
     plans = property(lambda self: self.arrays["plans"])
     starts = property(lambda self: self.arrays["starts"])
@@ -244,6 +276,14 @@ class Eval(ArtifactBase):
     @classmethod
     def dims(cls, manifest):
         return {"obs_dim": manifest.env.obs_dim, "goal_dim": manifest.env.goal_dim}
+
+    @classmethod
+    def check_data(cls, manifest, arrays):
+        cfg = manifest.config
+        values, counts = np.unique(arrays["episodes/seed"], return_counts=True)
+        if sorted(values.tolist()) != sorted(set(cfg.seeds)) or (counts != cfg.episodes).any():
+            return f"the episodes are not {cfg.episodes} per seed of {cfg.seeds}"
+        return None
 
 
 KINDS: dict[str, type[ArtifactBase]] = {c.kind: c for c in (Demos, Buffer, Model, Plans, Eval)}
