@@ -300,7 +300,7 @@ def methods(as_json: bool = JsonOpt) -> None:
 @app.command()
 def collect(
     env: str | None = EnvArg,
-    episodes: int = typer.Option(1000, "--episodes", "-n", min=1, help="Number of demonstrations."),
+    episodes: int = typer.Option(1000, "--episodes", "-n", min=1, max=1_000_000, help="Number of demonstrations."),
     expert: str | None = typer.Option(
         None,
         "--expert",
@@ -604,8 +604,10 @@ def plan(
         [], "--start", help="A start state (mazes: x,y at rest, or x,y,vx,vy); repeatable."
     ),
     goal: list[str] = typer.Option([], "--goal", help="A goal (mazes: x,y); one per --start, or one for all."),
-    pairs: int = typer.Option(0, "--pairs", min=0, help="Instead: N start/goal pairs drawn by the eval protocol."),
-    n: int = typer.Option(1, "--n", min=1, help="Plans per start/goal pair."),
+    pairs: int = typer.Option(
+        0, "--pairs", min=0, max=100_000, help="Instead: N start/goal pairs drawn by the eval protocol."
+    ),
+    n: int = typer.Option(1, "--n", min=1, max=10_000, help="Plans per start/goal pair."),
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with the raw weights instead of the EMA."),
@@ -691,7 +693,7 @@ def plan(
 @app.command("eval")
 def eval_cmd(
     model: Path = typer.Argument(..., help="Model artifact from `cdrb train`."),
-    episodes: int = typer.Option(100, "--episodes", "-n", min=1, help="Episodes per evaluation seed."),
+    episodes: int = typer.Option(100, "--episodes", "-n", min=1, max=100_000, help="Episodes per evaluation seed."),
     seeds: str = typer.Option("0,1,2,3,4", "--seeds", help="Evaluation seeds (each draws its own start/goal pairs)."),
     controller: str | None = typer.Option(
         None,

@@ -24,7 +24,7 @@ Seed = Annotated[int, Field(ge=0, le=MAX_SEED)]
 # --------------------------------------------------------------------------------------------- collect
 class CollectConfig(Record):
     env: str
-    episodes: int = Field(gt=0)
+    episodes: int = Field(gt=0, le=1_000_000)
     expert: Annotated[ExpertConfig, Dispatch(EXPERTS, key="kind", attr="config")]
     valid_fraction: float = Field(0.1, ge=0, lt=1)
     seed: Seed
@@ -152,7 +152,7 @@ SamplerName = Annotated[str, RegisteredName(METHODS, values=lambda entry: entry.
 
 class PlanConfig(Record):
     sampler: SamplerName
-    n: int = Field(gt=0, description="plans per start/goal pair")
+    n: int = Field(gt=0, le=10_000, description="plans per start/goal pair")
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = True
     keep_iterates: int = Field(0, ge=0)
@@ -171,7 +171,7 @@ class PlanSummary(Record):
 
 # --------------------------------------------------------------------------------------------- eval
 class EvalConfig(Record):
-    episodes: int = Field(gt=0, description="episodes per seed")
+    episodes: int = Field(gt=0, le=100_000, description="episodes per seed")
     seeds: list[Seed] = Field(min_length=1, description="evaluation seeds (each draws its own start/goal pairs)")
     controller: Annotated[ControllerConfig, Dispatch(CONTROLLERS, key="name", attr="config")] = Field(
         description="the controller that executes each plan, and its settings"

@@ -67,8 +67,13 @@ def now_utc() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
 
 
+def text(value) -> str:
+    """A path or argument as valid Unicode (bytes that are not UTF-8 become U+FFFD), fit for a JSON manifest."""
+    return str(value).encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def command_line() -> list[str]:
-    argv = list(sys.argv)
+    argv = [text(a) for a in sys.argv]
     if argv:
         argv[0] = Path(argv[0]).name
     return argv

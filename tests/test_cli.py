@@ -10,7 +10,7 @@ import pytest
 
 from cdrb_cli import __version__
 from cdrb_cli.cli import main
-from tests.factories import KINDS, write
+from tests.factories import KINDS, tampered, write
 
 COMMANDS = [
     "collect",
@@ -68,7 +68,7 @@ def test_inspect_bad_files_exit_2_with_one_line(tmp_path, cdrb):
     with h5py.File(plain, "w") as f:
         f["x"] = np.ones(2)
     newer = write(tmp_path / "newer.h5", "demos")
-    with h5py.File(newer, "r+") as f:
+    with tampered(newer) as f:
         f.attrs["cdrb_schema_version"] = "9.0"
     for path, needle in [
         (junk, "not an HDF5"),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -73,6 +75,10 @@ def test_cli_collect_custom_map_end_to_end(tmp_path, cdrb):
 def test_cli_collect_bad_inputs(tmp_path, cdrb):
     bad = tmp_path / "bad.txt"
     bad.write_text("#####\n#S.G#\n###\n")
+    fifo = tmp_path / "fifo.txt"
+    os.mkfifo(fifo)  # reading it would hang
+    huge = tmp_path / "huge.txt"
+    huge.write_text("#" * (2 << 20))
     cases = [
         (("collect", "--maze-map", bad, "-n", "2"), "ragged"),
         (("collect", "moon", "-n", "2"), "unknown environment"),
@@ -80,13 +86,17 @@ def test_cli_collect_bad_inputs(tmp_path, cdrb):
         (("collect", "maze", "--expert", "sac", "-n", "2"), "--policy"),
         (("collect", "maze", "--expert", "magic", "-n", "2"), "--expert"),
         (("collect", "maze", "-n", "2", "--out", tmp_path / "no" / "d.h5"), "does not exist"),
+        (("collect", "maze", "-n", "2000000"), "--episodes"),
+        (("collect", "--maze-map", "/dev/zero", "-n", "2"), "not a regular file"),
+        (("collect", "--maze-map", fifo, "-n", "2"), "not a regular file"),
+        (("collect", "--maze-map", huge, "-n", "2"), "larger than 1024 KiB"),
     ]
     for args, needle in cases:
         r = cdrb(*args, cwd=tmp_path)
         assert r.returncode == 2, (args, r.stderr)
         assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert r.stdout == ""
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.txt"]  # nothing written
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.txt", "fifo.txt", "huge.txt"]  # nothing written
 
 
 def test_sac_expert_train_and_collect_tiny_budget(tmp_path, cdrb):
@@ -153,3 +163,21 @@ def test_names_from_files_are_printed_as_plain_text(tmp_path, cdrb):
     r = cdrb("collect", "--maze-map", m, "-n", "2", "--out", tmp_path / "d.h5", "--plot", folder / "p.png")
     assert r.returncode == 0, r.stderr
     assert "map:x?[31m" in r.stderr and "\x1b" not in r.stderr and "[/bold]/p.png" in r.stderr
+
+
+def test_an_out_path_that_is_not_utf8_works_and_is_recorded_readably(tmp_path):
+    """POSIX paths are bytes: one that is not UTF-8 is written as given, echoed byte for byte on stdout, and
+    recorded in the manifest with U+FFFD in place of the bad byte (a JSON manifest holds only Unicode)."""
+    import subprocess
+    import sys
+
+    out = os.fsencode(tmp_path) + b"/d\xff.h5"
+    r = subprocess.run(
+        [sys.executable.encode(), b"-m", b"cdrb_cli", b"collect", b"maze", b"-n", b"2", b"--out", out],
+        capture_output=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == out
+    a = artifacts.load(os.fsdecode(out))
+    assert "\ufffd" in " ".join(a.manifest.argv)

@@ -34,8 +34,9 @@ def test_parse_good_map():
         ("#####\n#..G#\n#####\n", "no start cell"),
         ("#####\n#S..#\n#####\n", "no goal cell"),
         ("", "empty"),
-        ("#####\n#S#G#\n#####\n", "no goal cell can be reached"),
+        ("#####\n#S#G#\n#####\n", "no goal cell other than the start can be reached"),
         ("##\n#S\n", "at least 3x3"),
+        ("###\n#C#\n###\n", "no goal cell other than the start"),  # one cell, both start and goal
     ],
 )
 def test_parse_bad_maps(text, needle):

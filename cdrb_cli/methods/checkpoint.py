@@ -69,7 +69,11 @@ def _load_module(module, tensors: dict[str, np.ndarray], where: str) -> None:
     try:
         module.load_state_dict(state, strict=True)
     except RuntimeError as exc:
-        raise BadInput(f"{where}: weights do not fit the network in its config ({str(exc).splitlines()[0]})") from None
+        first = str(exc).splitlines()[1:2] or str(exc).splitlines()[:1]
+        raise BadInput(
+            f"{where}: weights do not fit the network in its config: {first[0].strip()}",
+            hint="re-train the model (or pass the artifact its config belongs to)",
+        ) from None
 
 
 def load_weights(model, method: Method, prefix: str = "weights", modules=None) -> None:

@@ -137,7 +137,11 @@ def collect_rows(evals) -> list[dict]:
 
 def _describe(p) -> str:
     settings = ", ".join(f"{k} {v}" for k, v in p[1].model_dump().items() if k != "name")
-    return f"{p[0]} episodes per seed, {p[1].name} controller ({settings}), protocol {p[2]}, {p[4]}-step episodes"
+    extra = f" + {p[3]} extra" if p[3] else ""
+    return (
+        f"{p[0]} episodes per seed, {p[1].name} controller ({settings}), protocol {p[2]}, "
+        f"episodes of {p[4]}{extra} steps"
+    )
 
 
 def _order(methods):

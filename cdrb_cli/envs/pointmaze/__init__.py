@@ -26,6 +26,7 @@ from cdrb_cli.seeding import episode_seeds
 POINTMAZE_DT = 0.01
 BALL_RADIUS = 0.1
 SUCCESS_RADIUS = 0.45
+MAX_SPEED = 5.0  # the env clips each velocity component at 5 m/s
 PLAN_STRIDE = 2
 
 DESCRIPTIONS = {
@@ -135,6 +136,12 @@ class PointMazeFamily(EnvFamily):
                 f"{flag} {text}: outside the map "
                 f"(x in [{ob.low[0]:g}, {ob.high[0]:g}], y in [{ob.low[1]:g}, {ob.high[1]:g}])",
                 hint="choose a point inside the maze",
+            )
+        speed = np.abs(state[2:4])
+        if np.any(speed > MAX_SPEED):
+            raise BadInput(
+                f"{flag} {','.join(f'{v:g}' for v in state)}: a velocity beyond the ball's {MAX_SPEED:g} m/s per axis",
+                hint="give x,y (at rest) or a velocity within the limit",
             )
         if self.in_collision(spec, state[None])[0]:
             raise BadInput(

@@ -90,16 +90,34 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
     layout = MazeLayout(name=name, rows=[r for _, r in rows])
     geom = MazeGeometry(layout)
     starts, goals = geom.start_cells, geom.goal_cells
-    reachable = geom.reachable_from(starts[0])
-    if not any(tuple(g) in reachable for g in goals):
-        raise BadInput(f"{source}: no goal cell can be reached from start cell {tuple(starts[0])}", hint="open a path")
+    # the protocol draws a start cell and a different goal cell reachable from it (only the first 50 start cells
+    # are tried: enough to find one on any map whose start region is connected)
+    pair = False
+    for s in starts[:50]:
+        reachable = geom.reachable_from(s)
+        if any(tuple(g) in reachable and tuple(g) != tuple(s) for g in goals):
+            pair = True
+            break
+    if not pair:
+        first = tuple(int(v) for v in starts[0])
+        raise BadInput(
+            f"{source}: no goal cell other than the start can be reached from start cell {first}",
+            hint="open a path, or mark another goal cell",
+        )
     return layout
+
+
+MAX_MAP_BYTES = 1 << 20
 
 
 def load_map_file(path: str | Path) -> MazeLayout:
     path = Path(path)
     if not path.exists():
         raise BadInput(f"--maze-map {path}: no such file", hint="check the path")
+    if not path.is_file():  # a FIFO would hang, /dev/zero read forever
+        raise BadInput(f"--maze-map {path}: not a regular file", hint="pass a text file")
+    if path.stat().st_size > MAX_MAP_BYTES:
+        raise BadInput(f"--maze-map {path}: larger than {MAX_MAP_BYTES // 1024} KiB", hint="a map is a few lines")
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
