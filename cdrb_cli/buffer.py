@@ -23,7 +23,7 @@ import numpy as np
 
 from cdrb_cli.envs.spec import EnvSpec
 
-SCHEDULES = ("linear", "log", "sqrt", "sigmoid")
+SCHEDULES = ("linear", "log", "geometric", "sqrt", "sigmoid")
 
 
 # ------------------------------------------------------------------------------------------------ features
@@ -134,8 +134,10 @@ def diameter(points: np.ndarray, exact_limit: int = 20_000, chunk: int = 2048) -
 def radii(schedule: str, d_max: float, steps: int) -> np.ndarray:
     """eps_k for k = 0..steps-1: 0 at k = 0 and d_max at k = steps-1.
 
-    linear: k/(T-1) d_max (the paper's); sqrt: sqrt(k/(T-1)) d_max; log: log-spaced from d_max/100 (most steps
-    use small balls); sigmoid: a logistic ramp centred at T/2."""
+    linear: k/(T-1) d_max (the paper's); log: log(1 + k T/(T-1)) / log(T+1) d_max, i.e. the official code's
+    log(linspace(1, T+1, T)) scaled to end at d_max (concave: the radius grows fast at first); geometric: log-spaced
+    from d_max/100 (convex: most steps use small balls); sqrt: sqrt(k/(T-1)) d_max; sigmoid: a logistic ramp
+    centred at T/2."""
     if schedule not in SCHEDULES:
         raise ValueError(f"unknown schedule {schedule!r}")
     s = np.arange(steps, dtype=np.float64) / max(steps - 1, 1)
@@ -144,6 +146,8 @@ def radii(schedule: str, d_max: float, steps: int) -> np.ndarray:
     elif schedule == "sqrt":
         f = np.sqrt(s)
     elif schedule == "log":
+        f = np.log(np.linspace(1.0, steps + 1.0, steps)) / np.log(steps + 1.0)
+    elif schedule == "geometric":
         f = np.exp(np.log(0.01) * (1.0 - s))
     else:
         g = 1 / (1 + np.exp(-12 * (s - 0.5)))

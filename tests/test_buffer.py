@@ -115,12 +115,19 @@ def test_large_buffer_path_matches_brute_distribution():
     assert 0.7 < counts.var() / counts.mean() < 1.3
 
 
-@pytest.mark.parametrize("schedule", ["linear", "log", "sqrt", "sigmoid"])
+@pytest.mark.parametrize("schedule", ["linear", "log", "geometric", "sqrt", "sigmoid"])
 def test_schedules(schedule):
     eps = radii(schedule, 3.0, 32)
     assert eps[0] == 0 and np.isclose(eps[-1], 3.0) and np.all(np.diff(eps[1:]) > 0)
+    linear = np.arange(32) / 31 * 3.0
     if schedule == "linear":
-        np.testing.assert_allclose(eps, np.arange(32) / 31 * 3.0)
+        np.testing.assert_allclose(eps, linear)
+    if schedule == "log":  # the official code's log(linspace(1, T+1, T)), scaled to end at d_max: concave
+        np.testing.assert_allclose(eps, np.log(np.linspace(1, 33, 32)) / np.log(33) * 3.0)
+        assert np.all(eps[1:-1] > linear[1:-1]) and np.all(np.diff(eps, 2) < 0)
+    if schedule == "geometric":  # log-spaced from d_max / 100: convex, most steps use small balls
+        assert np.isclose(eps[1], 0.03 * (100 ** (1 / 31))) and np.all(eps[1:-1] < linear[1:-1])
+        assert np.all(np.diff(eps[1:], 2) > 0)
 
 
 def test_normalizer_round_trip_and_constant_feature():

@@ -43,7 +43,7 @@ def test_v1_model_layout_is_per_module():
 def test_v1_model_plans_exactly_as_before(tmp_path):
     model = artifacts.load(V1 / "model.h5")
     old = artifacts.load(V1 / "plans.h5")
-    cfg = PlanConfig(sampler="alg1", n=2, seed=3)
+    cfg = PlanConfig(sampler="paper", n=2, seed=3)  # "alg1" in the 1.x file, renamed in 2.2
     new = make_plans(model, old.starts.astype(np.float64), old.goals.astype(np.float64), cfg, tmp_path / "p.h5")
     np.testing.assert_array_equal(new.plans, old.plans)
     np.testing.assert_array_equal(new.arrays["in_wall"], old.arrays["in_wall"])
@@ -54,7 +54,8 @@ def test_v1_model_evaluates_exactly_as_before(tmp_path):
     old = artifacts.load(V1 / "eval.h5")
     assert old.manifest.config.controller.name == "pd" and old.manifest.config.controller.max_lag == 0.6
     new = evaluate(model, old.manifest.config, tmp_path / "e.h5")
-    assert new.arrays.keys() == old.arrays.keys()
+    added = {"episodes/plan_crosses_obstacle", "episodes/plan_max_jump", "episodes/plan_step_limit"}  # 2.2 metrics
+    assert new.arrays.keys() == old.arrays.keys() | added
     for key in old.arrays:
         if key != "episodes/plan_seconds":
             np.testing.assert_array_equal(new.arrays[key], old.arrays[key], err_msg=key)
@@ -93,3 +94,23 @@ def test_cli_reads_v1_files(tmp_path, cdrb):
     assert r.returncode == 0 and "read through a migration" in r.stdout
     r = cdrb("plan", V1 / "model.h5", "--start", "0,0", "--goal", "6,6", "--out", tmp_path / "p.h5")
     assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("version, schedule, sampler", [("2.1", "geometric", "paper"), ("2.2", "log", "paper")])
+def test_2_2_renames(tmp_path, version, schedule, sampler):
+    """Schema 2.2 renamed CDRB's log-spaced schedule "log" to "geometric" (log is now the official code's) and the
+    samplers alg1/alg2 to paper/cold-improved: an older file reads with the new names, a 2.2 file as written."""
+    from tests.factories import tampered, write
+
+    path = write(tmp_path / "m.h5", "model")
+    with tampered(path) as f:
+        m = json.loads(bytes(f["manifest"][()]))
+        m["schema_version"] = version
+        m["config"]["method"]["schedule"] = "log"
+        if version == "2.1":
+            m["config"]["method"]["sampler"] = "alg1"
+        f.attrs["cdrb_schema_version"] = version
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+    method = artifacts.load(path, "model").manifest.config.method
+    assert (method.schedule, method.sampler) == (schedule, sampler)

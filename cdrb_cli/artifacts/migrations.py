@@ -8,6 +8,10 @@ Schema 2 (cdrb 0.2, the families/registry redesign) changed, for every kind:
   and module (``optim/net/net/<parameter>/...``), so methods with several networks and optimizers fit;
 * ``eval``: the controller's settings moved into ``config.controller`` (a 1.0 file, written before the gated plan
   clock existed, followed plans on the environment's clock: ``max_lag`` null).
+
+Minor versions that renamed values are migrated too (:func:`migrate_minor`): schema 2.2 renamed CDRB's radius
+schedule ``log`` (log-spaced, convex) to ``geometric`` (``log`` is now the official code's concave schedule) and
+the CDRB samplers ``alg1``/``alg2`` to ``paper``/``cold-improved``.
 """
 
 from __future__ import annotations
@@ -81,3 +85,37 @@ def migrate_manifest(kind: str, major: int, manifest: Manifest) -> Manifest:
 
 def migrate_arrays(kind: str, major: int, arrays: Arrays) -> Arrays:
     return MIGRATIONS[kind][major][1](arrays)
+
+
+_SAMPLERS_2_2 = {"alg1": "paper", "alg2": "cold-improved"}
+
+
+def _renames_2_2(kind: str, m: Manifest) -> Manifest:
+    m = dict(m)
+    cfg = m.get("config")
+    if not isinstance(cfg, dict):
+        return m
+    cfg = dict(cfg)
+    if kind == "model" and isinstance(cfg.get("method"), dict) and cfg["method"].get("name") == "cdrb":
+        method = dict(cfg["method"])
+        if method.get("schedule") == "log":
+            method["schedule"] = "geometric"
+        if method.get("sampler") in _SAMPLERS_2_2:
+            method["sampler"] = _SAMPLERS_2_2[method["sampler"]]
+        cfg["method"] = method
+    if kind in ("plans", "eval") and cfg.get("sampler") in _SAMPLERS_2_2:
+        cfg["sampler"] = _SAMPLERS_2_2[cfg["sampler"]]
+    m["config"] = cfg
+    return m
+
+
+#: (version, manifest migration) for minor versions that renamed values; applied to every older file in order
+MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [((2, 2), _renames_2_2)]
+
+
+def migrate_minor(kind: str, version: tuple[int, int], manifest: Manifest) -> Manifest:
+    """Apply every value-renaming migration newer than ``version`` (the file's)."""
+    for since, fn in MINOR_MIGRATIONS:
+        if version < since:
+            manifest = fn(kind, manifest)
+    return manifest

@@ -4,10 +4,11 @@ Training (the paper's Algorithm "Training the Noise Model"): draw a demonstratio
 start and goal, k ~ U{1..T-1}, degrade it with the ball sampler, tau_k = D(tau, k) (ends pinned), restore
 R(tau_k, k), pin its ends, and minimize the L2 distance to tau.
 
-Sampling (the released code's Algorithm 1): tau_{T-1} = random buffer states with start and goal pinned; for
-k = T-1 .. 1: x0 = R(tau_k, k), pin, tau_{k-1} = D(x0, k-1), pin; the plan is the last x0 (D(., 0) is the
-identity). Algorithm 2 (cold diffusion's "improved" update tau_{k-1} = tau_k - D(x0, k) + D(x0, k-1)) is
-available for ablations. ``steps`` < T-1 runs the same updates on an evenly spaced subsequence of k.
+Sampling, ``sampler = "paper"`` (the paper's appendix algorithm "Sampling Process", as released): tau_{T-1} =
+random buffer states with start and goal pinned; for k = T-1 .. 1: x0 = R(tau_k, k), pin, tau_{k-1} = D(x0, k-1),
+pin; the plan is the last x0 (D(., 0) is the identity). ``sampler = "cold-improved"`` is Cold Diffusion's
+improved update (Bansal et al.'s Algorithm 2), tau_{k-1} = tau_k - D(x0, k) + D(x0, k-1), for ablations.
+``steps`` < T-1 runs the same updates on an evenly spaced subsequence of k.
 """
 
 from __future__ import annotations
@@ -25,15 +26,19 @@ from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
 
 class CDRBParams(MethodParams):
     name: Literal["cdrb"] = "cdrb"
-    schedule: Literal["linear", "log", "sqrt", "sigmoid"] = Field(
-        "linear", description="how the ball radius eps_k grows with k"
+    schedule: Literal["linear", "log", "geometric", "sqrt", "sigmoid"] = Field(
+        "linear",
+        description="how the ball radius eps_k grows with k: linear (the paper's), log (the official code's, "
+        "concave), geometric (log-spaced, convex), sqrt, sigmoid",
     )
     d_max: float = Field(
         gt=0, description="largest ball radius, in normalized feature space (default: the buffer's diameter)"
     )
     diffusion_steps: int = Field(gt=1, le=100_000, description="T, the number of diffusion steps")
-    sampler: Literal["alg1", "alg2"] = Field(
-        "alg1", description="alg1: re-degrade the restored plan (as released); alg2: cold diffusion's update"
+    sampler: Literal["paper", "cold-improved"] = Field(
+        "paper",
+        description="paper: restore, then degrade to k-1 (the paper's sampling algorithm, as released); "
+        "cold-improved: Cold Diffusion's improved update tau_k - D(x0, k) + D(x0, k-1)",
     )
     loss_weight_power: float = Field(
         0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
@@ -50,9 +55,12 @@ class CDRB(Planner):
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = BallSampler(self.points, self.eps)
-        # the first and last states are left out of the degradation when the whole state is pinned there; when only
-        # some dimensions are (spec.pinned_dims), they are degraded like the rest and pinning restores those dims
-        self.kept = (0, -1) if isinstance(self.pinned, slice) else ()
+        # the first and last planned states are left out of the degradation when pinning fixes every feature there;
+        # when it fixes only some (spec.pinned_dims, or the action part of state-action features) they are degraded
+        # like the rest and pinning restores the pinned dims, so training sees the ends as sampling does (whose ends
+        # start as random buffer features with only the pinned dims set)
+        whole = isinstance(self.pinned, slice) and self.feature_dim == self.obs_dim
+        self.kept = (0, -1) if whole else ()
 
     def extra_arrays(self):
         return {"buffer/points": self.points}
@@ -89,7 +97,7 @@ class CDRB(Planner):
                 kept.append((int(k), x.clone()))
             kk = torch.full((P,), int(k), device=start.device, dtype=torch.long)
             x0 = self.pin(self.net(x, kk), start, goal)
-            if sampler == "alg1":
+            if sampler == "paper":
                 x = self._degrade(x0, int(k_next), rng)
             else:
                 x = x - self._degrade(x0, int(k), rng) + self._degrade(x0, int(k_next), rng)
