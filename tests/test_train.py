@@ -221,3 +221,69 @@ def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
         assert r.returncode == 2 and needle in r.stderr, (extra, r.stderr)
         assert r.stderr.count("\n") == 1
     assert not any(tmp_path.iterdir())
+
+
+def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
+    """`--snapshot-at` writes, mid-run, the model a run of that many steps writes: same weights, optimizer state,
+    curve and config; the later run then skips it as up to date."""
+    demos, buffer = small_data
+    args = ["train", demos.path, "--buffer", buffer.path, "--set", "checkpoint_every=100", *TINY_FLAGS]
+    out = tmp_path / "long.h5"
+    r = cdrb(*args, "--steps", "200", "--snapshot-at", "50,150", "--out", out)
+    assert r.returncode == 0, r.stderr
+    for s in (50, 150):
+        snap = artifacts.load(tmp_path / f"long.step{s}.h5", "model")
+        ref_path = tmp_path / f"ref{s}.h5"
+        assert cdrb(*args, "--steps", str(s), "--out", ref_path).returncode == 0
+        ref = artifacts.load(ref_path, "model")
+        assert snap.manifest.config == ref.manifest.config and snap.manifest.state.finished
+        assert snap.manifest.state.step == s and snap.manifest.state.valid_loss == ref.manifest.state.valid_loss
+        a, b = _weights(snap), _weights(ref)
+        a.update({k: v for k, v in snap.arrays.items() if k.startswith("curve/")})
+        b.update({k: v for k, v in ref.arrays.items() if k.startswith("curve/")})
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        r = cdrb(*args, "--steps", str(s), "--out", tmp_path / f"long.step{s}.h5")
+        assert r.returncode == 0 and "up to date" in r.stderr
+    # the long run itself is what it would be without snapshots
+    plain = tmp_path / "plain.h5"
+    assert cdrb(*args, "--steps", "200", "--out", plain).returncode == 0
+    long = artifacts.load(out).arrays
+    for k, v in artifacts.load(plain).arrays.items():
+        np.testing.assert_array_equal(v, long[k], err_msg=k)
+    # bad snapshot steps, and an existing snapshot file without --force
+    for bad in ("200", "0", "75", "x"):
+        r = cdrb(*args, "--steps", "200", "--snapshot-at", bad, "--out", tmp_path / "b.h5")
+        assert r.returncode == 2 and "--snapshot-at" in r.stderr and len(r.stderr.strip().splitlines()) <= 2, bad
+    (tmp_path / "new.step50.h5").write_bytes(b"mine")
+    r = cdrb(*args, "--steps", "200", "--snapshot-at", "50", "--out", tmp_path / "new.h5")
+    assert r.returncode == 2 and "new.step50.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
+
+
+def test_state_action_ends_are_degraded_in_training_as_in_sampling(small_data, tmp_path):
+    """With state-action features only the state part of the end states is pinned; sampling starts those ends
+    from random buffer features, so training degrades their action part too (and keeps the state part exact)."""
+    import torch
+
+    from cdrb_cli.configs import ClusterConfig
+    from cdrb_cli.methods.base import build_method
+    from cdrb_cli.stages.cluster import cluster
+
+    demos, _ = small_data
+    buffer = cluster(demos, ClusterConfig(k=50, seed=0, features="state-action"), tmp_path / "b.h5")
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", features="state-action"))
+    from cdrb_cli.stages.train import check_inputs
+
+    method = build_method(cfg, demos.manifest.env, check_inputs(demos, buffer, "state-action"), buffer.points)
+    assert method.kept == ()
+    rng = np.random.default_rng(0)
+    x = torch.from_numpy(rng.uniform(-1, 1, size=(64, cfg.horizon, method.feature_dim)).astype(np.float32))
+    start, goal = method.ends(x, method.obs_dim)
+    y = method.pin(method._degrade(x, method.T - 1, rng), start, goal)
+    o = method.obs_dim
+    assert torch.equal(y[:, 0, :o], x[:, 0, :o]) and torch.equal(y[:, -1, :o], x[:, -1, :o])
+    assert (y[:, 0, o:] != x[:, 0, o:]).any() and (y[:, -1, o:] != x[:, -1, o:]).any()
+    state_cfg = train_config(demos, small_data[1], "cdrb", tiny("cdrb"))
+    norm = check_inputs(demos, small_data[1], "state")
+    assert build_method(state_cfg, demos.manifest.env, norm, small_data[1].points).kept == (0, -1)

@@ -9,8 +9,10 @@ optimizers and its ``update``.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from cdrb_cli import artifacts, ui
@@ -50,8 +52,35 @@ def check_inputs(demos, buffer, features: str) -> Normalizer:
     return bnorm
 
 
+def snapshot_path(out: Path, step: int) -> Path:
+    """Where ``--snapshot-at STEP`` writes the model as it is after STEP steps: ``<out stem>.step<STEP>.h5``."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.step{step}{out.suffix or '.h5'}")
+
+
+def check_snapshots(config: TrainConfig, steps: Sequence[int]) -> list[int]:
+    """Snapshot steps, validated: below ``steps`` and on the loss log (multiples of gcd(50, checkpoint_every)), so
+    that each snapshot is exactly the model a run of that many steps writes."""
+    every = math.gcd(50, config.checkpoint_every)
+    for s in steps:
+        if not 0 < s < config.steps or s % every:
+            raise BadInput(
+                f"--snapshot-at {s}: must be below --steps ({config.steps}) and a multiple of {every}",
+                hint=f"e.g. --snapshot-at {every * max(1, config.steps // (4 * every))}",
+            )
+    return sorted(set(steps))
+
+
 def train_or_resume(
-    demos, buffer, config: TrainConfig, out: Path, force: bool = False, resume: bool = False, device="cpu", auto=False
+    demos,
+    buffer,
+    config: TrainConfig,
+    out: Path,
+    force: bool = False,
+    resume: bool = False,
+    device="cpu",
+    auto=False,
+    snapshots: Sequence[int] = (),
 ) -> tuple[artifacts.Model, str]:
     """Train into ``out`` according to what it holds (:func:`cdrb_cli.artifacts.existing`): reuse it when up to
     date, continue it with ``resume`` (or ``auto``) when it is a checkpoint of this run, start over with ``force``
@@ -60,16 +89,23 @@ def train_or_resume(
     if resume and force:
         raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
     parents = [demos] + ([buffer] if buffer is not None else [])
-    with artifacts.claim_output(out, force=True, inputs=[p.path for p in parents]):
-        return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, device, auto)
+    snapshots = check_snapshots(config, snapshots)
+    inputs = [p.path for p in parents]
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(artifacts.claim_output(out, force=True, inputs=inputs))
+        for s in snapshots:
+            # a resumed run may find the snapshots it wrote before the interruption
+            ok = force or resume or auto
+            stack.enter_context(artifacts.claim_output(snapshot_path(out, s), ok, "--snapshot-at", inputs))
+        return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, device, auto, snapshots)
 
 
-def _train_or_resume(demos, buffer, config, out, parents, force, resume, device, auto):
+def _train_or_resume(demos, buffer, config, out, parents, force, resume, device, auto, snapshots=()):
     found = artifacts.existing(out, "model", config, parents) if not force else artifacts.Existing("missing")
     if found.up_to_date:
         return found.artifact, "up to date"
     if found.status == "resumable" and (resume or auto):
-        return train(demos, buffer, config, out, resume=found.artifact, device=device), "resumed"
+        return train(demos, buffer, config, out, resume=found.artifact, device=device, snapshots=snapshots), "resumed"
     if resume:
         missing = found.status == "missing"
         hint = "run without --resume to start training" if missing else "use the same inputs and settings, or --force"
@@ -77,12 +113,17 @@ def _train_or_resume(demos, buffer, config, out, parents, force, resume, device,
     if found.status != "missing" and not auto:
         hint = "pass --resume to continue it" if found.status == "resumable" else "pass --force to overwrite it"
         raise BadInput(f"--out {out}: file exists ({found.reason})", hint=hint)
-    return train(demos, buffer, config, out, device=device), "trained"
+    return train(demos, buffer, config, out, device=device, snapshots=snapshots), "trained"
 
 
-def train(demos, buffer, config: TrainConfig, out: Path, resume=False, device="cpu") -> artifacts.Model:
+def train(
+    demos, buffer, config: TrainConfig, out: Path, resume=False, device="cpu", snapshots: Sequence[int] = ()
+) -> artifacts.Model:
     """Train ``config`` on the demos (and buffer), checkpointing into ``out``. ``resume``: True continues the
-    checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact."""
+    checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact.
+    ``snapshots``: steps at which the model is also written, finished, to :func:`snapshot_path` exactly as a run of
+    that many steps writes it (the learning rate is constant, so nothing else depends on ``steps``); the
+    learning-curve benchmark evaluates them."""
     import torch
 
     spec = demos.manifest.env
@@ -115,7 +156,7 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume=False, device="c
         step, curve, wall = restore(resume, method, ema, optimizers, device)
         ui.log(f"resuming {out} from step {step}")
 
-    def save(finished: bool, loss_value, valid_value) -> None:
+    def save(finished: bool, loss_value, valid_value, path=out, cfg=config, points=None) -> None:
         state = TrainState(
             step=step,
             finished=finished,
@@ -124,10 +165,8 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume=False, device="c
             valid_loss=valid_value,
             parameters=n_params,
         )
-        manifest = artifacts.make_manifest(
-            "model", env=spec, config=config, seed=config.seed, parents=parents, state=state
-        )
-        artifacts.save(out, "model", manifest, checkpoint_arrays(method, ema, optimizers, curve))
+        manifest = artifacts.make_manifest("model", env=spec, config=cfg, seed=cfg.seed, parents=parents, state=state)
+        artifacts.save(path, "model", manifest, checkpoint_arrays(method, ema, optimizers, points or curve))
 
     def valid_loss() -> float | None:
         if valid_batch is None:
@@ -162,10 +201,16 @@ def train(demos, buffer, config: TrainConfig, out: Path, resume=False, device="c
                 last_loss = running / count
                 running, count = 0.0, 0
                 ckpt = step % config.checkpoint_every == 0 or step == config.steps
-                curve.append((step, last_loss, valid_loss() if ckpt else None))
+                snap = step in snapshots
+                valid = valid_loss() if (ckpt or snap) else None
+                curve.append((step, last_loss, valid if ckpt else None))
                 bar.update(task, completed=step, info=f"loss {last_loss:.4f}")
-                if ckpt:
+                if ckpt or snap:
                     wall = time.time() - t0
+                if snap:  # what a run of `step` steps writes at its end
+                    cfg = config.model_copy(update={"steps": step})
+                    save(True, last_loss, valid, snapshot_path(out, step), cfg, curve[:-1] + [(step, last_loss, valid)])
+                if ckpt:
                     save(step == config.steps, last_loss, curve[-1][2])
     return artifacts.load(out, "model")
 
