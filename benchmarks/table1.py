@@ -38,7 +38,8 @@ ABLATIONS = {
     "k=1000 (default)": (1000, "state", []),
     "k=100": (100, "state", []),
     "full buffer": (0, "state", []),
-    "log schedule": (1000, "state", ["--set", "method.schedule=log"]),
+    "log schedule (official)": (1000, "state", ["--set", "method.schedule=log"]),
+    "geometric schedule": (1000, "state", ["--set", "method.schedule=geometric"]),
     "transformer": (1000, "state", ["--net", "transformer"]),
     "state-action": (1000, "state-action", []),
 }
@@ -79,8 +80,11 @@ def train_eval(
     tag: str,
     extra: list | None = None,
     timed: bool = False,
+    eval_flags: list | None = None,
+    protocol: str | None = None,
 ) -> tuple[Path, Path | None]:
-    """Train (or resume, or skip) one model and evaluate it; with ``timed`` also with the plan on the environment's
+    """Train (or resume, or skip) one model and evaluate it on the test pairs (``eval_flags``: the method's tuned
+    controller settings; ``protocol``: e.g. official-code); with ``timed`` also with the plan on the environment's
     clock. Returns the eval path(s)."""
     model = folder / f"{tag}-s{seed}.h5"
     cmd = [
@@ -109,13 +113,15 @@ def train_eval(
     if unfinished(model):
         cmd.append("--resume")
     run(cmd, log, f"train {folder.name} {tag} s{seed}")
-    clocks = [("", [])] + ([("-timed", ["--max-lag", 0])] if timed else [])
+    clocks = [("", list(eval_flags or []))] + ([("-timed", ["--max-lag", 0])] if timed else [])
+    if protocol:
+        clocks = [(f"-{protocol}", ["--protocol", protocol])]
     paths = []
     for suffix, clock_flags in clocks:
         ev = folder / f"eval-{tag}-s{seed}{suffix}.h5"
         run(
-            ["eval", model, "--seeds", seed, "--episodes", args.eval_episodes, *clock_flags, "--out", ev]
-            + ["--device", args.device],
+            ["eval", model, "--stream", "test", "--seeds", seed, "--episodes", args.eval_episodes, *clock_flags]
+            + ["--out", ev, "--device", args.device],
             log,
             f"eval{suffix} {folder.name} {tag} s{seed}",
         )
@@ -173,6 +179,19 @@ def main() -> None:
     ap.add_argument("--skip-grid", action="store_true", help="only the ablations")
     ap.add_argument("--write-docs", action="store_true")
     ap.add_argument(
+        "--tuned",
+        type=Path,
+        default=None,
+        help="settings chosen on the tuning stream (docs/results/tuned.json from benchmarks/comparison.py): "
+        "per env and method, training flags and controller flags",
+    )
+    ap.add_argument(
+        "--official-too",
+        action="store_true",
+        help="also evaluate every grid model under the official-code protocol (cell-centre goals, r = 0.55 m, the "
+        "official executor)",
+    )
+    ap.add_argument(
         "--timed-too",
         action="store_true",
         help="also evaluate every grid model with the plan on the environment's clock (--max-lag 0)",
@@ -197,20 +216,29 @@ def main() -> None:
     methods = (
         args.methods.split(",") if args.methods else [m for m in METHODS.names() if METHODS.get(m).kind == "planner"]
     )
+    tuned = json.loads(args.tuned.read_text())["settings"] if args.tuned else {}
     t0 = time.time()
-    evals, timed_evals = [], []
+    evals, timed_evals, official_evals = [], [], []
     try:
         if not args.skip_grid:
             for env in args.envs.split(","):
-                demos, buffer = prepare_env(env, args.out, args, log)
                 for seed in seeds:
                     for method in methods:
-                        ev, timed_ev = train_eval(
-                            args.out / env, demos, buffer, method, seed, args, log, method, timed=args.timed_too
-                        )
+                        t = tuned.get(env, {}).get(method)
+                        if args.tuned and t is None:
+                            raise SystemExit(f"{args.tuned}: no tuned settings for {method} on {env}")
+                        train_flags = list(t["train_flags"]) if t else []
+                        eval_flags = list(t.get("eval_flags", [])) if t else []
+                        features = "state-action" if "features=state-action" in train_flags else "state"
+                        demos, buffer = prepare_env(env, args.out, args, log, features=features)
+                        tag = f"{method}-tuned" if t else method
+                        common = (args.out / env, demos, buffer, method, seed, args, log, tag, train_flags)
+                        ev, timed_ev = train_eval(*common, timed=args.timed_too, eval_flags=eval_flags)
                         evals.append(ev)
                         if timed_ev is not None:
                             timed_evals.append(timed_ev)
+                        if args.official_too:
+                            official_evals.append(train_eval(*common, protocol="official-code")[0])
         ablation_evals = {}
         if args.ablations:
             env = "maze-tight"
@@ -244,6 +272,15 @@ def main() -> None:
                 log,
                 "report timed",
             )
+        if official_evals:
+            run(
+                ["report", *official_evals, "--format", "markdown", "--out", args.out / "table1-official.md"]
+                + ["--force"],
+                log,
+                "report official",
+            )
+            csv_official = csv.with_name("table1_official.csv")
+            run(["report", *official_evals, "--format", "csv", "--out", csv_official, "--force"], log, "csv official")
     if args.write_docs:
         text = (DOCS / "benchmarks.md").read_text()
         if evals:
@@ -252,13 +289,24 @@ def main() -> None:
                 stage = key.split(" ")[0]
                 stage_time[stage] = stage_time.get(stage, 0.0) + (0 if v["skipped"] else v["seconds"])
             body = report_md.read_text()
+            if official_evals:
+                body += (
+                    "\n**The same models under the official-code protocol** (`cdrb eval --protocol official-code`: "
+                    "goals at cell centres, success within 0.55 m, the official executor):\n\n"
+                    + (args.out / "table1-official.md").read_text()
+                )
             if timed_evals:
                 body += (
                     "\n**The same models with the plan on the environment's clock** (`cdrb eval --max-lag 0`; the "
                     "table above uses the default gated clock, `--max-lag 0.6`):\n\n"
                     + (args.out / "table1-timed.md").read_text()
                 )
-            flags = (" --timed-too" if args.timed_too else "") + (" --ablations" if args.ablations else "")
+            flags = (
+                (f" --tuned {args.tuned}" if args.tuned else "")
+                + (" --official-too" if args.official_too else "")
+                + (" --timed-too" if args.timed_too else "")
+                + (" --ablations" if args.ablations else "")
+            )
             meta = (
                 f"\n*Run: `python benchmarks/table1.py --preset {args.preset} --demos {args.demos} --seeds "
                 f"{args.seeds} --eval-episodes {args.eval_episodes}{flags}` on {hardware()}; wall time per stage "

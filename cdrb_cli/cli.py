@@ -494,6 +494,13 @@ def train(
     device: str = DeviceOpt,
     out: Path = typer.Option(Path("model.h5"), "--out", "-o", help="Model artifact to write (also the checkpoint)."),
     resume: bool = typer.Option(False, "--resume", help="Continue the checkpoint in --out (same settings and inputs)."),
+    snapshot_at: str | None = typer.Option(
+        None,
+        "--snapshot-at",
+        metavar="STEPS",
+        help="Also write the model after these steps (e.g. 1000,3000) to OUT.step<N>.h5, each exactly what "
+        "`--steps N` writes: a learning curve from one run.",
+    ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -519,7 +526,10 @@ def train(
     if dry_run:
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return
-    model, done = train_or_resume(d, b, config, out, force=force, resume=resume, device=setup_torch(device))
+    snapshots = _int_list(snapshot_at, "--snapshot-at") if snapshot_at else []
+    model, done = train_or_resume(
+        d, b, config, out, force=force, resume=resume, device=setup_torch(device), snapshots=snapshots
+    )
     if done == "up to date":
         ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")
     st = model.manifest.state
@@ -623,8 +633,9 @@ def plan(
 ) -> None:
     """Plan from start to goal and write a [bold]plans[/bold] artifact (start and goal held exactly).
 
-    CDRB (Algorithm 1): start from random buffer states, then repeatedly restore and re-degrade with shrinking
-    balls. Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 --n 8 --plot plans.png --show-steps 4[/cyan]"""
+    CDRB (the paper's sampling algorithm): start from random buffer states, then repeatedly restore and
+    re-degrade with shrinking balls.
+    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 --n 8 --plot plans.png --show-steps 4[/cyan]"""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import PlanConfig
     from cdrb_cli.envs.registry import family_of
@@ -700,7 +711,7 @@ def eval_cmd(
         "--controller",
         parser=_registered(_controllers, "controller"),
         metavar="NAME",
-        help="The controller that executes plans (default: the environment's first; mazes: pd or inverse-dynamics).",
+        help="The controller that executes plans (default: the protocol's; mazes: pd, inverse-dynamics or waypoint).",
     ),
     max_lag: float | None = typer.Option(
         None,
@@ -716,6 +727,21 @@ def eval_cmd(
         "--set",
         metavar="KEY=VALUE",
         help="Set an eval config field, e.g. --set controller.kp=20 (`cdrb config eval`).",
+    ),
+    stream: str = typer.Option(
+        "test",
+        "--stream",
+        parser=_choice(lambda: ["test", "tune"], "stream"),
+        metavar="test|tune",
+        help="Which start/goal pairs: 'tune' to choose settings on, 'test' (never used for choosing) for reported "
+        "tables.",
+    ),
+    protocol: str | None = typer.Option(
+        None,
+        "--protocol",
+        metavar="NAME",
+        help="The evaluation protocol (default: the environment's; mazes also take 'official-code': goals at cell "
+        "centres, success within 0.55 m, the official executor). `cdrb envs --json` lists them.",
     ),
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
@@ -756,7 +782,17 @@ def eval_cmd(
         settings.append(Setting(("controller", "max_lag"), max_lag or None, f"--max-lag {max_lag:g}"))
     m = _trained_model(model, allow_partial)
     config = eval_config(
-        m, episodes, seed_list, controller, settings, sampler, sample_steps, use_ema=not raw_weights, seed=seed
+        m,
+        episodes,
+        seed_list,
+        controller,
+        settings,
+        sampler,
+        sample_steps,
+        use_ema=not raw_weights,
+        seed=seed,
+        protocol=protocol,
+        stream=stream,
     )
     n_videos = videos if video is not None else 0
     ev = produce(
@@ -768,11 +804,12 @@ def eval_cmd(
         parents=[m],
     )
     s = ev.manifest.summary
+    crossing = "" if s.plan_crossing_mean is None else f"; plans through obstacles {100 * s.plan_crossing_mean:.1f}%"
     ui.log(
-        f"{s.method} on {m.manifest.env.id}: success {100 * s.success_mean:.1f} ± {100 * s.success_std:.1f}% "
-        f"over {len(seed_list)} seeds x {episodes} episodes; planned states in obstacles "
-        f"{100 * s.in_wall_mean:.2f}%; executed collisions {100 * s.executed_collision_mean:.1f}%; "
-        f"plan {1000 * s.plan_seconds_mean:.1f} ms"
+        f"{s.method} on {ui.plain(m.manifest.env.id)} ({stream} pairs): success {100 * s.success_mean:.1f} ± "
+        f"{100 * s.success_std:.1f}% over {len(seed_list)} seeds x {episodes} episodes; planned states in "
+        f"obstacles {100 * s.in_wall_mean:.2f}%{crossing}; executed collisions "
+        f"{100 * s.executed_collision_mean:.1f}%; plan {1000 * s.plan_seconds_mean:.1f} ms"
     )
     if video is not None:
         ui.log(f"rollout GIFs: {video}/")

@@ -183,6 +183,9 @@ class EvalConfig(Record):
         0, ge=0, le=1_000_000, description="env steps executed beyond the plan, holding its last state"
     )
     protocol: str = Field(description="the family's start/goal protocol")
+    stream: Literal["test", "tune"] = Field(
+        "test", description="which start/goal pairs: 'tune' (for choosing settings) or 'test' (reported tables)"
+    )
     seed: Seed
 
 
@@ -191,6 +194,13 @@ class SeedResult(Record):
     episodes: int
     success_rate: float
     in_wall_fraction: float
+    plan_crossing_rate: float | None = Field(
+        None, description="plans with a state in an obstacle or a segment through one (None: not measured)"
+    )
+    jump_ratio: float | None = Field(
+        None, description="mean over plans of the largest step between planned states / what the dynamics allow"
+    )
+    impossible_jump_rate: float | None = Field(None, description="plans with a step beyond what the dynamics allow")
     executed_collision_rate: float
     path_length_ratio: float | None
     plan_seconds: float
@@ -203,6 +213,9 @@ class EvalSummary(Record):
     success_std: float
     in_wall_mean: float
     in_wall_std: float
+    plan_crossing_mean: float | None = None
+    jump_ratio_mean: float | None = None
+    impossible_jump_mean: float | None = None
     executed_collision_mean: float
     path_length_ratio_mean: float | None
     plan_seconds_mean: float

@@ -12,6 +12,11 @@ STREAM_TRAIN = 3
 STREAM_PLAN = 4
 STREAM_CLUSTER = 5
 STREAM_VALID = 6
+STREAM_TUNE = 7
+
+#: `cdrb eval --stream`: the start/goal pairs every knob is chosen on ("tune") are drawn from their own stream, so
+#: the pairs of the reported tables ("test") are never seen while choosing anything (docs/design.md)
+EVAL_STREAMS = {"test": STREAM_EVAL, "tune": STREAM_TUNE}
 
 
 def episode_seeds(seed: int, n: int, stream: int) -> np.ndarray:

@@ -110,7 +110,7 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
         ), arrays
     if kind == "plans":
         P, H = n, 8
-        cfg = PlanConfig(sampler="alg1", n=1, seed=seed)
+        cfg = PlanConfig(sampler="paper", n=1, seed=seed)
         summ = PlanSummary(
             pairs=P,
             plans=P,
@@ -131,7 +131,12 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
     if kind == "eval":
         E = n
         cfg = EvalConfig(
-            episodes=E, seeds=[0], controller=PDConfig(), sampler="alg1", protocol="centre-start/corner-goal", seed=seed
+            episodes=E,
+            seeds=[0],
+            controller=PDConfig(),
+            sampler="paper",
+            protocol="centre-start/corner-goal",
+            seed=seed,
         )
         per = SeedResult(
             seed=0,
@@ -162,6 +167,9 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
             "episodes/steps": rng.integers(1, 300, size=E),
             "episodes/final_distance": np.abs(f32(E)),
             "episodes/plan_in_wall_fraction": np.zeros(E, np.float32),
+            "episodes/plan_crosses_obstacle": np.zeros(E, dtype=bool),
+            "episodes/plan_max_jump": np.abs(f32(E)),
+            "episodes/plan_step_limit": np.full(E, 0.14, np.float32),
             "episodes/executed_collision": np.zeros(E, dtype=bool),
             "episodes/path_length": np.abs(f32(E)),
             "episodes/expert_path_length": np.abs(f32(E)),

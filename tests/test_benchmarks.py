@@ -33,7 +33,8 @@ def test_table1_script_tiny(tmp_path):
     table = (out / "table1.md").read_text()
     assert "| Maze Tight |" in table and "Maze Tight (paper)" in table
     assert (out / "timings.json").exists() and (out / "table1.png").stat().st_size > 5000
-    assert "| Maze Tight | mlp | 2 x 3 |" in (out / "table1-timed.md").read_text()
+    timed = (out / "table1-timed.md").read_text()
+    assert "| Maze Tight | mlp | pd (kp 10.0, kd 1.0, max_lag None, max_wait None) | test | 2 x 3 |" in timed
     # a second run skips every stage
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0
@@ -55,4 +56,4 @@ def test_planning_script(tmp_path, small_data):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "| cdrb (quick) | alg1 (8) |" in proc.stdout
+    assert "| cdrb (quick) | paper (8) |" in proc.stdout

@@ -155,6 +155,40 @@ def test_eval_artifact_contents(evals):
     for other in ("diffuser", "mlp"):
         np.testing.assert_array_equal(evals[other].arrays["episodes/start"], a["episodes/start"])
         np.testing.assert_array_equal(evals[other].arrays["episodes/goal"], a["episodes/goal"])
+    # plan metrics measured from the stored plans: crossings (states or segments) and the largest jump
+    from cdrb_cli.envs.geometry import largest_jump
+
+    spec = ev.manifest.env
+    states = a["plans"][..., : spec.obs_dim]
+    np.testing.assert_array_equal(a["episodes/plan_crosses_obstacle"], family_of(spec).path_in_collision(spec, states))
+    np.testing.assert_allclose(a["episodes/plan_max_jump"], largest_jump(states, [0, 1]), rtol=1e-5)
+    assert np.allclose(a["episodes/plan_step_limit"], 5 * np.sqrt(2) * 0.01 * 10)  # stride 10 in these models
+    assert (a["episodes/plan_in_wall_fraction"] > 0)[~a["episodes/plan_crosses_obstacle"]].sum() == 0
+    # the summary's std is the sample std over seeds
+    per = [p.success_rate for p in s.per_seed]
+    assert np.isclose(s.success_std, np.std(per, ddof=1))
+
+
+def test_tuning_pairs_and_the_official_protocol(evals, tmp_path, cdrb):
+    """`--stream tune` draws other pairs; `--protocol official-code` evaluates with cell-centre goals, r = 0.55 and
+    the official executor; the report refuses to mix either with the default."""
+    model = evals["cdrb"].manifest.parents[0].path
+    r = cdrb("eval", model, "--seeds", "0,1", "--episodes", "4", "--stream", "tune", "--out", tmp_path / "t.h5")
+    assert r.returncode == 0, r.stderr
+    tune = artifacts.load(tmp_path / "t.h5", "eval")
+    assert tune.manifest.config.stream == "tune"
+    assert not np.isin(tune.arrays["episodes/episode_seed"], evals["cdrb"].arrays["episodes/episode_seed"]).any()
+    r = cdrb("report", evals["cdrb"].path, tmp_path / "t.h5")
+    assert r.returncode == 2 and "different protocols" in r.stderr and "tune pairs" in r.stderr
+    r = cdrb("eval", model, "--seeds", "0", "-n", "4", "--protocol", "official-code", "--out", tmp_path / "o.h5")
+    assert r.returncode == 0, r.stderr
+    off = artifacts.load(tmp_path / "o.h5", "eval")
+    assert off.manifest.config.protocol == "official-code" and off.manifest.config.controller.name == "waypoint"
+    assert off.manifest.env.success_radius == 0.55 and not off.manifest.env.scene.goal_noise
+    r = cdrb("eval", model, "--protocol", "nope", "--out", tmp_path / "x.h5")
+    assert r.returncode == 2 and "--protocol 'nope'" in r.stderr and "official-code" in r.stderr
+    r = cdrb("eval", model, "--stream", "train", "--out", tmp_path / "x.h5")
+    assert r.returncode == 2 and "--stream" in r.stderr
 
 
 def test_report_formats_and_pictures(evals, tmp_path, cdrb):
@@ -237,7 +271,7 @@ def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):
         (["--seeds", "a,b"], "--seeds"),
         (["--seeds", "1,1"], "repeated"),
         (["--controller", "magic"], "--controller"),
-        (["--sampler", "ddpm"], "--sampler ddpm: cdrb models use alg1, alg2"),
+        (["--sampler", "ddpm"], "--sampler ddpm: cdrb models use paper, cold-improved"),
         (["--sampler", "magic"], "not a known sampler"),
         (["--controller", "inverse-dynamics", "--set", "controller.kp=3"], "unknown setting 'controller.kp'"),
         (["--episodes", "0"], "--episodes"),
@@ -307,3 +341,31 @@ def test_report_recomputes_from_the_episodes_and_prints_plain_text(evals, tmp_pa
     assert row["success_mean"] == 0.0 and "\x1b" not in row["env"]
     r = cdrb("report", tmp_path / "boast.h5")
     assert r.returncode == 0 and "\x1b" not in r.stdout and "[/bold]" in r.stdout
+
+
+def test_each_method_keeps_its_own_controller_but_only_one(evals, tmp_path, cdrb):
+    """Methods tuned separately may use different controller settings (shown in the report); one method's seeds
+    may not."""
+    from cdrb_cli.envs.pointmaze.controllers import InverseDynamicsConfig
+
+    ev = evals["diffuser"]
+    cfg = ev.manifest.config.model_copy(update={"controller": InverseDynamicsConfig(max_lag=None, max_wait=5)})
+    artifacts.save(tmp_path / "d.h5", "eval", ev.manifest.model_copy(update={"config": cfg}), ev.arrays)
+    r = cdrb("report", evals["cdrb"].path, tmp_path / "d.h5", "--format", "json")
+    assert r.returncode == 0, r.stderr
+    rows = {row["method"]: row for row in json.loads(r.stdout)}
+    assert (
+        rows["diffuser"]["controller"].startswith("inverse-dynamics") and "max_wait 5" in rows["diffuser"]["controller"]
+    )
+    assert rows["cdrb"]["controller"].startswith("pd")
+    # one method whose two seeds were run with different controllers
+    paths = []
+    for seed, controller in ((0, ev.manifest.config.controller), (1, cfg.controller)):
+        keep = ev.arrays["episodes/seed"] == seed
+        arrays = {k: (v[keep] if k.startswith("episodes/") or k == "plans" else v) for k, v in ev.arrays.items()}
+        c = ev.manifest.config.model_copy(update={"seeds": [seed], "controller": controller})
+        paths.append(
+            artifacts.save(tmp_path / f"s{seed}.h5", "eval", ev.manifest.model_copy(update={"config": c}), arrays)
+        )
+    r = cdrb("report", *paths)
+    assert r.returncode == 2 and "different controllers" in r.stderr

@@ -48,7 +48,7 @@ from cdrb_cli.artifacts.kinds import (
     Plans,
     PlansManifest,
 )
-from cdrb_cli.artifacts.migrations import can_migrate, migrate_arrays, migrate_manifest
+from cdrb_cli.artifacts.migrations import can_migrate, migrate_arrays, migrate_manifest, migrate_minor
 from cdrb_cli.artifacts.outputs import check_output, claim_output
 from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc, text
@@ -160,6 +160,7 @@ def _load(path: Path, kind: str | None) -> ArtifactBase:
             old = major < int(SCHEMA_VERSIONS[found_kind].split(".")[0])
             if old:
                 manifest_data = migrate_manifest(found_kind, major, manifest_data)
+            manifest_data = migrate_minor(found_kind, parse_version(version), manifest_data)
             manifest = validate_manifest(path, cls.manifest_cls, manifest_data, lenient)
             check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
             arrays = load_arrays(path, datasets)

@@ -27,7 +27,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.1", "buffer": "2.1", "model": "2.1", "plans": "2.1", "eval": "2.1"}
+SCHEMA_VERSIONS = {"demos": "2.2", "buffer": "2.2", "model": "2.2", "plans": "2.2", "eval": "2.2"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -264,6 +264,9 @@ class Eval(ArtifactBase):
         DatasetSpec("episodes/steps", "i", ("E",)),
         DatasetSpec("episodes/final_distance", "f", ("E",)),
         DatasetSpec("episodes/plan_in_wall_fraction", "f", ("E",)),
+        DatasetSpec("episodes/plan_crosses_obstacle", "b", ("E",), required=False),  # from schema 2.2
+        DatasetSpec("episodes/plan_max_jump", "f", ("E",), required=False),
+        DatasetSpec("episodes/plan_step_limit", "f", ("E",), required=False),
         DatasetSpec("episodes/executed_collision", "b", ("E",)),
         DatasetSpec("episodes/path_length", "f", ("E",)),
         DatasetSpec("episodes/expert_path_length", "f", ("E",)),

@@ -132,8 +132,10 @@ class EnvFamily(ABC):
     experts: ClassVar[tuple[str, ...]]
     #: controller names this family accepts (CONTROLLERS registry); the first is the default
     controllers: ClassVar[tuple[str, ...]]
-    #: name of the start/goal protocol, recorded in every eval artifact
+    #: name of the default start/goal protocol, recorded in every eval artifact
     protocol: ClassVar[str]
+    #: other protocols `cdrb eval --protocol` accepts (name -> description), applied by :meth:`protocol_spec`
+    extra_protocols: ClassVar[dict[str, str]] = {}
     #: how a --start/--goal point is written, for help and errors
     point_format: ClassVar[str] = "comma-separated numbers"
 
@@ -168,6 +170,18 @@ class EnvFamily(ABC):
         raise BadInput(f"{spec.id}: the {self.name} family has no gymnasium env for RL experts")
 
     # -------------------------------------------------------------- protocol
+    def protocols(self) -> list[str]:
+        """Every protocol name, the default first."""
+        return [self.protocol, *self.extra_protocols]
+
+    def protocol_spec(self, spec: EnvSpec, protocol: str) -> EnvSpec:
+        """The spec an evaluation under ``protocol`` runs (e.g. another success radius or reset noise)."""
+        return spec
+
+    def protocol_controller(self, protocol: str) -> str | None:
+        """The controller a protocol prescribes (None: the family's default)."""
+        return None
+
     @abstractmethod
     def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
         """``n`` episodes of protocol ``stream`` under ``seed``: the same for every method and run."""
@@ -230,6 +244,18 @@ class EnvFamily(ABC):
         from cdrb_cli.envs.geometry import in_boxes
 
         return in_boxes(states, spec.obstacles)
+
+    def path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
+        """Boolean over paths (..., T, D): a state in collision, or a straight segment between two consecutive
+        states that passes through an obstacle (a plan can have every state free and still jump through a wall)."""
+        from cdrb_cli.envs.geometry import path_crosses_boxes
+
+        return path_crosses_boxes(paths, spec.obstacles)
+
+    def max_step(self, spec: EnvSpec) -> float | None:
+        """The largest distance (over the obstacle dimensions) the dynamics can move the agent in one environment
+        step; None when the family has no such bound. A plan step of stride s may move s times this."""
+        return None
 
     def path_length(self, spec: EnvSpec, states: np.ndarray) -> float:
         """Length of a path of states (T, D), measured in the goal dimensions."""

@@ -26,7 +26,11 @@ EXPERTS: Registry[ExpertEntry] = Registry(
 )
 CONTROLLERS: Registry[ControllerEntry] = Registry(
     "controller",
-    {"pd": "cdrb_cli.envs.pointmaze.controllers", "inverse-dynamics": "cdrb_cli.envs.pointmaze.controllers"},
+    {
+        "pd": "cdrb_cli.envs.pointmaze.controllers",
+        "inverse-dynamics": "cdrb_cli.envs.pointmaze.controllers",
+        "waypoint": "cdrb_cli.envs.pointmaze.controllers",
+    },
     ControllerEntry,
 )
 
@@ -78,6 +82,7 @@ def describe(spec: EnvSpec, description: str) -> dict[str, Any]:
         "plan_env_steps": spec.plan_env_steps,
         "episode_limit": spec.episode_limit,
         "success_radius": spec.success_radius,
+        "protocols": family_of(spec).protocols(),
         **family_of(spec).details(spec),
     }
 

@@ -21,11 +21,12 @@ import numpy as np
 from cdrb_cli import artifacts, ui
 from cdrb_cli.configs import EvalConfig, EvalSummary, SeedResult
 from cdrb_cli.envs.family import Env, EnvFamily, Episode
+from cdrb_cli.envs.geometry import largest_jump
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.seeding import STREAM_EVAL
+from cdrb_cli.seeding import EVAL_STREAMS
 from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
@@ -51,6 +52,9 @@ class EpisodeResult:
     steps: int
     final_distance: float
     plan_in_wall_fraction: float
+    plan_crosses_obstacle: bool
+    plan_max_jump: float
+    plan_step_limit: float
     executed_collision: bool
     path_length: float
     expert_path_length: float
@@ -70,13 +74,23 @@ def episode_arrays(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     }
 
 
+#: per-episode fields added in schema 2.2; an older file reads them as "not measured" (see :func:`measured`)
+_SINCE_2_2 = {"plan_crosses_obstacle": False, "plan_max_jump": 0.0, "plan_step_limit": 0.0}
+
+
 def episode_results(arrays: dict[str, np.ndarray]) -> list[EpisodeResult]:
     """The inverse of :func:`episode_arrays`: the records of an eval artifact's ``episodes/*`` datasets."""
     fields = list(typing.get_type_hints(EpisodeResult))
     n = len(arrays["episodes/seed"])
     cast = {np.ndarray: np.asarray, int: int, float: float, bool: bool}
     hints = typing.get_type_hints(EpisodeResult)
-    return [EpisodeResult(**{f: cast[hints[f]](arrays[f"episodes/{f}"][i]) for f in fields}) for i in range(n)]
+    cols = {f: arrays.get(f"episodes/{f}", np.full(n, _SINCE_2_2.get(f, np.nan))) for f in fields}
+    return [EpisodeResult(**{f: cast[hints[f]](cols[f][i]) for f in fields}) for i in range(n)]
+
+
+def measured(arrays: dict[str, np.ndarray]) -> bool:
+    """Whether an eval's episodes carry the plan-crossing and jump measurements (schema 2.2 on)."""
+    return all(f"episodes/{f}" in arrays for f in _SINCE_2_2)
 
 
 def run_episode(
@@ -126,8 +140,8 @@ class ExpertReference:
 
 def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = True, video_dir=None, videos: int = 0):
     t0 = time.time()
-    spec = model.manifest.env
-    family = family_of(spec)
+    family = family_of(model.manifest.env)
+    spec = family.protocol_spec(model.manifest.env, config.protocol)
     method = load_planner(model, device=device, ema=config.use_ema)
     METHODS.get(method.name).check_sampler(config.sampler)
     env = family.make_env(spec)
@@ -136,12 +150,14 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     )
     expert = ExpertReference(family, spec)
     steps = spec.episode_limit + config.extra_steps
+    max_step = family.max_step(spec)
+    step_limit = 0.0 if max_step is None else float(max_step * model.manifest.config.stride)
     results: list[EpisodeResult] = []
     all_plans, per_seed, executed = [], [], []
     with ui.progress() as bar:
         task = bar.add_task(f"eval {method.name}", total=len(config.seeds) * config.episodes, info="")
         for seed in config.seeds:
-            episodes = family.draw_episodes(spec, config.episodes, seed, STREAM_EVAL)
+            episodes = family.draw_episodes(spec, config.episodes, seed, EVAL_STREAMS[config.stream])
             starts, goals = family.reset_states(spec, episodes, env)
             plans, _, _, _, sec_batch = sample_plans(
                 method,
@@ -155,7 +171,10 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
                 device=device,
             )
             sec_plan = sec_batch / len(plans)
-            in_wall = family.in_collision(spec, plans[..., : spec.obs_dim])
+            states = plans[..., : spec.obs_dim]
+            in_wall = family.in_collision(spec, states)
+            crosses = family.path_in_collision(spec, states)
+            jumps = largest_jump(states, spec.obstacles.dims)
             for e, episode in enumerate(episodes):
                 controller.reset(plans[e])
                 run = run_episode(env, spec, episode, controller.act, steps)
@@ -167,6 +186,9 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
                         steps=run.steps,
                         final_distance=run.final_distance,
                         plan_in_wall_fraction=float(in_wall[e].mean()),
+                        plan_crosses_obstacle=bool(crosses[e]),
+                        plan_max_jump=float(jumps[e]),
+                        plan_step_limit=step_limit,
                         executed_collision=run.collision,
                         path_length=run.path_length,
                         expert_path_length=expert.path_length(env, episode),
@@ -184,22 +206,7 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     arrays = episode_arrays(results)
     if keep_plans:
         arrays["plans"] = np.concatenate(all_plans).astype(np.float32)
-    succ = np.array([p.success_rate for p in per_seed])
-    wall = np.array([p.in_wall_fraction for p in per_seed])
-    ratios = [p.path_length_ratio for p in per_seed if p.path_length_ratio is not None]
-    summary = EvalSummary(
-        method=method.name,
-        model_preset=model.manifest.config.preset,
-        success_mean=float(succ.mean()),
-        success_std=float(succ.std()),
-        in_wall_mean=float(wall.mean()),
-        in_wall_std=float(wall.std()),
-        executed_collision_mean=float(np.mean([p.executed_collision_rate for p in per_seed])),
-        path_length_ratio_mean=float(np.mean(ratios)) if ratios else None,
-        plan_seconds_mean=float(np.mean([p.plan_seconds for p in per_seed])),
-        per_seed=per_seed,
-        wall_time_s=round(time.time() - t0, 3),
-    )
+    summary = summarize(method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3))
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
     )
@@ -216,14 +223,54 @@ def seed_result(seed: int, results: Sequence[EpisodeResult]) -> SeedResult:
     expert = np.array([r.expert_path_length for r in results])
     ratio = np.array([r.path_length for r in results]) / np.maximum(expert, 1e-9)
     measured = succ & (expert > 0)  # successful episodes with an expert reference
+    limit = np.array([r.plan_step_limit for r in results])
+    jump = np.array([r.plan_max_jump for r in results]) / np.maximum(limit, 1e-12)
+    bounded = bool((limit > 0).all())
     return SeedResult(
         seed=int(seed),
         episodes=len(results),
         success_rate=float(succ.mean()),
         in_wall_fraction=float(np.mean([r.plan_in_wall_fraction for r in results])),
+        plan_crossing_rate=float(np.mean([r.plan_crosses_obstacle for r in results])),
+        jump_ratio=float(jump.mean()) if bounded else None,
+        impossible_jump_rate=float((jump > 1.0).mean()) if bounded else None,
         executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
         path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
         plan_seconds=float(np.mean([r.plan_seconds for r in results])),
+    )
+
+
+def sample_std(values) -> float:
+    """The sample standard deviation (ddof = 1) across seeds; 0 for a single seed."""
+    v = np.asarray(values, dtype=np.float64)
+    return float(v.std(ddof=1)) if v.size > 1 else 0.0
+
+
+def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_time_s: float) -> EvalSummary:
+    """Means and sample standard deviations over seeds of the per-seed results."""
+
+    def mean(name):
+        vals = [getattr(p, name) for p in per_seed]
+        return float(np.mean(vals)) if vals and all(v is not None for v in vals) else None
+
+    succ = [p.success_rate for p in per_seed]
+    wall = [p.in_wall_fraction for p in per_seed]
+    ratios = [p.path_length_ratio for p in per_seed if p.path_length_ratio is not None]
+    return EvalSummary(
+        method=method,
+        model_preset=preset,
+        success_mean=float(np.mean(succ)),
+        success_std=sample_std(succ),
+        in_wall_mean=float(np.mean(wall)),
+        in_wall_std=sample_std(wall),
+        plan_crossing_mean=mean("plan_crossing_rate"),
+        jump_ratio_mean=mean("jump_ratio"),
+        impossible_jump_mean=mean("impossible_jump_rate"),
+        executed_collision_mean=float(np.mean([p.executed_collision_rate for p in per_seed])),
+        path_length_ratio_mean=float(np.mean(ratios)) if ratios else None,
+        plan_seconds_mean=float(np.mean([p.plan_seconds for p in per_seed])),
+        per_seed=list(per_seed),
+        wall_time_s=wall_time_s,
     )
 
 
@@ -237,6 +284,8 @@ def eval_config(
     sample_steps: int | None = None,
     use_ema: bool = True,
     seed: int = 0,
+    protocol: str | None = None,
+    stream: str = "test",
 ) -> EvalConfig:
     """The EvalConfig of ``cdrb eval`` for a model: the family's controller (``controller``, else
     ``--set controller.name=...``, else the family's first) with ``settings`` on its fields (``--set
@@ -251,10 +300,17 @@ def eval_config(
             )
     spec = model.manifest.env
     family = family_of(spec)
+    protocol = protocol or family.protocol
+    if protocol not in family.protocols():
+        raise BadInput(
+            f"--protocol {protocol!r}: not a protocol of the {family.name} environments",
+            hint=f"use {' or '.join(family.protocols())}",
+        )
     s_name = lookup(settings, ("controller", "name"))
     if controller is not None and s_name is not None and s_name.value != controller:
         raise BadInput(f"--controller {controller} and {s_name.source}", hint="name the controller once")
-    name = controller or (s_name.value if s_name is not None else family.controllers[0])
+    default = family.protocol_controller(protocol) or family.controllers[0]
+    name = controller or (s_name.value if s_name is not None else default)
     if name not in family.controllers:
         where = f"--controller {name!r}" if s_name is None or controller else s_name.source
         raise BadInput(
@@ -269,7 +325,8 @@ def eval_config(
         "sampler": entry.check_sampler(sampler or model.manifest.config.method.sampler),
         "sample_steps": sample_steps,
         "use_ema": use_ema,
-        "protocol": family.protocol,
+        "protocol": protocol,
+        "stream": stream,
         "seed": seed,
     }
     return validate(EvalConfig, apply(base, settings), settings, "eval")

@@ -2,8 +2,9 @@
 
 Rows are environments, columns methods; cells are success rate mean ± std over seeds. A second table gives the
 safety and efficiency columns: planned states inside walls, executed collisions, normalized path length and
-planning time. Evals are only compared when their protocols match (same seeds, episodes per seed, controller,
-protocol and episode length); anything else is an error, never a silent average.
+planning time. Evals are only compared when their protocols match (same seeds, episodes per seed, protocol, pairs
+stream and episode length); each method may use its own controller settings (chosen for it on the tuning stream,
+shown in the detail table) but one per method. Anything else is an error, never a silent average.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
+from cdrb_cli.stages.evaluate import sample_std
 
 PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) for the two mazes
     "maze": {
@@ -53,8 +55,27 @@ def _rank(method: str) -> tuple[int, str]:
 
 
 def _protocol(ev) -> tuple:
+    """What must match across methods: the pairs and how success is measured. The controller is not part of it:
+    each method runs with the controller settings chosen for it on the tuning stream (one per method)."""
     c = ev.manifest.config
-    return (c.episodes, c.controller, c.protocol, c.extra_steps, ev.manifest.env.episode_limit)
+    return (c.episodes, c.protocol, c.extra_steps, ev.manifest.env.episode_limit, c.stream)
+
+
+def _controller(ev) -> str:
+    c = ev.manifest.config.controller
+    settings = ", ".join(f"{k} {v}" for k, v in c.model_dump().items() if k != "name")
+    return f"{c.name} ({settings})"
+
+
+def ci95(values) -> float:
+    """Half-width of the 95% confidence interval of the mean over seeds (Student t, n - 1 degrees of freedom);
+    0 for a single seed."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size < 2:
+        return 0.0
+    from scipy.stats import t
+
+    return float(t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size))
 
 
 def method_label(ev) -> str:
@@ -65,11 +86,19 @@ def method_label(ev) -> str:
 def per_seed(ev) -> list:
     """The per-seed results of an eval artifact, recomputed from its per-episode datasets (never taken from the
     manifest's summary, which a file may claim anything in)."""
-    from cdrb_cli.stages.evaluate import episode_results, seed_result
+    from cdrb_cli.stages.evaluate import episode_results, measured, seed_result
 
     results = episode_results(ev.arrays)
     seeds = list(dict.fromkeys(r.seed for r in results))
-    return [seed_result(s, [r for r in results if r.seed == s]) for s in seeds]
+    per = [seed_result(s, [r for r in results if r.seed == s]) for s in seeds]
+    if not measured(ev.arrays):  # an eval written before schema 2.2: crossings and jumps were not measured
+        unknown = {"plan_crossing_rate": None, "jump_ratio": None, "impossible_jump_rate": None}
+        per = [p.model_copy(update=unknown) for p in per]
+    return per
+
+
+def _mean(values) -> float | None:
+    return float(np.mean(values)) if values and all(v is not None for v in values) else None
 
 
 def collect_rows(evals) -> list[dict]:
@@ -89,10 +118,16 @@ def collect_rows(evals) -> list[dict]:
             first, second = sorted(protos, key=str)[:2]
             raise BadInput(
                 f"eval files for {env_id} use different protocols ({_describe(first)} vs {_describe(second)})",
-                hint="evaluate every model with the same --episodes and --controller",
+                hint="evaluate every model with the same --episodes, --protocol and --stream",
             )
         seed_sets = {}
         for label, group in methods.items():
+            controllers = sorted({_controller(ev) for ev in group})
+            if len(controllers) > 1:
+                raise BadInput(
+                    f"{label} on {env_id}: its eval files use different controllers ({' vs '.join(controllers[:2])})",
+                    hint="evaluate every seed of a method with the same controller settings",
+                )
             seeds = [r.seed for ev in group for r in per_seed(ev)]
             if len(seeds) != len(set(seeds)):
                 dup = sorted({x for x in seeds if seeds.count(x) > 1})
@@ -112,6 +147,8 @@ def collect_rows(evals) -> list[dict]:
             succ = np.array([r.success_rate for r in per])
             wall = np.array([r.in_wall_fraction for r in per])
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
+            crossing = _mean([r.plan_crossing_rate for r in per])
+            impossible = _mean([r.impossible_jump_rate for r in per])
             first = group[0]
             rows.append(
                 {
@@ -119,12 +156,20 @@ def collect_rows(evals) -> list[dict]:
                     "method": ui.plain(label),
                     "base_method": ui.plain(first.manifest.summary.method),
                     "preset": ui.plain(first.manifest.summary.model_preset),
+                    "pairs": first.manifest.config.stream,
+                    "protocol": ui.plain(first.manifest.config.protocol),
+                    "controller": ui.plain(_controller(first)),
                     "seeds": len(per),
                     "episodes": first.manifest.config.episodes,
                     "success_mean": 100 * float(succ.mean()),
-                    "success_std": 100 * float(succ.std()),
+                    "success_std": 100 * sample_std(succ),
+                    "success_ci95": 100 * ci95(succ),
                     "in_wall_mean": 100 * float(wall.mean()),
-                    "in_wall_std": 100 * float(wall.std()),
+                    "in_wall_std": 100 * sample_std(wall),
+                    "crossing_mean": None if crossing is None else 100 * crossing,
+                    "crossing_std": None if crossing is None else 100 * sample_std([r.plan_crossing_rate for r in per]),
+                    "jump_ratio": _mean([r.jump_ratio for r in per]),
+                    "impossible_jump_mean": None if impossible is None else 100 * impossible,
                     "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
                     "path_ratio": float(np.mean(ratios)) if ratios else None,
                     "plan_ms": 1000 * float(np.mean([r.plan_seconds for r in per])),
@@ -136,12 +181,8 @@ def collect_rows(evals) -> list[dict]:
 
 
 def _describe(p) -> str:
-    settings = ", ".join(f"{k} {v}" for k, v in p[1].model_dump().items() if k != "name")
-    extra = f" + {p[3]} extra" if p[3] else ""
-    return (
-        f"{p[0]} episodes per seed, {p[1].name} controller ({settings}), protocol {p[2]}, "
-        f"episodes of {p[4]}{extra} steps"
-    )
+    extra = f" + {p[2]} extra" if p[2] else ""
+    return f"{p[0]} episodes per seed, protocol {p[1]}, episodes of {p[3]}{extra} steps, {p[4]} pairs"
 
 
 def _order(methods):
@@ -181,23 +222,34 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
                 for m in methods
             ]
             lines.append(f"| {name[env]} (paper) | " + " | ".join(pv) + " |")
+    if paper:
+        lines.append(
+            "\n(paper) rows are the paper's figures, measured with other experts, controllers, success radius, "
+            "horizon/stride and training budgets: see docs/benchmarks.md before comparing."
+        )
     lines += [
         "",
-        "| env | method | seeds x episodes | success (%) | planned states in walls (%) | "
+        "| env | method | controller | pairs | seeds x episodes | success (%) ± std [95% CI] | "
+        "planned states in walls (%) | "
+        "plans through an obstacle (%) | largest jump / allowed | plans with an impossible jump (%) | "
         "executed collisions (%) | path length / expert | plan time (ms) |",
-        "|---|---|---|---:|---:|---:|---:|---:|",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+
+    def opt(v, f):
+        return "–" if v is None else format(v, f)
+
     for env in envs:
         for m in methods:
             r = cell.get((env, m))
             if r is None:
                 continue
-            ratio = f"{r['path_ratio']:.2f}" if r["path_ratio"] is not None else "–"
             lines.append(
-                f"| {name[env]} | {m} | {r['seeds']} x {r['episodes']} | "
-                f"{r['success_mean']:.1f} ± {r['success_std']:.1f} | "
-                f"{r['in_wall_mean']:.2f} ± {r['in_wall_std']:.2f} | "
-                f"{r['collision_mean']:.1f} | {ratio} | {r['plan_ms']:.1f} |"
+                f"| {name[env]} | {m} | {r['controller']} | {r['pairs']} | {r['seeds']} x {r['episodes']} | "
+                f"{r['success_mean']:.1f} ± {r['success_std']:.1f} [± {r['success_ci95']:.1f}] | "
+                f"{r['in_wall_mean']:.2f} ± {r['in_wall_std']:.2f} | {opt(r['crossing_mean'], '.1f')} | "
+                f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
+                f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} |"
             )
     text = "\n".join(lines) + "\n"
     if fmt == "table":

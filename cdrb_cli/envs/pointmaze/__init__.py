@@ -26,6 +26,7 @@ from cdrb_cli.seeding import episode_seeds
 POINTMAZE_DT = 0.01
 BALL_RADIUS = 0.1
 SUCCESS_RADIUS = 0.45
+OFFICIAL_SUCCESS_RADIUS = 0.55  # the official CDRB code's success test (info["success"])
 MAX_SPEED = 5.0  # the env clips each velocity component at 5 m/s
 PLAN_STRIDE = 2
 
@@ -51,6 +52,7 @@ class PointMazeScene(Scene):
     position_noise: float = Field(
         0.25, ge=0, description="uniform noise (per axis, in cells) added to start and goal cell centres at reset"
     )
+    goal_noise: bool = Field(True, description="false: the goal is the exact cell centre (the official code's)")
 
 
 def _timing_for(layout: MazeLayout) -> tuple[int, int]:
@@ -86,8 +88,12 @@ class PointMazeFamily(EnvFamily):
     name = "pointmaze"
     scene_type = PointMazeScene
     experts = ("planner", "sac")
-    controllers = ("pd", "inverse-dynamics")
+    controllers = ("pd", "inverse-dynamics", "waypoint")
     protocol = "centre-start/corner-goal"
+    extra_protocols = {
+        "official-code": "as the official CDRB code evaluates: the goal at the exact cell centre, success within "
+        f"{OFFICIAL_SUCCESS_RADIUS} m, its executor (controller `waypoint`: <= 5 env steps per planned state)"
+    }
     point_format = "x,y (at rest) or x,y,vx,vy, e.g. 0,0"
 
     # -------------------------------------------------------------- environments
@@ -119,6 +125,19 @@ class PointMazeFamily(EnvFamily):
         return training_env(spec, seed)
 
     # -------------------------------------------------------------- protocol
+    def protocol_spec(self, spec: EnvSpec, protocol: str) -> EnvSpec:
+        if protocol != "official-code":
+            return spec
+        scene = spec.scene.model_copy(update={"goal_noise": False})
+        # the official executor may spend up to 5 env steps per planned state and 20 on the last one
+        limit = max(spec.episode_limit, 5 * spec.horizon + 20)
+        return spec.model_copy(
+            update={"scene": scene, "success_radius": OFFICIAL_SUCCESS_RADIUS, "episode_limit": limit}
+        )
+
+    def protocol_controller(self, protocol: str) -> str | None:
+        return "waypoint" if protocol == "official-code" else None
+
     def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
         geom = MazeGeometry(spec.scene.maze)
         out = []
@@ -154,6 +173,9 @@ class PointMazeFamily(EnvFamily):
         geom = MazeGeometry(spec.scene.maze)
         cell = geom.xy_to_cell(goal)
         return f"{int(cell[0])},{int(cell[1])}", geom.exit_label(states)
+
+    def max_step(self, spec: EnvSpec) -> float:
+        return MAX_SPEED * math.sqrt(2.0) * spec.dt  # each velocity component is clipped at MAX_SPEED
 
     # -------------------------------------------------------------- pictures
     def speed(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:

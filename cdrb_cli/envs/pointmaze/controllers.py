@@ -11,10 +11,16 @@ A plan is H states, one every ``stride`` environment steps. At environment step 
 After the plan's last state both hold the goal.
 
 **The plan clock.** Without ``max_lag`` the reference runs on the environment's clock (plan time t / stride).
-With ``max_lag`` set (the default, 0.6 m), the clock pauses while the ball is more than ``max_lag`` metres from the
-state it is being driven to, so a ball that lags (after a fast first step, or around a corner) catches up along the
-plan instead of cutting across toward a reference that has run ahead. The official CDRB executor also gates
-progress, but differently: it leaves a waypoint when reached or after at most 5 steps (a timeout this clock lacks).
+With ``max_lag`` set, the clock pauses while the ball is more than ``max_lag`` metres from the state it is being
+driven to, so a ball that lags (after a fast first step, or around a corner) catches up along the plan instead of
+cutting across toward a reference that has run ahead; ``max_wait`` bounds the pause: after that many environment
+steps waiting on one planned state the clock moves on anyway (a plan the ball cannot follow no longer stalls the
+episode). Both are chosen per method on the tuning stream (docs/design.md).
+
+* ``WaypointController`` is the official CDRB executor: u = clip(kp (p* - p) - kd v) toward one planned state at
+  a time (kp = 1, kd = 0.1), moving to the next when within ``reach`` (0.1 m) of it or after ``max_steps`` (5)
+  environment steps, ``last_steps`` (20) for the last one, then holding it. It ignores the plan's stride and
+  velocities, as the official code does.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ _MAX_LAG_HELP = (
     "the plan clock pauses while the ball is more than this many metres from the state it is driven to; "
     "null: follow the plan on the environment's clock"
 )
+_MAX_WAIT_HELP = "the clock moves on after this many env steps paused on one planned state (null: no timeout)"
 
 
 class PDConfig(ControllerConfig):
@@ -42,29 +49,42 @@ class PDConfig(ControllerConfig):
     name: Literal["pd"] = "pd"
     kp: float = Field(10.0, ge=0, le=1e6, description="position gain")
     kd: float = Field(1.0, ge=0, le=1e6, description="velocity gain")
-    max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, description=_MAX_LAG_HELP)
+    max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, le=1e3, description=_MAX_LAG_HELP)
+    max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
 
 
 class InverseDynamicsConfig(ControllerConfig):
     """The force that puts the ball exactly on the (interpolated) plan at the next step."""
 
     name: Literal["inverse-dynamics"] = "inverse-dynamics"
-    max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, description=_MAX_LAG_HELP)
+    max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, le=1e3, description=_MAX_LAG_HELP)
+    max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
+
+
+class WaypointConfig(ControllerConfig):
+    """The official CDRB executor: one planned state at a time, at most ``max_steps`` env steps each."""
+
+    name: Literal["waypoint"] = "waypoint"
+    kp: float = Field(1.0, ge=0, le=1e6, description="position gain (official: 1)")
+    kd: float = Field(0.1, ge=0, le=1e6, description="velocity damping (official: 0.1, i.e. d_gain = -0.1)")
+    reach: float = Field(0.1, gt=0, le=1e3, description="move to the next planned state within this distance (m)")
+    max_steps: int = Field(5, gt=0, le=10_000, description="env steps at most per planned state (official: 5)")
+    last_steps: int = Field(20, gt=0, le=100_000, description="env steps at most on the last state (official: 20)")
 
 
 class MazeController(Controller):
     """Shared by the PointMaze controllers: the plan, its stride, and the (optionally gated) plan clock."""
 
-    def __init__(self, stride: int, max_lag: float | None = None):
+    def __init__(self, stride: int, max_lag: float | None = None, max_wait: int | None = None):
         if max_lag is not None and max_lag <= 0:
             raise ValueError(f"max_lag must be positive or None, got {max_lag}")
-        self.stride, self.max_lag = stride, max_lag
+        self.stride, self.max_lag, self.max_wait = stride, max_lag, max_wait
         self.plan = np.zeros((1, 4))
-        self.clock = 0
+        self.clock = self.waited = 0
 
     def reset(self, plan: np.ndarray) -> None:
         self.plan = np.asarray(plan, dtype=np.float64)
-        self.clock = 0
+        self.clock = self.waited = 0
 
     def _target_index(self, step: int) -> int:
         return min(step // self.stride + 1, len(self.plan) - 1)
@@ -74,16 +94,20 @@ class MazeController(Controller):
         the gated clock, so call it once per environment step (``act`` does)."""
         if self.max_lag is None:
             return t
-        if np.linalg.norm(self.plan[self._target_index(self.clock), :2] - obs[:2]) < self.max_lag:
+        near = np.linalg.norm(self.plan[self._target_index(self.clock), :2] - obs[:2]) < self.max_lag
+        if near or (self.max_wait is not None and self.waited >= self.max_wait):
             self.clock += 1
+            self.waited = 0
+        else:
+            self.waited += 1
         return self.clock
 
 
 class PDController(MazeController):
     name = "pd"
 
-    def __init__(self, stride: int, kp: float, kd: float, max_lag: float | None = None):
-        super().__init__(stride, max_lag)
+    def __init__(self, stride: int, kp: float, kd: float, max_lag: float | None = None, max_wait: int | None = None):
+        super().__init__(stride, max_lag, max_wait)
         self.kp, self.kd = kp, kd
 
     def act(self, obs, t):
@@ -95,8 +119,17 @@ class PDController(MazeController):
 class InverseDynamicsController(MazeController):
     name = "inverse-dynamics"
 
-    def __init__(self, stride: int, mass: float, damping: float, gear: float, dt: float, max_lag: float | None = None):
-        super().__init__(stride, max_lag)
+    def __init__(
+        self,
+        stride: int,
+        mass: float,
+        damping: float,
+        gear: float,
+        dt: float,
+        max_lag: float | None = None,
+        max_wait: int | None = None,
+    ):
+        super().__init__(stride, max_lag, max_wait)
         self.m, self.c, self.g, self.h = mass, damping, gear, dt
 
     def _position_at(self, step: float) -> np.ndarray:
@@ -113,13 +146,44 @@ class InverseDynamicsController(MazeController):
         return np.clip(u, -1.0, 1.0)
 
 
+class WaypointController(Controller):
+    """The official CDRB executor (see the module docstring)."""
+
+    name = "waypoint"
+
+    def __init__(self, config: WaypointConfig):
+        self.c = config
+        self.plan = np.zeros((1, 4))
+        self.index = self.spent = 0
+
+    def reset(self, plan: np.ndarray) -> None:
+        self.plan = np.asarray(plan, dtype=np.float64)
+        self.index, self.spent = min(1, len(self.plan) - 1), 0
+
+    def act(self, obs, t):
+        last = len(self.plan) - 1
+        if self.index < last:
+            reached = np.linalg.norm(self.plan[self.index, :2] - obs[:2]) < self.c.reach
+            if reached or self.spent >= self.c.max_steps:
+                self.index, self.spent = self.index + 1, 0
+        self.spent += 1
+        u = self.c.kp * (self.plan[self.index, :2] - obs[:2]) - self.c.kd * obs[2:4]
+        return np.clip(u, -1.0, 1.0)
+
+
 def _pd(spec, env, config: PDConfig, stride: int) -> PDController:
-    return PDController(stride, config.kp, config.kd, config.max_lag)
+    return PDController(stride, config.kp, config.kd, config.max_lag, config.max_wait)
 
 
 def _inverse_dynamics(spec, env, config: InverseDynamicsConfig, stride: int) -> InverseDynamicsController:
     d = env.dynamics
-    return InverseDynamicsController(stride, d["mass"], d["damping"], d["gear"], d["dt"], config.max_lag)
+    return InverseDynamicsController(
+        stride, d["mass"], d["damping"], d["gear"], d["dt"], config.max_lag, config.max_wait
+    )
+
+
+def _waypoint(spec, env, config: WaypointConfig, stride: int) -> WaypointController:
+    return WaypointController(config)
 
 
 CONTROLLERS.register(ControllerEntry(PDConfig, _pd, "PD toward the next planned state"))
@@ -129,4 +193,7 @@ CONTROLLERS.register(
         _inverse_dynamics,
         "exact one-step inverse dynamics of the ball onto the interpolated plan",
     )
+)
+CONTROLLERS.register(
+    ControllerEntry(WaypointConfig, _waypoint, "the official CDRB executor (<= 5 env steps per state)")
 )

@@ -54,7 +54,10 @@ class PointMaze:
     def reset(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
         options = {"reset_cell": tuple(map(int, episode.start)), "goal_cell": tuple(map(int, episode.goal))}
         obs, _ = self.env.reset(seed=int(episode.seed), options=options)
-        self.goal = np.array(obs["desired_goal"], dtype=np.float64)
+        if not self.spec.scene.goal_noise:  # the same draws (so the same start), the goal at its cell centre
+            self.env.goal = self.env.maze.cell_rowcol_to_xy(np.asarray(options["goal_cell"]))
+            self.env.update_target_site_pos()
+        self.goal = np.array(self.env.goal if not self.spec.scene.goal_noise else obs["desired_goal"], np.float64)
         return np.array(obs["observation"], dtype=np.float64), self.goal.copy()
 
     def step(self, action) -> np.ndarray:

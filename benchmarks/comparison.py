@@ -1,0 +1,355 @@
+"""A comparison fair to every method: settings chosen on the tuning stream, learning curves, equal budgets.
+
+Every choice is made on start/goal pairs of the *tuning* stream (`cdrb eval --stream tune`); the test stream is used
+only by `benchmarks/table1.py` for the reported tables (docs/design.md, "Choosing settings"). Three parts, each
+resumable (every stage is skipped when its artifact is up to date, through the CLI's own rule):
+
+    python benchmarks/comparison.py sweep  --out runs/cmp     # one-factor-at-a-time sweep per method
+    python benchmarks/comparison.py clock  --out runs/cmp     # controller/clock settings per method
+    python benchmarks/comparison.py curves --out runs/cmp     # learning curves of the chosen settings
+    python benchmarks/comparison.py write  --out runs/cmp     # CSVs, plot and tuned.json into docs/results/
+
+* ``curves``: per env, method and training seed, one run of the method's chosen sweep candidate to the largest step
+  count with ``--snapshot-at`` the others (each snapshot is exactly the model a run of that length writes), each
+  evaluated on the tuning stream; ``write`` picks the step count with the best mean tuning success.
+* ``sweep``: per env and method, the quick preset and one change at a time along each method's axes (diffusion
+  steps, width, horizon/stride, features), the same number of candidates and the same steps x batch for every
+  method (the equal budget), training seed 0, evaluated on the tuning stream with the method's default clock.
+* ``clock``: for each method's chosen model, the plan clock (none, gated, gated with a timeout) and the official
+  executor, on the tuning stream.
+* ``write``: picks, per env and method, the best candidate (success, then fewer plans through obstacles) and writes
+  ``docs/results/tuning.csv``, ``docs/results/learning_curves.csv``, ``docs/figures/learning_curves.png`` and
+  ``docs/results/tuned.json`` (the settings table1.py reads with ``--tuned``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from table1 import DOCS, hardware, prepare_env, run, unfinished  # noqa: E402
+
+METHODS = ("mlp", "diffuser", "cdrb")
+ENVS = ("maze-tight", "maze")
+TUNE_SEEDS = "0,1"  # evaluation seeds of the tuning stream (its own pairs: never the test pairs)
+
+#: one change at a time around the quick preset; the same count of candidates for every method (equal budget)
+SWEEP = {
+    "cdrb": {
+        "quick": [],
+        "T=64": ["--set", "method.diffusion_steps=64"],
+        "dim=32": ["--set", "net.dim=32"],
+        "H=84,stride=4": ["--set", "horizon=84", "--set", "stride=4"],
+        "state-action": ["--set", "features=state-action"],
+        "plain (no residual, p=0)": ["--set", "net.residual=false", "--set", "method.loss_weight_power=0"],
+    },
+    "diffuser": {
+        "quick": [],
+        "T=64": ["--set", "method.diffusion_steps=64"],
+        "dim=32": ["--set", "net.dim=32"],
+        "H=84,stride=4": ["--set", "horizon=84", "--set", "stride=4"],
+        "state-action": ["--set", "features=state-action"],
+        "no residual": ["--set", "net.residual=false"],
+    },
+    "mlp": {
+        "quick": [],
+        "width=1024": ["--set", "net.hidden=1024,1024,1024"],
+        "depth=5": ["--set", "net.hidden=512,512,512,512,512"],
+        "H=84,stride=4": ["--set", "horizon=84", "--set", "stride=4"],
+        "state-action": ["--set", "features=state-action"],
+        "lr=3e-4": ["--set", "lr=3e-4"],
+    },
+}
+
+#: plan clocks tried for every method: (name, `cdrb eval` flags)
+CLOCKS = {
+    "time-indexed": ["--max-lag", "0"],
+    "gated 0.6": ["--max-lag", "0.6"],
+    "gated 0.6, wait<=10": ["--max-lag", "0.6", "--set", "controller.max_wait=10"],
+    "gated 0.3, wait<=10": ["--max-lag", "0.3", "--set", "controller.max_wait=10"],
+    "official executor": ["--controller", "waypoint"],
+}
+
+
+def eval_tune(model: Path, out: Path, args, log, flags=(), key="") -> Path:
+    run(
+        ["eval", model, "--stream", "tune", "--seeds", args.tune_seeds, "--episodes", args.episodes, *flags]
+        + ["--out", out, "--device", args.device],
+        log,
+        key or f"eval-tune {out.name}",
+    )
+    return out
+
+
+def train(model: Path, demos: Path, buffer: Path, method: str, seed: int, flags, args, log, snapshots=()) -> None:
+    from cdrb_cli.methods.registry import METHODS
+
+    cmd = ["train", demos, "--method", method, "--seed", seed, "--out", model, "--device", args.device, *flags]
+    if METHODS.get(method).needs_buffer:
+        cmd += ["--buffer", buffer]
+    if snapshots:
+        cmd += ["--snapshot-at", ",".join(map(str, snapshots))]
+    if unfinished(model):
+        cmd.append("--resume")
+    run(cmd + args.tiny_flags, log, f"train {model.parent.name} {model.name}")
+
+
+def buffers(env: str, args, log) -> dict[str, tuple[Path, Path]]:
+    """(demos, buffer) per feature space."""
+    return {f: prepare_env(env, args.out, args, log, features=f) for f in ("state", "state-action")}
+
+
+def curves(args, log) -> None:
+    """Learning curves of each method's chosen sweep candidate (the quick preset before any sweep)."""
+    points = [int(s) for s in args.curve_steps.split(",")]
+    tuned = choose(args)
+    for env in args.envs:
+        data = buffers(env, args, log)
+        for seed in args.curve_seeds:
+            for method in args.methods:
+                flags = list(tuned.get(env, {}).get(method, {}).get("train_flags", []))
+                demos, buffer = data["state-action" if "features=state-action" in flags else "state"]
+                folder = args.out / env / "curves"
+                folder.mkdir(parents=True, exist_ok=True)
+                model = folder / f"{method}-s{seed}.h5"
+                final = max(points)
+                done = model.exists() and not unfinished(model)
+                snaps = [p for p in points if p != final]
+                flags += ["--steps", final]
+                train(model, demos, buffer, method, seed, flags, args, log, () if done else snaps)
+                for p in points:
+                    m = model if p == final else folder / f"{method}-s{seed}.step{p}.h5"
+                    eval_tune(m, folder / f"eval-{method}-s{seed}-{p}.h5", args, log)
+
+
+def sweep(args, log) -> None:
+    for env in args.envs:
+        data = buffers(env, args, log)
+        for method in args.methods:
+            for name, flags in SWEEP[method].items():
+                if args.tiny and any("horizon" in f or "net." in f for f in flags):
+                    continue  # the smoke test sets these itself
+                features = "state-action" if "features=state-action" in flags else "state"
+                demos, buffer = data[features]
+                folder = args.out / env / "sweep"
+                folder.mkdir(parents=True, exist_ok=True)
+                tag = f"{method}-{slug(name)}"
+                train(folder / f"{tag}.h5", demos, buffer, method, 0, flags + args.sweep_steps, args, log)
+                eval_tune(folder / f"{tag}.h5", folder / f"eval-{tag}.h5", args, log)
+
+
+def clock(args, log) -> None:
+    tuned = choose(args)
+    for env in args.envs:
+        for method in args.methods:
+            name = tuned[env][method]["candidate"]
+            folder = args.out / env / "sweep"
+            model = folder / f"{method}-{slug(name)}.h5"
+            for cname, flags in CLOCKS.items():
+                eval_tune(model, folder / f"clock-{method}-{slug(cname)}.h5", args, log, flags)
+
+
+def slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
+
+
+def _summary(path: Path) -> dict:
+    from cdrb_cli import artifacts
+    from cdrb_cli.stages.report import per_seed
+
+    ev = artifacts.load(path, "eval")
+    per = per_seed(ev)
+    mean = lambda name: sum(getattr(p, name) for p in per) / len(per)  # noqa: E731
+    return {
+        "success": 100 * mean("success_rate"),
+        "in_wall": 100 * mean("in_wall_fraction"),
+        "crossing": 100 * mean("plan_crossing_rate"),
+        "impossible_jump": 100 * mean("impossible_jump_rate"),
+        "plan_ms": 1000 * mean("plan_seconds"),
+        "model": ev.manifest.parents[0].path,
+    }
+
+
+def choose(args) -> dict:
+    """Per env and method: the sweep candidate with the highest tuning success, then the fewest crossings."""
+    out: dict = {}
+    for env in args.envs:
+        for method in args.methods:
+            rows = []
+            for name in SWEEP[method]:
+                p = args.out / env / "sweep" / f"eval-{method}-{slug(name)}.h5"
+                if p.exists():
+                    rows.append((name, _summary(p)))
+            if rows:
+                name, s = max(rows, key=lambda r: (r[1]["success"], -r[1]["crossing"]))
+                out.setdefault(env, {})[method] = {"candidate": name, "train_flags": SWEEP[method][name], **s}
+    return out
+
+
+def write(args, log) -> None:
+    from cdrb_cli import artifacts
+
+    results, figures = (args.out, args.out) if args.tiny else (DOCS / "results", DOCS / "figures")
+    results.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for env in args.envs:
+        for method in args.methods:
+            for name in SWEEP[method]:
+                p = args.out / env / "sweep" / f"eval-{method}-{slug(name)}.h5"
+                if not p.exists():
+                    continue
+                model = artifacts.load(args.out / env / "sweep" / f"{method}-{slug(name)}.h5", "model")
+                st, cfg = model.manifest.state, model.manifest.config
+                rows.append(
+                    {
+                        "env": env,
+                        "method": method,
+                        "candidate": name,
+                        "steps": cfg.steps,
+                        "batch": cfg.batch_size,
+                        "parameters": st.parameters,
+                        "train_s": round(st.wall_time_s, 1),
+                        **{k: round(v, 3) for k, v in _summary(p).items() if k != "model"},
+                    }
+                )
+    if rows:
+        _csv(results / "tuning.csv", rows)
+    tuned = choose(args)
+    clocks = []
+    for env, by in tuned.items():
+        for method, t in by.items():
+            best = None
+            for cname in CLOCKS:
+                p = args.out / env / "sweep" / f"clock-{method}-{slug(cname)}.h5"
+                if p.exists():
+                    s = _summary(p)
+                    clocks.append(
+                        {
+                            "env": env,
+                            "method": method,
+                            "clock": cname,
+                            **{k: round(v, 3) for k, v in s.items() if k != "model"},
+                        }
+                    )
+                    if best is None or (s["success"], -s["crossing"]) > (best[1]["success"], -best[1]["crossing"]):
+                        best = (cname, s)
+            if best is not None:
+                t["clock"], t["eval_flags"] = best[0], CLOCKS[best[0]]
+    if clocks:
+        _csv(results / "tuning_clock.csv", clocks)
+    curve_rows = []
+    for env in args.envs:
+        folder = args.out / env / "curves"
+        for p in sorted(folder.glob("eval-*.h5")) if folder.exists() else []:
+            method, seed, steps = p.stem.removeprefix("eval-").rsplit("-", 2)
+            curve_rows.append(
+                {
+                    "method": method,
+                    "env": env,
+                    "seed": int(seed[1:]),
+                    "steps": int(steps),
+                    **{k: round(v, 3) for k, v in _summary(p).items() if k in ("success", "in_wall", "crossing")},
+                }
+            )
+    if curve_rows:
+        curve_rows.sort(key=lambda r: (r["env"], r["method"], r["seed"], r["steps"]))
+        _csv(results / "learning_curves.csv", curve_rows)
+        plot_curves(curve_rows, figures / "learning_curves.png")
+        # training steps: the curve point with the best mean tuning success (ties: fewer steps, i.e. cheaper)
+        for env, by in tuned.items():
+            for method, t in by.items():
+                sel = [r for r in curve_rows if r["env"] == env and r["method"] == method]
+                if not sel:
+                    continue
+                by_steps = {}
+                for r in sel:
+                    by_steps.setdefault(r["steps"], []).append(r["success"])
+                best = max(by_steps, key=lambda n: (sum(by_steps[n]) / len(by_steps[n]), -n))
+                t["steps"] = best
+                t["steps_success"] = sum(by_steps[best]) / len(by_steps[best])
+                t["train_flags"] = [*t["train_flags"], "--steps", str(best)]
+    meta = {"machine": hardware(), "tuning_stream_seeds": args.tune_seeds, "episodes_per_seed": args.episodes}
+    (results / "tuned.json").write_text(json.dumps({"meta": meta, "settings": tuned}, indent=2) + "\n")
+    print(results / "tuned.json")
+
+
+def _csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    print(path)
+
+
+def plot_curves(rows: list[dict], path: Path) -> None:
+    import numpy as np
+
+    from cdrb_cli.envs.render import pyplot, save_figure
+
+    plt = pyplot()
+    envs = list(dict.fromkeys(r["env"] for r in rows))
+    fig, axes = plt.subplots(2, len(envs), figsize=(5.5 * len(envs), 7), squeeze=False)
+    for j, env in enumerate(envs):
+        for method in dict.fromkeys(r["method"] for r in rows):
+            sel = [r for r in rows if r["env"] == env and r["method"] == method]
+            steps = sorted({r["steps"] for r in sel})
+            for i, key in enumerate(("success", "crossing")):
+                vals = [[r[key] for r in sel if r["steps"] == s] for s in steps]
+                m = np.array([np.mean(v) for v in vals])
+                sd = np.array([np.std(v, ddof=1) if len(v) > 1 else 0.0 for v in vals])
+                axes[i][j].plot(steps, m, marker="o", label=f"{method} ({min(len(v) for v in vals)} seeds)")
+                axes[i][j].fill_between(steps, m - sd, m + sd, alpha=0.2)
+        for i, title in enumerate(("success (%), tuning stream", "plans through a wall (%)")):
+            axes[i][j].set_xscale("log")
+            axes[i][j].set_title(f"{env}: {title}", fontsize=10)
+            axes[i][j].set_xlabel("training steps")
+            axes[i][j].grid(alpha=0.3)
+        axes[0][j].legend(fontsize=8)
+    save_figure(fig, path)
+    print(path)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=["curves", "sweep", "clock", "write", "all"])
+    ap.add_argument("--out", type=Path, default=Path("runs/cmp"))
+    ap.add_argument("--envs", default=",".join(ENVS))
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--demos", type=int, default=8000)
+    ap.add_argument("--episodes", type=int, default=50, help="tuning episodes per tuning seed")
+    ap.add_argument("--tune-seeds", default=TUNE_SEEDS)
+    ap.add_argument("--curve-seeds", default="0,1,2")
+    ap.add_argument("--curve-steps", default="1000,2000,3000,6000,10000")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--tiny", action="store_true", help="smoke-test settings")
+    args = ap.parse_args()
+    args.envs, args.methods = args.envs.split(","), args.methods.split(",")
+    args.curve_seeds = [int(s) for s in args.curve_seeds.split(",")]
+    args.tiny_flags, args.sweep_steps = [], []
+    if args.tiny:
+        args.sweep_steps = ["--steps", "50"]
+        args.demos, args.episodes = min(args.demos, 40), min(args.episodes, 3)
+        args.tiny_flags = [a for kv in ("horizon=16", "stride=10", "batch_size=8") for a in ("--set", kv)]
+        args.curve_steps = "50,100"
+    args.out.mkdir(parents=True, exist_ok=True)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    timings = args.out / "timings.json"
+    log = json.loads(timings.read_text()) if timings.exists() else {}
+    t0 = time.time()
+    try:
+        for part in ("sweep", "clock", "curves", "write") if args.part == "all" else (args.part,):
+            globals()[part](args, log)
+    finally:
+        timings.write_text(json.dumps(log, indent=2))
+    print(f"total {(time.time() - t0) / 60:.1f} min", flush=True)
+
+
+if __name__ == "__main__":
+    main()

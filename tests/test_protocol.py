@@ -1,0 +1,137 @@
+"""The comparison protocol (issue #14): tuning vs test pairs, the official-code protocol and executor, the plan
+clock's timeout, and the plan metrics that catch jumps through walls."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdrb_cli.envs.geometry import box_arrays, largest_jump, path_crosses_boxes, segment_box_distance
+from cdrb_cli.envs.pointmaze import OFFICIAL_SUCCESS_RADIUS
+from cdrb_cli.envs.pointmaze.env import PointMaze
+from cdrb_cli.envs.pointmaze.expert import MazeExpert
+from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+from cdrb_cli.envs.registry import CONTROLLERS, family_of, make_spec
+from cdrb_cli.seeding import EVAL_STREAMS
+from cdrb_cli.stages.collect import rollout
+from cdrb_cli.stages.evaluate import run_episode
+
+
+def test_segments_through_a_wall_are_caught_though_both_ends_are_free():
+    spec = make_spec("maze-tight")
+    fam = family_of(spec)
+    # either side of the ring's west wall (x = -3 m column of wall cells), at rest, both in free space
+    a, b = np.array([-4.0, 2.0, 0, 0]), np.array([-2.0, 2.0, 0, 0])
+    assert not fam.in_collision(spec, np.stack([a, b])).any()
+    assert fam.path_in_collision(spec, np.stack([a, b])[None])[0]
+    # the same length inside one free region does not cross
+    c, d = np.array([-5.0, 5.0, 0, 0]), np.array([-3.0, 5.0, 0, 0])
+    assert not fam.path_in_collision(spec, np.stack([c, d])[None])[0]
+    # a path that stays free state by state but teleports through the wall in its last step
+    path = np.concatenate([np.linspace(a, a + [0, 0.5, 0, 0], 10), b[None]])
+    assert fam.path_in_collision(spec, path[None])[0] and not fam.in_collision(spec, path).any()
+
+
+def test_segment_distance_matches_dense_sampling():
+    """The ternary search finds the segment's minimum distance to the boxes (checked against 2,001 points)."""
+    spec = make_spec("maze")
+    centers, halves = box_arrays(spec.obstacles)
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-7, 7, size=(300, 2))
+    b = a + rng.normal(scale=2.0, size=(300, 2))
+    exact = segment_box_distance(a, b, centers, halves)
+    t = np.linspace(0, 1, 2001)[:, None, None]
+    pts = a[None] + t * (b - a)[None]  # (2001, 300, 2)
+    gap = np.abs(pts[..., None, :] - centers) - halves
+    dense = np.sqrt(np.square(np.maximum(gap, 0)).sum(-1)).min(-1).min(0)
+    assert np.all(exact <= dense + 1e-9)  # never above a sampled point
+    np.testing.assert_allclose(exact, dense, atol=np.linalg.norm(b - a, axis=1).max() / 2000 + 1e-9)
+    for r in (0.1, 0.5):  # the pruned search decides "closer than r" exactly like the full one
+        pruned = segment_box_distance(a, b, centers, halves, within=r)
+        np.testing.assert_array_equal(pruned < r, exact < r)
+        np.testing.assert_allclose(pruned[exact < r], exact[exact < r])
+    ob = spec.obstacles
+    crossing = path_crosses_boxes(np.stack([a, b], axis=1), ob.model_copy(update={"dims": [0, 1]}))
+    assert crossing.any() and not crossing.all()
+
+
+def test_largest_jump_against_the_dynamics():
+    spec = make_spec("maze")
+    fam = family_of(spec)
+    limit = fam.max_step(spec) * spec.plan_stride
+    assert np.isclose(limit, 5.0 * np.sqrt(2) * 0.01 * 2)
+    env = PointMaze(spec)
+    ep = fam.draw_episodes(spec, 1, 0, EVAL_STREAMS["test"])[0]
+    S, *_ = rollout(env, MazeExpert(spec), spec, ep, spec.episode_limit)
+    plan = S[:: spec.plan_stride]
+    assert largest_jump(plan, [0, 1]) <= limit  # what the ball did is always within the bound
+    plan[-1, :2] += 3.0
+    assert largest_jump(plan, [0, 1]) > limit
+
+
+def test_tuning_and_test_pairs_are_different_streams():
+    spec = make_spec("maze-tight")
+    fam = family_of(spec)
+    test = fam.draw_episodes(spec, 50, 0, EVAL_STREAMS["test"])
+    tune = fam.draw_episodes(spec, 50, 0, EVAL_STREAMS["tune"])
+    assert not {e.seed for e in test} & {e.seed for e in tune}
+    s_test, _ = fam.reset_states(spec, test)
+    s_tune, _ = fam.reset_states(spec, tune)
+    d = np.linalg.norm(s_test[:, None, :2] - s_tune[None, :, :2], axis=-1)
+    assert d.min() > 1e-6  # no tuning start is a test start
+
+
+def test_official_protocol_goals_at_cell_centres_same_starts():
+    spec = make_spec("maze")
+    fam = family_of(spec)
+    official = fam.protocol_spec(spec, "official-code")
+    assert official.success_radius == OFFICIAL_SUCCESS_RADIUS and not official.scene.goal_noise
+    assert fam.protocol_controller("official-code") == "waypoint" and fam.protocol_controller(fam.protocol) is None
+    eps = fam.draw_episodes(spec, 10, 1, EVAL_STREAMS["tune"])
+    s0, g0 = fam.reset_states(spec, eps)
+    s1, g1 = fam.reset_states(official, eps)
+    np.testing.assert_array_equal(s0, s1)
+    centres = MazeGeometry(spec.scene.maze).cell_to_xy(np.array([e.goal for e in eps]))
+    np.testing.assert_allclose(g1, centres)
+    assert np.abs(g0 - centres).max() > 0.01  # the default protocol's goals carry the stock noise
+
+
+def test_plan_clock_timeout():
+    spec = make_spec("maze")
+    env = PointMaze(spec)
+    entry = CONTROLLERS.get("pd")
+    plan = np.zeros((10, 4))
+    plan[:, 0] = np.arange(10.0)
+    stuck = entry.build(spec, env, entry.config(max_lag=0.6), 2)
+    waits = entry.build(spec, env, entry.config(max_lag=0.6, max_wait=3), 2)
+    for c in (stuck, waits):
+        c.reset(plan)
+    at_start = np.zeros(4)
+    assert [stuck.plan_time(at_start, t) for t in range(8)] == [0] * 8
+    assert [waits.plan_time(at_start, t) for t in range(8)] == [0, 0, 0, 1, 1, 1, 1, 2]
+
+
+def test_official_executor_reaches_goals_of_expert_plans():
+    """The waypoint executor (kp 1, kd 0.1, <= 5 steps per state) replaying expert plans under the official
+    protocol: it follows the plan and ends within the official 0.55 m."""
+    base = make_spec("maze")
+    fam = family_of(base)
+    spec = fam.protocol_spec(base, "official-code")
+    env = PointMaze(spec)
+    entry = CONTROLLERS.get("waypoint")
+    ctrl = entry.build(spec, env, entry.config(), spec.plan_stride)
+    ok = 0
+    eps = fam.draw_episodes(spec, 8, 2, EVAL_STREAMS["tune"])
+    for ep in eps:
+        S, _, goal, _ = rollout(env, MazeExpert(spec), spec, ep, base.episode_limit)
+        ctrl.reset(S[:: spec.plan_stride])
+        res = run_episode(env, spec, ep, ctrl.act, spec.episode_limit)
+        ok += res.success and not res.collision
+    assert ok >= 7, ok
+
+
+@pytest.mark.parametrize("field, value", [("max_wait", 0), ("reach", 0.0), ("max_steps", 0)])
+def test_controller_settings_are_bounded(field, value):
+    name = "pd" if field == "max_wait" else "waypoint"
+    with pytest.raises(ValueError):
+        CONTROLLERS.get(name).config(**{field: value})
