@@ -114,16 +114,21 @@ def curves(args, log) -> None:
         data = buffers(env, args, log)
         for seed in args.curve_seeds:
             for method in args.methods:
-                flags = list(tuned.get(env, {}).get(method, {}).get("train_flags", []))
+                t = tuned.get(env, {}).get(method, {})
+                flags = list(t.get("train_flags", []))
                 demos, buffer = data["state-action" if "features=state-action" in flags else "state"]
-                folder = args.out / env / "curves"
+                folder = args.out / env / "curves" / slug(t.get("candidate", "quick"))  # one folder per candidate
                 folder.mkdir(parents=True, exist_ok=True)
                 model = folder / f"{method}-s{seed}.h5"
                 final = max(points)
-                done = model.exists() and not unfinished(model)
                 snaps = [p for p in points if p != final]
+                if model.exists() and not unfinished(model):
+                    missing = [p for p in snaps if not (folder / f"{method}-s{seed}.step{p}.h5").exists()]
+                    if missing:
+                        raise SystemExit(f"{model}: finished without snapshots {missing}; delete it to redo the curve")
+                    snaps = []
                 flags += ["--steps", final]
-                train(model, demos, buffer, method, seed, flags, args, log, () if done else snaps)
+                train(model, demos, buffer, method, seed, flags, args, log, snaps)
                 for p in points:
                     m = model if p == final else folder / f"{method}-s{seed}.step{p}.h5"
                     eval_tune(m, folder / f"eval-{method}-s{seed}-{p}.h5", args, log)
@@ -172,6 +177,7 @@ def _summary(path: Path) -> dict:
         "in_wall": 100 * mean("in_wall_fraction"),
         "crossing": 100 * mean("plan_crossing_rate"),
         "impossible_jump": 100 * mean("impossible_jump_rate"),
+        "collision": 100 * mean("executed_collision_rate"),
         "plan_ms": 1000 * mean("plan_seconds"),
         "model": ev.manifest.parents[0].path,
     }
@@ -188,7 +194,7 @@ def choose(args) -> dict:
                 if p.exists():
                     rows.append((name, _summary(p)))
             if rows:
-                name, s = max(rows, key=lambda r: (r[1]["success"], -r[1]["crossing"]))
+                name, s = max(rows, key=lambda r: (r[1]["success"], -r[1]["crossing"], -r[1]["collision"]))
                 out.setdefault(env, {})[method] = {"candidate": name, "train_flags": SWEEP[method][name], **s}
     return out
 
@@ -196,7 +202,7 @@ def choose(args) -> dict:
 def write(args, log) -> None:
     from cdrb_cli import artifacts
 
-    results, figures = (args.out, args.out) if args.tiny else (DOCS / "results", DOCS / "figures")
+    results, figures = (DOCS / "results", DOCS / "figures") if args.write_docs else (args.out, args.out)
     results.mkdir(parents=True, exist_ok=True)
     rows = []
     for env in args.envs:
@@ -238,7 +244,8 @@ def write(args, log) -> None:
                             **{k: round(v, 3) for k, v in s.items() if k != "model"},
                         }
                     )
-                    if best is None or (s["success"], -s["crossing"]) > (best[1]["success"], -best[1]["crossing"]):
+                    # the plans are the same under every clock: ties go to fewer executed collisions
+                    if best is None or (s["success"], -s["collision"]) > (best[1]["success"], -best[1]["collision"]):
                         best = (cname, s)
             if best is not None:
                 t["clock"], t["eval_flags"] = best[0], CLOCKS[best[0]]
@@ -246,18 +253,19 @@ def write(args, log) -> None:
         _csv(results / "tuning_clock.csv", clocks)
     curve_rows = []
     for env in args.envs:
-        folder = args.out / env / "curves"
-        for p in sorted(folder.glob("eval-*.h5")) if folder.exists() else []:
-            method, seed, steps = p.stem.removeprefix("eval-").rsplit("-", 2)
-            curve_rows.append(
-                {
-                    "method": method,
-                    "env": env,
-                    "seed": int(seed[1:]),
-                    "steps": int(steps),
-                    **{k: round(v, 3) for k, v in _summary(p).items() if k in ("success", "in_wall", "crossing")},
-                }
-            )
+        for method in args.methods:  # the curves of each method's chosen candidate only
+            folder = args.out / env / "curves" / slug(tuned.get(env, {}).get(method, {}).get("candidate", "quick"))
+            for p in sorted(folder.glob(f"eval-{method}-s*.h5")) if folder.exists() else []:
+                _, seed, steps = p.stem.removeprefix("eval-").rsplit("-", 2)
+                curve_rows.append(
+                    {
+                        "method": method,
+                        "env": env,
+                        "seed": int(seed[1:]),
+                        "steps": int(steps),
+                        **{k: round(v, 3) for k, v in _summary(p).items() if k in ("success", "in_wall", "crossing")},
+                    }
+                )
     if curve_rows:
         curve_rows.sort(key=lambda r: (r["env"], r["method"], r["seed"], r["steps"]))
         _csv(results / "learning_curves.csv", curve_rows)
@@ -329,7 +337,10 @@ def main() -> None:
     ap.add_argument("--curve-steps", default="1000,2000,3000,6000,10000")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--tiny", action="store_true", help="smoke-test settings")
+    ap.add_argument("--write-docs", action="store_true", help="write: into docs/results and docs/figures")
     args = ap.parse_args()
+    if args.tiny and args.write_docs:
+        ap.error("--tiny results never go into docs/")
     args.envs, args.methods = args.envs.split(","), args.methods.split(",")
     args.curve_seeds = [int(s) for s in args.curve_seeds.split(",")]
     args.tiny_flags, args.sweep_steps = [], []

@@ -298,7 +298,13 @@ def main() -> None:
             if timed_evals:
                 body += (
                     "\n**The same models with the plan on the environment's clock** (`cdrb eval --max-lag 0`; the "
-                    "table above uses the default gated clock, `--max-lag 0.6`):\n\n"
+                    "table above uses "
+                    + (
+                        "each method's tuned controller, see its controller column"
+                        if args.tuned
+                        else "the default gated clock, `--max-lag 0.6`"
+                    )
+                    + "):\n\n"
                     + (args.out / "table1-timed.md").read_text()
                 )
             flags = (

@@ -152,6 +152,16 @@ def _int_list(text: str, flag: str) -> list[int]:
     return values
 
 
+def _steps_list(text: str, flag: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise BadInput(f"{flag} {text!r}: not a comma-separated list of step counts", hint="e.g. 1000,3000") from None
+    if not values:
+        raise BadInput(f"{flag} is empty", hint="e.g. 1000,3000")
+    return values
+
+
 PICTURES = (".png", ".pdf", ".svg")
 
 
@@ -526,12 +536,17 @@ def train(
     if dry_run:
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return
-    snapshots = _int_list(snapshot_at, "--snapshot-at") if snapshot_at else []
+    snapshots = _steps_list(snapshot_at, "--snapshot-at") if snapshot_at else []
     model, done = train_or_resume(
         d, b, config, out, force=force, resume=resume, device=setup_torch(device), snapshots=snapshots
     )
     if done == "up to date":
         ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")
+        from cdrb_cli.stages.train import snapshot_path
+
+        missing = [s for s in snapshots if not snapshot_path(out, s).exists()]
+        if missing:
+            ui.log(f"warning: --snapshot-at {','.join(map(str, missing))}: not written (nothing was trained)")
     st = model.manifest.state
     ui.log(
         f"{config.method.name}: {st.step} steps, loss {st.loss:.4f}"

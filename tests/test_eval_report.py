@@ -162,7 +162,7 @@ def test_eval_artifact_contents(evals):
     states = a["plans"][..., : spec.obs_dim]
     np.testing.assert_array_equal(a["episodes/plan_crosses_obstacle"], family_of(spec).path_in_collision(spec, states))
     np.testing.assert_allclose(a["episodes/plan_max_jump"], largest_jump(states, [0, 1]), rtol=1e-5)
-    assert np.allclose(a["episodes/plan_step_limit"], 5 * np.sqrt(2) * 0.01 * 10)  # stride 10 in these models
+    assert np.allclose(a["episodes/plan_step_limit"], family_of(spec).max_step(spec) * 10)  # stride 10 here
     assert (a["episodes/plan_in_wall_fraction"] > 0)[~a["episodes/plan_crosses_obstacle"]].sum() == 0
     # the summary's std is the sample std over seeds
     per = [p.success_rate for p in s.per_seed]
@@ -185,6 +185,8 @@ def test_tuning_pairs_and_the_official_protocol(evals, tmp_path, cdrb):
     off = artifacts.load(tmp_path / "o.h5", "eval")
     assert off.manifest.config.protocol == "official-code" and off.manifest.config.controller.name == "waypoint"
     assert off.manifest.env.success_radius == 0.55 and not off.manifest.env.scene.goal_noise
+    r = cdrb("eval", model, "--protocol", "official-code", "--controller", "pd", "--out", tmp_path / "x.h5")
+    assert r.returncode == 2 and "waypoint controller" in r.stderr
     r = cdrb("eval", model, "--protocol", "nope", "--out", tmp_path / "x.h5")
     assert r.returncode == 2 and "--protocol 'nope'" in r.stderr and "official-code" in r.stderr
     r = cdrb("eval", model, "--stream", "train", "--out", tmp_path / "x.h5")
@@ -349,7 +351,7 @@ def test_each_method_keeps_its_own_controller_but_only_one(evals, tmp_path, cdrb
     from cdrb_cli.envs.pointmaze.controllers import InverseDynamicsConfig
 
     ev = evals["diffuser"]
-    cfg = ev.manifest.config.model_copy(update={"controller": InverseDynamicsConfig(max_lag=None, max_wait=5)})
+    cfg = ev.manifest.config.model_copy(update={"controller": InverseDynamicsConfig(max_lag=0.6, max_wait=5)})
     artifacts.save(tmp_path / "d.h5", "eval", ev.manifest.model_copy(update={"config": cfg}), ev.arrays)
     r = cdrb("report", evals["cdrb"].path, tmp_path / "d.h5", "--format", "json")
     assert r.returncode == 0, r.stderr
@@ -369,3 +371,8 @@ def test_each_method_keeps_its_own_controller_but_only_one(evals, tmp_path, cdrb
         )
     r = cdrb("report", *paths)
     assert r.returncode == 2 and "different controllers" in r.stderr
+    # or with different sampler settings
+    c = ev.manifest.config.model_copy(update={"seeds": [1], "sample_steps": 4})
+    artifacts.save(paths[1], "eval", ev.manifest.model_copy(update={"config": c}), artifacts.load(paths[1]).arrays)
+    r = cdrb("report", *paths)
+    assert r.returncode == 2 and "different sampler settings" in r.stderr

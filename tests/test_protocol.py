@@ -59,12 +59,15 @@ def test_largest_jump_against_the_dynamics():
     spec = make_spec("maze")
     fam = family_of(spec)
     limit = fam.max_step(spec) * spec.plan_stride
-    assert np.isclose(limit, 5.0 * np.sqrt(2) * 0.01 * 2)
+    d = PointMaze(spec).dynamics
+    v = 5.0 + d["dt"] * (d["gear"] - d["damping"] * 5.0) / (d["mass"] + d["dt"] * d["damping"])
+    assert np.isclose(limit, np.sqrt(2) * v * d["dt"] * 2)
     env = PointMaze(spec)
     ep = fam.draw_episodes(spec, 1, 0, EVAL_STREAMS["test"])[0]
     S, *_ = rollout(env, MazeExpert(spec), spec, ep, spec.episode_limit)
     plan = S[:: spec.plan_stride]
     assert largest_jump(plan, [0, 1]) <= limit  # what the ball did is always within the bound
+    assert largest_jump(S, [0, 1]) <= fam.max_step(spec)  # per env step too, at the expert's top speed
     plan[-1, :2] += 3.0
     assert largest_jump(plan, [0, 1]) > limit
 
@@ -108,7 +111,8 @@ def test_plan_clock_timeout():
         c.reset(plan)
     at_start = np.zeros(4)
     assert [stuck.plan_time(at_start, t) for t in range(8)] == [0] * 8
-    assert [waits.plan_time(at_start, t) for t in range(8)] == [0, 0, 0, 1, 1, 1, 1, 2]
+    # paused 3 steps on planned state 1 (plan time 0..1 at stride 2), then on to state 2 (plan time 2), and so on
+    assert [waits.plan_time(at_start, t) for t in range(8)] == [0, 0, 0, 2, 2, 2, 2, 4]
 
 
 def test_official_executor_reaches_goals_of_expert_plans():
@@ -130,8 +134,27 @@ def test_official_executor_reaches_goals_of_expert_plans():
     assert ok >= 7, ok
 
 
-@pytest.mark.parametrize("field, value", [("max_wait", 0), ("reach", 0.0), ("max_steps", 0)])
-def test_controller_settings_are_bounded(field, value):
-    name = "pd" if field == "max_wait" else "waypoint"
+@pytest.mark.parametrize(
+    "name, settings",
+    [
+        ("pd", {"max_wait": 0}),
+        ("pd", {"max_lag": None, "max_wait": 5}),
+        ("waypoint", {"reach": 0.0}),
+        ("waypoint", {"max_steps": 0}),
+    ],
+)
+def test_controller_settings_are_bounded(name, settings):
     with pytest.raises(ValueError):
-        CONTROLLERS.get(name).config(**{field: value})
+        CONTROLLERS.get(name).config(**settings)
+
+
+def test_a_point_agent_inside_a_box_collides():
+    """With no agent radius (inflate 0), a state or a segment inside a box still counts."""
+    spec = make_spec("maze")
+    ob = spec.obstacles.model_copy(update={"inflate": 0.0})
+    from cdrb_cli.envs.geometry import in_boxes
+
+    inside = np.array([[ob.centers[0][0], ob.centers[0][1], 0, 0]])
+    assert in_boxes(inside, ob).all()
+    across = np.stack([inside[0] - [2, 0, 0, 0], inside[0] + [2, 0, 0, 0]])[None]
+    assert path_crosses_boxes(across, ob).all()

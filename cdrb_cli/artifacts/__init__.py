@@ -238,6 +238,11 @@ class Existing:
         return self.status == "up-to-date"
 
 
+#: kind -> schema version before which a file is redone rather than reused (it lacks what is measured now):
+#: evals before 2.2 have no plan-crossing or jump measurements
+RECOMPUTE_BEFORE = {"eval": (2, 2)}
+
+
 def existing(
     path: str | Path,
     kind: str,
@@ -257,6 +262,11 @@ def existing(
         return Existing("invalid", reason=exc.message)
     if [p.sha256 for p in art.manifest.parents] != [p.sha256 for p in parents]:
         return Existing("different", art, "it was made from other inputs")
+    since = RECOMPUTE_BEFORE.get(kind)
+    if since is not None and parse_version(art.manifest.schema_version) < since:
+        return Existing(
+            "different", art, f"it was written by schema {art.manifest.schema_version}, which measured less"
+        )
     if env is not None and art.manifest.env != env:
         return Existing("different", art, "it was made for another environment")
     state = getattr(art.manifest, "state", None)

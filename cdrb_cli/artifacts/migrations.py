@@ -11,7 +11,8 @@ Schema 2 (cdrb 0.2, the families/registry redesign) changed, for every kind:
 
 Minor versions that renamed values are migrated too (:func:`migrate_minor`): schema 2.2 renamed CDRB's radius
 schedule ``log`` (log-spaced, convex) to ``geometric`` (``log`` is now the official code's concave schedule) and
-the CDRB samplers ``alg1``/``alg2`` to ``paper``/``cold-improved``.
+the CDRB samplers ``alg1``/``alg2`` to ``paper``/``cold-improved``, and records for older CDRB models that the
+action part of their end states was kept (``method.end_actions = "kept"``; only state-action models differ).
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ def _renames_2_2(kind: str, m: Manifest) -> Manifest:
             method["schedule"] = "geometric"
         if method.get("sampler") in _SAMPLERS_2_2:
             method["sampler"] = _SAMPLERS_2_2[method["sampler"]]
+        method.setdefault("end_actions", "kept")  # before 2.2 the ends' action part was never degraded
         cfg["method"] = method
     if kind in ("plans", "eval") and cfg.get("sampler") in _SAMPLERS_2_2:
         cfg["sampler"] = _SAMPLERS_2_2[cfg["sampler"]]

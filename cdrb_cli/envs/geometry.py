@@ -32,13 +32,18 @@ def box_arrays(obstacles: BoxObstacles) -> tuple[np.ndarray, np.ndarray]:
     return centers, halves
 
 
+def _touches(distance: np.ndarray, inflate: float) -> np.ndarray:
+    """Closer than the agent's radius; for a point agent (radius 0), inside or on a box."""
+    return distance < inflate if inflate > 0 else distance <= 0.0
+
+
 def in_boxes(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarray:
     """Boolean mask over states (..., D): True where the agent (a ball of radius ``obstacles.inflate`` centred at
     the state's obstacle dimensions) overlaps a box, or its centre lies outside ``[low, high]``."""
     states = np.asarray(states)
     pts = states[..., obstacles.dims].astype(np.float64)
     centers, halves = box_arrays(obstacles)
-    hit = box_distance(pts, centers, halves) < obstacles.inflate
+    hit = _touches(box_distance(pts, centers, halves), obstacles.inflate)
     low, high = np.asarray(obstacles.low), np.asarray(obstacles.high)
     outside = np.any((pts < low) | (pts > high), axis=-1)
     return hit | outside
@@ -99,8 +104,8 @@ def path_crosses_boxes(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarra
     states = np.asarray(states)
     pts = states[..., obstacles.dims].astype(np.float64)
     centers, halves = box_arrays(obstacles)
-    seg = segment_box_distance(pts[..., :-1, :], pts[..., 1:, :], centers, halves, within=obstacles.inflate)
-    seg = seg < obstacles.inflate
+    within = max(obstacles.inflate, 1e-12)
+    seg = _touches(segment_box_distance(pts[..., :-1, :], pts[..., 1:, :], centers, halves, within), obstacles.inflate)
     return in_boxes(states, obstacles).any(axis=-1) | seg.any(axis=-1)
 
 

@@ -28,8 +28,8 @@ class CDRBParams(MethodParams):
     name: Literal["cdrb"] = "cdrb"
     schedule: Literal["linear", "log", "geometric", "sqrt", "sigmoid"] = Field(
         "linear",
-        description="how the ball radius eps_k grows with k: linear (the paper's), log (the official code's, "
-        "concave), geometric (log-spaced, convex), sqrt, sigmoid",
+        description="how the ball radius eps_k grows with k: linear (the paper's and the official code's default), "
+        "log (the official code's log option, concave), geometric (log-spaced, convex), sqrt, sigmoid",
     )
     d_max: float = Field(
         gt=0, description="largest ball radius, in normalized feature space (default: the buffer's diameter)"
@@ -39,6 +39,11 @@ class CDRBParams(MethodParams):
         "paper",
         description="paper: restore, then degrade to k-1 (the paper's sampling algorithm, as released); "
         "cold-improved: Cold Diffusion's improved update tau_k - D(x0, k) + D(x0, k-1)",
+    )
+    end_actions: Literal["degraded", "kept"] = Field(
+        "degraded",
+        description="state-action features: the action part of the pinned end states is degraded like any state "
+        "(only the state is pinned, as at sampling), or kept (models before schema 2.2)",
     )
     loss_weight_power: float = Field(
         0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
@@ -59,8 +64,8 @@ class CDRB(Planner):
         # when it fixes only some (spec.pinned_dims, or the action part of state-action features) they are degraded
         # like the rest and pinning restores the pinned dims, so training sees the ends as sampling does (whose ends
         # start as random buffer features with only the pinned dims set)
-        whole = isinstance(self.pinned, slice) and self.feature_dim == self.obs_dim
-        self.kept = (0, -1) if whole else ()
+        whole = self.feature_dim == self.obs_dim or p.end_actions == "kept"
+        self.kept = (0, -1) if isinstance(self.pinned, slice) and whole else ()
 
     def extra_arrays(self):
         return {"buffer/points": self.points}

@@ -309,8 +309,13 @@ def eval_config(
     s_name = lookup(settings, ("controller", "name"))
     if controller is not None and s_name is not None and s_name.value != controller:
         raise BadInput(f"--controller {controller} and {s_name.source}", hint="name the controller once")
-    default = family.protocol_controller(protocol) or family.controllers[0]
-    name = controller or (s_name.value if s_name is not None else default)
+    prescribed = family.protocol_controller(protocol)
+    name = controller or (s_name.value if s_name is not None else prescribed or family.controllers[0])
+    if prescribed is not None and name != prescribed:
+        raise BadInput(
+            f"--protocol {protocol} executes plans with the {prescribed} controller, not {name}",
+            hint="drop --controller (its settings may still be changed with --set controller.<field>)",
+        )
     if name not in family.controllers:
         where = f"--controller {name!r}" if s_name is None or controller else s_name.source
         raise BadInput(

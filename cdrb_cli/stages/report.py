@@ -61,6 +61,12 @@ def _protocol(ev) -> tuple:
     return (c.episodes, c.protocol, c.extra_steps, ev.manifest.env.episode_limit, c.stream)
 
 
+def _planning(ev) -> tuple:
+    """How one method planned: these must agree across the seeds pooled into one row."""
+    c = ev.manifest.config
+    return (_controller(ev), c.sampler, c.sample_steps, c.use_ema)
+
+
 def _controller(ev) -> str:
     c = ev.manifest.config.controller
     settings = ", ".join(f"{k} {v}" for k, v in c.model_dump().items() if k != "name")
@@ -122,11 +128,14 @@ def collect_rows(evals) -> list[dict]:
             )
         seed_sets = {}
         for label, group in methods.items():
-            controllers = sorted({_controller(ev) for ev in group})
-            if len(controllers) > 1:
+            settings = sorted({_planning(ev) for ev in group}, key=str)
+            if len(settings) > 1:
+                a, b = settings[:2]
+                what = "controllers" if a[0] != b[0] else "sampler settings (sampler, steps, EMA)"
+                shown = (a[0], b[0]) if a[0] != b[0] else (a[1:], b[1:])
                 raise BadInput(
-                    f"{label} on {env_id}: its eval files use different controllers ({' vs '.join(controllers[:2])})",
-                    hint="evaluate every seed of a method with the same controller settings",
+                    f"{label} on {env_id}: its eval files use different {what} ({shown[0]} vs {shown[1]})",
+                    hint="evaluate every seed of a method with the same settings",
                 )
             seeds = [r.seed for ev in group for r in per_seed(ev)]
             if len(seeds) != len(set(seeds)):

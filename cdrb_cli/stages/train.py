@@ -155,6 +155,9 @@ def train(
     if resume:
         step, curve, wall = restore(resume, method, ema, optimizers, device)
         ui.log(f"resuming {out} from step {step}")
+        lost = [s for s in snapshots if s <= step and not snapshot_path(out, s).exists()]
+        if lost:
+            ui.log(f"warning: --snapshot-at {','.join(map(str, lost))}: already past, not written by this run")
 
     def save(finished: bool, loss_value, valid_value, path=out, cfg=config, points=None) -> None:
         state = TrainState(

@@ -27,7 +27,9 @@ POINTMAZE_DT = 0.01
 BALL_RADIUS = 0.1
 SUCCESS_RADIUS = 0.45
 OFFICIAL_SUCCESS_RADIUS = 0.55  # the official CDRB code's success test (info["success"])
-MAX_SPEED = 5.0  # the env clips each velocity component at 5 m/s
+MAX_SPEED = 5.0  # the env clips each velocity component at 5 m/s (before each step)
+BALL_MASS = 4.0 / 3.0 * math.pi * BALL_RADIUS**3 * 1000.0  # kg: the stock ball (`PointMaze.dynamics` reads the same)
+BALL_GEAR, BALL_DAMPING = 100.0, 1.0  # the stock actuator gear and joint damping
 PLAN_STRIDE = 2
 
 DESCRIPTIONS = {
@@ -130,7 +132,7 @@ class PointMazeFamily(EnvFamily):
             return spec
         scene = spec.scene.model_copy(update={"goal_noise": False})
         # the official executor may spend up to 5 env steps per planned state and 20 on the last one
-        limit = max(spec.episode_limit, 5 * spec.horizon + 20)
+        limit = max(spec.episode_limit, 5 * (spec.horizon - 1) + 20)
         return spec.model_copy(
             update={"scene": scene, "success_radius": OFFICIAL_SUCCESS_RADIUS, "episode_limit": limit}
         )
@@ -175,7 +177,11 @@ class PointMazeFamily(EnvFamily):
         return f"{int(cell[0])},{int(cell[1])}", geom.exit_label(states)
 
     def max_step(self, spec: EnvSpec) -> float:
-        return MAX_SPEED * math.sqrt(2.0) * spec.dt  # each velocity component is clipped at MAX_SPEED
+        # the env clips each velocity component at MAX_SPEED *before* a step, then one Euler step with the full
+        # force adds h (gear - damping MAX_SPEED) / (mass + h damping) to it, and moves the ball by h v'
+        h = spec.dt
+        v = MAX_SPEED + h * (BALL_GEAR - BALL_DAMPING * MAX_SPEED) / (BALL_MASS + h * BALL_DAMPING)
+        return math.sqrt(2.0) * v * h
 
     # -------------------------------------------------------------- pictures
     def speed(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:

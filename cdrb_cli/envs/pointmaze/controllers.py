@@ -19,8 +19,9 @@ episode). Both are chosen per method on the tuning stream (docs/design.md).
 
 * ``WaypointController`` is the official CDRB executor: u = clip(kp (p* - p) - kd v) toward one planned state at
   a time (kp = 1, kd = 0.1), moving to the next when within ``reach`` (0.1 m) of it or after ``max_steps`` (5)
-  environment steps, ``last_steps`` (20) for the last one, then holding it. It ignores the plan's stride and
-  velocities, as the official code does.
+  environment steps. It ignores the plan's stride and velocities, as the official code does. The official loop
+  gives the last state 20 steps and then stops, testing the final position; here the controller holds the last
+  state until the episode's step limit and success is tested at every step, as for every controller.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from cdrb_cli.envs.family import Controller, ControllerConfig, ControllerEntry
 from cdrb_cli.envs.registry import CONTROLLERS
@@ -43,6 +44,12 @@ _MAX_LAG_HELP = (
 _MAX_WAIT_HELP = "the clock moves on after this many env steps paused on one planned state (null: no timeout)"
 
 
+def _check_wait(config):
+    if config.max_wait is not None and config.max_lag is None:
+        raise ValueError("max_wait bounds the gated clock's pause: set max_lag too (or leave max_wait null)")
+    return config
+
+
 class PDConfig(ControllerConfig):
     """u = clip(kp (p* - p) + kd (v* - v)) toward the next planned state."""
 
@@ -52,6 +59,8 @@ class PDConfig(ControllerConfig):
     max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, le=1e3, description=_MAX_LAG_HELP)
     max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
 
+    _wait = model_validator(mode="after")(_check_wait)
+
 
 class InverseDynamicsConfig(ControllerConfig):
     """The force that puts the ball exactly on the (interpolated) plan at the next step."""
@@ -59,6 +68,8 @@ class InverseDynamicsConfig(ControllerConfig):
     name: Literal["inverse-dynamics"] = "inverse-dynamics"
     max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, le=1e3, description=_MAX_LAG_HELP)
     max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
+
+    _wait = model_validator(mode="after")(_check_wait)
 
 
 class WaypointConfig(ControllerConfig):
@@ -69,7 +80,6 @@ class WaypointConfig(ControllerConfig):
     kd: float = Field(0.1, ge=0, le=1e6, description="velocity damping (official: 0.1, i.e. d_gain = -0.1)")
     reach: float = Field(0.1, gt=0, le=1e3, description="move to the next planned state within this distance (m)")
     max_steps: int = Field(5, gt=0, le=10_000, description="env steps at most per planned state (official: 5)")
-    last_steps: int = Field(20, gt=0, le=100_000, description="env steps at most on the last state (official: 20)")
 
 
 class MazeController(Controller):
@@ -94,12 +104,15 @@ class MazeController(Controller):
         the gated clock, so call it once per environment step (``act`` does)."""
         if self.max_lag is None:
             return t
-        near = np.linalg.norm(self.plan[self._target_index(self.clock), :2] - obs[:2]) < self.max_lag
-        if near or (self.max_wait is not None and self.waited >= self.max_wait):
+        target = self._target_index(self.clock)
+        if np.linalg.norm(self.plan[target, :2] - obs[:2]) < self.max_lag:
             self.clock += 1
-            self.waited = 0
+        elif self.max_wait is not None and self.waited >= self.max_wait:
+            self.clock = (self.clock // self.stride + 1) * self.stride  # give up on this planned state: the next
         else:
             self.waited += 1
+        if self._target_index(self.clock) != target:
+            self.waited = 0  # ``max_wait`` counts the steps paused on one planned state
         return self.clock
 
 
