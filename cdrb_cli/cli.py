@@ -138,27 +138,23 @@ def _load(path: Path, kind: str):
     return load(path, kind)
 
 
-def _int_list(text: str, flag: str) -> list[int]:
+def _ints(text: str, flag: str, what: str, example: str) -> list[int]:
+    """A non-empty comma-separated list of integers (``what`` and ``example`` word the errors)."""
     try:
         values = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise BadInput(f"{flag} {text!r}: not a comma-separated list of integers", hint="e.g. 0,1,2,3,4") from None
+        raise BadInput(f"{flag} {text!r}: not a comma-separated list of {what}", hint=f"e.g. {example}") from None
     if not values:
-        raise BadInput(f"{flag} is empty", hint="e.g. 0,1,2,3,4")
+        raise BadInput(f"{flag} is empty", hint=f"e.g. {example}")
+    return values
+
+
+def _int_list(text: str, flag: str) -> list[int]:
+    values = _ints(text, flag, "integers", "0,1,2,3,4")
     if len(set(values)) != len(values):
         raise BadInput(f"{flag} {text!r}: repeated values", hint="list each seed once")
     if any(not 0 <= v < 2**32 for v in values):
         raise BadInput(f"{flag} {text!r}: seeds are 32-bit (0 to 4294967295)", hint="e.g. 0,1,2,3,4")
-    return values
-
-
-def _steps_list(text: str, flag: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise BadInput(f"{flag} {text!r}: not a comma-separated list of step counts", hint="e.g. 1000,3000") from None
-    if not values:
-        raise BadInput(f"{flag} is empty", hint="e.g. 1000,3000")
     return values
 
 
@@ -536,7 +532,7 @@ def train(
     if dry_run:
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return
-    snapshots = _steps_list(snapshot_at, "--snapshot-at") if snapshot_at else []
+    snapshots = _ints(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []
     model, done = train_or_resume(
         d, b, config, out, force=force, resume=resume, device=setup_torch(device), snapshots=snapshots
     )

@@ -246,12 +246,17 @@ def sample_std(values) -> float:
     return float(v.std(ddof=1)) if v.size > 1 else 0.0
 
 
+def mean_or_none(values) -> float | None:
+    """The mean, or None when there is no value or any is None (a measurement some file did not make)."""
+    values = list(values)
+    return float(np.mean(values)) if values and all(v is not None for v in values) else None
+
+
 def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_time_s: float) -> EvalSummary:
     """Means and sample standard deviations over seeds of the per-seed results."""
 
     def mean(name):
-        vals = [getattr(p, name) for p in per_seed]
-        return float(np.mean(vals)) if vals and all(v is not None for v in vals) else None
+        return mean_or_none(getattr(p, name) for p in per_seed)
 
     succ = [p.success_rate for p in per_seed]
     wall = [p.in_wall_fraction for p in per_seed]

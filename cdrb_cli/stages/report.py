@@ -18,7 +18,7 @@ import numpy as np
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.evaluate import sample_std
+from cdrb_cli.stages.evaluate import mean_or_none, sample_std
 
 PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) for the two mazes
     "maze": {
@@ -103,10 +103,6 @@ def per_seed(ev) -> list:
     return per
 
 
-def _mean(values) -> float | None:
-    return float(np.mean(values)) if values and all(v is not None for v in values) else None
-
-
 def collect_rows(evals) -> list[dict]:
     """One row per (environment, method). Several evals of one method (e.g. one per training seed) are pooled as
     separate seeds; within an environment every method must use the same protocol and the same evaluation seeds,
@@ -126,7 +122,7 @@ def collect_rows(evals) -> list[dict]:
                 f"eval files for {env_id} use different protocols ({_describe(first)} vs {_describe(second)})",
                 hint="evaluate every model with the same --episodes, --protocol and --stream",
             )
-        seed_sets = {}
+        seed_sets, pooled = {}, {}
         for label, group in methods.items():
             settings = sorted({_planning(ev) for ev in group}, key=str)
             if len(settings) > 1:
@@ -137,7 +133,8 @@ def collect_rows(evals) -> list[dict]:
                     f"{label} on {env_id}: its eval files use different {what} ({shown[0]} vs {shown[1]})",
                     hint="evaluate every seed of a method with the same settings",
                 )
-            seeds = [r.seed for ev in group for r in per_seed(ev)]
+            pooled[label] = [r for ev in group for r in per_seed(ev)]
+            seeds = [r.seed for r in pooled[label]]
             if len(seeds) != len(set(seeds)):
                 dup = sorted({x for x in seeds if seeds.count(x) > 1})
                 raise BadInput(
@@ -152,12 +149,12 @@ def collect_rows(evals) -> list[dict]:
                 hint="evaluate every method on the same --seeds",
             )
         for label, group in methods.items():
-            per = [r for ev in group for r in per_seed(ev)]
+            per = pooled[label]
             succ = np.array([r.success_rate for r in per])
             wall = np.array([r.in_wall_fraction for r in per])
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
-            crossing = _mean([r.plan_crossing_rate for r in per])
-            impossible = _mean([r.impossible_jump_rate for r in per])
+            crossing = mean_or_none([r.plan_crossing_rate for r in per])
+            impossible = mean_or_none([r.impossible_jump_rate for r in per])
             first = group[0]
             rows.append(
                 {
@@ -177,7 +174,7 @@ def collect_rows(evals) -> list[dict]:
                     "in_wall_std": 100 * sample_std(wall),
                     "crossing_mean": None if crossing is None else 100 * crossing,
                     "crossing_std": None if crossing is None else 100 * sample_std([r.plan_crossing_rate for r in per]),
-                    "jump_ratio": _mean([r.jump_ratio for r in per]),
+                    "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
                     "impossible_jump_mean": None if impossible is None else 100 * impossible,
                     "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
                     "path_ratio": float(np.mean(ratios)) if ratios else None,

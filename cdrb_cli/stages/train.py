@@ -58,10 +58,15 @@ def snapshot_path(out: Path, step: int) -> Path:
     return out.with_name(f"{out.stem}.step{step}{out.suffix or '.h5'}")
 
 
+def log_interval(config: TrainConfig) -> int:
+    """Steps between two points of the loss curve: every 50 steps, and at every checkpoint."""
+    return math.gcd(50, config.checkpoint_every)
+
+
 def check_snapshots(config: TrainConfig, steps: Sequence[int]) -> list[int]:
-    """Snapshot steps, validated: below ``steps`` and on the loss log (multiples of gcd(50, checkpoint_every)), so
+    """Snapshot steps, validated: below ``steps`` and on the loss curve (multiples of :func:`log_interval`), so
     that each snapshot is exactly the model a run of that many steps writes."""
-    every = math.gcd(50, config.checkpoint_every)
+    every = log_interval(config)
     for s in steps:
         if not 0 < s < config.steps or s % every:
             raise BadInput(
@@ -91,12 +96,12 @@ def train_or_resume(
     parents = [demos] + ([buffer] if buffer is not None else [])
     snapshots = check_snapshots(config, snapshots)
     inputs = [p.path for p in parents]
+    replace_snapshots = force or resume or auto  # a resumed run may find the snapshots it wrote before
     with contextlib.ExitStack() as stack:
         stack.enter_context(artifacts.claim_output(out, force=True, inputs=inputs))
         for s in snapshots:
-            # a resumed run may find the snapshots it wrote before the interruption
-            ok = force or resume or auto
-            stack.enter_context(artifacts.claim_output(snapshot_path(out, s), ok, "--snapshot-at", inputs))
+            path = snapshot_path(out, s)
+            stack.enter_context(artifacts.claim_output(path, replace_snapshots, "--snapshot-at", inputs))
         return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, device, auto, snapshots)
 
 
@@ -144,7 +149,7 @@ def train(
     parents = [demos] + ([buffer] if buffer is not None else [])
     modules = method.modules()
     n_params = sum(p.numel() for m in modules.values() for p in m.parameters())
-    log_every = math.gcd(50, config.checkpoint_every)
+    log_every = log_interval(config)
     step, curve, wall = 0, [], 0.0
 
     if resume is True:
