@@ -130,7 +130,7 @@ def curves(args, log) -> None:
                 flags += ["--steps", final]
                 train(model, demos, buffer, method, seed, flags, args, log, snaps)
                 for p in points:
-                    m = model if p == final else folder / f"{method}-s{seed}.step{p}.h5"
+                    m = _curve_model(folder, method, seed, p, final)
                     eval_tune(m, folder / f"eval-{method}-s{seed}-{p}.h5", args, log)
 
 
@@ -283,9 +283,22 @@ def write(args, log) -> None:
                 t["steps"] = best
                 t["steps_success"] = sum(by_steps[best]) / len(by_steps[best])
                 t["train_flags"] = [*t["train_flags"], "--steps", str(best)]
+                # the curve runs' models at that step count: table1.py reuses them for those training seeds
+                # (a snapshot is bit for bit the model a run of that length writes; `cdrb train` skips it as up to
+                # date, or refuses it if anything in its config or parents differs)
+                folder = args.out / env / "curves" / slug(t["candidate"])
+                t["curve_models"] = {
+                    str(r["seed"]): str(_curve_model(folder, method, r["seed"], best, max(by_steps)))
+                    for r in sel
+                    if r["steps"] == best
+                }
     meta = {"machine": hardware(), "tuning_stream_seeds": args.tune_seeds, "episodes_per_seed": args.episodes}
     (results / "tuned.json").write_text(json.dumps({"meta": meta, "settings": tuned}, indent=2) + "\n")
     print(results / "tuned.json")
+
+
+def _curve_model(folder: Path, method: str, seed: int, steps: int, final: int) -> Path:
+    return folder / (f"{method}-s{seed}.h5" if steps == final else f"{method}-s{seed}.step{steps}.h5")
 
 
 def _csv(path: Path, rows: list[dict]) -> None:
