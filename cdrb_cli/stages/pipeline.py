@@ -60,7 +60,7 @@ def quickstart(
     episodes: int = 1000,
     k: int | None = None,
     methods: Sequence[str] = DEFAULT_METHODS,
-    seeds: Sequence[int] = (0, 1),
+    seeds: Sequence[int] = (5, 6, 7),
     eval_episodes: int = 50,
     steps: int | None = None,
     seed: int = 0,
