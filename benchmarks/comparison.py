@@ -177,6 +177,7 @@ def _summary(path: Path) -> dict:
         "in_wall": 100 * mean("in_wall_fraction"),
         "crossing": 100 * mean("plan_crossing_rate"),
         "impossible_jump": 100 * mean("impossible_jump_rate"),
+        "jump_ratio": mean("jump_ratio"),  # the largest step of a plan over what the dynamics allow, seed means
         "collision": 100 * mean("executed_collision_rate"),
         "plan_ms": 1000 * mean("plan_seconds"),
         "model": ev.manifest.parents[0].path,
