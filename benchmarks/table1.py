@@ -217,7 +217,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     # a `kill` (SIGTERM) must still run the `finally` below that saves the timings
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    timings_path = args.out / "timings.json"
+    timings_path = args.out / "table1_timings.json"  # its own: comparison.py keeps timings.json in the same folder
     log = json.loads(timings_path.read_text()) if timings_path.exists() else {}
     seeds = [int(s) for s in args.seeds.split(",")]
     from cdrb_cli.methods.registry import METHODS
