@@ -4,7 +4,7 @@ Grid: environments x methods x seeds. Per environment: `cdrb collect` (N demos),
 seed: `cdrb train --seed S` then `cdrb eval --seeds S --episodes E`; finally `cdrb report` over everything.
 Every stage is skipped when its artifact is up to date (the CLI's own rule), and an unfinished training is
 resumed, so the script can be stopped and restarted at any time. Wall time of every stage goes to
-``OUT/timings.json``.
+``OUT/table1_timings.json``.
 
     python benchmarks/table1.py --out runs/table1                         # quick preset, 5 seeds, 8k demos
     python benchmarks/table1.py --out runs/paper --preset paper           # the paper's settings (wants a GPU)

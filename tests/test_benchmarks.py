@@ -32,7 +32,7 @@ def test_table1_script_tiny(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = (out / "table1.md").read_text()
     assert "| Maze Tight |" in table and "Maze Tight (paper)" in table
-    assert (out / "timings.json").exists() and (out / "table1.png").stat().st_size > 5000
+    assert (out / "table1_timings.json").exists() and (out / "table1.png").stat().st_size > 5000
     timed = (out / "table1-timed.md").read_text()
     assert "| Maze Tight | mlp | pd (kp 10.0, kd 1.0, max_lag None, max_wait None) | test | 2 x 3 |" in timed
     # a second run skips every stage
