@@ -327,7 +327,7 @@ def plot_curves(rows: list[dict], path: Path) -> None:
                 m = np.array([np.mean(v) for v in vals])
                 sd = np.array([np.std(v, ddof=1) if len(v) > 1 else 0.0 for v in vals])
                 axes[i][j].plot(steps, m, marker="o", label=f"{method} ({min(len(v) for v in vals)} seeds)")
-                axes[i][j].fill_between(steps, m - sd, m + sd, alpha=0.2)
+                axes[i][j].fill_between(steps, np.clip(m - sd, 0, 100), np.clip(m + sd, 0, 100), alpha=0.2)  # rates
         for i, title in enumerate(("success (%), tuning stream", "plans through a wall (%)")):
             axes[i][j].set_xscale("log")
             axes[i][j].set_title(f"{env}: {title}", fontsize=10)
