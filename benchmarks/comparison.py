@@ -117,13 +117,13 @@ def curves(args, log) -> None:
                 t = tuned.get(env, {}).get(method, {})
                 flags = list(t.get("train_flags", []))
                 demos, buffer = data["state-action" if "features=state-action" in flags else "state"]
-                folder = args.out / env / "curves" / slug(t.get("candidate", "quick"))  # one folder per candidate
+                folder = _curve_folder(args, env, t)
                 folder.mkdir(parents=True, exist_ok=True)
-                model = folder / f"{method}-s{seed}.h5"
                 final = max(points)
+                model = _curve_model(folder, method, seed, final, final)
                 snaps = [p for p in points if p != final]
                 if model.exists() and not unfinished(model):
-                    missing = [p for p in snaps if not (folder / f"{method}-s{seed}.step{p}.h5").exists()]
+                    missing = [p for p in snaps if not _curve_model(folder, method, seed, p, final).exists()]
                     if missing:
                         raise SystemExit(f"{model}: finished without snapshots {missing}; delete it to redo the curve")
                     snaps = []
@@ -255,7 +255,7 @@ def write(args, log) -> None:
     curve_rows = []
     for env in args.envs:
         for method in args.methods:  # the curves of each method's chosen candidate only
-            folder = args.out / env / "curves" / slug(tuned.get(env, {}).get(method, {}).get("candidate", "quick"))
+            folder = _curve_folder(args, env, tuned.get(env, {}).get(method, {}))
             for p in sorted(folder.glob(f"eval-{method}-s*.h5")) if folder.exists() else []:
                 _, seed, steps = p.stem.removeprefix("eval-").rsplit("-", 2)
                 curve_rows.append(
@@ -287,7 +287,7 @@ def write(args, log) -> None:
                 # the curve runs' models at that step count: table1.py reuses them for those training seeds
                 # (a snapshot is bit for bit the model a run of that length writes; `cdrb train` skips it as up to
                 # date, or refuses it if anything in its config or parents differs)
-                folder = args.out / env / "curves" / slug(t["candidate"])
+                folder = _curve_folder(args, env, t)
                 t["curve_models"] = {
                     str(r["seed"]): str(_curve_model(folder, method, r["seed"], best, max(by_steps)))
                     for r in sel
@@ -296,6 +296,11 @@ def write(args, log) -> None:
     meta = {"machine": hardware(), "tuning_stream_seeds": args.tune_seeds, "episodes_per_seed": args.episodes}
     (results / "tuned.json").write_text(json.dumps({"meta": meta, "settings": tuned}, indent=2) + "\n")
     print(results / "tuned.json")
+
+
+def _curve_folder(args, env: str, tuned: dict) -> Path:
+    """The learning-curve runs of a method's chosen candidate (the quick preset before any sweep): one folder each."""
+    return args.out / env / "curves" / slug(tuned.get("candidate", "quick"))
 
 
 def _curve_model(folder: Path, method: str, seed: int, steps: int, final: int) -> Path:
