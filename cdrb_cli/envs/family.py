@@ -292,6 +292,10 @@ class EnvFamily(ABC):
         ax.set_ylim(ob.low[1], ob.high[1])
         ax.set_aspect("equal")
 
+    def plot_demos(self, demos, path: Path, n: int, seed: int) -> Path | None:
+        """The family's own picture of demonstrations (e.g. several views); None: the generic one."""
+        return None
+
     def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
         """Simulator frames of the agent following ``states`` (raise when the simulator cannot render here; the
         caller then draws the rollout with matplotlib)."""

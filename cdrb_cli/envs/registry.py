@@ -20,9 +20,17 @@ from cdrb_cli.registry import Registry
 if TYPE_CHECKING:
     from cdrb_cli.envs.spec import EnvSpec
 
-FAMILIES: Registry[EnvFamily] = Registry("environment family", {"pointmaze": "cdrb_cli.envs.pointmaze"}, EnvFamily)
+FAMILIES: Registry[EnvFamily] = Registry(
+    "environment family", {"pointmaze": "cdrb_cli.envs.pointmaze", "fetch": "cdrb_cli.envs.fetch"}, EnvFamily
+)
 EXPERTS: Registry[ExpertEntry] = Registry(
-    "expert", {"planner": "cdrb_cli.envs.pointmaze.expert", "sac": "cdrb_cli.experts.sac"}, ExpertEntry
+    "expert",
+    {
+        "planner": "cdrb_cli.envs.pointmaze.expert",
+        "fetch-scripted": "cdrb_cli.envs.fetch.expert",
+        "sac": "cdrb_cli.experts.sac",
+    },
+    ExpertEntry,
 )
 CONTROLLERS: Registry[ControllerEntry] = Registry(
     "controller",
@@ -30,6 +38,7 @@ CONTROLLERS: Registry[ControllerEntry] = Registry(
         "pd": "cdrb_cli.envs.pointmaze.controllers",
         "inverse-dynamics": "cdrb_cli.envs.pointmaze.controllers",
         "waypoint": "cdrb_cli.envs.pointmaze.controllers",
+        "fetch-track": "cdrb_cli.envs.fetch.controllers",
     },
     ControllerEntry,
 )

@@ -82,9 +82,12 @@ def draw_ends(ax, spec: EnvSpec, starts: np.ndarray | None, goals: np.ndarray | 
 
 def plot_demos(demos, path: str | Path, n: int = 60, seed: int = 0) -> Path:
     """A sample of demonstrations on the scene, coloured by goal region."""
-    plt = pyplot()
     spec = demos.manifest.env
     fam = family_of(spec)
+    own = fam.plot_demos(demos, Path(path), n, seed)
+    if own is not None:
+        return own
+    plt = pyplot()
     rng = np.random.default_rng(seed)
     ids = rng.choice(demos.n_episodes, size=min(n, demos.n_episodes), replace=False)
     fig, ax = plt.subplots(figsize=(6, 6))

@@ -1,0 +1,202 @@
+"""The Fetch family: gymnasium-robotics' Fetch Reach, Push and Pick & Place, each with and without walls.
+
+Ids: ``fetch-reach``, ``fetch-push``, ``fetch-pick-place`` and their ``-obstacle`` variants (the paper's six Fetch
+rows), plus ``-obstacle-cross`` variants whose block and goal are always on opposite sides of the wall. The state
+is the stock observation (10-D for Reach, 25-D with a block; docs/environments.md lists the entries), the goal the
+grip site's (Reach) or the block's position; success is within 5 cm (stock). Walls are MuJoCo geoms
+(:mod:`cdrb_cli.envs.fetch.env`); the collision test covers the gripper and the block with their extents
+(:mod:`cdrb_cli.envs.fetch.geometry`); starts and goals are drawn by :mod:`cdrb_cli.envs.fetch.tasks`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from cdrb_cli.envs.family import EnvFamily, Episode
+from cdrb_cli.envs.fetch.geometry import body_obstacles, paths_in_obstacles, states_in_obstacles
+from cdrb_cli.envs.fetch.tasks import FetchScene, draw_task, scene_for, side
+from cdrb_cli.envs.registry import FAMILIES
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
+from cdrb_cli.seeding import episode_seeds
+
+FETCH_DT = 0.04  # 20 substeps x 2 ms
+SUCCESS_RADIUS = 0.05  # stock distance_threshold
+MAX_DELTA = 0.05  # the mocap moves at most this far per axis per step
+
+REACH_LABELS = ["grip_x", "grip_y", "grip_z", "finger_l", "finger_r", "grip_vx", "grip_vy", "grip_vz"]
+REACH_LABELS += ["finger_vl", "finger_vr"]
+OBJECT_LABELS = ["grip_x", "grip_y", "grip_z", "block_x", "block_y", "block_z", "rel_x", "rel_y", "rel_z"]
+OBJECT_LABELS += ["finger_l", "finger_r", "block_roll", "block_pitch", "block_yaw", "block_vx", "block_vy", "block_vz"]
+OBJECT_LABELS += ["block_wx", "block_wy", "block_wz", "grip_vx", "grip_vy", "grip_vz", "finger_vl", "finger_vr"]
+
+#: id -> (task, obstacle, cross, horizon, episode length, description). Horizons follow the official code's
+#: (Reach 28, Push/Pick 36, obstacle tasks 56 planned states, one per env step); episodes are fixed-length, the
+#: expert holding at the goal once there.
+TASKS: dict[str, tuple[str, bool, bool, int, int, str]] = {
+    "fetch-reach": ("reach", False, False, 28, 50, "Fetch Reach: move the gripper to a point"),
+    "fetch-push": ("push", False, False, 36, 50, "Fetch Push: push a block to a point on the table"),
+    "fetch-pick-place": ("pick-place", False, False, 36, 50, "Fetch Pick & Place: carry a block to a point"),
+    "fetch-reach-obstacle": ("reach", True, False, 56, 80, "Fetch Reach between two tall walls"),
+    "fetch-push-obstacle": ("push", True, False, 56, 100, "Fetch Push past a short wall"),
+    "fetch-pick-place-obstacle": ("pick-place", True, False, 56, 100, "Fetch Pick & Place over a tall wall"),
+    "fetch-reach-obstacle-cross": ("reach", True, True, 56, 80, "Reach obstacle, goals outside the corridor"),
+    "fetch-push-obstacle-cross": ("push", True, True, 56, 100, "Push obstacle, block and goal across the wall"),
+    "fetch-pick-place-obstacle-cross": ("pick-place", True, True, 56, 100, "Pick obstacle, across the wall"),
+}
+DISPLAY_NAMES = {
+    "fetch-reach": "Reach",
+    "fetch-push": "Push",
+    "fetch-pick-place": "Pick & Place",
+    "fetch-reach-obstacle": "Reach Obstacle",
+    "fetch-push-obstacle": "Push Obstacle",
+    "fetch-pick-place-obstacle": "Pick & Place Obstacle",
+}
+
+
+def fetch_spec(env_id: str) -> EnvSpec:
+    task, obstacle, cross, horizon, limit, _ = TASKS[env_id]
+    scene = scene_for(task, obstacle, cross)
+    with_block = task != "reach"
+    goal_dims = [3, 4, 5] if with_block else [0, 1, 2]
+    return EnvSpec(
+        id=env_id,
+        scene=scene,
+        obs_dim=25 if with_block else 10,
+        action_dim=4,
+        goal_dim=3,
+        state_labels=OBJECT_LABELS if with_block else REACH_LABELS,
+        goal_dims=goal_dims,
+        pinned_dims=goal_dims,
+        horizon=horizon,
+        plan_stride=1,
+        episode_limit=limit,
+        success_radius=SUCCESS_RADIUS,
+        dt=FETCH_DT,
+        obstacles=body_obstacles(scene.walls, task)[0],
+    )
+
+
+def has_object(spec: EnvSpec) -> bool:
+    return spec.scene.task != "reach"
+
+
+class FetchFamily(EnvFamily):
+    name = "fetch"
+    scene_type = FetchScene
+    experts = ("fetch-scripted", "sac")
+    controllers = ("fetch-track",)
+    protocol = "stock-centre draws, walls rejected"
+    point_format = "x,y,z (the goal position), e.g. 1.30,0.85,0.42"
+
+    # -------------------------------------------------------------- environments
+    def env_ids(self) -> dict[str, str]:
+        return {i: t[-1] for i, t in TASKS.items()}
+
+    def make_spec(self, env_id: str) -> EnvSpec:
+        return fetch_spec(env_id)
+
+    def display_name(self, env_id: str) -> str:
+        return DISPLAY_NAMES.get(env_id, env_id)
+
+    def details(self, spec: EnvSpec) -> dict[str, Any]:
+        return {"task": spec.scene.task, "walls": len(spec.scene.walls), "cross": spec.scene.cross}
+
+    def make_env(self, spec: EnvSpec):
+        from cdrb_cli.envs.fetch.env import FetchEnv
+
+        return FetchEnv(spec)
+
+    def make_gym_env(self, spec: EnvSpec, seed: int):
+        from cdrb_cli.envs.fetch.env import training_env
+
+        return training_env(spec, seed)
+
+    # -------------------------------------------------------------- protocol
+    def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
+        out = []
+        for s in episode_seeds(seed, n, stream):
+            start, goal = draw_task(spec.scene, np.random.default_rng([int(s), 11]))
+            out.append(Episode(int(s), start, goal))
+        return out
+
+    def goal_state(self, spec: EnvSpec, goals: np.ndarray) -> np.ndarray:
+        goals = np.atleast_2d(goals)
+        out = np.zeros((goals.shape[0], spec.obs_dim))
+        out[:, :3] = goals  # the gripper at the goal (Reach), or touching the block there
+        out[:, spec.goal_dims] = goals
+        return out
+
+    def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
+        if flag == "--start" and has_object(spec):
+            raise BadInput(
+                f"{flag}: a Fetch plan starts from an episode's reset state", hint="give --goal only, or --seed"
+            )
+        return super().parse_point(spec, text, flag)
+
+    def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:
+        if self.in_collision(spec, state[None])[0]:
+            text = ",".join(f"{v:g}" for v in state[spec.goal_dims])
+            raise BadInput(
+                f"{flag} {text}: the gripper or block would overlap a wall or leave the table",
+                hint="choose a free point (`cdrb collect --plot` shows the walls)",
+            )
+
+    # -------------------------------------------------------------- geometry
+    def in_collision(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
+        return states_in_obstacles(states, spec.scene.walls, spec.scene.task)
+
+    def path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
+        return paths_in_obstacles(paths, spec.scene.walls, spec.scene.task)
+
+    def max_step(self, spec: EnvSpec) -> float:
+        return math.sqrt(3.0) * MAX_DELTA
+
+    def route(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray) -> tuple[str, str] | None:
+        """Obstacle tasks: (sides of start and goal, "over" when the carried point rose above the walls on the way,
+        else "around" + the wall end passed); no label without walls."""
+        scene: FetchScene = spec.scene
+        if not scene.walls:
+            return None
+        pts = np.asarray(states)[:, spec.goal_dims]
+        names = {-1: "near", 0: "inside", 1: "far"}
+        group = f"{names[side(scene, pts[0])]}->{names[side(scene, goal)]}"
+        top = max(w.high[2] for w in scene.walls)
+        x0, x1 = min(w.low[0] for w in scene.walls), max(w.high[0] for w in scene.walls)
+        sides = np.array([side(scene, p) for p in pts])
+        if np.all(sides == sides[0]):
+            return group, "same side"
+        change = int(np.argmax(sides != sides[0]))
+        lo, hi = max(change - 3, 0), min(change + 3, len(pts))
+        p = pts[lo:hi]
+        if np.all((p[:, 0] > x0) & (p[:, 0] < x1)) or p[:, 2].max() > top:
+            return group, "over" if p[:, 2].max() > top else "through"
+        return group, "around " + ("x-" if p[:, 0].mean() < (x0 + x1) / 2 else "x+")
+
+    # -------------------------------------------------------------- pictures
+    def xy(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
+        return np.asarray(states)[..., spec.goal_dims[:2]]
+
+    def goal_group(self, spec: EnvSpec, goal: np.ndarray) -> int:
+        return {-1: 0, 0: 1, 1: 2}[side(spec.scene, np.asarray(goal))]
+
+    def draw_scene(self, ax, spec: EnvSpec) -> None:
+        from cdrb_cli.envs.fetch.render import draw_top
+
+        draw_top(ax, spec)
+
+    def plot_demos(self, demos, path, n: int, seed: int):
+        from cdrb_cli.envs.fetch.render import plot_demos
+
+        return plot_demos(demos, path, n=min(n, 40), seed=seed)
+
+    def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
+        from cdrb_cli.envs.fetch.render import mujoco_frames
+
+        return mujoco_frames(spec, states, goal, every)
+
+
+FAMILIES.register(FetchFamily())

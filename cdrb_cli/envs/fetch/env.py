@@ -1,0 +1,160 @@
+"""gymnasium-robotics' Fetch environments with real MuJoCo walls, and cdrb's small episode API over them.
+
+:func:`fetch_class` subclasses the stock env (``MujocoFetchReachEnv``, ``MujocoFetchPushEnv``,
+``MujocoFetchPickAndPlaceEnv``) and changes only the model it builds and where it starts:
+
+* the walls are added to the stock model with ``mujoco.MjSpec`` as box geoms that collide with the arm and the
+  block (they are physics, not a check after the fact);
+* every official wall runs through the stock start pose, so during the stock settling steps the walls do not
+  collide and the gripper is then driven to the scene's *home* (the stock start, or above the wall), clear of
+  every wall; the home is where every episode starts;
+* objects and goals are placed from the family's draw (:mod:`cdrb_cli.envs.fetch.tasks`), around the stock
+  sampling centre, never overlapping a wall.
+
+Success is measured by cdrb (within ``spec.success_radius`` at any step); episodes never end early.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cdrb_cli.envs.family import Episode
+from cdrb_cli.envs.fetch.tasks import FetchScene, draw_task
+from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
+from cdrb_cli.envs.spec import EnvSpec
+
+_SETTLE_STEPS = 20  # env steps (x 20 substeps) per correction while driving the gripper home during setup
+
+
+def _stock_class(task: str):
+    import_gymnasium_robotics()
+    if task == "reach":
+        from gymnasium_robotics.envs.fetch.reach import MujocoFetchReachEnv as cls
+    elif task == "push":
+        from gymnasium_robotics.envs.fetch.push import MujocoFetchPushEnv as cls
+    else:
+        from gymnasium_robotics.envs.fetch.pick_and_place import MujocoFetchPickAndPlaceEnv as cls
+    return cls
+
+
+def fetch_class(scene: FetchScene):
+    """The stock Fetch env class of ``scene.task`` with the scene's walls, home and start/goal draws."""
+    import mujoco
+
+    base = _stock_class(scene.task)
+
+    class FetchWithWalls(base):
+        cdrb_scene = scene
+
+        def _initialize_simulation(self):
+            spec = mujoco.MjSpec.from_file(self.fullpath)
+            for i, wall in enumerate(scene.walls):
+                body = spec.worldbody.add_body(name=f"cdrb_wall{i}", pos=list(wall.center))
+                body.add_geom(
+                    name=f"cdrb_wall{i}",
+                    type=mujoco.mjtGeom.mjGEOM_BOX,
+                    size=list(wall.half),
+                    rgba=[0.85, 0.45, 0.40, 1.0],
+                )
+            self.model = spec.compile()
+            self.data = mujoco.MjData(self.model)
+            self._model_names = self._utils.MujocoModelNames(self.model)
+            self.model.vis.global_.offwidth = self.width
+            self.model.vis.global_.offheight = self.height
+            geom = mujoco.mjtObj.mjOBJ_GEOM
+            self._wall_geoms = [mujoco.mj_name2id(self.model, geom, f"cdrb_wall{i}") for i in range(len(scene.walls))]
+            self._env_setup(initial_qpos=self.initial_qpos)
+            self.initial_time = self.data.time
+            self.initial_qpos = np.copy(self.data.qpos)
+            self.initial_qvel = np.copy(self.data.qvel)
+
+        def _env_setup(self, initial_qpos):
+            walls = self._wall_geoms
+            saved = self.model.geom_contype[walls].copy(), self.model.geom_conaffinity[walls].copy()
+            self.model.geom_contype[walls] = 0
+            self.model.geom_conaffinity[walls] = 0
+            super()._env_setup(initial_qpos)  # the stock settling, walls passable
+            self.cdrb_stock_start = self.initial_gripper_xpos.copy()
+            home = np.asarray(scene.home, dtype=np.float64)
+            target = home.copy()
+            for _ in range(3):  # the weld holds the grip site a little off the mocap: correct for it
+                self._utils.set_mocap_pos(self.model, self.data, "robot0:mocap", target)
+                for _ in range(_SETTLE_STEPS):
+                    self._mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+                target += home - self._utils.get_site_xpos(self.model, self.data, "robot0:grip")
+            self.model.geom_contype[walls], self.model.geom_conaffinity[walls] = saved
+            self._mujoco.mj_forward(self.model, self.data)
+            self.initial_gripper_xpos = self._utils.get_site_xpos(self.model, self.data, "robot0:grip").copy()
+
+        # ---- the training env's own draws (gymnasium resets); cdrb's episodes are placed by FetchEnv.reset
+        def _reset_sim(self):
+            ok = super()._reset_sim()
+            self.cdrb_episode = draw_task(scene, self.np_random)
+            if self.has_object:
+                self.place_object(self.cdrb_episode[0])
+            return ok
+
+        def _sample_goal(self):
+            episode = getattr(self, "cdrb_episode", None) or draw_task(scene, self.np_random)
+            return np.asarray(episode[1], dtype=np.float64).copy()
+
+        def place_object(self, xy) -> None:
+            qpos = self._utils.get_joint_qpos(self.model, self.data, "object0:joint").copy()
+            qpos[:2] = xy
+            qpos[2] = self.height_offset
+            qpos[3:] = (1.0, 0.0, 0.0, 0.0)
+            self._utils.set_joint_qpos(self.model, self.data, "object0:joint", qpos)
+            self._utils.set_joint_qvel(self.model, self.data, "object0:joint", np.zeros(6))
+            self._mujoco.mj_forward(self.model, self.data)
+
+    FetchWithWalls.__name__ = f"Fetch{scene.task.title().replace('-', '')}WithWalls"
+    return FetchWithWalls
+
+
+class FetchEnv:
+    """One Fetch instance: ``reset(episode)`` places the block and the goal of the episode; ``step(action)``."""
+
+    def __init__(self, spec: EnvSpec, render_mode: str | None = None):
+        cls = fetch_class(spec.scene)
+        kwargs = {"render_mode": render_mode} if render_mode else {}
+        self.spec = spec
+        self.env = cls(**kwargs)
+        self.goal = np.zeros(3)
+
+    @property
+    def home(self) -> np.ndarray:
+        """Where the grip site starts every episode (after the setup drove it home)."""
+        return np.asarray(self.env.initial_gripper_xpos, dtype=np.float64).copy()
+
+    def reset(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
+        u = self.env
+        u.reset(seed=int(episode.seed))
+        if u.has_object:
+            u.place_object(np.asarray(episode.start, dtype=np.float64))
+        self.goal = np.asarray(episode.goal, dtype=np.float64).copy()
+        u.goal = self.goal.copy()
+        u._render_callback()
+        return self.observe(), self.goal.copy()
+
+    def observe(self) -> np.ndarray:
+        return np.array(self.env._get_obs()["observation"], dtype=np.float64)
+
+    def step(self, action) -> np.ndarray:
+        obs, *_ = self.env.step(np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0))
+        return np.array(obs["observation"], dtype=np.float64)
+
+    def render(self):
+        return self.env.render()
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def training_env(spec: EnvSpec, seed: int):
+    """The goal-conditioned gymnasium env RL experts train on: the walls, the family's draws, sparse reward, a time
+    limit of the spec's episode length."""
+    from gymnasium.wrappers import TimeLimit
+
+    env = TimeLimit(fetch_class(spec.scene)(reward_type="sparse"), max_episode_steps=spec.episode_limit)
+    env.reset(seed=seed)
+    return env

@@ -1,0 +1,306 @@
+"""Scripted Fetch experts (one per task), with routes over or around the walls.
+
+Every expert steers a *carried point* (the grip site for Reach, the block for Push and Pick & Place) along
+waypoints with ``a[:3] = clip(gain (target - point) / 0.05, -1, 1)`` (the env moves the gripper by at most 5 cm
+per axis per step), and holds at the goal once there, so episodes have a fixed length and end at rest.
+
+* **Routes.** When the straight segment to the next target passes a wall (grown by the body's extents and a
+  clearance), the route goes *over* the walls (up above their top, across, down) or *around* one end of them
+  (x beyond the end). The expert draws one of the routes that exist for its task at random, so the data holds
+  both modes where both exist (Push: around either end of the short wall; Pick & Place: over the tall wall or
+  around either end; Reach: out of the corridor over the walls or past either end).
+* **Reach**: the gripper follows the route to the goal.
+* **Push** (fingers locked): for the current block target t, d = unit(t - block); the gripper goes to the pre-push
+  point block - 0.06 d (travelling above the block, and above the wall when its way crosses it), descends to the
+  block's height and pushes toward block + d min(|t - block|, 0.05); it re-approaches whenever it is no longer
+  behind the block (lateral offset > 1.5 cm).
+* **Pick & Place**: above the block (open) -> down -> close for 3 steps -> lift 8 cm -> carry the block along the
+  route -> hold at the goal; a dropped block is picked up again.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
+from cdrb_cli.envs.fetch.geometry import MAX_OPENING, Box, block_obstacles, gripper_obstacles
+from cdrb_cli.envs.geometry import box_arrays, segment_box_distance
+from cdrb_cli.envs.registry import EXPERTS
+from cdrb_cli.envs.spec import BoxObstacles, EnvSpec
+
+STEP = 0.05  # metres per unit action
+
+
+class FetchExpertConfig(ExpertConfig):
+    """The scripted Fetch experts: waypoint following with random routes over or around the walls."""
+
+    kind: Literal["fetch-scripted"] = "fetch-scripted"
+    gain: float = Field(1.0, gt=0, le=10, description="action per 5 cm of error")
+    clearance: float = Field(0.03, ge=0, le=0.2, description="distance kept from the walls by routes, m")
+    reach_tolerance: float = Field(0.015, gt=0, le=0.1, description="a waypoint counts as reached this close, m")
+    routes: list[Literal["over", "around"]] = Field(
+        default_factory=lambda: ["over", "around"], description="route kinds drawn from where they exist"
+    )
+
+
+def _move(point: np.ndarray, target: np.ndarray, gain: float) -> np.ndarray:
+    return np.clip(gain * (np.asarray(target) - np.asarray(point)) / STEP, -1.0, 1.0)
+
+
+def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:
+    """Waypoints without repeats (a zero-length leg would be judged as a middle leg)."""
+    out = [points[0]]
+    for p in points[1:]:
+        if np.linalg.norm(p - out[-1]) > 1e-6:
+            out.append(p)
+    return out
+
+
+class Router:
+    """Waypoints for a point (the grip site or the block) among walls: ``hard`` is where its body overlaps a wall,
+    ``soft`` the same grown by a clearance. Routes keep the clearance, except on the legs that leave the start
+    and reach the end, which may lie closer to a wall than the clearance (a block next to a wall)."""
+
+    def __init__(self, hard: list[BoxObstacles], soft: list[BoxObstacles], clearance: float):
+        def stack(sets):
+            arrays = [box_arrays(ob) for ob in sets]
+            return np.concatenate([a[0] for a in arrays]), np.concatenate([a[1] for a in arrays])
+
+        self.hard, self.soft = stack(hard), stack(soft)
+        self.clearance = clearance
+
+    @property
+    def top(self) -> float:
+        """The top of the clearance zone (z); -inf without walls."""
+        centers, halves = self.soft
+        return float((centers + halves)[:, 2].max()) if len(centers) else -np.inf
+
+    def _hits(self, boxes, a: np.ndarray, b: np.ndarray) -> bool:
+        centers, halves = boxes
+        if len(centers) == 0:
+            return False
+        return bool(segment_box_distance(a[None], b[None], centers, halves)[0] < 1e-9)
+
+    def blocked(self, a: np.ndarray, b: np.ndarray, end_legs: bool = False) -> bool:
+        """Does the segment pass a wall (within the clearance; only the walls themselves for a leg at an end)?"""
+        return self._hits(self.hard if end_legs else self.soft, np.asarray(a, float), np.asarray(b, float))
+
+    def _clear(self, legs: list[np.ndarray]) -> bool:
+        n = len(legs) - 1
+        return not any(self.blocked(legs[i], legs[i + 1], end_legs=i in (0, n - 1)) for i in range(n))
+
+    def options(self, a, b, kinds) -> dict[str, list]:
+        """Route name -> waypoints from ``a`` to ``b`` (ending at ``b``); {"direct": [b]} when the way is free."""
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        if not self.blocked(a, b) or (not self.blocked(a, b, end_legs=True) and not self._free(a, b)):
+            return {"direct": [b]}
+        centers, halves = self.soft
+        lo = (centers - halves).min(axis=0) - 0.005  # just outside the clearance zone
+        hi = (centers + halves).max(axis=0) + 0.005
+        out: dict[str, list] = {}
+        if "over" in kinds:
+            z = hi[2]
+            route = _dedupe([np.array([a[0], a[1], max(a[2], z)]), np.array([b[0], b[1], max(b[2], z)]), b])
+            if self._clear([a, *route]):
+                out["over"] = route
+        if "around" in kinds:
+            for name, x in (("around x-", lo[0]), ("around x+", hi[0])):
+                # keep the start's height past the end (low far corners are out of the arm's reach), then go
+                route = _dedupe([np.array([x, a[1], a[2]]), np.array([x, b[1], a[2]]), b])
+                if self._clear([a, *route]):
+                    out[name] = route
+        return out
+
+    def _free(self, a, b) -> bool:
+        """Both ends outside the clearance zone (else a direct leg free of the walls themselves is taken)."""
+        centers, halves = self.soft
+        if len(centers) == 0:
+            return True
+        from cdrb_cli.envs.geometry import box_distance
+
+        return bool(box_distance(np.stack([a, b]), centers, halves).min() > 0)
+
+
+class _Base:
+    def __init__(self, spec: EnvSpec, config: FetchExpertConfig):
+        self.spec = spec
+        self.cfg = config
+        walls: list[Box] = spec.scene.walls
+        c = config.clearance
+        opening = MAX_OPENING if spec.scene.task == "pick-place" else 0.0  # routes keep room for open fingers
+        self.grip_router = Router([gripper_obstacles(walls, opening)], [gripper_obstacles(walls, opening, margin=c)], c)
+
+        def blocks(margin):  # the unturned block: a box, conservative for routes
+            return block_obstacles(walls, (0, 1, 2), margin=margin, rounded=False)
+
+        if spec.scene.task == "push":  # a pushed block drifts and the pusher rides beside it: 3 cm more
+            self.block_router = Router([blocks(0.0)], [blocks(c + 0.03)], c)
+        else:  # a carried block: the block and the gripper holding it (the grip site at its centre)
+            held = MAX_OPENING / 2
+
+            def carried(m):
+                return [blocks(m), gripper_obstacles(walls, held, margin=m)]
+
+            self.block_router = Router(carried(0.0), carried(c), c)
+        self.rng = np.random.default_rng(0)
+        self.route_name = "direct"
+        self.goal = np.zeros(3)
+
+    def _pick_route(self, router: Router, a, b, kinds) -> list[np.ndarray]:
+        options = router.options(a, b, kinds)
+        if not options:  # nothing clean: go over as high as needed (kept from the walls by the route)
+            options = router.options(a, b, ["over", "around"]) or {"direct": [np.asarray(b, float)]}
+        names = sorted(options)
+        self.route_name = names[int(self.rng.integers(len(names)))]
+        return [np.asarray(p, float) for p in options[self.route_name]]
+
+    def settled(self, state: np.ndarray, goal: np.ndarray) -> bool:
+        return False  # fixed-length episodes: the expert holds at the goal until the episode limit
+
+
+class ReachExpert(_Base):
+    def reset(self, state, goal, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.goal = np.asarray(goal, float)
+        self.waypoints = self._pick_route(self.grip_router, state[:3], self.goal, self.cfg.routes)
+
+    def act(self, state: np.ndarray) -> np.ndarray:
+        grip = state[:3]
+        while len(self.waypoints) > 1 and np.linalg.norm(self.waypoints[0] - grip) < self.cfg.reach_tolerance:
+            self.waypoints.pop(0)
+        return np.append(_move(grip, self.waypoints[0], self.cfg.gain), 0.0)
+
+
+class PushExpert(_Base):
+    """Pushes the block along its route; the gripper travels above the block (and the wall) to get behind it."""
+
+    BEHIND = 0.05  # pre-push distance behind the block centre
+    LIFT = 0.08  # travel height above the block centre
+    PUSH = 0.03  # how far ahead of the block the pusher aims
+
+    def reset(self, state, goal, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.goal = np.asarray(goal, float)
+        block = state[3:6]
+        # block route in the table plane: around an end of the wall (it cannot be pushed over it)
+        self.targets = self._pick_route(self.block_router, block, self.goal, ["around"])
+        self.approach: list[np.ndarray] = []
+        self.pushing = self.done = False
+
+    def _behind(self, grip, block, d) -> bool:
+        rel = grip[:2] - block[:2]
+        along = float(rel @ d)
+        lateral = float(np.linalg.norm(rel - along * d))
+        return along < -0.02 and lateral < 0.015 and abs(grip[2] - block[2]) < 0.02
+
+    def act(self, state: np.ndarray) -> np.ndarray:
+        grip, block = state[:3], state[3:6]
+        while len(self.targets) > 1 and np.linalg.norm(self.targets[0][:2] - block[:2]) < 0.02:
+            self.targets.pop(0)
+        target = self.targets[0]
+        delta = target[:2] - block[:2]
+        dist = float(np.linalg.norm(delta))
+        if self.done or (dist < 0.015 and len(self.targets) == 1):  # at the goal: lift the pusher off and hold
+            self.done, self.pushing = True, False
+            rest = np.array([grip[0], grip[1], max(block[2] + self.LIFT, self.grip_router.top + 0.005)])
+            return np.append(_move(grip, rest, self.cfg.gain), 0.0)
+        d = delta / max(dist, 1e-9)
+        low_z = block[2] - 0.005
+        if self.pushing and self._behind(grip, block, d):
+            gain = 0.6 if len(self.targets) > 1 else 0.6 * float(np.clip(dist / 0.05, 0.3, 1.0))  # ease in: no slide
+            aim = np.array([*(block[:2] + d * min(dist, self.PUSH)), low_z])
+            return np.append(_move(grip, aim, gain * self.cfg.gain), 0.0)
+        # (re-)approach: above the pre-push point, then down
+        self.pushing = False
+        pre = np.array([*(block[:2] - self.BEHIND * d), low_z])
+        above = pre + np.array([0.0, 0.0, self.LIFT])
+        if self.grip_router.blocked(above, above):  # near the wall: come down from above its top
+            above[2] = self.grip_router.top + 0.005
+        if self.grip_router.blocked(pre, pre, end_legs=True):  # no room behind the block: wait above (a failure)
+            return np.append(_move(grip, above, self.cfg.gain), 0.0)
+        if np.linalg.norm(grip[:2] - pre[:2]) < 0.012:
+            if grip[2] - low_z < 0.008:
+                self.pushing = True
+            return np.append(_move(grip, pre, self.cfg.gain), 0.0)
+        if not self.approach or np.linalg.norm(self.approach[-1] - above) > 0.01:
+            start = grip if grip[2] >= above[2] - 0.01 else np.array([grip[0], grip[1], above[2]])
+            way = self.grip_router.options(start, above, ["over"]) or {"direct": [above]}
+            legs = [np.asarray(p, float) for p in next(iter(way.values()))]
+            self.approach = ([start] if start is not grip else []) + legs
+        while len(self.approach) > 1 and np.linalg.norm(self.approach[0] - grip) < self.cfg.reach_tolerance:
+            self.approach.pop(0)
+        aim = self.approach[0]
+        if np.linalg.norm(grip[:2] - above[:2]) < 0.012:
+            aim = pre
+        return np.append(_move(grip, aim, self.cfg.gain), 0.0)
+
+
+class PickPlaceExpert(_Base):
+    """Grasp, lift, carry along the route, hold at the goal; re-grasp a dropped block."""
+
+    ABOVE = 0.06
+    LIFT = 0.08
+
+    def reset(self, state, goal, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.goal = np.asarray(goal, float)
+        self.phase = "approach"
+        self.closing = 0
+        self.carry: list[np.ndarray] = []
+        self.approach: list[np.ndarray] = []
+        self.kinds = list(self.cfg.routes)
+
+    def _holding(self, state) -> bool:
+        grip, block = state[:3], state[3:6]
+        width = state[9] + state[10]
+        return bool(np.linalg.norm(block - grip) < 0.03 and width > 0.02)
+
+    def act(self, state: np.ndarray) -> np.ndarray:
+        grip, block = state[:3], state[3:6]
+        if self.phase == "carry" and not self._holding(state):
+            self.phase, self.approach = "approach", []
+        if self.phase == "approach":
+            above = block + np.array([0.0, 0.0, self.ABOVE])
+            if not self.approach or np.linalg.norm(self.approach[-1] - above) > 0.01:
+                way = self.grip_router.options(grip, above, ["over"]) or {"direct": [above]}
+                self.approach = [np.asarray(p, float) for p in next(iter(way.values()))]
+            while len(self.approach) > 1 and np.linalg.norm(self.approach[0] - grip) < self.cfg.reach_tolerance:
+                self.approach.pop(0)
+            if np.linalg.norm(grip[:2] - block[:2]) < 0.01 and abs(grip[2] - above[2]) < 0.02:
+                self.phase = "descend"
+            return np.append(_move(grip, self.approach[0], self.cfg.gain), 1.0)
+        if self.phase == "descend":
+            if np.linalg.norm(grip - block) < 0.01:
+                self.phase, self.closing = "close", 0
+            return np.append(_move(grip, block, self.cfg.gain), 1.0)
+        if self.phase == "close":
+            self.closing += 1
+            if self.closing >= 3:
+                lifted = block + np.array([0.0, 0.0, self.LIFT])
+                self.carry = [lifted, *self._pick_route(self.block_router, lifted, self.goal, self.kinds)]
+                self.phase = "carry"
+            return np.append(_move(grip, block, self.cfg.gain), -1.0)
+        # carry: steer the block
+        while len(self.carry) > 1 and np.linalg.norm(self.carry[0] - block) < self.cfg.reach_tolerance:
+            self.carry.pop(0)
+        return np.append(_move(block, self.carry[0], self.cfg.gain), -1.0)
+
+
+def build(spec: EnvSpec, config: FetchExpertConfig):
+    cls = {"reach": ReachExpert, "push": PushExpert, "pick-place": PickPlaceExpert}[spec.scene.task]
+    return cls(spec, config)
+
+
+def configure(policy: Path | None) -> FetchExpertConfig:
+    return FetchExpertConfig()
+
+
+EXPERTS.register(
+    ExpertEntry(
+        FetchExpertConfig, build, configure, "scripted Fetch experts: routes over or around the walls, random choice"
+    )
+)

@@ -1,0 +1,113 @@
+"""Pictures of the Fetch scenes: top (x-y) and side (x-z) views of the table, the walls and the paths of the
+gripper and the block; MuJoCo frames where an offscreen GL context can be made."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from cdrb_cli.envs.fetch.geometry import TABLE_TOP, TABLE_XY
+from cdrb_cli.envs.spec import EnvSpec
+
+WALL = "#c0504d"
+TABLE = "#e9e3d5"
+#: (horizontal axis, vertical axis) of each view, as state-position indices (x=0, y=1, z=2)
+VIEWS = {"top": (0, 1), "side": (0, 2)}
+LIMITS = {0: (1.0, 1.6), 1: (0.35, 1.15), 2: (0.38, 1.0)}
+
+
+def draw_view(ax, spec: EnvSpec, view: str = "top") -> None:
+    """The table and the walls in one view (metres)."""
+    from matplotlib.patches import Rectangle
+
+    h, v = VIEWS[view]
+    (x0, x1), (y0, y1) = TABLE_XY
+    if view == "top":
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, color=TABLE, lw=0, zorder=0))
+    else:
+        ax.add_patch(Rectangle((x0, LIMITS[2][0]), x1 - x0, TABLE_TOP - LIMITS[2][0], color=TABLE, lw=0, zorder=0))
+        ax.axhline(TABLE_TOP, color="#8c7b5a", lw=0.8, zorder=0)
+    for w in spec.scene.walls:
+        lo, hi = w.low, w.high
+        ax.add_patch(Rectangle((lo[h], lo[v]), hi[h] - lo[h], hi[v] - lo[v], color=WALL, alpha=0.85, lw=0, zorder=1))
+    ax.set_xlim(*LIMITS[h])
+    ax.set_ylim(*LIMITS[v])
+    ax.set_aspect("equal")
+    ax.set_xlabel("xyz"[h] + " (m)", fontsize=8)
+    ax.set_ylabel("xyz"[v] + " (m)", fontsize=8)
+    ax.tick_params(labelsize=7)
+
+
+def draw_top(ax, spec: EnvSpec) -> None:
+    draw_view(ax, spec, "top")
+
+
+def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
+    """Top and side views of a sample of demonstrations: gripper paths thin, block paths thick, coloured by
+    the side of the wall the goal is on; starts as circles, goals as stars."""
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.envs.render import COLOURS, pyplot, save_figure, set_title
+
+    plt = pyplot()
+    spec = demos.manifest.env
+    fam = family_of(spec)
+    rng = np.random.default_rng(seed)
+    ids = rng.choice(demos.n_episodes, size=min(n, demos.n_episodes), replace=False)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
+    bodies = [(slice(0, 3), 0.7, 0.55)]
+    if spec.scene.task != "reach":
+        bodies.append((slice(3, 6), 1.8, 0.9))
+    for ax, view in zip(axes, VIEWS):
+        draw_view(ax, spec, view)
+        h, v = VIEWS[view]
+        for e in ids:
+            obs, _ = demos.episode(int(e))
+            goal = demos.desired_goals[int(demos.episode_start[e])]
+            colour = COLOURS[fam.goal_group(spec, goal) % len(COLOURS)]
+            for dims, lw, alpha in bodies:
+                p = obs[:, dims]
+                ax.plot(p[:, h], p[:, v], "-", lw=lw, alpha=alpha, color=colour, zorder=2)
+            p = obs[0, spec.goal_dims]
+            ax.plot(p[h], p[v], "o", ms=3, mfc="white", mec=colour, zorder=3)
+            ax.plot(goal[h], goal[v], "*", ms=6, mfc="gold", mec="black", mew=0.4, zorder=4)
+        set_title(ax, f"{view} view", fontsize=9)
+    s = demos.manifest.summary
+    what = "gripper" if spec.scene.task == "reach" else "gripper (thin) and block (thick)"
+    fig.suptitle(
+        f"{spec.id}: {len(ids)} of {s.episodes} demos, {what}; success {s.success_rate:.1%}, "
+        f"{s.states_in_walls} states in obstacles",
+        fontsize=10,
+    )
+    return save_figure(fig, path)
+
+
+def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360) -> list[np.ndarray]:
+    """MuJoCo frames of a Fetch path (raises when no GL context can be made). The arm is driven kinematically
+    through the grip positions by the mocap (a picture of the path, not a re-simulation); the block is placed at
+    its recorded position."""
+    import mujoco
+
+    from cdrb_cli.envs.fetch.env import FetchEnv
+
+    env = FetchEnv(spec)
+    u = env.env
+    u.goal = np.asarray(goal, dtype=np.float64)
+    u._render_callback()
+    renderer = mujoco.Renderer(u.model, size, size)
+    cam = mujoco.MjvCamera()
+    cam.lookat[:] = [1.3, 0.75, 0.5]
+    cam.distance, cam.elevation, cam.azimuth = 1.6, -25.0, 150.0
+    frames = []
+    try:
+        for s in np.asarray(states)[::every]:
+            u._utils.set_mocap_pos(u.model, u.data, "robot0:mocap", s[:3])
+            if u.has_object:
+                u.place_object(s[3:5])
+            mujoco.mj_step(u.model, u.data, nstep=u.n_substeps)
+            renderer.update_scene(u.data, camera=cam)
+            frames.append(renderer.render().copy())
+    finally:
+        renderer.close()
+        env.close()
+    return frames

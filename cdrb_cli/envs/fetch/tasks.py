@@ -1,0 +1,152 @@
+"""The six Fetch tasks (and their "cross" variants): walls, home poses, and how starts and goals are drawn.
+
+Walls follow the official CDRB code's obstacle files (``fetch_env/assets``) where they are consistent:
+
+* push: a short wall, x in [1.22, 1.38], y in [0.728, 0.772] (official), 6 cm tall (official: 10 cm). While it
+  pushes, the gripper's palm (12.8 cm wide) rides 7 cm above the table, so beside a 10 cm wall nearly every push
+  near it collides; at 6 cm only the fingers can touch it, which is the official short wall's intent: the block
+  cannot pass it, the gripper can;
+* pick & place: a tall wall, centre (1.3, 0.75, 0.4), half size (0.15, 0.022, 0.3): top at z = 0.7;
+* reach: two tall walls either side of the start, x in [1.15, 1.45], z in [0.17, 0.77] (the official check script's
+  two walls; its shipped XML has one). The official walls leave a 13 cm corridor (y 0.705-0.835) for a gripper
+  whose link is 12.8 cm wide, so every state inside touches a wall; cdrb widens the corridor to 19 cm (walls at
+  y = 0.749 +- 0.12), keeping "two walls either side of the start".
+
+What the official code leaves open, chosen here (docs/environments.md):
+
+* *Start*: every official wall runs through the stock start pose. The gripper is driven to a *home* clear of the
+  walls: the stock start for reach; 5 cm above the wall's top, over the stock start, for push and pick & place.
+* *Objects and goals* are drawn around the stock sampling centre (the stock start's x-y; +-0.15 m, as stock), the
+  block at least 0.1 m from the home's x-y (stock rule), and redrawn while the block's or the goal's footprint
+  (grown by ``wall_margin``) overlaps a wall, or (pick & place) the open gripper grasping the block there would
+  come within 1.5 cm of a wall. Reach goals are kept 2 cm above the table's reach of the gripper.
+* *Cross* variants put the block and the goal on opposite sides of the wall (reach: the goal outside the
+  corridor), so every episode must pass the wall.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.envs.family import Scene
+from cdrb_cli.envs.fetch.geometry import (
+    BLOCK_HALF,
+    GRIP_ABOVE_TABLE,
+    MAX_OPENING,
+    TABLE_TOP,
+    Box,
+    block_obstacles,
+    gripper_obstacles,
+)
+from cdrb_cli.envs.geometry import in_boxes
+
+TaskName = Literal["reach", "push", "pick-place"]
+
+#: the stock start of the grip site (gymnasium-robotics 1.4.2, measured after its settling steps)
+STOCK_START = {
+    "reach": (1.3419, 0.7491, 0.5347),
+    "push": (1.3630, 0.7491, 0.4160),
+    "pick-place": (1.3419, 0.7491, 0.5347),
+}
+#: pick & place: the grasping gripper's clearance from the walls at the block's start and goal, m
+GRASP_MARGIN = 0.015
+#: the block's centre height at rest on the table
+BLOCK_Z = TABLE_TOP + BLOCK_HALF - 0.0001
+
+
+class FetchScene(Scene):
+    """A Fetch task: which stock env, its walls, the home pose and how starts and goals are drawn."""
+
+    family: Literal["fetch"] = "fetch"
+    task: TaskName
+    walls: list[Box] = Field(default_factory=list, max_length=16)
+    home: tuple[float, float, float] = Field(description="grip-site position every episode starts from")
+    center: tuple[float, float] = Field(description="x-y centre around which blocks and goals are drawn")
+    obj_range: float = Field(0.15, gt=0, le=0.5, description="blocks within +- this of the centre (x and y), m")
+    target_range: float = Field(0.15, gt=0, le=0.5, description="goals within +- this of the centre, m")
+    target_range_y: float | None = Field(None, gt=0, le=0.5, description="in y, if not target_range, m")
+    air_fraction: float = Field(0.5, ge=0, le=1, description="pick & place: share of goals lifted into the air")
+    air_height: float = Field(0.45, ge=0, le=0.6, description="pick & place: goals up to this far above the table")
+    wall_margin: float = Field(0.035, ge=0, description="blocks and goals keep this far from every wall, m")
+    cross: bool = Field(False, description="block and goal on opposite sides of the wall (reach: goal outside)")
+
+
+def _tall(x=(1.15, 1.45), z=(0.17, 0.77), y=0.749, thick=0.005) -> Box:
+    return Box(center=((x[0] + x[1]) / 2, y, (z[0] + z[1]) / 2), half=((x[1] - x[0]) / 2, thick, (z[1] - z[0]) / 2))
+
+
+PUSH_WALL = Box(center=(1.3, 0.75, 0.43), half=(0.08, 0.022, 0.03))
+PICK_WALL = Box(center=(1.3, 0.75, 0.4), half=(0.15, 0.022, 0.3))
+REACH_WALLS = [_tall(y=0.749 - 0.12), _tall(y=0.749 + 0.12)]
+
+
+def scene_for(task: TaskName, obstacle: bool, cross: bool = False) -> FetchScene:
+    sx, sy, sz = STOCK_START[task]
+    walls: list[Box] = []
+    home = (sx, sy, sz)
+    if obstacle:
+        walls = {"reach": REACH_WALLS, "push": [PUSH_WALL], "pick-place": [PICK_WALL]}[task]
+        if task != "reach":
+            top = max(float(w.high[2]) for w in walls)
+            home = (sx, sy, top + 0.05 + 0.02)  # finger tips 2 cm below the grip site, 5 cm above the top
+    extra = {}
+    if obstacle and task == "reach":  # goals on either side of the corridor need a wider y range
+        extra = {"target_range_y": 0.30, "wall_margin": 0.02}
+    if obstacle and task == "push":  # room for the pusher's fingers between the block and the wall
+        extra = {"wall_margin": 0.045}
+    return FetchScene(task=task, walls=walls, home=home, center=(sx, sy), cross=cross, **extra)
+
+
+def side(scene: FetchScene, xyz: np.ndarray) -> int:
+    """Which side of the walls a point is on: the sign of y - wall y (reach: 0 inside the corridor)."""
+    if not scene.walls:
+        return 0
+    ys = sorted(w.center[1] for w in scene.walls)
+    y = float(xyz[1])
+    if len(ys) == 1:
+        return 1 if y > ys[0] else -1
+    return -1 if y < ys[0] else (1 if y > ys[-1] else 0)
+
+
+def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) -> tuple[tuple, tuple]:
+    """One episode's (block x-y (empty for reach), goal x-y-z), drawn with ``rng`` by the rules above."""
+    cx, cy = scene.center
+    home = np.asarray(scene.home)
+    clear = block_obstacles(scene.walls, dims=(0, 1, 2), margin=scene.wall_margin, rounded=False)
+    # pick & place: the open gripper around the block (at its start and at its goal) keeps clear of the walls too
+    grasp = gripper_obstacles(scene.walls, MAX_OPENING, margin=GRASP_MARGIN) if scene.task == "pick-place" else None
+    for _ in range(tries):
+        if scene.task == "reach":
+            ry = scene.target_range_y or scene.target_range
+            goal = np.array(
+                [
+                    cx + rng.uniform(-scene.target_range, scene.target_range),
+                    cy + rng.uniform(-ry, ry),
+                    scene.home[2] + rng.uniform(-scene.target_range, scene.target_range),
+                ]
+            )
+            goal[2] = max(goal[2], TABLE_TOP + GRIP_ABOVE_TABLE + 0.02)
+            if in_boxes(goal, gripper_obstacles(scene.walls, margin=scene.wall_margin)):
+                continue
+            if scene.cross and side(scene, goal) == 0:
+                continue
+            return (), tuple(float(v) for v in goal)
+        block = rng.uniform(-scene.obj_range, scene.obj_range, 2) + (cx, cy)
+        if np.linalg.norm(block - home[:2]) < 0.1:
+            continue
+        block3 = np.array([block[0], block[1], BLOCK_Z])
+        if in_boxes(block3, clear) or (grasp is not None and in_boxes(block3, grasp)):
+            continue
+        ry = scene.target_range_y or scene.target_range
+        goal = np.array([cx + rng.uniform(-scene.target_range, scene.target_range), cy + rng.uniform(-ry, ry), BLOCK_Z])
+        if scene.task == "pick-place" and rng.uniform() < scene.air_fraction:
+            goal[2] += rng.uniform(0, scene.air_height)
+        if in_boxes(goal, clear) or (grasp is not None and in_boxes(goal, grasp)):
+            continue
+        if scene.cross and side(scene, goal) == side(scene, block3):
+            continue
+        return tuple(float(v) for v in block), tuple(float(v) for v in goal)
+    raise RuntimeError(f"no start/goal drawn for the {scene.task} scene in {tries} tries")

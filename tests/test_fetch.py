@@ -1,0 +1,269 @@
+"""The Fetch family: collision geometry against its definition, walls that are physics, draws, experts, collect."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+from cdrb_cli.envs.fetch import TASKS
+from cdrb_cli.envs.fetch.geometry import (
+    BLOCK_HALF,
+    CONTACT_TOLERANCE,
+    FINGERS_CLOSED,
+    GRIP_ABOVE_TABLE,
+    GRIPPER_LINK,
+    TABLE_TOP,
+    TABLE_XY,
+)
+from cdrb_cli.envs.fetch.tasks import side
+from cdrb_cli.envs.registry import EXPERTS, family_of, make_spec
+from cdrb_cli.seeding import STREAM_COLLECT
+from cdrb_cli.stages.collect import rollout
+
+SIX = [i for i in TASKS if not i.endswith("-cross")]
+EPS = 0.001
+
+
+def _state(spec, grip, block=None, opening=0.0):
+    s = np.zeros(spec.obs_dim)
+    s[:3] = grip
+    if block is not None:
+        s[3:6] = block
+    else:
+        s[3:6] = (1.30, 0.45, TABLE_TOP + BLOCK_HALF) if spec.obs_dim > 10 else 0.0
+    if spec.obs_dim > 10:
+        s[9] = s[10] = opening
+    return s
+
+
+def _free_block(spec):
+    return (1.30, 0.45, TABLE_TOP + BLOCK_HALF) if spec.obs_dim > 10 else None
+
+
+@pytest.mark.parametrize("env_id", ["fetch-reach-obstacle", "fetch-push-obstacle", "fetch-pick-place-obstacle"])
+def test_fingers_just_inside_and_outside_each_wall_face(env_id):
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    (_, _, f_lo), (_, f_hi_y, _) = FINGERS_CLOSED[0], FINGERS_CLOSED[1]
+    for w in spec.scene.walls:
+        # the fingers' lower part reaches into the wall's top 1 cm; the link (5 cm above the grip site) stays above
+        z = w.high[2] - 0.01
+        x = w.center[0]
+        face = w.low[1] - f_hi_y + CONTACT_TOLERANCE  # grip y at which the fingers touch the near face
+        inside = _state(spec, (x, face + EPS, z), _free_block(spec))
+        outside = _state(spec, (x, face - EPS, z), _free_block(spec))
+        assert fam.in_collision(spec, np.stack([inside, outside])).tolist() == [True, False]
+        # and from above: finger tips just into the top / just over it
+        top = w.high[2] - f_lo - CONTACT_TOLERANCE
+        over, into = (_state(spec, (x, w.center[1], top + d), _free_block(spec)) for d in (EPS, -EPS))
+        assert fam.in_collision(spec, np.stack([into, over])).tolist() == [True, False]
+
+
+def test_the_gripper_link_counts_with_its_extent():
+    spec = make_spec("fetch-pick-place-obstacle")
+    fam = family_of(spec)
+    (w,) = spec.scene.walls
+    lo, hi = np.array(GRIPPER_LINK[0]), np.array(GRIPPER_LINK[1])
+    # the grip site 10 cm below the top: the link (from +4.9 cm) overlaps the wall in z; beside the wall in y
+    z = w.high[2] - 0.10
+    face = w.high[1] - lo[1] - CONTACT_TOLERANCE  # grip y where the link's low side touches the far face
+    near, far = (_state(spec, (w.center[0], face + d, z), _free_block(spec)) for d in (-EPS, EPS))
+    assert fam.in_collision(spec, np.stack([near, far])).tolist() == [True, False]
+    assert hi[2] > 0.15  # the link stands well above the grip site
+
+
+def test_open_fingers_are_wider_than_closed_ones():
+    spec = make_spec("fetch-pick-place-obstacle")
+    fam = family_of(spec)
+    (w,) = spec.scene.walls
+    y = w.low[1] - 0.030  # 3 cm from the face: closed fingers (1.6 cm) clear, open ones (6.6 cm) not
+    z = w.high[2] - 0.01
+    closed = _state(spec, (w.center[0], y, z), _free_block(spec), opening=0.0)
+    opened = _state(spec, (w.center[0], y, z), _free_block(spec), opening=0.05)
+    assert fam.in_collision(spec, np.stack([closed, opened])).tolist() == [False, True]
+    # a step between two closed states does not count the open width, a step toward an open one does
+    a = _state(spec, (w.center[0] - 0.05, y, z), _free_block(spec))
+    assert not fam.path_in_collision(spec, np.stack([a, closed])[None])[0]
+    assert fam.path_in_collision(spec, np.stack([a, opened])[None])[0]
+
+
+def test_the_block_counts_by_its_inscribed_ball_and_must_stay_on_the_table():
+    spec = make_spec("fetch-push-obstacle")
+    fam = family_of(spec)
+    (w,) = spec.scene.walls
+    r = BLOCK_HALF - CONTACT_TOLERANCE
+    grip = (1.45, 0.45, 0.6)
+    z = TABLE_TOP + BLOCK_HALF
+    # beside a face, and diagonally off a vertical edge (a box test would flag the corner point too early)
+    face_in, face_out = (_state(spec, grip, (w.center[0], w.low[1] - r + d, z)) for d in (EPS, -EPS))
+    corner = np.array([w.high[0], w.low[1]])
+    diag = np.array([1.0, -1.0]) / np.sqrt(2)
+    c_in, c_out = (_state(spec, grip, (*(corner + diag * (r + d)), z)) for d in (-EPS, EPS))
+    box_corner = _state(spec, grip, (*(corner + np.array([r, -r]) * 0.9), z))  # inside the box hull, outside the ball
+    off_table = _state(spec, grip, (TABLE_XY[0][0] - 0.01, 0.6, z))
+    sunk = _state(spec, grip, (1.3, 0.5, TABLE_TOP - 0.01))
+    got = fam.in_collision(spec, np.stack([face_in, face_out, c_in, c_out, box_corner, off_table, sunk]))
+    assert got.tolist() == [True, False, True, False, False, True, True]
+
+
+def test_the_gripper_may_not_go_into_the_table():
+    spec = make_spec("fetch-reach")
+    fam = family_of(spec)
+    ok, low = (_state(spec, (1.3, 0.75, TABLE_TOP + GRIP_ABOVE_TABLE + d)) for d in (EPS, -EPS))
+    assert fam.in_collision(spec, np.stack([ok, low])).tolist() == [False, True]
+
+
+@pytest.mark.parametrize("env_id", ["fetch-reach-obstacle", "fetch-push-obstacle", "fetch-pick-place-obstacle"])
+def test_a_step_that_jumps_through_a_wall_is_caught(env_id):
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    w = spec.scene.walls[0]
+    z = w.center[2] if spec.scene.task == "reach" else TABLE_TOP + BLOCK_HALF + 0.02
+    if spec.scene.task == "reach":
+        a, b = _state(spec, (w.center[0], w.low[1] - 0.12, z)), _state(spec, (w.center[0], w.high[1] + 0.12, z))
+    else:  # the block jumps across the wall, the gripper stays high and free
+        grip = (1.3, 0.75, 0.95)
+        zb = TABLE_TOP + BLOCK_HALF
+        a = _state(spec, grip, (w.center[0], w.low[1] - 0.08, zb))
+        b = _state(spec, grip, (w.center[0], w.high[1] + 0.08, zb))
+    path = np.stack([a, b])
+    assert not fam.in_collision(spec, path).any()
+    assert fam.path_in_collision(spec, path[None]).tolist() == [True]
+    # the same two states joined around the wall's end are free
+    end = w.high[0] + 0.07
+    around = np.stack([a, a.copy(), b.copy(), b])
+    dims = slice(0, 3) if spec.scene.task == "reach" else slice(3, 6)
+    around[1, dims][0] = end
+    around[2, dims][0] = end
+    assert fam.path_in_collision(spec, around[None]).tolist() == [False]
+
+
+@pytest.mark.parametrize("env_id", list(TASKS))
+def test_each_env_resets_steps_and_has_real_walls(env_id):
+    import mujoco
+
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    env = fam.make_env(spec)
+    try:
+        walls = [
+            g
+            for g in range(env.env.model.ngeom)
+            if (mujoco.mj_id2name(env.env.model, mujoco.mjtObj.mjOBJ_GEOM, g) or "").startswith("cdrb_wall")
+        ]
+        assert len(walls) == len(spec.scene.walls)
+        assert all(env.env.model.geom_contype[g] and env.env.model.geom_conaffinity[g] for g in walls)
+        for ep in fam.draw_episodes(spec, 2, 0, STREAM_COLLECT):
+            s, goal = env.reset(ep)
+            assert s.shape == (spec.obs_dim,) and goal.shape == (3,)
+            assert np.allclose(goal, ep.goal)
+            assert np.allclose(s[:3], spec.scene.home, atol=0.003)  # every episode starts at home
+            if ep.start:
+                assert np.allclose(s[3:5], ep.start, atol=1e-6)
+            assert not fam.in_collision(spec, s[None])[0]
+            rng = np.random.default_rng(0)
+            for _ in range(3):
+                s = env.step(rng.uniform(-1, 1, 4))
+            assert np.all(np.isfinite(s))
+    finally:
+        env.close()
+
+
+def test_walls_stop_the_gripper():
+    """Driving the gripper into a wall at full speed: the wall holds (a post-hoc check would let it through)."""
+    spec = make_spec("fetch-reach-obstacle")
+    fam = family_of(spec)
+    env = fam.make_env(spec)
+    try:
+        env.reset(fam.draw_episodes(spec, 1, 0, STREAM_COLLECT)[0])
+        far_side = min(w.low[1] for w in spec.scene.walls)
+        for _ in range(25):
+            s = env.step(np.array([0.0, -1.0, 0.0, 0.0]))
+        assert s[1] > far_side  # still inside the corridor
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", list(TASKS))
+def test_draws_avoid_walls_are_seeded_and_cross_when_asked(env_id):
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    eps = fam.draw_episodes(spec, 40, 3, STREAM_COLLECT)
+    assert eps == fam.draw_episodes(spec, 40, 3, STREAM_COLLECT)
+    assert eps != fam.draw_episodes(spec, 40, 4, STREAM_COLLECT)
+    goals = fam.goal_state(spec, np.array([e.goal for e in eps]))
+    if spec.scene.task == "reach":
+        assert not fam.in_collision(spec, goals).any()
+    else:
+        blocks = np.array([[*e.start, TABLE_TOP + BLOCK_HALF] for e in eps])
+        high = _state(spec, (1.3, 0.75, 0.95))
+        states = np.repeat(high[None], 2 * len(eps), axis=0)
+        states[:, 3:6] = np.concatenate([blocks, np.array([e.goal for e in eps])])
+        assert not fam.in_collision(spec, states).any()
+    if spec.scene.cross:
+        for e in eps:
+            start = np.array(spec.scene.home) if spec.scene.task == "reach" else np.array([*e.start, 0.0])
+            assert side(spec.scene, np.array(e.goal)) != side(spec.scene, start)
+
+
+@pytest.mark.parametrize("env_id", SIX)
+def test_the_scripted_expert_succeeds_without_touching_anything(env_id):
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    entry = EXPERTS.get("fetch-scripted")
+    expert = entry.build(spec, entry.configure(None))
+    env = fam.make_env(spec)
+    try:
+        for ep in fam.draw_episodes(spec, 4, 0, STREAM_COLLECT):
+            states, actions, goal, ok = rollout(env, expert, spec, ep, spec.episode_limit)
+            assert ok, f"{env_id}: episode {ep.seed} failed"
+            assert len(states) == spec.episode_limit + 1  # fixed-length episodes
+            assert not fam.path_in_collision(spec, states[None])[0]
+            assert fam.distance(spec, states[-1], goal) <= spec.success_radius  # still at the goal at the end
+            assert np.all(np.abs(actions) <= 1.0)
+    finally:
+        env.close()
+
+
+def test_collect_fetch_end_to_end_with_routes_and_pictures(tmp_path, cdrb):
+    out, pic = tmp_path / "demos.h5", tmp_path / "demos.png"
+    r = cdrb("collect", "fetch-pick-place-obstacle-cross", "-n", "12", "--seed", "2", "--out", out, "--plot", pic)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(out)
+    demos = artifacts.load(out, "demos")
+    s = demos.manifest.summary
+    assert s.states_in_walls == 0 and s.success_rate >= 0.9
+    assert demos.observations.shape[1] == 25 and demos.manifest.env.scene.family == "fetch"
+    routes = {label for group in s.routes.values() for label in group}
+    assert len(routes) >= 2  # over and around both occur
+    assert pic.stat().st_size > 10_000
+
+
+def test_fetch_bad_inputs_get_one_line_errors(tmp_path, cdrb):
+    cases = [
+        (["collect", "fetch-pushh", "-n", "2"], "unknown environment"),
+        (["collect", "fetch-push", "--maze-map", tmp_path / "m.txt", "-n", "2"], "--maze-map"),
+        (["collect", "fetch-push", "--expert", "planner", "-n", "2"], "not an expert of the fetch"),
+        (["collect", "maze", "--expert", "fetch-scripted", "-n", "2"], "not an expert of the pointmaze"),
+    ]
+    (tmp_path / "m.txt").write_text("###\n#S#\n#G#\n###\n")
+    for args, needle in cases:
+        r = cdrb(*args, "--out", tmp_path / "x.h5")
+        assert r.returncode == 2, (args, r.stderr)
+        assert needle in r.stderr and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) <= 2
+        assert not (tmp_path / "x.h5").exists()
+
+
+def test_fetch_gym_env_for_rl_experts():
+    spec = make_spec("fetch-push-obstacle")
+    env = family_of(spec).make_gym_env(spec, 0)
+    try:
+        obs, _ = env.reset(seed=5)
+        assert obs["observation"].shape == (25,) and obs["desired_goal"].shape == (3,)
+        assert not family_of(spec).in_collision(spec, obs["observation"][None])[0]
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert reward in (0.0, -1.0)
+    finally:
+        env.close()
