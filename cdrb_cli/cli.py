@@ -320,7 +320,11 @@ def collect(
     ),
     maze_map: Path | None = MapOpt,
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
-    plot: Path | None = typer.Option(None, "--plot", help="Also draw a sample of demos on the scene to this PNG."),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Also draw a sample of demos on the scene to this PNG (Fetch: top and side views)."
+    ),
+    video: Path | None = typer.Option(None, "--video", help="Write GIFs of the first demos to this folder."),
+    videos: int = typer.Option(3, "--videos", min=1, max=100, help="How many demo GIFs with --video."),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -328,11 +332,20 @@ def collect(
     """Roll out an expert and write a [bold]demos[/bold] artifact (train/valid split, per-episode seeds, success).
 
     The scripted maze expert takes a random shortest grid route (both gaps next to a goal get used), smooths it
-    and comes to rest at the goal. Example: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan]"""
+    and comes to rest at the goal; the scripted Fetch experts go over or around the walls, at random where both
+    work. `summary.routes` counts the routes. Examples: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan],
+    [cyan]cdrb collect fetch-push-obstacle -n 1000 --plot push.png --video gifs/[/cyan] (GIFs are MuJoCo frames
+    where an offscreen GL context can be made, matplotlib drawings otherwise; the command says which)."""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.collect import collect as run_collect
     from cdrb_cli.stages.collect import collect_config
 
+    if video is not None:
+        from cdrb_cli.envs.render import choose_gl_backend
+
+        choose_gl_backend()  # before MuJoCo is imported
+        if video.exists() and not video.is_dir():
+            raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
     _check_outputs(force, out=out, plot=plot)
     spec = _spec(env, maze_map)
     config = collect_config(spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction)
@@ -350,6 +363,16 @@ def collect(
 
         plot_demos(demos, plot, seed=seed)
         ui.log(f"picture: {plot}")
+    if video is not None:
+        from cdrb_cli.envs.render import rollout_gifs
+
+        shown = []
+        for e in range(min(videos, demos.n_episodes)):
+            states, _ = demos.episode(e)
+            goal = demos.desired_goals[int(demos.episode_start[e])]
+            shown.append((states, states, goal, bool(demos.episode_success[e])))
+        rollout_gifs(spec, shown, video, label="demo", every=2)
+        ui.log(f"demo GIFs: {video}/")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 
 

@@ -228,8 +228,14 @@ def test_the_scripted_expert_succeeds_without_touching_anything(env_id):
 
 def test_collect_fetch_end_to_end_with_routes_and_pictures(tmp_path, cdrb):
     out, pic = tmp_path / "demos.h5", tmp_path / "demos.png"
-    r = cdrb("collect", "fetch-pick-place-obstacle-cross", "-n", "12", "--seed", "2", "--out", out, "--plot", pic)
+    gifs = tmp_path / "gifs"
+    r = cdrb(
+        "collect", "fetch-pick-place-obstacle-cross", "-n", "12", "--seed", "2", "--out", out, "--plot", pic,
+        "--video", gifs, "--videos", "1",
+    )  # fmt: skip
     assert r.returncode == 0, r.stderr
+    assert len(list(gifs.glob("demo_00_*.gif"))) == 1
+    assert "GIF(s) drawn with MuJoCo" in r.stderr or "GIF(s) drawn with matplotlib" in r.stderr
     assert r.stdout.strip() == str(out)
     demos = artifacts.load(out, "demos")
     s = demos.manifest.summary
@@ -267,3 +273,15 @@ def test_fetch_gym_env_for_rl_experts():
         assert reward in (0.0, -1.0)
     finally:
         env.close()
+
+
+def test_sac_her_expert_for_fetch_tiny_budget(tmp_path, cdrb):
+    """`cdrb expert train` on a Fetch task (tiny budget: the real cost is in docs/environments.md), then collect."""
+    policy = tmp_path / "push.zip"
+    r = cdrb("expert", "train", "fetch-push-obstacle", "--steps", "150", "--out", policy, "--seed", "0")
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "sac.h5"
+    r = cdrb("collect", "fetch-push-obstacle", "--expert", "sac", "--policy", policy, "-n", "2", "--out", out)
+    assert r.returncode == 0, r.stderr
+    demos = artifacts.load(out, "demos")
+    assert demos.manifest.config.expert.kind == "sac" and demos.observations.shape[1] == 25

@@ -226,4 +226,9 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
         with atomic_path(path) as tmp:
             images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=40, loop=0)
         written.append(path)
+    if written:
+        import os
+
+        how = f"MuJoCo (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'default')})" if use_simulator else "matplotlib"
+        ui.log(f"{len(written)} GIF(s) drawn with {how}")
     return written

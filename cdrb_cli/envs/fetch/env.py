@@ -98,10 +98,10 @@ def fetch_class(scene: FetchScene):
             episode = getattr(self, "cdrb_episode", None) or draw_task(scene, self.np_random)
             return np.asarray(episode[1], dtype=np.float64).copy()
 
-        def place_object(self, xy) -> None:
+        def place_object(self, xy, z: float | None = None) -> None:
             qpos = self._utils.get_joint_qpos(self.model, self.data, "object0:joint").copy()
             qpos[:2] = xy
-            qpos[2] = self.height_offset
+            qpos[2] = self.height_offset if z is None else z
             qpos[3:] = (1.0, 0.0, 0.0, 0.0)
             self._utils.set_joint_qpos(self.model, self.data, "object0:joint", qpos)
             self._utils.set_joint_qvel(self.model, self.data, "object0:joint", np.zeros(6))

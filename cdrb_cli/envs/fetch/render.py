@@ -103,7 +103,7 @@ def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int
         for s in np.asarray(states)[::every]:
             u._utils.set_mocap_pos(u.model, u.data, "robot0:mocap", s[:3])
             if u.has_object:
-                u.place_object(s[3:5])
+                u.place_object(s[3:5], z=float(s[5]))
             mujoco.mj_step(u.model, u.data, nstep=u.n_substeps)
             renderer.update_scene(u.data, camera=cam)
             frames.append(renderer.render().copy())
