@@ -1,12 +1,13 @@
 """Scripted Fetch experts (one per task), with routes over or around the walls.
 
 Every expert steers a *carried point* (the grip site for Reach, the block for Push and Pick & Place) along
-waypoints with ``a[:3] = clip(gain (target - point) / 0.05, -1, 1)`` (the env moves the gripper by at most 5 cm
-per axis per step), and holds at the goal once there, so episodes have a fixed length and end at rest.
+waypoints with ``a[:3] = gain (target - point) / 0.05``, scaled as a whole into [-1, 1] (the env moves the gripper
+by at most 5 cm per axis per step), and holds at the goal once there, so episodes have a fixed length and end at rest.
 
 * **Routes.** When the straight segment to the next target passes a wall (grown by the body's extents and a
   clearance), the route goes *over* the walls (up above their top, across, down) or *around* one end of them
-  (x beyond the end). The expert draws one of the routes that exist for its task at random, so the data holds
+  (x beyond the end). The expert draws one of the routes that exist for its task at random (among those at most
+  1.6 times as long as the shortest: no long detours), so the data holds
   both modes where both exist (Push: around either end of the short wall; Pick & Place: over the tall wall or
   around either end; Reach: out of the corridor over the walls or past either end).
 * **Reach**: the gripper follows the route to the goal.
@@ -20,6 +21,7 @@ per axis per step), and holds at the goal once there, so episodes have a fixed l
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
@@ -28,11 +30,14 @@ from pydantic import Field
 
 from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
 from cdrb_cli.envs.fetch.geometry import MAX_OPENING, Box, block_obstacles, gripper_obstacles
+from cdrb_cli.envs.fetch.tasks import side
 from cdrb_cli.envs.geometry import box_arrays, segment_box_distance
 from cdrb_cli.envs.registry import EXPERTS
 from cdrb_cli.envs.spec import BoxObstacles, EnvSpec
 
 STEP = 0.05  # metres per unit action
+DETOUR = 1.6  # routes are drawn among those at most this much longer than the shortest
+NEAR = 0.008  # the least clearance of a leg that starts or ends near a wall (execution strays a few mm)
 
 
 class FetchExpertConfig(ExpertConfig):
@@ -48,7 +53,14 @@ class FetchExpertConfig(ExpertConfig):
 
 
 def _move(point: np.ndarray, target: np.ndarray, gain: float) -> np.ndarray:
-    return np.clip(gain * (np.asarray(target) - np.asarray(point)) / STEP, -1.0, 1.0)
+    """The action toward ``target``, scaled as a whole into [-1, 1] (clipping each axis alone would bend the way:
+    a long leg up and a short one across would go across first)."""
+    v = gain * (np.asarray(target, dtype=np.float64) - np.asarray(point, dtype=np.float64)) / STEP
+    return v / max(1.0, float(np.abs(v).max()))
+
+
+def _length(points: list[np.ndarray]) -> float:
+    return float(sum(np.linalg.norm(q - p) for p, q in zip(points, points[1:])))
 
 
 def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:
@@ -65,13 +77,14 @@ class Router:
     ``soft`` the same grown by a clearance. Routes keep the clearance, except on the legs that leave the start
     and reach the end, which may lie closer to a wall than the clearance (a block next to a wall)."""
 
-    def __init__(self, hard: list[BoxObstacles], soft: list[BoxObstacles], clearance: float):
+    def __init__(self, hard: list[BoxObstacles], soft: list[BoxObstacles], clearance: float, side=None):
         def stack(sets):
             arrays = [box_arrays(ob) for ob in sets]
             return np.concatenate([a[0] for a in arrays]), np.concatenate([a[1] for a in arrays])
 
         self.hard, self.soft = stack(hard), stack(soft)
         self.clearance = clearance
+        self.side = side  # which side of the walls a point is on (None: unknown)
 
     @property
     def top(self) -> float:
@@ -96,8 +109,10 @@ class Router:
     def options(self, a, b, kinds) -> dict[str, list]:
         """Route name -> waypoints from ``a`` to ``b`` (ending at ``b``); {"direct": [b]} when the way is free."""
         a, b = np.asarray(a, float), np.asarray(b, float)
-        if not self.blocked(a, b) or (not self.blocked(a, b, end_legs=True) and not self._free(a, b)):
+        if not self.blocked(a, b):
             return {"direct": [b]}
+        if self.side is not None and self.side(a) == self.side(b) and not self.blocked(a, b, end_legs=True):
+            return {"direct": [b]}  # along a wall on one side of it: closer than the clearance, but free
         centers, halves = self.soft
         lo = (centers - halves).min(axis=0) - 0.005  # just outside the clearance zone
         hi = (centers + halves).max(axis=0) + 0.005
@@ -115,15 +130,6 @@ class Router:
                     out[name] = route
         return out
 
-    def _free(self, a, b) -> bool:
-        """Both ends outside the clearance zone (else a direct leg free of the walls themselves is taken)."""
-        centers, halves = self.soft
-        if len(centers) == 0:
-            return True
-        from cdrb_cli.envs.geometry import box_distance
-
-        return bool(box_distance(np.stack([a, b]), centers, halves).min() > 0)
-
 
 class _Base:
     def __init__(self, spec: EnvSpec, config: FetchExpertConfig):
@@ -132,20 +138,22 @@ class _Base:
         walls: list[Box] = spec.scene.walls
         c = config.clearance
         opening = MAX_OPENING if spec.scene.task == "pick-place" else 0.0  # routes keep room for open fingers
-        self.grip_router = Router([gripper_obstacles(walls, opening)], [gripper_obstacles(walls, opening, margin=c)], c)
+        sides = partial(side, spec.scene)
+        grip = partial(gripper_obstacles, walls, opening)
+        self.grip_router = Router([grip(margin=NEAR)], [grip(margin=c)], c, sides)
 
         def blocks(margin):  # the unturned block: a box, conservative for routes
             return block_obstacles(walls, (0, 1, 2), margin=margin, rounded=False)
 
         if spec.scene.task == "push":  # a pushed block drifts and the pusher rides beside it: 3 cm more
-            self.block_router = Router([blocks(0.0)], [blocks(c + 0.03)], c)
+            self.block_router = Router([blocks(NEAR)], [blocks(c + 0.03)], c, sides)
         else:  # a carried block: the block and the gripper holding it (the grip site at its centre)
             held = MAX_OPENING / 2
 
             def carried(m):
                 return [blocks(m), gripper_obstacles(walls, held, margin=m)]
 
-            self.block_router = Router(carried(0.0), carried(c), c)
+            self.block_router = Router(carried(NEAR), carried(c), c, sides)
         self.rng = np.random.default_rng(0)
         self.route_name = "direct"
         self.goal = np.zeros(3)
@@ -154,7 +162,9 @@ class _Base:
         options = router.options(a, b, kinds)
         if not options:  # nothing clean: go over as high as needed (kept from the walls by the route)
             options = router.options(a, b, ["over", "around"]) or {"direct": [np.asarray(b, float)]}
-        names = sorted(options)
+        length = {k: _length([np.asarray(a, float), *v]) for k, v in options.items()}
+        shortest = min(length.values())
+        names = sorted(k for k in options if length[k] <= DETOUR * shortest + 1e-9)  # no long detours
         self.route_name = names[int(self.rng.integers(len(names)))]
         return [np.asarray(p, float) for p in options[self.route_name]]
 
@@ -190,6 +200,22 @@ class PushExpert(_Base):
         self.targets = self._pick_route(self.block_router, block, self.goal, ["around"])
         self.approach: list[np.ndarray] = []
         self.pushing = self.done = False
+        self.leg: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _pursuit(self, block: np.ndarray, target: np.ndarray, dist: float) -> np.ndarray:
+        """Push direction: toward a point 5 cm ahead on the leg's line (a block that drifted off it is steered back,
+        so it does not graze the wall's end)."""
+        start, end = self.leg
+        line = end - start
+        length = float(np.linalg.norm(line))
+        if length < 1e-6 or dist < 0.05:
+            ahead = target
+        else:
+            u = line / length
+            t = float(np.clip((block - start) @ u + 0.05, 0.0, length))
+            ahead = start + t * u
+        delta = ahead - block
+        return delta / max(float(np.linalg.norm(delta)), 1e-9)
 
     def _behind(self, grip, block, d) -> bool:
         rel = grip[:2] - block[:2]
@@ -202,13 +228,15 @@ class PushExpert(_Base):
         while len(self.targets) > 1 and np.linalg.norm(self.targets[0][:2] - block[:2]) < 0.02:
             self.targets.pop(0)
         target = self.targets[0]
+        if self.leg is None or np.linalg.norm(self.leg[1] - target[:2]) > 1e-9:
+            self.leg = (block[:2].copy(), target[:2].copy())  # a new leg starts where the block is now
         delta = target[:2] - block[:2]
         dist = float(np.linalg.norm(delta))
         if self.done or (dist < 0.015 and len(self.targets) == 1):  # at the goal: lift the pusher off and hold
             self.done, self.pushing = True, False
             rest = np.array([grip[0], grip[1], max(block[2] + self.LIFT, self.grip_router.top + 0.005)])
             return np.append(_move(grip, rest, self.cfg.gain), 0.0)
-        d = delta / max(dist, 1e-9)
+        d = self._pursuit(block[:2], target[:2], dist)
         low_z = block[2] - 0.005
         if self.pushing and self._behind(grip, block, d):
             gain = 0.6 if len(self.targets) > 1 else 0.6 * float(np.clip(dist / 0.05, 0.3, 1.0))  # ease in: no slide
