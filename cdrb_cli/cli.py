@@ -302,6 +302,12 @@ def methods(as_json: bool = JsonOpt) -> None:
     )
 
 
+def _check_video_folder(video: Path) -> None:
+    """--video names a folder (made if missing): refuse an existing file."""
+    if video.exists() and not video.is_dir():
+        raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
+
+
 # ------------------------------------------------------------------------------------------------ collect
 @app.command()
 def collect(
@@ -344,8 +350,7 @@ def collect(
         from cdrb_cli.envs.render import choose_gl_backend
 
         choose_gl_backend()  # before MuJoCo is imported
-        if video.exists() and not video.is_dir():
-            raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
+        _check_video_folder(video)
     _check_outputs(force, out=out, plot=plot)
     spec = _spec(env, maze_map)
     config = collect_config(spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction)
@@ -807,8 +812,8 @@ def eval_cmd(
 
     _check_positive("--sample-steps", sample_steps)
     seed_list = _int_list(seeds, "--seeds")
-    if video is not None and video.exists() and not video.is_dir():
-        raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
+    if video is not None:
+        _check_video_folder(video)
     settings = parse_set(sets)
     if max_lag is not None:
         if any(s.path == ("controller", "max_lag") for s in settings):

@@ -86,16 +86,23 @@ def fetch_class(scene: FetchScene):
             self._mujoco.mj_forward(self.model, self.data)
             self.initial_gripper_xpos = self._utils.get_site_xpos(self.model, self.data, "robot0:grip").copy()
 
-        # ---- the training env's own draws (gymnasium resets); cdrb's episodes are placed by FetchEnv.reset
+        #: draw the block and goal at every reset (the training env's gymnasium resets); FetchEnv turns it off:
+        #: it places each episode's own block and goal right after the reset
+        cdrb_draws = True
+
         def _reset_sim(self):
             ok = super()._reset_sim()
-            self.cdrb_episode = draw_task(scene, self.np_random)
-            if self.has_object:
+            self.cdrb_episode = draw_task(scene, self.np_random) if self.cdrb_draws else None
+            if self.cdrb_episode is not None and self.has_object:
                 self.place_object(self.cdrb_episode[0])
             return ok
 
         def _sample_goal(self):
-            episode = getattr(self, "cdrb_episode", None) or draw_task(scene, self.np_random)
+            episode = getattr(self, "cdrb_episode", None)
+            if episode is None:
+                if not self.cdrb_draws:
+                    return np.zeros(3)  # FetchEnv.reset sets the episode's goal next
+                episode = draw_task(scene, self.np_random)
             return np.asarray(episode[1], dtype=np.float64).copy()
 
         def place_object(self, xy, z: float | None = None) -> None:
@@ -119,6 +126,7 @@ class FetchEnv:
         kwargs = {"render_mode": render_mode} if render_mode else {}
         self.spec = spec
         self.env = cls(**kwargs)
+        self.env.cdrb_draws = False  # reset() places each episode's block and goal itself
         self.goal = np.zeros(3)
 
     @property

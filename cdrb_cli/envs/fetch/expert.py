@@ -11,10 +11,11 @@ by at most 5 cm per axis per step), and holds at the goal once there, so episode
   both modes where both exist (Push: around either end of the short wall; Pick & Place: over the tall wall or
   around either end; Reach: out of the corridor over the walls or past either end).
 * **Reach**: the gripper follows the route to the goal.
-* **Push** (fingers locked): for the current block target t, d = unit(t - block); the gripper goes to the pre-push
-  point block - 0.06 d (travelling above the block, and above the wall when its way crosses it), descends to the
-  block's height and pushes toward block + d min(|t - block|, 0.05); it re-approaches whenever it is no longer
-  behind the block (lateral offset > 1.5 cm).
+* **Push** (fingers locked): for the current block target t, d points from the block to a spot 5 cm ahead on the
+  leg's line (pure pursuit: a block that drifted is steered back onto the line); the gripper goes to the pre-push
+  point block - 0.05 d (travelling above the block, and above the wall when its way crosses it), descends to the
+  block's height and pushes toward block + d min(|t - block|, 0.03), easing in near the goal, then lifts off; it
+  re-approaches whenever it is no longer behind the block (lateral offset > 1.5 cm).
 * **Pick & Place**: above the block (open) -> down -> close for 3 steps -> lift 8 cm -> carry the block along the
   route -> hold at the goal; a dropped block is picked up again.
 """
@@ -280,7 +281,6 @@ class PickPlaceExpert(_Base):
         self.closing = 0
         self.carry: list[np.ndarray] = []
         self.approach: list[np.ndarray] = []
-        self.kinds = list(self.cfg.routes)
 
     def _holding(self, state) -> bool:
         grip, block = state[:3], state[3:6]
@@ -309,7 +309,7 @@ class PickPlaceExpert(_Base):
             self.closing += 1
             if self.closing >= 3:
                 lifted = block + np.array([0.0, 0.0, self.LIFT])
-                self.carry = [lifted, *self._pick_route(self.block_router, lifted, self.goal, self.kinds)]
+                self.carry = [lifted, *self._pick_route(self.block_router, lifted, self.goal, self.cfg.routes)]
                 self.phase = "carry"
             return np.append(_move(grip, block, self.cfg.gain), -1.0)
         # carry: steer the block

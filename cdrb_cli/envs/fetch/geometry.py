@@ -139,12 +139,20 @@ def states_in_obstacles(states: np.ndarray, walls: list[Box], task: str) -> np.n
     out = np.zeros(states.shape[:-1], dtype=bool)
     for ob in body_obstacles(walls, task):
         out |= in_boxes(states, ob)
-    if task == "pick-place" and walls:  # the open fingers, as wide as each state has them
-        opening = _opening(states)
-        for q in np.unique(opening[opening > 0]):
-            m = opening == q
-            centers, halves = _finger_boxes(walls, float(q))
-            out[m] |= box_distance(states[m][..., :3].astype(np.float64), centers, halves) <= 0.0
+    return out | _open_fingers_in_walls(states, walls, task)
+
+
+def _open_fingers_in_walls(states: np.ndarray, walls: list[Box], task: str) -> np.ndarray:
+    """Boolean over states (..., D): Pick & Place's opened fingers, as wide as each state has them, overlap a wall
+    (the closed fingers are in :func:`body_obstacles`)."""
+    out = np.zeros(states.shape[:-1], dtype=bool)
+    if task != "pick-place" or not walls:
+        return out
+    opening = _opening(states)
+    for q in np.unique(opening[opening > 0]):
+        m = opening == q
+        centers, halves = _finger_boxes(walls, float(q))
+        out[m] = box_distance(states[m][..., :3].astype(np.float64), centers, halves) <= 0.0
     return out
 
 
@@ -154,8 +162,8 @@ def paths_in_obstacles(paths: np.ndarray, walls: list[Box], task: str) -> np.nda
     paths = np.asarray(paths)
     out = np.zeros(paths.shape[:-2], dtype=bool)
     for ob in body_obstacles(walls, task):
-        out |= path_crosses_boxes(paths, ob)
-    out |= states_in_obstacles(paths, walls, task).any(axis=-1)
+        out |= path_crosses_boxes(paths, ob)  # its states too
+    out |= _open_fingers_in_walls(paths, walls, task).any(axis=-1)
     if task == "pick-place" and walls and paths.shape[-2] > 1:
         flat = paths.reshape(-1, *paths.shape[-2:])
         opening = _opening(flat)

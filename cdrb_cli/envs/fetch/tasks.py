@@ -9,7 +9,7 @@ Walls follow the official CDRB code's obstacle files (``fetch_env/assets``) wher
 * pick & place: a tall wall, centre (1.3, 0.75, 0.4), half size (0.15, 0.022, 0.3): top at z = 0.7;
 * reach: two tall walls either side of the start, x in [1.15, 1.45], z in [0.17, 0.77] (the official check script's
   two walls; its shipped XML has one). The official walls leave a 13 cm corridor (y 0.705-0.835) for a gripper
-  whose link is 12.8 cm wide, so every state inside touches a wall; cdrb widens the corridor to 19 cm (walls at
+  whose link is 12.8 cm wide, so every state inside touches a wall; cdrb widens the corridor to 23 cm (walls at
   y = 0.749 +- 0.12), keeping "two walls either side of the start".
 
 What the official code leaves open, chosen here (docs/environments.md):
@@ -118,6 +118,7 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
     clear = block_obstacles(scene.walls, dims=(0, 1, 2), margin=scene.wall_margin, rounded=False)
     # pick & place: the open gripper around the block (at its start and at its goal) keeps clear of the walls too
     grasp = gripper_obstacles(scene.walls, MAX_OPENING, margin=GRASP_MARGIN) if scene.task == "pick-place" else None
+    reach_clear = gripper_obstacles(scene.walls, margin=scene.wall_margin)
     for _ in range(tries):
         if scene.task == "reach":
             ry = scene.target_range_y or scene.target_range
@@ -129,7 +130,7 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
                 ]
             )
             goal[2] = max(goal[2], TABLE_TOP + GRIP_ABOVE_TABLE + 0.02)
-            if in_boxes(goal, gripper_obstacles(scene.walls, margin=scene.wall_margin)):
+            if in_boxes(goal, reach_clear):
                 continue
             if scene.cross and side(scene, goal) == 0:
                 continue
