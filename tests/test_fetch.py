@@ -17,6 +17,7 @@ from cdrb_cli.envs.fetch.geometry import (
     TABLE_XY,
 )
 from cdrb_cli.envs.fetch.tasks import side
+from cdrb_cli.envs.geometry import segment_box_distance
 from cdrb_cli.envs.registry import EXPERTS, family_of, make_spec
 from cdrb_cli.seeding import STREAM_COLLECT
 from cdrb_cli.stages.collect import rollout
@@ -201,10 +202,40 @@ def test_draws_avoid_walls_are_seeded_and_cross_when_asked(env_id):
         states = np.repeat(high[None], 2 * len(eps), axis=0)
         states[:, 3:6] = np.concatenate([blocks, np.array([e.goal for e in eps])])
         assert not fam.in_collision(spec, states).any()
+        # footprints stay edge_margin inside the table's edge (an overshooting push must not drop the block)
+        xy = np.concatenate([blocks[:, :2], np.array([e.goal for e in eps])[:, :2]])
+        inset = BLOCK_HALF + spec.scene.edge_margin
+        for axis, (lo, hi) in enumerate(TABLE_XY):
+            assert np.all((xy[:, axis] >= lo + inset) & (xy[:, axis] <= hi - inset)), axis
     if spec.scene.cross:
         for e in eps:
             start = np.array(spec.scene.home) if spec.scene.task == "reach" else np.array([*e.start, 0.0])
             assert side(spec.scene, np.array(e.goal)) != side(spec.scene, start)
+
+
+def test_routes_around_a_wall_end_turn_where_the_clearance_holds():
+    """A goal beside the wall's end: the route turns outside the clearance zone, so its last leg does not run along
+    the wall at the end legs' smaller margin (a drifting block would graze it)."""
+    spec = make_spec("fetch-push-obstacle")
+    entry = EXPERTS.get("fetch-scripted")
+    router = entry.build(spec, entry.configure(None)).block_router
+    z = TABLE_TOP + BLOCK_HALF
+    a, b = np.array([1.25, 0.856, z]), np.array([1.468, 0.697, z])  # b: y- side, past the x+ end, near the face
+    centers, halves = router.hard  # where the block touches the wall
+
+    def gap(p, q):  # the least distance of a leg from the wall
+        return float(segment_box_distance(p[None], q[None], centers, halves)[0])
+
+    straight = gap(np.array([1.10, b[1], z]), b)  # a leg turning at b's own y runs along the wall's face
+    assert straight < 0.015
+    for name in ("around x-", "around x+"):
+        *_, turn, end = router.options(a, b, ["around"])[name]
+        assert np.array_equal(end, b)
+        assert turn[1] < b[1]  # turned short of the face, outside the clearance zone
+        assert not router.blocked(turn, turn)
+        assert gap(turn, b) > straight + 0.005  # the last leg closes in on the wall only near its end
+    far = np.array([1.30, 0.62, z])  # an end already outside the zone keeps its own y
+    assert router.options(a, far, ["around"])["around x-"][-2][1] == far[1]
 
 
 @pytest.mark.parametrize("env_id", SIX)

@@ -13,7 +13,7 @@ by at most 5 cm per axis per step), and holds at the goal once there, so episode
 * **Reach**: the gripper follows the route to the goal.
 * **Push** (fingers locked): for the current block target t, d points from the block to a spot 5 cm ahead on the
   leg's line (pure pursuit: a block that drifted is steered back onto the line); the gripper goes to the pre-push
-  point block - 0.05 d (travelling above the block, and above the wall when its way crosses it), descends to the
+  point block - 0.06 d (travelling above the block, and above the wall when its way crosses it), descends to the
   block's height and pushes toward block + d min(|t - block|, 0.03), easing in near the goal, then lifts off; it
   re-approaches whenever it is no longer behind the block (lateral offset > 1.5 cm).
 * **Pick & Place**: above the block (open) -> down -> close for 3 steps -> lift 8 cm -> carry the block along the
@@ -124,11 +124,16 @@ class Router:
             if self._clear([a, *route]):
                 out["over"] = route
         if "around" in kinds:
+            # an end beside a wall's end (its y within the zone): turn where the clearance still holds, so the
+            # last leg closes in on the wall gradually instead of running along it at the end legs' margin
+            y_turn = b[1] if not lo[1] <= b[1] <= hi[1] else (lo[1] if b[1] < (lo[1] + hi[1]) / 2 else hi[1])
             for name, x in (("around x-", lo[0]), ("around x+", hi[0])):
                 # keep the start's height past the end (low far corners are out of the arm's reach), then go
-                route = _dedupe([np.array([x, a[1], a[2]]), np.array([x, b[1], a[2]]), b])
-                if self._clear([a, *route]):
-                    out[name] = route
+                for y in dict.fromkeys((y_turn, b[1])):
+                    route = _dedupe([np.array([x, a[1], a[2]]), np.array([x, y, a[2]]), b])
+                    if self._clear([a, *route]):
+                        out[name] = route
+                        break
         return out
 
 
@@ -189,7 +194,7 @@ class ReachExpert(_Base):
 class PushExpert(_Base):
     """Pushes the block along its route; the gripper travels above the block (and the wall) to get behind it."""
 
-    BEHIND = 0.05  # pre-push distance behind the block centre
+    BEHIND = 0.06  # pre-push distance behind the block centre: the fingers (1.6 cm) clear a turned block (3.5 cm)
     LIFT = 0.08  # travel height above the block centre
     PUSH = 0.03  # how far ahead of the block the pusher aims
 

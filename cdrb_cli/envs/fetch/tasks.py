@@ -19,7 +19,9 @@ What the official code leaves open, chosen here (docs/environments.md):
 * *Objects and goals* are drawn around the stock sampling centre (the stock start's x-y; +-0.15 m, as stock), the
   block at least 0.1 m from the home's x-y (stock rule), and redrawn while the block's or the goal's footprint
   (grown by ``wall_margin``) overlaps a wall, or (pick & place) the open gripper grasping the block there would
-  come within 1.5 cm of a wall. Reach goals are kept 2 cm above the table's reach of the gripper.
+  come within 1.5 cm of a wall, or while a footprint comes within 3 cm of the table's edge (the stock range
+  reaches 1.2 cm from the far edge, where a push that overshoots by that much drops the block). Reach goals
+  are kept 2 cm above the table's reach of the gripper.
 * *Cross* variants put the block and the goal on opposite sides of the wall (reach: the goal outside the
   corridor), so every episode must pass the wall.
 """
@@ -37,6 +39,7 @@ from cdrb_cli.envs.fetch.geometry import (
     GRIP_ABOVE_TABLE,
     MAX_OPENING,
     TABLE_TOP,
+    TABLE_XY,
     Box,
     block_obstacles,
     gripper_obstacles,
@@ -71,6 +74,9 @@ class FetchScene(Scene):
     air_fraction: float = Field(0.5, ge=0, le=1, description="pick & place: share of goals lifted into the air")
     air_height: float = Field(0.45, ge=0, le=0.6, description="pick & place: goals up to this far above the table")
     wall_margin: float = Field(0.035, ge=0, description="blocks and goals keep this far from every wall, m")
+    edge_margin: float = Field(
+        0.03, ge=0, le=0.2, description="block and goal footprints keep this far inside the table edge, m"
+    )
     cross: bool = Field(False, description="block and goal on opposite sides of the wall (reach: goal outside)")
 
 
@@ -119,6 +125,12 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
     # pick & place: the open gripper around the block (at its start and at its goal) keeps clear of the walls too
     grasp = gripper_obstacles(scene.walls, MAX_OPENING, margin=GRASP_MARGIN) if scene.task == "pick-place" else None
     reach_clear = gripper_obstacles(scene.walls, margin=scene.wall_margin)
+    inset = BLOCK_HALF + scene.edge_margin
+    (x0, x1), (y0, y1) = TABLE_XY
+
+    def on_table(xy) -> bool:  # the footprint inside the table edge by edge_margin
+        return bool(x0 + inset <= xy[0] <= x1 - inset and y0 + inset <= xy[1] <= y1 - inset)
+
     for _ in range(tries):
         if scene.task == "reach":
             ry = scene.target_range_y or scene.target_range
@@ -139,13 +151,15 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
         if np.linalg.norm(block - home[:2]) < 0.1:
             continue
         block3 = np.array([block[0], block[1], BLOCK_Z])
+        if not on_table(block):
+            continue
         if in_boxes(block3, clear) or (grasp is not None and in_boxes(block3, grasp)):
             continue
         ry = scene.target_range_y or scene.target_range
         goal = np.array([cx + rng.uniform(-scene.target_range, scene.target_range), cy + rng.uniform(-ry, ry), BLOCK_Z])
         if scene.task == "pick-place" and rng.uniform() < scene.air_fraction:
             goal[2] += rng.uniform(0, scene.air_height)
-        if in_boxes(goal, clear) or (grasp is not None and in_boxes(goal, grasp)):
+        if not on_table(goal) or in_boxes(goal, clear) or (grasp is not None and in_boxes(goal, grasp)):
             continue
         if scene.cross and side(scene, goal) == side(scene, block3):
             continue
