@@ -164,10 +164,11 @@ class _Base:
         self.route_name = "direct"
         self.goal = np.zeros(3)
 
-    def _pick_route(self, router: Router, a, b, kinds) -> list[np.ndarray]:
+    def _pick_route(self, router: Router, a, b, kinds, fallback=("over", "around")) -> list[np.ndarray]:
         options = router.options(a, b, kinds)
-        if not options:  # nothing clean: go over as high as needed (kept from the walls by the route)
-            options = router.options(a, b, ["over", "around"]) or {"direct": [np.asarray(b, float)]}
+        if not options:  # nothing clean among ``kinds``: another kind the body can take, else straight there
+            others = [k for k in fallback if k not in kinds]
+            options = (router.options(a, b, others) if others else {}) or {"direct": [np.asarray(b, float)]}
         length = {k: _length([np.asarray(a, float), *v]) for k, v in options.items()}
         shortest = min(length.values())
         names = sorted(k for k in options if length[k] <= DETOUR * shortest + 1e-9)  # no long detours
@@ -203,7 +204,7 @@ class PushExpert(_Base):
         self.goal = np.asarray(goal, float)
         block = state[3:6]
         # block route in the table plane: around an end of the wall (it cannot be pushed over it)
-        self.targets = self._pick_route(self.block_router, block, self.goal, ["around"])
+        self.targets = self._pick_route(self.block_router, block, self.goal, ["around"], fallback=())
         self.approach: list[np.ndarray] = []
         self.pushing = self.done = False
         self.leg: tuple[np.ndarray, np.ndarray] | None = None

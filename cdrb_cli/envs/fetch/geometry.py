@@ -17,6 +17,8 @@ millimetres into each other, and a state the simulator reached by pushing agains
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from cdrb_cli.envs.geometry import box_distance, in_boxes, path_crosses_boxes, segment_box_distance
@@ -127,10 +129,17 @@ def block_obstacles(walls: list[Box], dims=(3, 4, 5), margin: float = 0.0, round
 def body_obstacles(walls: list[Box], task: str) -> list[BoxObstacles]:
     """The fixed obstacle sets a state of ``task`` is tested against: the gripper's (fingers closed) and the
     block's when there is one."""
-    out = [gripper_obstacles(walls)]
+    return list(_body_obstacles(tuple((tuple(w.center), tuple(w.half)) for w in walls), task))
+
+
+@functools.lru_cache(maxsize=64)
+def _body_obstacles(walls: tuple, task: str) -> tuple[BoxObstacles, ...]:
+    """Built once per scene: every collision test of a collect or an eval reuses them."""
+    boxes = [Box(center=c, half=h) for c, h in walls]
+    out = [gripper_obstacles(boxes)]
     if task != "reach":
-        out.append(block_obstacles(walls))
-    return out
+        out.append(block_obstacles(boxes))
+    return tuple(out)
 
 
 def states_in_obstacles(states: np.ndarray, walls: list[Box], task: str) -> np.ndarray:
