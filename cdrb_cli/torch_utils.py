@@ -7,10 +7,20 @@ import os
 from cdrb_cli.errors import BadInput
 
 
+def cpu_threads() -> int:
+    """Torch CPU threads: ``OMP_NUM_THREADS`` when set (the standard knob: give each of several runs sharing a
+    machine its share, since threads beyond the free cores spin against each other and slow every run by far more
+    than the share), else every core up to 8."""
+    env = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if env.isdigit() and int(env) > 0:
+        return min(int(env), 256)
+    return max(1, min(os.cpu_count() or 1, 8))
+
+
 def setup_torch(device: str = "auto", threads: int | None = None):
     import torch
 
-    n = threads or max(1, min(os.cpu_count() or 1, 8))
+    n = threads or cpu_threads()
     torch.set_num_threads(n)
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"

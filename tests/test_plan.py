@@ -121,3 +121,27 @@ def test_a_pinned_subset_is_held_exactly_and_the_rest_is_planned(small_data):
     np.testing.assert_array_equal(plans[:, 0, :2], np.repeat(starts[:, :2], 3, 0))
     np.testing.assert_array_equal(plans[:, -1, :2], np.repeat(goals[:, :2], 3, 0))
     assert not np.allclose(plans[:, 0, 2:], starts[0, 2:]) and not np.allclose(plans[:, -1, 2:], goals[0, 2:])
+
+
+@pytest.mark.parametrize("method_name", ["cdrb", "diffuser", "mlp"])
+def test_start_and_goal_pins_can_differ(small_data, method_name):
+    """spec.pinned_end_dims: the goal pins fewer dimensions than the start (Fetch: gripper and block at the start,
+    the block alone at the goal). Each end holds exactly its own dims, and nothing else of the goal state (made up
+    by the family at sampling) reaches the plan."""
+    from cdrb_cli.buffer import Normalizer
+    from cdrb_cli.methods.base import build_method
+    from cdrb_cli.stages.plan import sample_plans
+
+    demos, buffer = small_data
+    spec = demos.manifest.env.model_copy(update={"pinned_dims": [0, 1, 2], "pinned_end_dims": [0, 1]})
+    cfg = train_config(demos, buffer, method_name, tiny(method_name))
+    method = build_method(cfg, spec, Normalizer(low=buffer.low, high=buffer.high), buffer.points)
+    assert method.pinned == [0, 1, 2] and method.pinned_end == [0, 1]
+    starts = np.array([[0.3, -0.2, 0.7, -0.7]])
+    goals = np.array([[6.0, 6.0, 0.5, 0.5]])
+    plans, *_ = sample_plans(method, starts, goals, 2, seed=0)
+    np.testing.assert_array_equal(plans[:, 0, :3], np.repeat(starts[:, :3], 2, 0))
+    np.testing.assert_array_equal(plans[:, -1, :2], np.repeat(goals[:, :2], 2, 0))
+    assert not np.allclose(plans[:, -1, 2], goals[0, 2])
+    other, *_ = sample_plans(method, starts, goals * [1, 1, -3, 7], 2, seed=0)  # only unpinned goal dims differ
+    np.testing.assert_array_equal(plans, other)

@@ -56,7 +56,10 @@ class EnvSpec(Record):
     state_labels: list[str]
     goal_dims: list[int] = Field(description="indices of the state that the goal is compared with")
     pinned_dims: list[int] | None = Field(
-        None, description="indices of the state pinned at a plan's start and goal; null: the whole state"
+        None, description="indices of the state pinned at a plan's start (and goal); null: the whole state"
+    )
+    pinned_end_dims: list[int] | None = Field(
+        None, description="indices of the state pinned at a plan's goal, when not pinned_dims; null: pinned_dims"
     )
     horizon: int = Field(gt=1, description="default plan length in planned states")
     plan_stride: int = Field(gt=0, description="environment steps per planned state")
@@ -71,12 +74,12 @@ class EnvSpec(Record):
             raise ValueError("state_labels must have obs_dim entries")
         if len(self.goal_dims) != self.goal_dim or any(not 0 <= d < self.obs_dim for d in self.goal_dims):
             raise ValueError("goal_dims must be goal_dim indices into the state")
-        if self.pinned_dims is not None and (
-            not self.pinned_dims
-            or any(not 0 <= d < self.obs_dim for d in self.pinned_dims)
-            or len(set(self.pinned_dims)) != len(self.pinned_dims)
-        ):
-            raise ValueError("pinned_dims must be distinct indices into the state")
+        for name in ("pinned_dims", "pinned_end_dims"):
+            dims = getattr(self, name)
+            if dims is not None and (
+                not dims or any(not 0 <= d < self.obs_dim for d in dims) or len(set(dims)) != len(dims)
+            ):
+                raise ValueError(f"{name} must be distinct indices into the state")
         if any(not 0 <= d < self.obs_dim for d in self.obstacles.dims):
             raise ValueError("obstacles.dims must index the state")
         if self.horizon > 100_000 or self.episode_limit > 10_000_000:
@@ -89,8 +92,13 @@ class EnvSpec(Record):
 
     @property
     def pin_dims(self) -> list[int]:
-        """The state indices pinned at a plan's ends (``pinned_dims``, or every state dimension)."""
+        """The state indices pinned at a plan's start (``pinned_dims``, or every state dimension)."""
         return list(range(self.obs_dim)) if self.pinned_dims is None else list(self.pinned_dims)
+
+    @property
+    def pin_end_dims(self) -> list[int]:
+        """The state indices pinned at a plan's goal (``pinned_end_dims``, or the start's)."""
+        return self.pin_dims if self.pinned_end_dims is None else list(self.pinned_end_dims)
 
     @property
     def plan_env_steps(self) -> int:

@@ -56,8 +56,9 @@ class Method:
         self.obs_dim = spec.obs_dim
         self.feature_dim = feature_dim(spec, config.features)
         self.horizon = config.horizon
-        pinned = spec.pin_dims
-        self.pinned = slice(0, self.obs_dim) if pinned == list(range(self.obs_dim)) else pinned
+        every = list(range(self.obs_dim))
+        self.pinned = slice(0, self.obs_dim) if spec.pin_dims == every else spec.pin_dims  # at the start
+        self.pinned_end = slice(0, self.obs_dim) if spec.pin_end_dims == every else spec.pin_end_dims  # at the goal
         self.build(buffer_points)
 
     @property
@@ -113,8 +114,18 @@ class Method:
         """Overwrite the pinned dimensions of the first and last planned states (a new tensor; exact copies)."""
         x = x.clone()
         x[:, 0, self.pinned] = start[:, self.pinned]
-        x[:, -1, self.pinned] = goal[:, self.pinned]
+        x[:, -1, self.pinned_end] = goal[:, self.pinned_end]
         return x
+
+    def pinned_only(self, start: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Start and goal with every dimension that is not pinned zeroed: what a method may condition on (at
+        sampling, the goal state's other dimensions are made up by the family, in training they come from data)."""
+        if isinstance(self.pinned, slice) and isinstance(self.pinned_end, slice):
+            return start, goal
+        s, g = torch.zeros_like(start), torch.zeros_like(goal)
+        s[:, self.pinned] = start[:, self.pinned]
+        g[:, self.pinned_end] = goal[:, self.pinned_end]
+        return s, g
 
     @staticmethod
     def ends(batch: torch.Tensor, obs_dim: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -57,9 +57,8 @@ def sample_plans(
             iters.append(np.stack([norm.unnormalize(x.cpu().numpy().astype(np.float64)) for _, x in res.iterates], 1))
             iter_steps = [k for k, _ in res.iterates]
     out = np.concatenate(plans)
-    pinned = method.pinned
-    out[:, 0, pinned] = s_raw[:, pinned]  # pinned exactly in raw units too
-    out[:, -1, pinned] = g_raw[:, pinned]
+    out[:, 0, method.pinned] = s_raw[:, method.pinned]  # pinned exactly in raw units too
+    out[:, -1, method.pinned_end] = g_raw[:, method.pinned_end]
     it = np.concatenate(iters) if iters else None
     return out, pair_index, it, iter_steps, float(np.mean(batch_times))
 

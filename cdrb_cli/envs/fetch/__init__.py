@@ -70,7 +70,10 @@ def fetch_spec(env_id: str) -> EnvSpec:
         goal_dim=3,
         state_labels=OBJECT_LABELS if with_block else REACH_LABELS,
         goal_dims=goal_dims,
-        pinned_dims=goal_dims,
+        # the official code pins state dims 0:6 (gripper and block positions) at the start; at the goal only the
+        # goal's own dims are known (where the gripper ends up is the plan's business)
+        pinned_dims=[0, 1, 2, 3, 4, 5] if with_block else [0, 1, 2],
+        pinned_end_dims=goal_dims,
         horizon=horizon,
         plan_stride=1,
         episode_limit=limit,

@@ -5,7 +5,7 @@
 finger width drops below ``close_width`` and open otherwise (the "threshold" rule: a rule on the change of the
 planned width reacts to the jitter of open fingers). With ``follow_block`` (Push), while the planned gripper is
 within 8 cm of the planned block, the target moves by how far the real block is from the planned one, so the
-gripper keeps pushing the block it has rather than the one it planned. After the plan's last state the controller
+gripper keeps pushing the block it has rather than the one it planned (on by default for Push only). After the plan's last state the controller
 holds it. Measured on replayed expert paths in docs/environments.md.
 """
 
@@ -28,14 +28,16 @@ class FetchTrackConfig(ControllerConfig):
     name: Literal["fetch-track"] = "fetch-track"
     gain: float = Field(2.0, gt=0, le=100, description="action per 5 cm of position error")
     close_width: float = Field(0.07, ge=0, le=0.2, description="close the fingers when the planned width is below")
-    follow_block: bool = Field(True, description="shift the target by the block's deviation while pushing")
+    follow_block: bool | None = Field(
+        None, description="shift the target by the block's deviation from the plan (null: on for Push tasks)"
+    )
 
 
 class FetchTrackController(Controller):
     name = "fetch-track"
 
-    def __init__(self, config: FetchTrackConfig, has_object: bool, stride: int):
-        self.c, self.has_object, self.stride = config, has_object, stride
+    def __init__(self, config: FetchTrackConfig, has_object: bool, stride: int, follow: bool):
+        self.c, self.has_object, self.stride, self.follow = config, has_object, stride, follow
         self.plan = np.zeros((1, 3))
 
     def reset(self, plan: np.ndarray) -> None:
@@ -45,10 +47,10 @@ class FetchTrackController(Controller):
         i = min(t // self.stride + 1, len(self.plan) - 1)
         target = self.plan[i, :3].copy()
         grip = state[:3]
-        if self.has_object and self.c.follow_block:
-            planned_block = self.plan[i, 3:6]
-            if np.linalg.norm(target - planned_block) < 0.08:
-                target[:2] += state[3:5] - planned_block[:2]
+        if self.follow:
+            now = self.plan[i - 1]  # where the plan has the block at this step (the target is the next state)
+            if np.linalg.norm(target - self.plan[i, 3:6]) < 0.08:
+                target[:2] += state[3:5] - now[3:5]
         a = np.zeros(4)
         a[:3] = np.clip(self.c.gain * (target - grip) / STEP, -1.0, 1.0)
         if self.has_object:
@@ -57,7 +59,8 @@ class FetchTrackController(Controller):
 
 
 def _track(spec, env, config: FetchTrackConfig, stride: int) -> FetchTrackController:
-    return FetchTrackController(config, spec.scene.task != "reach", stride)
+    follow = spec.scene.task == "push" if config.follow_block is None else config.follow_block
+    return FetchTrackController(config, spec.scene.task != "reach", stride, follow and spec.scene.task != "reach")
 
 
 CONTROLLERS.register(ControllerEntry(FetchTrackConfig, _track, "track planned grip positions (Fetch)"))
