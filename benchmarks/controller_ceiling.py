@@ -6,7 +6,8 @@ then executes that plan from the same reset. Success and executed collisions her
 a learned plan cannot do better through it. A plan that the horizon cuts before the goal counts against the
 ceiling too, so the table also says whether the horizon fits the task.
 
-    python benchmarks/controller_ceiling.py --envs fetch-reach,fetch-push --episodes 100 --out docs/results/controller_ceiling.csv
+    python benchmarks/controller_ceiling.py --envs fetch-reach,fetch-push --episodes 100 \
+        --out docs/results/controller_ceiling.csv
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ SETTINGS = {
         ("track K=1", "fetch-track", {"gain": 1.0, "follow_block": False}),
         ("track K=2", "fetch-track", {"gain": 2.0, "follow_block": False}),
         ("track K=2, follow block", "fetch-track", {"gain": 2.0, "follow_block": True}),
+        ("push along the block path", "fetch-push-path", {}),
     ],
 }
 
@@ -60,6 +62,8 @@ def measure(env_id: str, episodes: int, seed: int, horizon: int | None, stride: 
             expert_ok.append(run.success)
             reached.append(bool(fam.success(spec, plan, goal).any()))
         for label, name, overrides in SETTINGS[fam.name]:
+            if name == "fetch-push-path" and spec.scene.task != "push":
+                continue
             c = CONTROLLERS.get(name)
             cfg = c.config.model_validate({"name": name, **overrides})
             ctl = c.build(spec, env, cfg, k)

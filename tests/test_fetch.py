@@ -316,3 +316,59 @@ def test_sac_her_expert_for_fetch_tiny_budget(tmp_path, cdrb):
     assert r.returncode == 0, r.stderr
     demos = artifacts.load(out, "demos")
     assert demos.manifest.config.expert.kind == "sac" and demos.observations.shape[1] == 25
+
+
+@pytest.mark.parametrize(
+    ("env_id", "controller"),
+    [
+        ("fetch-push", "fetch-track"),
+        ("fetch-push", "fetch-push-path"),
+        ("fetch-pick-place", "fetch-track"),
+        ("fetch-reach", "fetch-track"),
+    ],
+)
+def test_controllers_execute_the_experts_own_plans(env_id, controller):
+    """A controller's ceiling: the expert's states, cut to the plan a model would make, executed from the same
+    reset, reach the goal (docs/results/controller_ceiling.csv measures it on 100 episodes per task)."""
+    import sys
+
+    sys.path.insert(0, "benchmarks")
+    from controller_ceiling import expert_plan
+
+    from cdrb_cli.envs.registry import CONTROLLERS
+    from cdrb_cli.stages.evaluate import run_episode
+
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    entry = EXPERTS.get("fetch-scripted")
+    expert = entry.build(spec, entry.configure(None))
+    c = CONTROLLERS.get(controller)
+    env = fam.make_env(spec)
+    try:
+        ctl = c.build(spec, env, c.config(), spec.plan_stride)
+        for ep in fam.draw_episodes(spec, 3, 0, STREAM_COLLECT):
+            obs, goal = env.reset(ep)
+            expert.reset(obs, goal, np.random.default_rng(ep.seed))
+            demo = run_episode(env, spec, ep, lambda o, t: expert.act(o), spec.episode_limit)
+            ctl.reset(expert_plan(demo.states, spec.horizon, spec.plan_stride))
+            run = run_episode(env, spec, ep, ctl.act, spec.episode_limit)
+            assert run.success, (env_id, controller, ep.seed)
+            if controller == "fetch-push-path" or spec.scene.task != "push":
+                assert not run.collision  # (tracking the pusher's grip alone may later shove the block off the table)
+            if fam.success(spec, demo.states[:1], goal).any():
+                continue  # the block starts at its goal
+            # a plan that goes nowhere is not executed as a success (the controller follows the plan, not the goal)
+            ctl.reset(np.repeat(demo.states[:1], spec.horizon, axis=0))
+            assert not run_episode(env, spec, ep, ctl.act, spec.episode_limit).success
+    finally:
+        env.close()
+
+
+def test_push_path_controller_is_for_push_only(tmp_path):
+    from cdrb_cli.envs.registry import CONTROLLERS
+    from cdrb_cli.errors import BadInput
+
+    spec = make_spec("fetch-pick-place")
+    c = CONTROLLERS.get("fetch-push-path")
+    with pytest.raises(BadInput, match="not a Push task"):
+        c.build(spec, None, c.config(), 1)

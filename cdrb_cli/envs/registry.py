@@ -39,6 +39,7 @@ CONTROLLERS: Registry[ControllerEntry] = Registry(
         "inverse-dynamics": "cdrb_cli.envs.pointmaze.controllers",
         "waypoint": "cdrb_cli.envs.pointmaze.controllers",
         "fetch-track": "cdrb_cli.envs.fetch.controllers",
+        "fetch-push-path": "cdrb_cli.envs.fetch.controllers",
     },
     ControllerEntry,
 )

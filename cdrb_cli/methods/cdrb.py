@@ -61,9 +61,9 @@ class CDRB(Planner):
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = BallSampler(self.points, self.eps)
         # the first and last planned states are left out of the degradation when pinning fixes every feature there;
-        # when it fixes only some (spec.pinned_dims / pinned_end_dims, or the action part of state-action features) they are degraded
-        # like the rest and pinning restores the pinned dims, so training sees the ends as sampling does (whose ends
-        # start as random buffer features with only the pinned dims set)
+        # when it fixes only some (spec.pinned_dims / pinned_end_dims, or the action part of state-action features)
+        # they are degraded like the rest and pinning restores the pinned dims, so training sees the ends as sampling
+        # does (whose ends start as random buffer features with only the pinned dims set)
         whole = self.feature_dim == self.obs_dim or p.end_actions == "kept"
         every = isinstance(self.pinned, slice) and isinstance(self.pinned_end, slice)
         self.kept = (0, -1) if every and whole else ()

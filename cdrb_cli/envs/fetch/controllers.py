@@ -5,8 +5,9 @@
 finger width drops below ``close_width`` and open otherwise (the "threshold" rule: a rule on the change of the
 planned width reacts to the jitter of open fingers). With ``follow_block`` (Push), while the planned gripper is
 within 8 cm of the planned block, the target moves by how far the real block is from the planned one, so the
-gripper keeps pushing the block it has rather than the one it planned (on by default for Push only). After the plan's last state the controller
-holds it. Measured on replayed expert paths in docs/environments.md.
+gripper keeps pushing the block it has rather than the one it planned (on by default for Push only). After the
+plan's last state the controller holds it. ``fetch-push-path`` (Push): the scripted pusher pushes the block along
+the planned block path. Ceilings on the experts' own plans: docs/benchmarks.md section 6.
 """
 
 from __future__ import annotations
@@ -64,3 +65,71 @@ def _track(spec, env, config: FetchTrackConfig, stride: int) -> FetchTrackContro
 
 
 CONTROLLERS.register(ControllerEntry(FetchTrackConfig, _track, "track planned grip positions (Fetch)"))
+
+
+class FetchPushPathConfig(ControllerConfig):
+    """Push the block along the plan's block path (object-centric, as the official Push controller)."""
+
+    name: Literal["fetch-push-path"] = "fetch-push-path"
+    tolerance: float = Field(
+        0.015, gt=0, le=0.2, description="the planned block path is cut to corners within this distance of it, m"
+    )
+
+
+class FetchPushPathController(Controller):
+    """``fetch-push-path``: the plan's block positions become the waypoints of the scripted pusher (get behind the
+    block, push, re-approach when it drifts), ending at the plan's last block position (the pinned goal). The
+    plan's gripper states are not used: on Push the block's path is what a plan decides, and tracking the
+    gripper alone sends a block that drifted a centimetre along another path (docs/benchmarks.md)."""
+
+    name = "fetch-push-path"
+
+    def __init__(self, spec, config: FetchPushPathConfig):
+        from cdrb_cli.envs.fetch.expert import FetchExpertConfig, PushExpert
+
+        self.c = config
+        self.pusher = PushExpert(spec, FetchExpertConfig())
+        self.plan = np.zeros((1, 6))
+
+    def reset(self, plan: np.ndarray) -> None:
+        self.plan = np.asarray(plan, dtype=np.float64)
+
+    def _waypoints(self) -> list[np.ndarray]:
+        """The planned block path's corners (Ramer-Douglas-Peucker in x-y): every leg a straight push, so the pusher
+        re-approaches only where the plan turns."""
+        path = self.plan[:, 3:6]
+        keep = np.zeros(len(path), dtype=bool)
+        keep[[0, -1]] = True
+        stack = [(0, len(path) - 1)]
+        while stack:
+            a, b = stack.pop()
+            if b - a < 2:
+                continue
+            ab = path[b, :2] - path[a, :2]
+            rel = path[a + 1 : b, :2] - path[a, :2]
+            n = float(np.linalg.norm(ab))
+            d = np.abs(ab[0] * rel[:, 1] - ab[1] * rel[:, 0]) / n if n > 1e-9 else np.linalg.norm(rel, axis=1)
+            i = int(np.argmax(d))
+            if d[i] > self.c.tolerance:
+                keep[a + 1 + i] = True
+                stack += [(a, a + 1 + i), (a + 1 + i, b)]
+        return [p for p in path[keep][1:]]
+
+    def act(self, state: np.ndarray, t: int) -> np.ndarray:
+        if t == 0:
+            self.pusher.reset(state, self.plan[-1, 3:6], np.random.default_rng(0))
+            self.pusher.targets = self._waypoints()
+        return self.pusher.act(state)
+
+
+def _push_path(spec, env, config: FetchPushPathConfig, stride: int) -> FetchPushPathController:
+    if spec.scene.task != "push":
+        from cdrb_cli.errors import BadInput
+
+        raise BadInput(f"--controller fetch-push-path: {spec.id} is not a Push task", hint="use fetch-track")
+    return FetchPushPathController(spec, config)
+
+
+CONTROLLERS.register(
+    ControllerEntry(FetchPushPathConfig, _push_path, "push the block along the planned block path (Fetch Push)")
+)
