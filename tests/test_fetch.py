@@ -372,3 +372,46 @@ def test_push_path_controller_is_for_push_only(tmp_path):
     c = CONTROLLERS.get("fetch-push-path")
     with pytest.raises(BadInput, match="not a Push task"):
         c.build(spec, None, c.config(), 1)
+
+
+def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
+    """Collect -> cluster -> train (tiny) -> plan (top and side views) -> eval on Push Obstacle, with start and goal
+    pinned on their own dims, and one-line errors for a start on a Push task and a goal inside the wall."""
+    from tests.test_train import TINY_FLAGS
+
+    demos, buffer, model = tmp_path / "d.h5", tmp_path / "b.h5", tmp_path / "m.h5"
+    assert cdrb("collect", "fetch-push-obstacle", "-n", "8", "--seed", "1", "--out", demos).returncode == 0
+    assert cdrb("cluster", demos, "--k", "30", "--seed", "0", "--out", buffer).returncode == 0
+    r = cdrb("train", demos, "--buffer", buffer, "--method", "cdrb", *TINY_FLAGS, "--steps", "20", "--out", model)
+    assert r.returncode == 0, r.stderr
+    plans, pic = tmp_path / "p.h5", tmp_path / "p.png"
+    r = cdrb("plan", model, "--pairs", "2", "--n", "2", "--seed", "3", "--out", plans, "--plot", pic)
+    assert r.returncode == 0, r.stderr
+    a = artifacts.load(plans, "plans").arrays
+    spec = make_spec("fetch-push-obstacle")
+    starts, goals = np.repeat(a["starts"], 2, axis=0), np.repeat(a["goals"], 2, axis=0)  # 2 plans per pair
+    np.testing.assert_array_equal(a["plans"][:, 0, :6], starts[:, :6])  # gripper and block at the start
+    np.testing.assert_array_equal(a["plans"][:, -1, 3:6], goals[:, 3:6])  # the block at the goal
+    assert a["plans"].shape[1] == 16 and spec.plan_stride == 2
+    assert pic.stat().st_size > 10_000
+    one = tmp_path / "one.h5"  # a start the family understands: the block's x,y, the gripper at home
+    r = cdrb("plan", model, "--start", "1.30,0.62", "--goal", "1.30,0.88,0.425", "--out", one)
+    assert r.returncode == 0, r.stderr
+    p = artifacts.load(one, "plans").arrays["plans"][0]
+    np.testing.assert_allclose(p[0, :3], spec.scene.home, atol=0.01)
+    np.testing.assert_allclose(p[0, 3:5], [1.30, 0.62], atol=0.002)
+    np.testing.assert_array_equal(p[-1, 3:6], np.float32([1.30, 0.88, 0.425]))
+    for args, needle in [
+        (["--start", "1.3,0.6,0.42", "--goal", "1.3,0.9,0.425"], "expected the block's x,y"),
+        (["--start", "1.3,0.75", "--goal", "1.3,0.9,0.425"], "would overlap a wall or leave the table"),
+        (["--start", "1.3,0.6", "--goal", "1.3,0.75,0.425"], "would overlap a wall or leave the table"),
+        (["--start", "1.7,0.6", "--goal", "1.3,0.9,0.425"], "would overlap a wall or leave the table"),
+    ]:
+        r = cdrb("plan", model, *args, "--out", tmp_path / "bad.h5")
+        assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
+        assert not (tmp_path / "bad.h5").exists()
+    ev = tmp_path / "e.h5"
+    r = cdrb("eval", model, "--episodes", "2", "--seeds", "0", "--controller", "fetch-push-path", "--out", ev)
+    assert r.returncode == 0, r.stderr
+    e = artifacts.load(ev, "eval")
+    assert e.manifest.config.controller.name == "fetch-push-path" and len(e.arrays["episodes/success"]) == 2

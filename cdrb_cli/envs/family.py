@@ -296,6 +296,10 @@ class EnvFamily(ABC):
         """The family's own picture of demonstrations (e.g. several views); None: the generic one."""
         return None
 
+    def plot_plans(self, spec: EnvSpec, plans, path: Path, starts, goals, in_wall, title: str) -> Path | None:
+        """The family's own picture of plans (e.g. several views); None: the generic top view."""
+        return None
+
     def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
         """Simulator frames of the agent following ``states`` (raise when the simulator cannot render here; the
         caller then draws the rollout with matplotlib)."""

@@ -134,6 +134,10 @@ def plot_plans(
 ) -> Path:
     """Plans (P, H, D) on the scene; states inside obstacles marked with red crosses. With ``iterates``
     (P, S, H, D), one panel per kept intermediate iterate shows the denoising at work."""
+    if iterates is None:  # a family may draw its plans its own way (Fetch: top and side views)
+        own = family_of(spec).plot_plans(spec, plans, Path(path), starts, goals, in_wall, title or "plans")
+        if own is not None:
+            return own
     plt = pyplot()
     panels = 1 + (iterates.shape[1] if iterates is not None else 0)
     fig, axes = plt.subplots(1, panels, figsize=(5 * panels, 5), squeeze=False)

@@ -17,7 +17,7 @@ import numpy as np
 
 from cdrb_cli.envs.family import EnvFamily, Episode
 from cdrb_cli.envs.fetch.geometry import body_obstacles, paths_in_obstacles, states_in_obstacles
-from cdrb_cli.envs.fetch.tasks import FetchScene, draw_task, scene_for, side
+from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_task, scene_for, side
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
@@ -97,7 +97,7 @@ class FetchFamily(EnvFamily):
     experts = ("fetch-scripted", "sac")
     controllers = ("fetch-track", "fetch-push-path")
     protocol = "stock-centre draws, walls rejected"
-    point_format = "x,y,z (the goal position), e.g. 1.30,0.85,0.42"
+    point_format = "--goal x,y,z; --start the block's x,y (gripper at home) or, for Reach, the gripper's x,y,z"
 
     # -------------------------------------------------------------- environments
     def env_ids(self) -> dict[str, str]:
@@ -138,11 +138,35 @@ class FetchFamily(EnvFamily):
         return out
 
     def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
-        if flag == "--start" and has_object(spec):
+        """``--goal x,y,z``; ``--start bx,by`` (Push, Pick & Place: the block there at rest, the gripper at home,
+        the state the env resets to) or ``--start x,y,z`` (Reach: the gripper there at rest); or a full state."""
+        if flag != "--start" or not has_object(spec):
+            return super().parse_point(spec, text, flag)
+        try:
+            values = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+        except ValueError:
+            raise BadInput(f"{flag} {text!r}: not a list of numbers", hint="write the block's x,y") from None
+        if len(values) == spec.obs_dim:
+            state = np.array(values)
+            self.check_point(spec, state, flag)
+            return state
+        if len(values) != 2:
             raise BadInput(
-                f"{flag}: a Fetch plan starts from an episode's reset state", hint="give --goal only, or --seed"
+                f"{flag} {text!r}: expected the block's x,y (2 numbers) or a full state ({spec.obs_dim})",
+                hint="e.g. --start 1.30,0.62 (the gripper starts at home)",
             )
-        return super().parse_point(spec, text, flag)
+        nominal = np.zeros(spec.obs_dim)
+        nominal[:3] = spec.scene.home
+        nominal[3:6] = (*values, BLOCK_Z)
+        if not np.all(np.isfinite(nominal)):
+            raise BadInput(f"{flag} {text!r}: not finite", hint="write the block's x,y in metres")
+        self.check_point(spec, nominal, flag)
+        env = self.make_env(spec)
+        try:
+            state, _ = env.reset(Episode(0, tuple(values), (*values, BLOCK_Z)))
+        finally:
+            env.close()
+        return state
 
     def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:
         if self.in_collision(spec, state[None])[0]:
@@ -199,6 +223,11 @@ class FetchFamily(EnvFamily):
         from cdrb_cli.envs.fetch.render import plot_demos
 
         return plot_demos(demos, path, n=min(n, 40), seed=seed)
+
+    def plot_plans(self, spec: EnvSpec, plans, path, starts, goals, in_wall, title: str):
+        from cdrb_cli.envs.fetch.render import plot_plans
+
+        return plot_plans(spec, plans, path, starts, goals, in_wall, title)
 
     def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
         from cdrb_cli.envs.fetch.render import mujoco_frames

@@ -82,6 +82,40 @@ def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
     return save_figure(fig, path)
 
 
+def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, title: str) -> Path:
+    """Top and side views of plans (P, H, D): gripper paths thin, block paths thick, one colour per plan; planned
+    states in an obstacle as red crosses (at the block when there is one), starts as circles, goals as stars."""
+    from cdrb_cli.envs.render import COLOURS, pyplot, save_figure, set_title
+
+    plt = pyplot()
+    plans = np.asarray(plans)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
+    bodies = [(slice(0, 3), 0.7, 0.6)]
+    if spec.scene.task != "reach":
+        bodies.append((slice(3, 6), 1.8, 0.9))
+    ends = slice(3, 6) if spec.scene.task != "reach" else slice(0, 3)
+    for ax, view in zip(axes, VIEWS):
+        draw_view(ax, spec, view)
+        h, v = VIEWS[view]
+        for i, plan in enumerate(plans):
+            colour = COLOURS[i % len(COLOURS)]
+            for dims, lw, alpha in bodies:
+                p = plan[:, dims]
+                ax.plot(p[:, h], p[:, v], "-", lw=lw, alpha=alpha, color=colour, zorder=2)
+        if in_wall is not None and np.asarray(in_wall).any():
+            bad = plans[np.asarray(in_wall)][:, ends]
+            ax.plot(bad[:, h], bad[:, v], "x", color="red", ms=4, mew=1.0, zorder=5)
+        if starts is not None:
+            s = np.asarray(starts)[:, ends]
+            ax.plot(s[:, h], s[:, v], "o", ms=5, mfc="white", mec="black", zorder=4)
+        if goals is not None:
+            g = np.asarray(goals)[:, spec.goal_dims]
+            ax.plot(g[:, h], g[:, v], "*", ms=10, mfc="gold", mec="black", zorder=4)
+        set_title(ax, f"{view} view", fontsize=9)
+    fig.suptitle(f"{spec.id}: {title}", fontsize=10)
+    return save_figure(fig, path)
+
+
 def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360) -> list[np.ndarray]:
     """MuJoCo frames of a Fetch path (raises when no GL context can be made). The arm is driven kinematically
     through the grip positions by the mocap (a picture of the path, not a re-simulation); the block is placed at
