@@ -750,7 +750,8 @@ def eval_cmd(
         "--controller",
         parser=_registered(_controllers, "controller"),
         metavar="NAME",
-        help="The controller that executes plans (default: the protocol's; mazes: pd, inverse-dynamics or waypoint).",
+        help="The controller that executes plans (default: the protocol's; mazes: pd, inverse-dynamics or "
+        "waypoint; Fetch: fetch-track, or fetch-push-path on Push).",
     ),
     max_lag: float | None = typer.Option(
         None,
