@@ -119,3 +119,20 @@ def test_2_2_renames(tmp_path, version, schedule, sampler):
     method = artifacts.load(path, "model").manifest.config.method
     assert (method.schedule, method.sampler) == (schedule, sampler)
     assert method.end_actions == ("kept" if version == "2.1" else "degraded")
+
+
+def test_a_2_2_file_reads_with_the_goal_pinned_like_the_start(tmp_path):
+    """Schema 2.3 added env.pinned_end_dims; a 2.2 file has no such field and keeps its meaning (null: the goal pins
+    what the start pins)."""
+    from tests.factories import tampered, write
+
+    path = write(tmp_path / "m.h5", "model")
+    with tampered(path) as f:
+        m = json.loads(bytes(f["manifest"][()]))
+        m["schema_version"] = "2.2"
+        m["env"].pop("pinned_end_dims")
+        f.attrs["cdrb_schema_version"] = "2.2"
+        del f["manifest"]
+        f["manifest"] = np.bytes_(json.dumps(m).encode())
+    env = artifacts.load(path, "model").manifest.env
+    assert env.pinned_end_dims is None and env.pin_end_dims == env.pin_dims
