@@ -20,11 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from cdrb_cli.data import first_window
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of, make_spec
 from cdrb_cli.seeding import STREAM_TUNE
 from cdrb_cli.stages.evaluate import run_episode
 
-#: (label, controller name, config overrides, horizon multiplier, stride); the env's own horizon and stride first
+#: per family: (label, controller name, config overrides) of each controller setting measured
 SETTINGS = {
     "fetch": [
         ("track K=1", "fetch-track", {"gain": 1.0, "follow_block": False}),
@@ -33,12 +34,6 @@ SETTINGS = {
         ("push along the block path", "fetch-push-path", {}),
     ],
 }
-
-
-def expert_plan(states: np.ndarray, horizon: int, stride: int) -> np.ndarray:
-    """The expert's states every ``stride`` steps, ``horizon`` of them (the last repeated if the episode is short)."""
-    idx = np.minimum(np.arange(horizon) * stride, len(states) - 1)
-    return states[idx]
 
 
 def measure(env_id: str, episodes: int, seed: int, horizon: int | None, stride: int | None) -> list[dict]:
@@ -57,7 +52,7 @@ def measure(env_id: str, episodes: int, seed: int, horizon: int | None, stride: 
             obs, goal = env.reset(ep)
             expert.reset(obs, goal, np.random.default_rng(ep.seed))
             run = run_episode(env, spec, ep, lambda o, t: expert.act(o), spec.episode_limit)
-            plan = expert_plan(run.states, H, k)
+            plan = first_window(run.states, H, k)  # as a training window from the episode's start
             plans.append(plan)
             expert_ok.append(run.success)
             reached.append(bool(fam.success(spec, plan, goal).any()))

@@ -13,6 +13,20 @@ from cdrb_cli.buffer import Normalizer, demo_features
 from cdrb_cli.errors import BadInput
 
 
+def window_index(lengths, horizon: int, stride: int, offsets=0) -> np.ndarray:
+    """(n, H) indices into n episodes of the given lengths: H states every ``stride`` steps from ``offsets``, indices
+    past an episode's end repeating its last state."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    offsets = np.broadcast_to(np.asarray(offsets, dtype=np.int64), lengths.shape)
+    idx = offsets[:, None] + stride * np.arange(horizon)[None, :]
+    return np.minimum(idx, (lengths - 1)[:, None])
+
+
+def first_window(states: np.ndarray, horizon: int, stride: int) -> np.ndarray:
+    """The window of one episode's states (T, D) from its first state: what a plan from the episode's start spans."""
+    return np.asarray(states)[window_index([len(states)], horizon, stride)[0]]
+
+
 class WindowSampler:
     def __init__(
         self,
@@ -52,13 +66,11 @@ class WindowSampler:
             anchored = rng.random(n) < self.start_fraction
             e = np.where(anchored, rng.integers(0, len(self.starts), size=n), e)
             offset = np.where(anchored, 0, offset)
-        idx = offset[:, None] + self.stride * np.arange(self.horizon)[None, :]
-        idx = np.minimum(idx, (self.lengths[e] - 1)[:, None]) + self.starts[e][:, None]
+        idx = window_index(self.lengths[e], self.horizon, self.stride, offset) + self.starts[e][:, None]
         return self.flat[idx]
 
     def episode_windows(self, max_windows: int | None = None) -> np.ndarray:
         """One window per episode from its first state (the test-time situation), for validation."""
         n = len(self.starts) if max_windows is None else min(len(self.starts), max_windows)
-        idx = self.stride * np.arange(self.horizon)[None, :]
-        idx = np.minimum(idx, (self.lengths[:n] - 1)[:, None]) + self.starts[:n, None]
+        idx = window_index(self.lengths[:n], self.horizon, self.stride) + self.starts[:n, None]
         return self.flat[idx]

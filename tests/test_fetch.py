@@ -330,11 +330,7 @@ def test_sac_her_expert_for_fetch_tiny_budget(tmp_path, cdrb):
 def test_controllers_execute_the_experts_own_plans(env_id, controller):
     """A controller's ceiling: the expert's states, cut to the plan a model would make, executed from the same
     reset, reach the goal (docs/results/controller_ceiling.csv measures it on 100 episodes per task)."""
-    import sys
-
-    sys.path.insert(0, "benchmarks")
-    from controller_ceiling import expert_plan
-
+    from cdrb_cli.data import first_window
     from cdrb_cli.envs.registry import CONTROLLERS
     from cdrb_cli.stages.evaluate import run_episode
 
@@ -350,7 +346,7 @@ def test_controllers_execute_the_experts_own_plans(env_id, controller):
             obs, goal = env.reset(ep)
             expert.reset(obs, goal, np.random.default_rng(ep.seed))
             demo = run_episode(env, spec, ep, lambda o, t: expert.act(o), spec.episode_limit)
-            ctl.reset(expert_plan(demo.states, spec.horizon, spec.plan_stride))
+            ctl.reset(first_window(demo.states, spec.horizon, spec.plan_stride))
             run = run_episode(env, spec, ep, ctl.act, spec.episode_limit)
             assert run.success, (env_id, controller, ep.seed)
             if controller == "fetch-push-path" or spec.scene.task != "push":
