@@ -213,12 +213,23 @@ class EnvFamily(ABC):
                 env.close()
         return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
-    def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
-        """A --start/--goal value -> a state: goal coordinates (then at rest) or a full state."""
+    def numbers(self, text: str, flag: str) -> list[float]:
+        """The comma-separated numbers of a --start/--goal value (one-line error otherwise)."""
         try:
-            values = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+            return [float(v) for v in text.replace(" ", "").split(",") if v != ""]
         except ValueError:
             raise BadInput(f"{flag} {text!r}: not a list of numbers", hint=f"write {self.point_format}") from None
+
+    def checked_point(self, spec: EnvSpec, state: np.ndarray, text: str, flag: str) -> np.ndarray:
+        """``state`` when it is finite and one the agent can be in (:meth:`check_point`); else a one-line error."""
+        if not np.all(np.isfinite(state)):
+            raise BadInput(f"{flag} {text!r}: values must be finite", hint=f"write {self.point_format}")
+        self.check_point(spec, state, flag)
+        return state
+
+    def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
+        """A --start/--goal value -> a state: goal coordinates (then at rest) or a full state."""
+        values = self.numbers(text, flag)
         n_pos = len(spec.goal_dims)
         if len(values) == n_pos:
             state = self.goal_state(spec, np.array(values))[0]
@@ -228,10 +239,7 @@ class EnvFamily(ABC):
             raise BadInput(
                 f"{flag} {text!r}: expected {n_pos} or {spec.obs_dim} numbers", hint=f"write {self.point_format}"
             )
-        if not np.all(np.isfinite(state)):
-            raise BadInput(f"{flag} {text!r}: values must be finite", hint=f"write {self.point_format}")
-        self.check_point(spec, state, flag)
-        return state
+        return self.checked_point(spec, state, text, flag)
 
     def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:
         """Refuse a start/goal state the agent cannot be in (one-line :class:`BadInput`)."""

@@ -142,14 +142,9 @@ class FetchFamily(EnvFamily):
         the state the env resets to) or ``--start x,y,z`` (Reach: the gripper there at rest); or a full state."""
         if flag != "--start" or not has_object(spec):
             return super().parse_point(spec, text, flag)
-        try:
-            values = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
-        except ValueError:
-            raise BadInput(f"{flag} {text!r}: not a list of numbers", hint="write the block's x,y") from None
+        values = self.numbers(text, flag)
         if len(values) == spec.obs_dim:
-            state = np.array(values)
-            self.check_point(spec, state, flag)
-            return state
+            return self.checked_point(spec, np.array(values), text, flag)
         if len(values) != 2:
             raise BadInput(
                 f"{flag} {text!r}: expected the block's x,y (2 numbers) or a full state ({spec.obs_dim})",
@@ -158,9 +153,7 @@ class FetchFamily(EnvFamily):
         nominal = np.zeros(spec.obs_dim)
         nominal[:3] = spec.scene.home
         nominal[3:6] = (*values, BLOCK_Z)
-        if not np.all(np.isfinite(nominal)):
-            raise BadInput(f"{flag} {text!r}: not finite", hint="write the block's x,y in metres")
-        self.check_point(spec, nominal, flag)
+        self.checked_point(spec, nominal, text, flag)
         env = self.make_env(spec)
         try:
             state, _ = env.reset(Episode(0, tuple(values), (*values, BLOCK_Z)))
