@@ -43,6 +43,22 @@ def draw_top(ax, spec: EnvSpec) -> None:
     draw_view(ax, spec, "top")
 
 
+def _bodies(spec: EnvSpec) -> list[tuple[slice, float, float]]:
+    """(state dims, line width, alpha) of each body drawn: the gripper thin, the block (if any) thick."""
+    out = [(slice(0, 3), 0.7, 0.55)]
+    if spec.scene.task != "reach":
+        out.append((slice(3, 6), 1.8, 0.9))
+    return out
+
+
+def _draw_paths(ax, view: str, states: np.ndarray, bodies, colour) -> None:
+    """One path (T, D) in ``view``, each body with its own line."""
+    h, v = VIEWS[view]
+    for dims, lw, alpha in bodies:
+        p = states[:, dims]
+        ax.plot(p[:, h], p[:, v], "-", lw=lw, alpha=alpha, color=colour, zorder=2)
+
+
 def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
     """Top and side views of a sample of demonstrations: gripper paths thin, block paths thick, coloured by
     the side of the wall the goal is on; starts as circles, goals as stars."""
@@ -55,9 +71,7 @@ def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
     rng = np.random.default_rng(seed)
     ids = rng.choice(demos.n_episodes, size=min(n, demos.n_episodes), replace=False)
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
-    bodies = [(slice(0, 3), 0.7, 0.55)]
-    if spec.scene.task != "reach":
-        bodies.append((slice(3, 6), 1.8, 0.9))
+    bodies = _bodies(spec)
     for ax, view in zip(axes, VIEWS):
         draw_view(ax, spec, view)
         h, v = VIEWS[view]
@@ -65,9 +79,7 @@ def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
             obs, _ = demos.episode(int(e))
             goal = demos.desired_goals[int(demos.episode_start[e])]
             colour = COLOURS[fam.goal_group(spec, goal) % len(COLOURS)]
-            for dims, lw, alpha in bodies:
-                p = obs[:, dims]
-                ax.plot(p[:, h], p[:, v], "-", lw=lw, alpha=alpha, color=colour, zorder=2)
+            _draw_paths(ax, view, obs, bodies, colour)
             p = obs[0, spec.goal_dims]
             ax.plot(p[h], p[v], "o", ms=3, mfc="white", mec=colour, zorder=3)
             ax.plot(goal[h], goal[v], "*", ms=6, mfc="gold", mec="black", mew=0.4, zorder=4)
@@ -90,18 +102,13 @@ def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, t
     plt = pyplot()
     plans = np.asarray(plans)
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
-    bodies = [(slice(0, 3), 0.7, 0.6)]
-    if spec.scene.task != "reach":
-        bodies.append((slice(3, 6), 1.8, 0.9))
-    ends = slice(3, 6) if spec.scene.task != "reach" else slice(0, 3)
+    bodies = _bodies(spec)
+    ends = bodies[-1][0]  # the block's dims when there is one, else the gripper's
     for ax, view in zip(axes, VIEWS):
         draw_view(ax, spec, view)
         h, v = VIEWS[view]
         for i, plan in enumerate(plans):
-            colour = COLOURS[i % len(COLOURS)]
-            for dims, lw, alpha in bodies:
-                p = plan[:, dims]
-                ax.plot(p[:, h], p[:, v], "-", lw=lw, alpha=alpha, color=colour, zorder=2)
+            _draw_paths(ax, view, plan, bodies, COLOURS[i % len(COLOURS)])
         if in_wall is not None and np.asarray(in_wall).any():
             bad = plans[np.asarray(in_wall)][:, ends]
             ax.plot(bad[:, h], bad[:, v], "x", color="red", ms=4, mew=1.0, zorder=5)
