@@ -22,6 +22,7 @@ import numpy as np
 
 from cdrb_cli.data import first_window
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of, make_spec
+from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import STREAM_TUNE
 from cdrb_cli.stages.evaluate import run_episode
 
@@ -57,11 +58,12 @@ def measure(env_id: str, episodes: int, seed: int, horizon: int | None, stride: 
             expert_ok.append(run.success)
             reached.append(bool(fam.success(spec, plan, goal).any()))
         for label, name, overrides in SETTINGS[fam.name]:
-            if name == "fetch-push-path" and spec.scene.task != "push":
-                continue
             c = CONTROLLERS.get(name)
             cfg = c.config.model_validate({"name": name, **overrides})
-            ctl = c.build(spec, env, cfg, k)
+            try:
+                ctl = c.build(spec, env, cfg, k)
+            except BadInput:  # not a controller for this task (e.g. fetch-push-path off Push)
+                continue
             t0 = time.time()
             ok, coll = [], []
             for ep, plan in zip(eps, plans):
