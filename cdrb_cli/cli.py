@@ -13,7 +13,6 @@ registered plugin is a valid choice too. Training hyper-parameters come from the
 
 from __future__ import annotations
 
-import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +25,7 @@ try:  # typer >= 0.20 vendors click; older versions use the click package
 except ImportError:  # pragma: no cover
     from click import exceptions as click_exc
 
-from cdrb_cli import PROG, __version__, ui
+from cdrb_cli import PROG, __version__, interrupts, ui
 from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, BadInput, CdrbError
 
 app = typer.Typer(
@@ -991,7 +990,7 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     command = typer.main.get_command(app)
-    previous = signal.signal(signal.SIGTERM, _terminate)
+    restore_signals = interrupts.install()
     try:
         code = command.main(args=args, prog_name=PROG, standalone_mode=False)
         if code == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into a returned exit code 130
@@ -1027,12 +1026,7 @@ def main(argv: list[str] | None = None) -> int:
         _error(f"{type(exc).__name__}: {_one_line(str(exc))[:300]} (re-run with `cdrb --debug ...` for a traceback)")
         return EXIT_FAILED
     finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-def _terminate(signum, frame) -> None:
-    """SIGTERM ends a run like Ctrl-C: temp files removed, one line, exit code 130."""
-    raise KeyboardInterrupt
+        restore_signals()
 
 
 def _interrupted(args: list[str]) -> None:

@@ -348,3 +348,37 @@ def test_single_bit_flips_never_load_as_other_content(tmp_path, kind):
         for name in art.arrays:
             np.testing.assert_array_equal(art.arrays[name], pristine.arrays[name], err_msg=f"byte {at}: {name}")
     assert loaded < 50  # most flips land in data the checksum covers
+
+
+def test_a_signal_inside_a_polled_loop_waits_for_the_check_and_is_never_lost():
+    """In training the signal only raises a flag, answered at the next step: an interrupt raised inside a weakref
+    callback or finalizer is dropped by Python ("Exception ignored in ..."), which once let a Ctrl-C'd training
+    run on. Outside a polled loop the signal raises at once, as Python's own handler does."""
+    import weakref
+
+    from cdrb_cli import interrupts
+
+    class Obj:
+        pass
+
+    restore = interrupts.install()
+    try:
+        with pytest.raises(KeyboardInterrupt), interrupts.polled():
+            o = Obj()
+            weakref.finalize(o, os.kill, os.getpid(), signal.SIGTERM)
+            del o  # the signal arrives while a finalizer runs: only the flag is raised
+            for _ in range(100):
+                sum(range(1000))  # the handler has run; nothing was raised yet
+            with pytest.raises(KeyboardInterrupt):
+                interrupts.check()
+            interrupts.check()  # answered once, not twice
+            os.kill(os.getpid(), signal.SIGTERM)
+            sum(range(1000))
+        # leaving the block answers a signal that came after the last check
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):
+                sum(range(1000))
+    finally:
+        restore()
+    assert signal.getsignal(signal.SIGTERM) is not interrupts._handler

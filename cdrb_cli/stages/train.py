@@ -15,7 +15,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from cdrb_cli import artifacts, ui
+from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, feature_dim, split_rows
 from cdrb_cli.configs import TrainConfig, TrainState
 from cdrb_cli.data import WindowSampler
@@ -188,9 +188,10 @@ def train(
     last_loss = curve[-1][1] if curve else None
     for m in modules.values():
         m.train()
-    with ui.progress() as bar:
+    with ui.progress() as bar, interrupts.polled():
         task = bar.add_task(f"train {config.method.name}", total=config.steps, completed=step, info="")
         while step < config.steps:
+            interrupts.check()
             rng = step_rng(config.seed, STREAM_TRAIN, step)
             batch = torch.from_numpy(windows.sample(config.batch_size, rng)).to(device)
             try:
