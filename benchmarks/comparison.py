@@ -68,6 +68,9 @@ SWEEP = {
     },
 }
 
+#: Fetch: no sweep of the training settings (CPU budget; the same for every method: the quick preset)
+FETCH_SWEEP = {m: {"quick": []} for m in SWEEP}
+
 #: plan clocks tried for every method: (name, `cdrb eval` flags)
 CLOCKS = {
     "time-indexed": ["--max-lag", "0"],
@@ -76,6 +79,47 @@ CLOCKS = {
     "gated 0.3, wait<=10": ["--max-lag", "0.3", "--set", "controller.max_wait=10"],
     "official executor": ["--controller", "waypoint"],
 }
+
+
+#: Fetch: the task's controllers tried for every method (the controller-ceiling candidates, docs/benchmarks.md §6)
+FETCH_CONTROLLERS = {
+    "reach": {
+        "track K=2": ["--controller", "fetch-track"],
+        "track K=1": ["--controller", "fetch-track", "--set", "controller.gain=1"],
+    },
+    "push": {
+        "track K=2, follow block": ["--controller", "fetch-track"],
+        "track K=2": ["--controller", "fetch-track", "--set", "controller.follow_block=false"],
+        "push along the block path": ["--controller", "fetch-push-path"],
+    },
+    "pick-place": {
+        "track K=2": ["--controller", "fetch-track"],
+        "track K=1": ["--controller", "fetch-track", "--set", "controller.gain=1"],
+    },
+}
+
+
+def _fetch_task(env: str) -> str | None:
+    from cdrb_cli.envs.registry import make_spec
+
+    spec = make_spec(env)
+    return spec.scene.task if spec.family == "fetch" else None
+
+
+def sweep_for(env: str) -> dict[str, dict[str, list]]:
+    """Per method, the training-setting candidates tried on ``env``."""
+    return FETCH_SWEEP if _fetch_task(env) else SWEEP
+
+
+def clocks_for(env: str) -> dict[str, list]:
+    """The controller/clock candidates tried on ``env`` (the same for every method)."""
+    task = _fetch_task(env)
+    return FETCH_CONTROLLERS[task] if task else CLOCKS
+
+
+def has_curves(env: str) -> bool:
+    """Learning curves are run on the mazes; on Fetch the quick preset's step count is kept (CPU budget)."""
+    return _fetch_task(env) is None
 
 
 def eval_tune(model: Path, out: Path, args, log, flags=(), key="") -> Path:
@@ -102,15 +146,17 @@ def train(model: Path, demos: Path, buffer: Path, method: str, seed: int, flags,
 
 
 def buffers(env: str, args, log) -> dict[str, tuple[Path, Path]]:
-    """(demos, buffer) per feature space."""
-    return {f: prepare_env(env, args.out, args, log, features=f) for f in ("state", "state-action")}
+    """(demos, buffer) per feature space that the env's sweep uses."""
+    flags = [f for by in sweep_for(env).values() for cand in by.values() for f in cand]
+    spaces = ("state", "state-action") if "features=state-action" in flags else ("state",)
+    return {f: prepare_env(env, args.out, args, log, features=f) for f in spaces}
 
 
 def curves(args, log) -> None:
     """Learning curves of each method's chosen sweep candidate (the quick preset before any sweep)."""
     points = [int(s) for s in args.curve_steps.split(",")]
     tuned = choose(args)
-    for env in args.envs:
+    for env in [e for e in args.envs if has_curves(e)]:
         data = buffers(env, args, log)
         for seed in args.curve_seeds:
             for method in args.methods:
@@ -138,7 +184,7 @@ def sweep(args, log) -> None:
     for env in args.envs:
         data = buffers(env, args, log)
         for method in args.methods:
-            for name, flags in SWEEP[method].items():
+            for name, flags in sweep_for(env)[method].items():
                 if args.tiny and any("horizon" in f or "net." in f for f in flags):
                     continue  # the smoke test sets these itself
                 features = "state-action" if "features=state-action" in flags else "state"
@@ -157,7 +203,7 @@ def clock(args, log) -> None:
             name = tuned[env][method]["candidate"]
             folder = args.out / env / "sweep"
             model = folder / f"{method}-{slug(name)}.h5"
-            for cname, flags in CLOCKS.items():
+            for cname, flags in clocks_for(env).items():
                 eval_tune(model, folder / f"clock-{method}-{slug(cname)}.h5", args, log, flags)
 
 
@@ -190,13 +236,13 @@ def choose(args) -> dict:
     for env in args.envs:
         for method in args.methods:
             rows = []
-            for name in SWEEP[method]:
+            for name in sweep_for(env)[method]:
                 p = args.out / env / "sweep" / f"eval-{method}-{slug(name)}.h5"
                 if p.exists():
                     rows.append((name, _summary(p)))
             if rows:
                 name, s = max(rows, key=lambda r: (r[1]["success"], -r[1]["crossing"], -r[1]["collision"]))
-                out.setdefault(env, {})[method] = {"candidate": name, "train_flags": SWEEP[method][name], **s}
+                out.setdefault(env, {})[method] = {"candidate": name, "train_flags": sweep_for(env)[method][name], **s}
     return out
 
 
@@ -208,7 +254,7 @@ def write(args, log) -> None:
     rows = []
     for env in args.envs:
         for method in args.methods:
-            for name in SWEEP[method]:
+            for name in sweep_for(env)[method]:
                 p = args.out / env / "sweep" / f"eval-{method}-{slug(name)}.h5"
                 if not p.exists():
                     continue
@@ -227,13 +273,13 @@ def write(args, log) -> None:
                     }
                 )
     if rows:
-        _csv(results / "tuning.csv", rows)
+        _csv(results / "tuning.csv", rows, args.envs)
     tuned = choose(args)
     clocks = []
     for env, by in tuned.items():
         for method, t in by.items():
-            best = None
-            for cname in CLOCKS:
+            best, candidates = None, clocks_for(env)
+            for cname in candidates:
                 p = args.out / env / "sweep" / f"clock-{method}-{slug(cname)}.h5"
                 if p.exists():
                     s = _summary(p)
@@ -249,9 +295,12 @@ def write(args, log) -> None:
                     if best is None or (s["success"], -s["collision"]) > (best[1]["success"], -best[1]["collision"]):
                         best = (cname, s)
             if best is not None:
-                t["clock"], t["eval_flags"] = best[0], CLOCKS[best[0]]
+                t["clock"], t["eval_flags"] = best[0], candidates[best[0]]
+            if not has_curves(env):
+                # no curve runs: table1.py reuses the sweep's seed-0 model (the quick preset, seed 0) for seed 0
+                t["curve_models"] = {"0": t["model"]}
     if clocks:
-        _csv(results / "tuning_clock.csv", clocks)
+        _csv(results / "tuning_clock.csv", clocks, args.envs)
     curve_rows = []
     for env in args.envs:
         for method in args.methods:  # the curves of each method's chosen candidate only
@@ -269,8 +318,8 @@ def write(args, log) -> None:
                 )
     if curve_rows:
         curve_rows.sort(key=lambda r: (r["env"], r["method"], r["seed"], r["steps"]))
-        _csv(results / "learning_curves.csv", curve_rows)
-        plot_curves(curve_rows, figures / "learning_curves.png")
+        all_curves = _csv(results / "learning_curves.csv", curve_rows, args.envs)
+        plot_curves(all_curves, figures / "learning_curves.png")
         # training steps: the curve point with the best mean tuning success (ties: fewer steps, i.e. cheaper)
         for env, by in tuned.items():
             for method, t in by.items():
@@ -294,8 +343,12 @@ def write(args, log) -> None:
                     if r["steps"] == best
                 }
     meta = {"machine": hardware(), "tuning_stream_seeds": args.tune_seeds, "episodes_per_seed": args.episodes}
-    (results / "tuned.json").write_text(json.dumps({"meta": meta, "settings": tuned}, indent=2) + "\n")
-    print(results / "tuned.json")
+    path = results / "tuned.json"
+    # the environments not tuned in this run keep their settings (Fetch and the mazes are tuned in separate runs)
+    kept = json.loads(path.read_text())["settings"] if path.exists() else {}
+    settings = {e: v for e, v in kept.items() if e not in args.envs} | tuned
+    path.write_text(json.dumps({"meta": meta, "settings": settings}, indent=2) + "\n")
+    print(path)
 
 
 def _curve_folder(args, env: str, tuned: dict) -> Path:
@@ -307,12 +360,28 @@ def _curve_model(folder: Path, method: str, seed: int, steps: int, final: int) -
     return folder / (f"{method}-s{seed}.h5" if steps == final else f"{method}-s{seed}.step{steps}.h5")
 
 
-def _csv(path: Path, rows: list[dict]) -> None:
+def _csv(path: Path, rows: list[dict], envs: list[str]) -> list[dict]:
+    """Write ``rows`` for ``envs`` into the CSV at ``path``, keeping its rows of other environments; returns all."""
+    if path.exists():
+        with open(path, newline="") as fh:
+            kept = [r for r in csv.DictReader(fh) if r["env"] not in envs]
+        kept = [{k: _number(v) for k, v in r.items()} for r in kept]
+        rows = kept + rows
     with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w = csv.DictWriter(fh, fieldnames=list(rows[-1]))
         w.writeheader()
         w.writerows(rows)
     print(path)
+    return rows
+
+
+def _number(text: str):
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
 
 
 def plot_curves(rows: list[dict], path: Path) -> None:
@@ -349,7 +418,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("runs/cmp"))
     ap.add_argument("--envs", default=",".join(ENVS))
     ap.add_argument("--methods", default=",".join(METHODS))
-    ap.add_argument("--demos", type=int, default=8000)
+    ap.add_argument(
+        "--demos", type=int, default=None, help="demonstrations per env (default: 8000 on the mazes, 5000 on Fetch)"
+    )
     ap.add_argument("--episodes", type=int, default=50, help="tuning episodes per tuning seed")
     ap.add_argument("--tune-seeds", default=TUNE_SEEDS)
     ap.add_argument("--curve-seeds", default="0,1,2")
@@ -365,7 +436,7 @@ def main() -> None:
     args.tiny_flags, args.sweep_steps = [], []
     if args.tiny:
         args.sweep_steps = ["--steps", "50"]
-        args.demos, args.episodes = min(args.demos, 40), min(args.episodes, 3)
+        args.episodes = min(args.episodes, 3)
         args.tiny_flags = [a for kv in ("horizon=16", "stride=10", "batch_size=8") for a in ("--set", kv)]
         args.curve_steps = "50,100"
     args.out.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,13 @@ def test_table1_script_tiny(tmp_path):
     assert again.returncode == 0
     stages = [line for line in again.stdout.splitlines() if line.startswith(("done", "skip"))]
     assert stages and all(line.startswith("skip") for line in stages if " cdrb report " not in line), stages
+    # the grid runs in parts: a Fetch row added later joins the rows already there, in the paper's order
+    fetch = [*cmd[: cmd.index("--envs")], "--envs", "fetch-reach", "--methods", "mlp,cdrb", "--seeds", "0,1"]
+    proc = subprocess.run(fetch, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "cdrb collect fetch-reach -n 40 " in proc.stdout  # --tiny caps the Fetch default of 5000 demos
+    table = (out / "table1.md").read_text()
+    assert table.index("| Maze Tight |") < table.index("| Reach |") and "Reach (paper)" in table
 
 
 def test_planning_script(tmp_path, small_data):
@@ -57,3 +64,34 @@ def test_planning_script(tmp_path, small_data):
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| cdrb (quick) | paper (8) |" in proc.stdout
+
+
+@pytest.mark.slow
+def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path):
+    """On Fetch the comparison tunes each method's controller among the task's candidates (the same list for every
+    method) on the tuning stream, and `write` keeps the settings already chosen for other environments."""
+    import csv
+    import json
+
+    out = tmp_path / "cmp"
+    out.mkdir()
+    (out / "tuned.json").write_text(json.dumps({"meta": {}, "settings": {"maze": {"mlp": {"candidate": "x"}}}}))
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "comparison.py"), "all", "--tiny", "--out", str(out)]
+    cmd += ["--envs", "fetch-reach", "--methods", "mlp,cdrb", "--device", "cpu"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    settings = json.loads((out / "tuned.json").read_text())["settings"]
+    assert settings["maze"] == {"mlp": {"candidate": "x"}}
+    from benchmarks.comparison import FETCH_CONTROLLERS
+
+    for method in ("mlp", "cdrb"):
+        t = settings["fetch-reach"][method]
+        assert t["candidate"] == "quick" and t["train_flags"] == []
+        assert t["eval_flags"] == FETCH_CONTROLLERS["reach"][t["clock"]]
+        assert t["curve_models"] == {"0": t["model"]} and Path(t["model"]).name == f"{method}-quick.h5"
+    with open(out / "tuning_clock.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted((r["method"], r["clock"]) for r in rows) == sorted(
+        (m, c) for m in ("mlp", "cdrb") for c in FETCH_CONTROLLERS["reach"]
+    )
+    assert not (out / "fetch-reach" / "buffer-k1000-state-action.h5").exists()  # no sweep candidate needs it

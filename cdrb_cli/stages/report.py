@@ -20,7 +20,7 @@ from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.stages.evaluate import mean_or_none, sample_std
 
-PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) for the two mazes
+PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds), its eight rows
     "maze": {
         "mlp": (74.22, 3.81),
         "diffuser": (100.0, 0.0),
@@ -34,6 +34,17 @@ PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds) fo
         "diffusion-bc": (89.21, 1.20),
         "diffusion-ql": (84.02, 3.86),
         "cdrb": (98.00, 0.00),
+    },
+    **{
+        env: dict(zip(("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"), row, strict=True))
+        for env, row in {
+            "fetch-reach-obstacle": ((80.74, 5.20), (97.56, 0.74), (89.63, 0.41), (74.03, 8.12), (97.92, 0.18)),
+            "fetch-pick-place-obstacle": ((0.0, 0.0), (46.68, 1.29), (58.80, 2.34), (24.19, 8.31), (70.88, 1.01)),
+            "fetch-push-obstacle": ((2.43, 1.10), (58.64, 1.45), (34.81, 7.79), (29.41, 5.24), (71.04, 1.58)),
+            "fetch-reach": ((90.34, 2.18), (100.0, 0.0), (94.02, 1.03), (58.60, 14.69), (100.0, 0.0)),
+            "fetch-push": ((2.45, 1.10), (70.56, 0.68), (68.23, 8.13), (65.60, 12.63), (89.92, 0.69)),
+            "fetch-pick-place": ((0.0, 0.0), (92.36, 1.21), (61.00, 3.56), (23.60, 9.63), (95.76, 0.83)),
+        }.items()
     },
 }
 
