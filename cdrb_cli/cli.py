@@ -846,9 +846,15 @@ def eval_cmd(
     crossing = "" if s.plan_crossing_mean is None else f"; plans through obstacles {100 * s.plan_crossing_mean:.1f}%"
     ui.log(
         f"{s.method} on {ui.plain(m.manifest.env.id)} ({stream} pairs): success {100 * s.success_mean:.1f} ± "
-        f"{100 * s.success_std:.1f}% over {len(seed_list)} seeds x {episodes} episodes; planned states in "
-        f"obstacles {100 * s.in_wall_mean:.2f}%{crossing}; executed collisions "
-        f"{100 * s.executed_collision_mean:.1f}%; plan {1000 * s.plan_seconds_mean:.1f} ms"
+        f"{100 * s.success_std:.1f}% over {len(seed_list)} seeds x {episodes} episodes; "
+        + (
+            f"planned states in obstacles {100 * s.in_wall_mean:.2f}%{crossing}; "
+            if s.in_wall_mean is not None
+            else "closed loop (no plans); "
+        )
+        + f"executed collisions {100 * s.executed_collision_mean:.1f}%; "
+        + (f"plan {1000 * s.plan_seconds_mean:.1f} ms" if s.in_wall_mean is not None else "")
+        + (f"{1000 * s.plan_seconds_mean:.2f} ms per episode step" if s.in_wall_mean is None else "")
     )
     if video is not None:
         ui.log(f"rollout GIFs: {video}/")

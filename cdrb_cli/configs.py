@@ -104,7 +104,18 @@ class MLPConfig(Record):
     )
 
 
-NetConfig = Annotated[UNetConfig | TransformerConfig | MLPConfig, Field(discriminator="kind")]
+class SieveConfig(Record):
+    """Diffusion BC's denoiser (Pearce et al. 2023, "MLP Sieve"): the observation+goal, the noisy actions and the
+    step each embedded, then fully connected blocks that see the noisy actions and the step again at every layer
+    (residuals scaled by 1/sqrt(2)). LayerNorm where the reference has BatchNorm: acting on one state with the EMA
+    weights is then the very network that was trained (no batch statistics)."""
+
+    kind: Literal["sieve"] = "sieve"
+    embed_dim: int = Field(128, gt=0, le=8192, description="width of the three input embeddings")
+    hidden: int = Field(512, gt=0, le=65536, description="width of the fully connected blocks")
+
+
+NetConfig = Annotated[UNetConfig | TransformerConfig | MLPConfig | SieveConfig, Field(discriminator="kind")]
 
 
 # --------------------------------------------------------------------------------------------- train
@@ -119,7 +130,9 @@ class TrainConfig(Record):
     net: NetConfig = Field(description="the network (net.kind picks it: `cdrb train --net`)")
     preset: Literal["quick", "paper"] = Field(description="the preset the defaults came from")
     features: Features = Field(description="state, or state-action (actions appended to each planned state)")
-    horizon: int = Field(gt=1, le=100_000, description="planned states per trajectory")
+    horizon: int = Field(
+        ge=1, le=100_000, description="planned states per trajectory (a policy: actions per sampled chunk)"
+    )
     stride: int = Field(gt=0, description="environment steps per planned state")
     steps: int = Field(gt=0, description="gradient steps")
     batch_size: int = Field(gt=0, le=65536, description="training windows per gradient step")
@@ -193,7 +206,7 @@ class SeedResult(Record):
     seed: Seed
     episodes: int
     success_rate: float
-    in_wall_fraction: float
+    in_wall_fraction: float | None = Field(description="planned states in an obstacle (None: a policy makes no plans)")
     plan_crossing_rate: float | None = Field(
         None, description="plans with a state in an obstacle or a segment through one (None: not measured)"
     )
@@ -211,8 +224,8 @@ class EvalSummary(Record):
     model_preset: str
     success_mean: float
     success_std: float
-    in_wall_mean: float
-    in_wall_std: float
+    in_wall_mean: float | None = Field(description="None: a policy makes no plans")
+    in_wall_std: float | None
     plan_crossing_mean: float | None = None
     jump_ratio_mean: float | None = None
     impossible_jump_mean: float | None = None

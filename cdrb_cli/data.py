@@ -1,4 +1,5 @@
-"""Training windows cut from demonstrations (task side).
+"""Training windows cut from demonstrations (task side): whole-plan windows for planners, transitions with a goal
+for policies (:class:`TransitionSampler`).
 
 A window is H planned states taken every ``stride`` environment steps from some offset of an episode; indices past
 the episode's end repeat its final state (the expert at rest on the goal). So a window's last state is the state a
@@ -74,3 +75,33 @@ class WindowSampler:
         n = len(self.starts) if max_windows is None else min(len(self.starts), max_windows)
         idx = window_index(self.lengths[:n], self.horizon, self.stride) + self.starts[:n, None]
         return self.flat[idx]
+
+    def validation_batch(self, n: int = 64) -> np.ndarray:
+        """The fixed batch the validation loss is measured on."""
+        return self.episode_windows(n)
+
+
+class TransitionSampler(WindowSampler):
+    """What a goal-conditioned policy learns from: (n, H + 1, F) rows, the first H the state-action features of H
+    consecutive steps from a uniformly drawn step t (the chunk of actions to predict from the state at t; indices
+    past the episode's end repeat its last row), the last the features of the *goal state*: the episode's final
+    state, or with probability ``relabel`` a uniformly drawn later state of the same episode (hindsight
+    relabelling, "future"). The expert reaches its goal, so the final state stands for the commanded goal."""
+
+    def __init__(self, demos, features: str, normalizer: Normalizer, horizon: int, split: str = "train", relabel=0.0):
+        super().__init__(demos, features, normalizer, horizon, 1, split)
+        self.relabel = float(relabel)
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        pair = rng.integers(0, self.n_windows, size=n)
+        e = np.searchsorted(self.cum, pair, side="right")
+        t = pair - np.concatenate([[0], self.cum])[e]  # 0 .. L-2
+        last = self.lengths[e] - 1
+        future = t + 1 + np.floor(rng.random(n) * (last - t)).astype(np.int64)  # uniform in t+1 .. L-1
+        goal = np.where(rng.random(n) < self.relabel, future, last)
+        idx = window_index(self.lengths[e], self.horizon, 1, t)
+        idx = np.concatenate([idx, goal[:, None]], axis=1) + self.starts[e][:, None]
+        return self.flat[idx]
+
+    def validation_batch(self, n: int = 256) -> np.ndarray:
+        return self.sample(n, np.random.default_rng(0))

@@ -32,6 +32,7 @@ NETS = {
         "unet": dict(dim=16, dim_mults=[1, 2, 4], residual=True),
         "transformer": dict(d_model=64, n_layers=4, n_heads=4, ff_dim=256),
         "mlp": {},
+        "sieve": dict(embed_dim=64, hidden=256),
     },
-    "paper": {"unet": {}, "transformer": {}, "mlp": {}},
+    "paper": {"unet": {}, "transformer": {}, "mlp": {}, "sieve": {}},
 }

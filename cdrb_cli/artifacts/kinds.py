@@ -263,7 +263,7 @@ class Eval(ArtifactBase):
         DatasetSpec("episodes/success", "b", ("E",)),
         DatasetSpec("episodes/steps", "i", ("E",)),
         DatasetSpec("episodes/final_distance", "f", ("E",)),
-        DatasetSpec("episodes/plan_in_wall_fraction", "f", ("E",)),
+        DatasetSpec("episodes/plan_in_wall_fraction", "f", ("E",), required=False),  # a policy's eval: no plans
         DatasetSpec("episodes/plan_crosses_obstacle", "b", ("E",), required=False),  # from schema 2.2
         DatasetSpec("episodes/plan_max_jump", "f", ("E",), required=False),
         DatasetSpec("episodes/plan_step_limit", "f", ("E",), required=False),

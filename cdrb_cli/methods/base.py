@@ -71,6 +71,15 @@ class Method:
         self.net = build_net(self.config.net, self.feature_dim, self.horizon, cond_dim=self.obs_dim).to(self.device)
 
     # -------------------------------------------------------------- training
+    def data(self, demos, normalizer: Normalizer, split: str):
+        """What training batches are drawn from (``.sample(n, rng)``, ``.validation_batch()``): plan windows."""
+        from cdrb_cli.data import WindowSampler
+
+        c = self.config
+        return WindowSampler(
+            demos, c.features, normalizer, c.horizon, c.stride, split, c.start_fraction if split != "valid" else 0.0
+        )
+
     def modules(self) -> dict[str, torch.nn.Module]:
         """Every network whose weights the model artifact keeps, by name."""
         return {"net": self.net}

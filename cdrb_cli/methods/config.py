@@ -63,6 +63,7 @@ def defaults(entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: B
         "horizon": spec.horizon,
         "stride": spec.plan_stride,
         "seed": seed,
+        **entry.train_defaults.get(preset, {}),
     }
 
 
@@ -109,6 +110,10 @@ def config_problem(config: TrainConfig) -> tuple[tuple[str, ...], str, str] | No
         return ("net", "dim"), f"must be a multiple of net.groups ({net.groups})", "e.g. --set net.dim=32"
     if net.kind == "transformer" and net.d_model % net.n_heads:
         return ("net", "d_model"), f"must be a multiple of net.n_heads ({net.n_heads})", "e.g. --set net.d_model=64"
+    if entry.kind == "planner" and config.horizon < 2:
+        return ("horizon",), "a plan needs at least 2 states (a start and a goal)", "e.g. --set horizon=64"
+    if entry.kind == "policy" and config.features != "state-action":
+        return ("features",), f"the {entry.name} policy learns actions: it needs state-action", "omit it"
     mult = horizon_multiple(net)
     if config.horizon % mult:
         return (

@@ -51,7 +51,9 @@ class MethodEntry:
     * ``needs_buffer``: training and sampling use the replay buffer (``cdrb train --buffer``);
     * ``nets``: the network kinds it accepts, default first;
     * ``presets``: preset name -> values of ``params`` fields;
-    * ``data_defaults(spec, buffer)``: defaults that depend on the data (e.g. CDRB's d_max = buffer diameter).
+    * ``data_defaults(spec, buffer)``: defaults that depend on the data (e.g. CDRB's d_max = buffer diameter);
+    * ``train_defaults``: preset name -> training-config fields this method sets otherwise than the preset (a
+      policy: state-action features, one action per chunk, its batch size and steps); the user's settings still win.
     """
 
     params: type[MethodParams]
@@ -60,6 +62,7 @@ class MethodEntry:
     nets: tuple[str, ...] = ("unet", "transformer")
     presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     data_defaults: Callable[[EnvSpec, BufferInfo | None], dict[str, Any]] | None = None
+    train_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     description: str = ""
 
     @property
@@ -94,6 +97,7 @@ METHODS: Registry[MethodEntry] = Registry(
         "mlp": "cdrb_cli.methods.mlp",
         "diffuser": "cdrb_cli.methods.diffuser",
         "cdrb": "cdrb_cli.methods.cdrb",
+        "diffusion-bc": "cdrb_cli.methods.diffusion_bc",
     },
     MethodEntry,
 )

@@ -5,7 +5,7 @@ Every trajectory network maps ``(x (B, H, F), k (B,))`` to ``(B, H, F)``; the ML
 
 from __future__ import annotations
 
-from cdrb_cli.configs import MLPConfig, TransformerConfig, UNetConfig
+from cdrb_cli.configs import MLPConfig, SieveConfig, TransformerConfig, UNetConfig
 
 
 def build_net(config, feature_dim: int, horizon: int, cond_dim: int = 0):
@@ -21,6 +21,10 @@ def build_net(config, feature_dim: int, horizon: int, cond_dim: int = 0):
         from cdrb_cli.nets.mlp import TrajectoryMLP
 
         return TrajectoryMLP(cond_dim, feature_dim, horizon, config)
+    if isinstance(config, SieveConfig):
+        from cdrb_cli.nets.sieve import SieveMLP
+
+        return SieveMLP(cond_dim, feature_dim * horizon, config)
     raise TypeError(f"unknown net config {config!r}")
 
 

@@ -26,7 +26,7 @@ from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.seeding import EVAL_STREAMS
+from cdrb_cli.seeding import EVAL_STREAMS, STREAM_EVAL, step_rng
 from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
@@ -66,11 +66,17 @@ class EpisodeResult:
 _DTYPES = {int: np.int64, float: np.float64, bool: np.bool_, np.ndarray: np.float32}
 
 
-def episode_arrays(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
-    """The ``episodes/<field>`` datasets of a list of results (one row per episode)."""
+#: the per-episode fields that measure a plan (a policy's eval has none of them)
+PLAN_FIELDS = ("plan_in_wall_fraction", "plan_crosses_obstacle", "plan_max_jump", "plan_step_limit")
+
+
+def episode_arrays(results: Sequence[EpisodeResult], plans: bool = True) -> dict[str, np.ndarray]:
+    """The ``episodes/<field>`` datasets of a list of results (one row per episode); without the plan measures
+    when ``plans`` is false (a closed-loop policy)."""
     return {
         f"episodes/{name}": np.asarray([getattr(r, name) for r in results], dtype=_DTYPES[hint])
         for name, hint in typing.get_type_hints(EpisodeResult).items()
+        if plans or name not in PLAN_FIELDS
     }
 
 
@@ -97,13 +103,17 @@ def run_episode(
     env: Env, spec: EnvSpec, episode: Episode, act: Callable[[np.ndarray, int], np.ndarray], steps: int
 ) -> Rollout:
     """Execute ``act(state, t) -> action`` from the episode's seeded reset for ``steps`` steps, and measure."""
-    family = family_of(spec)
     obs, goal = env.reset(episode)
     states = [obs]
     for t in range(steps):
         obs = env.step(act(obs, t))
         states.append(obs)
-    S = np.array(states)
+    return measure(spec, np.array(states), goal, steps)
+
+
+def measure(spec: EnvSpec, S: np.ndarray, goal: np.ndarray, steps: int) -> Rollout:
+    """The record of the states ``S`` (steps + 1, obs_dim) one episode visited on its way to ``goal``."""
+    family = family_of(spec)
     hits = np.flatnonzero(family.success(spec, S, goal))
     first = int(hits[0]) if hits.size else None
     return Rollout(
@@ -138,10 +148,42 @@ class ExpertReference:
         ).path_length
 
 
+#: episodes a policy runs in lockstep (one batched network call per step for all of them)
+POLICY_BATCH = 25
+
+
+def run_policy(
+    family: EnvFamily, spec: EnvSpec, episodes: Sequence[Episode], policy, steps: int, rng: np.random.Generator
+) -> tuple[list[Rollout], list[np.ndarray], float]:
+    """Run a closed-loop policy on ``episodes`` in lockstep (one env each): every step, one call of
+    ``policy.act`` for all of them. Returns the rollouts, the goals and the mean seconds per ``act`` call."""
+    envs = [family.make_env(spec) for _ in episodes]
+    try:
+        resets = [env.reset(ep) for env, ep in zip(envs, episodes)]
+        obs = np.stack([r[0] for r in resets])
+        goals = np.stack([np.asarray(r[1], dtype=np.float64) for r in resets])
+        states = [obs]
+        policy.reset(len(episodes), rng)
+        seconds = 0.0
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            actions = policy.act(obs, goals, rng)
+            seconds += time.perf_counter() - t0
+            obs = np.stack([env.step(a) for env, a in zip(envs, actions)])
+            states.append(obs)
+    finally:
+        for env in envs:
+            env.close()
+    S = np.stack(states, axis=1)  # (episodes, steps + 1, obs_dim)
+    return [measure(spec, S[i], goals[i], steps) for i in range(len(episodes))], list(goals), seconds / max(steps, 1)
+
+
 def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = True, video_dir=None, videos: int = 0):
     t0 = time.time()
     family = family_of(model.manifest.env)
     spec = family.protocol_spec(model.manifest.env, config.protocol)
+    if METHODS.get(model.manifest.config.method.name).kind == "policy":
+        return evaluate_policy(model, config, out, spec, device, video_dir, videos)
     method = load_planner(model, device=device, ema=config.use_ema)
     METHODS.get(method.name).check_sampler(config.sampler)
     env = family.make_env(spec)
@@ -179,22 +221,18 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
                 controller.reset(plans[e])
                 run = run_episode(env, spec, episode, controller.act, steps)
                 results.append(
-                    EpisodeResult(
-                        seed=seed,
-                        episode_seed=episode.seed,
-                        success=run.success,
-                        steps=run.steps,
-                        final_distance=run.final_distance,
+                    _result(
+                        seed,
+                        episode,
+                        run,
+                        expert.path_length(env, episode),
+                        sec_plan,
+                        starts[e],
+                        goals[e],
                         plan_in_wall_fraction=float(in_wall[e].mean()),
                         plan_crosses_obstacle=bool(crosses[e]),
                         plan_max_jump=float(jumps[e]),
                         plan_step_limit=step_limit,
-                        executed_collision=run.collision,
-                        path_length=run.path_length,
-                        expert_path_length=expert.path_length(env, episode),
-                        plan_seconds=sec_plan,
-                        start=starts[e],
-                        goal=goals[e],
                     )
                 )
                 if len(executed) < videos:
@@ -218,7 +256,73 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     return artifacts.load(out, "eval")
 
 
-def seed_result(seed: int, results: Sequence[EpisodeResult]) -> SeedResult:
+def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu", video_dir=None, videos: int = 0):
+    """`cdrb eval` of a closed-loop policy: the same pairs, episode limit and measures as for a planner; the plan
+    measures are "not measured" (NaN, reported as n/a) and ``plan_seconds`` is the time of one ``act`` call (one
+    batched network call for up to :data:`POLICY_BATCH` episodes, divided by their number)."""
+    from cdrb_cli.methods.checkpoint import load_method
+
+    t0 = time.time()
+    family = family_of(spec)
+    policy = load_method(model, device=device, ema=config.use_ema)
+    METHODS.get(policy.name).check_sampler(config.sampler)
+    policy.config = policy.config.model_copy(
+        update={"method": policy.config.method.model_copy(update={"sampler": config.sampler})}
+    )
+    env = family.make_env(spec)
+    expert = ExpertReference(family, spec)
+    steps = spec.episode_limit + config.extra_steps
+    results: list[EpisodeResult] = []
+    per_seed, executed = [], []
+    with ui.progress() as bar:
+        task = bar.add_task(f"eval {policy.name}", total=len(config.seeds) * config.episodes, info="")
+        for seed in config.seeds:
+            episodes = family.draw_episodes(spec, config.episodes, seed, EVAL_STREAMS[config.stream])
+            rng = step_rng(config.seed, STREAM_EVAL, seed)
+            for b in range(0, len(episodes), POLICY_BATCH):
+                batch = episodes[b : b + POLICY_BATCH]
+                runs, goals, sec = run_policy(family, spec, batch, policy, steps, rng)
+                for episode, run, goal in zip(batch, runs, goals):
+                    length = expert.path_length(env, episode)
+                    results.append(_result(seed, episode, run, length, sec / len(batch), run.states[0], goal))
+                    if len(executed) < videos:
+                        executed.append((run.states, run.states, goal, run.success))
+                bar.update(task, advance=len(batch), info=f"success {np.mean([r.success for r in results]):.1%}")
+            per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
+    env.close()
+    summary = summarize(policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3))
+    manifest = artifacts.make_manifest(
+        "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
+    )
+    artifacts.save(out, "eval", manifest, episode_arrays(results, plans=False))
+    if video_dir is not None and executed:
+        from cdrb_cli.envs.render import rollout_gifs
+
+        rollout_gifs(spec, executed, video_dir, label=policy.name)
+    return artifacts.load(out, "eval")
+
+
+def _result(seed, episode, run: Rollout, expert_length, seconds, start, goal, **plan) -> EpisodeResult:
+    """One episode's record; ``plan``: the plan measures (a policy has none: NaN, never written)."""
+    nan = float("nan")
+    unplanned = dict(plan_in_wall_fraction=nan, plan_crosses_obstacle=False, plan_max_jump=nan, plan_step_limit=nan)
+    return EpisodeResult(
+        seed=seed,
+        episode_seed=episode.seed,
+        success=run.success,
+        steps=run.steps,
+        final_distance=run.final_distance,
+        executed_collision=run.collision,
+        path_length=run.path_length,
+        expert_path_length=expert_length,
+        plan_seconds=seconds,
+        start=start,
+        goal=goal,
+        **{**unplanned, **plan},
+    )
+
+
+def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = False) -> SeedResult:
     succ = np.array([r.success for r in results])
     expert = np.array([r.expert_path_length for r in results])
     ratio = np.array([r.path_length for r in results]) / np.maximum(expert, 1e-9)
@@ -226,6 +330,16 @@ def seed_result(seed: int, results: Sequence[EpisodeResult]) -> SeedResult:
     limit = np.array([r.plan_step_limit for r in results])
     jump = np.array([r.plan_max_jump for r in results]) / np.maximum(limit, 1e-12)
     bounded = bool((limit > 0).all())
+    if policy:  # no plans: nothing planned to measure
+        return SeedResult(
+            seed=int(seed),
+            episodes=len(results),
+            success_rate=float(succ.mean()),
+            in_wall_fraction=None,
+            executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
+            path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
+            plan_seconds=float(np.mean([r.plan_seconds for r in results])),
+        )
     return SeedResult(
         seed=int(seed),
         episodes=len(results),
@@ -260,14 +374,15 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
 
     succ = [p.success_rate for p in per_seed]
     wall = [p.in_wall_fraction for p in per_seed]
+    planned = all(w is not None for w in wall)
     ratios = [p.path_length_ratio for p in per_seed if p.path_length_ratio is not None]
     return EvalSummary(
         method=method,
         model_preset=preset,
         success_mean=float(np.mean(succ)),
         success_std=sample_std(succ),
-        in_wall_mean=float(np.mean(wall)),
-        in_wall_std=sample_std(wall),
+        in_wall_mean=float(np.mean(wall)) if planned else None,
+        in_wall_std=sample_std(wall) if planned else None,
         plan_crossing_mean=mean("plan_crossing_rate"),
         jump_ratio_mean=mean("jump_ratio"),
         impossible_jump_mean=mean("impossible_jump_rate"),
@@ -305,6 +420,14 @@ def eval_config(
             )
     spec = model.manifest.env
     family = family_of(spec)
+    entry = METHODS.get(model.manifest.config.method.name)
+    if entry.kind == "policy" and (controller is not None or any(s.path[0] == "controller" for s in settings)):
+        sources = [s.source for s in settings if s.path[0] == "controller"]
+        given = f"--controller {controller}" if controller is not None else sources[0]
+        raise BadInput(
+            f"{given}: {entry.name} is a policy that acts closed loop; it executes no plan with a controller",
+            hint="drop the controller flags (`cdrb eval --help`)",
+        )
     protocol = protocol or family.protocol
     if protocol not in family.protocols():
         raise BadInput(
@@ -327,7 +450,6 @@ def eval_config(
             f"{where}: not a controller of the {family.name} environments",
             hint=f"use {' or '.join(family.controllers)}",
         )
-    entry = METHODS.get(model.manifest.config.method.name)
     base = {
         "episodes": episodes,
         "seeds": list(seeds),

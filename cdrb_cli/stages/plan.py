@@ -69,7 +69,7 @@ def load_planner(model, device="cpu", ema: bool = True) -> Planner:
     if entry.kind != "planner":
         raise BadInput(
             f"{model.path}: {entry.name} is a policy (it acts step by step and makes no plans)",
-            hint="plan and eval need a planner; closed-loop evaluation of policies is not implemented yet",
+            hint="evaluate it closed loop with `cdrb eval MODEL`",
         )
     return load_method(model, device=device, ema=ema)
 

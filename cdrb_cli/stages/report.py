@@ -79,6 +79,8 @@ def _planning(ev) -> tuple:
 
 
 def _controller(ev) -> str:
+    if "episodes/plan_in_wall_fraction" not in ev.arrays:
+        return f"closed loop ({ev.manifest.config.sampler})"  # a policy: no controller
     c = ev.manifest.config.controller
     settings = ", ".join(f"{k} {v}" for k, v in c.model_dump().items() if k != "name")
     return f"{c.name} ({settings})"
@@ -107,7 +109,10 @@ def per_seed(ev) -> list:
 
     results = episode_results(ev.arrays)
     seeds = list(dict.fromkeys(r.seed for r in results))
-    per = [seed_result(s, [r for r in results if r.seed == s]) for s in seeds]
+    policy = "episodes/plan_in_wall_fraction" not in ev.arrays  # a closed-loop policy's eval: no plans
+    per = [seed_result(s, [r for r in results if r.seed == s], policy=policy) for s in seeds]
+    if policy:
+        return per
     if not measured(ev.arrays):  # an eval written before schema 2.2: crossings and jumps were not measured
         unknown = {"plan_crossing_rate": None, "jump_ratio": None, "impossible_jump_rate": None}
         per = [p.model_copy(update=unknown) for p in per]
@@ -162,7 +167,7 @@ def collect_rows(evals) -> list[dict]:
         for label, group in methods.items():
             per = pooled[label]
             succ = np.array([r.success_rate for r in per])
-            wall = np.array([r.in_wall_fraction for r in per])
+            wall = mean_or_none([r.in_wall_fraction for r in per])  # None for a policy: it makes no plans
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
             crossing = mean_or_none([r.plan_crossing_rate for r in per])
             impossible = mean_or_none([r.impossible_jump_rate for r in per])
@@ -181,8 +186,8 @@ def collect_rows(evals) -> list[dict]:
                     "success_mean": 100 * float(succ.mean()),
                     "success_std": 100 * sample_std(succ),
                     "success_ci95": 100 * ci95(succ),
-                    "in_wall_mean": 100 * float(wall.mean()),
-                    "in_wall_std": 100 * sample_std(wall),
+                    "in_wall_mean": None if wall is None else 100 * wall,
+                    "in_wall_std": None if wall is None else 100 * sample_std([r.in_wall_fraction for r in per]),
                     "crossing_mean": None if crossing is None else 100 * crossing,
                     "crossing_std": None if crossing is None else 100 * sample_std([r.plan_crossing_rate for r in per]),
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
@@ -264,7 +269,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
             lines.append(
                 f"| {name[env]} | {m} | {r['controller']} | {r['pairs']} | {r['seeds']} x {r['episodes']} | "
                 f"{r['success_mean']:.1f} ± {r['success_std']:.1f} [± {r['success_ci95']:.1f}] | "
-                f"{r['in_wall_mean']:.2f} ± {r['in_wall_std']:.2f} | {opt(r['crossing_mean'], '.1f')} | "
+                f"{_pm(r['in_wall_mean'], r['in_wall_std'])} | {opt(r['crossing_mean'], '.1f')} | "
                 f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} |"
             )
@@ -287,8 +292,8 @@ def plot_bars(rows: list[dict], path) -> Path:
     x = np.arange(len(envs))
     for i, m in enumerate(methods):
         for ax, key, std in ((axes[0], "success_mean", "success_std"), (axes[1], "in_wall_mean", "in_wall_std")):
-            vals = [cell[(e, m)][key] if (e, m) in cell else np.nan for e in envs]
-            errs = [cell[(e, m)][std] if (e, m) in cell else 0 for e in envs]
+            vals = [_num(cell[(e, m)][key]) if (e, m) in cell else np.nan for e in envs]
+            errs = [_num(cell[(e, m)][std], 0.0) if (e, m) in cell else 0 for e in envs]
             ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=label(m))
     for ax, title in ((axes[0], "success rate (%)"), (axes[1], "planned states inside walls (%)")):
         ax.set_xticks(x)
@@ -298,6 +303,15 @@ def plot_bars(rows: list[dict], path) -> Path:
     axes[0].set_ylim(0, 105)
     axes[0].legend(fontsize=8)
     return save_figure(fig, path)
+
+
+def _num(v, missing=np.nan) -> float:
+    return missing if v is None else v
+
+
+def _pm(mean, std) -> str:
+    """``mean ± std`` with 2 decimals, or n/a (a policy's plan measures)."""
+    return "n/a" if mean is None else f"{mean:.2f} ± {std:.2f}"
 
 
 def plot_side_by_side(evals, path, n: int = 12) -> Path:

@@ -54,7 +54,7 @@ def _train_rows(method: str | None, net: str | None, preset: str | None) -> list
     ] + ([Setting(("preset",), preset, f"--preset {preset}")] if preset else [])
     entry, preset, net = choose(given)
     net_cls = next(c for c in net_classes() if c.model_fields["kind"].default == net)
-    top = {**TRAIN[preset], "preset": preset}
+    top = {**TRAIN[preset], "preset": preset, **entry.train_defaults.get(preset, {})}
     rows = [
         Row("method.name", "str", entry.name, "the method (`cdrb methods`); --method sets it"),
         *_rows(entry.params, dict(entry.presets.get(preset, {})), "method.", skip=("name",)),

@@ -18,7 +18,6 @@ from pathlib import Path
 from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, feature_dim, split_rows
 from cdrb_cli.configs import TrainConfig, TrainState
-from cdrb_cli.data import WindowSampler
 from cdrb_cli.errors import BadInput, RunFailed
 from cdrb_cli.methods.base import NonFiniteLoss, build_method
 from cdrb_cli.methods.checkpoint import checkpoint_arrays, make_ema, restore
@@ -137,13 +136,10 @@ def train(
     points = buffer.points if (buffer is not None and entry.needs_buffer) else None
     torch.manual_seed(config.seed)  # network initialization
     method = build_method(config, spec, normalizer, points, device=device)
-    windows = WindowSampler(
-        demos, config.features, normalizer, config.horizon, config.stride, config.split, config.start_fraction
-    )
+    windows = method.data(demos, normalizer, config.split)
     valid_batch = None
     if config.split == "train" and len(demos.episode_ids("valid")):
-        vw = WindowSampler(demos, config.features, normalizer, config.horizon, config.stride, "valid")
-        valid_batch = torch.from_numpy(vw.episode_windows(64)).to(device)
+        valid_batch = torch.from_numpy(method.data(demos, normalizer, "valid").validation_batch()).to(device)
     ema = make_ema(method)
     optimizers = method.make_optimizers()
     parents = [demos] + ([buffer] if buffer is not None else [])
