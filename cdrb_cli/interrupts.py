@@ -19,9 +19,9 @@ _polling = 0
 
 def _handler(signum, frame) -> None:
     global _requested
-    _requested = True
     if not _polling:
-        raise KeyboardInterrupt
+        raise KeyboardInterrupt  # raised now, so nothing is left to answer later
+    _requested = True
 
 
 def install():
