@@ -74,27 +74,21 @@ def test_diffusion_bc_config_needs_actions_and_fits_its_chunk(small_data):
         train_config(demos, None, "mlp", {"horizon": 1})  # a plan needs a start and a goal
 
 
-@pytest.mark.slow
-def test_diffusion_bc_learns_the_loss_and_beats_a_random_policy(tmp_path, cdrb):
-    """On a small corridor maze: the loss falls, and closed loop the policy reaches the goal far more often than
-    uniform random actions on the same episodes; the eval reports no plan measures and refuses a controller."""
-    from cdrb_cli.envs.registry import family_of, make_spec
-    from cdrb_cli.seeding import STREAM_TUNE
+def _corridor_demos(tmp_path):
+    from cdrb_cli.envs.registry import make_spec
     from cdrb_cli.stages.collect import collect, collect_config
-    from cdrb_cli.stages.evaluate import run_policy
 
     m = tmp_path / "corridor.txt"
     m.write_text(CORRIDOR)
     spec = make_spec(None, m)
-    demos = collect(spec, collect_config(spec, episodes=60, seed=0), tmp_path / "d.h5")
-    cfg = train_config(demos, None, "diffusion-bc", {"steps": 1500, "net.embed_dim": 32, "net.hidden": 128})
-    model = train(demos, None, cfg, tmp_path / "bc.h5")
-    loss = model.arrays["curve/loss"]
-    assert loss[-3:].mean() < 0.6 * loss[:3].mean()
-    r = cdrb("eval", model.path, "--stream", "tune", "--seeds", "0", "--episodes", "20", "--out", tmp_path / "e.h5")
-    assert r.returncode == 0, r.stderr
-    ev = artifacts.load(tmp_path / "e.h5", "eval")
-    assert "episodes/plan_in_wall_fraction" not in ev.arrays and ev.manifest.summary.in_wall_mean is None
+    return spec, collect(spec, collect_config(spec, episodes=60, seed=0), tmp_path / "d.h5")
+
+
+def _random_policy_success(spec, episodes: int) -> float:
+    """Success of uniform random actions on the first tuning episodes (seed 0) of ``spec``."""
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.seeding import STREAM_TUNE
+    from cdrb_cli.stages.evaluate import run_policy
 
     class Random:
         def reset(self, n, rng):
@@ -104,14 +98,113 @@ def test_diffusion_bc_learns_the_loss_and_beats_a_random_policy(tmp_path, cdrb):
             return rng.uniform(-1, 1, size=(len(states), spec.action_dim))
 
     family = family_of(spec)
-    episodes = family.draw_episodes(spec, 20, 0, STREAM_TUNE)
-    runs, _, _ = run_policy(family, spec, episodes, Random(), spec.episode_limit, np.random.default_rng(0))
-    random_success = np.mean([run.success for run in runs])
-    assert ev.manifest.summary.success_mean >= 0.6 and ev.manifest.summary.success_mean > random_success + 0.3, (
-        ev.manifest.summary.success_mean,
-        random_success,
-    )
+    pairs = family.draw_episodes(spec, episodes, 0, STREAM_TUNE)
+    runs, _, _ = run_policy(family, spec, pairs, Random(), spec.episode_limit, np.random.default_rng(0))
+    return float(np.mean([run.success for run in runs]))
+
+
+def _closed_loop_beats_random(model, spec, tmp_path, cdrb) -> None:
+    """Closed loop on 20 tuning episodes the policy succeeds >= 60% and 30 points above random actions; the eval
+    writes no plan measures, refuses a controller flag and reports "closed loop" with n/a."""
+    r = cdrb("eval", model.path, "--stream", "tune", "--seeds", "0", "--episodes", "20", "--out", tmp_path / "e.h5")
+    assert r.returncode == 0, r.stderr
+    ev = artifacts.load(tmp_path / "e.h5", "eval")
+    assert "episodes/plan_in_wall_fraction" not in ev.arrays and ev.manifest.summary.in_wall_mean is None
+    random_success = _random_policy_success(spec, 20)
+    success = ev.manifest.summary.success_mean
+    assert success >= 0.6 and success > random_success + 0.3, (success, random_success)
     r = cdrb("eval", model.path, "--controller", "pd", "--out", tmp_path / "e2.h5")
     assert r.returncode == 2 and "policy" in r.stderr and not (tmp_path / "e2.h5").exists()
     r = cdrb("report", tmp_path / "e.h5")
     assert r.returncode == 0 and "closed loop" in r.stdout and "n/a" in r.stdout
+
+
+@pytest.mark.slow
+def test_diffusion_bc_learns_the_loss_and_beats_a_random_policy(tmp_path, cdrb):
+    """On a small corridor maze: the loss falls, and closed loop the policy reaches the goal far more often than
+    uniform random actions on the same episodes."""
+    spec, demos = _corridor_demos(tmp_path)
+    cfg = train_config(demos, None, "diffusion-bc", {"steps": 1500, "net.embed_dim": 32, "net.hidden": 128})
+    model = train(demos, None, cfg, tmp_path / "bc.h5")
+    loss = model.arrays["curve/loss"]
+    assert loss[-3:].mean() < 0.6 * loss[:3].mean()
+    _closed_loop_beats_random(model, spec, tmp_path, cdrb)
+
+
+@pytest.mark.slow
+def test_diffusion_ql_beats_a_random_policy(tmp_path, cdrb):
+    """The same corridor: 1,500 updates of Diffusion-QL (BC + Q term, sparse success reward) act far better than
+    random actions (measured: 100% of 20 episodes)."""
+    spec, demos = _corridor_demos(tmp_path)
+    cfg = train_config(demos, None, "diffusion-ql", {"steps": 1500, "net.hidden": [128] * 3, "batch_size": 128})
+    model = train(demos, None, cfg, tmp_path / "ql.h5")
+    _closed_loop_beats_random(model, spec, tmp_path, cdrb)
+
+
+TINY_QL = {"net.hidden": [16, 16], "batch_size": 8, "lr": 1e-3}
+
+
+def _ql(demos, **settings):
+    from cdrb_cli.buffer import Normalizer
+    from cdrb_cli.methods.base import build_method
+
+    cfg = train_config(demos, None, "diffusion-ql", {**TINY_QL, **settings})
+    from cdrb_cli.stages.train import check_inputs
+
+    norm: Normalizer = check_inputs(demos, None, cfg.features)
+    return build_method(cfg, demos.manifest.env, norm), cfg
+
+
+def test_diffusion_ql_reward_and_critic_target_follow_their_definition(small_data):
+    """r = 1 exactly when the next state passes the env's success test (then terminal, tuned to (r - 0.5) * 4);
+    the target is r + gamma (1 - done) min_i max_j Q_i'(s', a'_j) with a'_j from the EMA actor; Polyak targets."""
+    import torch
+
+    from cdrb_cli.seeding import torch_generator
+
+    demos, _ = small_data
+    torch.manual_seed(0)
+    method, cfg = _ql(demos)
+    batch = torch.from_numpy(method.data(demos, method.normalizer, "train").sample(64, np.random.default_rng(3)))
+    batch[:5, -1] = batch[:5, 1]  # five goals at their next state: success
+    r, done = method.reward(batch)
+    raw = method.normalizer.unnormalize(batch.numpy().astype(np.float64))
+    spec = demos.manifest.env
+    dist = np.linalg.norm(raw[:, 1, spec.goal_dims] - raw[:, -1, spec.goal_dims], axis=1)
+    np.testing.assert_array_equal(done[:, 0].numpy(), (dist <= spec.success_radius).astype(np.float32))
+    assert done[:5].all() and not done.all()
+    np.testing.assert_allclose(r[:, 0].numpy(), (done[:, 0].numpy() - 0.5) * 4)
+    _, _, nxt = method._parts(batch)
+    target = method.critic_target(nxt, r, done, torch_generator(np.random.default_rng(9)))
+    with torch.no_grad():  # by hand: the same draws of next actions, 10 per next state
+        rep = nxt.repeat_interleave(10, dim=0)
+        a = method._sample(method.targets.actor, rep, torch_generator(np.random.default_rng(9)))
+        q1, q2 = method.targets.critic(rep, a)
+        best = torch.min(q1.view(-1, 10).max(1)[0], q2.view(-1, 10).max(1)[0])[:, None]
+    np.testing.assert_allclose(target.numpy(), (r + cfg.method.gamma * (1 - done) * best).numpy(), rtol=1e-5)
+    assert torch.equal(target[:5], r[:5])  # terminal: no bootstrap
+    # one update: the critic targets move by tau towards the critic, the EMA actor copies before ema_start
+    before = [p.clone() for p in method.targets.critic.parameters()]
+    method.update(batch, np.random.default_rng(0), method.make_optimizers())
+    tau = cfg.method.tau
+    for old, new, cur in zip(before, method.targets.critic.parameters(), method.critic.parameters()):
+        torch.testing.assert_close(new, (1 - tau) * old + tau * cur)
+    for ema, cur in zip(method.targets.actor.parameters(), method.actor.parameters()):
+        assert torch.equal(ema, cur)
+    assert int(method.targets.updates) == 1
+
+
+def test_resume_of_diffusion_ql_is_exact_with_both_optimizers_and_targets(small_data, tmp_path):
+    demos, _ = small_data
+    flags = {**TINY_QL, "checkpoint_every": 10, "method.ema_start": 5, "method.ema_every": 2}
+    full = train(demos, None, train_config(demos, None, "diffusion-ql", {**flags, "steps": 30}), tmp_path / "a.h5")
+    train(demos, None, train_config(demos, None, "diffusion-ql", {**flags, "steps": 20}), tmp_path / "b.h5")
+    rest = train_config(demos, None, "diffusion-ql", {**flags, "steps": 30})
+    resumed = train(demos, None, rest, tmp_path / "b.h5", resume=True)
+    keys = {k for k in full.arrays if k.startswith(("weights/", "optim/"))}
+    assert keys == {k for k in resumed.arrays if k.startswith(("weights/", "optim/"))}
+    assert {k.split("/")[1] for k in keys if k.startswith("optim/")} == {"actor", "critic"}
+    assert any(k.startswith("weights/targets/") for k in keys) and "weights/targets/updates" in keys
+    for k in keys:
+        np.testing.assert_array_equal(full.arrays[k], resumed.arrays[k], err_msg=k)
+    assert float(full.arrays["weights/targets/updates"]) == 30

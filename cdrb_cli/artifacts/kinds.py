@@ -201,7 +201,12 @@ class Model(ArtifactBase):
         DatasetSpec("curve/valid_loss", "f", ("V",), required=False),
         DatasetSpec("buffer/points", "f", ("K", "feature_dim"), required=False),
     )
-    groups = (GroupSpec("weights/", "f"), GroupSpec("ema/", "f"), GroupSpec("optim/", "fi", required=False))
+    # ema/ may be empty: a method whose averages are its own modules (Diffusion-QL) keeps none
+    groups = (
+        GroupSpec("weights/", "f"),
+        GroupSpec("ema/", "f", required=False),
+        GroupSpec("optim/", "fi", required=False),
+    )
 
     @classmethod
     def dims(cls, manifest):

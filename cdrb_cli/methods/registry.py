@@ -98,6 +98,7 @@ METHODS: Registry[MethodEntry] = Registry(
         "diffuser": "cdrb_cli.methods.diffuser",
         "cdrb": "cdrb_cli.methods.cdrb",
         "diffusion-bc": "cdrb_cli.methods.diffusion_bc",
+        "diffusion-ql": "cdrb_cli.methods.diffusion_ql",
     },
     MethodEntry,
 )

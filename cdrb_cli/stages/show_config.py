@@ -54,12 +54,14 @@ def _train_rows(method: str | None, net: str | None, preset: str | None) -> list
     ] + ([Setting(("preset",), preset, f"--preset {preset}")] if preset else [])
     entry, preset, net = choose(given)
     net_cls = next(c for c in net_classes() if c.model_fields["kind"].default == net)
-    top = {**TRAIN[preset], "preset": preset, **entry.train_defaults.get(preset, {})}
+    own = dict(entry.train_defaults.get(preset, {}))
+    net_defaults = {**NETS[preset][net], **{k: v for k, v in own.pop("net", {}).items() if k != "kind"}}
+    top = {**TRAIN[preset], "preset": preset, **own}
     rows = [
         Row("method.name", "str", entry.name, "the method (`cdrb methods`); --method sets it"),
         *_rows(entry.params, dict(entry.presets.get(preset, {})), "method.", skip=("name",)),
         Row("net.kind", "str", net, "the network; --net sets it"),
-        *_rows(net_cls, NETS[preset][net], "net.", skip=("kind",)),
+        *_rows(net_cls, net_defaults, "net.", skip=("kind",)),
         *_rows(TrainConfig, top, skip=("method", "net"), placeholders={"seed": "(--seed)"}),
     ]
     return rows
