@@ -34,7 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from table1 import DOCS, hardware, prepare_env, run, unfinished  # noqa: E402
+from table1 import DOCS, _without, hardware, prepare_env, run, unfinished  # noqa: E402
 
 METHODS = ("mlp", "diffuser", "cdrb")
 ENVS = ("maze-tight", "maze")
@@ -67,6 +67,28 @@ SWEEP = {
         "lr=3e-4": ["--set", "lr=3e-4"],
     },
 }
+
+#: the closed-loop policies: six candidates too, at their own quick preset (single transitions, batch 256); they have
+#: no plan and no controller, so no clock is tuned for them
+POLICY_SWEEP = {
+    "diffusion-bc": {
+        "quick": [],  # one action per step
+        "chunk 4, every 2": ["--set", "horizon=4", "--set", "method.act_every=2"],
+        "chunk 8, every 4": ["--set", "horizon=8", "--set", "method.act_every=4"],
+        "relabel 0.5": ["--set", "method.relabel=0.5"],
+        "paper width": ["--set", "net.embed_dim=128", "--set", "net.hidden=512"],
+        "lr=1e-4": ["--set", "lr=1e-4"],
+    },
+    "diffusion-ql": {
+        "quick": [],
+        "eta=0.2": ["--set", "method.eta=0.2"],
+        "eta=3": ["--set", "method.eta=3"],
+        "relabel 0.2": ["--set", "method.relabel=0.2"],
+        "relabel 0.8": ["--set", "method.relabel=0.8"],
+        "reward unshaped": ["--set", "method.reward_tune=none"],
+    },
+}
+SWEEP |= POLICY_SWEEP
 
 #: Fetch: no sweep of the training settings (CPU budget; the same for every method: the quick preset)
 FETCH_SWEEP = {m: {"quick": []} for m in SWEEP}
@@ -117,6 +139,12 @@ def clocks_for(env: str) -> dict[str, list]:
     return FETCH_CONTROLLERS[task] if task else CLOCKS
 
 
+def is_policy(method: str) -> bool:
+    from cdrb_cli.methods.registry import METHODS
+
+    return METHODS.get(method).kind == "policy"
+
+
 def has_curves(env: str) -> bool:
     """Learning curves are run on the mazes; on Fetch the quick preset's step count is kept (CPU budget)."""
     return _fetch_task(env) is None
@@ -142,7 +170,8 @@ def train(model: Path, demos: Path, buffer: Path, method: str, seed: int, flags,
         cmd += ["--snapshot-at", ",".join(map(str, snapshots))]
     if unfinished(model):
         cmd.append("--resume")
-    run(cmd + args.tiny_flags, log, f"train {model.parent.name} {model.name}")
+    tiny = _without(args.tiny_flags, ("horizon=", "stride=")) if is_policy(method) else args.tiny_flags
+    run(cmd + tiny, log, f"train {model.parent.name} {model.name}")
 
 
 def buffers(env: str, args, log) -> dict[str, tuple[Path, Path]]:
@@ -200,6 +229,8 @@ def clock(args, log) -> None:
     tuned = choose(args)
     for env in args.envs:
         for method in args.methods:
+            if is_policy(method):
+                continue  # no plan, no controller: nothing to tune here
             name = tuned[env][method]["candidate"]
             folder = args.out / env / "sweep"
             model = folder / f"{method}-{slug(name)}.h5"
@@ -217,15 +248,19 @@ def _summary(path: Path) -> dict:
 
     ev = artifacts.load(path, "eval")
     per = per_seed(ev)
-    mean = lambda name: sum(getattr(p, name) for p in per) / len(per)  # noqa: E731
+
+    def mean(name: str, scale: float = 100.0) -> float | None:  # None: a plan measure of a policy (no plans)
+        vals = [getattr(p, name) for p in per]
+        return None if None in vals else scale * sum(vals) / len(vals)
+
     return {
-        "success": 100 * mean("success_rate"),
-        "in_wall": 100 * mean("in_wall_fraction"),
-        "crossing": 100 * mean("plan_crossing_rate"),
-        "impossible_jump": 100 * mean("impossible_jump_rate"),
-        "jump_ratio": mean("jump_ratio"),  # the largest step of a plan over what the dynamics allow, seed means
-        "collision": 100 * mean("executed_collision_rate"),
-        "plan_ms": 1000 * mean("plan_seconds"),
+        "success": mean("success_rate"),
+        "in_wall": mean("in_wall_fraction"),
+        "crossing": mean("plan_crossing_rate"),
+        "impossible_jump": mean("impossible_jump_rate"),
+        "jump_ratio": mean("jump_ratio", 1.0),  # the largest step of a plan over what the dynamics allow, seed means
+        "collision": mean("executed_collision_rate"),
+        "plan_ms": mean("plan_seconds", 1000.0),  # a policy: the time of its act calls per episode
         "model": ev.manifest.parents[0].path,
     }
 
@@ -241,7 +276,7 @@ def choose(args) -> dict:
                 if p.exists():
                     rows.append((name, _summary(p)))
             if rows:
-                name, s = max(rows, key=lambda r: (r[1]["success"], -r[1]["crossing"], -r[1]["collision"]))
+                name, s = max(rows, key=lambda r: (r[1]["success"], -(r[1]["crossing"] or 0), -r[1]["collision"]))
                 out.setdefault(env, {})[method] = {"candidate": name, "train_flags": sweep_for(env)[method][name], **s}
     return out
 
@@ -269,11 +304,11 @@ def write(args, log) -> None:
                         "batch": cfg.batch_size,
                         "parameters": st.parameters,
                         "train_s": round(st.wall_time_s, 1),
-                        **{k: round(v, 3) for k, v in _summary(p).items() if k != "model"},
+                        **_rounded(_summary(p), exclude=("model",)),
                     }
                 )
     if rows:
-        _csv(results / "tuning.csv", rows, args.envs)
+        _csv(results / "tuning.csv", rows, args)
     tuned = choose(args)
     clocks = []
     for env, by in tuned.items():
@@ -288,7 +323,7 @@ def write(args, log) -> None:
                             "env": env,
                             "method": method,
                             "clock": cname,
-                            **{k: round(v, 3) for k, v in s.items() if k != "model"},
+                            **_rounded(s, exclude=("model",)),
                         }
                     )
                     # the plans are the same under every clock: ties go to fewer executed collisions
@@ -300,7 +335,7 @@ def write(args, log) -> None:
                 # no curve runs: table1.py reuses the sweep's seed-0 model (the quick preset, seed 0) for seed 0
                 t["curve_models"] = {"0": t["model"]}
     if clocks:
-        _csv(results / "tuning_clock.csv", clocks, args.envs)
+        _csv(results / "tuning_clock.csv", clocks, args)
     curve_rows = []
     for env in args.envs:
         for method in args.methods:  # the curves of each method's chosen candidate only
@@ -313,12 +348,12 @@ def write(args, log) -> None:
                         "env": env,
                         "seed": int(seed[1:]),
                         "steps": int(steps),
-                        **{k: round(v, 3) for k, v in _summary(p).items() if k in ("success", "in_wall", "crossing")},
+                        **_rounded(_summary(p), keep=("success", "in_wall", "crossing")),
                     }
                 )
     if curve_rows:
         curve_rows.sort(key=lambda r: (r["env"], r["method"], r["seed"], r["steps"]))
-        all_curves = _csv(results / "learning_curves.csv", curve_rows, args.envs)
+        all_curves = _csv(results / "learning_curves.csv", curve_rows, args)
         plot_curves(all_curves, figures / "learning_curves.png")
         # training steps: the curve point with the best mean tuning success (ties: fewer steps, i.e. cheaper)
         for env, by in tuned.items():
@@ -344,9 +379,13 @@ def write(args, log) -> None:
                 }
     meta = {"machine": hardware(), "tuning_stream_seeds": args.tune_seeds, "episodes_per_seed": args.episodes}
     path = results / "tuned.json"
-    # the environments not tuned in this run keep their settings (Fetch and the mazes are tuned in separate runs)
-    kept = json.loads(path.read_text())["settings"] if path.exists() else {}
-    settings = {e: v for e, v in kept.items() if e not in args.envs} | tuned
+    # the (env, method) pairs not tuned in this run keep their settings (Fetch and the mazes, planners and policies
+    # are tuned in separate runs)
+    settings = json.loads(path.read_text())["settings"] if path.exists() else {}
+    for env in args.envs:
+        by = {m: t for m, t in settings.get(env, {}).items() if m not in args.methods} | tuned.get(env, {})
+        if by:
+            settings[env] = by
     path.write_text(json.dumps({"meta": meta, "settings": settings}, indent=2) + "\n")
     print(path)
 
@@ -360,11 +399,20 @@ def _curve_model(folder: Path, method: str, seed: int, steps: int, final: int) -
     return folder / (f"{method}-s{seed}.h5" if steps == final else f"{method}-s{seed}.step{steps}.h5")
 
 
-def _csv(path: Path, rows: list[dict], envs: list[str]) -> list[dict]:
-    """Write ``rows`` for ``envs`` into the CSV at ``path``, keeping its rows of other environments; returns all."""
+def _rounded(summary: dict, keep=None, exclude=()) -> dict:
+    return {
+        k: (None if v is None else round(v, 3))
+        for k, v in summary.items()
+        if (keep is None or k in keep) and k not in exclude
+    }
+
+
+def _csv(path: Path, rows: list[dict], args) -> list[dict]:
+    """Write ``rows`` into the CSV at ``path``, keeping its rows of the (env, method) pairs this run did not cover
+    (``args.envs`` x ``args.methods``); returns all rows."""
     if path.exists():
         with open(path, newline="") as fh:
-            kept = [r for r in csv.DictReader(fh) if r["env"] not in envs]
+            kept = [r for r in csv.DictReader(fh) if r["env"] not in args.envs or r["method"] not in args.methods]
         kept = [{k: _number(v) for k, v in r.items()} for r in kept]
         rows = kept + rows
     with open(path, "w", newline="") as fh:
@@ -397,7 +445,9 @@ def plot_curves(rows: list[dict], path: Path) -> None:
             sel = [r for r in rows if r["env"] == env and r["method"] == method]
             steps = sorted({r["steps"] for r in sel})
             for i, key in enumerate(("success", "crossing")):
-                vals = [[r[key] for r in sel if r["steps"] == s] for s in steps]
+                vals = [[r[key] for r in sel if r["steps"] == s and r[key] not in (None, "")] for s in steps]
+                if not all(vals):
+                    continue  # a policy makes no plans: no crossing curve
                 m = np.array([np.mean(v) for v in vals])
                 sd = np.array([np.std(v, ddof=1) if len(v) > 1 else 0.0 for v in vals])
                 axes[i][j].plot(steps, m, marker="o", label=f"{method} ({min(len(v) for v in vals)} seeds)")

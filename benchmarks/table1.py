@@ -136,7 +136,10 @@ def train_eval(
         cmd += ["--buffer", buffer]
     unet = entry.default_net == "unet" and "transformer" not in (extra or [])
     diffusion = "diffusion_steps" in entry.params.model_fields
-    cmd += args.train_extra + (args.unet_extra if unet else []) + (args.diffusion_extra if diffusion else [])
+    extra_train = args.train_extra
+    if entry.kind == "policy":  # a policy learns from single transitions: no plan horizon or stride to shrink
+        extra_train = _without(extra_train, ("horizon=", "stride="))
+    cmd += extra_train + (args.unet_extra if unet else []) + (args.diffusion_extra if diffusion else [])
     cmd += list(extra or [])
     if reuse is not None and not model.exists():
         # a curve run's model of exactly this length (benchmarks/comparison.py): `cdrb train` below skips it as up
@@ -162,6 +165,18 @@ def train_eval(
         )
         paths.append(ev)
     return paths[0], (paths[1] if timed else None)
+
+
+def _without(flags: list, prefixes: tuple) -> list:
+    """``flags`` without the ``--set KEY=VALUE`` pairs whose KEY=VALUE starts with one of ``prefixes``."""
+    out, i = [], 0
+    while i < len(flags):
+        if flags[i] == "--set" and i + 1 < len(flags) and str(flags[i + 1]).startswith(prefixes):
+            i += 2
+            continue
+        out.append(flags[i])
+        i += 1
+    return out
 
 
 def prepare_env(env: str, out: Path, args, log, k: int = 1000, features: str = "state") -> tuple[Path, Path]:
@@ -272,12 +287,14 @@ def main() -> None:
                         common = (args.out / env, demos, buffer, method, seed, args, log, tag, train_flags)
                         reuse = (t or {}).get("curve_models", {}).get(str(seed))
                         reuse = Path(reuse) if reuse else None
-                        timed = args.timed_too and family(env) == "pointmaze"  # Fetch plans run on the env's clock
+                        policy = METHODS.get(method).kind == "policy"  # acts closed loop: no plan, no clock
+                        # Fetch plans run on the env's clock
+                        timed = args.timed_too and family(env) == "pointmaze" and not policy
                         ev, timed_ev = train_eval(*common, timed=timed, eval_flags=eval_flags, reuse=reuse)
                         evals.append(ev)
                         if timed_ev is not None:
                             timed_evals.append(timed_ev)
-                        if args.official_too and family(env) == "pointmaze":  # a maze protocol
+                        if args.official_too and family(env) == "pointmaze" and not policy:  # a maze protocol
                             official_evals.append(train_eval(*common, protocol="official-code")[0])
         ablation_evals = {}
         if args.ablations:
@@ -292,21 +309,29 @@ def main() -> None:
     finally:
         timings_path.write_text(json.dumps(log, indent=2))
     print(f"total {(time.time() - t0) / 60:.1f} min", flush=True)
-    # the grid may be run in parts (`--envs` a few rows at a time): the report covers every Table-1 row with results
+    # the grid may be run in parts (`--envs` a few rows, `--methods` a few columns at a time): the report covers every
+    # Table-1 row and every method with results
     for env in TABLE1_ENVS:
-        if env in args.envs.split(",") or args.skip_grid:
+        if args.skip_grid:
             continue
         for seed in seeds:
-            for method in methods:
+            for method in METHODS.names():
                 tag = f"{method}-tuned" if tuned.get(env, {}).get(method) else method
                 ev = args.out / env / f"eval-{tag}-s{seed}.h5"
-                if ev.exists():
+                if ev.exists() and ev not in evals:
                     evals.append(ev)
-                if (ev.with_name(ev.stem + "-official-code.h5")).exists() and args.official_too:
-                    official_evals.append(ev.with_name(ev.stem + "-official-code.h5"))
+                official = ev.with_name(ev.stem + "-official-code.h5")
+                if official.exists() and args.official_too and official not in official_evals:
+                    official_evals.append(official)
     order = {e: i for i, e in enumerate(TABLE1_ENVS)}
-    evals.sort(key=lambda p: order.get(p.parent.name, len(order)))
-    official_evals.sort(key=lambda p: order.get(p.parent.name, len(order)))
+    names = list(METHODS.names())
+
+    def place(path: Path) -> tuple:  # Table 1's row order, then the registry's method order (the report's columns)
+        tag = path.name.removeprefix("eval-").split("-s")[0].removesuffix("-tuned")
+        return order.get(path.parent.name, len(order)), names.index(tag) if tag in names else len(names)
+
+    evals.sort(key=place)
+    official_evals.sort(key=place)
 
     report_md = args.out / "table1.md"
     if evals:
@@ -370,6 +395,7 @@ def main() -> None:
             )
             meta = (
                 f"\n*Run: `python benchmarks/table1.py --envs {args.envs} --preset {args.preset}"
+                + (f" --methods {args.methods}" if args.methods else "")
                 + (f" --demos {args.demos}" if args.demos is not None else "")
                 + f" --seeds "
                 f"{args.seeds} --eval-episodes {args.eval_episodes}{flags}` on {hardware()}; wall time per stage "

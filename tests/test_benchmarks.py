@@ -47,6 +47,29 @@ def test_table1_script_tiny(tmp_path):
     assert "cdrb collect fetch-reach -n 40 " in proc.stdout  # --tiny caps the Fetch default of 5000 demos
     table = (out / "table1.md").read_text()
     assert table.index("| Maze Tight |") < table.index("| Reach |") and "Reach (paper)" in table
+    # ... and so do methods: a policy's column joins the planners' (no plan clock, no official executor for it)
+    policy = [
+        *cmd[: cmd.index("--methods")],
+        "--methods",
+        "diffusion-bc",
+        "--seeds",
+        "0,1",
+        "--official-too",
+        "--timed-too",
+    ]
+    proc = subprocess.run(policy, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "official" not in proc.stdout.split("diffusion-bc", 1)[1] and not list(
+        out.glob("*/eval-diffusion-bc*-timed*")
+    )
+    table = (out / "table1.md").read_text()
+    for row in (
+        "| Maze Tight | mlp |",
+        "| Maze Tight | cdrb |",
+        "| Maze Tight | diffusion-bc | closed loop",
+        "| Reach | cdrb |",
+    ):
+        assert row in table, row
 
 
 def test_planning_script(tmp_path, small_data):
