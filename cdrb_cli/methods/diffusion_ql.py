@@ -26,8 +26,6 @@ All four networks, both optimizers and the update counter are in the checkpoint 
 
 from __future__ import annotations
 
-import copy
-import math
 from typing import Literal
 
 import numpy as np
@@ -69,56 +67,11 @@ def _vp_betas(T: int, b_min: float = 0.1, b_max: float = 10.0) -> np.ndarray:
     return 1 - alpha
 
 
-def _mlp(n_in: int, n_out: int, hidden: list[int]):
-    nn = torch.nn
-    layers, width = [], n_in
-    for h in hidden:
-        layers += [nn.Linear(width, h), nn.Mish()]
-        width = h
-    return nn.Sequential(*layers, nn.Linear(width, n_out))
-
-
-class _Actor(torch.nn.Module):
-    """eps(a_t, t, cond): a 16-d sinusoidal step embedding through Linear-Mish-Linear, then a Mish MLP."""
-
-    def __init__(self, act_dim: int, cond_dim: int, hidden: list[int]):
-        super().__init__()
-        nn = torch.nn
-        self.t_mlp = nn.Sequential(nn.Linear(16, 32), nn.Mish(), nn.Linear(32, 16))
-        self.net = _mlp(act_dim + 16 + cond_dim, act_dim, hidden)
-
-    def forward(self, a, t, cond):
-        half = 8
-        freqs = torch.exp(-math.log(10000) * torch.arange(half, device=a.device) / (half - 1))
-        emb = t.float()[:, None] * freqs[None]
-        emb = torch.cat([emb.sin(), emb.cos()], dim=-1)
-        return self.net(torch.cat([a, self.t_mlp(emb), cond], dim=-1))
-
-
-class _Critic(torch.nn.Module):
-    def __init__(self, act_dim: int, cond_dim: int, hidden: list[int]):
-        super().__init__()
-        self.q1, self.q2 = _mlp(cond_dim + act_dim, 1, hidden), _mlp(cond_dim + act_dim, 1, hidden)
-
-    def forward(self, cond, a):
-        x = torch.cat([cond, a], dim=-1)
-        return self.q1(x), self.q2(x)
-
-
-class _Targets(torch.nn.Module):
-    """The EMA actor, the target critics and the update counter (checkpointed together)."""
-
-    def __init__(self, actor, critic):
-        super().__init__()
-        self.actor, self.critic = copy.deepcopy(actor), copy.deepcopy(critic)
-        for p in self.parameters():
-            p.requires_grad_(False)
-        self.register_buffer("updates", torch.zeros((), dtype=torch.float64))  # a count (exact to 2**53)
-
-
 class DiffusionQL(Policy):
     def build(self, buffer_points) -> None:
         from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
+
+        from cdrb_cli.nets.qlearning import NoiseMLP, Targets, TwinCritic
 
         p = self.config.method
         self.T = p.diffusion_steps
@@ -126,9 +79,9 @@ class DiffusionQL(Policy):
         self.goal_dims = list(self.spec.goal_dims)
         cond_dim = self.obs_dim + len(self.goal_dims)
         hidden = list(self.config.net.hidden)  # actor and critic heads alike (the reference: 3 x 256)
-        self.actor = _Actor(self.act_dim, cond_dim, hidden).to(self.device)
-        self.critic = _Critic(self.act_dim, cond_dim, hidden).to(self.device)
-        self.targets = _Targets(self.actor, self.critic).to(self.device)
+        self.actor = NoiseMLP(self.act_dim, cond_dim, hidden).to(self.device)
+        self.critic = TwinCritic(self.act_dim, cond_dim, hidden).to(self.device)
+        self.targets = Targets(self.actor, self.critic).to(self.device)
         self.sched = DDPMScheduler(
             num_train_timesteps=self.T,
             trained_betas=_vp_betas(self.T).tolist(),

@@ -1,0 +1,59 @@
+"""Diffusion-QL's networks: the noise-predicting actor, the twin critics, and their slow copies.
+
+All are Mish MLPs (the reference's widths: 3 x 256). The actor predicts the noise of a DDPM over one action from
+(noisy action, step, condition); the critics read (condition, action); ``Targets`` holds the EMA actor, the target
+critics and the update counter so that one checkpoint resumes training exactly.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+from torch import nn
+
+
+def mlp(n_in: int, n_out: int, hidden: list[int]):
+    layers, width = [], n_in
+    for h in hidden:
+        layers += [nn.Linear(width, h), nn.Mish()]
+        width = h
+    return nn.Sequential(*layers, nn.Linear(width, n_out))
+
+
+class NoiseMLP(nn.Module):
+    """eps(a_t, t, cond): a 16-d sinusoidal step embedding through Linear-Mish-Linear, then a Mish MLP."""
+
+    def __init__(self, act_dim: int, cond_dim: int, hidden: list[int]):
+        super().__init__()
+        self.t_mlp = nn.Sequential(nn.Linear(16, 32), nn.Mish(), nn.Linear(32, 16))
+        self.net = mlp(act_dim + 16 + cond_dim, act_dim, hidden)
+
+    def forward(self, a, t, cond):
+        half = 8
+        freqs = torch.exp(-math.log(10000) * torch.arange(half, device=a.device) / (half - 1))
+        emb = t.float()[:, None] * freqs[None]
+        emb = torch.cat([emb.sin(), emb.cos()], dim=-1)
+        return self.net(torch.cat([a, self.t_mlp(emb), cond], dim=-1))
+
+
+class TwinCritic(nn.Module):
+    def __init__(self, act_dim: int, cond_dim: int, hidden: list[int]):
+        super().__init__()
+        self.q1, self.q2 = mlp(cond_dim + act_dim, 1, hidden), mlp(cond_dim + act_dim, 1, hidden)
+
+    def forward(self, cond, a):
+        x = torch.cat([cond, a], dim=-1)
+        return self.q1(x), self.q2(x)
+
+
+class Targets(nn.Module):
+    """The EMA actor, the target critics and the update counter (checkpointed together)."""
+
+    def __init__(self, actor, critic):
+        super().__init__()
+        self.actor, self.critic = copy.deepcopy(actor), copy.deepcopy(critic)
+        for p in self.parameters():
+            p.requires_grad_(False)
+        self.register_buffer("updates", torch.zeros((), dtype=torch.float64))  # a count (exact to 2**53)
