@@ -141,7 +141,7 @@ def train_eval(
         extra_train = _without(extra_train, ("horizon=", "stride="))
     cmd += extra_train + (args.unet_extra if unet else []) + (args.diffusion_extra if diffusion else [])
     cmd += list(extra or [])
-    if reuse is not None and not model.exists():
+    if reuse is not None and reuse.exists() and not model.exists():
         # a curve run's model of exactly this length (benchmarks/comparison.py): `cdrb train` below skips it as up
         # to date when its config and parents are the ones asked for, and refuses it otherwise
         tmp = model.with_name(model.name + ".part")
