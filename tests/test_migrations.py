@@ -1,5 +1,10 @@
-"""Artifacts written by cdrb 0.1 (schema 1.x, tests/data/v1) are read through migrations and give exactly the
-results they gave then: the same plans, the same evaluation, and the same weights when retrained."""
+"""Artifacts written by cdrb 0.1 (schema 1.x, tests/data/v1) are read through migrations and give the results they
+gave then: the same plans, the same evaluation, and the same weights when retrained.
+
+"The same" is exact for every discrete result (success, in-wall flags, step counts) and within float round-off for
+real numbers: the files were written on one CPU, and another CPU's kernels (AVX2 vs AVX-512, oneDNN's choice of
+algorithm) round float32 sums differently, so bit equality does not hold across machines (CI saw 6e-6 on plans).
+The tolerances are far below what a different seed, config or code path changes (checked in each test)."""
 
 from __future__ import annotations
 
@@ -40,16 +45,35 @@ def test_v1_model_layout_is_per_module():
     assert steps and all(v.shape == () and v.dtype == np.float32 for v in steps)
 
 
-def test_v1_model_plans_exactly_as_before(tmp_path):
+def _same(new, old, key, rtol, atol):
+    """Exact for integer/bool arrays, within round-off for floats."""
+    new, old = np.asarray(new), np.asarray(old)
+    assert new.shape == old.shape and new.dtype == old.dtype, key
+    if np.issubdtype(old.dtype, np.floating):
+        np.testing.assert_allclose(new, old, rtol=rtol, atol=atol, err_msg=key)
+    else:
+        np.testing.assert_array_equal(new, old, err_msg=key)
+
+
+def test_v1_model_plans_as_before(tmp_path):
     model = artifacts.load(V1 / "model.h5")
     old = artifacts.load(V1 / "plans.h5")
     cfg = PlanConfig(sampler="paper", n=2, seed=3)  # "alg1" in the 1.x file, renamed in 2.2
     new = make_plans(model, old.starts.astype(np.float64), old.goals.astype(np.float64), cfg, tmp_path / "p.h5")
-    np.testing.assert_array_equal(new.plans, old.plans)
-    np.testing.assert_array_equal(new.arrays["in_wall"], old.arrays["in_wall"])
+    _same(new.plans, old.plans, "plans", rtol=1e-4, atol=1e-4)
+    _same(new.arrays["in_wall"], old.arrays["in_wall"], "in_wall", 0, 0)
+    # the tolerance discriminates: another sampling seed moves the plans by far more than it
+    other = make_plans(
+        model,
+        old.starts.astype(np.float64),
+        old.goals.astype(np.float64),
+        PlanConfig(sampler="paper", n=2, seed=4),
+        tmp_path / "q.h5",
+    )
+    assert np.abs(other.plans - old.plans).max() > 1e-2
 
 
-def test_v1_model_evaluates_exactly_as_before(tmp_path):
+def test_v1_model_evaluates_as_before(tmp_path):
     model = artifacts.load(V1 / "model.h5")
     old = artifacts.load(V1 / "eval.h5")
     assert old.manifest.config.controller.name == "pd" and old.manifest.config.controller.max_lag == 0.6
@@ -58,7 +82,7 @@ def test_v1_model_evaluates_exactly_as_before(tmp_path):
     assert new.arrays.keys() == old.arrays.keys() | added
     for key in old.arrays:
         if key != "episodes/plan_seconds":
-            np.testing.assert_array_equal(new.arrays[key], old.arrays[key], err_msg=key)
+            _same(new.arrays[key], old.arrays[key], key, rtol=1e-5, atol=1e-5)
     # the same config and model, but an eval from before schema 2.2 lacks the plan-crossing measurements: redone
     found = artifacts.existing(V1 / "eval.h5", "eval", old.manifest.config, [model])
     assert found.status == "different" and "measured less" in found.reason
@@ -74,7 +98,12 @@ def test_retraining_the_v1_config_gives_the_v1_weights(tmp_path):
     new = train(demos, buffer, cfg, tmp_path / "m.h5")
     assert new.arrays.keys() == old.arrays.keys()
     for key in old.arrays:
-        np.testing.assert_array_equal(new.arrays[key], old.arrays[key], err_msg=key)
+        # four Adam steps amplify round-off where a gradient is near zero (CI saw 1.5e-3 on a bias)
+        _same(new.arrays[key], old.arrays[key], key, rtol=0, atol=1e-2)
+    # ...which is far below what another seed's initialisation gives
+    other = train(demos, buffer, cfg.model_copy(update={"seed": cfg.seed + 1}), tmp_path / "m2.h5")
+    moved = [np.abs(other.arrays[k] - old.arrays[k]).max() for k in old.arrays if k.startswith("weights/")]
+    assert max(moved) > 1e-1
 
 
 def test_eval_1_0_had_no_gated_clock(tmp_path):
