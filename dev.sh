@@ -18,6 +18,7 @@ setup() {
 case "${1:-}" in
   setup) setup ;;
   demo)  setup; shift; "$VENV/bin/cdrb" quickstart "$@" ;;
-  test)  setup; shift; "$VENV/bin/python" -m pytest -q "$@" ;;
+  # one pytest-xdist worker per core (tests/conftest.py gives each one torch thread); CDRB_TEST_WORKERS=0 runs serially
+  test)  setup; shift; "$VENV/bin/python" -m pytest -q -n "${CDRB_TEST_WORKERS:-auto}" "$@" ;;
   *) echo "usage: ./dev.sh {setup|demo|test} [args...]" >&2; exit 2 ;;
 esac

@@ -140,6 +140,8 @@ def train_eval(
     if entry.kind == "policy":  # a policy learns from single transitions: no plan horizon or stride to shrink
         extra_train = _without(extra_train, ("horizon=", "stride="))
     cmd += extra_train + (args.unet_extra if unet else []) + (args.diffusion_extra if diffusion else [])
+    if args.tiny and "extra_steps" in entry.params.model_fields:  # a policy samples every env step: keep it short
+        cmd += ["--set", "method.extra_steps=0"]
     cmd += list(extra or [])
     if reuse is not None and reuse.exists() and not model.exists():
         # a curve run's model of exactly this length (benchmarks/comparison.py): `cdrb train` below skips it as up

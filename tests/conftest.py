@@ -8,6 +8,12 @@ import pytest
 os.environ.setdefault("MPLBACKEND", "Agg")
 # the test artifacts are small: a read that takes longer than this is a hang (see artifacts._guarded_probe)
 os.environ.setdefault("CDRB_READ_TIMEOUT", "10")
+# Under pytest-xdist (`./dev.sh test` runs one worker per core) each worker and the CLI subprocesses it starts get
+# one torch/OpenMP thread: two workers with a thread per core each spin against each other and run slower than
+# one worker alone. Set before anything imports torch; cdrb's own set-up reads OMP_NUM_THREADS.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = "1"
+    os.environ["MKL_NUM_THREADS"] = "1"
 
 ROOT = Path(__file__).resolve().parent.parent
 
