@@ -330,6 +330,14 @@ def collect(
     ),
     video: Path | None = typer.Option(None, "--video", help="Write GIFs of the first demos to this folder."),
     videos: int = typer.Option(3, "--videos", min=1, max=100, help="How many demo GIFs with --video."),
+    workers: int | None = typer.Option(
+        None,
+        "--workers",
+        min=1,
+        max=256,
+        help="Processes rolling out episodes (default: one per core, at least 100 episodes each). The demos are the "
+        "same byte for byte whatever the number.",
+    ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -353,7 +361,7 @@ def collect(
     _check_outputs(force, out=out, plot=plot)
     spec = _spec(env, maze_map)
     config = collect_config(spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction)
-    demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out), env=spec)
+    demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out, workers=workers), env=spec)
     s = demos.manifest.summary
     ui.log(
         f"{spec.id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "

@@ -181,3 +181,24 @@ def test_an_out_path_that_is_not_utf8_works_and_is_recorded_readably(tmp_path):
     assert r.stdout.strip() == out
     a = artifacts.load(os.fsdecode(out))
     assert "\ufffd" in " ".join(a.manifest.argv)
+
+
+def test_parallel_collect_gives_the_same_demos(tmp_path, cdrb):
+    """`cdrb collect --workers 2` (episodes rolled out in two spawned processes, through the real CLI entry point)
+    writes the same demos, array for array, as one process; the worker count is not part of the config."""
+    from cdrb_cli.stages.collect import collect_workers
+
+    spec = make_spec("fetch-push-obstacle")
+    serial = collect(spec, collect_config(spec, 45, seed=3), tmp_path / "one.h5", workers=1)
+    r = cdrb("collect", "fetch-push-obstacle", "-n", 45, "--seed", 3, "--workers", 2, "--out", tmp_path / "two.h5")
+    assert r.returncode == 0, r.stderr
+    parallel = artifacts.load(tmp_path / "two.h5", "demos")
+    assert parallel.manifest.config == serial.manifest.config
+    assert serial.arrays.keys() == parallel.arrays.keys()
+    for key in serial.arrays:
+        np.testing.assert_array_equal(parallel.arrays[key], serial.arrays[key], err_msg=key)
+    s, p = serial.manifest.summary, parallel.manifest.summary
+    assert (s.success_rate, s.states_in_walls, s.routes) == (p.success_rate, p.states_in_walls, p.routes)
+    # the default: one process per core, but never fewer than 100 episodes each
+    assert collect_workers(150, None) == 1 and collect_workers(10_000, None) == min(os.cpu_count() or 1, 8)
+    assert collect_workers(3, 16) == 3

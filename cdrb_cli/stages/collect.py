@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -57,37 +60,78 @@ def collect_config(
     return CollectConfig(env=spec.id, episodes=episodes, expert=expert_cfg, seed=seed, **split)
 
 
-def collect(spec: EnvSpec, config: CollectConfig, out: Path) -> artifacts.Demos:
-    """Roll out the configured expert for ``config.episodes`` episodes and write the demos artifact to ``out``."""
+_WORKER_ENVS: dict[str, tuple] = {}  # a pool worker keeps one env and expert per (spec, config)
+
+
+def _rollouts(spec: EnvSpec, config: CollectConfig, plan: list[Episode]) -> list[tuple]:
+    """In a pool worker: roll out ``plan``'s episodes: [(states, actions, goal, success), ...]. Every episode is
+    seeded by its own seed and reset from its own draw, so the result does not depend on which process ran it."""
+    key = spec.model_dump_json() + config.model_dump_json()
+    if key not in _WORKER_ENVS:
+        env = family_of(spec).make_env(spec)
+        _WORKER_ENVS[key] = (env, EXPERTS.get(config.expert.kind).build(spec, config.expert))
+    env, agent = _WORKER_ENVS[key]
+    return [rollout(env, agent, spec, episode, spec.episode_limit) for episode in plan]
+
+
+def _worker_init() -> None:
+    os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported there: the pool is the parallelism
+
+
+def collect_workers(episodes: int, workers: int | None) -> int:
+    """Processes for a collect: ``workers`` when given, else one per CPU core (up to 8) with at least 100 episodes
+    each (starting a process costs ~2 s of imports, more than 100 maze episodes take)."""
+    if workers is not None:
+        return max(1, min(workers, episodes))
+    return max(1, min(os.cpu_count() or 1, 8, episodes // 100))
+
+
+def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None = 1) -> artifacts.Demos:
+    """Roll out the configured expert for ``config.episodes`` episodes and write the demos artifact to ``out``.
+
+    ``workers`` > 1 rolls episodes out in that many processes (None: `collect_workers`'s choice); the artifact is
+    the same byte for byte whatever the number (each episode has its own seed and reset; tested)."""
     t0 = time.time()
     seed, episodes, valid_fraction = config.seed, config.episodes, config.valid_fraction
     family = family_of(spec)
-    env = family.make_env(spec)
-    agent = EXPERTS.get(config.expert.kind).build(spec, config.expert)
-
     plan = family.draw_episodes(spec, episodes, seed, STREAM_COLLECT)
+    n_workers = collect_workers(episodes, workers)
+    chunk = 20  # episodes per task: small enough for a live progress bar, large enough to amortise the hand-off
+    parts = [plan[i : i + chunk] for i in range(0, episodes, chunk)]
     all_states, all_actions, all_goals, starts, lengths, success = [], [], [], [], [], []
     routes: dict[str, dict[str, int]] = {}
     total = 0
     with ui.progress() as bar:
         task = bar.add_task(ui.plain(f"collect {spec.id}", 60), total=episodes, info="")
-        for e, episode in enumerate(plan):
-            S, A, goal, ok = rollout(env, agent, spec, episode, spec.episode_limit)
-            starts.append(total)
-            lengths.append(len(S))
-            total += len(S)
-            all_states.append(S)
-            all_actions.append(A)
-            all_goals.append(np.repeat(goal[None], len(S), axis=0))
-            success.append(ok)
-            route = family.route(spec, S, goal)
-            if route is not None:
-                group, label = route
-                routes.setdefault(group, {})
-                routes[group][label] = routes[group].get(label, 0) + 1
-            if e % 20 == 0 or e == episodes - 1:
-                bar.update(task, completed=e + 1, info=f"success {np.mean(success):.1%}")
-    env.close()
+        pool = env = None
+        if n_workers == 1:
+            env = family.make_env(spec)
+            agent = EXPERTS.get(config.expert.kind).build(spec, config.expert)
+            results = ([rollout(env, agent, spec, ep, spec.episode_limit) for ep in part] for part in parts)
+        else:
+            pool = ProcessPoolExecutor(n_workers, mp_context=get_context("spawn"), initializer=_worker_init)
+            results = pool.map(_rollouts, [spec] * len(parts), [config] * len(parts), parts)  # in order
+        try:
+            for part in results:
+                for S, A, goal, ok in part:
+                    starts.append(total)
+                    lengths.append(len(S))
+                    total += len(S)
+                    all_states.append(S)
+                    all_actions.append(A)
+                    all_goals.append(np.repeat(goal[None], len(S), axis=0))
+                    success.append(ok)
+                    route = family.route(spec, S, goal)
+                    if route is not None:
+                        group, label = route
+                        routes.setdefault(group, {})
+                        routes[group][label] = routes[group].get(label, 0) + 1
+                bar.update(task, completed=len(success), info=f"success {np.mean(success):.1%}")
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+            if env is not None:
+                env.close()
     observations = np.concatenate(all_states).astype(np.float32)
     in_walls = int(family.in_collision(spec, observations).sum())
     split_rng = np.random.default_rng([seed, STREAM_COLLECT, 99])
