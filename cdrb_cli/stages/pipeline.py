@@ -91,7 +91,7 @@ def quickstart(
         _stage(step, total, f"collect {episodes} expert demos on {env}")
         demos_path = paths["demos"] = folder / "demos.h5"
         ccfg = collect_config(spec, episodes, seed=seed)
-        demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path)
+        demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path, workers=None)
 
         step += 1
         kcfg = ClusterConfig(seed=seed, **({"k": k} if k is not None else {}))
