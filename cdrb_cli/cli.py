@@ -336,7 +336,7 @@ def collect(
         min=1,
         max=256,
         help="Processes rolling out episodes (default: one per core, at least 100 episodes each). The demos are the "
-        "same byte for byte whatever the number.",
+        "same array for array whatever the number.",
     ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,

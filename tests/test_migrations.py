@@ -4,7 +4,7 @@ gave then: the same plans, the same evaluation, and the same weights when retrai
 "The same" is exact for every discrete result (success, in-wall flags, step counts) and within float round-off for
 real numbers: the files were written on one CPU, and another CPU's kernels (AVX2 vs AVX-512, oneDNN's choice of
 algorithm) round float32 sums differently, so bit equality does not hold across machines (CI saw 6e-6 on plans).
-The tolerances are far below what a different seed, config or code path changes (checked in each test)."""
+The tolerances are far below what another seed changes (checked for the plans and the retrained weights)."""
 
 from __future__ import annotations
 

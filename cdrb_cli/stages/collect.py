@@ -68,10 +68,13 @@ def _rollouts(spec: EnvSpec, config: CollectConfig, plan: list[Episode]) -> list
     seeded by its own seed and reset from its own draw, so the result does not depend on which process ran it."""
     key = spec.model_dump_json() + config.model_dump_json()
     if key not in _WORKER_ENVS:
-        env = family_of(spec).make_env(spec)
-        _WORKER_ENVS[key] = (env, EXPERTS.get(config.expert.kind).build(spec, config.expert))
+        _WORKER_ENVS[key] = _env_and_expert(spec, config)
     env, agent = _WORKER_ENVS[key]
     return [rollout(env, agent, spec, episode, spec.episode_limit) for episode in plan]
+
+
+def _env_and_expert(spec: EnvSpec, config: CollectConfig) -> tuple[Env, Expert]:
+    return family_of(spec).make_env(spec), EXPERTS.get(config.expert.kind).build(spec, config.expert)
 
 
 def _worker_init() -> None:
@@ -89,15 +92,15 @@ def collect_workers(episodes: int, workers: int | None) -> int:
 def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None = 1) -> artifacts.Demos:
     """Roll out the configured expert for ``config.episodes`` episodes and write the demos artifact to ``out``.
 
-    ``workers`` > 1 rolls episodes out in that many processes (None: `collect_workers`'s choice); the artifact is
-    the same byte for byte whatever the number (each episode has its own seed and reset; tested)."""
+    ``workers`` > 1 rolls episodes out in that many processes (None: `collect_workers`'s choice); the demos are
+    the same array for array whatever the number (each episode has its own seed and reset; tested)."""
     t0 = time.time()
     seed, episodes, valid_fraction = config.seed, config.episodes, config.valid_fraction
     family = family_of(spec)
     plan = family.draw_episodes(spec, episodes, seed, STREAM_COLLECT)
-    n_workers = collect_workers(episodes, workers)
     chunk = 20  # episodes per task: small enough for a live progress bar, large enough to amortise the hand-off
     parts = [plan[i : i + chunk] for i in range(0, episodes, chunk)]
+    n_workers = min(collect_workers(episodes, workers), len(parts))  # a worker without a part would only start up
     all_states, all_actions, all_goals, starts, lengths, success = [], [], [], [], [], []
     routes: dict[str, dict[str, int]] = {}
     total = 0
@@ -105,8 +108,7 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
         task = bar.add_task(ui.plain(f"collect {spec.id}", 60), total=episodes, info="")
         pool = env = None
         if n_workers == 1:
-            env = family.make_env(spec)
-            agent = EXPERTS.get(config.expert.kind).build(spec, config.expert)
+            env, agent = _env_and_expert(spec, config)
             results = ([rollout(env, agent, spec, ep, spec.episode_limit) for ep in part] for part in parts)
         else:
             pool = ProcessPoolExecutor(n_workers, mp_context=get_context("spawn"), initializer=_worker_init)
