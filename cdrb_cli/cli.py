@@ -790,6 +790,28 @@ def eval_cmd(
         help="The evaluation protocol (default: the environment's; mazes also take 'official-code': goals at cell "
         "centres, success within 0.55 m, the official executor). `cdrb envs --json` lists them.",
     ),
+    replan: str | None = typer.Option(
+        None,
+        "--replan",
+        metavar="never|every:N|deviation:D",
+        help="Planners, closed loop: plan again from the current state every N env steps, or when the state is "
+        "farther than D (metres, in the obstacle dimensions) from where the plan has it now (default: never, one "
+        "plan per episode as in the paper).",
+    ),
+    repair_k: int | None = typer.Option(
+        None,
+        "--repair-k",
+        metavar="K",
+        help="With --replan: repair instead of planning from scratch: the previous plan's remainder is degraded to "
+        "step K and restored from there (CDRB: the ball sampler; Diffuser: re-noised to timestep K; MLP: "
+        "re-predicts).",
+    ),
+    repair_steps: int | None = typer.Option(
+        None, "--repair-steps", metavar="N", help="Denoising steps of a repair (default: every step from K)."
+    ),
+    replan_plot: Path | None = typer.Option(
+        None, "--replan-plot", help="With --replan: the first episode's successive plans over its path (PNG)."
+    ),
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with raw instead of EMA weights."),
@@ -808,7 +830,11 @@ def eval_cmd(
     Start/goal pairs follow the environment's protocol (for the paper's mazes: centre starts, corner goals, the
     stock reset noise) and are identical across methods for the same seeds. Per episode: success at any step,
     steps, final distance, planned states inside obstacles, executed collisions, path length relative to the
-    expert, planning time. Example: [cyan]cdrb eval model.h5 --seeds 0,1,2,3,4 --episodes 100 --video gifs/[/cyan]"""
+    expert, planning time. Example: [cyan]cdrb eval model.h5 --seeds 0,1,2,3,4 --episodes 100 --video gifs/[/cyan]
+
+    Closed loop (planners): [cyan]--replan every:20[/cyan] plans again every 20 steps from the current state,
+    [cyan]--replan deviation:0.5 --repair-k 4[/cyan] repairs the plan when the agent is 0.5 m off it; the eval then
+    records re-plans and the planning time of whole episodes (`--replan-plot` draws one episode's plans)."""
     if video is not None:
         from cdrb_cli.envs.render import choose_gl_backend
 
@@ -819,9 +845,14 @@ def eval_cmd(
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--sample-steps", sample_steps)
+    _check_positive("--repair-k", repair_k)
+    _check_positive("--repair-steps", repair_steps)
     seed_list = _int_list(seeds, "--seeds")
     if video is not None:
         _check_video_folder(video)
+    if replan_plot is not None and replan in (None, "never"):
+        raise BadInput("--replan-plot draws the plans of a closed-loop episode", hint="add --replan every:N")
+    _check_outputs(force, [model], out=out, replan_plot=replan_plot)
     settings = parse_set(sets)
     if max_lag is not None:
         if any(s.path == ("controller", "max_lag") for s in settings):
@@ -840,6 +871,9 @@ def eval_cmd(
         seed=seed,
         protocol=protocol,
         stream=stream,
+        replan=replan,
+        repair_k=repair_k,
+        repair_steps=repair_steps,
     )
     n_videos = videos if video is not None else 0
     ev = produce(
@@ -847,7 +881,9 @@ def eval_cmd(
         "eval",
         force,
         config,
-        lambda: evaluate(m, config, out, device=setup_torch(device), video_dir=video, videos=n_videos),
+        lambda: evaluate(
+            m, config, out, device=setup_torch(device), video_dir=video, videos=n_videos, replan_plot=replan_plot
+        ),
         parents=[m],
     )
     s = ev.manifest.summary
@@ -862,10 +898,18 @@ def eval_cmd(
         )
         + f"executed collisions {100 * s.executed_collision_mean:.1f}%; "
         + (f"plan {1000 * s.plan_seconds_mean:.1f} ms" if s.in_wall_mean is not None else "")
+        + (
+            f" ({s.replans_mean:.1f} re-plans, {1000 * s.planning_seconds_mean:.0f} ms planning per episode: "
+            f"{config.replan.label()})"
+            if config.replan.mode != "never" and s.replans_mean is not None
+            else ""
+        )
         + (f"{1000 * s.plan_seconds_mean:.2f} ms per episode step" if s.in_wall_mean is None else "")
     )
     if video is not None:
         ui.log(f"rollout GIFs: {video}/")
+    if replan_plot is not None and replan_plot.exists():
+        ui.log(f"picture: {replan_plot}")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import typing
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from cdrb_cli.envs.family import ControllerConfig, ExpertConfig
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS
@@ -183,6 +183,63 @@ class PlanSummary(Record):
 
 
 # --------------------------------------------------------------------------------------------- eval
+class ReplanConfig(Record):
+    """Closed-loop execution of a planner: when to plan again during an episode, and how."""
+
+    mode: Literal["never", "every", "deviation"] = Field(
+        "never",
+        description="never: one plan per episode (the paper); every: plan again every `every` env steps; deviation: "
+        "plan again when the state is farther than `deviation` from where the plan has it now",
+    )
+    every: int | None = Field(None, gt=0, le=1_000_000, description="env steps between plans (mode every)")
+    deviation: float | None = Field(
+        None, gt=0, le=1e6, description="distance from the plan that triggers a new plan, in the obstacle dimensions"
+    )
+    min_gap: int = Field(
+        1, gt=0, le=1_000_000, description="env steps at least between two plans (mode deviation: no plan storms)"
+    )
+    repair_k: int | None = Field(
+        None,
+        gt=0,
+        le=100_000,
+        description="repair: restore the previous plan's remainder from degradation step k (null: plan from scratch)",
+    )
+    repair_steps: int | None = Field(
+        None, gt=0, le=100_000, description="denoising steps of a repair (null: every step from k)"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> ReplanConfig:
+        if self.mode == "every" and self.every is None:
+            raise ValueError("mode 'every' needs `every` (env steps between plans)")
+        if self.mode == "deviation" and self.deviation is None:
+            raise ValueError("mode 'deviation' needs `deviation` (a distance)")
+        if self.mode != "every" and self.every is not None or self.mode != "deviation" and self.deviation is not None:
+            raise ValueError(f"mode {self.mode!r} takes neither `every` nor `deviation` other than its own")
+        if self.mode == "never" and (self.repair_k is not None or self.repair_steps is not None):
+            raise ValueError("repair_k/repair_steps repair a plan when re-planning: set a replan mode too")
+        if self.repair_steps is not None and self.repair_k is None:
+            raise ValueError("repair_steps needs repair_k")
+        return self
+
+    @classmethod
+    def parse(cls, text: str) -> dict:
+        """The fields of a ``--replan`` value: ``never``, ``every:N`` or ``deviation:D``."""
+        mode, _, value = text.strip().partition(":")
+        if mode == "never" and not value:
+            return {"mode": "never"}
+        if mode == "every" and value:
+            return {"mode": "every", "every": int(value)}
+        if mode == "deviation" and value:
+            return {"mode": "deviation", "deviation": float(value)}
+        raise ValueError("expected never, every:N or deviation:D")
+
+    def label(self) -> str:
+        """A short human name: ``open loop``, ``every 20`` or ``deviation 0.3``, with ``, repair k=4``."""
+        base = {"never": "open loop", "every": f"every {self.every}", "deviation": f"deviation {self.deviation}"}
+        return base[self.mode] + ("" if self.repair_k is None else f", repair k={self.repair_k}")
+
+
 class EvalConfig(Record):
     episodes: int = Field(gt=0, le=100_000, description="episodes per seed")
     seeds: list[Seed] = Field(min_length=1, description="evaluation seeds (each draws its own start/goal pairs)")
@@ -198,6 +255,9 @@ class EvalConfig(Record):
     protocol: str = Field(description="the family's start/goal protocol")
     stream: Literal["test", "tune"] = Field(
         "test", description="which start/goal pairs: 'tune' (for choosing settings) or 'test' (reported tables)"
+    )
+    replan: ReplanConfig = Field(
+        default_factory=ReplanConfig, description="planners: when to plan again during an episode, and how"
     )
     seed: Seed
 
@@ -217,6 +277,10 @@ class SeedResult(Record):
     executed_collision_rate: float
     path_length_ratio: float | None
     plan_seconds: float
+    replans: float | None = Field(None, description="re-plans per episode (closed-loop planning; None: not measured)")
+    planning_seconds: float | None = Field(
+        None, description="planning time of a whole episode, seconds (None: not measured)"
+    )
 
 
 class EvalSummary(Record):
@@ -232,6 +296,8 @@ class EvalSummary(Record):
     executed_collision_mean: float
     path_length_ratio_mean: float | None
     plan_seconds_mean: float
+    replans_mean: float | None = None
+    planning_seconds_mean: float | None = None
     per_seed: list[SeedResult]
     wall_time_s: float
 

@@ -13,6 +13,7 @@ STREAM_PLAN = 4
 STREAM_CLUSTER = 5
 STREAM_VALID = 6
 STREAM_TUNE = 7
+STREAM_REPLAN = 8
 
 #: `cdrb eval --stream`: the start/goal pairs every knob is chosen on ("tune") are drawn from their own stream, so
 #: the pairs of the reported tables ("test") are never seen while choosing anything (docs/design.md)
@@ -28,6 +29,12 @@ def episode_seeds(seed: int, n: int, stream: int) -> np.ndarray:
 def step_rng(seed: int, stream: int, step: int) -> np.random.Generator:
     """A fresh generator for one step (training step, planning batch...), independent of what ran before."""
     return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, stream, int(step)]))
+
+
+def replan_rng(seed: int, eval_seed: int, group: int, step: int) -> np.random.Generator:
+    """The generator of one re-planning call of closed-loop evaluation (eval seed, group of episodes, env step)."""
+    words = [int(seed) & 0xFFFFFFFF, STREAM_REPLAN, int(eval_seed) & 0xFFFFFFFF, int(group), int(step)]
+    return np.random.default_rng(np.random.SeedSequence(words))
 
 
 def torch_generator(rng: np.random.Generator, device="cpu"):

@@ -79,6 +79,7 @@ def test_v1_model_evaluates_as_before(tmp_path):
     assert old.manifest.config.controller.name == "pd" and old.manifest.config.controller.max_lag == 0.6
     new = evaluate(model, old.manifest.config, tmp_path / "e.h5")
     added = {"episodes/plan_crosses_obstacle", "episodes/plan_max_jump", "episodes/plan_step_limit"}  # 2.2 metrics
+    added |= {"episodes/replans", "episodes/planning_seconds"}  # 2.4: closed-loop planning
     assert new.arrays.keys() == old.arrays.keys() | added
     for key in old.arrays:
         if key != "episodes/plan_seconds":

@@ -127,7 +127,7 @@ def test_eval_settings_name_the_flag(small_data, tmp_path, cdrb):
     r = cdrb("eval", model.path, "--seeds", str(2**40), "--out", tmp_path / "e.h5")
     assert r.returncode == 2 and "32-bit" in r.stderr
     r = cdrb("eval", model.path, "--set", "episodes=3", "--out", tmp_path / "e.h5")
-    assert r.returncode == 2 and "controller.<field> and extra_steps" in r.stderr
+    assert r.returncode == 2 and "controller.<field>, replan.<field> and extra_steps" in r.stderr
     assert not (tmp_path / "e.h5").exists()
 
 

@@ -27,7 +27,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.3", "buffer": "2.3", "model": "2.3", "plans": "2.3", "eval": "2.3"}
+SCHEMA_VERSIONS = {"demos": "2.3", "buffer": "2.3", "model": "2.3", "plans": "2.3", "eval": "2.4"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -276,6 +276,8 @@ class Eval(ArtifactBase):
         DatasetSpec("episodes/path_length", "f", ("E",)),
         DatasetSpec("episodes/expert_path_length", "f", ("E",)),
         DatasetSpec("episodes/plan_seconds", "f", ("E",)),
+        DatasetSpec("episodes/replans", "i", ("E",), required=False),  # from schema 2.4
+        DatasetSpec("episodes/planning_seconds", "f", ("E",), required=False),
         DatasetSpec("episodes/start", "f", ("E", "obs_dim")),
         DatasetSpec("episodes/goal", "f", ("E", "goal_dim")),
         DatasetSpec("plans", "f", ("E", "H", "feature_dim"), required=False),

@@ -72,6 +72,13 @@ class Controller(ABC):
     @abstractmethod
     def act(self, state: np.ndarray, t: int) -> np.ndarray: ...
 
+    def progress(self, t: int, stride: int) -> float:
+        """Where along the plan execution stands after ``t`` environment steps on it, in planned states (may be
+        fractional): ``t / stride`` on the environment's clock (the default); a controller with a clock of its own
+        says where that clock is. Closed-loop evaluation measures the deviation from the plan there, and a plan
+        repair keeps the plan's remainder from there."""
+        return t / stride
+
 
 class ExpertConfig(Record):
     """Base of every expert's settings (stored in the demos artifact); subclasses fix ``kind``."""

@@ -236,3 +236,26 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
         how = f"MuJoCo (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'default')})" if use_simulator else "matplotlib"
         ui.log(f"{len(written)} GIF(s) drawn with {how}")
     return written
+
+
+def plot_replans(spec: EnvSpec, plans, plan_steps, states, goal, path, label: str, replan) -> Path:
+    """One closed-loop episode: every plan it made (purple to yellow in the order they were made, each from the state
+    it was made at) over the executed path (black), with the goal."""
+    plt = pyplot()
+    fam = family_of(spec)
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=110)
+    draw_scene(ax, spec)
+    colours = plt.get_cmap("viridis")(np.linspace(0.15, 0.95, len(plans)))
+    for i, (plan, step) in enumerate(zip(plans, plan_steps)):
+        p = fam.xy(spec, np.asarray(plan)[:, : spec.obs_dim])
+        ax.plot(p[:, 0], p[:, 1], "-", color=colours[i], lw=1.0, alpha=0.85, label="first plan" if i == 0 else None)
+        ax.plot(p[0, 0], p[0, 1], "o", ms=3, color=colours[i])
+        if len(plans) <= 12:  # the env step each plan was made at
+            ax.annotate(str(step), p[0], fontsize=6, color=colours[i], xytext=(3, 3), textcoords="offset points")
+    s = fam.xy(spec, states)
+    ax.plot(s[:, 0], s[:, 1], "-", color="black", lw=1.6, label="executed")
+    g = fam.xy(spec, fam.goal_state(spec, goal))[0]
+    ax.plot(g[0], g[1], "*", ms=14, mfc="gold", mec="black", label="goal")
+    ax.legend(loc="upper center", fontsize=7, ncol=3, frameon=False)
+    set_title(ax, f"{label}: {len(plans)} plans ({replan.label()}; purple first, yellow last)", fontsize=9)
+    return save_figure(fig, path)

@@ -162,6 +162,29 @@ class Planner(Method):
     def _sample(self, start, goal, rng, sampler: str, steps: int | None, keep_iterates: int) -> SampleResult:
         raise NotImplementedError
 
+    #: whether :meth:`repair` restores from a partly degraded plan (False: it plans from scratch)
+    repairs: ClassVar[bool] = False
+
+    def repair_steps(self) -> int | None:
+        """The largest degradation step ``k`` :meth:`repair` accepts (None: the method has no such step)."""
+        return None
+
+    def repair(
+        self,
+        start: torch.Tensor,
+        goal: torch.Tensor,
+        previous: torch.Tensor,
+        k: int,
+        rng: np.random.Generator,
+        sampler: str | None = None,
+        steps: int | None = None,
+    ) -> SampleResult:
+        """Plans that start from ``previous`` (P, H, F), normalized plans already shifted to the current state:
+        degraded to step ``k`` and restored from there (``steps``: denoising steps, at most ``k``). A method
+        without a degradation it can stop part way (the MLP) plans from scratch, which is what "re-predict" means
+        for it."""
+        return self.sample(start, goal, rng, sampler=sampler, steps=steps)
+
 
 class Policy(Method):
     """A method that acts every environment step, closed loop: ``reset`` once per batch of episodes, then

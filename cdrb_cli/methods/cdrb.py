@@ -9,6 +9,9 @@ random buffer states with start and goal pinned; for k = T-1 .. 1: x0 = R(tau_k,
 pin; the plan is the last x0 (D(., 0) is the identity). ``sampler = "cold-improved"`` is Cold Diffusion's
 improved update (Bansal et al.'s Algorithm 2), tau_{k-1} = tau_k - D(x0, k) + D(x0, k-1), for ablations.
 ``steps`` < T-1 runs the same updates on an evenly spaced subsequence of k.
+
+Plan repair (``repair``, for closed-loop evaluation): a previous plan, shifted to the current state, is degraded
+to a small step k by the same ball sampler and restored from k down to 1 with the same updates.
 """
 
 from __future__ import annotations
@@ -88,14 +91,18 @@ class CDRB(Planner):
             return torch.sum(w * per_sample) / torch.sum(w)
         return per_sample.mean()
 
-    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
-        P = start.shape[0]
-        ks = np.arange(self.T - 1, 0, -1)
+    @staticmethod
+    def _schedule(top: int, steps: int | None) -> np.ndarray:
+        """The k of every restoration, from ``top`` down to 1 (``steps`` of them, evenly spaced, when fewer)."""
+        ks = np.arange(top, 0, -1)
         if steps is not None and steps < len(ks):
-            ks = np.unique(np.round(np.linspace(self.T - 1, 1, steps)).astype(np.int64))[::-1]
+            ks = np.unique(np.round(np.linspace(top, 1, steps)).astype(np.int64))[::-1]
+        return ks
+
+    def _restore(self, x, start, goal, ks, rng, sampler, keep_iterates) -> SampleResult:
+        """Restore the pinned, degraded plans ``x`` through the steps ``ks`` (descending, ending at 1)."""
+        P = start.shape[0]
         prev = np.append(ks[1:], 0)
-        x = torch.from_numpy(self.ball.random_states((P, self.horizon), rng).astype(np.float32)).to(start.device)
-        x = self.pin(x, start, goal)
         kept, keep = [], keep_schedule(len(ks), keep_iterates)
         x0 = x
         for i, (k, k_next) in enumerate(zip(ks, prev)):
@@ -109,6 +116,27 @@ class CDRB(Planner):
                 x = x - self._degrade(x0, int(k), rng) + self._degrade(x0, int(k_next), rng)
             x = self.pin(x, start, goal)
         return SampleResult(plans=x0, iterates=kept)
+
+    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
+        P = start.shape[0]
+        x = torch.from_numpy(self.ball.random_states((P, self.horizon), rng).astype(np.float32)).to(start.device)
+        x = self.pin(x, start, goal)
+        return self._restore(x, start, goal, self._schedule(self.T - 1, steps), rng, sampler, keep_iterates)
+
+    repairs = True
+
+    def repair_steps(self) -> int:
+        return self.T - 1
+
+    def repair(self, start, goal, previous, k, rng, sampler=None, steps=None) -> SampleResult:
+        """Plan repair: the previous plan, degraded to step ``k`` by the ball sampler (ends pinned), restored from
+        k down to 1 (a partly wrong plan is itself a degraded trajectory)."""
+        if not 1 <= k <= self.T - 1:
+            raise ValueError(f"repair step k = {k} outside 1..{self.T - 1}")
+        with torch.no_grad():
+            x = self.pin(self._degrade(self.pin(previous, start, goal), int(k), rng), start, goal)
+            ks = self._schedule(int(k), steps)
+            return self._restore(x, start, goal, ks, rng, sampler or self.config.method.sampler, 0)
 
 
 METHODS.register(

@@ -7,7 +7,9 @@
 * sampling with the true DDPM posterior q(x_{t-1} | x_t, x0_hat) and its ``fixed_small`` variance (not the
   re-noise-from-x0 shortcut the official CDRB repository used for its Diffuser baseline), or DDIM (eta = 0) with
   fewer steps for lower latency;
-* the same temporal U-Net as CDRB, so a comparison isolates the diffusion process.
+* the same temporal U-Net as CDRB, so a comparison isolates the diffusion process;
+* plan repair (``repair``, for closed-loop evaluation): a previous plan noised to timestep k and denoised from
+  there, the Gaussian counterpart of CDRB's repair.
 
 The schedulers are the `diffusers` library's DDPMScheduler / DDIMScheduler.
 """
@@ -89,12 +91,9 @@ class Diffuser(Planner):
             sched.set_timesteps(min(steps or p.ddim_steps, self.T))
         return sched
 
-    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
-        sched = self._sampler(sampler, steps)
-        gen = torch_generator(rng)
+    def _denoise(self, x, start, goal, sched, gen, sampler, keep_iterates) -> SampleResult:
+        """Run ``sched``'s timesteps on the pinned noisy plans ``x`` (the posterior step, in-painting each time)."""
         P = start.shape[0]
-        x = torch.randn((P, self.horizon, self.feature_dim), generator=gen).to(start.device)
-        x = self.pin(x, start, goal)
         keep = keep_schedule(len(sched.timesteps), keep_iterates)
         kept = []
         for i, t in enumerate(sched.timesteps):
@@ -108,6 +107,46 @@ class Diffuser(Planner):
             x = sched.step(out, int(t), x, generator=gen, **kwargs).prev_sample
             x = self.pin(x, start, goal)
         return SampleResult(plans=x, iterates=kept)
+
+    def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
+        sched = self._sampler(sampler, steps)
+        gen = torch_generator(rng)
+        P = start.shape[0]
+        x = torch.randn((P, self.horizon, self.feature_dim), generator=gen).to(start.device)
+        x = self.pin(x, start, goal)
+        return self._denoise(x, start, goal, sched, gen, sampler, keep_iterates)
+
+    repairs = True
+
+    def repair_steps(self) -> int:
+        return self.T - 1
+
+    def repair(self, start, goal, previous, k, rng, sampler=None, steps=None) -> SampleResult:
+        """Plan repair: the previous plan noised to timestep ``k`` with q(x_k | x_0) (ends pinned), then denoised
+        from k with the DDPM posterior on ``steps`` evenly spaced timesteps k .. 0 (default: all k + 1). Repair
+        always takes posterior steps, whatever the sampler: they are exact for any spacing of the timesteps."""
+        if not 1 <= k <= self.T - 1:
+            raise ValueError(f"repair step k = {k} outside 1..{self.T - 1}")
+        n = k + 1 if steps is None else max(1, min(int(steps), k + 1))
+        timesteps = np.unique(np.round(np.linspace(k, 0, n)).astype(np.int64))[::-1]
+        ddpm_cls, _ = _schedulers()
+        p = self.config.method
+        sched = ddpm_cls(
+            num_train_timesteps=self.T,
+            beta_schedule=_BETAS[p.beta_schedule],
+            prediction_type="sample" if p.predict == "x0" else "epsilon",
+            clip_sample=p.clip_denoised,
+            clip_sample_range=1.0,
+            variance_type="fixed_small",
+        )
+        sched.set_timesteps(timesteps=[int(t) for t in timesteps])
+        gen = torch_generator(rng)
+        with torch.no_grad():
+            x0 = self.pin(previous, start, goal)
+            noise = torch.randn(x0.shape, generator=gen).to(x0.device)
+            t0 = torch.full((x0.shape[0],), int(timesteps[0]), dtype=torch.long)
+            x = self.pin(self.train_sched.add_noise(x0, noise, t0.to(x0.device)), start, goal)
+            return self._denoise(x, start, goal, sched, gen, "ddpm", 0)
 
 
 METHODS.register(

@@ -61,6 +61,8 @@ class EpisodeResult:
     plan_seconds: float
     start: np.ndarray
     goal: np.ndarray
+    replans: int = 0
+    planning_seconds: float = 0.0
 
 
 _DTYPES = {int: np.int64, float: np.float64, bool: np.bool_, np.ndarray: np.float32}
@@ -91,6 +93,9 @@ def episode_results(arrays: dict[str, np.ndarray]) -> list[EpisodeResult]:
     cast = {np.ndarray: np.asarray, int: int, float: float, bool: bool}
     hints = typing.get_type_hints(EpisodeResult)
     cols = {f: arrays.get(f"episodes/{f}", np.full(n, _SINCE_2_2.get(f, np.nan))) for f in fields}
+    if "episodes/replans" not in arrays:  # before schema 2.4: one plan (or one policy call) per episode
+        cols["replans"] = np.zeros(n, dtype=np.int64)
+        cols["planning_seconds"] = cols["plan_seconds"]
     return [EpisodeResult(**{f: cast[hints[f]](cols[f][i]) for f in fields}) for i in range(n)]
 
 
@@ -178,7 +183,18 @@ def run_policy(
     return [measure(spec, S[i], goals[i], steps) for i in range(len(episodes))], list(goals), seconds / max(steps, 1)
 
 
-def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = True, video_dir=None, videos: int = 0):
+def evaluate(
+    model,
+    config: EvalConfig,
+    out,
+    device="cpu",
+    keep_plans: bool = True,
+    video_dir=None,
+    videos: int = 0,
+    replan_plot=None,
+):
+    """Evaluate a model (a planner open or closed loop, or a policy) and write the eval artifact ``out``;
+    ``replan_plot``: a picture of the first closed-loop episode's successive plans over its executed path."""
     t0 = time.time()
     family = family_of(model.manifest.env)
     spec = family.protocol_spec(model.manifest.env, config.protocol)
@@ -195,7 +211,7 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
     max_step = family.max_step(spec)
     step_limit = 0.0 if max_step is None else float(max_step * model.manifest.config.stride)
     results: list[EpisodeResult] = []
-    all_plans, per_seed, executed = [], [], []
+    all_plans, per_seed, executed, drawn = [], [], [], []
     with ui.progress() as bar:
         task = bar.add_task(f"eval {method.name}", total=len(config.seeds) * config.episodes, info="")
         for seed in config.seeds:
@@ -213,6 +229,18 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
                 device=device,
             )
             sec_plan = sec_batch / len(plans)
+            if config.replan.mode != "never":
+                closed = _closed_loop(family, spec, method, config, seed, episodes, plans, env, expert, sec_plan, steps)
+                for run, result in closed:
+                    results.append(result)
+                    if len(executed) < videos:
+                        executed.append((run.plans[-1], run.states, result.goal, result.success))
+                    if replan_plot is not None and not drawn:
+                        drawn.append((run, result))
+                    bar.update(task, advance=1, info=f"success {np.mean([r.success for r in results]):.1%}")
+                all_plans.append(plans)
+                per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
+                continue
             states = plans[..., : spec.obs_dim]
             in_wall = family.in_collision(spec, states)
             crosses = family.path_in_collision(spec, states)
@@ -233,6 +261,7 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
                         plan_crosses_obstacle=bool(crosses[e]),
                         plan_max_jump=float(jumps[e]),
                         plan_step_limit=step_limit,
+                        planning_seconds=sec_plan,
                     )
                 )
                 if len(executed) < videos:
@@ -253,7 +282,62 @@ def evaluate(model, config: EvalConfig, out, device="cpu", keep_plans: bool = Tr
         from cdrb_cli.envs.render import rollout_gifs
 
         rollout_gifs(spec, executed, video_dir, label=method.name)
+    if replan_plot is not None and drawn:
+        from cdrb_cli.envs.render import plot_replans
+
+        run, result = drawn[0]
+        plot_replans(spec, run.plans, run.plan_steps, run.states, result.goal, replan_plot, method.name, config.replan)
     return artifacts.load(out, "eval")
+
+
+def _closed_loop(family, spec, method, config, seed, episodes, plans, env, expert, sec_plan, steps):
+    """Yield (run, result) for every episode of one eval seed executed closed loop (stages/replan.py), in
+    lockstep groups; the plan measures cover every plan an episode made."""
+    from cdrb_cli.stages.replan import GROUP, run_closed_loop
+
+    entry = CONTROLLERS.get(config.controller.name)
+    stride = method.config.stride
+    max_step = family.max_step(spec)
+    step_limit = 0.0 if max_step is None else float(max_step * stride)
+    device = method.device
+    for g, b in enumerate(range(0, len(episodes), GROUP)):
+        group = episodes[b : b + GROUP]
+        runs = run_closed_loop(
+            family,
+            spec,
+            method,
+            group,
+            plans[b : b + GROUP],
+            lambda e: entry.build(spec, e, config.controller, stride),
+            config.replan,
+            steps,
+            (config.seed, seed, g),
+            config.sampler,
+            config.sample_steps,
+            device,
+        )
+        for episode, run in zip(group, runs):
+            made = np.stack(run.plans)[..., : spec.obs_dim]  # (plans, H, obs_dim)
+            rollout = measure(spec, run.states, run.goal, steps)
+            total = sec_plan + run.planning_seconds
+            yield (
+                run,
+                _result(
+                    seed,
+                    episode,
+                    rollout,
+                    expert.path_length(env, episode),
+                    total / len(run.plans),
+                    run.states[0],
+                    run.goal,
+                    plan_in_wall_fraction=float(family.in_collision(spec, made).mean()),
+                    plan_crosses_obstacle=bool(family.path_in_collision(spec, made).any()),
+                    plan_max_jump=float(largest_jump(made, spec.obstacles.dims).max()),
+                    plan_step_limit=step_limit,
+                    replans=run.replans,
+                    planning_seconds=total,
+                ),
+            )
 
 
 def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu", video_dir=None, videos: int = 0):
@@ -284,7 +368,12 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
                 runs, goals, sec = run_policy(family, spec, batch, policy, steps, rng)
                 for episode, run, goal in zip(batch, runs, goals):
                     length = expert.path_length(env, episode)
-                    results.append(_result(seed, episode, run, length, sec / len(batch), run.states[0], goal))
+                    per_call = sec / len(batch)
+                    results.append(
+                        _result(
+                            seed, episode, run, length, per_call, run.states[0], goal, planning_seconds=per_call * steps
+                        )
+                    )
                     if len(executed) < videos:
                         executed.append((run.states, run.states, goal, run.success))
                 bar.update(task, advance=len(batch), info=f"success {np.mean([r.success for r in results]):.1%}")
@@ -303,9 +392,17 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
 
 
 def _result(seed, episode, run: Rollout, expert_length, seconds, start, goal, **plan) -> EpisodeResult:
-    """One episode's record; ``plan``: the plan measures (a policy has none: NaN, never written)."""
+    """One episode's record; ``plan``: the plan measures (a policy has none: NaN, never written), the number of
+    re-plans and the episode's whole planning time."""
     nan = float("nan")
-    unplanned = dict(plan_in_wall_fraction=nan, plan_crosses_obstacle=False, plan_max_jump=nan, plan_step_limit=nan)
+    unplanned = dict(
+        plan_in_wall_fraction=nan,
+        plan_crosses_obstacle=False,
+        plan_max_jump=nan,
+        plan_step_limit=nan,
+        replans=0,
+        planning_seconds=seconds,
+    )
     return EpisodeResult(
         seed=seed,
         episode_seed=episode.seed,
@@ -339,6 +436,7 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
             executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
             path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
             plan_seconds=float(np.mean([r.plan_seconds for r in results])),
+            planning_seconds=float(np.mean([r.planning_seconds for r in results])),
         )
     return SeedResult(
         seed=int(seed),
@@ -351,6 +449,8 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
         executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
         path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
         plan_seconds=float(np.mean([r.plan_seconds for r in results])),
+        replans=float(np.mean([r.replans for r in results])),
+        planning_seconds=float(np.mean([r.planning_seconds for r in results])),
     )
 
 
@@ -389,6 +489,8 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
         executed_collision_mean=float(np.mean([p.executed_collision_rate for p in per_seed])),
         path_length_ratio_mean=float(np.mean(ratios)) if ratios else None,
         plan_seconds_mean=float(np.mean([p.plan_seconds for p in per_seed])),
+        replans_mean=mean("replans"),
+        planning_seconds_mean=mean("planning_seconds"),
         per_seed=list(per_seed),
         wall_time_s=wall_time_s,
     )
@@ -406,21 +508,35 @@ def eval_config(
     seed: int = 0,
     protocol: str | None = None,
     stream: str = "test",
+    replan: str | None = None,
+    repair_k: int | None = None,
+    repair_steps: int | None = None,
 ) -> EvalConfig:
     """The EvalConfig of ``cdrb eval`` for a model: the family's controller (``controller``, else
     ``--set controller.name=...``, else the family's first) with ``settings`` on its fields (``--set
-    controller.kp=20``, ``--max-lag``) and ``extra_steps``; the method's sampler (default: the model's)."""
-    from cdrb_cli.settings import apply, lookup, validate
+    controller.kp=20``, ``--max-lag``) and ``extra_steps``; the method's sampler (default: the model's); closed-loop
+    planning from ``replan`` (``never``, ``every:N`` or ``deviation:D``), ``repair_k`` and ``repair_steps`` (or
+    ``--set replan.<field>``)."""
+    from cdrb_cli.configs import ReplanConfig
+    from cdrb_cli.settings import Setting, apply, lookup, validate
 
     for s in settings:
-        if s.path == ("controller",) or (s.path[0] != "controller" and s.path != ("extra_steps",)):
+        if s.path in (("controller",), ("replan",)) or (
+            s.path[0] not in ("controller", "replan") and s.path != ("extra_steps",)
+        ):
             raise BadInput(
-                f"{s.source}: `cdrb eval --set` sets controller.<field> and extra_steps",
+                f"{s.source}: `cdrb eval --set` sets controller.<field>, replan.<field> and extra_steps",
                 hint="episodes, seeds, sampler and the seed have their own flags (`cdrb eval --help`)",
             )
     spec = model.manifest.env
     family = family_of(spec)
     entry = METHODS.get(model.manifest.config.method.name)
+    closed = replan not in (None, "never") or repair_k is not None or repair_steps is not None
+    if entry.kind == "policy" and (closed or any(s.path[0] == "replan" for s in settings)):
+        raise BadInput(
+            f"--replan/--repair-k: {entry.name} is a policy: it acts every step and has no plan to re-plan",
+            hint="drop the replan flags (`cdrb eval --help`)",
+        )
     if entry.kind == "policy" and (controller is not None or any(s.path[0] == "controller" for s in settings)):
         sources = [s.source for s in settings if s.path[0] == "controller"]
         given = f"--controller {controller}" if controller is not None else sources[0]
@@ -461,4 +577,22 @@ def eval_config(
         "stream": stream,
         "seed": seed,
     }
-    return validate(EvalConfig, apply(base, settings), settings, "eval")
+    if replan is not None:
+        try:
+            fields = ReplanConfig.parse(replan)
+        except ValueError as exc:
+            hint = "e.g. --replan every:20 or --replan deviation:0.5"
+            raise BadInput(f"--replan {replan!r}: {exc}", hint=hint) from None
+        settings = [*settings, *(Setting(("replan", key), v, f"--replan {replan}") for key, v in fields.items())]
+    for flag, key, value in (("--repair-k", "repair_k", repair_k), ("--repair-steps", "repair_steps", repair_steps)):
+        if value is not None:
+            settings = [*settings, Setting(("replan", key), value, f"{flag} {value}")]
+    config = validate(EvalConfig, apply(base, settings), settings, "eval")
+    k = config.replan.repair_k
+    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
+    if k is not None and steps is not None and k > steps - 1:
+        raise BadInput(
+            f"--repair-k {k}: the model has T = {steps} diffusion steps, so a repair restores from k = 1..{steps - 1}",
+            hint=f"use --repair-k {max(1, min(steps - 1, steps // 8))} (a small k keeps more of the previous plan)",
+        )
+    return config

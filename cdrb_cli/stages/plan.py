@@ -34,13 +34,10 @@ def sample_plans(
     import torch
 
     norm = method.normalizer
-    obs = method.obs_dim
     q = len(starts)
     pair_index = np.repeat(np.arange(q), n)
     s_raw, g_raw = starts[pair_index], goals[pair_index]
-    pad = np.zeros((len(pair_index), method.feature_dim))
-    s_norm = norm.normalize(np.concatenate([s_raw, pad[:, obs:]], axis=1))[:, :obs]
-    g_norm = norm.normalize(np.concatenate([g_raw, pad[:, obs:]], axis=1))[:, :obs]
+    s_norm, g_norm = _normalized_states(method, s_raw), _normalized_states(method, g_raw)
     plans, iters, iter_steps, batch_times = [], [], None, []
     for b, a in enumerate(range(0, len(pair_index), batch_size)):
         sl = slice(a, a + batch_size)
@@ -61,6 +58,46 @@ def sample_plans(
     out[:, -1, method.pinned_end] = g_raw[:, method.pinned_end]
     it = np.concatenate(iters) if iters else None
     return out, pair_index, it, iter_steps, float(np.mean(batch_times))
+
+
+def _normalized_states(method: Planner, states: np.ndarray) -> np.ndarray:
+    """Raw states (n, obs_dim) in the method's normalized feature space (the state part of a feature vector)."""
+    pad = np.zeros((len(states), method.feature_dim - method.obs_dim))
+    return method.normalizer.normalize(np.concatenate([states, pad], axis=1))[:, : method.obs_dim]
+
+
+def replan_batch(
+    method: Planner,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    rng: np.random.Generator,
+    sampler=None,
+    steps=None,
+    previous: np.ndarray | None = None,
+    repair_k: int | None = None,
+    device="cpu",
+) -> tuple[np.ndarray, float]:
+    """One plan per (start, goal) state pair, in raw units and pinned exactly: from scratch, or with ``previous``
+    (raw plans (n, H, F), already shifted to the starts) and ``repair_k``, repaired from degradation step k
+    (:meth:`~cdrb_cli.methods.base.Planner.repair`; ``steps`` then counts the repair's denoising steps).
+    Returns (plans (n, H, F), seconds of the sampler call)."""
+    import torch
+
+    st = torch.as_tensor(_normalized_states(method, starts), dtype=torch.float32, device=device)
+    gl = torch.as_tensor(_normalized_states(method, goals), dtype=torch.float32, device=device)
+    t = time.perf_counter()
+    if repair_k is None:
+        res = method.sample(st, gl, rng, sampler=sampler, steps=steps)
+    else:
+        prev = torch.as_tensor(method.normalizer.normalize(previous), dtype=torch.float32, device=device)
+        res = method.repair(st, gl, prev, repair_k, rng, sampler=sampler, steps=steps)
+    if str(device) != "cpu" and torch.cuda.is_available():
+        torch.cuda.synchronize()
+    seconds = time.perf_counter() - t
+    out = method.normalizer.unnormalize(res.plans.cpu().numpy().astype(np.float64))
+    out[:, 0, method.pinned] = starts[:, method.pinned]
+    out[:, -1, method.pinned_end] = goals[:, method.pinned_end]
+    return out, seconds
 
 
 def load_planner(model, device="cpu", ema: bool = True) -> Planner:

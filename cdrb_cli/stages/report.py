@@ -98,8 +98,12 @@ def ci95(values) -> float:
 
 
 def method_label(ev) -> str:
+    """The method, its preset when not the quick one, and how it was executed when closed loop (e.g.
+    ``cdrb [every 20, repair k=4]``): each is its own row."""
     s = ev.manifest.summary
-    return s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
+    label = s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
+    replan = ev.manifest.config.replan
+    return label if replan.mode == "never" else f"{label} [{replan.label()}]"
 
 
 def per_seed(ev) -> list:
@@ -195,11 +199,17 @@ def collect_rows(evals) -> list[dict]:
                     "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
                     "path_ratio": float(np.mean(ratios)) if ratios else None,
                     "plan_ms": 1000 * float(np.mean([r.plan_seconds for r in per])),
+                    "replans": mean_or_none([r.replans for r in per]),
+                    "episode_planning_ms": _ms(mean_or_none([r.planning_seconds for r in per])),
                     "path": ui.plain(";".join(str(ev.path) for ev in group)),
                     "env_name": ui.plain(_env_name(first.manifest.env)),
                 }
             )
     return rows
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else 1000 * seconds
 
 
 def _describe(p) -> str:
@@ -254,8 +264,9 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
         "| env | method | controller | pairs | seeds x episodes | success (%) ± std [95% CI] | "
         "planned states in walls (%) | "
         "plans through an obstacle (%) | largest jump / allowed | plans with an impossible jump (%) | "
-        "executed collisions (%) | path length / expert | plan time (ms) |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "executed collisions (%) | path length / expert | plan time (ms) | re-plans per episode | "
+        "planning per episode (ms) |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
 
     def opt(v, f):
@@ -271,7 +282,8 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
                 f"{r['success_mean']:.1f} ± {r['success_std']:.1f} [± {r['success_ci95']:.1f}] | "
                 f"{_pm(r['in_wall_mean'], r['in_wall_std'])} | {opt(r['crossing_mean'], '.1f')} | "
                 f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
-                f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} |"
+                f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "
+                f"{opt(r['replans'], '.1f')} | {opt(r['episode_planning_ms'], '.1f')} |"
             )
     text = "\n".join(lines) + "\n"
     if fmt == "table":

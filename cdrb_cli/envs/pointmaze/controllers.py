@@ -96,6 +96,9 @@ class MazeController(Controller):
         self.plan = np.asarray(plan, dtype=np.float64)
         self.clock = self.waited = 0
 
+    def progress(self, t: int, stride: int) -> float:
+        return (t if self.max_lag is None else self.clock) / self.stride
+
     def _target_index(self, step: int) -> int:
         return min(step // self.stride + 1, len(self.plan) - 1)
 
@@ -172,6 +175,9 @@ class WaypointController(Controller):
     def reset(self, plan: np.ndarray) -> None:
         self.plan = np.asarray(plan, dtype=np.float64)
         self.index, self.spent = min(1, len(self.plan) - 1), 0
+
+    def progress(self, t: int, stride: int) -> float:
+        return float(max(self.index - 1, 0))  # it has left the previous planned state and drives to ``index``
 
     def act(self, obs, t):
         last = len(self.plan) - 1

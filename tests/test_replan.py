@@ -1,0 +1,259 @@
+"""Closed-loop planning: re-planning during an episode and plan repair (issue 18)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdrb_cli.envs.registry import CONTROLLERS, family_of
+from cdrb_cli.methods.checkpoint import load_method
+from cdrb_cli.methods.config import train_config
+from cdrb_cli.seeding import STREAM_EVAL
+from cdrb_cli.stages.evaluate import eval_config, evaluate
+from cdrb_cli.stages.plan import sample_plans
+from cdrb_cli.stages.replan import deviation, plan_at, remainder, run_closed_loop
+from cdrb_cli.stages.train import train
+from tests.test_train import tiny
+
+PLANNERS = ("cdrb", "diffuser", "mlp")
+
+
+@pytest.fixture(scope="module")
+def models(small_data, tmp_path_factory):
+    demos, buffer = small_data
+    root = tmp_path_factory.mktemp("replan")
+    out = {}
+    for method in PLANNERS:
+        b = buffer if method == "cdrb" else None
+        cfg = train_config(demos, b, method, tiny(method, steps=20, checkpoint_every=20, stride=10))
+        out[method] = train(demos, b, cfg, root / f"m-{method}.h5")
+    return out
+
+
+def test_remainder_and_plan_time():
+    plan = np.arange(10 * 3, dtype=float).reshape(10, 3)
+    state = np.array([-1.0, -2.0])
+    rest = remainder(plan, 3.7, state)
+    assert rest.shape == plan.shape
+    np.testing.assert_array_equal(rest[1:7], plan[4:10])  # the plan from floor(3.7) on, after the current state
+    np.testing.assert_array_equal(rest[7:], np.repeat(plan[-1:], 3, axis=0))  # padded with the last state
+    np.testing.assert_array_equal(rest[0], [-1.0, -2.0, plan[3, 2]])  # the observation part is the current state
+    np.testing.assert_allclose(plan_at(plan, 2.25), 0.75 * plan[2] + 0.25 * plan[3])
+    np.testing.assert_array_equal(plan_at(plan, 99.0), plan[-1])
+    np.testing.assert_array_equal(remainder(plan, 50.0, state)[1:], np.repeat(plan[-1:], 9, axis=0))
+
+
+@pytest.mark.parametrize("method", PLANNERS)
+def test_a_replanning_interval_beyond_the_episode_is_open_loop_exactly(models, tmp_path, method):
+    model = models[method]
+    never = evaluate(model, eval_config(model, 3, [0, 1]), tmp_path / "never.h5")
+    closed = evaluate(model, eval_config(model, 3, [0, 1], replan="every:100000"), tmp_path / "closed.h5")
+    a, b = never.arrays, closed.arrays
+    assert (b["episodes/replans"] == 0).all()
+    for name in ("success", "steps", "final_distance", "path_length", "executed_collision", "start", "goal"):
+        np.testing.assert_array_equal(a[f"episodes/{name}"], b[f"episodes/{name}"], err_msg=name)
+    for name in ("plan_in_wall_fraction", "plan_crosses_obstacle", "plan_max_jump"):
+        np.testing.assert_array_equal(a[f"episodes/{name}"], b[f"episodes/{name}"], err_msg=name)
+    np.testing.assert_array_equal(a["plans"], b["plans"])
+    assert closed.manifest.config.replan.mode == "every" and never.manifest.config.replan.mode == "never"
+
+
+def _closed_loop(model, replan, n=4, seed=0):
+    """Run ``n`` episodes of eval seed ``seed`` closed loop with the model's PD controller (gated clock)."""
+    method = load_method(model)
+    spec = model.manifest.env
+    family = family_of(spec)
+    episodes = family.draw_episodes(spec, n, seed, STREAM_EVAL)
+    starts, goals = family.reset_states(spec, episodes)
+    plans = sample_plans(method, starts, family.goal_state(spec, goals), 1, seed, batch_size=n)[0]
+    entry = CONTROLLERS.get("pd")
+    cfg = eval_config(model, n, [seed], **replan).replan
+    runs = run_closed_loop(
+        family,
+        spec,
+        method,
+        episodes,
+        plans,
+        lambda env: entry.build(spec, env, entry.config(), method.config.stride),
+        cfg,
+        spec.episode_limit,
+        (0, seed, 0),
+    )
+    return spec, family, runs
+
+
+@pytest.mark.parametrize("method", PLANNERS)
+@pytest.mark.parametrize("repair", [None, 2])
+def test_every_n_steps_plans_from_the_current_state_to_the_same_goal(models, method, repair):
+    spec, family, runs = _closed_loop(models[method], dict(replan="every:45", repair_k=repair))
+    goal_states = family.goal_state(spec, np.stack([r.goal for r in runs]))
+    for run, goal in zip(runs, goal_states):
+        hits = np.flatnonzero(family.success(spec, run.states, run.goal))
+        until = hits[0] if hits.size else spec.episode_limit
+        # a plan at every multiple of 45 before the goal is reached (or the episode ends), none after
+        expected = [t for t in range(45, spec.episode_limit, 45) if t <= until]
+        assert run.plan_steps == [0, *expected]
+        assert run.replans == len(expected)
+        for t, plan in zip(run.plan_steps, run.plans):
+            assert plan.shape == run.plans[0].shape
+            np.testing.assert_array_equal(plan[0, : spec.obs_dim], run.states[t])  # pinned exactly to the state
+            np.testing.assert_array_equal(plan[-1, : spec.obs_dim], goal)  # and to the same goal
+        assert run.planning_seconds > 0
+
+
+def test_deviation_replans_only_when_off_the_plan(models):
+    model = models["diffuser"]
+    _, _, far = _closed_loop(model, dict(replan="deviation:1000"))
+    assert all(r.replans == 0 for r in far)  # nothing is 1 km off its plan
+    spec, family, near = _closed_loop(model, dict(replan="deviation:0.000001"))
+    for run in near:
+        # every step is more than a micrometre off a tiny model's plan: a new plan each step until the goal
+        gaps = np.diff(run.plan_steps)
+        assert run.replans > 0 and (gaps == 1).all()
+    # the trigger measures in the obstacle dimensions (positions), against the plan at the controller's clock
+    plan = np.zeros((5, 4))
+    plan[:, 0] = np.arange(5)
+    state = np.array([2.5, 0.4, 9.0, 9.0])  # velocities are not positions
+    assert np.isclose(deviation(spec, plan, 2.5, state), 0.4)
+
+
+def test_cdrb_repair_degrades_the_previous_plan_with_the_ball_sampler(models, monkeypatch):
+    """Repair at k: every non-pinned state of the restorer's first input is a buffer point within eps_k of the
+    previous plan's state (or that state, when the ball is empty), and restoration runs k, k-1, ..., 1."""
+    import torch
+
+    from cdrb_cli.methods.cdrb import CDRB
+
+    method = load_method(models["cdrb"])
+    rng = np.random.default_rng(0)
+    H, F = method.horizon, method.feature_dim
+    previous = torch.as_tensor(method.points[rng.integers(0, len(method.points), (3, H))] + 0.01, dtype=torch.float32)
+    start, goal = previous[:, 0, : method.obs_dim].clone(), previous[:, -1, : method.obs_dim].clone()
+    seen = {}
+    original = CDRB._restore
+
+    def spy(self, x, start_, goal_, ks, rng_, sampler, keep):
+        seen["x"], seen["ks"] = x.clone(), [int(k) for k in ks]
+        return original(self, x, start_, goal_, ks, rng_, sampler, keep)
+
+    monkeypatch.setattr(CDRB, "_restore", spy)
+    for k in (1, 4, method.T - 1):
+        res = method.repair(start, goal, previous, k, np.random.default_rng(k))
+        assert seen["ks"] == list(range(k, 0, -1))
+        x, prev = seen["x"].numpy(), previous.numpy()
+        inner = x[:, 1:-1].reshape(-1, F)
+        moved = np.linalg.norm(inner - prev[:, 1:-1].reshape(-1, F), axis=1)
+        assert (moved < method.eps[k] + 1e-5).all()
+        d = np.linalg.norm(inner[:, None] - method.points[None], axis=2).min(axis=1)
+        unchanged = moved == 0
+        assert (d[~unchanged] < 1e-6).all()  # every moved state is a buffer point
+        np.testing.assert_array_equal(res.plans[:, 0, : method.obs_dim], start)  # pinned exactly
+        np.testing.assert_array_equal(res.plans[:, -1, : method.obs_dim], goal)
+    assert method.repairs and method.repair_steps() == method.T - 1
+    res = method.repair(start, goal, previous, 6, np.random.default_rng(0), steps=3)
+    assert seen["ks"] == [6, 4, 1]
+    with pytest.raises(ValueError):
+        method.repair(start, goal, previous, method.T, np.random.default_rng(0))
+
+
+def test_diffuser_repair_noises_to_timestep_k_and_denoises_from_there(models, monkeypatch):
+    import torch
+
+    from cdrb_cli.methods.diffuser import Diffuser
+
+    method = load_method(models["diffuser"])
+    previous = torch.zeros((200, method.horizon, method.feature_dim)) + 0.3
+    start, goal = previous[:, 0, : method.obs_dim].clone(), previous[:, -1, : method.obs_dim].clone()
+    seen = {}
+    original = Diffuser._denoise
+
+    def spy(self, x, start_, goal_, sched, gen, sampler, keep):
+        seen["x"], seen["t"] = x.clone(), [int(t) for t in sched.timesteps]
+        return original(self, x, start_, goal_, sched, gen, sampler, keep)
+
+    monkeypatch.setattr(Diffuser, "_denoise", spy)
+    abar = method.train_sched.alphas_cumprod
+    for k in (1, 5, method.T - 1):
+        res = method.repair(start, goal, previous, k, np.random.default_rng(k))
+        assert seen["t"] == list(range(k, -1, -1))
+        inner = seen["x"][:, 1:-1].numpy()
+        # q(x_k | x_0): mean sqrt(abar_k) x_0, std sqrt(1 - abar_k)
+        assert abs(inner.mean() - 0.3 * float(abar[k]) ** 0.5) < 0.02
+        assert abs(inner.std() - float(1 - abar[k]) ** 0.5) < 0.02
+        np.testing.assert_array_equal(res.plans[:, 0, : method.obs_dim], start)
+        np.testing.assert_array_equal(res.plans[:, -1, : method.obs_dim], goal)
+    method.repair(start[:2], goal[:2], previous[:2], 6, np.random.default_rng(0), steps=3)
+    assert seen["t"] == [6, 3, 0]
+
+
+def test_mlp_repair_re_predicts(models):
+    import torch
+
+    method = load_method(models["mlp"])
+    start = torch.zeros((2, method.obs_dim))
+    goal = torch.ones((2, method.obs_dim)) * 0.5
+    previous = torch.rand((2, method.horizon, method.feature_dim))
+    a = method.repair(start, goal, previous, 3, np.random.default_rng(0)).plans
+    b = method.sample(start, goal, np.random.default_rng(1)).plans
+    np.testing.assert_array_equal(a.numpy(), b.numpy())
+    assert not method.repairs
+
+
+def test_eval_cli_closed_loop(models, tmp_path, cdrb):
+    model = models["cdrb"].path
+    out, pic = tmp_path / "e.h5", tmp_path / "replans.png"
+    r = cdrb(
+        "eval", model, "-n", "2", "--seeds", "0", "--replan", "every:60", "--repair-k", "2", "--replan-plot", pic,
+        "--out", out,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert out.exists() and pic.exists() and pic.stat().st_size > 1000
+    assert "re-plans" in r.stderr and "repair k=2" in r.stderr
+    from cdrb_cli import artifacts
+
+    ev = artifacts.load(out, "eval")
+    assert ev.manifest.config.replan.repair_k == 2 and (ev.arrays["episodes/replans"] > 0).any()
+    s = ev.manifest.summary
+    assert np.isclose(s.replans_mean, ev.arrays["episodes/replans"].mean())
+    assert np.isclose(s.planning_seconds_mean, ev.arrays["episodes/planning_seconds"].mean())
+    rep = cdrb("report", out)
+    assert rep.returncode == 0 and "re-plans" in rep.stdout, rep.stdout + rep.stderr
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--replan", "sometimes:3"], "--replan 'sometimes:3'"),
+        (["--replan", "every:0"], "--replan every:0"),
+        (["--replan", "every:x"], "--replan 'every:x'"),
+        (["--replan", "deviation:-1"], "--replan deviation:-1"),
+        (["--repair-k", "2"], "--repair-k 2"),
+        (["--replan", "every:10", "--repair-k", "999"], "--repair-k 999: the model has T = "),
+        (["--replan", "every:10", "--repair-steps", "3"], "--repair-steps 3"),
+        (["--replan-plot", "x.png"], "--replan-plot"),
+        (["--set", "replan.every=5"], "replan"),
+    ],
+)
+def test_eval_cli_closed_loop_bad_inputs(models, tmp_path, cdrb, args, needle):
+    r = cdrb("eval", models["cdrb"].path, "-n", "2", "--seeds", "0", "--out", tmp_path / "e.h5", *args)
+    assert r.returncode == 2, r.stderr
+    lines = [line for line in r.stderr.strip().splitlines() if line.strip()]
+    assert needle in lines[0] and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "e.h5").exists()
+
+
+def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, tmp_path):
+    from cdrb_cli import artifacts
+    from cdrb_cli.stages.evaluate import episode_results
+
+    model = models["mlp"]
+    config = eval_config(model, 2, [0])
+    ev = evaluate(model, config, tmp_path / "e.h5")
+    old = {k: v for k, v in ev.arrays.items() if k not in ("episodes/replans", "episodes/planning_seconds")}
+    for r in episode_results(old):
+        assert r.replans == 0 and r.planning_seconds == r.plan_seconds
+    # an open-loop eval config from before the replan field is the same config: the file stays up to date
+    data = config.model_dump()
+    del data["replan"]
+    assert type(config).model_validate(data) == config
+    assert artifacts.existing(tmp_path / "e.h5", "eval", config, [model]).up_to_date
