@@ -51,15 +51,23 @@ class Diffuser(Planner):
         super().build(buffer_points)
         p = self.config.method
         self.T = p.diffusion_steps
-        ddpm_cls, _ = _schedulers()
-        self.train_sched = ddpm_cls(
+        self.train_sched = self._ddpm()
+
+    def _common(self) -> dict:
+        """The scheduler settings every sampler of this model shares (its T, betas, prediction and clipping)."""
+        p = self.config.method
+        return dict(
             num_train_timesteps=self.T,
             beta_schedule=_BETAS[p.beta_schedule],
             prediction_type="sample" if p.predict == "x0" else "epsilon",
             clip_sample=p.clip_denoised,
             clip_sample_range=1.0,
-            variance_type="fixed_small",
         )
+
+    def _ddpm(self):
+        """A DDPM scheduler with the true posterior's ``fixed_small`` variance."""
+        ddpm_cls, _ = _schedulers()
+        return ddpm_cls(variance_type="fixed_small", **self._common())
 
     def loss(self, batch: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
         B = batch.shape[0]
@@ -75,19 +83,12 @@ class Diffuser(Planner):
 
     def _sampler(self, name: str, steps: int | None):
         p = self.config.method
-        ddpm_cls, ddim_cls = _schedulers()
-        common = dict(
-            num_train_timesteps=self.T,
-            beta_schedule=_BETAS[p.beta_schedule],
-            prediction_type="sample" if p.predict == "x0" else "epsilon",
-            clip_sample=p.clip_denoised,
-            clip_sample_range=1.0,
-        )
         if name == "ddpm":
-            sched = ddpm_cls(variance_type="fixed_small", **common)
+            sched = self._ddpm()
             sched.set_timesteps(self.T if steps is None else min(steps, self.T))
         else:
-            sched = ddim_cls(set_alpha_to_one=True, **common)
+            _, ddim_cls = _schedulers()
+            sched = ddim_cls(set_alpha_to_one=True, **self._common())
             sched.set_timesteps(min(steps or p.ddim_steps, self.T))
         return sched
 
@@ -129,16 +130,7 @@ class Diffuser(Planner):
             raise ValueError(f"repair step k = {k} outside 1..{self.T - 1}")
         n = k + 1 if steps is None else max(1, min(int(steps), k + 1))
         timesteps = np.unique(np.round(np.linspace(k, 0, n)).astype(np.int64))[::-1]
-        ddpm_cls, _ = _schedulers()
-        p = self.config.method
-        sched = ddpm_cls(
-            num_train_timesteps=self.T,
-            beta_schedule=_BETAS[p.beta_schedule],
-            prediction_type="sample" if p.predict == "x0" else "epsilon",
-            clip_sample=p.clip_denoised,
-            clip_sample_range=1.0,
-            variance_type="fixed_small",
-        )
+        sched = self._ddpm()
         sched.set_timesteps(timesteps=[int(t) for t in timesteps])
         gen = torch_generator(rng)
         with torch.no_grad():
