@@ -229,43 +229,17 @@ def evaluate(
                 device=device,
             )
             sec_plan = sec_batch / len(plans)
-            if config.replan.mode != "never":
-                closed = _closed_loop(family, spec, method, config, seed, episodes, plans, env, expert, sec_plan, steps)
-                for run, result in closed:
-                    results.append(result)
-                    if len(executed) < videos:
-                        executed.append((run.plans[-1], run.states, result.goal, result.success))
-                    if replan_plot is not None and not drawn:
-                        drawn.append((run, result))
-                    bar.update(task, advance=1, info=f"success {np.mean([r.success for r in results]):.1%}")
-                all_plans.append(plans)
-                per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
-                continue
-            states = plans[..., : spec.obs_dim]
-            in_wall = family.in_collision(spec, states)
-            crosses = family.path_in_collision(spec, states)
-            jumps = largest_jump(states, spec.obstacles.dims)
-            for e, episode in enumerate(episodes):
-                controller.reset(plans[e])
-                run = run_episode(env, spec, episode, controller.act, steps)
-                results.append(
-                    _result(
-                        seed,
-                        episode,
-                        run,
-                        expert.path_length(env, episode),
-                        sec_plan,
-                        starts[e],
-                        goals[e],
-                        plan_in_wall_fraction=float(in_wall[e].mean()),
-                        plan_crosses_obstacle=bool(crosses[e]),
-                        plan_max_jump=float(jumps[e]),
-                        plan_step_limit=step_limit,
-                        planning_seconds=sec_plan,
-                    )
-                )
+            ctx = _SeedRun(family, spec, seed, episodes, plans, env, expert, sec_plan, steps, step_limit)
+            if config.replan.mode == "never":
+                runs = _open_loop(ctx, starts, goals, controller)
+            else:
+                runs = _closed_loop(ctx, method, config)
+            for plan, states_visited, result, history in runs:
+                results.append(result)
                 if len(executed) < videos:
-                    executed.append((plans[e], run.states, goals[e], run.success))
+                    executed.append((plan, states_visited, result.goal, result.success))
+                if replan_plot is not None and history is not None and not drawn:
+                    drawn.append((history, states_visited, result.goal))
                 bar.update(task, advance=1, info=f"success {np.mean([r.success for r in results]):.1%}")
             all_plans.append(plans)
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
@@ -285,59 +259,98 @@ def evaluate(
     if replan_plot is not None and drawn:
         from cdrb_cli.envs.render import plot_replans
 
-        run, result = drawn[0]
-        plot_replans(spec, run.plans, run.plan_steps, run.states, result.goal, replan_plot, method.name, config.replan)
+        (made, made_at), visited, goal = drawn[0]
+        plot_replans(spec, made, made_at, visited, goal, replan_plot, method.name, config.replan)
     return artifacts.load(out, "eval")
 
 
-def _closed_loop(family, spec, method, config, seed, episodes, plans, env, expert, sec_plan, steps):
-    """Yield (run, result) for every episode of one eval seed executed closed loop (stages/replan.py), in
-    lockstep groups; the plan measures cover every plan an episode made."""
+@dataclass(frozen=True)
+class _SeedRun:
+    """What executing the episodes of one eval seed needs, open or closed loop."""
+
+    family: EnvFamily
+    spec: EnvSpec
+    seed: int
+    episodes: list[Episode]
+    plans: np.ndarray  # the open-loop plans (episodes, H, F)
+    env: Env  # for the expert's reference path
+    expert: ExpertReference
+    sec_plan: float  # seconds per open-loop plan
+    steps: int
+    step_limit: float
+
+
+def _open_loop(ctx: _SeedRun, starts, goals, controller):
+    """Yield (plan, states, result, None) for every episode of one eval seed: one plan each, executed by
+    ``controller``."""
+    spec = ctx.spec
+    states = ctx.plans[..., : spec.obs_dim]
+    in_wall = ctx.family.in_collision(spec, states)
+    crosses = ctx.family.path_in_collision(spec, states)
+    jumps = largest_jump(states, spec.obstacles.dims)
+    for e, episode in enumerate(ctx.episodes):
+        controller.reset(ctx.plans[e])
+        run = run_episode(ctx.env, spec, episode, controller.act, ctx.steps)
+        result = _result(
+            ctx.seed,
+            episode,
+            run,
+            ctx.expert.path_length(ctx.env, episode),
+            ctx.sec_plan,
+            starts[e],
+            goals[e],
+            plan_in_wall_fraction=float(in_wall[e].mean()),
+            plan_crosses_obstacle=bool(crosses[e]),
+            plan_max_jump=float(jumps[e]),
+            plan_step_limit=ctx.step_limit,
+        )
+        yield ctx.plans[e], run.states, result, None
+
+
+def _closed_loop(ctx: _SeedRun, method, config: EvalConfig):
+    """Yield (last plan, states, result, (plans, steps they were made at)) for every episode of one eval seed
+    executed closed loop (stages/replan.py) in lockstep groups; the plan measures cover every plan an episode
+    made."""
     from cdrb_cli.stages.replan import GROUP, run_closed_loop
 
+    spec, family = ctx.spec, ctx.family
     entry = CONTROLLERS.get(config.controller.name)
     stride = method.config.stride
-    max_step = family.max_step(spec)
-    step_limit = 0.0 if max_step is None else float(max_step * stride)
-    device = method.device
-    for g, b in enumerate(range(0, len(episodes), GROUP)):
-        group = episodes[b : b + GROUP]
+    for g, b in enumerate(range(0, len(ctx.episodes), GROUP)):
+        group = ctx.episodes[b : b + GROUP]
         runs = run_closed_loop(
             family,
             spec,
             method,
             group,
-            plans[b : b + GROUP],
+            ctx.plans[b : b + GROUP],
             lambda e: entry.build(spec, e, config.controller, stride),
             config.replan,
-            steps,
-            (config.seed, seed, g),
+            ctx.steps,
+            (config.seed, ctx.seed, g),
             config.sampler,
             config.sample_steps,
-            device,
+            method.device,
         )
         for episode, run in zip(group, runs):
             made = np.stack(run.plans)[..., : spec.obs_dim]  # (plans, H, obs_dim)
-            rollout = measure(spec, run.states, run.goal, steps)
-            total = sec_plan + run.planning_seconds
-            yield (
-                run,
-                _result(
-                    seed,
-                    episode,
-                    rollout,
-                    expert.path_length(env, episode),
-                    total / len(run.plans),
-                    run.states[0],
-                    run.goal,
-                    plan_in_wall_fraction=float(family.in_collision(spec, made).mean()),
-                    plan_crosses_obstacle=bool(family.path_in_collision(spec, made).any()),
-                    plan_max_jump=float(largest_jump(made, spec.obstacles.dims).max()),
-                    plan_step_limit=step_limit,
-                    replans=run.replans,
-                    planning_seconds=total,
-                ),
+            total = ctx.sec_plan + run.planning_seconds
+            result = _result(
+                ctx.seed,
+                episode,
+                measure(spec, run.states, run.goal, ctx.steps),
+                ctx.expert.path_length(ctx.env, episode),
+                total / len(run.plans),
+                run.states[0],
+                run.goal,
+                plan_in_wall_fraction=float(family.in_collision(spec, made).mean()),
+                plan_crosses_obstacle=bool(family.path_in_collision(spec, made).any()),
+                plan_max_jump=float(largest_jump(made, spec.obstacles.dims).max()),
+                plan_step_limit=ctx.step_limit,
+                replans=run.replans,
+                planning_seconds=total,
             )
+            yield run.plans[-1], run.states, result, (run.plans, run.plan_steps)
 
 
 def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu", video_dir=None, videos: int = 0):

@@ -31,39 +31,50 @@ def sample_plans(
     """Plans for every (start, goal) pair, ``n`` per pair, in raw units, pinned exactly to the raw start/goal.
 
     Returns (plans (Q*n, H, F), pair_index, iterates (Q*n, S, H, F) or None, iterate_steps, seconds per batch)."""
-    import torch
-
     norm = method.normalizer
-    q = len(starts)
-    pair_index = np.repeat(np.arange(q), n)
+    pair_index = np.repeat(np.arange(len(starts)), n)
     s_raw, g_raw = starts[pair_index], goals[pair_index]
-    s_norm, g_norm = _normalized_states(method, s_raw), _normalized_states(method, g_raw)
     plans, iters, iter_steps, batch_times = [], [], None, []
     for b, a in enumerate(range(0, len(pair_index), batch_size)):
         sl = slice(a, a + batch_size)
         rng = step_rng(seed, STREAM_PLAN, b)
-        st = torch.as_tensor(s_norm[sl], dtype=torch.float32, device=device)
-        gl = torch.as_tensor(g_norm[sl], dtype=torch.float32, device=device)
-        t = time.perf_counter()
-        res = method.sample(st, gl, rng, sampler=sampler, steps=steps, keep_iterates=keep_iterates)
-        if str(device) != "cpu" and torch.cuda.is_available():
-            torch.cuda.synchronize()
-        batch_times.append(time.perf_counter() - t)
-        plans.append(norm.unnormalize(res.plans.cpu().numpy().astype(np.float64)))
+        out, res, seconds = _sampler_call(method, s_raw[sl], g_raw[sl], rng, sampler, steps, keep_iterates, device)
+        batch_times.append(seconds)
+        plans.append(out)
         if keep_iterates and res.iterates:
             iters.append(np.stack([norm.unnormalize(x.cpu().numpy().astype(np.float64)) for _, x in res.iterates], 1))
             iter_steps = [k for k, _ in res.iterates]
-    out = np.concatenate(plans)
-    out[:, 0, method.pinned] = s_raw[:, method.pinned]  # pinned exactly in raw units too
-    out[:, -1, method.pinned_end] = g_raw[:, method.pinned_end]
     it = np.concatenate(iters) if iters else None
-    return out, pair_index, it, iter_steps, float(np.mean(batch_times))
+    return np.concatenate(plans), pair_index, it, iter_steps, float(np.mean(batch_times))
 
 
-def _normalized_states(method: Planner, states: np.ndarray) -> np.ndarray:
-    """Raw states (n, obs_dim) in the method's normalized feature space (the state part of a feature vector)."""
-    pad = np.zeros((len(states), method.feature_dim - method.obs_dim))
-    return method.normalizer.normalize(np.concatenate([states, pad], axis=1))[:, : method.obs_dim]
+def _sampler_call(
+    method: Planner, starts, goals, rng, sampler, steps, keep_iterates=0, device="cpu", previous=None, repair_k=None
+):
+    """One sampler call for raw start/goal states (n, obs_dim): normalized in, plans (n, H, F) out in raw units and
+    pinned exactly to the raw states; with ``previous`` (raw plans) and ``repair_k``, a repair instead of a plan
+    from scratch. Returns (plans, the method's SampleResult, seconds of the call)."""
+    import torch
+
+    def normalized(states):  # the state part of a normalized feature vector
+        pad = np.zeros((len(states), method.feature_dim - method.obs_dim))
+        z = method.normalizer.normalize(np.concatenate([states, pad], axis=1))[:, : method.obs_dim]
+        return torch.as_tensor(z, dtype=torch.float32, device=device)
+
+    st, gl = normalized(starts), normalized(goals)
+    t = time.perf_counter()
+    if repair_k is None:
+        res = method.sample(st, gl, rng, sampler=sampler, steps=steps, keep_iterates=keep_iterates)
+    else:
+        prev = torch.as_tensor(method.normalizer.normalize(previous), dtype=torch.float32, device=device)
+        res = method.repair(st, gl, prev, repair_k, rng, sampler=sampler, steps=steps)
+    if str(device) != "cpu" and torch.cuda.is_available():
+        torch.cuda.synchronize()
+    seconds = time.perf_counter() - t
+    out = method.normalizer.unnormalize(res.plans.cpu().numpy().astype(np.float64))
+    out[:, 0, method.pinned] = starts[:, method.pinned]  # pinned exactly in raw units too
+    out[:, -1, method.pinned_end] = goals[:, method.pinned_end]
+    return out, res, seconds
 
 
 def replan_batch(
@@ -81,22 +92,7 @@ def replan_batch(
     (raw plans (n, H, F), already shifted to the starts) and ``repair_k``, repaired from degradation step k
     (:meth:`~cdrb_cli.methods.base.Planner.repair`; ``steps`` then counts the repair's denoising steps).
     Returns (plans (n, H, F), seconds of the sampler call)."""
-    import torch
-
-    st = torch.as_tensor(_normalized_states(method, starts), dtype=torch.float32, device=device)
-    gl = torch.as_tensor(_normalized_states(method, goals), dtype=torch.float32, device=device)
-    t = time.perf_counter()
-    if repair_k is None:
-        res = method.sample(st, gl, rng, sampler=sampler, steps=steps)
-    else:
-        prev = torch.as_tensor(method.normalizer.normalize(previous), dtype=torch.float32, device=device)
-        res = method.repair(st, gl, prev, repair_k, rng, sampler=sampler, steps=steps)
-    if str(device) != "cpu" and torch.cuda.is_available():
-        torch.cuda.synchronize()
-    seconds = time.perf_counter() - t
-    out = method.normalizer.unnormalize(res.plans.cpu().numpy().astype(np.float64))
-    out[:, 0, method.pinned] = starts[:, method.pinned]
-    out[:, -1, method.pinned_end] = goals[:, method.pinned_end]
+    out, _, seconds = _sampler_call(method, starts, goals, rng, sampler, steps, 0, device, previous, repair_k)
     return out, seconds
 
 
