@@ -12,7 +12,8 @@ setup() {
   fi
   # torch first, pinned: 2.13.0 is a local CPU build here; a bare `torch` requirement would pull CUDA wheels.
   "$VENV/bin/python" -m pip install -q torch==2.13.0
-  "$VENV/bin/python" -m pip install -q -e ".[dev]"
+  # the tests also run `cdrb grid` on a local Ray instance: the optional [ray] extra is part of the dev set-up
+  "$VENV/bin/python" -m pip install -q -e ".[dev,ray]"
 }
 
 case "${1:-}" in

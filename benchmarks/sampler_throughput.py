@@ -5,9 +5,11 @@ buffer points, compute the full (B*H, K) distance matrix through a (B*H, K, D) d
 append an "empty ball" column, draw with torch.multinomial, and gather from the buffer repeated to (B*H, K+1, D).
 Its memory grows as B*H*K*D, so at K = 100,000 it only runs on small batches.
 
-Ours: cdrb_cli.buffer.BallSampler (rejection rounds + KD-tree enumeration, exact, no (B*H, K, D) tensor).
+Ours: cdrb_cli.buffer.BallSampler (rejection rounds + KD-tree enumeration, exact, no (B*H, K, D) tensor). Also
+timed, on ``--device``: the torch sampler that training uses on a GPU (TorchBallSampler, rejection rounds + dense
+enumeration of the rest) and the dense baseline (cdist to all K points + masked Gumbel-max for every query).
 
-Usage: python benchmarks/sampler_throughput.py [--demos demos.h5] [--repeats 5] [--json out.json]
+Usage: python benchmarks/sampler_throughput.py [--demos demos.h5] [--repeats 5] [--device cuda] [--json out.json]
 Without --demos it collects 1,000 Maze Tight demos first (about 20 s).
 """
 
@@ -23,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cdrb_cli.buffer import BallSampler, Normalizer, radii
+from cdrb_cli.buffer import BallSampler, Normalizer, TorchBallSampler, radii
 
 
 def reference_degrade(x: torch.Tensor, buffer: torch.Tensor, radius: torch.Tensor, gen) -> torch.Tensor:
@@ -55,11 +57,13 @@ def states(demos_path: Path | None) -> np.ndarray:
     return Normalizer.fit(x).normalize(x)
 
 
-def bench(fn, repeats: int) -> float:
+def bench(fn, repeats: int, sync=lambda: None) -> float:
     fn()  # warm-up (KD-tree build, caches, allocator)
+    sync()
     t = time.perf_counter()
     for _ in range(repeats):
         fn()
+    sync()
     return (time.perf_counter() - t) / repeats
 
 
@@ -68,7 +72,10 @@ def main() -> None:
     ap.add_argument("--demos", type=Path)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--device", default="cpu", help="where the torch samplers run (cpu, cuda)")
     args = ap.parse_args()
+    dev = torch.device(args.device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     torch.set_num_threads(2)
     z = states(args.demos)
     rng = np.random.default_rng(0)
@@ -78,6 +85,7 @@ def main() -> None:
         pts = z[rng.choice(len(z), K, replace=False)]
         eps = radii("linear", float(np.linalg.norm(pts.max(0) - pts.min(0))), T)
         ours = BallSampler(pts, eps)
+        on_device = {s: TorchBallSampler(pts, eps, device=dev, strategy=s) for s in ("auto", "dense")}
         buf_t = torch.as_tensor(pts, dtype=torch.float32)
         for batch in sorted({ref_batch, 64}):
             x = z[rng.integers(len(z), size=(batch, H))]
@@ -86,6 +94,11 @@ def main() -> None:
                 n = batch * H
                 t_ours = bench(partial(ours.degrade, x, ks, rng), args.repeats)
                 row = {"K": K, "batch": batch, "queries": n, "regime": regime, "ours_states_per_s": n / t_ours}
+                xd = torch.as_tensor(x, dtype=torch.float32, device=dev)
+                for name, sampler in on_device.items():
+                    gen = sampler.generator(rng)
+                    t = bench(partial(sampler.degrade, xd, ks, gen), args.repeats, sync)
+                    row[f"torch_{name}_states_per_s"] = n / t
                 mem = n * (K + 1) * 4 * 4 * 2  # the (BH, K, D) difference and (BH, K+1, D) gather, float32
                 if batch <= ref_batch:
                     xt = torch.as_tensor(x, dtype=torch.float32)
@@ -106,9 +119,12 @@ def main() -> None:
                         if ref
                         else f"{'not run':>12s} (needs {mem / 2**30:,.0f} GiB)"
                     )
+                    + f"   torch on {dev}: {row['torch_auto_states_per_s']:>12,.0f}, dense baseline "
+                    + f"{row['torch_dense_states_per_s']:>12,.0f} states/s"
                 )
     meta = {
         "machine": f"{platform.processor() or platform.machine()}, torch threads 2",
+        "device": str(dev) if dev.type != "cuda" else torch.cuda.get_device_name(dev),
         "torch": torch.__version__,
         "results": results,
     }

@@ -322,3 +322,129 @@ class BallSampler:
     def random_states(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
         """Buffer states drawn uniformly (the sampling prior): array of ``shape + (D,)``."""
         return self.points[rng.integers(0, self.K, size=shape)]
+
+
+# ------------------------------------------------------------------------------------------------ on the device
+class TorchBallSampler:
+    """The same law as :class:`BallSampler` (uniform over the buffer points strictly inside each ball; an empty
+    ball keeps the state) computed with torch on the points' device, so training on a GPU never copies a batch to
+    the CPU. Membership is decided in float64, like the numpy sampler.
+
+    ``strategy``: ``auto`` (rejection rounds of uniform candidates, then exact enumeration of the queries still
+    without a hit) or ``dense`` (enumerate every query: chunked squared distances to all K points, then a uniform
+    pick among the inside points as the argmax of i.i.d. uniform keys, i.e. masked Gumbel-max; the reference for
+    tests and the dense baseline of the benchmark). On a CPU the numpy sampler is faster: it uses a KD-tree for the
+    small balls."""
+
+    def __init__(self, points, eps: np.ndarray, device=None, strategy: str = "auto", chunk_elems: int = 4_000_000):
+        import torch
+
+        if strategy not in ("auto", "dense"):
+            raise ValueError(strategy)
+        self.points = torch.as_tensor(np.asarray(points), dtype=torch.float64, device=device)
+        self.sq = (self.points * self.points).sum(1)
+        self.eps = torch.as_tensor(np.asarray(eps, dtype=np.float64), device=self.points.device)
+        self.strategy = strategy
+        self.first_tries = 32
+        self.max_tries = int(np.ceil(4 * np.sqrt(self.K)))
+        self.chunk_elems = chunk_elems
+
+    @property
+    def K(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def device(self):
+        return self.points.device
+
+    def generator(self, rng: np.random.Generator):
+        """A torch generator on the sampler's device, seeded from ``rng`` (one draw): determinism follows the
+        caller's numpy stream."""
+        import torch
+
+        g = torch.Generator(device=self.device)
+        g.manual_seed(int(rng.integers(0, 2**63 - 1)))
+        return g
+
+    def sample(self, x, radius, gen):
+        """Index of a buffer point drawn uniformly from {j : |points[j] - x[q]| < radius[q]} per query row, or -1
+        when that set is empty. ``x`` (N, D) and ``radius`` (N,) tensors (any float dtype), ``gen`` a generator on
+        the sampler's device."""
+        import torch
+
+        x = x.to(device=self.device, dtype=torch.float64)
+        r2 = torch.as_tensor(radius, device=self.device, dtype=torch.float64) ** 2
+        out = torch.full((x.shape[0],), -1, dtype=torch.long, device=self.device)
+        todo = torch.nonzero(r2 > 0).flatten()
+        if self.strategy == "auto":
+            tries, used = self.first_tries, 0
+            while todo.numel() and used < self.max_tries:
+                tries = min(tries, self.max_tries - used)
+                hit = self._rejection_round(x[todo], r2[todo], tries, gen)
+                got = hit >= 0
+                out[todo[got]] = hit[got]
+                todo = todo[~got]
+                used += tries
+                tries *= 4
+        if todo.numel():
+            out[todo] = self._enumerate(x[todo], r2[todo], gen)
+        return out
+
+    def _rejection_round(self, x, r2, tries: int, gen):
+        import torch
+
+        out = torch.full((x.shape[0],), -1, dtype=torch.long, device=self.device)
+        rows = max(1, self.chunk_elems // (tries * self.points.shape[1]))
+        for a in range(0, x.shape[0], rows):
+            q, qr2 = x[a : a + rows], r2[a : a + rows]
+            cand = torch.randint(0, self.K, (q.shape[0], tries), generator=gen, device=self.device)
+            diff = self.points[cand] - q[:, None, :]
+            inside = (diff * diff).sum(-1) < qr2[:, None]
+            first = inside.to(torch.uint8).argmax(dim=1)  # the first candidate inside (0 when none is)
+            picked = cand.gather(1, first[:, None]).squeeze(1)
+            out[a : a + rows] = torch.where(inside.any(dim=1), picked, -1)
+        return out
+
+    def _enumerate(self, x, r2, gen):
+        import torch
+
+        out = torch.full((x.shape[0],), -1, dtype=torch.long, device=self.device)
+        rows = max(1, self.chunk_elems // max(self.K, 1))
+        tol = 1e-9
+        for a in range(0, x.shape[0], rows):
+            q, qr2 = x[a : a + rows], r2[a : a + rows, None]
+            d2 = (q * q).sum(1)[:, None] - 2.0 * (q @ self.points.T) + self.sq[None]
+            inside = d2 < qr2 - tol
+            near = (d2 - qr2).abs() <= tol  # within rounding of the sphere: decide from exact differences
+            if bool(near.any()):
+                qi, kj = torch.nonzero(near, as_tuple=True)
+                dd = self.points[kj] - q[qi]
+                inside[qi, kj] = (dd * dd).sum(1) < qr2[qi, 0]
+            keys = torch.rand(inside.shape, generator=gen, device=self.device, dtype=torch.float32)
+            keys = torch.where(inside, keys, -1.0)
+            best = keys.argmax(dim=1)  # the argmax of i.i.d. uniform keys over the inside points: uniform among them
+            out[a : a + rows] = torch.where(inside.any(dim=1), best, -1)
+        return out
+
+    def degrade(self, traj, k, gen, pinned=(0, -1)):
+        """D(traj, k) for a (B, H, D) tensor on any device; ``k`` an int or (B,) ints; ``pinned`` positions kept,
+        as :meth:`BallSampler.degrade`. Returns a tensor of ``traj``'s dtype and device."""
+        import torch
+
+        B, H, D = traj.shape
+        t = traj.to(self.device)
+        k = torch.as_tensor(np.broadcast_to(np.asarray(k, dtype=np.int64), (B,)).copy(), device=self.device)
+        free = torch.ones(H, dtype=torch.bool, device=self.device)
+        free[list(pinned)] = False
+        x = t[:, free, :].reshape(-1, D)
+        idx = self.sample(x, self.eps[k].repeat_interleave(int(free.sum())), gen)
+        y = torch.where((idx >= 0)[:, None], self.points[idx.clamp(min=0)].to(t.dtype), x)
+        out = t.clone()
+        out[:, free, :] = y.reshape(B, -1, D)
+        return out.to(traj.device)
+
+    def random_states(self, shape: tuple[int, ...], gen):
+        """Buffer states drawn uniformly (the sampling prior): a float64 tensor of ``shape + (D,)``."""
+        import torch
+
+        return self.points[torch.randint(0, self.K, shape, generator=gen, device=self.device)]

@@ -1019,6 +1019,54 @@ def quickstart(
     sys.stdout.write("\n" + "\n".join(str(p) for p in res.pictures) + "\n")
 
 
+# ------------------------------------------------------------------------------------------------ grid
+@app.command()
+def grid(
+    grid_file: Path = typer.Argument(..., help="Grid file (TOML): envs x methods x seeds [x variants]."),
+    backend: str = typer.Option(
+        "auto",
+        "--backend",
+        parser=_choice(lambda: ["auto", "ray", "pool"], "backend"),
+        help='Where tasks run: ray (needs `pip install "cdrb-cli[ray]"`), pool (local processes), auto (Ray '
+        "when installed).",
+    ),
+    workers: int | None = typer.Option(
+        None, "--workers", "-j", min=1, help="Local pool: parallel tasks; local Ray: CPUs it may use (default: all)."
+    ),
+    address: str | None = typer.Option(
+        None, "--address", help="A running Ray cluster, e.g. ray://head:10001 (default: start Ray on this machine)."
+    ),
+    retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Print the tasks' commands (one per line) and stop."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Run a grid of experiments: collect -> cluster -> train -> eval -> report for every environment, method,
+    seed and variant of GRID_FILE, in parallel on Ray or a local pool.
+
+    Tasks whose artifacts are up to date are not run again, so a grid stopped half-way continues where it
+    stopped; a failed task is retried (a training resumes from its checkpoint) and then reported, while the
+    others go on. Prints the path of the summary (OUT/grid.json). Format and examples: docs/cli.md.
+    """
+    from cdrb_cli.stages.grid import grid as run_grid_file
+
+    res = run_grid_file(grid_file, backend=backend, workers=workers, address=address, retries=retries, dry_run=dry_run)
+    if dry_run:
+        import shlex
+
+        for task in res:
+            sys.stdout.write("cdrb " + shlex.join(task.argv) + "\n")
+        return
+    ui.log(
+        f"grid finished in {res.seconds / 60:.1f} min: {res.count('done')} run, {res.count('up to date')} up to date"
+    )
+    if as_json:
+        import json
+
+        ui.emit(json.loads(res.summary.read_text()), as_json=True)
+    else:
+        ui.emit(res.summary)
+
+
 # ------------------------------------------------------------------------------------------------ entry point
 def _one_line(text: str) -> str:
     return " ".join(str(text).split()).replace("Value error, ", "")

@@ -7,7 +7,27 @@ import numpy as np
 import pytest
 from scipy.stats import chisquare
 
-from cdrb_cli.buffer import BallSampler, Normalizer, diameter, kmeans_buffer, radii
+from cdrb_cli.buffer import BallSampler, Normalizer, TorchBallSampler, diameter, kmeans_buffer, radii
+
+
+class TorchOnNumpy:
+    """The torch sampler behind the numpy sampler's interface, so every exactness test below runs on both."""
+
+    def __init__(self, points, eps, strategy="auto"):
+        self.t = TorchBallSampler(points, eps, strategy={"brute": "dense"}.get(strategy, strategy))
+
+    def sample(self, x, radius, rng):
+        import torch
+
+        return self.t.sample(torch.as_tensor(x), torch.as_tensor(radius), self.t.generator(rng)).numpy()
+
+    def degrade(self, traj, k, rng, pinned=(0, -1)):
+        import torch
+
+        return self.t.degrade(torch.as_tensor(traj), k, self.t.generator(rng), pinned=pinned).numpy()
+
+
+SAMPLERS = {"numpy": BallSampler, "torch": TorchOnNumpy}
 
 
 def _inside(points, x, r):
@@ -27,13 +47,14 @@ def _check_uniform(idx, points, x, r):
     assert p > 1e-3, f"draws are not uniform over ball ∩ buffer (chi-square p={p:.2g}, counts {counts})"
 
 
+@pytest.mark.parametrize("impl", SAMPLERS)
 @pytest.mark.parametrize("strategy", ["auto", "brute"])
 @pytest.mark.parametrize("radius", [0.35, 0.6, 1.5])
-def test_ball_draws_are_uniform_over_ball_and_buffer(strategy, radius):
+def test_ball_draws_are_uniform_over_ball_and_buffer(impl, strategy, radius):
     rng = np.random.default_rng(1)
     points = rng.uniform(-1, 1, size=(300, 3))
     x = np.array([0.1, -0.2, 0.05])
-    s = BallSampler(points, np.array([0.0, radius]), strategy=strategy)
+    s = SAMPLERS[impl](points, np.array([0.0, radius]), strategy=strategy)
     n = 30_000
     idx = s.sample(np.repeat(x[None], n, 0), np.full(n, radius), np.random.default_rng(2))
     _check_uniform(idx, points, x, radius)
@@ -50,21 +71,23 @@ def test_tree_enumeration_is_exact_when_balls_overflow_k():
     _check_uniform(idx, points, x, r)
 
 
-def test_mixed_queries_each_uniform():
+@pytest.mark.parametrize("impl", SAMPLERS)
+def test_mixed_queries_each_uniform(impl):
     rng = np.random.default_rng(5)
     points = rng.uniform(-1, 1, size=(500, 2))
     xs = np.array([[0.3, 0.3], [-0.5, 0.1]])
     rs = np.array([0.25, 0.8])
     n = 20_000
     q = np.repeat(xs, n, 0)
-    idx = BallSampler(points, np.array([0.0, 1.0])).sample(q, np.repeat(rs, n), np.random.default_rng(6))
+    idx = SAMPLERS[impl](points, np.array([0.0, 1.0])).sample(q, np.repeat(rs, n), np.random.default_rng(6))
     for i in range(2):
         _check_uniform(idx[i * n : (i + 1) * n], points, xs[i], rs[i])
 
 
-def test_ball_is_strict_and_empty_ball_keeps_the_state():
+@pytest.mark.parametrize("impl", SAMPLERS)
+def test_ball_is_strict_and_empty_ball_keeps_the_state(impl):
     points = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.0], [3.0, 3.0]])
-    s = BallSampler(points, np.array([0.0, 1.0]))
+    s = SAMPLERS[impl](points, np.array([0.0, 1.0]))
     idx = s.sample(np.zeros((2000, 2)), np.ones(2000), np.random.default_rng(0))
     assert set(idx.tolist()) == {2}  # points at distance exactly 1 are not strictly inside
     far = np.full((10, 2), -5.0)
@@ -73,11 +96,12 @@ def test_ball_is_strict_and_empty_ball_keeps_the_state():
     np.testing.assert_array_equal(s.degrade(traj, 1, np.random.default_rng(0)), traj)
 
 
-def test_degrade_pins_ends_and_step_zero_is_identity():
+@pytest.mark.parametrize("impl", SAMPLERS)
+def test_degrade_pins_ends_and_step_zero_is_identity(impl):
     rng = np.random.default_rng(7)
     points = rng.uniform(-1, 1, size=(1000, 4))
     eps = radii("linear", 2.0, 16)
-    s = BallSampler(points, eps)
+    s = SAMPLERS[impl](points, eps)
     traj = rng.uniform(-1, 1, size=(8, 12, 4))
     ks = rng.integers(1, 16, size=8)
     out = s.degrade(traj, ks, rng)
@@ -95,12 +119,14 @@ def test_degrade_pins_ends_and_step_zero_is_identity():
     np.testing.assert_array_equal(a, b)
 
 
-def test_large_buffer_path_matches_brute_distribution():
-    """K = 20,000 exercises rejection rounds and the KD-tree; both agree with brute force in distribution."""
+@pytest.mark.parametrize("impl", SAMPLERS)
+def test_large_buffer_path_matches_brute_distribution(impl):
+    """K = 20,000 exercises rejection rounds and the KD-tree (numpy) or dense enumeration (torch); both are
+    uniform over ball ∩ buffer."""
     rng = np.random.default_rng(8)
     points = rng.normal(size=(20_000, 2)) * 0.5
     x, r = np.array([0.2, 0.1]), 0.03  # a small ball: ~10 points
-    s = BallSampler(points, np.array([0.0, r]))
+    s = SAMPLERS[impl](points, np.array([0.0, r]))
     n = 8000
     idx = s.sample(np.repeat(x[None], n, 0), np.full(n, r), np.random.default_rng(9))
     _check_uniform(idx, points, x, r)

@@ -20,6 +20,7 @@ COMMANDS = [
     "eval",
     "report",
     "quickstart",
+    "grid",
     "inspect",
     "schema",
     "envs",

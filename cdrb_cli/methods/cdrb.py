@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from cdrb_cli.buffer import BallSampler, radii
+from cdrb_cli.buffer import BallSampler, TorchBallSampler, radii
 from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import Planner, SampleResult, keep_schedule
 from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
@@ -63,6 +63,7 @@ class CDRB(Planner):
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = BallSampler(self.points, self.eps)
+        self._torch_ball = None  # built on first use on a non-CPU device
         # the first and last planned states are left out of the degradation when pinning fixes every feature there;
         # when it fixes only some (spec.pinned_dims / pinned_end_dims, or the action part of state-action features)
         # they are degraded like the rest and pinning restores the pinned dims, so training sees the ends as sampling
@@ -74,7 +75,19 @@ class CDRB(Planner):
     def extra_arrays(self):
         return {"buffer/points": self.points}
 
+    def _device_ball(self, device) -> TorchBallSampler | None:
+        """The ball sampler that stays on ``device`` (same law), or None on the CPU, where the numpy sampler with
+        its KD-tree is the faster one."""
+        if torch.device(device).type == "cpu":
+            return None
+        if self._torch_ball is None or self._torch_ball.device != torch.device(device):
+            self._torch_ball = TorchBallSampler(self.points, self.eps, device=device)
+        return self._torch_ball
+
     def _degrade(self, x: torch.Tensor, k, rng: np.random.Generator) -> torch.Tensor:
+        ball = self._device_ball(x.device)
+        if ball is not None:
+            return ball.degrade(x.detach(), k, ball.generator(rng), pinned=self.kept)
         y = self.ball.degrade(x.detach().cpu().numpy(), k, rng, pinned=self.kept)
         return torch.from_numpy(y.astype(np.float32)).to(x.device)
 
@@ -119,7 +132,11 @@ class CDRB(Planner):
 
     def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
         P = start.shape[0]
-        x = torch.from_numpy(self.ball.random_states((P, self.horizon), rng).astype(np.float32)).to(start.device)
+        ball = self._device_ball(start.device)
+        if ball is not None:
+            x = ball.random_states((P, self.horizon), ball.generator(rng)).to(start.dtype)
+        else:
+            x = torch.from_numpy(self.ball.random_states((P, self.horizon), rng).astype(np.float32)).to(start.device)
         x = self.pin(x, start, goal)
         return self._restore(x, start, goal, self._schedule(self.T - 1, steps), rng, sampler, keep_iterates)
 
