@@ -177,3 +177,21 @@ def test_kmeans_snaps_to_real_states_and_diameter():
     small = pts[:300]
     brute = max(np.linalg.norm(a - b) for a in small for b in small)
     assert np.isclose(diameter(small), brute)
+
+
+def test_torch_sampler_keeps_dtype_and_pins_for_float32_batches():
+    import torch
+
+    rng = np.random.default_rng(12)
+    points = rng.uniform(-1, 1, size=(200, 3))
+    s = TorchBallSampler(points, radii("linear", 2.0, 8))
+    traj = torch.as_tensor(rng.uniform(-1, 1, size=(4, 6, 3)), dtype=torch.float32)
+    out = s.degrade(traj, np.array([1, 3, 5, 7]), s.generator(rng))
+    assert out.dtype == torch.float32 and out.shape == traj.shape
+    assert torch.equal(out[:, 0], traj[:, 0]) and torch.equal(out[:, -1], traj[:, -1])
+    pts = torch.as_tensor(points, dtype=torch.float32)
+    new, old = out[:, 1:-1].reshape(-1, 3), traj[:, 1:-1].reshape(-1, 3)
+    is_point = torch.stack([(pts == row).all(1).any() for row in new])
+    kept = (new == old).all(1)
+    assert bool((is_point | kept).all()) and int(is_point.sum()) > len(new) // 2  # a buffer point, or an empty ball
+    assert s.random_states((2, 5), s.generator(rng)).shape == (2, 5, 3)

@@ -264,3 +264,15 @@ def test_ray_runs_the_same_grid(tmp_path):
     # a finished grid run again on the pool: nothing to do
     proc = _cli("grid", str(grid), "--backend", "pool", "--json")
     assert proc.returncode == 0 and json.loads(proc.stdout)["counts"]["up to date"] == 6
+
+
+def test_the_shipped_grid_files_load_and_expand():
+    root = Path(__file__).resolve().parent.parent / "grids"
+    files = sorted(root.glob("*.toml"))
+    assert files
+    for path in files:
+        spec = load_grid(path)
+        tasks = expand(spec)
+        trains = [t for t in tasks if t.kind == "train"]
+        assert len(trains) == len(spec.envs) * len(spec.methods) * len(spec.seeds)
+        assert all("--stream" in t.argv and "test" in t.argv for t in tasks if t.kind == "eval")
