@@ -12,8 +12,9 @@ setup() {
   fi
   # torch first, pinned: 2.13.0 is a local CPU build here; a bare `torch` requirement would pull CUDA wheels.
   "$VENV/bin/python" -m pip install -q torch==2.13.0
-  # the tests also run `cdrb grid` on a local Ray instance: the optional [ray] extra is part of the dev set-up
-  "$VENV/bin/python" -m pip install -q -e ".[dev,ray]"
+  # the tests also run `cdrb grid` on a local Ray instance and Minari round trips: the optional [ray] and
+  # [minari] extras are part of the dev set-up
+  "$VENV/bin/python" -m pip install -q -e ".[dev,ray,minari]"
 }
 
 case "${1:-}" in

@@ -388,6 +388,69 @@ def collect(
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 
 
+# ------------------------------------------------------------------------------------------------ minari
+import_app = typer.Typer(help="Bring outside datasets in as cdrb artifacts.", no_args_is_help=True)
+app.add_typer(import_app, name="import")
+
+
+@import_app.command("minari")
+def import_minari(
+    dataset: str = typer.Argument(
+        ..., help="A Minari dataset id found in MINARI_DATASETS_PATH (default ~/.minari/datasets), or its folder."
+    ),
+    env: str | None = typer.Option(
+        None, "--env", help="The cdrb environment (default: from the dataset's env_spec; `cdrb envs`)."
+    ),
+    valid_fraction: float = typer.Option(
+        0.1, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation."
+    ),
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+    as_json: bool = JsonOpt,
+) -> None:
+    """Import a Minari dataset (already on disk: cdrb never downloads) as a [bold]demos[/bold] artifact.
+
+    PointMaze datasets map to the maze family (a stock maze when the walls match, else the dataset's own map),
+    Fetch Reach/Push/PickAndPlace to the Fetch tasks. The artifact records the dataset id, the Minari version and
+    the sha256 of its files; success is cdrb's own test on the states. Example: [cyan]cdrb import minari
+    D4RL/pointmaze/umaze-v2 --out umaze.h5[/cyan], then cluster and train as usual."""
+    from cdrb_cli.stages.minari_io import import_minari as run_import
+
+    _check_outputs(force, out=out)
+    demos = run_import(dataset, out, env=env, valid_fraction=valid_fraction, seed=seed)
+    s = demos.manifest.summary
+    ui.log(
+        f"{demos.manifest.env.id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "
+        f"{s.steps} steps, success {s.success_rate:.1%}, states inside obstacles: {s.states_in_walls}"
+    )
+    ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
+@app.command("export")
+def export_cmd(
+    demos: Path = typer.Argument(..., help="A demos artifact."),
+    minari: str = typer.Option(
+        ..., "--minari", help="Dataset name, [namespace/]name[-vN] (-v0 is added), e.g. cdrb/maze-tight-expert."
+    ),
+    root: Path | None = typer.Option(
+        None, "--root", help="Datasets folder (default: MINARI_DATASETS_PATH, else ~/.minari/datasets)."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name."),
+) -> None:
+    """Export a [bold]demos[/bold] artifact as a Minari dataset that `minari.load_dataset(NAME)` opens.
+
+    Observations are goal dicts (observation, achieved_goal, desired_goal), the reward is cdrb's success test (as
+    a sparse reward) and infos["success"] has it per step; the env_spec is the gymnasium equivalent of the
+    environment where one exists (PointMaze with this map, Fetch without walls). Prints the dataset's folder."""
+    from cdrb_cli.stages.minari_io import dataset_id_for, export_minari
+
+    art = _load(demos, "demos")
+    folder = export_minari(art, minari, root=root, force=force)
+    ui.log(f"{art.n_episodes} episodes written as Minari dataset {dataset_id_for(minari)}")
+    ui.emit(folder)
+
+
 # ------------------------------------------------------------------------------------------------ expert
 expert_app = typer.Typer(
     help="Train stable-baselines3 experts (SAC + HER) for `cdrb collect --expert sac`.", no_args_is_help=True

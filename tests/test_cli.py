@@ -21,6 +21,8 @@ COMMANDS = [
     "report",
     "quickstart",
     "grid",
+    "import",
+    "export",
     "inspect",
     "schema",
     "envs",

@@ -319,3 +319,14 @@ class EnvFamily(ABC):
         """Simulator frames of the agent following ``states`` (raise when the simulator cannot render here; the
         caller then draws the rollout with matplotlib)."""
         raise NotImplementedError(f"the {self.name} family renders no simulator frames")
+
+    # -------------------------------------------------------------- interop (Minari datasets)
+    def from_gym(self, gym_id: str, kwargs: dict, name: str) -> EnvSpec | None:
+        """The cdrb spec of the gymnasium environment ``gym_id`` made with ``kwargs`` (a Minari dataset's
+        env_spec; ``name`` names a new layout), or None when it is not one of this family's."""
+        return None
+
+    def to_gym(self, spec: EnvSpec) -> tuple[str, dict] | None:
+        """The gymnasium environment id and kwargs equivalent to ``spec`` (for a Minari dataset's env_spec), or
+        None when no registered gymnasium environment is (e.g. the Fetch tasks with walls)."""
+        return None

@@ -33,8 +33,26 @@ def describe(path: str | Path) -> dict[str, Any]:
         "parents": [p.model_dump() for p in m.parents],
         "summary": summary.model_dump() if summary is not None else None,
         "config": m.config.model_dump(),
+        "source": _source(m),
         "datasets": {k: {"shape": list(v.shape), "dtype": str(v.dtype)} for k, v in sorted(art.arrays.items())},
     }
+
+
+def _source(manifest) -> str | None:
+    """One line on where demonstrations came from (their expert record), or None for other kinds."""
+    expert = getattr(manifest.config, "expert", None)
+    if expert is None:
+        return None
+    if expert.kind == "minari":
+        return (
+            f"Minari dataset {expert.dataset_id} (written by Minari {expert.minari_version}"
+            + (f", env {expert.gym_env_id}" if expert.gym_env_id else "")
+            + (f", by {expert.algorithm_name}" if expert.algorithm_name else "")
+            + f"; {len(expert.files)} files, sha256 recorded)"
+        )
+    if expert.kind == "sac":
+        return f"SAC policy {expert.policy_path} (sha256 {expert.policy_sha256[:12]})"
+    return f"{expert.kind} expert"
 
 
 def safe(value: Any, limit: int = 200) -> Text:
@@ -61,6 +79,8 @@ def render(info: dict[str, Any]) -> None:
     for key in ("env", "family", "created_at", "cdrb_version", "git_sha", "seed", "sha256"):
         meta.add_row(key, safe(info[key]))
     meta.add_row("command", safe(" ".join(map(str, info["argv"])), 400))
+    if info.get("source"):
+        meta.add_row("source", safe(info["source"], 400))
     out.print(meta)
     if info["parents"]:
         out.print(Text("parents", "bold"))

@@ -109,6 +109,21 @@ class FetchFamily(EnvFamily):
     def display_name(self, env_id: str) -> str:
         return DISPLAY_NAMES.get(env_id, env_id)
 
+    #: gymnasium-robotics' Fetch task names and cdrb's environments without walls (same state layout)
+    GYM_TASKS = {"Reach": "fetch-reach", "Push": "fetch-push", "PickAndPlace": "fetch-pick-place"}
+
+    def from_gym(self, gym_id: str, kwargs: dict, name: str) -> EnvSpec | None:
+        import re
+
+        m = re.fullmatch(r"Fetch(Reach|Push|PickAndPlace)(Dense)?-v\d+", gym_id)
+        return self.make_spec(self.GYM_TASKS[m.group(1)]) if m else None
+
+    def to_gym(self, spec: EnvSpec) -> tuple[str, dict] | None:
+        if spec.scene.walls:  # cdrb's tasks with walls exist in no gymnasium registry
+            return None
+        task = {v: k for k, v in self.GYM_TASKS.items()}.get(spec.id)
+        return (f"Fetch{task}-v4", {}) if task else None
+
     def details(self, spec: EnvSpec) -> dict[str, Any]:
         return {"task": spec.scene.task, "walls": len(spec.scene.walls), "cross": spec.scene.cross}
 

@@ -16,7 +16,14 @@ import numpy as np
 from pydantic import Field
 
 from cdrb_cli.envs.family import EnvFamily, Episode, Scene
-from cdrb_cli.envs.pointmaze.maze import STOCK_LAYOUTS, MazeGeometry, MazeLayout, load_map_file, stock_layout
+from cdrb_cli.envs.pointmaze.maze import (
+    STOCK_LAYOUTS,
+    MazeGeometry,
+    MazeLayout,
+    load_map_file,
+    parse_map,
+    stock_layout,
+)
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
@@ -111,6 +118,41 @@ class PointMazeFamily(EnvFamily):
 
     def display_name(self, env_id: str) -> str:
         return DISPLAY_NAMES.get(env_id, env_id)
+
+    def from_gym(self, gym_id: str, kwargs: dict, name: str) -> EnvSpec | None:
+        """PointMaze_*: the walls of ``maze_map`` (the registered default when the kwargs omit it). A stock cdrb
+        maze with the same walls is that maze (its start/goal cells are the protocol's); any other map becomes a
+        layout of its own, every free cell a start and goal cell unless the map marks them (r, g, c)."""
+        if not gym_id.startswith("PointMaze_"):
+            return None
+        from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
+
+        grid = kwargs.get("maze_map")
+        if grid is None:
+            gym = import_gymnasium_robotics()
+            grid = gym.spec(gym_id).kwargs.get("maze_map")
+        if grid is None:
+            return None
+        codes = {1: "#", 0: ".", "r": "S", "g": "G", "c": "C", "1": "#", "0": "."}
+        try:
+            rows = ["".join(codes[c] for c in row) for row in grid]
+        except (KeyError, TypeError):
+            raise BadInput(
+                f"maze_map of {gym_id}: cells other than 0, 1, r, g, c", hint="not a PointMaze map"
+            ) from None
+        walls = [[ch == "#" for ch in r] for r in rows]
+        for env_id in STOCK_LAYOUTS:
+            stock = stock_layout(env_id)
+            if [[ch == "#" for ch in r] for r in stock.rows] == walls:
+                return self.make_spec(env_id)
+        if not any(ch in "SGC" for r in rows for ch in r):
+            rows = [r.replace(".", "C") for r in rows]
+        return maze_spec(f"map:{name}", parse_map("\n".join(rows), name=name, source=f"{gym_id} maze_map"))
+
+    def to_gym(self, spec: EnvSpec) -> tuple[str, dict] | None:
+        from cdrb_cli.envs.pointmaze.env import maze_map
+
+        return "PointMaze_UMaze-v3", {"maze_map": maze_map(spec), "continuing_task": True, "reset_target": False}
 
     def details(self, spec: EnvSpec) -> dict[str, Any]:
         g = MazeGeometry(spec.scene.maze)

@@ -1,0 +1,323 @@
+"""Minari datasets in and out: `cdrb import minari` and `cdrb export --minari`.
+
+Mapping (one episode of T steps):
+
+| cdrb demos                      | Minari episode                                               |
+|---------------------------------|--------------------------------------------------------------|
+| steps/observations (T+1 rows)   | observations["observation"] (T+1)                            |
+| steps/actions (T+1, last zero)  | actions (T)                                                  |
+| steps/desired_goals (T+1)       | observations["desired_goal"] (T+1)                           |
+| (the state's goal dims)         | observations["achieved_goal"] (T+1)                          |
+| episodes/success                | infos["success"] (T+1) on export; on import always cdrb's    |
+|                                 | success test on the states (a dense reward says nothing)     |
+| episodes/seed                   | the episode's seed (-1 when the dataset has none)            |
+| env (EnvSpec)                   | env_spec: the family's gymnasium equivalent (`to_gym`), or   |
+|                                 | none (Fetch with walls): then the description names the env  |
+
+cdrb never downloads: a dataset id is looked up in Minari's local folder (``MINARI_DATASETS_PATH``, default
+~/.minari/datasets), or a dataset folder is given by path.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from cdrb_cli import __version__, artifacts, ui
+from cdrb_cli.errors import BadInput
+
+#: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
+ENV_TAG = "cdrb-env:"
+
+
+def _root() -> Path:
+    return Path(os.environ.get("MINARI_DATASETS_PATH") or Path.home() / ".minari" / "datasets")
+
+
+def _minari():
+    try:
+        import minari
+    except ImportError:
+        raise BadInput("Minari is not installed", hint='pip install "cdrb-cli[minari]"') from None
+    return minari
+
+
+def locate(source: str) -> Path:
+    """The ``data`` folder (metadata.json + main data) of a dataset given by id or by path."""
+    p = Path(source).expanduser()
+    candidates = [p, p / "data"] if p.exists() else [_root() / source / "data"]
+    for c in candidates:
+        if (c / "metadata.json").is_file():
+            return c
+    if p.exists():
+        raise BadInput(
+            f"{source}: not a Minari dataset folder (no metadata.json in it or in its data/)",
+            hint="give the dataset's folder",
+        )
+    raise BadInput(
+        f"{source}: no such Minari dataset in {_root()} (cdrb never downloads)",
+        hint=f"`minari download {source}` first, set MINARI_DATASETS_PATH, or give the dataset's folder",
+    )
+
+
+def _sha_files(folder: Path) -> dict[str, str]:
+    return {str(f.relative_to(folder)): artifacts.sha256_file(f) for f in sorted(folder.rglob("*")) if f.is_file()}
+
+
+def _spec_for(dataset, source: str, env: str | None):
+    """The cdrb EnvSpec of a dataset: ``--env`` when given, else from its env_spec (every family is asked)."""
+    from cdrb_cli.envs.registry import FAMILIES, make_spec
+
+    if env is not None:
+        return make_spec(env)
+    gym_spec = dataset.env_spec
+    if gym_spec is not None:
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "-", dataset.spec.dataset_id).strip("-")
+        for fam_name in FAMILIES.names():
+            spec = FAMILIES.get(fam_name).from_gym(gym_spec.id, dict(gym_spec.kwargs or {}), name)
+            if spec is not None:
+                return spec
+    # a dataset cdrb exported for an environment no gymnasium registry has names it in its description
+    m = re.search(re.escape(ENV_TAG) + r"\s*([\w.-]+)", dataset.storage.metadata.get("description") or "")
+    if m:
+        return make_spec(m.group(1))
+    if gym_spec is None:
+        raise BadInput(f"{source}: the dataset records no environment (env_spec)", hint="name it with --env ENV")
+    raise BadInput(
+        f"{source}: environment {gym_spec.id} has no cdrb equivalent (PointMaze_* and Fetch Reach/Push/PickAndPlace "
+        "do)",
+        hint="name a matching cdrb environment with --env ENV",
+    )
+
+
+def _check_spaces(dataset, spec, source: str) -> None:
+    """The dataset's spaces fit ``spec``: goal-dict observations of its dims, actions of its dims."""
+    space = dataset.observation_space
+    keys = set(getattr(space, "spaces", {}) or {})
+    if not {"observation", "desired_goal"} <= keys:
+        raise BadInput(
+            f"{source}: observations are not a goal dict with 'observation' and 'desired_goal'",
+            hint="cdrb imports goal-conditioned datasets (PointMaze, Fetch)",
+        )
+    for key, want in (("observation", spec.obs_dim), ("desired_goal", spec.goal_dim)):
+        shape = space.spaces[key].shape
+        if shape != (want,):
+            raise BadInput(
+                f"{source}: {key} has shape {shape}, {spec.id} states need ({want},)",
+                hint="name the right environment with --env",
+            )
+    act = getattr(dataset.action_space, "shape", None)
+    if act != (spec.action_dim,):
+        raise BadInput(f"{source}: actions have shape {act}, {spec.id} takes ({spec.action_dim},)", hint="--env")
+
+
+def import_minari(source: str, out: Path, env: str | None = None, valid_fraction: float = 0.1, seed: int = 0):
+    """Read a Minari dataset and write it as a demos artifact for the matching cdrb environment."""
+    from cdrb_cli.configs import CollectConfig, CollectSummary
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.experts.minari import MinariSourceConfig
+    from cdrb_cli.seeding import STREAM_COLLECT
+
+    minari = _minari()
+    t0 = time.time()
+    data = locate(source)
+    try:
+        dataset = minari.MinariDataset(data)
+    except Exception as exc:  # a damaged or foreign folder: Minari's own complaint, on one line
+        raise BadInput(
+            f"{source}: Minari cannot open it ({type(exc).__name__}: {exc})", hint="check the dataset"
+        ) from None
+    spec = _spec_for(dataset, source, env)
+    family = family_of(spec)
+    try:  # per-episode metadata: the reset seed, where the dataset recorded it
+        ep_seeds = {int(m["id"]): m.get("seed") for m in dataset.storage.get_episode_metadata(dataset.episode_indices)}
+    except Exception:
+        ep_seeds = {}
+    _check_spaces(dataset, spec, source)
+    states, actions, goals, starts, lengths, seeds, success = [], [], [], [], [], [], []
+    total = 0
+    with ui.progress() as bar:
+        task = bar.add_task(ui.plain(f"import {dataset.spec.dataset_id}", 60), total=dataset.total_episodes, info="")
+        for ep in dataset.iterate_episodes():
+            obs = ep.observations
+            if not isinstance(obs, dict) or not {"observation", "desired_goal"} <= set(obs):
+                raise BadInput(
+                    f"{source}: observations are not a goal dict with 'observation' and 'desired_goal'",
+                    hint="cdrb imports goal-conditioned datasets (PointMaze, Fetch)",
+                )
+            S, G = np.asarray(obs["observation"], np.float64), np.asarray(obs["desired_goal"], np.float64)
+            A = np.asarray(ep.actions, np.float64).reshape(len(S) - 1, -1)
+            for what, arr, want in (("observation", S, spec.obs_dim), ("desired_goal", G, spec.goal_dim)):
+                if arr.ndim != 2 or arr.shape[1] != want:
+                    raise BadInput(
+                        f"{source}: episode {ep.id}: {what} has shape {arr.shape}, {spec.id} states need {want} dims",
+                        hint="name the right environment with --env",
+                    )
+            if A.shape[1] != spec.action_dim:
+                raise BadInput(
+                    f"{source}: actions have {A.shape[1]} dims, {spec.id} takes {spec.action_dim}", hint="--env"
+                )
+            starts.append(total)
+            lengths.append(len(S))
+            total += len(S)
+            states.append(S)
+            actions.append(np.concatenate([A, np.zeros((1, spec.action_dim))]))
+            goals.append(G)
+            ep_seed = ep_seeds.get(int(ep.id))
+            seeds.append(-1 if ep_seed is None else int(ep_seed))
+            success.append(bool(family.success(spec, S, G).any()))
+            bar.update(task, completed=len(lengths), info=f"success {np.mean(success):.1%}")
+    if not lengths:
+        raise BadInput(f"{source}: the dataset has no episodes", hint="give another dataset")
+    E = len(lengths)
+    observations = np.concatenate(states).astype(np.float32)
+    valid = np.zeros(E, dtype=bool)
+    valid[np.random.default_rng([seed, STREAM_COLLECT, 99]).permutation(E)[: int(round(valid_fraction * E))]] = True
+    meta = dataset.storage.metadata
+    source_cfg = MinariSourceConfig(
+        dataset_id=str(dataset.spec.dataset_id),
+        minari_version=str(meta.get("minari_version", "?")),
+        algorithm_name=meta.get("algorithm_name"),
+        gym_env_id=dataset.env_spec.id if dataset.env_spec is not None else None,
+        files=_sha_files(data.parent if data.name == "data" else data),
+    )
+    config = CollectConfig(env=spec.id, episodes=E, expert=source_cfg, valid_fraction=valid_fraction, seed=seed)
+    lengths_arr = np.array(lengths, dtype=np.int64)
+    summary = CollectSummary(
+        episodes=E,
+        steps=int(total),
+        success_rate=float(np.mean(success)),
+        mean_length=float(lengths_arr.mean()),
+        max_length=int(lengths_arr.max()),
+        states_in_walls=int(family.in_collision(spec, observations).sum()),
+        train_episodes=int((~valid).sum()),
+        valid_episodes=int(valid.sum()),
+        wall_time_s=round(time.time() - t0, 3),
+    )
+    manifest = artifacts.make_manifest("demos", env=spec, config=config, seed=seed, summary=summary)
+    arrays = {
+        "steps/observations": observations,
+        "steps/actions": np.concatenate(actions).astype(np.float32),
+        "steps/desired_goals": np.concatenate(goals).astype(np.float32),
+        "episodes/start": np.array(starts, dtype=np.int64),
+        "episodes/length": lengths_arr,
+        "episodes/seed": np.array(seeds, dtype=np.int64),
+        "episodes/success": np.array(success, dtype=bool),
+        "episodes/valid": valid,
+    }
+    artifacts.save(out, "demos", manifest, arrays)
+    return artifacts.load(out, "demos")
+
+
+# ------------------------------------------------------------------------------------------------ export
+DATASET_ID = re.compile(r"^(?:[A-Za-z0-9_.-]+/)*[A-Za-z0-9_.-]+-v\d+$")
+
+
+def dataset_id_for(name: str) -> str:
+    """``name`` as a Minari dataset id (``[namespace/]name-vN``; ``-v0`` is added when no version is given)."""
+    full = name if re.search(r"-v\d+$", name) else f"{name}-v0"
+    if not DATASET_ID.match(full) or ".." in full.split("/"):
+        raise BadInput(
+            f"--minari {name!r}: not a dataset name (letters, digits, . _ -, optional namespace/, optional -vN)",
+            hint="e.g. cdrb/maze-tight-expert-v0",
+        )
+    return full
+
+
+def export_minari(demos, name: str, root: Path | None = None, force: bool = False) -> Path:
+    """Write ``demos`` as a Minari dataset named ``name`` under ``root`` (default: Minari's local folder);
+    returns the dataset's folder. Written in a temporary folder beside it and renamed into place."""
+    from cdrb_cli.envs.registry import family_of
+
+    minari = _minari()
+    import gymnasium
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    dataset_id = dataset_id_for(name)
+    root = Path(root) if root is not None else _root()
+    final = root / dataset_id
+    if final.exists() and not force:
+        raise BadInput(f"--minari {dataset_id}: {final} exists", hint="pass --force to replace it, or another name")
+    spec = demos.manifest.env
+    family = family_of(spec)
+    gym_env = family.to_gym(spec)
+    episodes = []
+    for e in range(demos.n_episodes):
+        S, A = demos.episode(e)
+        s0, n = int(demos.episode_start[e]), int(demos.episode_length[e])
+        G = demos.desired_goals[s0 : s0 + n]
+        ok = family.success(spec, S, G)
+        obs = {
+            "achieved_goal": np.asarray(S[:, spec.goal_dims], np.float64),
+            "desired_goal": np.asarray(G, np.float64),
+            "observation": np.asarray(S, np.float64),
+        }
+        T = n - 1
+        episodes.append(
+            EpisodeBuffer(
+                id=e,
+                seed=int(demos.episode_seed[e]) if demos.episode_seed[e] >= 0 else None,
+                observations=obs,
+                actions=np.asarray(A[:T], np.float32),
+                rewards=[float(x) for x in ok[1:]],
+                terminations=[False] * T,
+                truncations=[False] * (T - 1) + [True] if T > 0 else [],
+                infos={"success": np.asarray(ok, dtype=bool)},
+            )
+        )
+    box = lambda d: gymnasium.spaces.Box(-np.inf, np.inf, (d,), np.float64)  # noqa: E731
+    obs_space = gymnasium.spaces.Dict(
+        {"achieved_goal": box(spec.goal_dim), "desired_goal": box(spec.goal_dim), "observation": box(spec.obs_dim)}
+    )
+    act_space = gymnasium.spaces.Box(-1.0, 1.0, (spec.action_dim,), np.float32)
+    env_spec = None
+    if gym_env is not None:
+        import dataclasses
+
+        from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
+
+        env_spec = import_gymnasium_robotics().spec(gym_env[0])
+        env_spec = dataclasses.replace(
+            env_spec, kwargs={**(env_spec.kwargs or {}), **gym_env[1]}, max_episode_steps=spec.episode_limit
+        )
+    expert = demos.manifest.config.expert
+    description = (
+        f"Demonstrations exported by cdrb {__version__} from a demos artifact (sha256 {demos.sha256}); "
+        f"{ENV_TAG} {spec.id}; demonstrator: {expert.kind}; success: cdrb's test (within {spec.success_radius} of "
+        "the goal), per step in infos['success'] and as the sparse reward."
+    )
+    root.mkdir(parents=True, exist_ok=True)
+    tmp_root = Path(tempfile.mkdtemp(prefix=".cdrb-export-", dir=root))
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    try:
+        os.environ["MINARI_DATASETS_PATH"] = str(tmp_root)
+        with warnings.catch_warnings():  # Minari's advice about authors, permalinks and eval envs
+            warnings.simplefilter("ignore", UserWarning)
+            minari.create_dataset_from_buffers(
+                dataset_id,
+                episodes,
+                env=env_spec,
+                algorithm_name=f"cdrb {expert.kind}",
+                observation_space=obs_space,
+                action_space=act_space,
+                description=description,
+                data_format="hdf5",
+            )
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp_root / dataset_id, final)
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    return final

@@ -1,0 +1,197 @@
+"""Minari interop (issue 20): datasets made here with Minari's own API import, train, plan and evaluate; exported
+cdrb demos open with `minari.load_dataset`; import(export(demos)) keeps every array; bad datasets are one-line
+errors. No network: every dataset lives under a temporary MINARI_DATASETS_PATH."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+
+minari = pytest.importorskip("minari")
+
+
+@pytest.fixture
+def datasets(tmp_path, monkeypatch):
+    root = tmp_path / "minari"
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    return root
+
+
+def _cli(*args, cwd=None):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return subprocess.run(
+        [sys.executable, "-m", "cdrb_cli", *map(str, args)], capture_output=True, text=True, env=env, cwd=cwd
+    )
+
+
+def _make_dataset(dataset_id: str, gym_id: str, episodes: int = 4, steps: int = 30, seed: int = 0, **kwargs):
+    """A dataset written by Minari's own API from random actions in a gymnasium(-robotics) environment."""
+    import gymnasium as gym
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
+
+    import_gymnasium_robotics()
+    env = gym.make(gym_id, **kwargs)
+    rng = np.random.default_rng(seed)
+    buffers = []
+    for e in range(episodes):
+        obs, _ = env.reset(seed=seed + e)
+        seen, acts = [obs], []
+        for _ in range(steps):
+            a = rng.uniform(-1, 1, size=env.action_space.shape).astype(np.float32)
+            obs, *_ = env.step(a)
+            seen.append(obs)
+            acts.append(a)
+        stacked = {k: np.array([o[k] for o in seen]) for k in seen[0]} if isinstance(obs, dict) else np.array(seen)
+        buffers.append(
+            EpisodeBuffer(
+                id=e,
+                seed=seed + e,
+                observations=stacked,
+                actions=np.array(acts),
+                rewards=[0.0] * steps,
+                terminations=[False] * steps,
+                truncations=[False] * (steps - 1) + [True],
+            )
+        )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        minari.create_dataset_from_buffers(
+            dataset_id, buffers, env=env.spec, algorithm_name="random", data_format="hdf5"
+        )
+    env.close()
+    return buffers
+
+
+OWN_MAP = [[1, 1, 1, 1, 1], [1, 0, 0, 0, 1], [1, 0, 1, 0, 1], [1, 0, 0, 0, 1], [1, 1, 1, 1, 1]]
+
+
+def test_a_pointmaze_dataset_imports_trains_plans_and_evaluates(tmp_path, datasets):
+    buffers = _make_dataset("test/ring/random-v0", "PointMaze_UMaze-v3", maze_map=OWN_MAP, continuing_task=True)
+    r = _cli("import", "minari", "test/ring/random-v0", "--out", tmp_path / "demos.h5")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(tmp_path / "demos.h5")
+    demos = artifacts.load(tmp_path / "demos.h5", "demos")
+    spec = demos.manifest.env
+    assert spec.id == "map:test-ring-random-v0" and spec.scene.maze.rows[2] == "#C#C#"
+    src = demos.manifest.config.expert
+    assert src.kind == "minari" and src.dataset_id == "test/ring/random-v0" and src.gym_env_id == "PointMaze_UMaze-v3"
+    assert {"data/main_data.hdf5", "data/metadata.json"} <= set(src.files)
+    assert all(len(h) == 64 for h in src.files.values())
+    # every step of every episode, in order; actions get the zero last row of cdrb's layout
+    assert demos.n_episodes == 4 and list(demos.episode_length) == [31] * 4
+    S, A = demos.episode(2)
+    np.testing.assert_allclose(S, buffers[2].observations["observation"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(A[:-1], buffers[2].actions, rtol=1e-6)
+    assert (A[-1] == 0).all()
+    assert list(demos.episode_seed) == [0, 1, 2, 3]
+    info = _cli("inspect", tmp_path / "demos.h5")
+    assert "Minari dataset test/ring/random-v0" in info.stdout
+    # the imported data feeds the usual pipeline
+    tiny = ["--steps", "10", "--set", "horizon=16", "--set", "stride=4", "--set", "batch_size=4"]
+    tiny += ["--set", "net.dim=8", "--set", "net.dim_mults=1,2", "--set", "method.diffusion_steps=4"]
+    assert _cli("cluster", tmp_path / "demos.h5", "--k", "20", "--out", tmp_path / "buf.h5").returncode == 0
+    r = _cli(
+        "train",
+        tmp_path / "demos.h5",
+        "--buffer",
+        tmp_path / "buf.h5",
+        "--method",
+        "cdrb",
+        *tiny,
+        "--out",
+        tmp_path / "m.h5",
+        "--device",
+        "cpu",
+    )
+    assert r.returncode == 0, r.stderr
+    r = _cli("plan", tmp_path / "m.h5", "--pairs", "2", "--out", tmp_path / "p.h5", "--device", "cpu")
+    assert r.returncode == 0, r.stderr
+    r = _cli(
+        "eval", tmp_path / "m.h5", "--seeds", "0", "--episodes", "2", "--out", tmp_path / "e.h5", "--device", "cpu"
+    )
+    assert r.returncode == 0, r.stderr
+    assert artifacts.load(tmp_path / "e.h5", "eval").manifest.env.id == spec.id
+
+
+def test_the_stock_maps_and_fetch_tasks_are_recognised(tmp_path, datasets):
+    from cdrb_cli.stages.minari_io import import_minari
+
+    _make_dataset("test/umaze-v1", "PointMaze_UMaze-v3", episodes=2, steps=5)  # the registered default map
+    assert import_minari("test/umaze-v1", tmp_path / "u.h5").manifest.env.id == "umaze"
+    _make_dataset("test/push-v0", "FetchPush-v4", episodes=2, steps=5)
+    demos = import_minari("test/push-v0", tmp_path / "p.h5")
+    assert demos.manifest.env.id == "fetch-push" and demos.observations.shape[1] == 25
+    # by folder as well as by id
+    folder = datasets / "test" / "push-v0"
+    assert import_minari(str(folder), tmp_path / "p2.h5").manifest.env.id == "fetch-push"
+
+
+@pytest.mark.parametrize("env", ["maze-tight", "fetch-push-obstacle"])
+def test_export_opens_with_minari_and_import_of_export_is_the_same_demos(tmp_path, datasets, env):
+    r = _cli("collect", env, "-n", "3", "--seed", "1", "--workers", "1", "--out", tmp_path / "d.h5")
+    assert r.returncode == 0, r.stderr
+    r = _cli("export", tmp_path / "d.h5", "--minari", "cdrb/demo")
+    assert r.returncode == 0, r.stderr
+    assert Path(r.stdout.strip()) == datasets / "cdrb" / "demo-v0"
+    ds = minari.load_dataset("cdrb/demo-v0")  # Minari's own reader
+    assert ds.total_episodes == 3
+    demos = artifacts.load(tmp_path / "d.h5", "demos")
+    for e, ep in enumerate(ds.iterate_episodes()):
+        S, A = demos.episode(e)
+        assert ep.observations["observation"].shape == S.shape and ep.actions.shape == (len(S) - 1, A.shape[1])
+        assert bool(ep.infos["success"].any()) == bool(demos.episode_success[e])
+    if env == "maze-tight":
+        assert ds.env_spec.id == "PointMaze_UMaze-v3" and ds.env_spec.kwargs["continuing_task"] is True
+    else:  # walls no gymnasium registry has: no env_spec, the description names the cdrb environment
+        assert ds.env_spec is None
+    r = _cli("import", "minari", "cdrb/demo-v0", "--out", tmp_path / "back.h5", "--seed", "1")
+    assert r.returncode == 0, r.stderr
+    back = artifacts.load(tmp_path / "back.h5", "demos")
+    assert back.manifest.env.id == env
+    for key in (
+        "steps/observations",
+        "steps/actions",
+        "steps/desired_goals",
+        "episodes/start",
+        "episodes/length",
+        "episodes/seed",
+        "episodes/success",
+        "episodes/valid",
+    ):
+        np.testing.assert_array_equal(back.arrays[key], demos.arrays[key], err_msg=key)
+    # a second export of the same name is refused unless forced
+    r = _cli("export", tmp_path / "d.h5", "--minari", "cdrb/demo")
+    assert r.returncode == 2 and "exists" in r.stderr and "--force" in r.stderr
+    assert _cli("export", tmp_path / "d.h5", "--minari", "cdrb/demo", "--force").returncode == 0
+
+
+def test_bad_datasets_are_one_line_errors(tmp_path, datasets):
+    _make_dataset("test/pendulum-v0", "Pendulum-v1", episodes=1, steps=3)
+    _make_dataset("test/umaze-v0", "PointMaze_UMaze-v3", episodes=1, steps=3)
+    (tmp_path / "empty").mkdir()
+    cases = [
+        (["nobody/nothing-v0"], "cdrb never downloads"),
+        ([tmp_path / "empty"], "not a Minari dataset folder"),
+        (["test/pendulum-v0"], "no cdrb equivalent"),
+        (["test/pendulum-v0", "--env", "maze"], "goal dict"),
+        (["test/umaze-v0", "--env", "fetch-push"], "need (25,)"),
+    ]
+    for args, words in cases:
+        r = _cli("import", "minari", *args, "--out", tmp_path / "x.h5")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (args, r.stderr)
+        assert not (tmp_path / "x.h5").exists()
+    r = _cli("collect", "maze-tight", "-n", "2", "--out", tmp_path / "d.h5")
+    assert r.returncode == 0
+    r = _cli("export", tmp_path / "d.h5", "--minari", "../escape")
+    assert r.returncode == 2 and "not a dataset name" in r.stderr
