@@ -33,7 +33,7 @@ app = typer.Typer(
     help="Cold Diffusion on the Replay Buffer: plan robot trajectories through states the robot has visited.\n\n"
     "Pipeline: collect -> cluster -> train -> plan / eval -> report. Every stage writes a versioned HDF5 "
     "artifact (inspect any of them with `cdrb inspect FILE`). `cdrb quickstart` runs the whole pipeline.",
-    add_completion=False,
+    add_completion=True,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     rich_markup_mode="rich",
@@ -1085,12 +1085,12 @@ def quickstart(
 # ------------------------------------------------------------------------------------------------ grid
 @app.command()
 def grid(
-    grid_file: Path = typer.Argument(..., help="Grid file (TOML): envs x methods x seeds [x variants]."),
+    grid_file: Path = typer.Argument(..., help="Grid file (TOML): envs x methods x seeds (x variants)."),
     backend: str = typer.Option(
         "auto",
         "--backend",
         parser=_choice(lambda: ["auto", "ray", "pool"], "backend"),
-        help='Where tasks run: ray (needs `pip install "cdrb-cli[ray]"`), pool (local processes), auto (Ray '
+        help='Where tasks run: ray (needs `pip install "cdrb-cli\\[ray]"`), pool (local processes), auto (Ray '
         "when installed).",
     ),
     workers: int | None = typer.Option(
@@ -1152,6 +1152,37 @@ def _moved_flag(exc) -> str:
         if full == key or full.endswith("." + key):
             return f"; it is a config field now: --set {full}=VALUE"
     return ""
+
+
+def reflow(doc: str | None) -> str | None:
+    """A docstring as help text: each paragraph one line (the terminal wraps it at its own width, 80 or 200
+    columns alike), bullet and numbered items kept on lines of their own, blank lines between paragraphs kept."""
+    import inspect as _inspect
+    import re
+
+    if not doc:
+        return doc
+    paragraphs = []
+    for para in _inspect.cleandoc(doc).split("\n\n"):
+        lines: list[str] = []
+        for line in (ln.strip() for ln in para.splitlines()):
+            if lines and not re.match(r"^([*\-]|\d+[.)])\s", line):
+                lines[-1] += " " + line
+            else:
+                lines.append(line)
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs)
+
+
+def _reflow_commands(typer_app: typer.Typer) -> None:
+    """Every command's help from its docstring, reflowed (hard-wrapped docstrings render with ragged breaks)."""
+    for info in typer_app.registered_commands:
+        info.help = reflow(info.help or (info.callback.__doc__ if info.callback else None))
+    for group in typer_app.registered_groups:
+        _reflow_commands(group.typer_instance)
+
+
+_reflow_commands(app)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -103,3 +103,27 @@ def test_main_returns_exit_codes(tmp_path, capsys):
     assert main(["--version"]) == 0
     assert main(["inspect", str(tmp_path / "nope.h5")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_help_text_is_reflowed_not_hard_wrapped(cdrb):
+    import typer.main
+
+    from cdrb_cli.cli import app, reflow
+
+    assert reflow("One\n    two three.\n\n* a\n  b\n* c\n1. d") == "One two three.\n\n* a b\n* c\n1. d"
+    command = typer.main.get_command(app)
+    for name, cmd in command.commands.items():
+        subs = getattr(cmd, "commands", {name: cmd})
+        for sub in subs.values():
+            for para in (sub.help or "").split("\n\n"):
+                for line in para.splitlines()[1:]:
+                    assert line.lstrip().startswith(("*", "-")) or line.lstrip()[:1].isdigit(), (name, line)
+    for columns in ("80", "120"):
+        r = cdrb("collect", "--help", env={"COLUMNS": columns})
+        text = " ".join(line.strip(" │") for line in r.stdout.splitlines())
+        assert "smooths it and comes to rest at the goal" in text
+
+
+def test_shell_completion_script(cdrb):
+    r = cdrb("--show-completion", "bash")
+    assert r.returncode == 0 and "_cdrb_completion" in r.stdout and "complete" in r.stdout

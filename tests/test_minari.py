@@ -84,7 +84,11 @@ def test_a_pointmaze_dataset_imports_trains_plans_and_evaluates(tmp_path, datase
     spec = demos.manifest.env
     assert spec.id == "map:test-ring-random-v0" and spec.scene.maze.rows[2] == "#C#C#"
     src = demos.manifest.config.expert
-    assert src.kind == "minari" and src.dataset_id == "test/ring/random-v0" and src.gym_env_id == "PointMaze_UMaze-v3"
+    assert (
+        src.kind == "minari-dataset"
+        and src.dataset_id == "test/ring/random-v0"
+        and src.gym_env_id == "PointMaze_UMaze-v3"
+    )
     assert {"data/main_data.hdf5", "data/metadata.json"} <= set(src.files)
     assert all(len(h) == 64 for h in src.files.values())
     # every step of every episode, in order; actions get the zero last row of cdrb's layout

@@ -85,6 +85,10 @@ class ExpertConfig(Record):
 
     kind: str
 
+    def describe(self) -> str:
+        """Where the demonstrations came from, in one line (`cdrb inspect`)."""
+        return f"{self.kind} expert"
+
 
 class ControllerConfig(Record):
     """Base of every controller's settings (stored in the eval artifact); subclasses fix ``name``."""
@@ -315,9 +319,12 @@ class EnvFamily(ABC):
         """The family's own picture of plans (e.g. several views); None: the generic top view."""
         return None
 
-    def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
-        """Simulator frames of the agent following ``states`` (raise when the simulator cannot render here; the
-        caller then draws the rollout with matplotlib)."""
+    def render_frames(
+        self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int, plan: np.ndarray | None = None
+    ) -> list[np.ndarray]:
+        """Simulator frames of the agent following ``states``, with ``plan`` (planned states) drawn into the scene
+        when given (raise when the simulator cannot render here; the caller then draws the rollout with
+        matplotlib)."""
         raise NotImplementedError(f"the {self.name} family renders no simulator frames")
 
     # -------------------------------------------------------------- interop (Minari datasets)
@@ -326,7 +333,7 @@ class EnvFamily(ABC):
         env_spec; ``name`` names a new layout), or None when it is not one of this family's."""
         return None
 
-    def to_gym(self, spec: EnvSpec) -> tuple[str, dict] | None:
-        """The gymnasium environment id and kwargs equivalent to ``spec`` (for a Minari dataset's env_spec), or
-        None when no registered gymnasium environment is (e.g. the Fetch tasks with walls)."""
+    def to_gym(self, spec: EnvSpec):
+        """The gymnasium ``EnvSpec`` equivalent to ``spec`` (a Minari dataset's env_spec), or None when no
+        registered gymnasium environment is (e.g. the Fetch tasks with walls)."""
         return None

@@ -29,7 +29,7 @@ EXPERTS: Registry[ExpertEntry] = Registry(
         "planner": "cdrb_cli.envs.pointmaze.expert",
         "fetch-scripted": "cdrb_cli.envs.fetch.expert",
         "sac": "cdrb_cli.experts.sac",
-        "minari": "cdrb_cli.experts.minari",
+        "minari-dataset": "cdrb_cli.experts.minari",
     },
     ExpertEntry,
 )

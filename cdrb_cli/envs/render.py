@@ -171,6 +171,22 @@ def choose_gl_backend() -> str:
     return os.environ["MUJOCO_GL"]
 
 
+def draw_path_in_scene(scene, points: np.ndarray, rgba, width: float) -> None:
+    """Add a polyline through ``points`` (n, 3) to a MuJoCo ``MjvScene`` as capsules (after ``update_scene``, so
+    it is drawn in the next render); points that do not fit the scene's geom buffer are left out."""
+    import mujoco
+
+    pts = np.asarray(points, dtype=np.float64)
+    rgba = np.asarray(rgba, dtype=np.float32)
+    for a, b in zip(pts[:-1], pts[1:]):
+        if scene.ngeom >= scene.maxgeom or np.allclose(a, b):
+            continue
+        geom = scene.geoms[scene.ngeom]
+        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.eye(3).ravel(), rgba)
+        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, width, a, b)
+        scene.ngeom += 1
+
+
 def _matplotlib_frames(spec: EnvSpec, plan, states, goal, every: int) -> list[np.ndarray]:
     plt = pyplot()
     fam = family_of(spec)
@@ -211,7 +227,7 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
         frames = None
         if use_simulator:
             try:
-                frames = fam.render_frames(spec, states, goal, every)
+                frames = fam.render_frames(spec, states, goal, every, plan=plan)
             except Exception as exc:  # no GL context on this machine, or a family without simulator frames
                 import os
 

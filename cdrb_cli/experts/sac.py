@@ -32,6 +32,9 @@ class SacExpertConfig(ExpertConfig):
     policy_sha256: str
     deterministic: bool = True
 
+    def describe(self) -> str:
+        return f"SAC policy {self.policy_path} (sha256 {self.policy_sha256[:12]})"
+
 
 def _training_env(spec: EnvSpec, seed: int):
     return family_of(spec).make_gym_env(spec, seed)

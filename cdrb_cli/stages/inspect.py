@@ -41,18 +41,7 @@ def describe(path: str | Path) -> dict[str, Any]:
 def _source(manifest) -> str | None:
     """One line on where demonstrations came from (their expert record), or None for other kinds."""
     expert = getattr(manifest.config, "expert", None)
-    if expert is None:
-        return None
-    if expert.kind == "minari":
-        return (
-            f"Minari dataset {expert.dataset_id} (written by Minari {expert.minari_version}"
-            + (f", env {expert.gym_env_id}" if expert.gym_env_id else "")
-            + (f", by {expert.algorithm_name}" if expert.algorithm_name else "")
-            + f"; {len(expert.files)} files, sha256 recorded)"
-        )
-    if expert.kind == "sac":
-        return f"SAC policy {expert.policy_path} (sha256 {expert.policy_sha256[:12]})"
-    return f"{expert.kind} expert"
+    return expert.describe() if expert is not None else None
 
 
 def safe(value: Any, limit: int = 200) -> Text:

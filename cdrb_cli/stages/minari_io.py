@@ -12,7 +12,7 @@ Mapping (one episode of T steps):
 |                                 | success test on the states (a dense reward says nothing)     |
 | episodes/seed                   | the episode's seed (-1 when the dataset has none)            |
 | env (EnvSpec)                   | env_spec: the family's gymnasium equivalent (`to_gym`), or   |
-|                                 | none (Fetch with walls): then the description names the env  |
+|                                 | none (no gymnasium equivalent): the description names the env |
 
 cdrb never downloads: a dataset id is looked up in Minari's local folder (``MINARI_DATASETS_PATH``, default
 ~/.minari/datasets), or a dataset folder is given by path.
@@ -91,8 +91,7 @@ def _spec_for(dataset, source: str, env: str | None):
     if gym_spec is None:
         raise BadInput(f"{source}: the dataset records no environment (env_spec)", hint="name it with --env ENV")
     raise BadInput(
-        f"{source}: environment {gym_spec.id} has no cdrb equivalent (PointMaze_* and Fetch Reach/Push/PickAndPlace "
-        "do)",
+        f"{source}: environment {gym_spec.id} has no cdrb equivalent (no environment family recognises it)",
         hint="name a matching cdrb environment with --env ENV",
     )
 
@@ -104,7 +103,7 @@ def _check_spaces(dataset, spec, source: str) -> None:
     if not {"observation", "desired_goal"} <= keys:
         raise BadInput(
             f"{source}: observations are not a goal dict with 'observation' and 'desired_goal'",
-            hint="cdrb imports goal-conditioned datasets (PointMaze, Fetch)",
+            hint="cdrb imports goal-conditioned datasets (dict observations with the goal)",
         )
     for key, want in (("observation", spec.obs_dim), ("desired_goal", spec.goal_dim)):
         shape = space.spaces[key].shape
@@ -150,7 +149,7 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
             if not isinstance(obs, dict) or not {"observation", "desired_goal"} <= set(obs):
                 raise BadInput(
                     f"{source}: observations are not a goal dict with 'observation' and 'desired_goal'",
-                    hint="cdrb imports goal-conditioned datasets (PointMaze, Fetch)",
+                    hint="cdrb imports goal-conditioned datasets (dict observations with the goal)",
                 )
             S, G = np.asarray(obs["observation"], np.float64), np.asarray(obs["desired_goal"], np.float64)
             A = np.asarray(ep.actions, np.float64).reshape(len(S) - 1, -1)
@@ -247,7 +246,7 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
         raise BadInput(f"--minari {dataset_id}: {final} exists", hint="pass --force to replace it, or another name")
     spec = demos.manifest.env
     family = family_of(spec)
-    gym_env = family.to_gym(spec)
+    env_spec = family.to_gym(spec)
     episodes = []
     for e in range(demos.n_episodes):
         S, A = demos.episode(e)
@@ -277,16 +276,6 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
         {"achieved_goal": box(spec.goal_dim), "desired_goal": box(spec.goal_dim), "observation": box(spec.obs_dim)}
     )
     act_space = gymnasium.spaces.Box(-1.0, 1.0, (spec.action_dim,), np.float32)
-    env_spec = None
-    if gym_env is not None:
-        import dataclasses
-
-        from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
-
-        env_spec = import_gymnasium_robotics().spec(gym_env[0])
-        env_spec = dataclasses.replace(
-            env_spec, kwargs={**(env_spec.kwargs or {}), **gym_env[1]}, max_episode_steps=spec.episode_limit
-        )
     expert = demos.manifest.config.expert
     description = (
         f"Demonstrations exported by cdrb {__version__} from a demos artifact (sha256 {demos.sha256}); "

@@ -118,11 +118,15 @@ class FetchFamily(EnvFamily):
         m = re.fullmatch(r"Fetch(Reach|Push|PickAndPlace)(Dense)?-v\d+", gym_id)
         return self.make_spec(self.GYM_TASKS[m.group(1)]) if m else None
 
-    def to_gym(self, spec: EnvSpec) -> tuple[str, dict] | None:
+    def to_gym(self, spec: EnvSpec):
         if spec.scene.walls:  # cdrb's tasks with walls exist in no gymnasium registry
             return None
         task = {v: k for k, v in self.GYM_TASKS.items()}.get(spec.id)
-        return (f"Fetch{task}-v4", {}) if task else None
+        if task is None:
+            return None
+        from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
+
+        return import_gymnasium_robotics().spec(f"Fetch{task}-v4")
 
     def details(self, spec: EnvSpec) -> dict[str, Any]:
         return {"task": spec.scene.task, "walls": len(spec.scene.walls), "cross": spec.scene.cross}
@@ -237,10 +241,12 @@ class FetchFamily(EnvFamily):
 
         return plot_plans(spec, plans, path, starts, goals, in_wall, title)
 
-    def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
+    def render_frames(
+        self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int, plan: np.ndarray | None = None
+    ) -> list[np.ndarray]:
         from cdrb_cli.envs.fetch.render import mujoco_frames
 
-        return mujoco_frames(spec, states, goal, every)
+        return mujoco_frames(spec, states, goal, every, plan=plan)
 
 
 FAMILIES.register(FetchFamily())

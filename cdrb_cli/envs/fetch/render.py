@@ -123,13 +123,17 @@ def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, t
     return save_figure(fig, path)
 
 
-def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360) -> list[np.ndarray]:
+def mujoco_frames(
+    spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360, plan: np.ndarray | None = None
+) -> list[np.ndarray]:
     """MuJoCo frames of a Fetch path (raises when no GL context can be made). The arm is driven kinematically
     through the grip positions by the mocap (a picture of the path, not a re-simulation); the block is placed at
-    its recorded position."""
+    its recorded position. The ``plan``'s goal dims (the block's path; Reach: the gripper's) are drawn as a blue
+    line, the executed ones so far as a red one."""
     import mujoco
 
     from cdrb_cli.envs.fetch.env import FetchEnv
+    from cdrb_cli.envs.render import draw_path_in_scene
 
     env = FetchEnv(spec)
     u = env.env
@@ -140,13 +144,19 @@ def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int
     cam.lookat[:] = [1.3, 0.75, 0.5]
     cam.distance, cam.elevation, cam.azimuth = 1.6, -25.0, 150.0
     frames = []
+    states = np.asarray(states)
+    dims = spec.goal_dims
     try:
-        for s in np.asarray(states)[::every]:
+        for i in range(0, len(states), every):
+            s = states[i]
             u._utils.set_mocap_pos(u.model, u.data, "robot0:mocap", s[:3])
             if u.has_object:
                 u.place_object(s[3:5], z=float(s[5]))
             mujoco.mj_step(u.model, u.data, nstep=u.n_substeps)
             renderer.update_scene(u.data, camera=cam)
+            if plan is not None:
+                draw_path_in_scene(renderer.scene, np.asarray(plan)[:, dims], (0.12, 0.47, 0.71, 0.9), 0.006)
+            draw_path_in_scene(renderer.scene, states[: i + 1, dims], (0.84, 0.15, 0.16, 0.9), 0.006)
             frames.append(renderer.render().copy())
     finally:
         renderer.close()

@@ -149,10 +149,15 @@ class PointMazeFamily(EnvFamily):
             rows = [r.replace(".", "C") for r in rows]
         return maze_spec(f"map:{name}", parse_map("\n".join(rows), name=name, source=f"{gym_id} maze_map"))
 
-    def to_gym(self, spec: EnvSpec) -> tuple[str, dict] | None:
-        from cdrb_cli.envs.pointmaze.env import maze_map
+    def to_gym(self, spec: EnvSpec):
+        """PointMaze_UMaze-v3 made with this maze's map, as cdrb runs it (continuing task, fixed target)."""
+        import dataclasses
 
-        return "PointMaze_UMaze-v3", {"maze_map": maze_map(spec), "continuing_task": True, "reset_target": False}
+        from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics, maze_map
+
+        base = import_gymnasium_robotics().spec("PointMaze_UMaze-v3")
+        kwargs = {**base.kwargs, "maze_map": maze_map(spec), "continuing_task": True, "reset_target": False}
+        return dataclasses.replace(base, kwargs=kwargs, max_episode_steps=spec.episode_limit)
 
     def details(self, spec: EnvSpec) -> dict[str, Any]:
         g = MazeGeometry(spec.scene.maze)
@@ -239,10 +244,12 @@ class PointMazeFamily(EnvFamily):
 
         draw_maze(ax, spec)
 
-    def render_frames(self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int) -> list[np.ndarray]:
+    def render_frames(
+        self, spec: EnvSpec, states: np.ndarray, goal: np.ndarray, every: int, plan: np.ndarray | None = None
+    ) -> list[np.ndarray]:
         from cdrb_cli.envs.pointmaze.render import mujoco_frames
 
-        return mujoco_frames(spec, states, goal, every)
+        return mujoco_frames(spec, states, goal, every, plan=plan)
 
 
 FAMILIES.register(PointMazeFamily())

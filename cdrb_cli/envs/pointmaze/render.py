@@ -36,11 +36,15 @@ def draw_maze(ax, spec: EnvSpec, show_cells: bool = True) -> None:
     ax.set_yticks([])
 
 
-def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360) -> list[np.ndarray]:
-    """Top-down MuJoCo frames of the ball following ``states`` (raises when no GL context can be made)."""
+def mujoco_frames(
+    spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360, plan: np.ndarray | None = None
+) -> list[np.ndarray]:
+    """Top-down MuJoCo frames of the ball following ``states``, the ``plan`` drawn as a blue line on the floor
+    and the path so far as a red one (raises when no GL context can be made)."""
     import mujoco
 
     from cdrb_cli.envs.pointmaze.env import PointMaze
+    from cdrb_cli.envs.render import draw_path_in_scene
 
     env = PointMaze(spec)
     env.env.goal = np.asarray(goal, dtype=np.float64)
@@ -52,11 +56,16 @@ def mujoco_frames(spec: EnvSpec, states: np.ndarray, goal, every: int, size: int
     extent = max(np.abs(spec.obstacles.low).max(), np.abs(spec.obstacles.high).max())
     cam.distance, cam.elevation, cam.azimuth = 2.9 * extent, -90.0, 90.0
     frames = []
+    lift = lambda xy: np.column_stack([np.asarray(xy)[:, :2], np.full(len(xy), 0.05)])  # noqa: E731
+    width = 0.04 * spec.scene.maze.cell_size
     try:
-        for s in states[::every]:
-            env.set_state(s)
+        for i in range(0, len(states), every):
+            env.set_state(states[i])
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera=cam)
+            if plan is not None:
+                draw_path_in_scene(renderer.scene, lift(plan), (0.12, 0.47, 0.71, 0.9), width)
+            draw_path_in_scene(renderer.scene, lift(states[: i + 1]), (0.84, 0.15, 0.16, 0.9), width)
             frames.append(renderer.render().copy())
     finally:
         renderer.close()
