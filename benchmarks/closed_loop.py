@@ -1,0 +1,223 @@
+"""Open loop vs re-planning vs plan repair (issue 18), every setting chosen on the tuning stream.
+
+    python benchmarks/closed_loop.py tune  --env maze-tight --models runs/cmp/maze-tight --out runs/cl
+    python benchmarks/closed_loop.py test  --env maze-tight --models runs/cmp/maze-tight --out runs/cl --seeds 0,1,2
+    python benchmarks/closed_loop.py write --env maze-tight --out runs/cl [--write-docs]
+
+``--models`` holds each method's Table-1 models, METHOD-tuned-sSEED.h5 (benchmarks/table1.py), evaluated with the
+method's own tuned clock (``--tuned``, docs/results/tuned.json). ``tune`` tries, on training seed 0's model and the
+tuning stream, each re-planning trigger from scratch and with repair (the MLP has no partial degradation: its repair
+re-predicts, so it is tried from scratch only) and picks per method the best from-scratch and the best repair setting
+(success, then fewer plans through a wall, then less planning time). ``test`` evaluates open loop and the two picks
+of every method on the test pairs, one eval per training seed (test seed = training seed, as Table 1). Each eval is a
+`cdrb eval` run, skipped when up to date, so the script resumes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TRIGGERS = {
+    "every 20": ["--replan", "every:20"],
+    "every 40": ["--replan", "every:40"],
+    "deviation 0.5": ["--replan", "deviation:0.5"],
+}
+REPAIRS = {"from scratch": [], "repair k=4": ["--repair-k", "4"]}
+METHODS = ("mlp", "diffuser", "cdrb")
+
+
+def cdrb(args: list, log: Path) -> None:
+    t = time.time()
+    proc = subprocess.run([sys.executable, "-m", "cdrb_cli", *map(str, args)], capture_output=True, text=True)
+    line = f"{'done' if proc.returncode == 0 else 'FAILED'} {time.time() - t:7.1f}s cdrb {' '.join(map(str, args))}"
+    print(line, flush=True)
+    with log.open("a") as f:
+        f.write(line + "\n")
+    if proc.returncode != 0:
+        sys.stderr.write(proc.stderr[-3000:])
+        raise SystemExit(1)
+
+
+def slug(text: str) -> str:
+    return text.replace(" ", "-").replace("=", "").replace(".", "")
+
+
+def candidates(method: str) -> dict[str, list]:
+    out = {"open loop": []}
+    for t, tf in TRIGGERS.items():
+        for r, rf in REPAIRS.items():
+            if method == "mlp" and rf:
+                continue
+            out[f"{t}, {r}"] = tf + rf
+    return out
+
+
+def summary(path: Path) -> dict:
+    from cdrb_cli import artifacts
+
+    s = artifacts.load(path, "eval").manifest.summary
+    return {
+        "success": 100 * s.success_mean,
+        "success_std": 100 * s.success_std,
+        "crossing": None if s.plan_crossing_mean is None else 100 * s.plan_crossing_mean,
+        "collision": 100 * s.executed_collision_mean,
+        "replans": s.replans_mean or 0.0,
+        "planning_ms": 1000 * (s.planning_seconds_mean if s.planning_seconds_mean is not None else s.plan_seconds_mean),
+        "seeds": [r.seed for r in s.per_seed],
+    }
+
+
+def clock(args, method: str) -> list:
+    tuned = json.loads(Path(args.tuned).read_text())["settings"][args.env][method]
+    return list(tuned["eval_flags"])
+
+
+def tune(args) -> None:
+    folder = args.out / args.env / "tune"
+    folder.mkdir(parents=True, exist_ok=True)
+    for method in args.methods:
+        model = args.models / f"{method}-tuned-s0.h5"
+        for name, flags in candidates(method).items():
+            out = folder / f"{method}-{slug(name)}.h5"
+            cdrb(
+                [
+                    "eval",
+                    model,
+                    "--stream",
+                    "tune",
+                    "--seeds",
+                    args.tune_seeds,
+                    "--episodes",
+                    args.tune_episodes,
+                    *clock(args, method),
+                    *flags,
+                    "--out",
+                    out,
+                    "--device",
+                    "cpu",
+                ],
+                args.out / "log.txt",
+            )
+
+
+def picks(args) -> dict[str, dict[str, str]]:
+    """Per method: the best closed-loop setting from scratch and with repair, on the tuning stream."""
+    folder = args.out / args.env / "tune"
+    chosen = {}
+    for method in args.methods:
+        rows = {}
+        for name in candidates(method):
+            p = folder / f"{method}-{slug(name)}.h5"
+            if p.exists():
+                rows[name] = summary(p)
+        key = lambda n, rows=rows: (-rows[n]["success"], rows[n]["crossing"] or 0.0, rows[n]["planning_ms"])  # noqa: E731
+        pick = {"open loop": "open loop"}
+        for r in REPAIRS:
+            names = [n for n in rows if n.endswith(r)]
+            if names:
+                pick[r] = min(names, key=key)
+        chosen[method] = pick
+    return chosen
+
+
+def test(args) -> None:
+    folder = args.out / args.env / "test"
+    folder.mkdir(parents=True, exist_ok=True)
+    for method, pick in picks(args).items():
+        for name in pick.values():
+            flags = candidates(method)[name]
+            for seed in args.seeds.split(","):
+                out = folder / f"{method}-{slug(name)}-s{seed}.h5"
+                model = args.models / f"{method}-tuned-s{seed}.h5"
+                cdrb(
+                    [
+                        "eval",
+                        model,
+                        "--stream",
+                        "test",
+                        "--seeds",
+                        seed,
+                        "--episodes",
+                        args.episodes,
+                        *clock(args, method),
+                        *flags,
+                        "--out",
+                        out,
+                        "--device",
+                        "cpu",
+                    ],
+                    args.out / "log.txt",
+                )
+
+
+def write(args) -> None:
+    import numpy as np
+
+    rows = []
+    for name_ in ("tune", "test"):
+        folder = args.out / args.env / name_
+        for method in args.methods:
+            for name in candidates(method):
+                paths = sorted(
+                    folder.glob(f"{method}-{slug(name)}.h5" if name_ == "tune" else f"{method}-{slug(name)}-s*.h5")
+                )
+                if not paths:
+                    continue
+                ss = [summary(p) for p in paths]
+                succ = [s["success"] for s in ss]
+                rows.append(
+                    {
+                        "stage": name_,
+                        "env": args.env,
+                        "method": method,
+                        "setting": name,
+                        "training_seeds": len(ss),
+                        "success": round(float(np.mean(succ)), 2),
+                        "success_std": round(float(np.std(succ, ddof=1)) if len(succ) > 1 else ss[0]["success_std"], 2),
+                        "crossing": round(float(np.mean([s["crossing"] or 0.0 for s in ss])), 2),
+                        "collision": round(float(np.mean([s["collision"] for s in ss])), 2),
+                        "replans": round(float(np.mean([s["replans"] for s in ss])), 2),
+                        "planning_ms": round(float(np.mean([s["planning_ms"] for s in ss])), 1),
+                    }
+                )
+    dest = ROOT / "docs" / "results" if args.write_docs else args.out
+    dest.mkdir(parents=True, exist_ok=True)
+    path = dest / f"closed_loop_{args.env}.csv"
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (dest / f"closed_loop_{args.env}_picks.json").write_text(json.dumps(picks(args), indent=1))
+    print(path)
+    for r in rows:
+        print(r)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=["tune", "test", "write"])
+    ap.add_argument("--env", default="maze-tight")
+    ap.add_argument("--models", type=Path, default=Path("runs/cmp/maze-tight"))
+    ap.add_argument("--tuned", type=Path, default=ROOT / "docs" / "results" / "tuned.json")
+    ap.add_argument("--out", type=Path, default=Path("runs/cl"))
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--tune-seeds", default="0")
+    ap.add_argument("--tune-episodes", default="50")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--episodes", default="100")
+    ap.add_argument("--write-docs", action="store_true")
+    args = ap.parse_args()
+    args.methods = args.methods.split(",")
+    args.out.mkdir(parents=True, exist_ok=True)
+    {"tune": tune, "test": test, "write": write}[args.part](args)
+
+
+if __name__ == "__main__":
+    main()
