@@ -95,15 +95,14 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
     ``workers`` > 1 rolls episodes out in that many processes (None: `collect_workers`'s choice); the demos are
     the same array for array whatever the number (each episode has its own seed and reset; tested)."""
     t0 = time.time()
-    seed, episodes, valid_fraction = config.seed, config.episodes, config.valid_fraction
+    seed, episodes = config.seed, config.episodes
     family = family_of(spec)
     plan = family.draw_episodes(spec, episodes, seed, STREAM_COLLECT)
     chunk = 20  # episodes per task: small enough for a live progress bar, large enough to amortise the hand-off
     parts = [plan[i : i + chunk] for i in range(0, episodes, chunk)]
     n_workers = min(collect_workers(episodes, workers), len(parts))  # a worker without a part would only start up
-    all_states, all_actions, all_goals, starts, lengths, success = [], [], [], [], [], []
+    all_states, all_actions, all_goals, success = [], [], [], []
     routes: dict[str, dict[str, int]] = {}
-    total = 0
     with ui.progress() as bar:
         task = bar.add_task(ui.plain(f"collect {spec.id}", 60), total=episodes, info="")
         pool = env = None
@@ -116,9 +115,6 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
         try:
             for part in results:
                 for S, A, goal, ok in part:
-                    starts.append(total)
-                    lengths.append(len(S))
-                    total += len(S)
                     all_states.append(S)
                     all_actions.append(A)
                     all_goals.append(np.repeat(goal[None], len(S), axis=0))
@@ -134,20 +130,27 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
                 pool.shutdown(wait=True, cancel_futures=True)
             if env is not None:
                 env.close()
-    observations = np.concatenate(all_states).astype(np.float32)
-    in_walls = int(family.in_collision(spec, observations).sum())
+    seeds = [ep.seed for ep in plan]
+    return write_demos(out, spec, config, all_states, all_actions, all_goals, seeds, success, routes, t0)
+
+
+def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions, goals, seeds, success, routes, t0):
+    """Write per-episode lists (states (T+1, obs), actions (T+1, act) with a zero last row, goals (T+1, goal), reset
+    seeds, success) as a demos artifact: flat step arrays, the episode index, the train/valid split drawn from
+    ``config.seed`` and the summary. Shared by collection and by imports."""
+    seed, episodes = config.seed, len(states)
+    lengths_arr = np.array([len(S) for S in states], dtype=np.int64)
+    observations = np.concatenate(states).astype(np.float32)
     split_rng = np.random.default_rng([seed, STREAM_COLLECT, 99])
-    n_valid = int(round(valid_fraction * episodes))
     valid = np.zeros(episodes, dtype=bool)
-    valid[split_rng.permutation(episodes)[:n_valid]] = True
-    lengths_arr = np.array(lengths, dtype=np.int64)
+    valid[split_rng.permutation(episodes)[: int(round(config.valid_fraction * episodes))]] = True
     summary = CollectSummary(
         episodes=episodes,
-        steps=int(total),
+        steps=int(lengths_arr.sum()),
         success_rate=float(np.mean(success)),
         mean_length=float(lengths_arr.mean()),
         max_length=int(lengths_arr.max()),
-        states_in_walls=in_walls,
+        states_in_walls=int(family_of(spec).in_collision(spec, observations).sum()),
         train_episodes=int((~valid).sum()),
         valid_episodes=int(valid.sum()),
         routes={k: dict(sorted(v.items())) for k, v in sorted(routes.items())},
@@ -156,11 +159,11 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
     manifest = artifacts.make_manifest("demos", env=spec, config=config, seed=seed, summary=summary)
     arrays = {
         "steps/observations": observations,
-        "steps/actions": np.concatenate(all_actions).astype(np.float32),
-        "steps/desired_goals": np.concatenate(all_goals).astype(np.float32),
-        "episodes/start": np.array(starts, dtype=np.int64),
+        "steps/actions": np.concatenate(actions).astype(np.float32),
+        "steps/desired_goals": np.concatenate(goals).astype(np.float32),
+        "episodes/start": np.concatenate([[0], np.cumsum(lengths_arr)[:-1]]).astype(np.int64),
         "episodes/length": lengths_arr,
-        "episodes/seed": np.array([ep.seed for ep in plan], dtype=np.int64),
+        "episodes/seed": np.array(seeds, dtype=np.int64),
         "episodes/success": np.array(success, dtype=bool),
         "episodes/valid": valid,
     }

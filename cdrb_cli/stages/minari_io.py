@@ -119,10 +119,10 @@ def _check_spaces(dataset, spec, source: str) -> None:
 
 def import_minari(source: str, out: Path, env: str | None = None, valid_fraction: float = 0.1, seed: int = 0):
     """Read a Minari dataset and write it as a demos artifact for the matching cdrb environment."""
-    from cdrb_cli.configs import CollectConfig, CollectSummary
+    from cdrb_cli.configs import CollectConfig
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.experts.minari import MinariSourceConfig
-    from cdrb_cli.seeding import STREAM_COLLECT
+    from cdrb_cli.stages.collect import write_demos
 
     minari = _minari()
     t0 = time.time()
@@ -140,8 +140,7 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
     except Exception:
         ep_seeds = {}
     _check_spaces(dataset, spec, source)
-    states, actions, goals, starts, lengths, seeds, success = [], [], [], [], [], [], []
-    total = 0
+    states, actions, goals, seeds, success = [], [], [], [], []
     with ui.progress() as bar:
         task = bar.add_task(ui.plain(f"import {dataset.spec.dataset_id}", 60), total=dataset.total_episodes, info="")
         for ep in dataset.iterate_episodes():
@@ -163,22 +162,15 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
                 raise BadInput(
                     f"{source}: actions have {A.shape[1]} dims, {spec.id} takes {spec.action_dim}", hint="--env"
                 )
-            starts.append(total)
-            lengths.append(len(S))
-            total += len(S)
             states.append(S)
             actions.append(np.concatenate([A, np.zeros((1, spec.action_dim))]))
             goals.append(G)
             ep_seed = ep_seeds.get(int(ep.id))
             seeds.append(-1 if ep_seed is None else int(ep_seed))
             success.append(bool(family.success(spec, S, G).any()))
-            bar.update(task, completed=len(lengths), info=f"success {np.mean(success):.1%}")
-    if not lengths:
+            bar.update(task, completed=len(states), info=f"success {np.mean(success):.1%}")
+    if not states:
         raise BadInput(f"{source}: the dataset has no episodes", hint="give another dataset")
-    E = len(lengths)
-    observations = np.concatenate(states).astype(np.float32)
-    valid = np.zeros(E, dtype=bool)
-    valid[np.random.default_rng([seed, STREAM_COLLECT, 99]).permutation(E)[: int(round(valid_fraction * E))]] = True
     meta = dataset.storage.metadata
     source_cfg = MinariSourceConfig(
         dataset_id=str(dataset.spec.dataset_id),
@@ -187,32 +179,9 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
         gym_env_id=dataset.env_spec.id if dataset.env_spec is not None else None,
         files=_sha_files(data.parent if data.name == "data" else data),
     )
+    E = len(states)
     config = CollectConfig(env=spec.id, episodes=E, expert=source_cfg, valid_fraction=valid_fraction, seed=seed)
-    lengths_arr = np.array(lengths, dtype=np.int64)
-    summary = CollectSummary(
-        episodes=E,
-        steps=int(total),
-        success_rate=float(np.mean(success)),
-        mean_length=float(lengths_arr.mean()),
-        max_length=int(lengths_arr.max()),
-        states_in_walls=int(family.in_collision(spec, observations).sum()),
-        train_episodes=int((~valid).sum()),
-        valid_episodes=int(valid.sum()),
-        wall_time_s=round(time.time() - t0, 3),
-    )
-    manifest = artifacts.make_manifest("demos", env=spec, config=config, seed=seed, summary=summary)
-    arrays = {
-        "steps/observations": observations,
-        "steps/actions": np.concatenate(actions).astype(np.float32),
-        "steps/desired_goals": np.concatenate(goals).astype(np.float32),
-        "episodes/start": np.array(starts, dtype=np.int64),
-        "episodes/length": lengths_arr,
-        "episodes/seed": np.array(seeds, dtype=np.int64),
-        "episodes/success": np.array(success, dtype=bool),
-        "episodes/valid": valid,
-    }
-    artifacts.save(out, "demos", manifest, arrays)
-    return artifacts.load(out, "demos")
+    return write_demos(out, spec, config, states, actions, goals, seeds, success, {}, t0)
 
 
 # ------------------------------------------------------------------------------------------------ export
