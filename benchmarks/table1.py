@@ -86,14 +86,9 @@ def run(cmd: list, log: dict, key: str) -> str:
 
 
 def unfinished(path: Path) -> bool:
-    if not path.exists():
-        return False
     from cdrb_cli import artifacts
 
-    try:
-        return not artifacts.load(path, "model").manifest.state.finished
-    except Exception:
-        return False
+    return artifacts.unfinished_model(path)
 
 
 def train_eval(

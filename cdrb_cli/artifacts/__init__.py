@@ -55,6 +55,7 @@ from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc
 
 __all__ = [
     "load",
+    "unfinished_model",
     "save",
     "make_manifest",
     "parent_ref",
@@ -288,6 +289,18 @@ def _differences(a, b, prefix: str = "") -> list[str]:
     if isinstance(a, dict) and isinstance(b, dict):
         return [k for key in dict.fromkeys([*a, *b]) for k in _differences(a.get(key), b.get(key), f"{prefix}{key}.")]
     return [] if a == b else [prefix.rstrip(".")]
+
+
+def unfinished_model(path: str | Path) -> bool:
+    """Whether ``path`` holds a training checkpoint that has not finished (what `cdrb train --resume` continues);
+    False when there is no file or it is not a readable model (the command that reads it will say why)."""
+    path = Path(path)
+    if not path.exists():
+        return False
+    try:
+        return not load(path, "model").manifest.state.finished
+    except Exception:  # unreadable for any reason: not something to resume
+        return False
 
 
 def find_up_to_date(

@@ -171,6 +171,17 @@ def choose_gl_backend() -> str:
     return os.environ["MUJOCO_GL"]
 
 
+#: MuJoCo rollout frames: the plan in blue, the executed path so far in red
+PLAN_RGBA, PATH_RGBA = (0.12, 0.47, 0.71, 0.9), (0.84, 0.15, 0.16, 0.9)
+
+
+def draw_rollout_in_scene(scene, plan_points: np.ndarray | None, path_points: np.ndarray, width: float) -> None:
+    """The plan (when given) and the executed path so far, both (n, 3) points, into a MuJoCo scene."""
+    if plan_points is not None:
+        draw_path_in_scene(scene, plan_points, PLAN_RGBA, width)
+    draw_path_in_scene(scene, path_points, PATH_RGBA, width)
+
+
 def draw_path_in_scene(scene, points: np.ndarray, rgba, width: float) -> None:
     """Add a polyline through ``points`` (n, 3) to a MuJoCo ``MjvScene`` as capsules (after ``update_scene``, so
     it is drawn in the next render); points that do not fit the scene's geom buffer are left out."""

@@ -1,5 +1,5 @@
 """Demonstrations that came from a Minari dataset (`cdrb import minari`): their provenance as the demos
-artifact's "expert" record. There is nothing to roll out: `cdrb collect --expert minari` is refused."""
+artifact's "expert" record. There is nothing to roll out: `cdrb collect --expert minari-dataset` is refused."""
 
 from __future__ import annotations
 

@@ -291,14 +291,8 @@ def execute(payload: dict) -> dict:
     """Run one task's `cdrb` command in a fresh process (on this machine or a Ray worker). A training whose
     checkpoint was left unfinished by an earlier attempt is continued with ``--resume``."""
     argv = list(payload["argv"])
-    if payload["kind"] == "train":
-        model = Path(payload["outputs"][0])
-        if model.exists():
-            try:
-                if not artifacts.load(model, "model").manifest.state.finished:
-                    argv.append("--resume")
-            except Exception:  # not a readable model: the command reports it
-                pass
+    if payload["kind"] == "train" and artifacts.unfinished_model(payload["outputs"][0]):
+        argv.append("--resume")
     for out in payload["outputs"]:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))))
@@ -464,8 +458,7 @@ def run_grid(
                     "stderr": [f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"],
                 }
             res.seconds += out["seconds"]
-            if out["rc"] == 0:
-                cache.clear()  # outputs (and what depends on them) changed
+            if out["rc"] == 0:  # (the hash cache is keyed by size and mtime: rewritten files are hashed afresh)
                 _write_memo(spec, task, cache)
                 state[task.id], res.status, res.stderr = "done", "done", []
                 emit("done", res)

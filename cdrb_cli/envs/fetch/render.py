@@ -133,7 +133,7 @@ def mujoco_frames(
     import mujoco
 
     from cdrb_cli.envs.fetch.env import FetchEnv
-    from cdrb_cli.envs.render import draw_path_in_scene
+    from cdrb_cli.envs.render import draw_rollout_in_scene
 
     env = FetchEnv(spec)
     u = env.env
@@ -154,9 +154,8 @@ def mujoco_frames(
                 u.place_object(s[3:5], z=float(s[5]))
             mujoco.mj_step(u.model, u.data, nstep=u.n_substeps)
             renderer.update_scene(u.data, camera=cam)
-            if plan is not None:
-                draw_path_in_scene(renderer.scene, np.asarray(plan)[:, dims], (0.12, 0.47, 0.71, 0.9), 0.006)
-            draw_path_in_scene(renderer.scene, states[: i + 1, dims], (0.84, 0.15, 0.16, 0.9), 0.006)
+            planned = None if plan is None else np.asarray(plan)[:, dims]
+            draw_rollout_in_scene(renderer.scene, planned, states[: i + 1, dims], 0.006)
             frames.append(renderer.render().copy())
     finally:
         renderer.close()

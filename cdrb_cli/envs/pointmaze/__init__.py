@@ -125,7 +125,7 @@ class PointMazeFamily(EnvFamily):
         layout of its own, every free cell a start and goal cell unless the map marks them (r, g, c)."""
         if not gym_id.startswith("PointMaze_"):
             return None
-        from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
+        from cdrb_cli.envs.pointmaze.env import CELL_CODES, import_gymnasium_robotics
 
         grid = kwargs.get("maze_map")
         if grid is None:
@@ -133,7 +133,7 @@ class PointMazeFamily(EnvFamily):
             grid = gym.spec(gym_id).kwargs.get("maze_map")
         if grid is None:
             return None
-        codes = {1: "#", 0: ".", "r": "S", "g": "G", "c": "C", "1": "#", "0": "."}
+        codes = {code: ch for ch, code in CELL_CODES.items()} | {"1": "#", "0": "."}  # maps may spell 0/1 as text
         try:
             rows = ["".join(codes[c] for c in row) for row in grid]
         except (KeyError, TypeError):

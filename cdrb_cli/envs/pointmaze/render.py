@@ -44,7 +44,7 @@ def mujoco_frames(
     import mujoco
 
     from cdrb_cli.envs.pointmaze.env import PointMaze
-    from cdrb_cli.envs.render import draw_path_in_scene
+    from cdrb_cli.envs.render import draw_rollout_in_scene
 
     env = PointMaze(spec)
     env.env.goal = np.asarray(goal, dtype=np.float64)
@@ -63,9 +63,7 @@ def mujoco_frames(
             env.set_state(states[i])
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera=cam)
-            if plan is not None:
-                draw_path_in_scene(renderer.scene, lift(plan), (0.12, 0.47, 0.71, 0.9), width)
-            draw_path_in_scene(renderer.scene, lift(states[: i + 1]), (0.84, 0.15, 0.16, 0.9), width)
+            draw_rollout_in_scene(renderer.scene, None if plan is None else lift(plan), lift(states[: i + 1]), width)
             frames.append(renderer.render().copy())
     finally:
         renderer.close()
