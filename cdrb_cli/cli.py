@@ -905,6 +905,7 @@ def eval_cmd(
     from cdrb_cli.artifacts import produce
     from cdrb_cli.settings import Setting, parse_set
     from cdrb_cli.stages.evaluate import eval_config, evaluate
+    from cdrb_cli.stages.report import failure_text
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--sample-steps", sample_steps)
@@ -968,6 +969,7 @@ def eval_cmd(
             else ""
         )
         + (f"{1000 * s.plan_seconds_mean:.2f} ms per episode step" if s.in_wall_mean is None else "")
+        + (f"; failed episodes by cause: {failure_text(s.failures)}" if s.failures and any(s.failures.values()) else "")
     )
     if video is not None:
         ui.log(f"rollout GIFs: {video}/")

@@ -281,6 +281,11 @@ class SeedResult(Record):
     planning_seconds: float | None = Field(
         None, description="planning time of a whole episode, seconds (None: not measured)"
     )
+    failures: dict[str, int] | None = Field(
+        None,
+        description="failed episodes per cause: plan (through an obstacle), grasp (the object never moved), collision "
+        "(the executed path hit an obstacle the plan avoided), tracking (the rest); None: not classified",
+    )
 
 
 class EvalSummary(Record):
@@ -298,6 +303,7 @@ class EvalSummary(Record):
     plan_seconds_mean: float
     replans_mean: float | None = None
     planning_seconds_mean: float | None = None
+    failures: dict[str, int] | None = Field(None, description="failed episodes per cause, summed over seeds")
     per_seed: list[SeedResult]
     wall_time_s: float
 

@@ -167,6 +167,16 @@ def test_eval_artifact_contents(evals):
     # the summary's std is the sample std over seeds
     per = [p.success_rate for p in s.per_seed]
     assert np.isclose(s.success_std, np.std(per, ddof=1))
+    # every failed episode has one cause, a success none; a plan through a wall is the cause whenever it happened
+    from cdrb_cli.stages.evaluate import FAILURE_CODES
+
+    code = a["episodes/failure"]
+    assert ((code == 0) == a["episodes/success"]).all()
+    failed_crossing = ~a["episodes/success"] & a["episodes/plan_crosses_obstacle"]
+    assert (code[failed_crossing] == FAILURE_CODES["plan"]).all()
+    assert (code[~a["episodes/success"] & ~a["episodes/plan_crosses_obstacle"]] != FAILURE_CODES["plan"]).all()
+    assert sum(s.failures.values()) == (~a["episodes/success"]).sum()
+    assert s.failures == {c: sum(p.failures[c] for p in s.per_seed) for c in s.failures}
 
 
 def test_tuning_pairs_and_the_official_protocol(evals, tmp_path, cdrb):

@@ -413,3 +413,30 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
     assert r.returncode == 0, r.stderr
     e = artifacts.load(ev, "eval")
     assert e.manifest.config.controller.name == "fetch-push-path" and len(e.arrays["episodes/success"]) == 2
+
+
+def test_failure_causes_follow_their_definition():
+    """A failed Push episode is "grasp" when the block never moved 2 cm, then "collision" when the executed path
+    touched a wall, else "tracking"; a plan through a wall ("plan") comes first; a success has no cause."""
+    from cdrb_cli.envs.fetch import MOVED
+    from cdrb_cli.stages.evaluate import FAILURE_CODES, failure_code, failure_counts
+
+    spec, family = make_spec("fetch-push-obstacle"), family_of(make_spec("fetch-push-obstacle"))
+    still = np.stack([_state(spec, (1.2, 0.5, 0.6))] * 10)
+    still[:, 0] += np.linspace(0, 0.2, 10)  # the gripper moves, the block does not
+    nudged = still.copy()
+    nudged[-1, 3] += 0.99 * MOVED  # moved, but less than MOVED
+    moved = still.copy()
+    moved[5:, 3] += 1.01 * MOVED
+    assert family.execution_failure(spec, still, collided=False) == "grasp"
+    assert family.execution_failure(spec, nudged, collided=True) == "grasp"  # never moved: grasp comes first
+    assert family.execution_failure(spec, moved, collided=True) == "collision"
+    assert family.execution_failure(spec, moved, collided=False) == "tracking"
+    reach = make_spec("fetch-reach-obstacle")  # no block: never "grasp"
+    r = np.stack([_state(reach, (1.2, 0.5, 0.6))] * 10)
+    assert family_of(reach).execution_failure(reach, r, collided=False) == "tracking"
+    assert failure_code(True, True, "grasp") == 0
+    assert failure_code(False, True, "grasp") == FAILURE_CODES["plan"]
+    assert failure_code(False, False, "collision") == FAILURE_CODES["collision"]
+    assert failure_counts([0, 1, 4, 4, 3]) == {"plan": 1, "grasp": 0, "collision": 1, "tracking": 2}
+    assert failure_counts([0, -1]) is None  # an episode not classified: no counts

@@ -80,6 +80,7 @@ def test_v1_model_evaluates_as_before(tmp_path):
     new = evaluate(model, old.manifest.config, tmp_path / "e.h5")
     added = {"episodes/plan_crosses_obstacle", "episodes/plan_max_jump", "episodes/plan_step_limit"}  # 2.2 metrics
     added |= {"episodes/replans", "episodes/planning_seconds"}  # 2.4: closed-loop planning
+    added |= {"episodes/failure"}  # 2.5: failures by cause
     assert new.arrays.keys() == old.arrays.keys() | added
     for key in old.arrays:
         if key != "episodes/plan_seconds":

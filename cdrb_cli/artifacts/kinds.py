@@ -27,7 +27,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.3", "buffer": "2.3", "model": "2.3", "plans": "2.3", "eval": "2.4"}
+SCHEMA_VERSIONS = {"demos": "2.3", "buffer": "2.3", "model": "2.3", "plans": "2.3", "eval": "2.5"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -278,6 +278,7 @@ class Eval(ArtifactBase):
         DatasetSpec("episodes/plan_seconds", "f", ("E",)),
         DatasetSpec("episodes/replans", "i", ("E",), required=False),  # from schema 2.4
         DatasetSpec("episodes/planning_seconds", "f", ("E",), required=False),
+        DatasetSpec("episodes/failure", "i", ("E",), required=False),  # from schema 2.5: why it failed
         DatasetSpec("episodes/start", "f", ("E", "obs_dim")),
         DatasetSpec("episodes/goal", "f", ("E", "goal_dim")),
         DatasetSpec("plans", "f", ("E", "H", "feature_dim"), required=False),
@@ -293,6 +294,9 @@ class Eval(ArtifactBase):
         values, counts = np.unique(arrays["episodes/seed"], return_counts=True)
         if sorted(values.tolist()) != sorted(set(cfg.seeds)) or (counts != cfg.episodes).any():
             return f"the episodes are not {cfg.episodes} per seed of {cfg.seeds}"
+        failure = arrays.get("episodes/failure")
+        if failure is not None and ((failure < -1) | (failure > 4)).any():  # 4 causes (stages/evaluate.FAILURE_CODES)
+            return "episodes/failure holds codes outside -1..4"
         return None
 
 

@@ -28,6 +28,12 @@ if TYPE_CHECKING:
     from cdrb_cli.envs.spec import EnvSpec
 
 
+#: why a failed evaluation episode failed, in the order they are tested: a plan that went through an obstacle; the
+#: object never moved (never grasped or pushed); the executed path hit an obstacle the plan avoided; the rest (the
+#: controller lost the plan or ran out of time)
+FAILURE_CAUSES = ("plan", "grasp", "collision", "tracking")
+
+
 @dataclass(frozen=True)
 class Episode:
     """One start/goal draw of a protocol stream: the reset seed, and the family's own description of where the
@@ -270,6 +276,12 @@ class EnvFamily(ABC):
         from cdrb_cli.envs.geometry import path_crosses_boxes
 
         return path_crosses_boxes(paths, spec.obstacles)
+
+    def execution_failure(self, spec: EnvSpec, states: np.ndarray, collided: bool) -> str:
+        """Why an executed episode (states (T, D)) whose plans were free did not reach its goal: one of
+        :data:`FAILURE_CAUSES` but "plan". Here "collision" when the path touched an obstacle, else "tracking" (the
+        controller did not follow the plan to the goal in time); a family with objects adds "grasp"."""
+        return "collision" if collided else "tracking"
 
     def max_step(self, spec: EnvSpec) -> float | None:
         """The largest distance (over the obstacle dimensions) the dynamics can move the agent in one environment

@@ -20,7 +20,7 @@ import numpy as np
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.configs import EvalConfig, EvalSummary, SeedResult
-from cdrb_cli.envs.family import Env, EnvFamily, Episode
+from cdrb_cli.envs.family import FAILURE_CAUSES, Env, EnvFamily, Episode
 from cdrb_cli.envs.geometry import largest_jump
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
@@ -40,6 +40,19 @@ class Rollout:
     final_distance: float
     collision: bool
     path_length: float
+    execution_failure: str = ""  # a failed episode: why, had its plans been free (EnvFamily.execution_failure)
+
+
+#: per-episode failure codes (``episodes/failure``): 0 a success, i + 1 the cause FAILURE_CAUSES[i]; -1 not measured
+#: (an eval from before schema 2.5)
+FAILURE_CODES = {"none": 0, **{cause: i + 1 for i, cause in enumerate(FAILURE_CAUSES)}}
+
+
+def failure_code(success: bool, plan_crossed: bool, execution_failure: str) -> int:
+    """The code of an episode's outcome: a success; a plan through an obstacle; else why the execution failed."""
+    if success:
+        return 0
+    return FAILURE_CODES["plan" if plan_crossed else execution_failure]
 
 
 @dataclass(frozen=True)
@@ -63,6 +76,7 @@ class EpisodeResult:
     goal: np.ndarray
     replans: int = 0
     planning_seconds: float = 0.0
+    failure: int = -1  # FAILURE_CODES
 
 
 _DTYPES = {int: np.int64, float: np.float64, bool: np.bool_, np.ndarray: np.float32}
@@ -93,6 +107,8 @@ def episode_results(arrays: dict[str, np.ndarray]) -> list[EpisodeResult]:
     cast = {np.ndarray: np.asarray, int: int, float: float, bool: bool}
     hints = typing.get_type_hints(EpisodeResult)
     cols = {f: arrays.get(f"episodes/{f}", np.full(n, _SINCE_2_2.get(f, np.nan))) for f in fields}
+    if "episodes/failure" not in arrays:  # before schema 2.5: not classified
+        cols["failure"] = np.full(n, -1, dtype=np.int64)
     if "episodes/replans" not in arrays:  # before schema 2.4: one plan (or one policy call) per episode
         cols["replans"] = np.zeros(n, dtype=np.int64)
         cols["planning_seconds"] = cols["plan_seconds"]
@@ -121,13 +137,15 @@ def measure(spec: EnvSpec, S: np.ndarray, goal: np.ndarray, steps: int) -> Rollo
     family = family_of(spec)
     hits = np.flatnonzero(family.success(spec, S, goal))
     first = int(hits[0]) if hits.size else None
+    collision = bool(family.in_collision(spec, S).any())
     return Rollout(
         states=S,
         success=first is not None,
         steps=first if first is not None else steps,
         final_distance=float(family.distance(spec, S, goal)[-1]),
-        collision=bool(family.in_collision(spec, S).any()),
+        collision=collision,
         path_length=family.path_length(spec, S if first is None else S[: first + 1]),
+        execution_failure="" if first is not None else family.execution_failure(spec, S, collision),
     )
 
 
@@ -416,6 +434,7 @@ def _result(seed, episode, run: Rollout, expert_length, seconds, start, goal, **
         replans=0,
         planning_seconds=seconds,
     )
+    merged = {**unplanned, **plan}
     return EpisodeResult(
         seed=seed,
         episode_seed=episode.seed,
@@ -428,7 +447,8 @@ def _result(seed, episode, run: Rollout, expert_length, seconds, start, goal, **
         plan_seconds=seconds,
         start=start,
         goal=goal,
-        **{**unplanned, **plan},
+        failure=failure_code(run.success, bool(merged["plan_crosses_obstacle"]), run.execution_failure),
+        **merged,
     )
 
 
@@ -440,6 +460,7 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
     limit = np.array([r.plan_step_limit for r in results])
     jump = np.array([r.plan_max_jump for r in results]) / np.maximum(limit, 1e-12)
     bounded = bool((limit > 0).all())
+    failures = failure_counts([r.failure for r in results])
     if policy:  # no plans: nothing planned to measure
         return SeedResult(
             seed=int(seed),
@@ -450,6 +471,7 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
             path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
             plan_seconds=float(np.mean([r.plan_seconds for r in results])),
             planning_seconds=float(np.mean([r.planning_seconds for r in results])),
+            failures=failures,
         )
     return SeedResult(
         seed=int(seed),
@@ -464,7 +486,24 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
         plan_seconds=float(np.mean([r.plan_seconds for r in results])),
         replans=float(np.mean([r.replans for r in results])),
         planning_seconds=float(np.mean([r.planning_seconds for r in results])),
+        failures=failures,
     )
+
+
+def failure_counts(codes) -> dict[str, int] | None:
+    """Failed episodes per cause (every cause listed, zeros included); None when any episode was not classified."""
+    codes = np.asarray(list(codes), dtype=np.int64)
+    if (codes < 0).any():
+        return None
+    return {cause: int((codes == FAILURE_CODES[cause]).sum()) for cause in FAILURE_CAUSES}
+
+
+def sum_failures(counts) -> dict[str, int] | None:
+    """The per-cause sum of several :func:`failure_counts` (None when any is None)."""
+    counts = list(counts)
+    if not counts or any(c is None for c in counts):
+        return None
+    return {cause: sum(c[cause] for c in counts) for cause in FAILURE_CAUSES}
 
 
 def sample_std(values) -> float:
@@ -504,6 +543,7 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
         plan_seconds_mean=float(np.mean([p.plan_seconds for p in per_seed])),
         replans_mean=mean("replans"),
         planning_seconds_mean=mean("planning_seconds"),
+        failures=sum_failures(p.failures for p in per_seed),
         per_seed=list(per_seed),
         wall_time_s=wall_time_s,
     )

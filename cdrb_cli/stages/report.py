@@ -18,7 +18,7 @@ import numpy as np
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.evaluate import mean_or_none, sample_std
+from cdrb_cli.stages.evaluate import mean_or_none, sample_std, sum_failures
 
 PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds), its eight rows
     "maze": {
@@ -201,11 +201,17 @@ def collect_rows(evals) -> list[dict]:
                     "plan_ms": 1000 * float(np.mean([r.plan_seconds for r in per])),
                     "replans": mean_or_none([r.replans for r in per]),
                     "episode_planning_ms": _ms(mean_or_none([r.planning_seconds for r in per])),
+                    "failures": failure_text(sum_failures(r.failures for r in per)),
                     "path": ui.plain(";".join(str(ev.path) for ev in group)),
                     "env_name": ui.plain(_env_name(first.manifest.env)),
                 }
             )
     return rows
+
+
+def failure_text(counts: dict[str, int] | None) -> str | None:
+    """``plan 2, grasp 0, collision 5, tracking 11``: failed episodes per cause (None: not classified)."""
+    return None if counts is None else ", ".join(f"{cause} {n}" for cause, n in counts.items())
 
 
 def _ms(seconds: float | None) -> float | None:
@@ -265,8 +271,8 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
         "planned states in walls (%) | "
         "plans through an obstacle (%) | largest jump / allowed | plans with an impossible jump (%) | "
         "executed collisions (%) | path length / expert | plan time (ms) | re-plans per episode | "
-        "planning per episode (ms) |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "planning per episode (ms) | failed episodes by cause |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
 
     def opt(v, f):
@@ -283,7 +289,7 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
                 f"{_pm(r['in_wall_mean'], r['in_wall_std'])} | {opt(r['crossing_mean'], '.1f')} | "
                 f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "
-                f"{opt(r['replans'], '.1f')} | {opt(r['episode_planning_ms'], '.1f')} |"
+                f"{opt(r['replans'], '.1f')} | {opt(r['episode_planning_ms'], '.1f')} | {r['failures'] or '–'} |"
             )
     text = "\n".join(lines) + "\n"
     if fmt == "table":

@@ -26,6 +26,7 @@ from cdrb_cli.seeding import episode_seeds
 FETCH_DT = 0.04  # 20 substeps x 2 ms
 SUCCESS_RADIUS = 0.05  # stock distance_threshold
 MAX_DELTA = 0.05  # the mocap moves at most this far per axis per step
+MOVED = 0.02  # a block that never moved this far from its start was never grasped or pushed (failure cause "grasp")
 
 REACH_LABELS = ["grip_x", "grip_y", "grip_z", "finger_l", "finger_r", "grip_vx", "grip_vy", "grip_vz"]
 REACH_LABELS += ["finger_vl", "finger_vr"]
@@ -194,6 +195,15 @@ class FetchFamily(EnvFamily):
 
     def path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         return paths_in_obstacles(paths, spec.scene.walls, spec.scene.task)
+
+    def execution_failure(self, spec: EnvSpec, states: np.ndarray, collided: bool) -> str:
+        """ "grasp" when the block never moved more than :data:`MOVED` from where it started (never grasped, never
+        pushed), then as any family: "collision", else "tracking"."""
+        if has_object(spec):
+            block = np.asarray(states)[:, 3:6]
+            if np.linalg.norm(block - block[0], axis=1).max() < MOVED:
+                return "grasp"
+        return super().execution_failure(spec, states, collided)
 
     def max_step(self, spec: EnvSpec) -> float:
         return math.sqrt(3.0) * MAX_DELTA
