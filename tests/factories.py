@@ -174,6 +174,7 @@ def build(kind: str, rng: np.random.Generator | None = None, n: int = 5, seed: i
             "episodes/path_length": np.abs(f32(E)),
             "episodes/expert_path_length": np.abs(f32(E)),
             "episodes/plan_seconds": np.abs(f32(E)),
+            "episodes/failure": np.zeros(E, dtype=np.int64),  # all successes
             "episodes/start": f32(E, 4),
             "episodes/goal": f32(E, 2),
         }

@@ -336,6 +336,8 @@ def test_virtual_and_external_storage_are_refused(tmp_path):
         ("plans", "pair_index", lambda a: a + 100, "pair_index must lie"),
         ("model", "curve/step", lambda a: a[::-1].copy(), "curve/step must increase"),
         ("eval", "episodes/seed", lambda a: a + 7, "per seed of"),
+        ("eval", "episodes/failure", lambda a: a + 9, "codes outside -1..4"),
+        ("eval", "episodes/failure", lambda a: a + 1, "disagrees with episodes/success"),
     ],
 )
 def test_indices_that_point_outside_the_data_are_refused(tmp_path, kind, name, value, needle):

@@ -297,6 +297,8 @@ class Eval(ArtifactBase):
         failure = arrays.get("episodes/failure")
         if failure is not None and ((failure < -1) | (failure > 4)).any():  # 4 causes (stages/evaluate.FAILURE_CODES)
             return "episodes/failure holds codes outside -1..4"
+        if failure is not None and (failure >= 0).all() and ((failure == 0) != arrays["episodes/success"]).any():
+            return "episodes/failure disagrees with episodes/success (code 0 is a success, 1..4 a failure's cause)"
         return None
 
 
