@@ -172,7 +172,7 @@ def test_eval_artifact_contents(evals):
 
     code = a["episodes/failure"]
     assert ((code == 0) == a["episodes/success"]).all()
-    failed_crossing = ~a["episodes/success"] & a["episodes/plan_crosses_obstacle"]
+    failed_crossing = ~a["episodes/success"] & a["episodes/plan_crosses_obstacle"]  # a maze: the ball's own path
     assert (code[failed_crossing] == FAILURE_CODES["plan"]).all()
     assert (code[~a["episodes/success"] & ~a["episodes/plan_crosses_obstacle"]] != FAILURE_CODES["plan"]).all()
     assert sum(s.failures.values()) == (~a["episodes/success"]).sum()

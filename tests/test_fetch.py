@@ -440,3 +440,26 @@ def test_failure_causes_follow_their_definition():
     assert failure_code(False, False, "collision") == FAILURE_CODES["collision"]
     assert failure_counts([0, 1, 4, 4, 3]) == {"plan": 1, "grasp": 0, "collision": 1, "tracking": 2}
     assert failure_counts([0, -1]) is None  # an episode not classified: no counts
+
+
+def test_a_plan_fails_by_its_block_path_on_block_tasks():
+    """The cause "plan" on Push/Pick is the planned block path through a wall (or off the table); a gripper dipping
+    into the wall is not a plan failure there (it is one on Reach, where the gripper is what the plan moves)."""
+    spec = make_spec("fetch-push-obstacle")
+    family, wall = family_of(spec), spec.scene.walls[0]
+    wx, wy = float(wall.center[0]), float(wall.center[1])
+    before, after = wy - wall.half[1] - 0.08, wy + wall.half[1] + 0.08
+    z = TABLE_TOP + BLOCK_HALF
+    # the gripper goes through the wall's middle while the block stays put, away from it
+    grip_through = np.stack([_state(spec, (wx, y, z), (1.10, 0.55, z)) for y in np.linspace(before, after, 8)])
+    assert family.path_in_collision(spec, grip_through[None])[0]
+    assert not family.goal_path_in_collision(spec, grip_through[None])[0]
+    # the block jumps through the wall between two free planned states
+    block_jump = np.stack([_state(spec, (1.05, 0.4, 0.6), (wx, y, z)) for y in (before, after)])
+    assert not family.in_collision(spec, block_jump).any()
+    assert family.goal_path_in_collision(spec, block_jump[None])[0]
+    off_table = np.stack([_state(spec, (1.05, 0.4, 0.6), (x, 0.6, z)) for x in (1.30, TABLE_XY[0][1] + 0.05)])
+    assert family.goal_path_in_collision(spec, off_table[None])[0]
+    reach = make_spec("fetch-reach-obstacle")  # the gripper through the first tall wall: a plan failure on Reach
+    r = np.stack([_state(reach, (1.30, y, 0.5)) for y in (0.55, 0.75)])
+    assert family_of(reach).goal_path_in_collision(reach, r[None])[0]

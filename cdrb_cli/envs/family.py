@@ -277,6 +277,12 @@ class EnvFamily(ABC):
 
         return path_crosses_boxes(paths, spec.obstacles)
 
+    def goal_path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
+        """Boolean over paths (..., T, D): the planned path of what the task brings to the goal crosses an obstacle
+        (a failed episode's cause "plan"). Here the agent's whole path (:meth:`path_in_collision`); Fetch with a
+        block tests the block's path, which a plan exists to decide."""
+        return self.path_in_collision(spec, paths)
+
     def execution_failure(self, spec: EnvSpec, states: np.ndarray, collided: bool) -> str:
         """Why an executed episode (states (T, D)) whose plans were free did not reach its goal: one of
         :data:`FAILURE_CAUSES` but "plan". Here "collision" when the path touched an obstacle, else "tracking" (the

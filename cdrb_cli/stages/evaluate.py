@@ -305,6 +305,7 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
     states = ctx.plans[..., : spec.obs_dim]
     in_wall = ctx.family.in_collision(spec, states)
     crosses = ctx.family.path_in_collision(spec, states)
+    goal_crosses = ctx.family.goal_path_in_collision(spec, states)
     jumps = largest_jump(states, spec.obstacles.dims)
     for e, episode in enumerate(ctx.episodes):
         controller.reset(ctx.plans[e])
@@ -317,6 +318,7 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
             ctx.sec_plan,
             starts[e],
             goals[e],
+            plan_failed=bool(goal_crosses[e]),
             plan_in_wall_fraction=float(in_wall[e].mean()),
             plan_crosses_obstacle=bool(crosses[e]),
             plan_max_jump=float(jumps[e]),
@@ -361,6 +363,7 @@ def _closed_loop(ctx: _SeedRun, method, config: EvalConfig):
                 total / len(run.plans),
                 run.states[0],
                 run.goal,
+                plan_failed=bool(family.goal_path_in_collision(spec, made).any()),
                 plan_in_wall_fraction=float(family.in_collision(spec, made).mean()),
                 plan_crosses_obstacle=bool(family.path_in_collision(spec, made).any()),
                 plan_max_jump=float(largest_jump(made, spec.obstacles.dims).max()),
@@ -422,8 +425,11 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
     return artifacts.load(out, "eval")
 
 
-def _result(seed, episode, run: Rollout, expert_length, seconds, start, goal, **plan) -> EpisodeResult:
-    """One episode's record; ``plan``: the plan measures (a policy has none: NaN, never written), the number of
+def _result(
+    seed, episode, run: Rollout, expert_length, seconds, start, goal, plan_failed: bool = False, **plan
+) -> EpisodeResult:
+    """One episode's record; ``plan_failed``: a plan's path of the goal object crossed an obstacle (the failure's
+    cause "plan" comes first); ``plan``: the plan measures (a policy has none: NaN, never written), the number of
     re-plans and the episode's whole planning time."""
     nan = float("nan")
     unplanned = dict(
@@ -447,7 +453,7 @@ def _result(seed, episode, run: Rollout, expert_length, seconds, start, goal, **
         plan_seconds=seconds,
         start=start,
         goal=goal,
-        failure=failure_code(run.success, bool(merged["plan_crosses_obstacle"]), run.execution_failure),
+        failure=failure_code(run.success, plan_failed, run.execution_failure),
         **merged,
     )
 

@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 
 from cdrb_cli.envs.family import EnvFamily, Episode
-from cdrb_cli.envs.fetch.geometry import body_obstacles, paths_in_obstacles, states_in_obstacles
+from cdrb_cli.envs.fetch.geometry import block_obstacles, body_obstacles, paths_in_obstacles, states_in_obstacles
 from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_task, scene_for, side
+from cdrb_cli.envs.geometry import path_crosses_boxes
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
@@ -195,6 +196,13 @@ class FetchFamily(EnvFamily):
 
     def path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         return paths_in_obstacles(paths, spec.scene.walls, spec.scene.task)
+
+    def goal_path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
+        """With a block: the planned block path through a wall or off the table (a gripper that dips into the
+        short wall on its way over is the controller's to avoid, and counts as "collision" if it does)."""
+        if not has_object(spec):
+            return self.path_in_collision(spec, paths)
+        return path_crosses_boxes(paths, block_obstacles(spec.scene.walls))
 
     def execution_failure(self, spec: EnvSpec, states: np.ndarray, collided: bool) -> str:
         """ "grasp" when the block never moved more than :data:`MOVED` from where it started (never grasped, never
