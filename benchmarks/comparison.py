@@ -113,6 +113,19 @@ FETCH_CONTROLLERS = {
         "track K=2, follow block": ["--controller", "fetch-track"],
         "track K=2": ["--controller", "fetch-track", "--set", "controller.follow_block=false"],
         "push along the block path": ["--controller", "fetch-push-path"],
+        # the pusher unsticks a block the wall's end stalls (up to 3 times a plan), the plan cut to corners within
+        # 1.5 / 3 / 5 / 8 cm (a jittery planned path cut finely makes the pusher re-approach at every corner)
+        **{
+            f"push along the block path, corners {cm} cm, unstick 3": [
+                "--controller",
+                "fetch-push-path",
+                "--set",
+                f"controller.tolerance={cm / 100:g}",
+                "--set",
+                "controller.unstick=3",
+            ]
+            for cm in (1.5, 3, 5, 8)
+        },
     },
     "pick-place": {
         "track K=2": ["--controller", "fetch-track"],

@@ -33,6 +33,8 @@ SETTINGS = {
         ("track K=2", "fetch-track", {"gain": 2.0, "follow_block": False}),
         ("track K=2, follow block", "fetch-track", {"gain": 2.0, "follow_block": True}),
         ("push along the block path", "fetch-push-path", {}),
+        ("push along the block path, unstick 3", "fetch-push-path", {"unstick": 3}),
+        ("push along the block path, corners 5 cm, unstick 3", "fetch-push-path", {"tolerance": 0.05, "unstick": 3}),
     ],
 }
 

@@ -463,3 +463,59 @@ def test_a_plan_fails_by_its_block_path_on_block_tasks():
     reach = make_spec("fetch-reach-obstacle")  # the gripper through the first tall wall: a plan failure on Reach
     r = np.stack([_state(reach, (1.30, y, 0.5)) for y in (0.55, 0.75)])
     assert family_of(reach).goal_path_in_collision(reach, r[None])[0]
+
+
+def test_unsticking_frees_a_block_the_wall_end_stalls():
+    """Tuning-stream episodes where the pusher, on the expert's own plan, is left with no room behind the block at
+    the wall's end and waits (a failure): with ``unstick`` the controller pushes the block out the free way closest
+    to the wanted one (a pre-push point with room for the gripper, a free way for the block) and then succeeds."""
+    from cdrb_cli.data import first_window
+    from cdrb_cli.envs.fetch.controllers import FetchPushPathController
+    from cdrb_cli.envs.registry import CONTROLLERS
+    from cdrb_cli.seeding import STREAM_TUNE
+    from cdrb_cli.stages.evaluate import run_episode
+
+    spec = make_spec("fetch-push-obstacle")
+    fam = family_of(spec)
+    entry = EXPERTS.get("fetch-scripted")
+    expert = entry.build(spec, entry.configure(None))
+    c = CONTROLLERS.get("fetch-push-path")
+    env = fam.make_env(spec)
+    try:
+        eps = fam.draw_episodes(spec, 45, 0, STREAM_TUNE)
+        for ep in (eps[41], eps[44]):  # stalled at the wall's end (benchmarks: controller ceiling 87% -> 95%)
+            obs, goal = env.reset(ep)
+            expert.reset(obs, goal, np.random.default_rng(ep.seed))
+            plan = first_window(
+                run_episode(env, spec, ep, lambda o, t: expert.act(o), spec.episode_limit).states,
+                spec.horizon,
+                spec.plan_stride,
+            )
+            outcomes = []
+            for unstick in (0, 3):
+                ctl = c.build(spec, env, c.config(unstick=unstick), spec.plan_stride)
+                assert isinstance(ctl, FetchPushPathController)
+                ctl.reset(plan)
+                waited, detours = [], []
+
+                def act(o, t, ctl=ctl, waited=waited, detours=detours):
+                    n = ctl.unstuck
+                    a = ctl.act(o, t)
+                    waited.append(ctl.pusher.stuck)
+                    if ctl.unstuck > n:  # a detour was just chosen: check it against its definition
+                        target, block = ctl.pusher.targets[0], o[3:6]
+                        d = (target[:2] - block[:2]) / np.linalg.norm(target[:2] - block[:2])
+                        pre = np.array([*(block[:2] - ctl.pusher.BEHIND * d), block[2] - 0.005])
+                        assert np.isclose(np.linalg.norm(target[:2] - block[:2]), ctl.DETOUR)
+                        assert not ctl.pusher.grip_router.blocked(pre, pre, end_legs=True)
+                        assert not ctl.pusher.block_router.blocked(block, target, end_legs=True)
+                        detours.append(t)
+                    return a
+
+                run = run_episode(env, spec, ep, act, spec.episode_limit)
+                outcomes.append((run.success, any(waited), len(detours)))
+            (ok0, waited0, n0), (ok3, _, n3) = outcomes
+            assert not ok0 and waited0 and n0 == 0, outcomes  # the scripted pusher waits: a failure
+            assert ok3 and 1 <= n3 <= 3, outcomes
+    finally:
+        env.close()

@@ -74,6 +74,13 @@ class FetchPushPathConfig(ControllerConfig):
     tolerance: float = Field(
         0.015, gt=0, le=0.2, description="the planned block path is cut to corners within this distance of it, m"
     )
+    unstick: int = Field(
+        0,
+        ge=0,
+        le=20,
+        description="when a wall leaves no room behind the block for the next push, push it this many times (per "
+        "plan) a few cm the free way closest to the wanted one, then go on (0: wait, as the scripted pusher)",
+    )
 
 
 class FetchPushPathController(Controller):
@@ -93,6 +100,7 @@ class FetchPushPathController(Controller):
 
     def reset(self, plan: np.ndarray) -> None:
         self.plan = np.asarray(plan, dtype=np.float64)
+        self.unstuck = 0
 
     def _waypoints(self) -> list[np.ndarray]:
         """The planned block path's corners (Ramer-Douglas-Peucker in x-y): every leg a straight push, so the pusher
@@ -119,7 +127,35 @@ class FetchPushPathController(Controller):
         if t == 0:
             self.pusher.reset(state, self.plan[-1, 3:6], np.random.default_rng(0))
             self.pusher.targets = self._waypoints()
-        return self.pusher.act(state)
+        action = self.pusher.act(state)
+        if self.pusher.stuck and self.unstuck < self.c.unstick:
+            detour = self._detour(state)
+            if detour is not None:
+                self.unstuck += 1
+                self.pusher.targets.insert(0, detour)
+                action = self.pusher.act(state)
+        return action
+
+    #: how far an unsticking push moves the block, m (more than the 2 cm at which the pusher counts a target reached)
+    DETOUR = 0.04
+
+    def _detour(self, state: np.ndarray) -> np.ndarray | None:
+        """A point :data:`DETOUR` from the block in the direction (of 24) closest to the wanted push whose pre-push
+        point has room for the gripper and whose way is free for the block; None when there is none."""
+        p = self.pusher
+        block = state[3:6]
+        want = p.targets[0][:2] - block[:2]
+        want = want / max(float(np.linalg.norm(want)), 1e-9)
+        best, best_cos = None, -2.0
+        for a in np.linspace(0.0, 2 * np.pi, 24, endpoint=False):
+            d = np.array([np.cos(a), np.sin(a)])
+            pre = np.array([*(block[:2] - p.BEHIND * d), block[2] - 0.005])
+            target = np.array([*(block[:2] + self.DETOUR * d), block[2]])
+            if p.grip_router.blocked(pre, pre, end_legs=True) or p.block_router.blocked(block, target, end_legs=True):
+                continue
+            if float(d @ want) > best_cos:
+                best, best_cos = target, float(d @ want)
+        return best
 
 
 def _push_path(spec, env, config: FetchPushPathConfig, stride: int) -> FetchPushPathController:

@@ -232,6 +232,7 @@ class PushExpert(_Base):
 
     def act(self, state: np.ndarray) -> np.ndarray:
         grip, block = state[:3], state[3:6]
+        self.stuck = False  # set when there is no room behind the block for the next push (a controller may recover)
         while len(self.targets) > 1 and np.linalg.norm(self.targets[0][:2] - block[:2]) < 0.02:
             self.targets.pop(0)
         target = self.targets[0]
@@ -256,6 +257,7 @@ class PushExpert(_Base):
         if self.grip_router.blocked(above, above):  # near the wall: come down from above its top
             above[2] = self.grip_router.top + 0.005
         if self.grip_router.blocked(pre, pre, end_legs=True):  # no room behind the block: wait above (a failure)
+            self.stuck = True
             return np.append(_move(grip, above, self.cfg.gain), 0.0)
         if np.linalg.norm(grip[:2] - pre[:2]) < 0.012:
             if grip[2] - low_z < 0.008:
