@@ -114,7 +114,7 @@ FETCH_CONTROLLERS = {
         "track K=2": ["--controller", "fetch-track", "--set", "controller.follow_block=false"],
         "push along the block path": ["--controller", "fetch-push-path"],
         # the pusher unsticks a block the wall's end stalls (up to 3 times a plan), the plan cut to corners within
-        # 1.5 / 3 / 5 / 8 cm (a jittery planned path cut finely makes the pusher re-approach at every corner)
+        # 1.5 / 3 / 5 / 8 / 12 cm (a jittery planned path cut finely makes the pusher re-approach at every corner)
         **{
             f"push along the block path, corners {cm} cm, unstick 3": [
                 "--controller",
@@ -124,7 +124,7 @@ FETCH_CONTROLLERS = {
                 "--set",
                 "controller.unstick=3",
             ]
-            for cm in (1.5, 3, 5, 8)
+            for cm in (1.5, 3, 5, 8, 12)
         },
     },
     "pick-place": {
