@@ -35,6 +35,8 @@ SETTINGS = {
         ("push along the block path", "fetch-push-path", {}),
         ("push along the block path, unstick 3", "fetch-push-path", {"unstick": 3}),
         ("push along the block path, corners 5 cm, unstick 3", "fetch-push-path", {"tolerance": 0.05, "unstick": 3}),
+        ("push along the block path, corners 8 cm, unstick 3", "fetch-push-path", {"tolerance": 0.08, "unstick": 3}),
+        ("push along the block path, corners 12 cm, unstick 3", "fetch-push-path", {"tolerance": 0.12, "unstick": 3}),
     ],
 }
 
