@@ -15,6 +15,13 @@ from pathlib import Path
 import numpy as np
 
 
+def controller_label(c) -> str:
+    """The controller's name and the settings that differ from its defaults: ``fetch-push-path tolerance=0.08``."""
+    default = type(c).model_validate({"name": c.name}).model_dump()
+    changed = [(k, v) for k, v in c.model_dump().items() if v != default[k]]
+    return " ".join([c.name, *(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in changed)])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--runs", type=Path, required=True)
@@ -23,6 +30,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     from cdrb_cli import artifacts
+    from cdrb_cli.envs.family import FAILURE_CAUSES
 
     rows = []
     for env in args.envs.split(","):
@@ -45,8 +53,9 @@ def main() -> None:
                         else round(100 * r.plan_crossing_rate, 2),
                         "collisions": round(100 * r.executed_collision_rate, 2),
                         "plan_ms": round(1000 * r.plan_seconds, 2),
-                        "controller": ev.manifest.config.controller.name,
+                        "controller": controller_label(ev.manifest.config.controller),
                         "preset": s.model_preset,
+                        **{f"failed_{c}": None if r.failures is None else r.failures[c] for c in FAILURE_CAUSES},
                     }
                 )
     args.out.parent.mkdir(parents=True, exist_ok=True)
