@@ -166,9 +166,10 @@ def test(args) -> None:
 def failed_by_cause(counts: list) -> dict:
     """Failed episodes per cause summed over evals, as ``failed_<cause>`` columns (None: an eval not classified)."""
     from cdrb_cli.envs.family import FAILURE_CAUSES
+    from cdrb_cli.stages.evaluate import sum_failures
 
-    known = all(c is not None for c in counts)
-    return {f"failed_{cause}": sum(c[cause] for c in counts) if known else None for cause in FAILURE_CAUSES}
+    total = sum_failures(counts)
+    return {f"failed_{cause}": None if total is None else total[cause] for cause in FAILURE_CAUSES}
 
 
 def write(args) -> None:

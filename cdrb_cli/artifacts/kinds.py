@@ -20,6 +20,7 @@ from cdrb_cli.configs import (
     TrainConfig,
     TrainState,
 )
+from cdrb_cli.envs.family import FAILURE_CAUSES
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.registry import RegisteredName
@@ -294,11 +295,11 @@ class Eval(ArtifactBase):
         values, counts = np.unique(arrays["episodes/seed"], return_counts=True)
         if sorted(values.tolist()) != sorted(set(cfg.seeds)) or (counts != cfg.episodes).any():
             return f"the episodes are not {cfg.episodes} per seed of {cfg.seeds}"
-        failure = arrays.get("episodes/failure")
-        if failure is not None and ((failure < -1) | (failure > 4)).any():  # 4 causes (stages/evaluate.FAILURE_CODES)
-            return "episodes/failure holds codes outside -1..4"
+        failure, top = arrays.get("episodes/failure"), len(FAILURE_CAUSES)  # codes: stages/evaluate.FAILURE_CODES
+        if failure is not None and ((failure < -1) | (failure > top)).any():
+            return f"episodes/failure holds codes outside -1..{top}"
         if failure is not None and (failure >= 0).all() and ((failure == 0) != arrays["episodes/success"]).any():
-            return "episodes/failure disagrees with episodes/success (code 0 is a success, 1..4 a failure's cause)"
+            return f"episodes/failure disagrees with episodes/success (code 0 is a success, 1..{top} a failure's cause)"
         return None
 
 

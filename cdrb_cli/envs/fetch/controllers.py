@@ -149,7 +149,7 @@ class FetchPushPathController(Controller):
         best, best_cos = None, -2.0
         for a in np.linspace(0.0, 2 * np.pi, 24, endpoint=False):
             d = np.array([np.cos(a), np.sin(a)])
-            pre = np.array([*(block[:2] - p.BEHIND * d), block[2] - 0.005])
+            pre = p.pre_push(block, d)
             target = np.array([*(block[:2] + self.DETOUR * d), block[2]])
             if p.grip_router.blocked(pre, pre, end_legs=True) or p.block_router.blocked(block, target, end_legs=True):
                 continue

@@ -224,6 +224,11 @@ class PushExpert(_Base):
         delta = ahead - block
         return delta / max(float(np.linalg.norm(delta)), 1e-9)
 
+    def pre_push(self, block: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Where the gripper goes down to push the block along ``d`` (x-y unit): :data:`BEHIND` behind its centre,
+        just below it."""
+        return np.array([*(block[:2] - self.BEHIND * d), block[2] - 0.005])
+
     def _behind(self, grip, block, d) -> bool:
         rel = grip[:2] - block[:2]
         along = float(rel @ d)
@@ -252,7 +257,7 @@ class PushExpert(_Base):
             return np.append(_move(grip, aim, gain * self.cfg.gain), 0.0)
         # (re-)approach: above the pre-push point, then down
         self.pushing = False
-        pre = np.array([*(block[:2] - self.BEHIND * d), low_z])
+        pre = self.pre_push(block, d)
         above = pre + np.array([0.0, 0.0, self.LIFT])
         if self.grip_router.blocked(above, above):  # near the wall: come down from above its top
             above[2] = self.grip_router.top + 0.005
