@@ -338,6 +338,13 @@ def collect(
         help="Processes rolling out episodes (default: one per core, at least 100 episodes each). The demos are the "
         "same array for array whatever the number.",
     ),
+    sets: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="Set a field of the expert's config, e.g. --set 'expert.routes=[\"over\"]' (repeatable; recorded in "
+        "the artifact).",
+    ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -346,7 +353,8 @@ def collect(
 
     The scripted maze expert takes a random shortest grid route (both gaps next to a goal get used), smooths it
     and comes to rest at the goal; the scripted Fetch experts go over or around the walls, at random where both
-    work. `summary.routes` counts the routes. Examples: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan],
+    work (`--set 'expert.routes=["over"]'` keeps one kind where it exists; `--set expert.clearance=0.05`,
+    `expert.gain`, `expert.reach_tolerance` are the other fields). `summary.routes` counts the routes. Examples: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan],
     [cyan]cdrb collect fetch-push-obstacle -n 1000 --plot push.png --video gifs/[/cyan] (GIFs are MuJoCo frames
     where an offscreen GL context can be made, matplotlib drawings otherwise; the command says which)."""
     from cdrb_cli.artifacts import produce
@@ -360,7 +368,11 @@ def collect(
         _check_video_folder(video)
     _check_outputs(force, out=out, plot=plot)
     spec = _spec(env, maze_map)
-    config = collect_config(spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction)
+    from cdrb_cli.settings import parse_set
+
+    config = collect_config(
+        spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction, settings=parse_set(sets)
+    )
     demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out, workers=workers), env=spec)
     s = demos.manifest.summary
     ui.log(
@@ -654,7 +666,10 @@ def train(
 @app.command("config")
 def config_cmd(
     stage: str = typer.Argument(
-        "train", parser=_choice(lambda: ["train", "eval"], "stage"), metavar="train|eval", help="Which config."
+        "train",
+        parser=_choice(lambda: ["train", "eval", "collect"], "stage"),
+        metavar="train|eval|collect",
+        help="Which config.",
     ),
     method: str | None = MethodOpt,
     net: str | None = NetOpt,
@@ -675,16 +690,17 @@ def config_cmd(
     [cyan]cdrb config train --method cdrb --preset paper[/cyan] shows what [cyan]--set KEY=VALUE[/cyan] can change
     for that method and preset; [cyan]--format toml[/cyan] writes a template for [cyan]cdrb train --config
     FILE[/cyan]. Defaults that depend on the data (horizon, stride, features, CDRB's d_max) are filled in by
-    `cdrb train`. [cyan]cdrb config eval[/cyan] lists the controllers' settings (`cdrb eval --set`)."""
+    `cdrb train`. [cyan]cdrb config eval[/cyan] lists the controllers' settings (`cdrb eval --set`), [cyan]cdrb
+    config collect[/cyan] the experts' (`cdrb collect --set`)."""
     from cdrb_cli.stages.show_config import config_template, render_template
 
-    if stage == "eval" and (method or net or preset):
+    if stage != "train" and (method or net or preset):
         raise BadInput("--method/--net/--preset describe train settings", hint="use `cdrb config train ...`")
-    if stage == "train" and controller:
+    if stage != "eval" and controller:
         raise BadInput("--controller describes eval settings", hint="use `cdrb config eval --controller ...`")
-    if stage == "eval" and fmt != "table":
+    if stage != "train" and fmt != "table":
         raise BadInput(
-            f"--format {fmt}: only train reads a --config file", hint="eval settings are --set keys: omit --format"
+            f"--format {fmt}: only train reads a --config file", hint=f"{stage} settings are --set keys: omit --format"
         )
     template = config_template(stage, method=method, net=net, preset=preset, controller=controller)
     sys.stdout.write(render_template(template, fmt))

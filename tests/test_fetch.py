@@ -277,6 +277,51 @@ def test_collect_fetch_end_to_end_with_routes_and_pictures(tmp_path, cdrb):
     assert pic.stat().st_size > 10_000
 
 
+def test_collect_set_expert_routes_keeps_one_route_kind(tmp_path, cdrb):
+    """`cdrb collect --set expert.routes=...` changes the demonstrations as asked and is recorded: with "over"
+    only, every Reach Obstacle demo that leaves the corridor does so above the walls' top, never past their ends."""
+    out = tmp_path / "demos.h5"
+    r = cdrb(
+        "collect", "fetch-reach-obstacle-cross", "-n", "8", "--seed", "1", "--workers", "1",
+        "--set", 'expert.routes=["over"]', "--out", out,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    demos = artifacts.load(out, "demos")
+    assert demos.manifest.config.expert.routes == ["over"]
+    s = demos.manifest.summary
+    assert s.success_rate == 1.0 and s.states_in_walls == 0
+    assert {label for group in s.routes.values() for label in group} == {"over"}
+    walls = demos.manifest.env.scene.walls
+    y_lo, y_hi = min(w.center[1] for w in walls), max(w.center[1] for w in walls)
+    top = max(float(w.high[2]) for w in walls)
+    x_lo, x_hi = min(float(w.low[0]) for w in walls), max(float(w.high[0]) for w in walls)
+    st, ln = demos.arrays["episodes/start"], demos.arrays["episodes/length"]
+    for s0, n in zip(st, ln):
+        grip = demos.observations[s0 : s0 + n, :3]
+        inside = (grip[:, 1] > y_lo) & (grip[:, 1] < y_hi)
+        assert inside[0] and not inside[-1]  # a cross variant: every demo leaves the corridor
+        i = int(np.argmax(~inside))  # the first state past a wall's plane
+        assert max(grip[i - 1, 2], grip[i, 2]) > top  # above the top, not around an end
+        assert x_lo < grip[i, 0] < x_hi
+    # bad settings: one line, exit 2, nothing written
+    cases = [
+        ("expert.routes=over", "valid list"),
+        ("expert.routes=[\"sideways\"]", "expert.routes"),
+        ("expert.nope=1", "unknown setting 'expert.nope'"),
+        ("episodes=3", "sets expert.<field>"),
+        ("expert.kind=sac", "sets expert.<field>"),
+        ("expert.clearance=-1", "expert.clearance"),
+    ]
+    for item, needle in cases:
+        bad = tmp_path / "bad.h5"
+        r = cdrb("collect", "fetch-reach-obstacle", "-n", "2", "--set", item, "--out", bad)
+        assert r.returncode == 2, (item, r.stderr)
+        assert needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1 and not bad.exists()
+    listed = cdrb("config", "collect")
+    assert listed.returncode == 0 and "expert.routes" in listed.stdout and "expert.clearance" in listed.stdout
+
+
 def test_fetch_bad_inputs_get_one_line_errors(tmp_path, cdrb):
     cases = [
         (["collect", "fetch-pushh", "-n", "2"], "unknown environment"),

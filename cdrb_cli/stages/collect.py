@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
@@ -17,6 +18,7 @@ from cdrb_cli.envs.registry import EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import STREAM_COLLECT
+from cdrb_cli.settings import Setting, apply, validate
 
 
 def rollout(env: Env, expert: Expert, spec: EnvSpec, episode: Episode, limit: int):
@@ -46,8 +48,10 @@ def collect_config(
     expert: str | None = None,
     policy: Path | None = None,
     valid_fraction: float | None = None,
+    settings: Sequence[Setting] = (),
 ) -> CollectConfig:
-    """The config of ``cdrb collect``: ``expert`` is one of the family's experts (default: its first)."""
+    """The config of ``cdrb collect``: ``expert`` is one of the family's experts (default: its first), with
+    ``settings`` on its fields (``--set expert.routes='["over"]'``)."""
     family = family_of(spec)
     name = expert or family.experts[0]
     if name not in family.experts:
@@ -55,9 +59,17 @@ def collect_config(
             f"--expert {name!r}: not an expert of the {family.name} environments",
             hint=f"use {', '.join(family.experts)}",
         )
+    for s in settings:
+        if s.path[0] != "expert" or s.path in (("expert",), ("expert", "kind")):
+            raise BadInput(
+                f"{s.source}: `cdrb collect --set` sets expert.<field>",
+                hint="the expert, episodes, split and seed have their own flags; `cdrb config collect` lists the "
+                "experts' fields",
+            )
     expert_cfg = EXPERTS.get(name, "--expert").configure(policy)
     split = {"valid_fraction": valid_fraction} if valid_fraction is not None else {}
-    return CollectConfig(env=spec.id, episodes=episodes, expert=expert_cfg, seed=seed, **split)
+    base = {"env": spec.id, "episodes": episodes, "expert": expert_cfg.model_dump(mode="json"), "seed": seed, **split}
+    return validate(CollectConfig, apply(base, settings), settings, "collect")
 
 
 _WORKER_ENVS: dict[str, tuple] = {}  # a pool worker keeps one env and expert per (spec, config)

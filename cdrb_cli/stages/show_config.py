@@ -81,10 +81,23 @@ def _eval_rows(controller: str | None) -> list[Row]:
     return rows
 
 
+def _collect_rows() -> list[Row]:
+    """`cdrb collect --set expert.<field>`: every expert's fields (--expert picks the expert)."""
+    from cdrb_cli.envs.registry import EXPERTS
+
+    rows = []
+    for entry in EXPERTS.entries():
+        rows.append(Row("expert.kind", "str", entry.name, entry.description or "the expert; --expert"))
+        rows += _rows(entry.config, {}, "expert.", skip=("kind",))
+    return rows
+
+
 def config_template(
     stage: str, method: str | None = None, net: str | None = None, preset: str | None = None, controller=None
 ) -> list[Row]:
-    """The settings of ``stage`` (train or eval) with their defaults for these choices."""
+    """The settings of ``stage`` (train, eval or collect) with their defaults for these choices."""
+    if stage == "collect":
+        return _collect_rows()
     return _train_rows(method, net, preset) if stage == "train" else _eval_rows(controller)
 
 
