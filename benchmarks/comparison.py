@@ -132,6 +132,10 @@ FETCH_CONTROLLERS = {
         "track K=1": ["--controller", "fetch-track", "--set", "controller.gain=1"],
     },
 }
+#: Fetch: the denoising step counts tried besides all of them, for each controller, by every method that has
+#: denoising steps (CDRB, Diffuser; docs/benchmarks.md §6.1: on Reach Obstacle, CDRB's quick-preset chain loses the
+#: route at mid k and 2 restorations keep it; Push Obstacle's recorded tuning predates these candidates)
+FETCH_SAMPLE_STEPS = (8, 4, 2)
 
 
 def _fetch_task(env: str) -> str | None:
@@ -146,10 +150,25 @@ def sweep_for(env: str) -> dict[str, dict[str, list]]:
     return FETCH_SWEEP if _fetch_task(env) else SWEEP
 
 
-def clocks_for(env: str) -> dict[str, list]:
-    """The controller/clock candidates tried on ``env`` (the same for every method)."""
+def has_denoising_steps(method: str) -> bool:
+    """Whether the method's sampler runs denoising steps that `cdrb eval --sample-steps` can cut (CDRB, Diffuser)."""
+    from cdrb_cli.methods.registry import METHODS
+
+    return "diffusion_steps" in METHODS.get(method).params.model_fields
+
+
+def clocks_for(env: str, method: str) -> dict[str, list]:
+    """The controller/clock candidates tried on ``env`` for ``method``: on the mazes the same for every method; on
+    Fetch the task's controllers, each also with fewer denoising steps for a method that has them."""
     task = _fetch_task(env)
-    return FETCH_CONTROLLERS[task] if task else CLOCKS
+    if not task:
+        return CLOCKS
+    out = dict(FETCH_CONTROLLERS[task])
+    if has_denoising_steps(method):
+        for name, flags in FETCH_CONTROLLERS[task].items():
+            for n in FETCH_SAMPLE_STEPS:
+                out[f"{name}, {n} sampling steps"] = [*flags, "--sample-steps", str(n)]
+    return out
 
 
 def is_policy(method: str) -> bool:
@@ -247,7 +266,7 @@ def clock(args, log) -> None:
             name = tuned[env][method]["candidate"]
             folder = args.out / env / "sweep"
             model = folder / f"{method}-{slug(name)}.h5"
-            for cname, flags in clocks_for(env).items():
+            for cname, flags in clocks_for(env, method).items():
                 eval_tune(model, folder / f"clock-{method}-{slug(cname)}.h5", args, log, flags)
 
 
@@ -326,7 +345,7 @@ def write(args, log) -> None:
     clocks = []
     for env, by in tuned.items():
         for method, t in by.items():
-            best, candidates = None, clocks_for(env)
+            best, candidates = None, clocks_for(env, method)
             for cname in candidates:
                 p = args.out / env / "sweep" / f"clock-{method}-{slug(cname)}.h5"
                 if p.exists():
@@ -339,8 +358,13 @@ def write(args, log) -> None:
                             **_rounded(s, exclude=("model",)),
                         }
                     )
-                    # the plans are the same under every clock: ties go to fewer executed collisions
-                    if best is None or (s["success"], -s["collision"]) > (best[1]["success"], -best[1]["collision"]):
+
+                    # ties go to fewer plans through obstacles (sampling steps change the plans), then fewer executed
+                    # collisions (under one sampling setting the plans are the same for every controller)
+                    def rank(x):
+                        return (x["success"], -(x["crossing"] or 0), -x["collision"])
+
+                    if best is None or rank(s) > rank(best[1]):
                         best = (cname, s)
             if best is not None:
                 t["clock"], t["eval_flags"] = best[0], candidates[best[0]]

@@ -354,7 +354,8 @@ def collect(
     The scripted maze expert takes a random shortest grid route (both gaps next to a goal get used), smooths it
     and comes to rest at the goal; the scripted Fetch experts go over or around the walls, at random where both
     work (`--set 'expert.routes=["over"]'` keeps one kind where it exists; `--set expert.clearance=0.05`,
-    `expert.gain`, `expert.reach_tolerance` are the other fields). `summary.routes` counts the routes. Examples: [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan],
+    `expert.gain`, `expert.reach_tolerance` are the other fields). `summary.routes` counts the routes. Examples:
+    [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan],
     [cyan]cdrb collect fetch-push-obstacle -n 1000 --plot push.png --video gifs/[/cyan] (GIFs are MuJoCo frames
     where an offscreen GL context can be made, matplotlib drawings otherwise; the command says which)."""
     from cdrb_cli.artifacts import produce

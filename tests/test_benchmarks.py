@@ -91,8 +91,9 @@ def test_planning_script(tmp_path, small_data):
 
 @pytest.mark.slow
 def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path):
-    """On Fetch the comparison tunes each method's controller among the task's candidates (the same list for every
-    method) on the tuning stream, and `write` keeps the settings already chosen for other environments."""
+    """On Fetch the comparison tunes each method's controller among the task's candidates (the same controllers for
+    every method; a method with denoising steps also tries each with fewer of them) on the tuning stream, and
+    `write` keeps the settings already chosen for other environments."""
     import csv
     import json
 
@@ -105,16 +106,19 @@ def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path
     assert proc.returncode == 0, proc.stderr[-2000:]
     settings = json.loads((out / "tuned.json").read_text())["settings"]
     assert settings["maze"] == {"mlp": {"candidate": "x"}}
-    from benchmarks.comparison import FETCH_CONTROLLERS
+    from benchmarks.comparison import FETCH_CONTROLLERS, FETCH_SAMPLE_STEPS, clocks_for
 
     for method in ("mlp", "cdrb"):
         t = settings["fetch-reach"][method]
         assert t["candidate"] == "quick" and t["train_flags"] == []
-        assert t["eval_flags"] == FETCH_CONTROLLERS["reach"][t["clock"]]
+        assert t["eval_flags"] == clocks_for("fetch-reach", method)[t["clock"]]
         assert t["curve_models"] == {"0": t["model"]} and Path(t["model"]).name == f"{method}-quick.h5"
     with open(out / "tuning_clock.csv") as fh:
         rows = list(csv.DictReader(fh))
+    controllers = FETCH_CONTROLLERS["reach"]
+    stepped = [f"{c}, {n} sampling steps" for c in controllers for n in FETCH_SAMPLE_STEPS]
     assert sorted((r["method"], r["clock"]) for r in rows) == sorted(
-        (m, c) for m in ("mlp", "cdrb") for c in FETCH_CONTROLLERS["reach"]
+        [("mlp", c) for c in controllers] + [("cdrb", c) for c in [*controllers, *stepped]]
     )
+    assert clocks_for("fetch-reach", "cdrb")[stepped[-1]][-2:] == ["--sample-steps", str(FETCH_SAMPLE_STEPS[-1])]
     assert not (out / "fetch-reach" / "buffer-k1000-state-action.h5").exists()  # no sweep candidate needs it

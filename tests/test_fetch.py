@@ -306,7 +306,7 @@ def test_collect_set_expert_routes_keeps_one_route_kind(tmp_path, cdrb):
     # bad settings: one line, exit 2, nothing written
     cases = [
         ("expert.routes=over", "valid list"),
-        ("expert.routes=[\"sideways\"]", "expert.routes"),
+        ('expert.routes=["sideways"]', "expert.routes"),
         ("expert.nope=1", "unknown setting 'expert.nope'"),
         ("episodes=3", "sets expert.<field>"),
         ("expert.kind=sac", "sets expert.<field>"),

@@ -107,6 +107,22 @@ eval = ["--max-lag", "0"]
     assert train.deps == ["collect maze"] and "--buffer" not in train.argv
 
 
+def test_collect_settings_reach_only_their_envs_demos(tmp_path):
+    text = (
+        TINY.replace('envs = ["maze-tight"]', 'envs = ["maze-tight", "fetch-reach-obstacle"]')
+        + """
+[[settings]]
+env = "fetch-reach-obstacle"
+collect = ["--set", 'expert.routes=["over"]']
+"""
+    )
+    tasks = expand(load_grid(_grid(tmp_path, text)))
+    argv = {t.id: t.argv for t in tasks}
+    assert argv["collect fetch-reach-obstacle"][-4:-2] == ["--set", 'expert.routes=["over"]']
+    assert "--set" not in argv["collect maze-tight"]
+    assert all("expert.routes" not in " ".join(a) for i, a in argv.items() if not i.startswith("collect"))
+
+
 @pytest.mark.parametrize(
     "text, words",
     [
@@ -118,6 +134,7 @@ eval = ["--max-lag", "0"]
         (TINY.replace("seeds = [0, 1]", "seeds = [0, 0]"), "once"),
         (TINY + '\n[[settings]]\nmethod = "diffuserr"\n', "settings[2].method"),
         (TINY + '\n[[settings]]\nenv = "mazee"\n', "settings[2].env"),
+        (TINY + '\n[[settings]]\nmethod = "mlp"\ncollect = ["--workers", "1"]\n', "every method shares"),
         (TINY + "\n[resources.training]\ncpus = 2\n", "training"),
         (TINY + '\n[[variants]]\nname = "a/b"\n', "variants.0.name"),
     ],

@@ -47,10 +47,15 @@ class _Strict(BaseModel):
 
 class Settings(_Strict):
     """Extra `cdrb train` / `cdrb eval` flags for the runs of one environment and/or method (both optional:
-    omitted means every one). Entries apply in order, so a later one can override an earlier one's flag."""
+    omitted means every one), and extra `cdrb collect` flags for an environment's demonstrations (an entry with
+    ``collect`` names no method: the demos are shared by every method). Entries apply in order, so a later one can
+    override an earlier one's flag."""
 
     env: str | None = None
     method: str | None = None
+    collect: list[str] = Field(
+        default_factory=list, description="extra `cdrb collect` flags, e.g. ['--set', 'expert.routes=[\"over\"]']"
+    )
     train: list[str] = Field(default_factory=list, description="extra `cdrb train` flags, e.g. ['--steps', '4000']")
     eval: list[str] = Field(default_factory=list, description="extra `cdrb eval` flags, e.g. ['--max-lag', '0.6']")
 
@@ -141,6 +146,11 @@ def load_grid(path: Path) -> GridSpec:
                 raise BadInput(f"{path}: settings[{i}].env: {exc.message}", hint="`cdrb envs` lists them") from None
         if s.method is not None:
             METHODS.get(s.method, f"{path}: settings[{i}].method")
+            if s.collect:
+                raise BadInput(
+                    f"{path}: settings[{i}]: collect flags apply to an environment's demos, which every method shares",
+                    hint="put them in an entry without `method`",
+                )
     names = [v.name for v in spec.variants]
     if len(set(names)) != len(names):
         raise BadInput(f"{path}: variants: names must differ (got {', '.join(names)})", hint="rename one")
@@ -177,11 +187,13 @@ def expand(spec: GridSpec) -> list[Task]:
         folder = out / env
         demos, buffer = folder / "demos.h5", folder / f"buffer-k{spec.k}.h5"
         collect_id, cluster_id = f"collect {env}", f"cluster {env}"
+        collect_extra = [f for s in spec.settings if s.env in (None, env) for f in s.collect]
         tasks.append(
             Task(
                 collect_id,
                 "collect",
-                ["collect", env, "-n", str(spec.demos), "--seed", str(spec.data_seed)] + ["--out", str(demos)],
+                ["collect", env, "-n", str(spec.demos), "--seed", str(spec.data_seed), *collect_extra]
+                + ["--out", str(demos)],
                 [demos],
             )
         )
