@@ -2,7 +2,11 @@
 in_obstacle, collisions, ...), for whatever seeds have finished, so a grid run in parts can be reported as it stands.
 
     python benchmarks/table1_seeds.py --runs runs/fetch --envs fetch-reach,fetch-push-obstacle \
-        --out docs/results/table1_fetch.csv
+        --out docs/results/table1_fetch.csv [--merge] [--docs docs/benchmarks.md]
+
+``--merge`` keeps the CSV's rows of the environments not listed (rows measured in earlier parts of the grid);
+``--docs`` rewrites the block between ``<!-- fetch-rows:begin -->`` and ``<!-- fetch-rows:end -->`` of the file from
+the whole CSV (mean ± sample std over the seeds, the paper's row beside ours).
 """
 
 from __future__ import annotations
@@ -10,9 +14,16 @@ from __future__ import annotations
 import argparse
 import csv
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from table1 import TABLE1_ENVS, replace_block  # noqa: E402
+
+FAILURES = ("plan", "grasp", "collision", "tracking")
 
 
 def controller_label(c) -> str:
@@ -28,6 +39,8 @@ def main() -> None:
     ap.add_argument("--envs", required=True)
     ap.add_argument("--methods", default="mlp,diffuser,cdrb")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--merge", action="store_true", help="keep the --out CSV's rows of the environments not listed")
+    ap.add_argument("--docs", type=Path, default=None, help="rewrite this markdown file's fetch-rows block")
     args = ap.parse_args()
     from cdrb_cli import artifacts
     from cdrb_cli.envs.family import FAILURE_CAUSES
@@ -54,15 +67,29 @@ def main() -> None:
                         "collisions": round(100 * r.executed_collision_rate, 2),
                         "plan_ms": round(1000 * r.plan_seconds, 2),
                         "controller": controller_label(ev.manifest.config.controller),
+                        "sample_steps": ev.manifest.config.sample_steps or "all",
                         "preset": s.model_preset,
                         **{f"failed_{c}": None if r.failures is None else r.failures[c] for c in FAILURE_CAUSES},
                     }
                 )
+    envs = args.envs.split(",")
+    if args.merge and args.out.exists():
+        with args.out.open() as f:
+            kept = [r for r in csv.DictReader(f) if r["env"] not in envs]
+        for r in kept:  # rows from before a column existed: sampling steps were all of them then
+            r["sample_steps"] = r.get("sample_steps") or "all"
+        rows = kept + rows
+    rows.sort(key=lambda r: (TABLE1_ENVS.index(r["env"]) if r["env"] in TABLE1_ENVS else 99, r["env"], r["method"]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    with args.out.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = args.out.with_suffix(".tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()
         w.writerows(rows)
+    tmp.replace(args.out)
+    if args.docs is not None:
+        args.docs.write_text(replace_block(args.docs.read_text(), "fetch-rows", markdown(args.out)))
     for env in args.envs.split(","):
         for method in args.methods.split(","):
             sel = [r for r in rows if r["env"] == env and r["method"] == method]
@@ -75,6 +102,53 @@ def main() -> None:
                     f"{np.mean([r['in_obstacle'] for r in sel]):6.3f}%  through {cross:6.2f}%  collisions "
                     f"{np.mean([r['collisions'] for r in sel]):6.2f}%"
                 )
+
+
+def _num(text) -> float:
+    return float(text) if text not in (None, "") else 0.0
+
+
+def markdown(path: Path) -> str:
+    """The Fetch rows of Table 1 from the per-seed CSV: one line per env and method, the paper's beside."""
+    from cdrb_cli.envs.registry import family_of, make_spec
+    from cdrb_cli.stages.report import PAPER_TABLE1
+
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    head = (
+        "| env | method | controller | training seeds x test pairs | success (%) | planned states in obstacles (%) "
+        "| plans through an obstacle (%) | executed collisions (%) | failed episodes: plan / grasp / collision / "
+        "tracking | paper (%) |\n|---|---|---|---|---:|---:|---:|---:|---|---:|"
+    )
+    lines = [head]
+    order = {m: i for i, m in enumerate(("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"))}
+    groups = dict.fromkeys((r["env"], r["method"]) for r in rows)
+    for env, method in sorted(groups, key=lambda g: (TABLE1_ENVS.index(g[0]), order.get(g[1], 9))):
+        sel = [r for r in rows if r["env"] == env and r["method"] == method]
+        succ = np.array([_num(r["success"]) for r in sel])
+        std = f"{succ.std(ddof=1):.1f}" if len(sel) > 1 else "–"
+        controllers = sorted({r["controller"] for r in sel})
+        steps = sorted({r.get("sample_steps") or "all" for r in sel})
+        label = (
+            "`" + " / ".join(controllers) + "`" + ("" if steps == ["all"] else f", {'/'.join(steps)} sampling steps")
+        )
+        fails = [sum(int(_num(r.get(f"failed_{c}"))) for r in sel) for c in FAILURES]
+        spec = make_spec(env)
+        paper = PAPER_TABLE1.get(env, {}).get(method)
+        cells = [
+            family_of(spec).display_name(env),
+            "CDRB" if method == "cdrb" else method,
+            label,
+            f"{len(sel)} x {sel[0]['episodes']}",
+            f"{succ.mean():.1f} ± {std}",
+            f"{np.mean([_num(r['in_obstacle']) for r in sel]):.2f}",
+            f"{np.mean([_num(r['plans_through_obstacle']) for r in sel]):.1f}",
+            f"{np.mean([_num(r['collisions']) for r in sel]):.1f}",
+            " / ".join(map(str, fails)) if sum(fails) else "– (all succeeded)",
+            "–" if paper is None else f"{paper[0]:.2f} ± {paper[1]:.2f}",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -122,3 +122,38 @@ def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path
     )
     assert clocks_for("fetch-reach", "cdrb")[stepped[-1]][-2:] == ["--sample-steps", str(FETCH_SAMPLE_STEPS[-1])]
     assert not (out / "fetch-reach" / "buffer-k1000-state-action.h5").exists()  # no sweep candidate needs it
+
+
+def test_table1_seeds_merges_earlier_parts_and_writes_the_docs_rows(tmp_path):
+    """`table1_seeds.py --merge --docs`: the rows of environments not re-measured are kept (an older CSV without the
+    sampling-steps column gets "all"), and the markdown block shows mean ± sample std, failures by cause, the
+    sampling steps and the paper's figure."""
+    import csv
+
+    csv_path, doc = tmp_path / "t.csv", tmp_path / "doc.md"
+    old = "env,method,seed,episodes,success,in_obstacle,plans_through_obstacle,collisions,plan_ms,controller,preset,"
+    old += "failed_plan,failed_grasp,failed_collision,failed_tracking\n"
+    old += "fetch-reach,cdrb,0,100,100.0,0.0,0.0,0.0,1.0,fetch-track,quick,,,,\n"
+    old += "fetch-reach-obstacle,cdrb,0,100,50.0,1.0,40.0,40.0,1.0,fetch-track,quick,50,0,0,0\n"
+    old += "fetch-reach-obstacle,cdrb,1,100,70.0,3.0,20.0,20.0,1.0,fetch-track,quick,29,0,1,0\n"
+    csv_path.write_text(old)
+    doc.write_text("# T\n\n<!-- fetch-rows:begin -->\nstale\n<!-- fetch-rows:end -->\n\ntail\n")
+    runs = tmp_path / "runs"
+    (runs / "fetch-push").mkdir(parents=True)  # re-measured, nothing finished yet: no rows for it
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "table1_seeds.py"), "--runs", str(runs), "--envs", "fetch-push"]
+    proc = subprocess.run(
+        [*cmd, "--out", str(csv_path), "--merge", "--docs", str(doc)], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    with csv_path.open() as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["env"], r["seed"], r["sample_steps"]) for r in rows] == [
+        ("fetch-reach-obstacle", "0", "all"),
+        ("fetch-reach-obstacle", "1", "all"),
+        ("fetch-reach", "0", "all"),
+    ]
+    text = doc.read_text()
+    assert "stale" not in text and text.endswith("tail\n")
+    line = next(x for x in text.splitlines() if x.startswith("| Reach Obstacle"))
+    assert "| 60.0 ± 14.1 |" in line and "| 2.00 |" in line and "| 79 / 0 / 1 / 0 |" in line and "97.92" in line
+    assert "– (all succeeded)" in next(x for x in text.splitlines() if x.startswith("| Reach |"))
