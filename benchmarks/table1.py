@@ -46,10 +46,11 @@ TABLE1_ENVS = (
 )
 #: demonstrations per environment family when --demos is not given (Fetch: the paper's 5,000 per task, §5)
 DEMOS = {"pointmaze": 8000, "fetch": 5000}
-#: expert settings per environment (`cdrb collect --set`). Reach Obstacle: the gripper leaves the corridor over the
-#: walls only, as the official data's lengths suggest (the reference's "over" routes; going around an end works
-#: near the arm's limits only): docs/benchmarks.md §6.1 measures both datasets
-COLLECT_SETTINGS = {"fetch-reach-obstacle": ['expert.routes=["over"]']}
+#: expert settings per environment (`cdrb collect --set`). The tall-wall tasks (Reach Obstacle, Pick & Place
+#: Obstacle): routes over the walls only, as the official data's trajectory lengths suggest (the reference's "over"
+#: routes; going around an end works only near the arm's limits); docs/benchmarks.md §6.1 measures both datasets
+#: on Reach Obstacle
+COLLECT_SETTINGS = {env: ['expert.routes=["over"]'] for env in ("fetch-reach-obstacle", "fetch-pick-place-obstacle")}
 
 
 def family(env: str) -> str:
