@@ -65,6 +65,13 @@ def main() -> None:
                         if r.plan_crossing_rate is None
                         else round(100 * r.plan_crossing_rate, 2),
                         "collisions": round(100 * r.executed_collision_rate, 2),
+                        # successes whose executed path never touched an obstacle (a gripper blocked by a wall may
+                        # still scrape over it and succeed: success alone does not show it)
+                        "success_no_collision": round(
+                            100
+                            * float(np.mean(ev.arrays["episodes/success"] & ~ev.arrays["episodes/executed_collision"])),
+                            2,
+                        ),
                         "plan_ms": round(1000 * r.plan_seconds, 2),
                         "controller": controller_label(ev.manifest.config.controller),
                         "sample_steps": ev.manifest.config.sample_steps or "all",
@@ -108,6 +115,14 @@ def _num(text) -> float:
     return float(text) if text not in (None, "") else 0.0
 
 
+def _clean(sel: list[dict]) -> str:
+    """Mean success without a collision over the seeds, "–" where rows from before that column lack it."""
+    vals = [r.get("success_no_collision") for r in sel]
+    if any(v in (None, "") for v in vals):
+        return "–"
+    return f"{np.mean([float(v) for v in vals]):.1f}"
+
+
 def markdown(path: Path) -> str:
     """The Fetch rows of Table 1 from the per-seed CSV: one line per env and method, the paper's beside."""
     from cdrb_cli.envs.registry import family_of, make_spec
@@ -116,9 +131,10 @@ def markdown(path: Path) -> str:
     with path.open() as f:
         rows = list(csv.DictReader(f))
     head = (
-        "| env | method | controller | training seeds x test pairs | success (%) | planned states in obstacles (%) "
-        "| plans through an obstacle (%) | executed collisions (%) | failed episodes: plan / grasp / collision / "
-        "tracking | paper (%) |\n|---|---|---|---|---:|---:|---:|---:|---|---:|"
+        "| env | method | controller | training seeds x test pairs | success (%) | success without a collision (%) "
+        "| planned states in obstacles (%) | plans through an obstacle (%) | executed collisions (%) | failed "
+        "episodes: plan / grasp / collision / tracking | paper (%) |\n"
+        "|---|---|---|---|---:|---:|---:|---:|---:|---|---:|"
     )
     lines = [head]
     order = {m: i for i, m in enumerate(("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"))}
@@ -141,6 +157,7 @@ def markdown(path: Path) -> str:
             label,
             f"{len(sel)} x {sel[0]['episodes']}",
             f"{succ.mean():.1f} ± {std}",
+            _clean(sel),
             f"{np.mean([_num(r['in_obstacle']) for r in sel]):.2f}",
             f"{np.mean([_num(r['plans_through_obstacle']) for r in sel]):.1f}",
             f"{np.mean([_num(r['collisions']) for r in sel]):.1f}",

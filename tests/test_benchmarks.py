@@ -155,5 +155,5 @@ def test_table1_seeds_merges_earlier_parts_and_writes_the_docs_rows(tmp_path):
     text = doc.read_text()
     assert "stale" not in text and text.endswith("tail\n")
     line = next(x for x in text.splitlines() if x.startswith("| Reach Obstacle"))
-    assert "| 60.0 ± 14.1 |" in line and "| 2.00 |" in line and "| 79 / 0 / 1 / 0 |" in line and "97.92" in line
+    assert "| 60.0 ± 14.1 | – |" in line and "| 2.00 |" in line and "| 79 / 0 / 1 / 0 |" in line and "97.92" in line
     assert "– (all succeeded)" in next(x for x in text.splitlines() if x.startswith("| Reach |"))
