@@ -23,7 +23,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from table1 import TABLE1_ENVS, replace_block  # noqa: E402
 
-FAILURES = ("plan", "grasp", "collision", "tracking")
+#: the CSV's columns, in order
+FIELDS = (
+    "env", "method", "seed", "episodes", "success", "in_obstacle", "plans_through_obstacle", "collisions",
+    "success_no_collision", "plan_ms", "controller", "sample_steps", "preset",
+    "failed_plan", "failed_grasp", "failed_collision", "failed_tracking",
+)  # fmt: skip
+
+
+def _order(env: str) -> int:
+    """Table 1's row order (other environments after its eight)."""
+    return TABLE1_ENVS.index(env) if env in TABLE1_ENVS else len(TABLE1_ENVS)
 
 
 def controller_label(c) -> str:
@@ -79,24 +89,21 @@ def main() -> None:
                         **{f"failed_{c}": None if r.failures is None else r.failures[c] for c in FAILURE_CAUSES},
                     }
                 )
-    envs = args.envs.split(",")
+    if not rows:  # a wrong --runs or nothing finished: leave the CSV and the docs as they are
+        raise SystemExit(f"{args.runs}: no eval-METHOD-tuned-sN.h5 for {args.envs} / {args.methods}; nothing written")
+    remeasured = {(e, m) for e in args.envs.split(",") for m in args.methods.split(",")}
     if args.merge and args.out.exists():
         with args.out.open() as f:
-            kept = [r for r in csv.DictReader(f) if r["env"] not in envs]
+            kept = [r for r in csv.DictReader(f) if (r["env"], r["method"]) not in remeasured]
         for r in kept:  # rows from before a column existed: sampling steps were all of them then
             r["sample_steps"] = r.get("sample_steps") or "all"
         rows = kept + rows
-    rows.sort(key=lambda r: (TABLE1_ENVS.index(r["env"]) if r["env"] in TABLE1_ENVS else 99, r["env"], r["method"]))
+    rows.sort(key=lambda r: (_order(r["env"]), r["env"], r["method"], int(r["seed"])))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = args.out.with_suffix(".tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
-    tmp.replace(args.out)
+    _write_atomic(args.out, lambda f: _csv_rows(f, rows))
     if args.docs is not None:
-        args.docs.write_text(replace_block(args.docs.read_text(), "fetch-rows", markdown(args.out)))
+        text = replace_block(args.docs.read_text(), "fetch-rows", markdown(args.out))
+        _write_atomic(args.docs, lambda f: f.write(text))
     for env in args.envs.split(","):
         for method in args.methods.split(","):
             sel = [r for r in rows if r["env"] == env and r["method"] == method]
@@ -109,6 +116,36 @@ def main() -> None:
                     f"{np.mean([r['in_obstacle'] for r in sel]):6.3f}%  through {cross:6.2f}%  collisions "
                     f"{np.mean([r['collisions'] for r in sel]):6.2f}%"
                 )
+
+
+def _csv_rows(f, rows: list[dict]) -> None:
+    w = csv.DictWriter(f, fieldnames=FIELDS, restval="")
+    w.writeheader()
+    w.writerows(rows)
+
+
+def _write_atomic(path: Path, write) -> None:
+    """``write(file)`` into a temporary file beside ``path``, then rename it over ``path``."""
+    import os
+
+    tmp = path.with_name(f".{path.name}.tmp")
+    with tmp.open("w", newline="") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(path)
+
+
+def _failures(sel: list[dict]) -> str:
+    """Failed episodes by cause over the seeds; rows from before the classification show "–"."""
+    from cdrb_cli.envs.family import FAILURE_CAUSES
+
+    cells = [[r.get(f"failed_{c}") for c in FAILURE_CAUSES] for r in sel]
+    everything = all(_num(r["success"]) == 100.0 for r in sel)
+    if any(v in (None, "") for row in cells for v in row):
+        return "– (all succeeded)" if everything else "– (not classified)"
+    totals = [sum(int(row[i]) for row in cells) for i in range(len(FAILURE_CAUSES))]
+    return "– (all succeeded)" if everything and not sum(totals) else " / ".join(map(str, totals))
 
 
 def _num(text) -> float:
@@ -139,7 +176,7 @@ def markdown(path: Path) -> str:
     lines = [head]
     order = {m: i for i, m in enumerate(("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"))}
     groups = dict.fromkeys((r["env"], r["method"]) for r in rows)
-    for env, method in sorted(groups, key=lambda g: (TABLE1_ENVS.index(g[0]), order.get(g[1], 9))):
+    for env, method in sorted(groups, key=lambda g: (_order(g[0]), g[0], order.get(g[1], 9))):
         sel = [r for r in rows if r["env"] == env and r["method"] == method]
         succ = np.array([_num(r["success"]) for r in sel])
         std = f"{succ.std(ddof=1):.1f}" if len(sel) > 1 else "–"
@@ -148,7 +185,6 @@ def markdown(path: Path) -> str:
         label = (
             "`" + " / ".join(controllers) + "`" + ("" if steps == ["all"] else f", {'/'.join(steps)} sampling steps")
         )
-        fails = [sum(int(_num(r.get(f"failed_{c}"))) for r in sel) for c in FAILURES]
         spec = make_spec(env)
         paper = PAPER_TABLE1.get(env, {}).get(method)
         cells = [
@@ -161,7 +197,7 @@ def markdown(path: Path) -> str:
             f"{np.mean([_num(r['in_obstacle']) for r in sel]):.2f}",
             f"{np.mean([_num(r['plans_through_obstacle']) for r in sel]):.1f}",
             f"{np.mean([_num(r['collisions']) for r in sel]):.1f}",
-            " / ".join(map(str, fails)) if sum(fails) else "– (all succeeded)",
+            _failures(sel),
             "–" if paper is None else f"{paper[0]:.2f} ± {paper[1]:.2f}",
         ]
         lines.append("| " + " | ".join(cells) + " |")

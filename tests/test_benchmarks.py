@@ -113,6 +113,7 @@ def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path
         assert t["candidate"] == "quick" and t["train_flags"] == []
         assert t["eval_flags"] == clocks_for("fetch-reach", method)[t["clock"]]
         assert t["curve_models"] == {"0": t["model"]} and Path(t["model"]).name == f"{method}-quick.h5"
+    assert settings["fetch-reach"]["mlp"]["eval_flags"] in FETCH_CONTROLLERS["reach"].values()  # no sampling steps
     with open(out / "tuning_clock.csv") as fh:
         rows = list(csv.DictReader(fh))
     controllers = FETCH_CONTROLLERS["reach"]
@@ -125,35 +126,52 @@ def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path
 
 
 def test_table1_seeds_merges_earlier_parts_and_writes_the_docs_rows(tmp_path):
-    """`table1_seeds.py --merge --docs`: the rows of environments not re-measured are kept (an older CSV without the
-    sampling-steps column gets "all"), and the markdown block shows mean ± sample std, failures by cause, the
-    sampling steps and the paper's figure."""
+    """`table1_seeds.py --merge --docs`: the (env, method) pairs re-measured replace their old rows, every other row
+    is kept (an older CSV without the sampling-steps column gets "all"), the markdown block shows mean ± sample std,
+    failures by cause, the sampling steps and the paper's figure; with nothing measured nothing is written."""
     import csv
+
+    from tests import factories
 
     csv_path, doc = tmp_path / "t.csv", tmp_path / "doc.md"
     old = "env,method,seed,episodes,success,in_obstacle,plans_through_obstacle,collisions,plan_ms,controller,preset,"
     old += "failed_plan,failed_grasp,failed_collision,failed_tracking\n"
     old += "fetch-reach,cdrb,0,100,100.0,0.0,0.0,0.0,1.0,fetch-track,quick,,,,\n"
+    old += "fetch-push,cdrb,0,100,50.0,0.0,0.0,0.0,1.0,fetch-track,quick,,,,\n"
     old += "fetch-reach-obstacle,cdrb,0,100,50.0,1.0,40.0,40.0,1.0,fetch-track,quick,50,0,0,0\n"
     old += "fetch-reach-obstacle,cdrb,1,100,70.0,3.0,20.0,20.0,1.0,fetch-track,quick,29,0,1,0\n"
+    old += "maze-tight,mlp,0,5,80.0,1.0,20.0,0.0,1.0,pd,quick,1,0,0,0\n"
+    old += "maze-tight,cdrb,0,5,10.0,1.0,20.0,0.0,1.0,pd,quick,4,0,0,1\n"
     csv_path.write_text(old)
     doc.write_text("# T\n\n<!-- fetch-rows:begin -->\nstale\n<!-- fetch-rows:end -->\n\ntail\n")
     runs = tmp_path / "runs"
-    (runs / "fetch-push").mkdir(parents=True)  # re-measured, nothing finished yet: no rows for it
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "table1_seeds.py"), "--runs", str(runs), "--envs", "fetch-push"]
-    proc = subprocess.run(
-        [*cmd, "--out", str(csv_path), "--merge", "--docs", str(doc)], capture_output=True, text=True, timeout=120
-    )
+    (runs / "maze-tight").mkdir(parents=True)
+    script = [sys.executable, str(ROOT / "benchmarks" / "table1_seeds.py"), "--runs", str(runs)]
+    script += ["--envs", "maze-tight", "--methods", "cdrb", "--out", str(csv_path), "--merge", "--docs", str(doc)]
+    # nothing measured yet: an error, and the CSV and the docs stay as they were
+    proc = subprocess.run(script, capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "nothing written" in proc.stderr
+    assert csv_path.read_text() == old and "stale" in doc.read_text()
+    factories.write(runs / "maze-tight" / "eval-cdrb-tuned-s0.h5", "eval")  # 5 episodes, all successes
+    proc = subprocess.run(script, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     with csv_path.open() as f:
         rows = list(csv.DictReader(f))
-    assert [(r["env"], r["seed"], r["sample_steps"]) for r in rows] == [
-        ("fetch-reach-obstacle", "0", "all"),
-        ("fetch-reach-obstacle", "1", "all"),
-        ("fetch-reach", "0", "all"),
+    got = [(r["env"], r["method"], r["seed"], r["sample_steps"], r["success"]) for r in rows]
+    assert got == [  # Table 1's row order
+        ("maze-tight", "cdrb", "0", "all", "100.0"),  # re-measured
+        ("maze-tight", "mlp", "0", "all", "80.0"),  # not re-measured: kept
+        ("fetch-reach-obstacle", "cdrb", "0", "all", "50.0"),
+        ("fetch-reach-obstacle", "cdrb", "1", "all", "70.0"),
+        ("fetch-reach", "cdrb", "0", "all", "100.0"),
+        ("fetch-push", "cdrb", "0", "all", "50.0"),
     ]
+    assert rows[0]["success_no_collision"] == "100.0" and rows[0]["failed_plan"] == ""  # the factory has no causes
     text = doc.read_text()
     assert "stale" not in text and text.endswith("tail\n")
-    line = next(x for x in text.splitlines() if x.startswith("| Reach Obstacle"))
+    lines = text.splitlines()
+    line = next(x for x in lines if x.startswith("| Reach Obstacle"))
     assert "| 60.0 ± 14.1 | – |" in line and "| 2.00 |" in line and "| 79 / 0 / 1 / 0 |" in line and "97.92" in line
-    assert "– (all succeeded)" in next(x for x in text.splitlines() if x.startswith("| Reach |"))
+    assert "– (all succeeded)" in next(x for x in lines if x.startswith("| Reach |"))
+    assert "– (not classified)" in next(x for x in lines if x.startswith("| Push |"))
+    assert "| 100.0 ± – | 100.0 |" in next(x for x in lines if x.startswith("| Maze Tight | CDRB"))

@@ -306,11 +306,13 @@ def test_collect_set_expert_routes_keeps_one_route_kind(tmp_path, cdrb):
     # bad settings: one line, exit 2, nothing written
     cases = [
         ("expert.routes=over", "valid list"),
-        ('expert.routes=["sideways"]', "expert.routes"),
+        ('expert.routes=["sideways"]', "'over' or 'around'"),
+        ("expert.routes=[]", "at least 1 item"),
+        ('expert.routes=["over","over"]', "each route kind once"),
         ("expert.nope=1", "unknown setting 'expert.nope'"),
         ("episodes=3", "sets expert.<field>"),
         ("expert.kind=sac", "sets expert.<field>"),
-        ("expert.clearance=-1", "expert.clearance"),
+        ("expert.clearance=-1", "greater than or equal to 0"),
     ]
     for item, needle in cases:
         bad = tmp_path / "bad.h5"
@@ -318,6 +320,14 @@ def test_collect_set_expert_routes_keeps_one_route_kind(tmp_path, cdrb):
         assert r.returncode == 2, (item, r.stderr)
         assert needle in r.stderr and "Traceback" not in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1 and not bad.exists()
+    # a field that --policy sets (the file and its hash) is not a --set field
+    policy = tmp_path / "policy.zip"
+    policy.write_bytes(b"not read: refused before loading")
+    r = cdrb(
+        "collect", "fetch-reach", "--expert", "sac", "--policy", policy, "-n", "2",
+        "--set", "expert.policy_sha256=0", "--out", tmp_path / "bad.h5",
+    )  # fmt: skip
+    assert r.returncode == 2 and "comes from --policy" in r.stderr and not (tmp_path / "bad.h5").exists(), r.stderr
     listed = cdrb("config", "collect")
     assert listed.returncode == 0 and "expert.routes" in listed.stdout and "expert.clearance" in listed.stdout
 

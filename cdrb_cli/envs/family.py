@@ -90,6 +90,8 @@ class ExpertConfig(Record):
     """Base of every expert's settings (stored in the demos artifact); subclasses fix ``kind``."""
 
     kind: str
+    #: fields that come from `cdrb collect`'s own flags (e.g. a policy file and its hash): `--set` may not change them
+    flag_fields: ClassVar[tuple[str, ...]] = ()
 
     def describe(self) -> str:
         """Where the demonstrations came from, in one line (`cdrb inspect`)."""

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -31,6 +31,7 @@ class SacExpertConfig(ExpertConfig):
     policy_path: str
     policy_sha256: str
     deterministic: bool = True
+    flag_fields: ClassVar[tuple[str, ...]] = ("policy_path", "policy_sha256")  # from --policy (the file, hashed)
 
     def describe(self) -> str:
         return f"SAC policy {self.policy_path} (sha256 {self.policy_sha256[:12]})"

@@ -67,6 +67,12 @@ def collect_config(
                 "experts' fields",
             )
     expert_cfg = EXPERTS.get(name, "--expert").configure(policy)
+    for s in settings:
+        if len(s.path) > 1 and s.path[1] in type(expert_cfg).flag_fields:
+            raise BadInput(
+                f"{s.source}: expert.{s.path[1]} comes from --policy (the file and its sha256)",
+                hint="pass the policy with --policy PATH",
+            )
     split = {"valid_fraction": valid_fraction} if valid_fraction is not None else {}
     base = {"env": spec.id, "episodes": episodes, "expert": expert_cfg.model_dump(mode="json"), "seed": seed, **split}
     return validate(CollectConfig, apply(base, settings), settings, "collect")

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
 from cdrb_cli.envs.fetch.geometry import MAX_OPENING, Box, block_obstacles, gripper_obstacles
@@ -49,8 +49,17 @@ class FetchExpertConfig(ExpertConfig):
     clearance: float = Field(0.03, ge=0, le=0.2, description="distance kept from the walls by routes, m")
     reach_tolerance: float = Field(0.015, gt=0, le=0.1, description="a waypoint counts as reached this close, m")
     routes: list[Literal["over", "around"]] = Field(
-        default_factory=lambda: ["over", "around"], description="route kinds drawn from where they exist"
+        default_factory=lambda: ["over", "around"],
+        min_length=1,
+        description="route kinds drawn from where they exist (each once)",
     )
+
+    @field_validator("routes")
+    @classmethod
+    def _once(cls, value: list[str]) -> list[str]:
+        if len(set(value)) != len(value):
+            raise ValueError("list each route kind once")
+        return value
 
 
 def _move(point: np.ndarray, target: np.ndarray, gain: float) -> np.ndarray:
