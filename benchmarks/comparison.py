@@ -313,6 +313,12 @@ def choose(args) -> dict:
     return out
 
 
+def _clock_rank(s: dict) -> tuple:
+    """How a clock/controller candidate ranks: success, then fewer plans through obstacles (sampling steps change the
+    plans), then fewer executed collisions (under one sampling setting the plans are the same for every controller)."""
+    return (s["success"], -(s["crossing"] or 0), -s["collision"])
+
+
 def write(args, log) -> None:
     from cdrb_cli import artifacts
 
@@ -358,13 +364,7 @@ def write(args, log) -> None:
                             **_rounded(s, exclude=("model",)),
                         }
                     )
-
-                    # ties go to fewer plans through obstacles (sampling steps change the plans), then fewer executed
-                    # collisions (under one sampling setting the plans are the same for every controller)
-                    def rank(x):
-                        return (x["success"], -(x["crossing"] or 0), -x["collision"])
-
-                    if best is None or rank(s) > rank(best[1]):
+                    if best is None or _clock_rank(s) > _clock_rank(best[1]):
                         best = (cname, s)
             if best is not None:
                 t["clock"], t["eval_flags"] = best[0], candidates[best[0]]

@@ -100,10 +100,14 @@ def main() -> None:
         rows = kept + rows
     rows.sort(key=lambda r: (_order(r["env"]), r["env"], r["method"], int(r["seed"])))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    _write_atomic(args.out, lambda f: _csv_rows(f, rows))
+    with artifacts.atomic_path(args.out) as tmp, tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=FIELDS, restval="")
+        w.writeheader()
+        w.writerows(rows)
     if args.docs is not None:
         text = replace_block(args.docs.read_text(), "fetch-rows", markdown(args.out))
-        _write_atomic(args.docs, lambda f: f.write(text))
+        with artifacts.atomic_path(args.docs) as tmp:
+            tmp.write_text(text)
     for env in args.envs.split(","):
         for method in args.methods.split(","):
             sel = [r for r in rows if r["env"] == env and r["method"] == method]
@@ -116,24 +120,6 @@ def main() -> None:
                     f"{np.mean([r['in_obstacle'] for r in sel]):6.3f}%  through {cross:6.2f}%  collisions "
                     f"{np.mean([r['collisions'] for r in sel]):6.2f}%"
                 )
-
-
-def _csv_rows(f, rows: list[dict]) -> None:
-    w = csv.DictWriter(f, fieldnames=FIELDS, restval="")
-    w.writeheader()
-    w.writerows(rows)
-
-
-def _write_atomic(path: Path, write) -> None:
-    """``write(file)`` into a temporary file beside ``path``, then rename it over ``path``."""
-    import os
-
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
 
 
 def _failures(sel: list[dict]) -> str:
@@ -163,6 +149,7 @@ def _clean(sel: list[dict]) -> str:
 def markdown(path: Path) -> str:
     """The Fetch rows of Table 1 from the per-seed CSV: one line per env and method, the paper's beside."""
     from cdrb_cli.envs.registry import family_of, make_spec
+    from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.stages.report import PAPER_TABLE1
 
     with path.open() as f:
@@ -174,7 +161,7 @@ def markdown(path: Path) -> str:
         "|---|---|---|---|---:|---:|---:|---:|---:|---|---:|"
     )
     lines = [head]
-    order = {m: i for i, m in enumerate(("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"))}
+    order = {m: i for i, m in enumerate(METHODS.names())}  # the registry's order: Table 1's for the built-ins
     groups = dict.fromkeys((r["env"], r["method"]) for r in rows)
     for env, method in sorted(groups, key=lambda g: (_order(g[0]), g[0], order.get(g[1], 9))):
         sel = [r for r in rows if r["env"] == env and r["method"] == method]
