@@ -175,6 +175,8 @@ def failed_by_cause(counts: list) -> dict:
 def write(args) -> None:
     import numpy as np
 
+    from cdrb_cli import artifacts
+
     rows = []
     for name_ in ("tune", "test"):
         folder = args.out / args.env / name_
@@ -204,14 +206,17 @@ def write(args) -> None:
                         **failed_by_cause([s["failures"] if name_ == "test" else None for s in ss]),
                     }
                 )
+    if not rows:
+        raise SystemExit(f"{args.out / args.env}: no tune or test evals yet; run `tune` (and `test`) first")
     dest = ROOT / "docs" / "results" if args.write_docs else args.out
     dest.mkdir(parents=True, exist_ok=True)
     path = dest / f"closed_loop_{args.env}.csv"
-    with path.open("w", newline="") as f:
+    with artifacts.atomic_path(path) as tmp, tmp.open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    (dest / f"closed_loop_{args.env}_picks.json").write_text(json.dumps(picks(args), indent=1))
+    with artifacts.atomic_path(dest / f"closed_loop_{args.env}_picks.json") as tmp:
+        tmp.write_text(json.dumps(picks(args), indent=1))
     print(path)
     for r in rows:
         print(r)
