@@ -31,6 +31,10 @@ FIELDS = (
 )  # fmt: skip
 
 
+#: the per-seed columns averaged over the seeds by :func:`aggregate`
+MEAN_FIELDS = ("in_obstacle", "plans_through_obstacle", "collisions")
+
+
 def _order(env: str) -> int:
     """Table 1's row order (other environments after its eight)."""
     return TABLE1_ENVS.index(env) if env in TABLE1_ENVS else len(TABLE1_ENVS)
@@ -108,18 +112,48 @@ def main() -> None:
         text = replace_block(args.docs.read_text(), "fetch-rows", markdown(args.out))
         with artifacts.atomic_path(args.docs) as tmp:
             tmp.write_text(text)
-    for env in args.envs.split(","):
-        for method in args.methods.split(","):
-            sel = [r for r in rows if r["env"] == env and r["method"] == method]
-            if sel:
-                succ = np.array([r["success"] for r in sel])
-                std = succ.std(ddof=1) if len(succ) > 1 else float("nan")
-                cross = np.mean([r["plans_through_obstacle"] or 0 for r in sel])
-                print(
-                    f"{env:22s} {method:9s} seeds {len(sel)}: success {succ.mean():6.2f} ± {std:5.2f}  in obstacle "
-                    f"{np.mean([r['in_obstacle'] for r in sel]):6.3f}%  through {cross:6.2f}%  collisions "
-                    f"{np.mean([r['collisions'] for r in sel]):6.2f}%"
-                )
+    for a in aggregate(rows):
+        if (a["env"], a["method"]) in remeasured:
+            std = float("nan") if a["success_std"] is None else a["success_std"]
+            print(
+                f"{a['env']:22s} {a['method']:9s} seeds {a['seeds']}: success {a['success_mean']:6.2f} ± {std:5.2f}  "
+                f"in obstacle {a['in_obstacle']:6.3f}%  through {a['plans_through_obstacle']:6.2f}%  collisions "
+                f"{a['collisions']:6.2f}%"
+            )
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    """Per (env, method), in Table 1's order (methods in the registry's: Table 1's for the built-ins): the seeds'
+    rows, their count, the mean and sample std of success (None with one seed), the mean obstacle and collision
+    rates, and the controllers and sampling steps used. Values may be numbers or CSV text ("" counts as 0)."""
+    from cdrb_cli.methods.registry import METHODS
+
+    order = {m: i for i, m in enumerate(METHODS.names())}
+    groups = dict.fromkeys((r["env"], r["method"]) for r in rows)
+    out = []
+    for env, method in sorted(groups, key=lambda g: (_order(g[0]), g[0], order.get(g[1], 9))):
+        sel = [r for r in rows if r["env"] == env and r["method"] == method]
+        succ = np.array([_num(r["success"]) for r in sel])
+        out.append(
+            {
+                "env": env,
+                "method": method,
+                "rows": sel,
+                "seeds": len(sel),
+                "episodes": int(sel[0]["episodes"]),
+                "success_mean": float(succ.mean()),
+                "success_std": float(succ.std(ddof=1)) if len(sel) > 1 else None,
+                **{k: float(np.mean([_num(r[k]) for r in sel])) for k in MEAN_FIELDS},
+                "controllers": sorted({str(r["controller"]) for r in sel}),
+                "sample_steps": sorted({str(r.get("sample_steps") or "all") for r in sel}),
+            }
+        )
+    return out
+
+
+def steps_label(steps: list[str]) -> str:
+    """ ", 8 sampling steps" for a method run with fewer denoising steps than its model has, "" with all of them."""
+    return "" if steps == ["all"] else f", {'/'.join(steps)} sampling steps"
 
 
 def _failures(sel: list[dict]) -> str:
@@ -149,7 +183,6 @@ def _clean(sel: list[dict]) -> str:
 def markdown(path: Path) -> str:
     """The Fetch rows of Table 1 from the per-seed CSV: one line per env and method, the paper's beside."""
     from cdrb_cli.envs.registry import family_of, make_spec
-    from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.stages.report import PAPER_TABLE1
 
     with path.open() as f:
@@ -161,29 +194,22 @@ def markdown(path: Path) -> str:
         "|---|---|---|---|---:|---:|---:|---:|---:|---|---:|"
     )
     lines = [head]
-    order = {m: i for i, m in enumerate(METHODS.names())}  # the registry's order: Table 1's for the built-ins
-    groups = dict.fromkeys((r["env"], r["method"]) for r in rows)
-    for env, method in sorted(groups, key=lambda g: (_order(g[0]), g[0], order.get(g[1], 9))):
-        sel = [r for r in rows if r["env"] == env and r["method"] == method]
-        succ = np.array([_num(r["success"]) for r in sel])
-        std = f"{succ.std(ddof=1):.1f}" if len(sel) > 1 else "–"
-        controllers = sorted({r["controller"] for r in sel})
-        steps = sorted({r.get("sample_steps") or "all" for r in sel})
-        label = (
-            "`" + " / ".join(controllers) + "`" + ("" if steps == ["all"] else f", {'/'.join(steps)} sampling steps")
-        )
+    for a in aggregate(rows):
+        env, method, sel = a["env"], a["method"], a["rows"]
+        std = "–" if a["success_std"] is None else f"{a['success_std']:.1f}"
+        label = "`" + " / ".join(a["controllers"]) + "`" + steps_label(a["sample_steps"])
         spec = make_spec(env)
         paper = PAPER_TABLE1.get(env, {}).get(method)
         cells = [
             family_of(spec).display_name(env),
             "CDRB" if method == "cdrb" else method,
             label,
-            f"{len(sel)} x {sel[0]['episodes']}",
-            f"{succ.mean():.1f} ± {std}",
+            f"{a['seeds']} x {a['episodes']}",
+            f"{a['success_mean']:.1f} ± {std}",
             _clean(sel),
-            f"{np.mean([_num(r['in_obstacle']) for r in sel]):.2f}",
-            f"{np.mean([_num(r['plans_through_obstacle']) for r in sel]):.1f}",
-            f"{np.mean([_num(r['collisions']) for r in sel]):.1f}",
+            f"{a['in_obstacle']:.2f}",
+            f"{a['plans_through_obstacle']:.1f}",
+            f"{a['collisions']:.1f}",
             _failures(sel),
             "–" if paper is None else f"{paper[0]:.2f} ± {paper[1]:.2f}",
         ]

@@ -16,11 +16,10 @@ import csv
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from table1 import DOCS, TABLE1_ENVS, replace_block  # noqa: E402
+from table1_seeds import MEAN_FIELDS, aggregate, steps_label  # noqa: E402
 
 #: the CSV's columns, in order
 FIELDS = (
@@ -58,31 +57,24 @@ def maze_rows(path: Path) -> list[dict]:
 
 
 def fetch_rows(path: Path) -> list[dict]:
-    """The per-seed rows of table1_seeds.py, aggregated per (env, method): mean and sample std over the seeds."""
+    """The per-seed rows of table1_seeds.py, aggregated per (env, method) as its own table is: mean and sample std
+    over the seeds."""
     with path.open() as f:
         rows = list(csv.DictReader(f))
-    out = []
-    for env, method in dict.fromkeys((r["env"], r["method"]) for r in rows):
-        sel = [r for r in rows if r["env"] == env and r["method"] == method]
-        succ = np.array([float(r["success"]) for r in sel])
-        steps = sorted({r.get("sample_steps") or "all" for r in sel})
-        setting = " / ".join(sorted({r["controller"] for r in sel}))
-        out.append(
-            {
-                "env": env,
-                "method": method,
-                "training_seeds": len(sel),
-                "episodes_per_seed": int(sel[0]["episodes"]),
-                "success_mean": float(succ.mean()),
-                "success_std": float(succ.std(ddof=1)) if len(sel) > 1 else None,
-                "in_obstacle": float(np.mean([_f(r["in_obstacle"]) or 0.0 for r in sel])),
-                "plans_through_obstacle": float(np.mean([_f(r["plans_through_obstacle"]) or 0.0 for r in sel])),
-                "collisions": float(np.mean([_f(r["collisions"]) or 0.0 for r in sel])),
-                "setting": setting + ("" if steps == ["all"] else f", {'/'.join(steps)} sampling steps"),
-                "source": path.name,
-            }
-        )
-    return out
+    return [
+        {
+            "env": a["env"],
+            "method": a["method"],
+            "training_seeds": a["seeds"],
+            "episodes_per_seed": a["episodes"],
+            "success_mean": a["success_mean"],
+            "success_std": a["success_std"],
+            **{k: a[k] for k in MEAN_FIELDS},
+            "setting": " / ".join(a["controllers"]) + steps_label(a["sample_steps"]),
+            "source": path.name,
+        }
+        for a in aggregate(rows)
+    ]
 
 
 def combine(mazes: list[dict], fetch: list[dict]) -> list[dict]:
