@@ -1,6 +1,7 @@
 """All eight rows of Table 1 in one CSV and one markdown table: the maze rows (benchmarks/table1.py's report,
-docs/results/table1.csv) and the Fetch rows (benchmarks/table1_seeds.py's per-seed CSV), one line per environment
-and method, with the paper's figure beside ours.
+docs/results/table1.csv), the closed-loop policies' rows (the same report over their evals,
+docs/results/table1_policies.csv, when it exists) and the Fetch rows (benchmarks/table1_seeds.py's per-seed CSV), one
+line per environment and method, with the paper's figure beside ours.
 
     python benchmarks/table1_summary.py --out docs/results/table1_all.csv --readme README.md
 
@@ -26,7 +27,15 @@ FIELDS = (
     "env", "method", "training_seeds", "episodes_per_seed", "success_mean", "success_std", "in_obstacle",
     "plans_through_obstacle", "collisions", "paper_mean", "paper_std", "setting", "source",
 )  # fmt: skip
-METHODS = ("mlp", "diffuser", "cdrb")
+METHODS = ("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb")  # the paper's column order
+#: the README block's column names
+TITLES = {
+    "mlp": "MLP",
+    "diffuser": "Diffuser",
+    "diffusion-bc": "Diffusion BC",
+    "diffusion-ql": "Diffusion-QL",
+    "cdrb": "CDRB",
+}
 
 
 def _f(text) -> float | None:
@@ -78,7 +87,8 @@ def fetch_rows(path: Path) -> list[dict]:
 
 
 def combine(mazes: list[dict], fetch: list[dict]) -> list[dict]:
-    """Both sources in Table 1's order, the paper's figure on each row; a Fetch row wins over a maze-CSV row."""
+    """Both sources in Table 1's order, the paper's figure on each row; a Fetch row wins over a maze-CSV row (the
+    policies' report rows join ``mazes``)."""
     from cdrb_cli.stages.report import PAPER_TABLE1
 
     rows = {(r["env"], r["method"]): r for r in mazes}
@@ -107,9 +117,9 @@ def markdown(rows: list[dict]) -> str:
         return f"**{text}**" if method == "cdrb" else text
 
     lines = [
-        "| Table 1 row | seeds x pairs | MLP | Diffuser | CDRB | CDRB: planned states in obstacles / plans through "
-        "one (%) | paper: MLP / Diffuser / CDRB |",
-        "|---|---|---:|---:|---:|---:|---|",
+        "| Table 1 row | seeds x pairs | " + " | ".join(TITLES[m] for m in METHODS) + " | CDRB: planned states in "
+        "obstacles / plans through one (%) | paper: " + " / ".join(TITLES[m] for m in METHODS) + " |",
+        "|---|---|" + "---:|" * (len(METHODS) + 1) + "---|",
     ]
     by = {(r["env"], r["method"]): r for r in rows}
     for env in TABLE1_ENVS:
@@ -132,6 +142,12 @@ def markdown(rows: list[dict]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--mazes", type=Path, default=DOCS / "results" / "table1.csv")
+    ap.add_argument(
+        "--policies",
+        type=Path,
+        default=None,
+        help="the policies' report CSV (default: docs/results/table1_policies.csv when it exists)",
+    )
     ap.add_argument("--fetch", type=Path, default=DOCS / "results" / "table1_fetch.csv")
     ap.add_argument("--out", type=Path, default=DOCS / "results" / "table1_all.csv")
     ap.add_argument("--readme", type=Path, action="append", default=[], help="rewrite this file's table1-all block")
@@ -143,7 +159,11 @@ def main() -> None:
             raise SystemExit(
                 f"{flag} {p}: no such file; give the CSV written by benchmarks/table1.py or table1_seeds.py"
             )
-    rows = combine(maze_rows(args.mazes), fetch_rows(args.fetch))
+    if args.policies is not None and not args.policies.is_file():
+        raise SystemExit(f"--policies {args.policies}: no such file; give the CSV `cdrb report` wrote over their evals")
+    policies = args.policies or DOCS / "results" / "table1_policies.csv"
+    mazes = maze_rows(args.mazes) + (maze_rows(policies) if policies.is_file() else [])
+    rows = combine(mazes, fetch_rows(args.fetch))
     with artifacts.atomic_path(args.out) as tmp, tmp.open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=FIELDS)
         w.writeheader()

@@ -179,11 +179,13 @@ def test_table1_seeds_merges_earlier_parts_and_writes_the_docs_rows(tmp_path):
 
 def test_table1_summary_joins_the_maze_and_fetch_rows_in_table1_order(tmp_path):
     """`table1_summary.py`: the maze report's aggregated rows (official-code protocol left out) and the Fetch per-seed
-    rows, averaged with the sample std, in Table 1's order with the paper's figure; the README block shows every
-    Table-1 row, "not measured yet" where nothing is; a missing input is a one-line error and writes nothing."""
+    rows, averaged with the sample std, and the policies' report rows, in Table 1's order with the paper's figure;
+    the README block shows every Table-1 row, each method in its own column, "not measured yet" where nothing is; a
+    missing input is a one-line error and writes nothing."""
     import csv
 
     mazes, fetch, out, readme = (tmp_path / n for n in ("m.csv", "f.csv", "all.csv", "README.md"))
+    policies = tmp_path / "p.csv"
     head = "env,method,seeds,episodes,protocol,controller,success_mean,success_std,in_wall_mean,crossing_mean,"
     head += "collision_mean\n"
     mazes.write_text(
@@ -196,6 +198,7 @@ def test_table1_summary_joins_the_maze_and_fetch_rows_in_table1_order(tmp_path):
         + "fetch-push,mlp,1,100,90.0,3.0,20.0,5.0,fetch-track,all\n"
         + "fetch-reach,cdrb,0,100,100.0,0.0,0.0,0.0,fetch-track,2\n"
     )
+    policies.write_text(head + "maze,diffusion-ql,3,100,ours,closed loop,88.0,2.0,,,40.0\n")  # a policy: no plans
     readme.write_text("x\n<!-- table1-all:begin -->\nstale\n<!-- table1-all:end -->\ny\n")
     script = [sys.executable, str(ROOT / "benchmarks" / "table1_summary.py"), "--mazes", str(mazes)]
     proc = subprocess.run(
@@ -204,22 +207,41 @@ def test_table1_summary_joins_the_maze_and_fetch_rows_in_table1_order(tmp_path):
     assert proc.returncode != 0 and "--fetch" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists()
     proc = subprocess.run(
-        [*script, "--fetch", str(fetch), "--out", str(out), "--readme", str(readme)], capture_output=True, text=True
+        [*script, "--fetch", str(fetch), "--policies", str(tmp_path / "nope.csv"), "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode != 0 and "--policies" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()
+    proc = subprocess.run(
+        [*script, "--fetch", str(fetch), "--policies", str(policies), "--out", str(out), "--readme", str(readme)],
+        capture_output=True,
+        text=True,
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == str(out)
     with out.open() as f:
         rows = list(csv.DictReader(f))
-    assert [(r["env"], r["method"]) for r in rows] == [("maze", "cdrb"), ("fetch-reach", "cdrb"), ("fetch-push", "mlp")]
-    assert rows[0]["success_mean"] == "99.0" and rows[0]["paper_mean"] == "95.33"
-    push = rows[2]
+    got = [(r["env"], r["method"]) for r in rows]
+    assert got == [("maze", "diffusion-ql"), ("maze", "cdrb"), ("fetch-reach", "cdrb"), ("fetch-push", "mlp")]
+    assert rows[1]["success_mean"] == "99.0" and rows[1]["paper_mean"] == "95.33"
+    dql = rows[0]
+    assert (dql["success_mean"], dql["in_obstacle"], dql["collisions"], dql["paper_mean"]) == (
+        "88.0",
+        "",
+        "40.0",
+        "100.0",
+    )
+    push = rows[3]
     assert (push["training_seeds"], push["success_mean"], push["success_std"]) == ("2", "85.0", "7.071")
     assert (push["in_obstacle"], push["plans_through_obstacle"], push["paper_mean"]) == ("2.0", "15.0", "2.45")
-    assert rows[1]["setting"] == "fetch-track, 2 sampling steps" and rows[1]["success_std"] == ""
+    assert rows[2]["setting"] == "fetch-track, 2 sampling steps" and rows[2]["success_std"] == ""
     lines = readme.read_text().splitlines()
     assert "stale" not in lines and lines[0] == "x" and lines[-1] == "y"
     table = [x for x in lines if x.startswith("| ") and not x.startswith("| Table 1")]
     assert len(table) == 8  # every Table-1 row, measured or not
-    assert "| **99.0 ± 1.0** | 0.50 / 2.0 |" in next(x for x in table if x.startswith("| Maze |"))
-    assert "| 85.0 ± 7.1 | – | – | – |" in next(x for x in table if x.startswith("| Push |"))
+    # columns: MLP, Diffuser, Diffusion BC, Diffusion-QL, CDRB, CDRB's obstacle rates, the paper's five
+    maze = next(x for x in table if x.startswith("| Maze |"))
+    assert "| – | – | – | 88.0 ± 2.0 | **99.0 ± 1.0** | 0.50 / 2.0 | 74.22 / 100.00 / 90.13 / 100.00 / 95.33 |" in maze
+    assert "| 85.0 ± 7.1 | – | – | – | – | – |" in next(x for x in table if x.startswith("| Push |"))
     assert "not measured yet" in next(x for x in table if x.startswith("| Pick & Place |"))
