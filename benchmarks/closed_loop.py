@@ -26,13 +26,12 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-#: the re-planning triggers tried, per env (the same list for every method: an equal tuning budget). Maze Tight's
-#: episodes are 400 steps and the ball drifts by tenths of a metre; Push Obstacle's are 100 steps (2 per planned
-#: state) and the pusher's block must stay within centimetres of its path.
-TRIGGERS = {
-    "maze-tight": ["every:20", "every:40", "deviation:0.5"],
-    "fetch-push-obstacle": ["every:20", "every:30", "every:45", "deviation:0.15"],
-    "fetch-pick-place-obstacle": ["every:20", "every:30", "every:45", "deviation:0.15"],
+#: the re-planning triggers tried, per environment family (the same list for every method: an equal tuning budget).
+#: Maze episodes are 400 steps and the ball drifts by tenths of a metre; a Fetch task's are 50-100 steps (1-2 per
+#: planned state) and the gripper or block must stay within centimetres of its path.
+TRIGGERS = {  # per environment family: a maze cell is 1 m, a Fetch episode 50 steps with cm-scale tolerances
+    "pointmaze": ["every:20", "every:40", "deviation:0.5"],
+    "fetch": ["every:20", "every:30", "every:45", "deviation:0.15"],
 }
 REPAIRS = {"from scratch": [], "repair k=4": ["--repair-k", "4"]}
 METHODS = ("mlp", "diffuser", "cdrb")
@@ -55,8 +54,10 @@ def slug(text: str) -> str:
 
 
 def candidates(method: str, env: str = "maze-tight") -> dict[str, list]:
+    from cdrb_cli.envs.registry import make_spec
+
     out = {"open loop": []}
-    for t in TRIGGERS.get(env, TRIGGERS["maze-tight"]):
+    for t in TRIGGERS[make_spec(env).family]:
         for r, rf in REPAIRS.items():
             if method == "mlp" and rf:
                 continue
