@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 #: the re-planning triggers tried, per environment family (the same list for every method: an equal tuning budget).
 #: Maze episodes are 400 steps and the ball drifts by tenths of a metre; a Fetch task's are 50-100 steps (1-2 per
 #: planned state) and the gripper or block must stay within centimetres of its path.
-TRIGGERS = {  # per environment family: a maze cell is 1 m, a Fetch episode 50 steps with cm-scale tolerances
+TRIGGERS = {
     "pointmaze": ["every:20", "every:40", "deviation:0.5"],
     "fetch": ["every:20", "every:30", "every:45", "deviation:0.15"],
 }

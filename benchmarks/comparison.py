@@ -304,18 +304,14 @@ def choose(args) -> dict:
     out: dict = {}
     for env in args.envs:
         for method in args.methods:
-            rows = []
-            for name in sweep_for(env, args.candidates)[method]:
+            rows, cands = [], sweep_for(env, args.candidates)[method]
+            for name in cands:
                 p = args.out / env / "sweep" / f"eval-{method}-{slug(name)}.h5"
                 if p.exists():
                     rows.append((name, _summary(p)))
             if rows:
                 name, s = max(rows, key=lambda r: (r[1]["success"], -(r[1]["crossing"] or 0), -r[1]["collision"]))
-                out.setdefault(env, {})[method] = {
-                    "candidate": name,
-                    "train_flags": sweep_for(env, args.candidates)[method][name],
-                    **s,
-                }
+                out.setdefault(env, {})[method] = {"candidate": name, "train_flags": cands[name], **s}
     return out
 
 
