@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -245,3 +246,38 @@ def test_table1_summary_joins_the_maze_and_fetch_rows_in_table1_order(tmp_path):
     assert "| – | – | – | 88.0 ± 2.0 | **99.0 ± 1.0** | 0.50 / 2.0 | 74.22 / 100.00 / 90.13 / 100.00 / 95.33 |" in maze
     assert "| 85.0 ± 7.1 | – | – | – | – | – |" in next(x for x in table if x.startswith("| Push |"))
     assert "not measured yet" in next(x for x in table if x.startswith("| Pick & Place |"))
+
+
+def test_policy_actions_draws_held_out_expert_transitions_and_scores_agreement(small_data):
+    """policy_actions.py: the transitions come from validation episodes only, with the episode's final state as
+    goal and the expert's own action; the expert scores error 0 / cosine 1, its reverse cosine -1 (every action off),
+    a half-strength copy keeps the direction and has norm ratio 0.5."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from policy_actions import agreement, held_out
+
+    from cdrb_cli.buffer import Normalizer, demo_features
+
+    demos, _ = small_data
+    raw = demo_features(demos, "state-action")
+    norm = Normalizer(low=raw.min(axis=0), high=raw.max(axis=0))
+    obs_dim, goal_dims = demos.manifest.env.obs_dim, list(demos.manifest.env.goal_dims)
+    states, goals, actions = held_out(demos, norm, obs_dim, goal_dims, 300, 0)
+    valid = set(demos.episode_ids("valid").tolist())
+    assert valid and len(valid) < len(demos.episode_length)
+    episode = np.repeat(np.arange(len(demos.episode_length)), demos.episode_length)
+    last = demos.episode_start + demos.episode_length - 1
+    # each drawn (state, action) is a demonstration row of a validation episode, its goal that episode's final state
+    dist = np.abs(raw[None, :, :obs_dim] - states[:, None]).max(axis=2)
+    row = dist.argmin(axis=1)
+    assert dist[np.arange(len(row)), row].max() < 1e-4
+    np.testing.assert_allclose(raw[row, obs_dim:], actions, atol=1e-4)
+    assert set(episode[row].tolist()) <= valid
+    np.testing.assert_allclose(raw[last[episode[row]]][:, goal_dims], goals, atol=1e-4)
+
+    same = agreement(actions, actions)
+    assert same["mean_abs_error"] == 0 and same["median_cosine"] == 1 and same["off_by_25deg"] == 0
+    assert same["norm_ratio"] == 1
+    rev = agreement(-actions, actions)
+    assert rev["median_cosine"] == -1 and rev["off_by_25deg"] == 1
+    half = agreement(0.5 * actions, actions)
+    assert half["median_cosine"] == 1 and half["norm_ratio"] == 0.5 and half["off_by_25deg"] == 0
