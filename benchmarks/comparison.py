@@ -16,7 +16,7 @@ resumable (every stage is skipped when its artifact is up to date, through the C
   steps, width, horizon/stride, features), the same number of candidates and the same steps x batch for every
   method (the equal budget), training seed 0, evaluated on the tuning stream with the method's default clock.
 * ``clock``: for each method's chosen model, the plan clock (none, gated, gated with a timeout) and the official
-  executor, on the tuning stream.
+  executor, on the tuning stream; for a closed-loop policy (no plan, no clock) its action samplers instead.
 * ``write``: picks, per env and method, the best candidate (success, then fewer plans through obstacles) and writes
   ``docs/results/tuning.csv``, ``docs/results/learning_curves.csv``, ``docs/figures/learning_curves.png`` and
   ``docs/results/tuned.json`` (the settings table1.py reads with ``--tuned``).
@@ -90,6 +90,14 @@ POLICY_SWEEP = {
 }
 SWEEP |= POLICY_SWEEP
 
+#: a policy's eval-time knob in place of a clock: its sampler, two candidates each (the method's default first).
+#: Diffusion-QL's default picks one of 50 actions by the critics' softmax; its plain DDPM sample ignores the critics.
+#: Diffusion BC's default is Pearce's Diffusion-X (extra denoising at the last step); the plain DDPM sample has none.
+POLICY_SAMPLERS = {
+    "diffusion-bc": {"ddpm-x": [], "ddpm": ["--sampler", "ddpm"]},
+    "diffusion-ql": {"q-softmax": [], "ddpm": ["--sampler", "ddpm"]},
+}
+
 #: Fetch: no sweep of the training settings (CPU budget; the same for every method: the quick preset)
 FETCH_SWEEP = {m: {"quick": []} for m in SWEEP}
 
@@ -161,7 +169,10 @@ def has_denoising_steps(method: str) -> bool:
 
 def clocks_for(env: str, method: str) -> dict[str, list]:
     """The controller/clock candidates tried on ``env`` for ``method``: on the mazes the same for every method; on
-    Fetch the task's controllers, each also with fewer denoising steps for a method that has them."""
+    Fetch the task's controllers, each also with fewer denoising steps for a method that has them; for a closed-loop
+    policy its samplers."""
+    if is_policy(method):
+        return POLICY_SAMPLERS[method]
     task = _fetch_task(env)
     if not task:
         return CLOCKS
@@ -263,8 +274,6 @@ def clock(args, log) -> None:
     tuned = choose(args)
     for env in args.envs:
         for method in args.methods:
-            if is_policy(method):
-                continue  # no plan, no controller: nothing to tune here
             name = tuned[env][method]["candidate"]
             folder = args.out / env / "sweep"
             model = folder / f"{method}-{slug(name)}.h5"

@@ -281,3 +281,26 @@ def test_policy_actions_draws_held_out_expert_transitions_and_scores_agreement(s
     assert rev["median_cosine"] == -1 and rev["off_by_25deg"] == 1
     half = agreement(0.5 * actions, actions)
     assert half["median_cosine"] == 1 and half["norm_ratio"] == 0.5 and half["off_by_25deg"] == 0
+
+
+@pytest.mark.slow
+def test_comparison_script_tunes_a_policys_sampler_in_place_of_a_clock(tmp_path):
+    """A closed-loop policy has no plan clock: `clock` tries its samplers on the tuning stream instead (its default
+    first, which keeps a tie), and `write` records the pick's flags for table1.py."""
+    import csv
+    import json
+
+    from benchmarks.comparison import POLICY_SAMPLERS, clocks_for
+
+    out = tmp_path / "cmp"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "comparison.py"), "all", "--tiny", "--out", str(out)]
+    cmd += ["--envs", "maze", "--methods", "diffusion-bc", "--candidates", "1", "--device", "cpu"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert clocks_for("maze", "diffusion-bc") is POLICY_SAMPLERS["diffusion-bc"]
+    t = json.loads((out / "tuned.json").read_text())["settings"]["maze"]["diffusion-bc"]
+    with open(out / "tuning_clock.csv") as fh:
+        rows = {r["clock"]: float(r["success"]) for r in csv.DictReader(fh)}
+    assert set(rows) == {"ddpm-x", "ddpm"}
+    best = "ddpm" if rows["ddpm"] > rows["ddpm-x"] else "ddpm-x"
+    assert t["clock"] == best and t["eval_flags"] == POLICY_SAMPLERS["diffusion-bc"][best]
