@@ -2,13 +2,16 @@
 
     python benchmarks/policy_actions.py runs/cmp/maze/sweep/diffusion-ql-quick.h5 runs/cmp/maze/diffusion-bc-tuned-s0.h5
 
-For each model: ``--pairs`` transitions drawn from its demonstrations' validation split (episodes the model never
-trained on), each with the episode's final state as goal (what the expert was sent to). The policy acts once on each
-(state, goal); the script prints one JSON line per model and sampler: the mean absolute action error, the median
-cosine between policy and expert action, the share of actions more than 25 degrees off (cosine < 0.9) and the ratio
-of mean action norms. A Diffusion-QL model is also measured with its plain DDPM sample (``--sampler ddpm``: no
-Q-based pick), which separates the actor's imitation from the critic's choice. Closed-loop failure compounds these
-one-step errors; docs/benchmarks.md §4.7 uses them to explain Diffusion-QL's rows.
+For each model, two sets of held-out (state, goal) pairs from its demonstrations' validation split (episodes the model
+never trained on), the goal always the episode's final state (where the expert was sent):
+* ``transitions``: ``--pairs`` uniformly drawn steps. Mid-episode the state's velocity already says where the expert
+  is heading, so a policy can score well here while ignoring the goal;
+* ``first step``: every validation episode's first state. The robot is at rest; only the goal says which way to go.
+The policy acts once on each; the script prints one JSON line per model, set and sampler: the mean absolute action
+error, the median cosine between policy and expert action, the share of actions more than 25 degrees off (cosine <
+0.9) and the ratio of mean action norms. A Diffusion-QL model is also measured with its plain DDPM sample
+(``--sampler ddpm``: no Q-based pick), which separates the actor's imitation from the critic's choice.
+docs/benchmarks.md §4.7 uses these to explain Diffusion-QL's rows.
 """
 
 from __future__ import annotations
@@ -30,6 +33,17 @@ def held_out(demos, normalizer, obs_dim: int, goal_dims, n: int, seed: int):
     rows = TransitionSampler(demos, "state-action", normalizer, 1, "valid", 0.0).sample(n, np.random.default_rng(seed))
     raw = normalizer.unnormalize(rows.astype(np.float64))
     return raw[:, 0, :obs_dim], raw[:, -1, list(goal_dims)], raw[:, 0, obs_dim:]
+
+
+def first_steps(demos, obs_dim: int, goal_dims):
+    """(states, goals, expert actions), raw, at the first step of every validation episode, its final state as goal."""
+    from cdrb_cli.buffer import demo_features
+
+    raw = demo_features(demos, "state-action").astype(np.float64)
+    ids = demos.episode_ids("valid")
+    first = demos.episode_start[ids]
+    last = first + demos.episode_length[ids] - 1
+    return raw[first, :obs_dim], raw[last][:, list(goal_dims)], raw[first, obs_dim:]
 
 
 def agreement(actions: np.ndarray, expert: np.ndarray) -> dict:
@@ -55,17 +69,21 @@ def measure(path: Path, n: int, seed: int) -> list[dict]:
     if not hasattr(policy, "act"):
         raise SystemExit(f"{path}: {policy.name} is a planner; this script measures closed-loop policies")
     demos = artifacts.load(model.manifest.parents[0].path, "demos")
-    states, goals, expert = held_out(demos, policy.normalizer, policy.obs_dim, policy.goal_dims, n, seed)
+    sets = {
+        "transitions": held_out(demos, policy.normalizer, policy.obs_dim, policy.goal_dims, n, seed),
+        "first step": first_steps(demos, policy.obs_dim, policy.goal_dims),
+    }
     samplers = [policy.config.method.sampler] + (["ddpm"] if policy.name == "diffusion-ql" else [])
     out = []
-    for sampler in dict.fromkeys(samplers):
-        policy.config = policy.config.model_copy(
-            update={"method": policy.config.method.model_copy(update={"sampler": sampler})}
-        )
-        policy.reset(len(states), np.random.default_rng(seed))
-        actions = policy.act(states, goals, np.random.default_rng(seed))
-        row = {"model": str(path), "method": policy.name, "sampler": sampler, "pairs": n}
-        out.append(row | agreement(actions, expert))
+    for name, (states, goals, expert) in sets.items():
+        for sampler in dict.fromkeys(samplers):
+            policy.config = policy.config.model_copy(
+                update={"method": policy.config.method.model_copy(update={"sampler": sampler})}
+            )
+            policy.reset(len(states), np.random.default_rng(seed))
+            actions = policy.act(states, goals, np.random.default_rng(seed))
+            row = {"model": str(path), "method": policy.name, "set": name, "sampler": sampler, "pairs": len(states)}
+            out.append(row | agreement(actions, expert))
     return out
 
 

@@ -250,10 +250,11 @@ def test_table1_summary_joins_the_maze_and_fetch_rows_in_table1_order(tmp_path):
 
 def test_policy_actions_draws_held_out_expert_transitions_and_scores_agreement(small_data):
     """policy_actions.py: the transitions come from validation episodes only, with the episode's final state as
-    goal and the expert's own action; the expert scores error 0 / cosine 1, its reverse cosine -1 (every action off),
-    a half-strength copy keeps the direction and has norm ratio 0.5."""
+    goal and the expert's own action (the first-step set: each validation episode's first row); the expert scores
+    error 0 / cosine 1, its reverse cosine -1 (every action off), a half-strength copy keeps the direction and has
+    norm ratio 0.5."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from policy_actions import agreement, held_out
+    from policy_actions import agreement, first_steps, held_out
 
     from cdrb_cli.buffer import Normalizer, demo_features
 
@@ -273,6 +274,12 @@ def test_policy_actions_draws_held_out_expert_transitions_and_scores_agreement(s
     np.testing.assert_allclose(raw[row, obs_dim:], actions, atol=1e-4)
     assert set(episode[row].tolist()) <= valid
     np.testing.assert_allclose(raw[last[episode[row]]][:, goal_dims], goals, atol=1e-4)
+    # the first-step set: every validation episode's first row, at rest, its goal the episode's final state
+    s0, g0, a0 = first_steps(demos, obs_dim, goal_dims)
+    ids = demos.episode_ids("valid")
+    np.testing.assert_array_equal(s0, raw[demos.episode_start[ids], :obs_dim])
+    np.testing.assert_array_equal(a0, raw[demos.episode_start[ids], obs_dim:])
+    np.testing.assert_array_equal(g0, raw[last[ids]][:, goal_dims])
 
     same = agreement(actions, actions)
     assert same["mean_abs_error"] == 0 and same["median_cosine"] == 1 and same["off_by_25deg"] == 0
