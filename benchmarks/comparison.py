@@ -90,14 +90,6 @@ POLICY_SWEEP = {
 }
 SWEEP |= POLICY_SWEEP
 
-#: a policy's eval-time knob in place of a clock: its sampler, two candidates each (the method's default first).
-#: Diffusion-QL's default picks one of 50 actions by the critics' softmax; its plain DDPM sample ignores the critics.
-#: Diffusion BC's default is Pearce's Diffusion-X (extra denoising at the last step); the plain DDPM sample has none.
-POLICY_SAMPLERS = {
-    "diffusion-bc": {"ddpm-x": [], "ddpm": ["--sampler", "ddpm"]},
-    "diffusion-ql": {"q-softmax": [], "ddpm": ["--sampler", "ddpm"]},
-}
-
 #: Fetch: no sweep of the training settings (CPU budget; the same for every method: the quick preset)
 FETCH_SWEEP = {m: {"quick": []} for m in SWEEP}
 
@@ -172,7 +164,7 @@ def clocks_for(env: str, method: str) -> dict[str, list]:
     Fetch the task's controllers, each also with fewer denoising steps for a method that has them; for a closed-loop
     policy its samplers."""
     if is_policy(method):
-        return POLICY_SAMPLERS[method]
+        return policy_samplers(method)
     task = _fetch_task(env)
     if not task:
         return CLOCKS
@@ -182,6 +174,19 @@ def clocks_for(env: str, method: str) -> dict[str, list]:
             for n in FETCH_SAMPLE_STEPS:
                 out[f"{name}, {n} sampling steps"] = [*flags, "--sample-steps", str(n)]
     return out
+
+
+def policy_samplers(method: str) -> dict[str, list]:
+    """A closed-loop policy's eval-time knob in place of a clock: every sampler its config allows, the default first
+    (it keeps a tie). Diffusion-QL: q-softmax (one of 50 actions by the critics' softmax) or the plain DDPM sample;
+    Diffusion BC: Pearce's Diffusion-X (extra denoising at the last step) or plain DDPM."""
+    from typing import get_args
+
+    from cdrb_cli.methods.registry import METHODS
+
+    field = METHODS.get(method).params.model_fields["sampler"]
+    names = [field.default] + [n for n in get_args(field.annotation) if n != field.default]
+    return {n: [] if n == field.default else ["--sampler", n] for n in names}
 
 
 def is_policy(method: str) -> bool:

@@ -297,17 +297,19 @@ def test_comparison_script_tunes_a_policys_sampler_in_place_of_a_clock(tmp_path)
     import csv
     import json
 
-    from benchmarks.comparison import POLICY_SAMPLERS, clocks_for
+    from benchmarks.comparison import clocks_for
 
     out = tmp_path / "cmp"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "comparison.py"), "all", "--tiny", "--out", str(out)]
     cmd += ["--envs", "maze", "--methods", "diffusion-bc", "--candidates", "1", "--device", "cpu"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert clocks_for("maze", "diffusion-bc") is POLICY_SAMPLERS["diffusion-bc"]
+    samplers = clocks_for("maze", "diffusion-bc")
+    assert samplers == {"ddpm-x": [], "ddpm": ["--sampler", "ddpm"]}  # every sampler of its config, the default first
+    assert list(clocks_for("maze", "diffusion-ql")) == ["q-softmax", "ddpm"]
     t = json.loads((out / "tuned.json").read_text())["settings"]["maze"]["diffusion-bc"]
     with open(out / "tuning_clock.csv") as fh:
         rows = {r["clock"]: float(r["success"]) for r in csv.DictReader(fh)}
     assert set(rows) == {"ddpm-x", "ddpm"}
     best = "ddpm" if rows["ddpm"] > rows["ddpm-x"] else "ddpm-x"
-    assert t["clock"] == best and t["eval_flags"] == POLICY_SAMPLERS["diffusion-bc"][best]
+    assert t["clock"] == best and t["eval_flags"] == samplers[best]
