@@ -12,7 +12,17 @@ tuning stream, each re-planning trigger from scratch and with repair (the MLP ha
 re-predicts, so it is tried from scratch only) and picks per method the best from-scratch and the best repair setting
 (success, then fewer plans through a wall, then less planning time). ``test`` evaluates open loop and the two picks
 of every method on the test pairs, one eval per training seed (test seed = training seed, as Table 1). Each eval is a
-`cdrb eval` run, skipped when up to date, so the script resumes.
+`cdrb eval` run, skipped when up to date, so the script resumes. ``--picks FILE`` (a ``closed_loop_ENV_picks.json``
+that ``write`` recorded) takes the picks from that file instead of the tuning evals, so more training seeds can be
+tested with the settings chosen earlier, once their tuning evals are gone:
+
+    python benchmarks/closed_loop.py test --env maze-tight --models runs/cmp/maze-tight --out runs/cl --seeds 3,4 \
+        --picks docs/results/closed_loop_maze-tight_picks.json
+
+``write --pool-with CSV`` then joins an earlier run's CSV (other training seeds, the same settings): each test row's
+success becomes the mean and sample std over all the seeds (from the earlier row's mean, std and seed count: exact up
+to its 2-decimal rounding), the other rates their seed-weighted means, the failure counts their sums; the earlier
+tuning rows are kept where this run has none.
 """
 
 from __future__ import annotations
@@ -115,7 +125,14 @@ def tune(args) -> None:
 
 
 def picks(args) -> dict[str, dict[str, str]]:
-    """Per method: the best closed-loop setting from scratch and with repair, on the tuning stream."""
+    """Per method: the best closed-loop setting from scratch and with repair, on the tuning stream (or as ``--picks``
+    recorded them)."""
+    if args.picks is not None:
+        recorded = json.loads(args.picks.read_text())
+        missing = [m for m in args.methods if m not in recorded]
+        if missing:
+            raise SystemExit(f"--picks {args.picks}: no picks for {', '.join(missing)}; leave them out of --methods")
+        return {m: recorded[m] for m in args.methods}
     folder = args.out / args.env / "tune"
     chosen = {}
     for method in args.methods:
@@ -173,6 +190,61 @@ def failed_by_cause(counts: list) -> dict:
     return {f"failed_{cause}": None if total is None else total[cause] for cause in FAILURE_CAUSES}
 
 
+def read_rows(path: Path) -> list[dict]:
+    """An earlier `write`'s CSV rows (numbers as floats, empty cells as None); a one-line error when unreadable."""
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as e:
+        raise SystemExit(f"--pool-with {path}: cannot read it ({e.strerror}); pass a closed_loop_ENV.csv") from None
+    need = {"stage", "method", "setting", "training_seeds", "success", "success_std"}
+    if not rows or not need <= set(rows[0]):
+        raise SystemExit(f"--pool-with {path}: not a closed_loop_ENV.csv (needs the columns {', '.join(sorted(need))})")
+
+    def value(k: str, v: str):
+        if k in ("stage", "env", "method", "setting", "seeds") or v is None:
+            return v
+        return None if v == "" else float(v)
+
+    return [{k: value(k, v) for k, v in r.items()} for r in rows]
+
+
+def pool(n1: int, m1: float, s1: float, n2: int, m2: float, s2: float) -> tuple[float, float]:
+    """Mean and sample std (ddof = 1) of two groups of n1 and n2 values, from each group's mean and sample std."""
+    n = n1 + n2
+    mean = (n1 * m1 + n2 * m2) / n
+    squares = (n1 - 1) * s1**2 + n1 * m1**2 + (n2 - 1) * s2**2 + n2 * m2**2
+    return mean, max(squares - n * mean**2, 0.0) ** 0.5 / (n - 1) ** 0.5 if n > 1 else 0.0
+
+
+def pool_rows(rows: list[dict], earlier: list[dict]) -> list[dict]:
+    """This run's rows joined with an earlier run's (see the module doc): test rows pooled over both runs' seeds."""
+    key = lambda r: (r["stage"], r["method"], r["setting"])  # noqa: E731
+    before = {key(r): r for r in earlier}
+    mine = {key(r) for r in rows}
+    out = [r for r in earlier if r["stage"] == "tune" and key(r) not in mine]
+    for r in rows:
+        e = before.get(key(r))
+        if r["stage"] != "test" or e is None:
+            out.append(r)
+            continue
+        common = set((e.get("seeds") or "").split()) & set(r["seeds"].split())
+        if common:
+            raise SystemExit(f"--pool-with: {r['method']} '{r['setting']}' has training seed(s) {sorted(common)} twice")
+        n1, n2 = int(e["training_seeds"]), int(r["training_seeds"])
+        mean, std = pool(n1, e["success"], e["success_std"], n2, r["success"], r["success_std"])
+        joined = dict(r, training_seeds=n1 + n2, success=round(mean, 2), success_std=round(std, 2))
+        joined["seeds"] = f"{e.get('seeds') or f'({n1} earlier)'} {r['seeds']}"
+        for k, digits in (("crossing", 2), ("collision", 2), ("replans", 2), ("planning_ms", 1)):
+            both = e.get(k) is not None and r[k] is not None
+            joined[k] = round((n1 * e[k] + n2 * r[k]) / (n1 + n2), digits) if both else None
+        for k in r:
+            if k.startswith("failed_"):
+                joined[k] = None if e.get(k) is None or r[k] is None else int(e[k]) + r[k]
+        out.append(joined)
+    return out
+
+
 def write(args) -> None:
     import numpy as np
 
@@ -197,6 +269,7 @@ def write(args) -> None:
                         "method": method,
                         "setting": name,
                         "training_seeds": len(ss),
+                        "seeds": " ".join(str(x) for s in ss for x in s["seeds"]),
                         "success": round(float(np.mean(succ)), 2),
                         "success_std": round(float(np.std(succ, ddof=1)) if len(succ) > 1 else ss[0]["success_std"], 2),
                         "crossing": round(float(np.mean([s["crossing"] or 0.0 for s in ss])), 2),
@@ -209,11 +282,13 @@ def write(args) -> None:
                 )
     if not rows:
         raise SystemExit(f"{args.out / args.env}: no tune or test evals yet; run `tune` (and `test`) first")
+    if args.pool_with is not None:
+        rows = pool_rows(rows, read_rows(args.pool_with))
     dest = ROOT / "docs" / "results" if args.write_docs else args.out
     dest.mkdir(parents=True, exist_ok=True)
     path = dest / f"closed_loop_{args.env}.csv"
     with artifacts.atomic_path(path) as tmp, tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
         w.writeheader()
         w.writerows(rows)
     with artifacts.atomic_path(dest / f"closed_loop_{args.env}_picks.json") as tmp:
@@ -236,6 +311,8 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--episodes", default="100")
     ap.add_argument("--write-docs", action="store_true")
+    ap.add_argument("--pool-with", type=Path, default=None, help="an earlier run's CSV to pool with (write)")
+    ap.add_argument("--picks", type=Path, default=None, help="the picks recorded by an earlier `write` (test, write)")
     args = ap.parse_args()
     args.methods = args.methods.split(",")
     args.out.mkdir(parents=True, exist_ok=True)

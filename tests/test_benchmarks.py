@@ -313,3 +313,61 @@ def test_comparison_script_tunes_a_policys_sampler_in_place_of_a_clock(tmp_path)
     assert set(rows) == {"ddpm-x", "ddpm"}
     best = "ddpm" if rows["ddpm"] > rows["ddpm-x"] else "ddpm-x"
     assert t["clock"] == best and t["eval_flags"] == samplers[best]
+
+
+def test_closed_loop_pools_an_earlier_runs_rows_as_if_every_seed_were_one_run(tmp_path):
+    """closed_loop.py `write --pool-with`: success over two runs' seeds is the mean and sample std of all the seeds'
+    values (here recovered from each run's mean, std and count), rates are seed-weighted, failures summed, the
+    earlier tuning rows kept; a seed in both runs, a CSV that is not one, and a method the picks lack are errors."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import argparse
+    import json
+
+    from closed_loop import picks, pool, pool_rows, read_rows
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        a, b = rng.integers(0, 101, rng.integers(1, 5)), rng.integers(0, 101, rng.integers(2, 5))
+        sd = lambda x: float(np.std(x, ddof=1)) if len(x) > 1 else 0.0  # noqa: E731
+        mean, std = pool(len(a), a.mean(), sd(a), len(b), b.mean(), sd(b))
+        both = np.concatenate([a, b])
+        assert np.isclose(mean, both.mean()) and np.isclose(std, np.std(both, ddof=1))
+
+    earlier = tmp_path / "old.csv"
+    earlier.write_text(
+        "stage,env,method,setting,training_seeds,success,success_std,crossing,collision,replans,planning_ms\n"
+        "tune,maze-tight,cdrb,open loop,1,100.0,0.0,0.0,0.0,0.0,140.0\n"
+        "tune,maze-tight,cdrb,every 20,1,92.0,0.0,32.0,0.0,16.0,900.0\n"
+        "test,maze-tight,cdrb,open loop,3,99.0,1.0,0.3,1.0,0.0,148.0\n"
+    )
+    mine = [
+        dict(stage="test", env="maze-tight", method="cdrb", setting="open loop", training_seeds=2, seeds="3 4",
+             success=97.0, success_std=1.41, crossing=1.0, collision=2.0, replans=0.0, planning_ms=150.0,
+             failed_plan=1, failed_tracking=4),
+        dict(stage="test", env="maze-tight", method="mlp", setting="open loop", training_seeds=2, seeds="3 4",
+             success=70.0, success_std=0.0, crossing=40.0, collision=30.0, replans=0.0, planning_ms=0.2,
+             failed_plan=60, failed_tracking=0),
+    ]  # fmt: skip
+    rows = pool_rows(mine, read_rows(earlier))
+    tune = [r for r in rows if r["stage"] == "tune"]
+    assert [r["setting"] for r in tune] == ["open loop", "every 20"]
+    cdrb = next(r for r in rows if r["stage"] == "test" and r["method"] == "cdrb")
+    seeds = [98, 99, 100, 96, 98]  # the values behind both runs' means and stds
+    assert cdrb["training_seeds"] == 5 and cdrb["success"] == round(np.mean(seeds), 2)
+    assert abs(cdrb["success_std"] - np.std(seeds, ddof=1)) < 0.01
+    assert cdrb["crossing"] == round((3 * 0.3 + 2 * 1.0) / 5, 2) and cdrb["planning_ms"] == 148.8
+    assert cdrb["failed_plan"] is None  # the earlier run did not count its failures: no sum
+    assert cdrb["seeds"] == "(3 earlier) 3 4"
+    mlp = next(r for r in rows if r["method"] == "mlp")
+    assert mlp == mine[1]  # nothing earlier to pool with
+    with pytest.raises(SystemExit, match=r"training seed\(s\) \['3'\] twice"):
+        pool_rows(mine, [dict(r, seeds="2 3") for r in read_rows(earlier)])
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(SystemExit, match="--pool-with .*bad.csv"):
+        read_rows(tmp_path / "bad.csv")
+    recorded = tmp_path / "picks.json"
+    recorded.write_text(json.dumps({"cdrb": {"open loop": "open loop"}}))
+    args = argparse.Namespace(picks=recorded, methods=["cdrb"], out=tmp_path, env="maze-tight")
+    assert picks(args) == {"cdrb": {"open loop": "open loop"}}
+    with pytest.raises(SystemExit, match="--picks .*no picks for mlp"):
+        picks(argparse.Namespace(**{**vars(args), "methods": ["cdrb", "mlp"]}))
