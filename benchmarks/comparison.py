@@ -283,7 +283,25 @@ def clock(args, log) -> None:
             folder = args.out / env / "sweep"
             model = folder / f"{method}-{slug(name)}.h5"
             for cname, flags in clocks_for(env, method).items():
-                eval_tune(model, folder / f"clock-{method}-{slug(cname)}.h5", args, log, flags)
+                dest = folder / f"clock-{method}-{slug(cname)}.h5"
+                if flags:
+                    eval_tune(model, dest, args, log, flags)
+                else:  # the method's own default: the same command as the sweep's tuning eval of this model
+                    reuse(folder / f"eval-{method}-{slug(name)}.h5", dest)
+
+
+def reuse(src: Path, dest: Path) -> None:
+    """``dest`` as a copy of the eval ``src`` (which ran the same command), unless a copy at least as new is there."""
+    import shutil
+
+    from cdrb_cli import artifacts
+
+    if dest.exists() and dest.stat().st_mtime >= src.stat().st_mtime:
+        print(f"skip     0.0s  {dest.name}: the same eval as {src.name}", flush=True)
+        return
+    with artifacts.atomic_path(dest) as tmp:
+        shutil.copy2(src, tmp)
+    print(f"done     0.0s  {dest.name}: copied from {src.name} (the same eval command)", flush=True)
 
 
 def slug(text: str) -> str:
