@@ -9,8 +9,9 @@ never trained on), the goal always the episode's final state (where the expert w
 * ``first step``: every validation episode's first state. The robot is at rest; only the goal says which way to go.
 The policy acts once on each; the script prints one JSON line per model, set and sampler: the mean absolute action
 error, the median cosine between policy and expert action, the share of actions more than 25 degrees off (cosine <
-0.9) and the ratio of mean action norms. A Diffusion-QL model is also measured with its plain DDPM sample
-(``--sampler ddpm``: no Q-based pick), which separates the actor's imitation from the critic's choice.
+0.9) and the ratio of mean action norms. Each model is measured with every sampler its config allows (the ones
+benchmarks/comparison.py tunes), its own first: for Diffusion-QL the plain DDPM sample (``--sampler ddpm``: no
+Q-based pick) separates the actor's imitation from the critic's choice.
 docs/benchmarks.md §4.7 uses these to explain Diffusion-QL's rows.
 """
 
@@ -61,19 +62,21 @@ def agreement(actions: np.ndarray, expert: np.ndarray) -> dict:
 
 
 def measure(path: Path, n: int, seed: int) -> list[dict]:
+    from comparison import is_policy, policy_samplers
+
     from cdrb_cli import artifacts
     from cdrb_cli.methods.checkpoint import load_method
 
     model = artifacts.load(path, "model")
     policy = load_method(model)
-    if not hasattr(policy, "act"):
+    if not is_policy(policy.name):
         raise SystemExit(f"{path}: {policy.name} is a planner; this script measures closed-loop policies")
     demos = artifacts.load(model.manifest.parents[0].path, "demos")
     sets = {
         "transitions": held_out(demos, policy.normalizer, policy.obs_dim, policy.goal_dims, n, seed),
         "first step": first_steps(demos, policy.obs_dim, policy.goal_dims),
     }
-    samplers = [policy.config.method.sampler] + (["ddpm"] if policy.name == "diffusion-ql" else [])
+    samplers = [policy.config.method.sampler, *policy_samplers(policy.name)]
     out = []
     for name, (states, goals, expert) in sets.items():
         for sampler in dict.fromkeys(samplers):

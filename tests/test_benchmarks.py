@@ -293,7 +293,8 @@ def test_policy_actions_draws_held_out_expert_transitions_and_scores_agreement(s
 @pytest.mark.slow
 def test_comparison_script_tunes_a_policys_sampler_in_place_of_a_clock(tmp_path):
     """A closed-loop policy has no plan clock: `clock` tries its samplers on the tuning stream instead (its default
-    first, which keeps a tie), and `write` records the pick's flags for table1.py."""
+    first, which keeps a tie; its eval is the sweep's own, copied, not run again), and `write` records the pick's
+    flags for table1.py."""
     import csv
     import json
 
@@ -307,6 +308,11 @@ def test_comparison_script_tunes_a_policys_sampler_in_place_of_a_clock(tmp_path)
     samplers = clocks_for("maze", "diffusion-bc")
     assert samplers == {"ddpm-x": [], "ddpm": ["--sampler", "ddpm"]}  # every sampler of its config, the default first
     assert list(clocks_for("maze", "diffusion-ql")) == ["q-softmax", "ddpm"]
+    sweep = out / "maze" / "sweep"
+    default = sweep / "clock-diffusion-bc-ddpm-x.h5"
+    assert default.read_bytes() == next(sweep.glob("eval-diffusion-bc-*.h5")).read_bytes()
+    assert "clock-diffusion-bc-ddpm-x.h5: copied from eval-diffusion-bc-" in proc.stdout
+    assert "--out " + str(default) not in proc.stdout  # never evaluated a second time
     t = json.loads((out / "tuned.json").read_text())["settings"]["maze"]["diffusion-bc"]
     with open(out / "tuning_clock.csv") as fh:
         rows = {r["clock"]: float(r["success"]) for r in csv.DictReader(fh)}
@@ -371,3 +377,29 @@ def test_closed_loop_pools_an_earlier_runs_rows_as_if_every_seed_were_one_run(tm
     assert picks(args) == {"cdrb": {"open loop": "open loop"}}
     with pytest.raises(SystemExit, match="--picks .*no picks for mlp"):
         picks(argparse.Namespace(**{**vars(args), "methods": ["cdrb", "mlp"]}))
+
+
+def test_policy_actions_measures_every_sampler_a_policy_allows_and_refuses_a_planner(small_data, tmp_path):
+    """policy_actions.py's `measure`: one row per set and per sampler the method's config allows (the model's own
+    first), the same list comparison.py tunes; a planner's model is a one-line error."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from comparison import policy_samplers
+    from policy_actions import measure
+
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+
+    demos, _ = small_data
+    tiny = {"net.embed_dim": 16, "net.hidden": 32, "method.diffusion_steps": 4, "batch_size": 8, "steps": 2}
+    cfg = train_config(demos, None, "diffusion-bc", {**tiny, "method.sampler": "ddpm"})
+    train(demos, None, cfg, tmp_path / "bc.h5")
+    rows = measure(tmp_path / "bc.h5", 16, 0)
+    assert [(r["set"], r["sampler"]) for r in rows] == [
+        (s, sampler) for s in ("transitions", "first step") for sampler in ("ddpm", "ddpm-x")
+    ]
+    assert set(policy_samplers("diffusion-bc")) == {"ddpm", "ddpm-x"}
+    assert rows[0]["pairs"] == 16 and 0 <= rows[0]["off_by_25deg"] <= 1
+    mlp = train_config(demos, None, "mlp", {"steps": 2, "batch_size": 8})
+    train(demos, None, mlp, tmp_path / "mlp.h5")
+    with pytest.raises(SystemExit, match="mlp.h5: mlp is a planner"):
+        measure(tmp_path / "mlp.h5", 16, 0)
