@@ -34,7 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from table1 import DOCS, _without, hardware, prepare_env, run, unfinished  # noqa: E402
+from table1 import DOCS, _without, copy_artifact, hardware, prepare_env, run, unfinished  # noqa: E402
 
 METHODS = ("mlp", "diffuser", "cdrb")
 ENVS = ("maze-tight", "maze")
@@ -292,15 +292,10 @@ def clock(args, log) -> None:
 
 def reuse(src: Path, dest: Path) -> None:
     """``dest`` as a copy of the eval ``src`` (which ran the same command), unless a copy at least as new is there."""
-    import shutil
-
-    from cdrb_cli import artifacts
-
     if dest.exists() and dest.stat().st_mtime >= src.stat().st_mtime:
         print(f"skip     0.0s  {dest.name}: the same eval as {src.name}", flush=True)
         return
-    with artifacts.atomic_path(dest) as tmp:
-        shutil.copy2(src, tmp)
+    copy_artifact(src, dest)
     print(f"done     0.0s  {dest.name}: copied from {src.name} (the same eval command)", flush=True)
 
 

@@ -90,6 +90,14 @@ def run(cmd: list, log: dict, key: str) -> str:
     return proc.stdout.strip()
 
 
+def copy_artifact(src: Path, dest: Path) -> None:
+    """``src``'s bytes as ``dest``, written atomically (temp file, fsync, rename): no half-copied file is left."""
+    from cdrb_cli import artifacts
+
+    with artifacts.atomic_path(dest) as tmp:
+        shutil.copyfile(src, tmp)
+
+
 def unfinished(path: Path) -> bool:
     from cdrb_cli import artifacts
 
@@ -146,9 +154,7 @@ def train_eval(
     if reuse is not None and reuse.exists() and not model.exists():
         # a curve run's model of exactly this length (benchmarks/comparison.py): `cdrb train` below skips it as up
         # to date when its config and parents are the ones asked for, and refuses it otherwise
-        tmp = model.with_name(model.name + ".part")
-        shutil.copyfile(reuse, tmp)
-        tmp.replace(model)
+        copy_artifact(reuse, model)
         print(f"reused {reuse} as {model}", flush=True)
     if unfinished(model):
         cmd.append("--resume")
