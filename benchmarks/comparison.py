@@ -240,7 +240,7 @@ def curves(args, log) -> None:
         for seed in args.curve_seeds:
             for method in args.methods:
                 t = tuned.get(env, {}).get(method, {})
-                flags = list(t.get("train_flags", []))
+                flags = _without_steps(t.get("train_flags", []))  # the curve sets the step count
                 demos, buffer = data["state-action" if "features=state-action" in flags else "state"]
                 folder = _curve_folder(args, env, t)
                 folder.mkdir(parents=True, exist_ok=True)
@@ -271,7 +271,7 @@ def sweep(args, log) -> None:
                 folder = args.out / env / "sweep"
                 folder.mkdir(parents=True, exist_ok=True)
                 tag = f"{method}-{slug(name)}"
-                train(folder / f"{tag}.h5", demos, buffer, method, 0, flags + args.sweep_steps, args, log)
+                train(folder / f"{tag}.h5", demos, buffer, method, 0, flags + args.sweep_steps + args.budget, args, log)
                 eval_tune(folder / f"{tag}.h5", folder / f"eval-{tag}.h5", args, log)
 
 
@@ -338,7 +338,8 @@ def choose(args) -> dict:
                     rows.append((name, _summary(p)))
             if rows:
                 name, s = max(rows, key=lambda r: (r[1]["success"], -(r[1]["crossing"] or 0), -r[1]["collision"]))
-                out.setdefault(env, {})[method] = {"candidate": name, "train_flags": cands[name], **s}
+                # the training budget, if cut with --steps, is part of the setting: table1.py trains every seed so
+                out.setdefault(env, {})[method] = {"candidate": name, "train_flags": cands[name] + args.budget, **s}
     return out
 
 
@@ -433,7 +434,7 @@ def write(args, log) -> None:
                 best = max(by_steps, key=lambda n: (sum(by_steps[n]) / len(by_steps[n]), -n))
                 t["steps"] = best
                 t["steps_success"] = sum(by_steps[best]) / len(by_steps[best])
-                t["train_flags"] = [*t["train_flags"], "--steps", str(best)]
+                t["train_flags"] = [*_without_steps(t["train_flags"]), "--steps", str(best)]
                 # the curve runs' models at that step count: table1.py reuses them for those training seeds
                 # (a snapshot is bit for bit the model a run of that length writes; `cdrb train` skips it as up to
                 # date, or refuses it if anything in its config or parents differs)
@@ -454,6 +455,17 @@ def write(args, log) -> None:
             settings[env] = by
     path.write_text(json.dumps({"meta": meta, "settings": settings}, indent=2) + "\n")
     print(path)
+
+
+def _without_steps(flags: list) -> list:
+    """``flags`` less any ``--steps N`` (a curve's step count replaces the sweep's budget)."""
+    out, skip = [], False
+    for f in flags:
+        if skip or f == "--steps":
+            skip = not skip
+            continue
+        out.append(f)
+    return out
 
 
 def _curve_folder(args, env: str, tuned: dict) -> Path:
@@ -545,6 +557,14 @@ def main() -> None:
         default=None,
         help="sweep only the first N candidates of each method (default: all six); state the budget beside the figures",
     )
+    ap.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="train every sweep candidate N steps instead of its preset's count, and record it in tuned.json so "
+        "table1.py trains every seed the same (a smaller budget for a method the machine cannot afford at its "
+        "preset; state it beside the figures)",
+    )
     ap.add_argument("--curve-seeds", default="0,1,2")
     ap.add_argument("--curve-steps", default="1000,2000,3000,6000,10000")
     ap.add_argument("--device", default="auto")
@@ -561,6 +581,11 @@ def main() -> None:
         args.episodes = min(args.episodes, 3)
         args.tiny_flags = [a for kv in ("horizon=16", "stride=10", "batch_size=8") for a in ("--set", kv)]
         args.curve_steps = "50,100"
+    args.budget = []
+    if args.steps is not None:
+        if args.steps < 1:
+            ap.error(f"--steps {args.steps}: give a positive number of training steps")
+        args.sweep_steps, args.budget = [], ["--steps", str(args.steps)]
     args.out.mkdir(parents=True, exist_ok=True)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     timings = args.out / "timings.json"

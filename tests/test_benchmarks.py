@@ -94,15 +94,18 @@ def test_planning_script(tmp_path, small_data):
 def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path):
     """On Fetch the comparison tunes each method's controller among the task's candidates (the same controllers for
     every method; a method with denoising steps also tries each with fewer of them) on the tuning stream, and
-    `write` keeps the settings already chosen for other environments."""
+    `write` keeps the settings already chosen for other environments. A training budget cut with `--steps` trains
+    the sweep so and is recorded in the settings, so that table1.py trains every seed the same."""
     import csv
     import json
+
+    from cdrb_cli import artifacts
 
     out = tmp_path / "cmp"
     out.mkdir()
     (out / "tuned.json").write_text(json.dumps({"meta": {}, "settings": {"maze": {"mlp": {"candidate": "x"}}}}))
     cmd = [sys.executable, str(ROOT / "benchmarks" / "comparison.py"), "all", "--tiny", "--out", str(out)]
-    cmd += ["--envs", "fetch-reach", "--methods", "mlp,cdrb", "--device", "cpu"]
+    cmd += ["--envs", "fetch-reach", "--methods", "mlp,cdrb", "--device", "cpu", "--steps", "40"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     settings = json.loads((out / "tuned.json").read_text())["settings"]
@@ -111,7 +114,8 @@ def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path
 
     for method in ("mlp", "cdrb"):
         t = settings["fetch-reach"][method]
-        assert t["candidate"] == "quick" and t["train_flags"] == []
+        assert t["candidate"] == "quick" and t["train_flags"] == ["--steps", "40"]
+        assert artifacts.load(t["model"], "model").manifest.config.steps == 40
         assert t["eval_flags"] == clocks_for("fetch-reach", method)[t["clock"]]
         assert t["curve_models"] == {"0": t["model"]} and Path(t["model"]).name == f"{method}-quick.h5"
     assert settings["fetch-reach"]["mlp"]["eval_flags"] in FETCH_CONTROLLERS["reach"].values()  # no sampling steps
@@ -124,6 +128,8 @@ def test_comparison_script_tunes_fetch_controllers_and_keeps_other_envs(tmp_path
     )
     assert clocks_for("fetch-reach", "cdrb")[stepped[-1]][-2:] == ["--sample-steps", str(FETCH_SAMPLE_STEPS[-1])]
     assert not (out / "fetch-reach" / "buffer-k1000-state-action.h5").exists()  # no sweep candidate needs it
+    with open(out / "tuning.csv") as fh:
+        assert [int(r["steps"]) for r in csv.DictReader(fh)] == [40, 40]
 
 
 def test_table1_seeds_merges_earlier_parts_and_writes_the_docs_rows(tmp_path):
