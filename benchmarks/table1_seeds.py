@@ -67,6 +67,8 @@ def main() -> None:
             for p in sorted(paths, key=lambda p: int(p.stem.rsplit("-s", 1)[1])):
                 ev = artifacts.load(p, "eval")
                 s, r = ev.manifest.summary, ev.manifest.summary.per_seed[0]
+                # a closed-loop policy has no plan, so no plan measures ("n/a"); told as `cdrb report` tells it
+                policy = "episodes/plan_in_wall_fraction" not in ev.arrays
                 rows.append(
                     {
                         "env": env,
@@ -74,7 +76,7 @@ def main() -> None:
                         "seed": r.seed,
                         "episodes": r.episodes,
                         "success": round(100 * r.success_rate, 2),
-                        "in_obstacle": round(100 * (r.in_wall_fraction or 0.0), 3),
+                        "in_obstacle": None if policy else round(100 * (r.in_wall_fraction or 0.0), 3),
                         "plans_through_obstacle": None
                         if r.plan_crossing_rate is None
                         else round(100 * r.plan_crossing_rate, 2),
@@ -87,7 +89,9 @@ def main() -> None:
                             2,
                         ),
                         "plan_ms": round(1000 * r.plan_seconds, 2),
-                        "controller": controller_label(ev.manifest.config.controller),
+                        "controller": f"closed loop ({ev.manifest.config.sampler})"  # as `cdrb report` names it
+                        if policy
+                        else controller_label(ev.manifest.config.controller),
                         "sample_steps": ev.manifest.config.sample_steps or "all",
                         "preset": s.model_preset,
                         **{f"failed_{c}": None if r.failures is None else r.failures[c] for c in FAILURE_CAUSES},
@@ -115,10 +119,14 @@ def main() -> None:
     for a in aggregate(rows):
         if (a["env"], a["method"]) in remeasured:
             std = float("nan") if a["success_std"] is None else a["success_std"]
+            plan = (
+                "no plans (closed-loop policy)"
+                if a["in_obstacle"] is None
+                else f"in obstacle {a['in_obstacle']:6.3f}%  through {_cell(a['plans_through_obstacle'], '6.2f')}%"
+            )
             print(
                 f"{a['env']:22s} {a['method']:9s} seeds {a['seeds']}: success {a['success_mean']:6.2f} ± {std:5.2f}  "
-                f"in obstacle {a['in_obstacle']:6.3f}%  through {a['plans_through_obstacle']:6.2f}%  collisions "
-                f"{a['collisions']:6.2f}%"
+                f"{plan}  collisions {a['collisions']:6.2f}%"
             )
 
 
@@ -143,7 +151,7 @@ def aggregate(rows: list[dict]) -> list[dict]:
                 "episodes": int(sel[0]["episodes"]),
                 "success_mean": float(succ.mean()),
                 "success_std": float(succ.std(ddof=1)) if len(sel) > 1 else None,
-                **{k: float(np.mean([_num(r[k]) for r in sel])) for k in MEAN_FIELDS},
+                **{k: _mean([r[k] for r in sel]) for k in MEAN_FIELDS},
                 "controllers": sorted({str(r["controller"]) for r in sel}),
                 "sample_steps": sorted({str(r.get("sample_steps") or "all") for r in sel}),
             }
@@ -166,6 +174,17 @@ def _failures(sel: list[dict]) -> str:
         return "– (all succeeded)" if everything else "– (not classified)"
     totals = [sum(int(row[i]) for row in cells) for i in range(len(FAILURE_CAUSES))]
     return "– (all succeeded)" if everything and not sum(totals) else " / ".join(map(str, totals))
+
+
+def _mean(values: list) -> float | None:
+    """The mean over the seeds; None where no seed has the value (a policy's plan measures)."""
+    if all(v in (None, "") for v in values):
+        return None
+    return float(np.mean([_num(v) for v in values]))
+
+
+def _cell(value: float | None, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
 
 
 def _num(text) -> float:
@@ -207,8 +226,8 @@ def markdown(path: Path) -> str:
             f"{a['seeds']} x {a['episodes']}",
             f"{a['success_mean']:.1f} ± {std}",
             _clean(sel),
-            f"{a['in_obstacle']:.2f}",
-            f"{a['plans_through_obstacle']:.1f}",
+            _cell(a["in_obstacle"], ".2f"),
+            _cell(a["plans_through_obstacle"], ".1f"),
             f"{a['collisions']:.1f}",
             _failures(sel),
             "–" if paper is None else f"{paper[0]:.2f} ± {paper[1]:.2f}",

@@ -182,6 +182,20 @@ def test_table1_seeds_merges_earlier_parts_and_writes_the_docs_rows(tmp_path):
     assert "– (all succeeded)" in next(x for x in lines if x.startswith("| Reach |"))
     assert "– (not classified)" in next(x for x in lines if x.startswith("| Push |"))
     assert "| 100.0 ± – | 100.0 |" in next(x for x in lines if x.startswith("| Maze Tight | CDRB"))
+    # a closed-loop policy's eval (no plan arrays): its plan measures are "n/a", never a 0 that reads as "no wall hit"
+    policy = factories.write(runs / "maze-tight" / "eval-diffusion-bc-tuned-s0.h5", "eval")
+    with factories.tampered(policy) as f:
+        for name in ("plan_in_wall_fraction", "plan_crosses_obstacle", "plan_max_jump", "plan_step_limit"):
+            del f[f"episodes/{name}"]
+    script[script.index("cdrb")] = "diffusion-bc"
+    proc = subprocess.run(script, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "no plans (closed-loop policy)" in proc.stdout
+    with csv_path.open() as f:
+        row = next(r for r in csv.DictReader(f) if r["method"] == "diffusion-bc")
+    assert row["in_obstacle"] == row["plans_through_obstacle"] == "" and row["controller"] == "closed loop (paper)"
+    line = next(x for x in doc.read_text().splitlines() if x.startswith("| Maze Tight | diffusion-bc"))
+    assert "| `closed loop (paper)` |" in line and "| n/a | n/a |" in line
 
 
 def test_table1_summary_joins_the_maze_and_fetch_rows_in_table1_order(tmp_path):
