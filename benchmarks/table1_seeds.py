@@ -58,6 +58,7 @@ def main() -> None:
     args = ap.parse_args()
     from cdrb_cli import artifacts
     from cdrb_cli.envs.family import FAILURE_CAUSES
+    from cdrb_cli.stages.report import controller_name, is_policy_eval
 
     rows = []
     for env in args.envs.split(","):
@@ -67,8 +68,7 @@ def main() -> None:
             for p in sorted(paths, key=lambda p: int(p.stem.rsplit("-s", 1)[1])):
                 ev = artifacts.load(p, "eval")
                 s, r = ev.manifest.summary, ev.manifest.summary.per_seed[0]
-                # a closed-loop policy has no plan, so no plan measures ("n/a"); told as `cdrb report` tells it
-                policy = "episodes/plan_in_wall_fraction" not in ev.arrays
+                policy = is_policy_eval(ev)  # no plans, so no plan measures ("n/a")
                 rows.append(
                     {
                         "env": env,
@@ -89,7 +89,7 @@ def main() -> None:
                             2,
                         ),
                         "plan_ms": round(1000 * r.plan_seconds, 2),
-                        "controller": f"closed loop ({ev.manifest.config.sampler})"  # as `cdrb report` names it
+                        "controller": controller_name(ev)  # `cdrb report`'s name: "closed loop (SAMPLER)"
                         if policy
                         else controller_label(ev.manifest.config.controller),
                         "sample_steps": ev.manifest.config.sample_steps or "all",

@@ -75,12 +75,18 @@ def _protocol(ev) -> tuple:
 def _planning(ev) -> tuple:
     """How one method planned: these must agree across the seeds pooled into one row."""
     c = ev.manifest.config
-    return (_controller(ev), c.sampler, c.sample_steps, c.use_ema)
+    return (controller_name(ev), c.sampler, c.sample_steps, c.use_ema)
 
 
-def _controller(ev) -> str:
-    if "episodes/plan_in_wall_fraction" not in ev.arrays:
-        return f"closed loop ({ev.manifest.config.sampler})"  # a policy: no controller
+def is_policy_eval(ev) -> bool:
+    """Whether ``ev`` is a closed-loop policy's eval: no plans, so no plan measures and no controller."""
+    return "episodes/plan_in_wall_fraction" not in ev.arrays
+
+
+def controller_name(ev) -> str:
+    """How an eval executed: the controller and its settings, or ``closed loop (SAMPLER)`` for a policy."""
+    if is_policy_eval(ev):
+        return f"closed loop ({ev.manifest.config.sampler})"
     c = ev.manifest.config.controller
     settings = ", ".join(f"{k} {v}" for k, v in c.model_dump().items() if k != "name")
     return f"{c.name} ({settings})"
@@ -113,7 +119,7 @@ def per_seed(ev) -> list:
 
     results = episode_results(ev.arrays)
     seeds = list(dict.fromkeys(r.seed for r in results))
-    policy = "episodes/plan_in_wall_fraction" not in ev.arrays  # a closed-loop policy's eval: no plans
+    policy = is_policy_eval(ev)
     per = [seed_result(s, [r for r in results if r.seed == s], policy=policy) for s in seeds]
     if policy:
         return per
@@ -184,7 +190,7 @@ def collect_rows(evals) -> list[dict]:
                     "preset": ui.plain(first.manifest.summary.model_preset),
                     "pairs": first.manifest.config.stream,
                     "protocol": ui.plain(first.manifest.config.protocol),
-                    "controller": ui.plain(_controller(first)),
+                    "controller": ui.plain(controller_name(first)),
                     "seeds": len(per),
                     "episodes": first.manifest.config.episodes,
                     "success_mean": 100 * float(succ.mean()),
