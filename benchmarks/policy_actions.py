@@ -19,12 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
 def held_out(demos, normalizer, obs_dim: int, goal_dims, n: int, seed: int):
@@ -62,21 +59,21 @@ def agreement(actions: np.ndarray, expert: np.ndarray) -> dict:
 
 
 def measure(path: Path, n: int, seed: int) -> list[dict]:
-    from comparison import is_policy, policy_samplers
-
     from cdrb_cli import artifacts
     from cdrb_cli.methods.checkpoint import load_method
+    from cdrb_cli.methods.registry import METHODS
 
     model = artifacts.load(path, "model")
     policy = load_method(model)
-    if not is_policy(policy.name):
+    entry = METHODS.get(policy.name)
+    if entry.kind != "policy":
         raise SystemExit(f"{path}: {policy.name} is a planner; this script measures closed-loop policies")
     demos = artifacts.load(model.manifest.parents[0].path, "demos")
     sets = {
         "transitions": held_out(demos, policy.normalizer, policy.obs_dim, policy.goal_dims, n, seed),
         "first step": first_steps(demos, policy.obs_dim, policy.goal_dims),
     }
-    samplers = [policy.config.method.sampler, *policy_samplers(policy.name)]
+    samplers = [policy.config.method.sampler, *entry.samplers]
     out = []
     for name, (states, goals, expert) in sets.items():
         for sampler in dict.fromkeys(samplers):

@@ -1009,6 +1009,19 @@ def report(
         help="table, markdown, csv or json.",
     ),
     paper: bool = typer.Option(False, "--paper", help="Add the paper's Table 1 figures under ours."),
+    paper_figures: Path | None = typer.Option(
+        None, "--paper-figures", metavar="FILE", help="With --paper: read the figures from FILE (TOML) instead."
+    ),
+    per_seed: bool = typer.Option(
+        False, "--per-seed", help="One row per eval file and evaluation seed instead of one per environment x method."
+    ),
+    docs: Path | None = typer.Option(
+        None,
+        "--docs",
+        metavar="FILE",
+        help="Write the markdown report into FILE between <!-- BLOCK:begin --> and <!-- BLOCK:end --> (with --block).",
+    ),
+    block: str | None = typer.Option(None, "--block", metavar="NAME", help="The marked block of --docs to replace."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Write the report to this file (else stdout)."),
     plot: Path | None = typer.Option(None, "--plot", help="Bar chart of success and planned-in-obstacle rates (PNG)."),
     plans_plot: Path | None = typer.Option(None, "--plans-plot", help="Every method's plans for the same pairs (PNG)."),
@@ -1018,28 +1031,50 @@ def report(
     obstacles, executed collisions, path length and planning time), with optional pictures.
 
     Evals of one environment must share a protocol (seeds, episodes, controller); mixing is an error."""
-    from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
+    from cdrb_cli.stages import report as rep
 
+    if (docs is None) != (block is None):
+        raise BadInput(
+            "--docs and --block go together", hint="e.g. --docs docs/benchmarks.md --block table1-maze-tight"
+        )
+    if docs is not None and fmt not in ("markdown", "table"):
+        raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
+    if docs is not None and not docs.is_file():
+        raise BadInput(f"--docs {docs}: no such file", hint="name an existing markdown file with the marked block")
     _check_outputs(force, evals, out=out, plot=plot, plans_plot=plans_plot)
     if out is not None:
         from cdrb_cli.artifacts import check_output
 
         check_output(out, force, "--out", evals)
+    figures = rep.paper_figures(paper_figures) if paper else False
     arts = [_load(p, "eval") for p in evals]
-    rows = collect_rows(arts)
-    text = render(rows, fmt, paper=paper)
+    rows = rep.collect_rows(arts)
+    if per_seed:
+        text = rep.render_seed_rows(rep.seed_rows(arts), fmt)
+    else:
+        text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
+    plot_bars, plot_side_by_side = rep.plot_bars, rep.plot_side_by_side
     if plot is not None:
         plot_bars(rows, plot)
         ui.log(f"picture: {plot}")
     if plans_plot is not None:
         plot_side_by_side(arts, plans_plot)
         ui.log(f"picture: {plans_plot}")
+    if docs is not None:
+        from cdrb_cli.artifacts import atomic_path
+
+        new = rep.replace_block(docs.read_text(), block, text, str(docs))
+        with atomic_path(docs) as tmp:
+            tmp.write_text(new)
+        ui.log(f"block {block} of {docs} rewritten")
     if out is not None:
         from cdrb_cli.artifacts import atomic_path, claim_output
 
         with claim_output(out, force, "--out", evals), atomic_path(out) as tmp:
             tmp.write_text(text)
         ui.emit(out)
+    elif docs is not None:
+        ui.emit(docs)
     else:
         sys.stdout.write(text)
 
@@ -1101,6 +1136,34 @@ def quickstart(
     sys.stdout.write("\n" + "\n".join(str(p) for p in res.pictures) + "\n")
 
 
+# ------------------------------------------------------------------------------------------------ select
+@app.command()
+def select(
+    grid_file: Path = typer.Argument(..., help="A tuning grid (TOML) whose evals `cdrb grid` has run."),
+    out: Path = typer.Option(..., "--out", "-o", help="The settings file to write (TOML), for test grids to include."),
+    table: Path | None = typer.Option(
+        None, "--table", help="Also write every candidate's scores: CSV (.csv) or a markdown table (other names)."
+    ),
+    overrides: list[str] = typer.Option(
+        [], "--set", metavar="KEY=VALUE", help="The same --set as the `cdrb grid` run that made the evals."
+    ),
+    includes: list[Path] = typer.Option(
+        [], "--include", metavar="FILE", help="The same --include as the `cdrb grid` run that made the evals."
+    ),
+    force: bool = ForceOpt,
+) -> None:
+    """Choose each method's settings on the tuning stream from a tuning grid's evals, and write them as a settings
+    file that test grids `include`.
+
+    Candidates are the grid's variants (training settings, or eval-only knobs on one model) at each training length
+    of its learning curves (`snapshot_at`). The rule, per environment x method: highest tuning success, then fewest
+    plans through an obstacle, then fewest executed collisions, then the grid's variant order, then fewest training
+    steps. Prints the path of the settings file."""
+    from cdrb_cli.stages.select import select as run_select
+
+    ui.emit(run_select(grid_file, out, force=force, table=table, overrides=overrides, includes=includes))
+
+
 # ------------------------------------------------------------------------------------------------ grid
 @app.command()
 def grid(
@@ -1120,6 +1183,19 @@ def grid(
     ),
     retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the tasks' commands (one per line) and stop."),
+    overrides: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="Replace a top-level key of the grid file, e.g. --set demos=40 --set 'seeds=[0]' --set out=runs/small "
+        "(VALUE is read as TOML; `out` is then relative to the current folder). Repeatable.",
+    ),
+    includes: list[Path] = typer.Option(
+        [],
+        "--include",
+        metavar="FILE",
+        help="A settings file applied after the grid's own settings (e.g. smaller nets for a smoke run). Repeatable.",
+    ),
     as_json: bool = JsonOpt,
 ) -> None:
     """Run a grid of experiments: collect -> cluster -> train -> eval -> report for every environment, method,
@@ -1131,7 +1207,16 @@ def grid(
     """
     from cdrb_cli.stages.grid import grid as run_grid_file
 
-    res = run_grid_file(grid_file, backend=backend, workers=workers, address=address, retries=retries, dry_run=dry_run)
+    res = run_grid_file(
+        grid_file,
+        backend=backend,
+        workers=workers,
+        address=address,
+        retries=retries,
+        dry_run=dry_run,
+        overrides=overrides,
+        includes=includes,
+    )
     if dry_run:
         import shlex
 

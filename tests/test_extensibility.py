@@ -6,6 +6,7 @@ generic training loop."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -252,6 +253,57 @@ def test_a_new_family_and_method_run_through_the_cli(toy_family, toy_method, tmp
     assert e.manifest.summary.success_mean > 0.5
     code, out = _cdrb("report", *evals, "--format", "json")
     assert code == 0 and {r["method"] for r in json.loads(out)} == {"toy-straight", "cdrb"}
+
+
+class InProcess:
+    """A grid backend that runs each task's command in this process, where the toys are registered."""
+
+    name = "in-process"
+
+    def submit(self, payload):
+        from concurrent.futures import Future
+
+        for out in payload["outputs"]:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+        fut = Future()
+        fut.set_result({"rc": main(list(payload["argv"])), "seconds": 0.0, "stderr": []})
+        return fut
+
+
+def test_a_new_family_and_method_go_through_tune_select_test_and_report(toy_family, toy_method, tmp_path):
+    """A study of the new family and method is data only: a tuning grid, `cdrb select`, a test grid that includes
+    the selection, and `cdrb report`; no experiment code names either."""
+    from cdrb_cli.stages.grid import load_grid, run_grid
+    from cdrb_cli.stages.select import select
+
+    common = (
+        'envs = ["toy-wall"]\nmethods = ["toy-straight", "cdrb"]\ndemos = 40\nk = 30\neval_episodes = 3\n'
+        '[[settings]]\nmethod = "cdrb"\n'
+        'train = ["--set", "net.dim=8", "--set", "net.dim_mults=1,2", "--set", "method.diffusion_steps=4"]\n'
+        '[[settings]]\nmethod = "toy-straight"\ntrain = ["--set", "net.hidden=32,32"]\n'
+    )
+    tune = tmp_path / "tune.toml"
+    tune.write_text(
+        'out = "tune"\nseeds = [0]\nsteps = 100\nsnapshot_at = [50]\neval_stream = "tune"\neval_seeds = [0, 1]\n'
+        "report = false\n" + common + '[[variants]]\nname = "bent"\n'
+        '[[variants]]\nname = "straighter"\nmethods = ["toy-straight"]\ntrain = ["--set", "method.bend=0.0"]\n'
+    )
+    run = run_grid(load_grid(tune), InProcess())
+    assert {r.status for r in run.results} == {"done"}
+    tuned = select(tune, tmp_path / "tuned.toml")
+    text = tuned.read_text()
+    assert 'method = "toy-straight"' in text and 'method = "cdrb"' in text and '"--steps"' in text
+
+    test = tmp_path / "test.toml"
+    test.write_text('include = ["tuned.toml"]\nout = "test"\nseeds = [0, 1]\n' + common)
+    spec = load_grid(test)
+    run = run_grid(spec, InProcess())
+    assert {r.status for r in run.results} == {"done"}
+    for r in run.results:
+        if r.kind == "eval":
+            assert artifacts.load(Path(r.outputs[0]), "eval").manifest.config.stream == "test"
+    report = (spec.out / "report.md").read_text()
+    assert "toy-straight" in report and "cdrb" in report
 
 
 def test_after_the_fixtures_the_registries_are_as_shipped():

@@ -283,13 +283,122 @@ def test_ray_runs_the_same_grid(tmp_path):
     assert proc.returncode == 0 and json.loads(proc.stdout)["counts"]["up to date"] == 6
 
 
-def test_the_shipped_grid_files_load_and_expand():
-    root = Path(__file__).resolve().parent.parent / "grids"
-    files = sorted(root.glob("*.toml"))
-    assert files
+def test_the_shipped_experiment_files_load_and_expand():
+    root = Path(__file__).resolve().parent.parent / "experiments"
+    files = sorted(p for p in root.glob("*/*.toml") if p.parent.name not in ("tuned", "data"))
+    assert len(files) >= 10
     for path in files:
         spec = load_grid(path)
         tasks = expand(spec)
-        trains = [t for t in tasks if t.kind == "train"]
-        assert len(trains) == len(spec.envs) * len(spec.methods) * len(spec.seeds)
-        assert all("--stream" in t.argv and "test" in t.argv for t in tasks if t.kind == "eval")
+        evals = [t for t in tasks if t.kind == "eval"]
+        assert evals and all(t.meta["stream"] in t.argv for t in evals)
+        tuning = path.parent.name == "tune"
+        # tuning files evaluate on the tuning stream only and leave the comparison to `cdrb select`; the others on
+        # the test stream only
+        assert {t.meta["stream"] for t in evals} == {"tune" if tuning else "test"}, path
+        assert (not spec.report) == tuning, path
+        # the comment states the --dry-run count of every kind of task
+        head = path.read_text().split("\nout =")[0]
+        counts = {k: sum(t.kind == k for t in tasks) for k in ("train", "eval")}
+        for kind, n in counts.items():
+            assert f"{n} {'trainings' if kind == 'train' else 'evals'}" in head.replace(" training ", " "), (path, kind)
+    # the included settings files of the test grids hold exactly one entry per env x method they choose for
+    for path in sorted((root / "tuned").glob("*.toml")):
+        from cdrb_cli.stages.grid import SettingsFile, _read_toml
+
+        sfile = SettingsFile.model_validate(_read_toml(path, "settings file"))
+        keys = [(s.env, s.method) for s in sfile.settings]
+        assert keys and len(keys) == len(set(keys)) and all(s.chosen for s in sfile.settings), path
+
+
+# ------------------------------------------------------------------------------------------------ experiments as data
+def test_includes_apply_in_order_and_a_loop_is_an_error(tmp_path):
+    (tmp_path / "shared.toml").write_text('[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "net.dim=16"]\n')
+    (tmp_path / "tuned.toml").write_text(
+        'include = ["shared.toml"]\n[meta]\nrule = "x"\n'
+        '[[settings]]\nenv = "maze-tight"\nmethod = "cdrb"\nchosen = "dim32"\ntrain = ["--set", "net.dim=32"]\n'
+    )
+    (tmp_path / "late.toml").write_text('[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "net.dim=64"]\n')
+    grid = _grid(tmp_path, 'include = ["tuned.toml"]\n' + TINY)
+    train = next(t for t in expand(load_grid(grid)) if t.id == "train maze-tight/cdrb-s0").argv
+    dims = [a for a in train if a.startswith("net.dim=")]
+    # the included file's own include, then the included file, then the grid's own settings
+    assert dims == ["net.dim=16", "net.dim=32", "net.dim=8"]
+    train = next(
+        t
+        for t in expand(load_grid(grid, extra_includes=[tmp_path / "late.toml"]))
+        if t.id == "train maze-tight/cdrb-s0"
+    ).argv
+    assert [a for a in train if a.startswith("net.dim=")][-1] == "net.dim=64"  # --include comes last
+    (tmp_path / "shared.toml").write_text('include = ["tuned.toml"]\n')
+    with pytest.raises(BadInput, match="includes itself"):
+        load_grid(grid)
+    (tmp_path / "shared.toml").write_text('[[settings]]\nmethod = "cdrb"\nbogus = 1\n')
+    with pytest.raises(BadInput, match=r"shared.toml: settings.0.bogus"):
+        load_grid(grid)
+
+
+def test_eval_only_variants_share_the_base_model_and_cluster_variants_get_their_own_buffer(tmp_path):
+    text = TINY + (
+        '\n[[variants]]\nname = "gated"\neval = ["--max-lag", "0.6"]\n'
+        '\n[[variants]]\nname = "official"\nmethods = ["cdrb"]\neval = ["--protocol", "official-code"]\n'
+        "eval_settings = false\n"
+        '\n[[settings]]\nmethod = "cdrb"\neval = ["--max-lag", "0.3"]\n'
+        '\n[[variants]]\nname = "k20"\nmethods = ["cdrb"]\ncluster = ["--k", "20"]\nstream = "tune"\n'
+    )
+    spec = load_grid(_grid(tmp_path, text))
+    tasks = {t.id: t for t in expand(spec)}
+    out = spec.out / "maze-tight"
+    # one base training per method and seed serves both eval-only variants
+    trains = sorted(i for i in tasks if i.startswith("train"))
+    assert trains == [
+        "train maze-tight/cdrb-s0", "train maze-tight/cdrb-s1", "train maze-tight/k20/cdrb-s0",
+        "train maze-tight/k20/cdrb-s1", "train maze-tight/mlp-s0", "train maze-tight/mlp-s1",
+    ]  # fmt: skip
+    gated, official = tasks["eval maze-tight/gated/cdrb-s0"], tasks["eval maze-tight/official/cdrb-s0"]
+    assert gated.inputs == official.inputs == [out / "cdrb-s0.h5"] and gated.deps == ["train maze-tight/cdrb-s0"]
+    assert gated.argv[gated.argv.index("--max-lag") :][:4] == ["--max-lag", "0.3", "--max-lag", "0.6"]
+    assert "--max-lag" not in official.argv and "official-code" in official.argv  # the settings' flags left out
+    assert "eval maze-tight/official/mlp-s0" not in tasks
+    # a variant with cluster flags: its own buffer, clustered from the same demos, and its own models
+    cluster = tasks["cluster maze-tight/k20"]
+    assert cluster.argv[-4:] == ["--k", "20", "--out", str(out / "k20" / "buffer.h5")]
+    k20 = tasks["train maze-tight/k20/cdrb-s0"]
+    assert str(out / "k20" / "buffer.h5") in k20.argv and "cluster maze-tight/k20" in k20.deps
+    assert tasks["eval maze-tight/k20/cdrb-s0"].meta["stream"] == "tune"
+    assert "--stream" in gated.argv and gated.argv[gated.argv.index("--stream") + 1] == "test"
+    assert {t.id for t in expand(spec) if t.kind == "report"} == {"report gated", "report official", "report k20"}
+
+
+def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_path):
+    text = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\neval_seeds = [0, 1]\nreport = false")
+    spec = load_grid(_grid(tmp_path, text))
+    tasks = {t.id: t for t in expand(spec)}
+    train = tasks["train maze-tight/mlp-s1"]
+    assert train.argv[train.argv.index("--snapshot-at") + 1] == "50"
+    assert train.outputs == [spec.out / "maze-tight" / "mlp-s1.h5", spec.out / "maze-tight" / "mlp-s1.step50.h5"]
+    snap = tasks["eval maze-tight/mlp-s1.step50"]
+    assert snap.inputs == [spec.out / "maze-tight" / "mlp-s1.step50.h5"] and snap.meta["steps"] == 50
+    assert snap.argv[snap.argv.index("--seeds") + 1] == "0,1" and tasks["eval maze-tight/mlp-s1"].meta["steps"] == 100
+    assert not [t for t in tasks.values() if t.kind == "report"]
+    for bad, words in (
+        ("snapshot_at = [100]", "snapshot_at: every snapshot must lie between"),
+        ("snapshot_at = [50, 50]", "list each step once"),
+    ):
+        with pytest.raises(BadInput, match=words):
+            load_grid(_grid(tmp_path, text.replace("snapshot_at = [50]", bad)))
+    with pytest.raises(BadInput, match="eval_seeds with several training seeds"):
+        load_grid(_grid(tmp_path, text.replace("report = false", "report = true")))
+
+
+def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
+    grid = _grid(tmp_path, TINY)
+    monkeypatch.chdir(tmp_path)
+    spec = load_grid(grid, ["seeds=[3]", "demos=7", "out=elsewhere", "eval_stream=tune"])
+    assert spec.seeds == [3] and spec.demos == 7 and spec.out == tmp_path / "elsewhere" and spec.eval_stream == "tune"
+    with pytest.raises(BadInput, match="not a top-level grid key"):
+        load_grid(grid, ["settings=[]"])
+    with pytest.raises(BadInput, match="expected KEY=VALUE"):
+        load_grid(grid, ["demos"])
+    with pytest.raises(BadInput, match="demos"):
+        load_grid(grid, ["demos=1"])  # validated like the file's own value

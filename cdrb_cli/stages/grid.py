@@ -58,16 +58,44 @@ class Settings(_Strict):
     )
     train: list[str] = Field(default_factory=list, description="extra `cdrb train` flags, e.g. ['--steps', '4000']")
     eval: list[str] = Field(default_factory=list, description="extra `cdrb eval` flags, e.g. ['--max-lag', '0.6']")
+    chosen: str | None = Field(None, description="what `cdrb select` chose (candidate and steps); not a flag")
+
+
+class SettingsFile(_Strict):
+    """A settings file that grids (and other settings files) ``include``: shared data choices, or the settings
+    `cdrb select` chose on the tuning stream. ``meta`` is free provenance (the rule, the tuning grid)."""
+
+    include: list[Path] = Field(default_factory=list, description="more settings files, before this one's")
+    settings: list[Settings] = Field(default_factory=list)
+    meta: dict[str, str] = Field(default_factory=dict, description="provenance: not read by the grid")
 
 
 class Variant(_Strict):
-    """One more axis of the grid: a named set of extra flags; its runs go to OUT/ENV/NAME/ and get their own
-    report."""
+    """One more axis of the grid: a named set of extra flags; its evals go to OUT/ENV/NAME/ and get their own report.
+
+    A variant with ``train`` flags trains its own models (in OUT/ENV/NAME/); one without is *eval-only*: it evaluates
+    the grid's base models (OUT/ENV/METHOD-sSEED.h5, trained once with no variant flags), e.g. a controller, a plan
+    clock, a sampler, denoising steps or a re-planning trigger tried on one trained model."""
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.=-]*$", description="folder name of the variant's runs")
     methods: list[str] | None = Field(None, description="the methods this variant applies to (default: all)")
+    envs: list[str] | None = Field(None, description="the environments this variant applies to (default: all)")
+    cluster: list[str] = Field(
+        default_factory=list, description="`cdrb cluster` flags of the variant's own buffer, e.g. ['--k', '100']"
+    )
     train: list[str] = Field(default_factory=list)
     eval: list[str] = Field(default_factory=list)
+    stream: Literal["tune", "test"] | None = Field(
+        None, description="start/goal pairs of its evals (default: eval_stream)"
+    )
+    eval_settings: bool = Field(
+        True,
+        description="false: the settings' eval flags do not apply to this variant (e.g. a protocol with its own "
+        "executor, where a method's tuned controller flags do not belong)",
+    )
+
+    def applies(self, env: str, method: str) -> bool:
+        return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
 
 
 class Resources(_Strict):
@@ -82,6 +110,9 @@ def _default_resources() -> dict[str, Resources]:
 class GridSpec(_Strict):
     """A grid file (TOML). Paths are relative to the file's folder."""
 
+    include: list[Path] = Field(
+        default_factory=list, description="settings files whose [[settings]] apply before this file's own"
+    )
     out: Path = Field(description="folder for every artifact of the grid (shared storage on a cluster)")
     envs: list[str] = Field(min_length=1, description="environment ids (`cdrb envs`)")
     methods: list[str] = Field(min_length=1, description="methods (`cdrb methods`)")
@@ -94,6 +125,15 @@ class GridSpec(_Strict):
     steps: int | None = Field(None, gt=0, description="training steps of every run (default: the preset's)")
     eval_episodes: int = Field(100, ge=1, description="evaluation episodes per model")
     eval_stream: Literal["tune", "test"] = Field("test", description="start/goal pairs: tune or test stream")
+    eval_seeds: list[int] | None = Field(
+        None, description="evaluation seeds of every model (default: the model's own training seed)"
+    )
+    snapshot_at: list[int] = Field(
+        default_factory=list,
+        description="learning curves: every training also writes its model at these steps (below `steps`), and each "
+        "snapshot is evaluated like the final model",
+    )
+    report: bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
     settings: list[Settings] = Field(default_factory=list, description="per env/method extra flags")
     variants: list[Variant] = Field(default_factory=list, description="named flag sets: one more grid axis")
     resources: dict[str, Resources] = Field(default_factory=_default_resources)
@@ -107,28 +147,84 @@ class GridSpec(_Strict):
         return _default_resources() | value
 
 
-def load_grid(path: Path) -> GridSpec:
-    """Read and check a grid file: unknown keys, environments and methods are one-line errors naming the file."""
+def _read_toml(path: Path, what: str) -> dict:
     import tomllib
 
-    from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.methods.registry import METHODS
-
-    path = Path(path)
     if not path.is_file():
-        raise BadInput(f"{path}: no such grid file", hint="see docs/cli.md, `cdrb grid`, for the format")
+        raise BadInput(f"{path}: no such {what}", hint="see docs/cli.md, `cdrb grid`, for the format")
     try:
-        raw = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise BadInput(f"{path}: not valid TOML ({exc})", hint="fix the file") from None
+
+
+def _validated(model: type[BaseModel], raw: dict, path: Path):
     try:
-        spec = GridSpec.model_validate(raw)
+        return model.model_validate(raw)
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "(top level)"
         raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
-    if not spec.out.is_absolute():
-        spec.out = (path.parent / spec.out).resolve()
+
+
+def _included_settings(paths: list[Path], base: Path, chain: tuple[Path, ...]) -> list[Settings]:
+    """The settings of ``paths`` (relative to ``base``) in order, each file's own includes first."""
+    out: list[Settings] = []
+    for rel in paths:
+        path = (base / rel).resolve()
+        if path in chain:
+            raise BadInput(f"{chain[-1]}: include {rel}: includes itself (through {path.name})", hint="remove the loop")
+        sfile = _validated(SettingsFile, _read_toml(path, "settings file"), path)
+        out += _included_settings(sfile.include, path.parent, (*chain, path))
+        out += sfile.settings
+    return out
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` from `cdrb grid --set`: VALUE as a TOML value (``seeds=[0]``, ``demos=40``), else a string."""
+    import tomllib
+
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise BadInput(f"--set {text}: expected KEY=VALUE", hint="e.g. --set demos=40 or --set 'seeds=[0]'")
+    try:
+        return key.strip(), tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        return key.strip(), value
+
+
+def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] = ()) -> GridSpec:
+    """Read and check a grid file: unknown keys, environments and methods are one-line errors naming the file.
+
+    ``include`` files' settings come first (in order), then the grid's own; ``extra_includes`` (`cdrb grid
+    --include`, relative to the current folder) come last, so they override both. ``overrides`` (`cdrb grid --set
+    KEY=VALUE`) replace top-level keys of the file; an ``out`` given so is relative to the current folder."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.registry import METHODS
+
+    path = Path(path).resolve()
+    raw = _read_toml(path, "grid file")
+    cwd_out = None
+    for text in overrides:
+        key, value = parse_override(text)
+        if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
+            raise BadInput(
+                f"--set {text}: {key!r} is not a top-level grid key that --set can change",
+                hint="one of "
+                + ", ".join(
+                    k for k in GridSpec.model_fields if k not in ("settings", "variants", "include", "resources")
+                ),
+            )
+        raw[key] = value
+        if key == "out":
+            cwd_out = Path(str(value)).resolve()
+    spec = _validated(GridSpec, raw, path)
+    spec.settings = (
+        _included_settings(spec.include, path.parent, (path,))
+        + spec.settings
+        + _included_settings(list(extra_includes), Path.cwd(), (path,))
+    )
+    spec.out = cwd_out or (path.parent / spec.out).resolve()
     for env in spec.envs:
         try:
             make_spec(env)
@@ -154,19 +250,38 @@ def load_grid(path: Path) -> GridSpec:
     names = [v.name for v in spec.variants]
     if len(set(names)) != len(names):
         raise BadInput(f"{path}: variants: names must differ (got {', '.join(names)})", hint="rename one")
+    # a variant may name methods and envs the grid does not run (a grid narrowed with --set), but each must exist
     for v in spec.variants:
         for m in v.methods or []:
-            if m not in spec.methods:
-                raise BadInput(f"{path}: variant {v.name}: method {m!r} is not one of the grid's methods", hint="fix")
+            METHODS.get(m, f"{path}: variant {v.name}: methods")
+        for e in v.envs or []:
+            try:
+                make_spec(e)
+            except BadInput as exc:
+                raise BadInput(f"{path}: variant {v.name}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
     if len(set(spec.seeds)) != len(spec.seeds) or len(set(spec.envs)) != len(spec.envs):
         raise BadInput(f"{path}: envs and seeds must each be listed once", hint="remove the repeats")
+    if spec.snapshot_at:
+        if spec.steps is None or any(s <= 0 or s >= spec.steps for s in spec.snapshot_at):
+            raise BadInput(
+                f"{path}: snapshot_at: every snapshot must lie between 0 and `steps` (the final model)",
+                hint="set steps to the curve's last point and list the earlier ones in snapshot_at",
+            )
+        if len(set(spec.snapshot_at)) != len(spec.snapshot_at):
+            raise BadInput(f"{path}: snapshot_at: list each step once", hint="remove the repeats")
+    if spec.report and spec.eval_seeds is not None and len(spec.seeds) > 1:
+        raise BadInput(
+            f"{path}: eval_seeds with several training seeds: a report would pool the same evaluation seeds twice",
+            hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
+        )
     return spec
 
 
 # ------------------------------------------------------------------------------------------------ the stage graph
 @dataclass
 class Task:
-    """One `cdrb` command of the grid."""
+    """One `cdrb` command of the grid. ``meta`` names what an eval measured (env, method, variant, seed, steps,
+    stream), for `cdrb select`."""
 
     id: str
     kind: str
@@ -174,14 +289,31 @@ class Task:
     outputs: list[Path]
     deps: list[str] = field(default_factory=list)
     inputs: list[Path] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+
+BASE = Variant.model_construct(
+    name="", methods=None, envs=None, cluster=[], train=[], eval=[], stream=None, eval_settings=True
+)
+
+
+def flags_for(spec: GridSpec, env: str, method: str, variant: Variant = BASE) -> tuple[list[str], list[str]]:
+    """The extra `cdrb train` and `cdrb eval` flags of ``method`` on ``env`` in ``variant``: the settings that
+    apply, in order (included files first), then the variant's own."""
+    train, evaluate = [], []
+    for s in spec.settings:
+        if s.env in (None, env) and s.method in (None, method):
+            train += s.train
+            evaluate += s.eval
+    return train + variant.train, (evaluate if variant.eval_settings else []) + variant.eval
 
 
 def expand(spec: GridSpec) -> list[Task]:
     """The grid's tasks in an order where every task comes after the tasks it reads from."""
     from cdrb_cli.methods.registry import METHODS
 
-    out, tasks = spec.out, []
-    variants = spec.variants or [Variant.model_construct(name="", methods=None, train=[], eval=[])]
+    out, tasks, trains = spec.out, [], set()
+    variants = spec.variants or [BASE]
     evals: dict[str, list[tuple[str, Path]]] = {v.name: [] for v in variants}
     for env in spec.envs:
         folder = out / env
@@ -208,34 +340,63 @@ def expand(spec: GridSpec) -> list[Task]:
                     [demos],
                 )
             )
-        for v in variants:
-            vfolder = folder if not v.name else folder / v.name
-            for method in spec.methods:
-                if v.methods is not None and method not in v.methods:
+        for v in variants:  # a variant with cluster flags has a buffer of its own
+            if v.cluster and any(METHODS.get(m).needs_buffer and v.applies(env, m) for m in spec.methods):
+                path = folder / v.name / "buffer.h5"
+                argv = ["cluster", str(demos), "--k", str(spec.k), "--seed", str(spec.data_seed), *v.cluster]
+                tasks.append(
+                    Task(
+                        f"cluster {env}/{v.name}", "cluster", argv + ["--out", str(path)], [path], [collect_id], [demos]
+                    )
+                )
+        for method in spec.methods:
+            needs_buffer = METHODS.get(method).needs_buffer
+            for v in variants:
+                if not v.applies(env, method):
                     continue
-                train_extra, eval_extra = [], []
-                for s in spec.settings:
-                    if s.env in (None, env) and s.method in (None, method):
-                        train_extra += s.train
-                        eval_extra += s.eval
-                needs_buffer = METHODS.get(method).needs_buffer
+                own_model = bool(v.train or v.cluster)  # else an eval-only variant of the base model
+                own_buffer = bool(v.cluster) and needs_buffer
+                vbuffer, vcluster = (
+                    (folder / v.name / "buffer.h5", f"cluster {env}/{v.name}") if own_buffer else (buffer, cluster_id)
+                )
+                deps = [collect_id] + ([vcluster] if needs_buffer else [])
+                inputs = [demos] + ([vbuffer] if needs_buffer else [])
+                mfolder = folder / v.name if own_model else folder
+                efolder = folder / v.name if v.name else folder
+                vtag = f"{v.name}/" if own_model else ""
+                train_extra, eval_extra = flags_for(spec, env, method, v)
                 for seed in spec.seeds:
-                    tag = f"{env}/{v.name + '/' if v.name else ''}{method}-s{seed}"
-                    model, ev = vfolder / f"{method}-s{seed}.h5", vfolder / f"eval-{method}-s{seed}.h5"
-                    argv = ["train", str(demos), "--method", method, "--preset", spec.preset, "--seed", str(seed)]
-                    argv += ["--buffer", str(buffer)] if needs_buffer else []
-                    argv += ["--steps", str(spec.steps)] if spec.steps else []
-                    argv += [*train_extra, *v.train, "--out", str(model), "--device", spec.device]
-                    deps = [collect_id] + ([cluster_id] if needs_buffer else [])
-                    inputs = [demos] + ([buffer] if needs_buffer else [])
-                    tasks.append(Task(f"train {tag}", "train", argv, [model], deps, inputs))
-                    argv = ["eval", str(model), "--stream", spec.eval_stream, "--seeds", str(seed)]
-                    argv += ["--episodes", str(spec.eval_episodes), *eval_extra, *v.eval]
-                    argv += ["--out", str(ev), "--device", spec.device]
-                    tasks.append(Task(f"eval {tag}", "eval", argv, [ev], [f"train {tag}"], [model]))
-                    evals[v.name].append((f"eval {tag}", ev))
+                    model = mfolder / f"{method}-s{seed}.h5"
+                    train_id = f"train {env}/{vtag}{method}-s{seed}"
+                    if train_id not in trains:
+                        trains.add(train_id)
+                        argv = ["train", str(demos), "--method", method, "--preset", spec.preset, "--seed", str(seed)]
+                        argv += ["--buffer", str(vbuffer)] if needs_buffer else []
+                        argv += [*flags_for(spec, env, method, v if own_model else BASE)[0]]
+                        argv += ["--steps", str(spec.steps)] if spec.steps else []
+                        if spec.snapshot_at:
+                            argv += ["--snapshot-at", ",".join(map(str, sorted(spec.snapshot_at)))]
+                        argv += ["--out", str(model), "--device", spec.device]
+                        outputs = [model] + [train_snapshot(model, s) for s in sorted(spec.snapshot_at)]
+                        tasks.append(Task(train_id, "train", argv, outputs, deps, inputs))
+                    points = [(s, train_snapshot(model, s)) for s in sorted(spec.snapshot_at)] + [(spec.steps, model)]
+                    stream = v.stream or spec.eval_stream
+                    seeds = spec.eval_seeds if spec.eval_seeds is not None else [seed]
+                    for steps, m in points:
+                        at = f".step{steps}" if m != model else ""
+                        tag = f"{env}/{v.name + '/' if v.name else ''}{method}-s{seed}{at}"
+                        ev = efolder / f"eval-{method}-s{seed}{at}.h5"
+                        argv = ["eval", str(m), "--stream", stream, "--seeds", ",".join(map(str, seeds))]
+                        argv += ["--episodes", str(spec.eval_episodes), *eval_extra]
+                        argv += ["--out", str(ev), "--device", spec.device]
+                        meta = {"env": env, "method": method, "variant": v.name, "seed": seed, "steps": steps}
+                        tasks.append(
+                            Task(f"eval {tag}", "eval", argv, [ev], [train_id], [m], meta | {"stream": stream})
+                        )
+                        if m == model:
+                            evals[v.name].append((f"eval {tag}", ev))
     for name, items in evals.items():
-        if not items:
+        if not items or not spec.report:
             continue
         report = out / ("report.md" if not name else f"report-{name}.md")
         argv = ["report", *[str(p) for _, p in items], "--out", str(report), "--force"]
@@ -250,6 +411,12 @@ def expand(spec: GridSpec) -> list[Task]:
             )
         )
     return tasks
+
+
+def train_snapshot(model: Path, step: int) -> Path:
+    from cdrb_cli.stages.train import snapshot_path
+
+    return snapshot_path(model, step)
 
 
 # ------------------------------------------------------------------------------------------------ memo
@@ -502,9 +669,11 @@ def grid(
     address: str | None = None,
     retries: int = 1,
     dry_run: bool = False,
+    overrides: list[str] = (),
+    includes: list[Path] = (),
 ) -> GridRun | list[Task]:
     """Load, expand and run a grid file with a progress bar and one line per finished task (stderr)."""
-    spec = load_grid(path)
+    spec = load_grid(path, overrides, includes)
     tasks = expand(spec)
     if dry_run:
         return tasks

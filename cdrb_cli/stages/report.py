@@ -20,33 +20,30 @@ from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.stages.evaluate import mean_or_none, sample_std, sum_failures
 
-PAPER_TABLE1 = {  # the paper's Table 1 (success %, mean ± std over 5 seeds), its eight rows
-    "maze": {
-        "mlp": (74.22, 3.81),
-        "diffuser": (100.0, 0.0),
-        "diffusion-bc": (90.13, 1.21),
-        "diffusion-ql": (100.0, 0.0),
-        "cdrb": (95.33, 2.05),
-    },
-    "maze-tight": {
-        "mlp": (38.29, 1.80),
-        "diffuser": (97.00, 0.82),
-        "diffusion-bc": (89.21, 1.20),
-        "diffusion-ql": (84.02, 3.86),
-        "cdrb": (98.00, 0.00),
-    },
-    **{
-        env: dict(zip(("mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"), row, strict=True))
-        for env, row in {
-            "fetch-reach-obstacle": ((80.74, 5.20), (97.56, 0.74), (89.63, 0.41), (74.03, 8.12), (97.92, 0.18)),
-            "fetch-pick-place-obstacle": ((0.0, 0.0), (46.68, 1.29), (58.80, 2.34), (24.19, 8.31), (70.88, 1.01)),
-            "fetch-push-obstacle": ((2.43, 1.10), (58.64, 1.45), (34.81, 7.79), (29.41, 5.24), (71.04, 1.58)),
-            "fetch-reach": ((90.34, 2.18), (100.0, 0.0), (94.02, 1.03), (58.60, 14.69), (100.0, 0.0)),
-            "fetch-push": ((2.45, 1.10), (70.56, 0.68), (68.23, 8.13), (65.60, 12.63), (89.92, 0.69)),
-            "fetch-pick-place": ((0.0, 0.0), (92.36, 1.21), (61.00, 3.56), (23.60, 9.63), (95.76, 0.83)),
-        }.items()
-    },
-}
+PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
+
+
+def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, float]]]:
+    """The paper's Table 1 figures (success %, mean and std) per environment id and method, from the shipped data
+    file or from ``path`` (a TOML file of the same shape)."""
+    from importlib import resources
+
+    import tomllib
+
+    try:
+        text = (
+            Path(path).read_text()
+            if path is not None
+            else resources.files("cdrb_cli").joinpath(PAPER_FIGURES).read_text()
+        )
+        raw = tomllib.loads(text)
+        return {env: {m: (float(v[0]), float(v[1])) for m, v in by.items()} for env, by in raw.items()}
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, TypeError, ValueError, IndexError) as exc:
+        where = path or PAPER_FIGURES
+        raise BadInput(
+            f"--paper-figures {where}: not a table of [env] method = [mean, std] ({exc})",
+            hint="see cdrb_cli/paper_table1.toml for the shape",
+        ) from None
 
 
 def _env_name(spec) -> str:
@@ -215,6 +212,58 @@ def collect_rows(evals) -> list[dict]:
     return rows
 
 
+def seed_rows(evals) -> list[dict]:
+    """One row per eval file and evaluation seed (the per-seed table the docs keep beside each grouped row)."""
+    rows = []
+    for ev in evals:
+        c = ev.manifest.config
+        for r in per_seed(ev):
+            rows.append(
+                {
+                    "env": ui.plain(ev.manifest.env.id),
+                    "method": ui.plain(method_label(ev)),
+                    "controller": ui.plain(controller_name(ev)),
+                    "pairs": c.stream,
+                    "protocol": ui.plain(c.protocol),
+                    "seed": r.seed,
+                    "episodes": r.episodes,
+                    "success": 100 * r.success_rate,
+                    "in_obstacle": None if r.in_wall_fraction is None else 100 * r.in_wall_fraction,
+                    "plans_through_obstacle": None if r.plan_crossing_rate is None else 100 * r.plan_crossing_rate,
+                    "collisions": 100 * r.executed_collision_rate,
+                    "plan_ms": 1000 * r.plan_seconds,
+                    "failures": failure_text(r.failures),
+                    "path": ui.plain(str(ev.path)),
+                }
+            )
+    return rows
+
+
+def render_seed_rows(rows: list[dict], fmt: str) -> str:
+    """Per-seed rows as CSV, JSON or a markdown table."""
+    if fmt in ("json", "csv"):
+        return render(rows, fmt)
+    keys = [k for k in rows[0] if k != "path"]
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for r in rows:
+        cells = ["–" if r[k] is None else f"{r[k]:.1f}" if isinstance(r[k], float) else str(r[k]) for k in keys]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def replace_block(text: str, name: str, block: str, where: str) -> str:
+    """``text`` with the part between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` replaced by ``block``."""
+    import re
+
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    if not pattern.search(text):
+        raise BadInput(
+            f"--docs {where}: no {begin} ... {end} block", hint="add the two marker lines where the table goes"
+        )
+    return pattern.sub(lambda _: f"{begin}\n{block.rstrip()}\n{end}", text, count=1)
+
+
 def failure_text(counts: dict[str, int] | None) -> str | None:
     """``plan 2, grasp 0, collision 5, tracking 11``: failed episodes per cause (None: not classified)."""
     return None if counts is None else ", ".join(f"{cause} {n}" for cause, n in counts.items())
@@ -233,7 +282,8 @@ def _order(methods):
     return sorted(methods, key=_rank)
 
 
-def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
+def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
+    figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
     if fmt == "json":
         return json.dumps(rows, indent=2)
     if fmt == "csv":
@@ -258,10 +308,10 @@ def render(rows: list[dict], fmt: str, paper: bool = False) -> str:
             v = f"{r['success_mean']:.2f} ± {r['success_std']:.2f}"
             vals.append(f"**{v}**" if r["success_mean"] == best else v)
         lines.append(f"| {name[env]} | " + " | ".join(vals) + " |")
-        if paper and env in PAPER_TABLE1:
+        if paper and env in figures:
             pv = [
-                f"{PAPER_TABLE1[env][m.split(' ')[0]][0]:.2f} ± {PAPER_TABLE1[env][m.split(' ')[0]][1]:.2f}"
-                if m.split(" ")[0] in PAPER_TABLE1[env]
+                f"{figures[env][m.split(' ')[0]][0]:.2f} ± {figures[env][m.split(' ')[0]][1]:.2f}"
+                if m.split(" ")[0] in figures[env]
                 else "–"
                 for m in methods
             ]

@@ -1,0 +1,224 @@
+"""`cdrb select TUNING_GRID`: choose each method's settings on the tuning stream and write them as a settings file.
+
+A tuning grid's candidates are its variants (training settings, or eval-only knobs on one trained model: controller,
+plan clock, sampler, denoising steps, re-planning trigger) and, with ``snapshot_at``, its training lengths. For
+every environment x method, every candidate's tuning evals (all its training seeds and evaluation seeds pooled) are
+scored and one is chosen by :data:`RULE`. The chosen flags (the settings that applied in the tuning grid, the
+variant's, and the chosen training length) are written as ``[[settings]]`` of a settings file that the test grid
+``include``s: the one copy of every tuned setting. The test pairs are never read here.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass, field
+from datetime import date
+from pathlib import Path
+
+from cdrb_cli import artifacts, ui
+from cdrb_cli.errors import BadInput
+from cdrb_cli.stages.grid import BASE, GridSpec, Variant, expand, flags_for
+
+RULE = (
+    "highest tuning success, then fewest plans through an obstacle, then fewest executed collisions, "
+    "then the grid's variant order, then fewest training steps"
+)
+
+
+@dataclass
+class Candidate:
+    """One setting tried for a method on an environment: a variant at a training length, with its tuning scores
+    (per cent, pooled over every training and evaluation seed)."""
+
+    env: str
+    method: str
+    variant: str
+    order: int
+    steps: int | None
+    evals: list[Path] = field(default_factory=list)
+    success: float = 0.0
+    crossing: float | None = None
+    collision: float = 0.0
+    seeds: int = 0
+    episodes: int = 0
+
+    @property
+    def name(self) -> str:
+        label = self.variant or "base"
+        return label if self.steps is None else f"{label} @ {self.steps} steps"
+
+    def rank(self) -> tuple:
+        """Smaller is better (:data:`RULE`); a policy makes no plans, so no plan crosses an obstacle."""
+        return (-self.success, self.crossing or 0.0, self.collision, self.order, self.steps or 0)
+
+
+def candidates(spec: GridSpec) -> list[Candidate]:
+    """Every (env, method, variant, training length) of the grid with its tuning scores, in the grid's order."""
+    from cdrb_cli.stages.report import per_seed
+
+    order = {v.name: i for i, v in enumerate(spec.variants or [BASE])}
+    found: dict[tuple, Candidate] = {}
+    missing = []
+    for task in expand(spec):
+        if task.kind != "eval":
+            continue
+        m = task.meta
+        if m["stream"] != "tune":
+            raise BadInput(
+                f"{task.id}: evaluates on the {m['stream']} stream; settings are chosen on the tuning stream only",
+                hint='set eval_stream = "tune" in the tuning grid',
+            )
+        key = (m["env"], m["method"], m["variant"], m["steps"])
+        cand = found.setdefault(key, Candidate(*key[:3], order[m["variant"]], m["steps"]))
+        (cand.evals if task.outputs[0].exists() else missing).append(task.outputs[0])
+    if missing:
+        raise BadInput(
+            f"{len(missing)} of the grid's tuning evals are not there yet (e.g. {missing[0]})",
+            hint="run `cdrb grid` on the same file (with the same --set/--include) first",
+        )
+    for cand in found.values():
+        per = [r for p in cand.evals for r in per_seed(artifacts.load(p, "eval"))]
+        cand.seeds, cand.episodes = len(per), artifacts.load(cand.evals[0], "eval").manifest.config.episodes
+        cand.success = 100 * sum(r.success_rate for r in per) / len(per)
+        crossing = [r.plan_crossing_rate for r in per]
+        cand.crossing = None if None in crossing else 100 * sum(crossing) / len(per)
+        cand.collision = 100 * sum(r.executed_collision_rate for r in per) / len(per)
+    return list(found.values())
+
+
+def choose(cands: list[Candidate]) -> dict[tuple[str, str], Candidate]:
+    """Per (env, method), the candidate :data:`RULE` ranks first."""
+    best: dict[tuple[str, str], Candidate] = {}
+    for c in cands:
+        key = (c.env, c.method)
+        if key not in best or c.rank() < best[key].rank():
+            best[key] = c
+    return best
+
+
+def _without_steps(flags: list[str]) -> list[str]:
+    out, skip = [], False
+    for f in flags:
+        if skip or f == "--steps":
+            skip = not skip
+            continue
+        out.append(f)
+    return out
+
+
+def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str]]:
+    """The `cdrb train` and `cdrb eval` flags that reproduce ``cand``: what applied to it in the tuning grid, with
+    its training length when the grid set one."""
+    variant = next((v for v in spec.variants if v.name == cand.variant), BASE)
+    train, evaluate = flags_for(spec, cand.env, cand.method, variant if variant.train else BASE)
+    evaluate = flags_for(spec, cand.env, cand.method, variant)[1]
+    if cand.steps is not None:
+        train = [*_without_steps(train), "--steps", str(cand.steps)]
+    return train, evaluate
+
+
+def _toml_list(items: list[str]) -> str:
+    return "[" + ", ".join(json.dumps(x) for x in items) + "]"
+
+
+def settings_text(spec: GridSpec, grid_file: Path, best: dict[tuple[str, str], Candidate]) -> str:
+    """The settings file: a provenance table, then one ``[[settings]]`` entry per env x method."""
+    seeds = ",".join(map(str, spec.eval_seeds)) if spec.eval_seeds else "those of training"
+    lines = [
+        "# Written by `cdrb select`: the settings chosen on the tuning stream, one entry per env x method.",
+        "# Test grids `include` this file; re-run `cdrb select` rather than editing it.",
+        "[meta]",
+        f"rule = {json.dumps(RULE)}",
+        f"tuning_grid = {json.dumps(str(grid_file))}",
+        f"stream = {json.dumps('tune, seeds ' + seeds)}",
+        f"written = {json.dumps(date.today().isoformat())}",
+        "",
+    ]
+    for (env, method), cand in best.items():
+        train, evaluate = chosen_flags(spec, cand)
+        lines += [
+            "[[settings]]",
+            f"env = {json.dumps(env)}",
+            f"method = {json.dumps(method)}",
+            f"chosen = {json.dumps(cand.name)}",
+            f"train = {_toml_list(train)}",
+            f"eval = {_toml_list(evaluate)}",
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def table_rows(cands: list[Candidate], best: dict[tuple[str, str], Candidate]) -> list[dict]:
+    rows = []
+    for c in cands:
+        rows.append(
+            {
+                "env": c.env,
+                "method": c.method,
+                "candidate": c.variant or "base",
+                "steps": c.steps,
+                "seeds": c.seeds,
+                "episodes": c.episodes,
+                "success": round(c.success, 2),
+                "plans_through_obstacle": None if c.crossing is None else round(c.crossing, 2),
+                "collisions": round(c.collision, 2),
+                "chosen": best[(c.env, c.method)] is c,
+            }
+        )
+    return rows
+
+
+def table_text(rows: list[dict], fmt: str) -> str:
+    if fmt == "csv":
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+        return buf.getvalue()
+    head = list(rows[0])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [
+            "–" if r[k] is None else ("**yes**" if r[k] is True else "" if r[k] is False else str(r[k])) for k in head
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def select(
+    grid_file: Path,
+    out: Path,
+    force: bool = False,
+    table: Path | None = None,
+    overrides: list[str] = (),
+    includes: list[Path] = (),
+) -> Path:
+    """Score the tuning grid's evals, choose by :data:`RULE`, write the settings file (and the candidates' table)."""
+    from cdrb_cli.stages.grid import load_grid
+
+    spec = load_grid(grid_file, overrides, includes)
+    inputs = [grid_file, *includes]
+    artifacts.check_output(out, force, "--out", inputs)
+    if table is not None:
+        artifacts.check_output(table, force, "--table", inputs)
+    cands = candidates(spec)
+    if not cands:
+        raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
+    best = choose(cands)
+    for (env, method), c in best.items():
+        ui.log(
+            f"{env} / {method}: {c.name} (success {c.success:.1f}%, through an obstacle "
+            f"{'n/a' if c.crossing is None else f'{c.crossing:.1f}%'}, collisions {c.collision:.1f}%)"
+        )
+    with artifacts.claim_output(out, force, "--out", inputs), artifacts.atomic_path(out) as tmp:
+        tmp.write_text(settings_text(spec, Path(grid_file), best))
+    if table is not None:
+        fmt = "csv" if table.suffix == ".csv" else "markdown"
+        with artifacts.claim_output(table, force, "--table", inputs), artifacts.atomic_path(table) as tmp:
+            tmp.write_text(table_text(table_rows(cands, best), fmt))
+    return out
+
+
+__all__ = ["RULE", "Candidate", "Variant", "candidates", "choose", "chosen_flags", "select"]

@@ -1,0 +1,125 @@
+"""`cdrb select` and the studies as experiment files: the selection rule, and the maze tuning -> select -> Table-1 ->
+report chain run from the shipped files at a tiny budget."""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import tomllib
+
+from cdrb_cli import artifacts
+from cdrb_cli.stages.select import RULE, Candidate, choose
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _cand(variant, order, steps=None, success=50.0, crossing=0.0, collision=0.0, method="cdrb"):
+    return Candidate("maze", method, variant, order, steps, success=success, crossing=crossing, collision=collision)
+
+
+def test_the_rule_ranks_success_then_crossings_then_collisions_then_order_then_steps():
+    base = _cand("a", 0)
+    assert choose([base, _cand("b", 1, success=60.0)])[("maze", "cdrb")].variant == "b"
+    # equal success: fewer plans through an obstacle, however many collisions
+    assert (
+        choose([_cand("a", 0, crossing=5.0), _cand("b", 1, crossing=1.0, collision=90.0)])[("maze", "cdrb")].variant
+        == "b"
+    )
+    assert choose([_cand("a", 0, collision=5.0), _cand("b", 1, collision=1.0)])[("maze", "cdrb")].variant == "b"
+    # a full tie: the grid's variant order, whatever order the candidates come in
+    assert choose([_cand("b", 1), _cand("a", 0)])[("maze", "cdrb")].variant == "a"
+    # the same variant at two training lengths: fewer steps
+    assert choose([_cand("a", 0, steps=2000), _cand("a", 0, steps=1000)])[("maze", "cdrb")].steps == 1000
+    # a policy has no plans (crossing None): counted as none through an obstacle
+    assert (
+        choose([_cand("a", 0, crossing=None, method="p"), _cand("b", 1, crossing=2.0, method="p")])[
+            ("maze", "p")
+        ].variant
+        == "a"
+    )
+    # each env x method on its own
+    assert set(choose([base, _cand("a", 0, method="mlp")])) == {("maze", "cdrb"), ("maze", "mlp")}
+    assert "success" in RULE and "steps" in RULE
+
+
+def _cdrb(*args, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run(
+        [sys.executable, "-m", "cdrb_cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=900,
+    )
+    assert proc.returncode == 0, (args, proc.stderr[-3000:])
+    return proc
+
+
+@pytest.mark.slow
+def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp_path):
+    """The documented chain on the shipped files (copied, so the tuned files written are the copies'), narrowed to
+    Maze Tight x {MLP, CDRB} with tiny nets: each `cdrb select` writes the settings the next file includes, and the
+    Table-1 models are trained with exactly the settings the last selection chose."""
+    exp = tmp_path / "experiments"
+    shutil.copytree(ROOT / "experiments", exp)
+    small = ["--set", 'envs=["maze-tight"]', "--set", 'methods=["mlp", "cdrb"]', "--set", "demos=40"]
+    small += ["--set", "k=50", "--set", "eval_episodes=2", "--include", ROOT / "tests" / "data" / "tiny-settings.toml"]
+    tune = [*small, "--set", "eval_seeds=[0]", "--backend", "pool", "-j", "2"]
+
+    def grid_select(name: str, tuned: str, *extra) -> list[dict]:
+        args = [*tune, "--set", f"out={tmp_path / 'runs' / name}", *extra]
+        _cdrb("grid", exp / "tune" / f"{name}.toml", *args, cwd=tmp_path)
+        table = tmp_path / f"{name}.csv"
+        sel = [a for a in args if a not in ("--backend", "pool", "-j", "2")]
+        out = _cdrb("select", exp / "tune" / f"{name}.toml", *sel, "--out", exp / "tuned" / tuned, "--force",
+                    "--table", table, cwd=tmp_path).stdout  # fmt: skip
+        assert out.strip() == str(exp / "tuned" / tuned)
+        with open(table, newline="") as fh:
+            return list(csv.DictReader(fh))
+
+    rows = grid_select("mazes-sweep", "mazes-sweep.toml", "--set", "steps=20")
+    tuned = tomllib.loads((exp / "tuned" / "mazes-sweep.toml").read_text())
+    assert tuned["meta"]["rule"] == RULE
+    assert {(s["env"], s["method"]) for s in tuned["settings"]} == {("maze-tight", "mlp"), ("maze-tight", "cdrb")}
+    for s in tuned["settings"]:
+        mine = [r for r in rows if r["method"] == s["method"]]
+        assert len(mine) == 6  # six candidates per method: the equal budget
+        best = max(float(r["success"]) for r in mine)
+        chosen = next(r for r in mine if r["chosen"] == "True")
+        assert float(chosen["success"]) == best and s["chosen"].startswith(chosen["candidate"])
+
+    rows = grid_select("mazes-clock", "mazes-clock.toml", "--set", "steps=20")
+    assert {r["candidate"] for r in rows} == {
+        "time-indexed", "gated-0.6", "gated-0.6-wait10", "gated-0.3-wait10", "official-executor"
+    }  # fmt: skip
+    rows = grid_select("mazes-curves", "mazes.toml", "--set", "steps=100", "--set", "snapshot_at=[50]")
+    assert sorted({int(r["steps"]) for r in rows}) == [50, 100]
+    final = tomllib.loads((exp / "tuned" / "mazes.toml").read_text())["settings"]
+
+    out = tmp_path / "runs" / "table1"
+    _cdrb("grid", exp / "table1" / "mazes.toml", *small, "--set", f"out={out}", "--set", "seeds=[0, 1]", cwd=tmp_path)
+    for s in final:
+        steps = int(s["train"][s["train"].index("--steps") + 1])
+        for seed in (0, 1):
+            model = artifacts.load(out / "maze-tight" / f"{s['method']}-s{seed}.h5", "model")
+            assert model.manifest.config.steps == steps  # trained as selected on the tuning stream
+            ev = artifacts.load(out / "maze-tight" / "ours" / f"eval-{s['method']}-s{seed}.h5", "eval")
+            assert ev.manifest.config.stream == "test" and ev.manifest.config.seeds == [seed]
+            official = artifacts.load(out / "maze-tight" / "official-code" / f"eval-{s['method']}-s{seed}.h5", "eval")
+            assert official.manifest.config.protocol == "official-code"
+    docs = tmp_path / "doc.md"
+    docs.write_text("intro\n<!-- t1:begin -->\nold\n<!-- t1:end -->\nafter\n")
+    evals = sorted((out / "maze-tight" / "ours").glob("eval-*.h5"))
+    _cdrb("report", *evals, "--paper", "--docs", docs, "--block", "t1", cwd=tmp_path)
+    text = docs.read_text()
+    assert text.startswith("intro\n<!-- t1:begin -->\n| Success rate (%) |") and text.endswith(
+        "<!-- t1:end -->\nafter\n"
+    )
+    assert "| Maze Tight (paper) | 38.29 ± 1.80 | 98.00 ± 0.00 |" in text and "old" not in text
