@@ -1,4 +1,4 @@
-"""Evaluation, controllers, report and the miniature quickstart (issue #6)."""
+"""Evaluation, controllers, report and the miniature quickstart."""
 
 from __future__ import annotations
 
@@ -168,7 +168,7 @@ def test_eval_artifact_contents(evals):
     per = [p.success_rate for p in s.per_seed]
     assert np.isclose(s.success_std, np.std(per, ddof=1))
     # every failed episode has one cause, a success none; a plan through a wall is the cause whenever it happened
-    from cdrb_cli.stages.evaluate import FAILURE_CODES
+    from cdrb_cli.stages.metrics import FAILURE_CODES
 
     code = a["episodes/failure"]
     assert ((code == 0) == a["episodes/success"]).all()

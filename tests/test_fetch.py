@@ -474,7 +474,7 @@ def test_failure_causes_follow_their_definition():
     """A failed Push episode is "grasp" when the block never moved 2 cm, then "collision" when the executed path
     touched a wall, else "tracking"; a plan through a wall ("plan") comes first; a success has no cause."""
     from cdrb_cli.envs.fetch import MOVED
-    from cdrb_cli.stages.evaluate import FAILURE_CODES, failure_code, failure_counts
+    from cdrb_cli.stages.metrics import FAILURE_CODES, failure_code, failure_counts
 
     spec, family = make_spec("fetch-push-obstacle"), family_of(make_spec("fetch-push-obstacle"))
     still = np.stack([_state(spec, (1.2, 0.5, 0.6))] * 10)

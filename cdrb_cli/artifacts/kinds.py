@@ -295,7 +295,7 @@ class Eval(ArtifactBase):
         values, counts = np.unique(arrays["episodes/seed"], return_counts=True)
         if sorted(values.tolist()) != sorted(set(cfg.seeds)) or (counts != cfg.episodes).any():
             return f"the episodes are not {cfg.episodes} per seed of {cfg.seeds}"
-        failure, top = arrays.get("episodes/failure"), len(FAILURE_CAUSES)  # codes: stages/evaluate.FAILURE_CODES
+        failure, top = arrays.get("episodes/failure"), len(FAILURE_CAUSES)  # codes: stages/metrics.FAILURE_CODES
         if failure is not None and ((failure < -1) | (failure > top)).any():
             return f"episodes/failure holds codes outside -1..{top}"
         if failure is not None and (failure >= 0).all() and ((failure == 0) != arrays["episodes/success"]).any():

@@ -20,13 +20,14 @@ import numpy as np
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.configs import EvalConfig, EvalSummary, SeedResult
-from cdrb_cli.envs.family import FAILURE_CAUSES, Env, EnvFamily, Episode
+from cdrb_cli.envs.family import Env, EnvFamily, Episode
 from cdrb_cli.envs.geometry import largest_jump
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import EVAL_STREAMS, STREAM_EVAL, step_rng
+from cdrb_cli.stages.metrics import failure_code, failure_counts, mean_or_none, sample_std, sum_failures
 from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
@@ -41,18 +42,6 @@ class Rollout:
     collision: bool
     path_length: float
     execution_failure: str = ""  # a failed episode: why, had its plans been free (EnvFamily.execution_failure)
-
-
-#: per-episode failure codes (``episodes/failure``): 0 a success, i + 1 the cause FAILURE_CAUSES[i]; -1 not measured
-#: (an eval from before schema 2.5)
-FAILURE_CODES = {"none": 0, **{cause: i + 1 for i, cause in enumerate(FAILURE_CAUSES)}}
-
-
-def failure_code(success: bool, plan_crossed: bool, execution_failure: str) -> int:
-    """The code of an episode's outcome: a success; a plan through an obstacle; else why the execution failed."""
-    if success:
-        return 0
-    return FAILURE_CODES["plan" if plan_crossed else execution_failure]
 
 
 @dataclass(frozen=True)
@@ -494,34 +483,6 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
         planning_seconds=float(np.mean([r.planning_seconds for r in results])),
         failures=failures,
     )
-
-
-def failure_counts(codes) -> dict[str, int] | None:
-    """Failed episodes per cause (every cause listed, zeros included); None when any episode was not classified."""
-    codes = np.asarray(list(codes), dtype=np.int64)
-    if (codes < 0).any():
-        return None
-    return {cause: int((codes == FAILURE_CODES[cause]).sum()) for cause in FAILURE_CAUSES}
-
-
-def sum_failures(counts) -> dict[str, int] | None:
-    """The per-cause sum of several :func:`failure_counts` (None when any is None)."""
-    counts = list(counts)
-    if not counts or any(c is None for c in counts):
-        return None
-    return {cause: sum(c[cause] for c in counts) for cause in FAILURE_CAUSES}
-
-
-def sample_std(values) -> float:
-    """The sample standard deviation (ddof = 1) across seeds; 0 for a single seed."""
-    v = np.asarray(values, dtype=np.float64)
-    return float(v.std(ddof=1)) if v.size > 1 else 0.0
-
-
-def mean_or_none(values) -> float | None:
-    """The mean, or None when there is no value or any is None (a measurement some file did not make)."""
-    values = list(values)
-    return float(np.mean(values)) if values and all(v is not None for v in values) else None
 
 
 def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_time_s: float) -> EvalSummary:

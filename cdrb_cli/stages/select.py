@@ -20,6 +20,7 @@ from pathlib import Path
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.stages.grid import BASE, GridSpec, Variant, expand, flags_for
+from cdrb_cli.stages.metrics import mean_or_none
 
 RULE = (
     "highest tuning success, then fewest plans through an obstacle, then fewest executed collisions, "
@@ -81,10 +82,10 @@ def candidates(spec: GridSpec) -> list[Candidate]:
     for cand in found.values():
         per = [r for p in cand.evals for r in per_seed(artifacts.load(p, "eval"))]
         cand.seeds, cand.episodes = len(per), artifacts.load(cand.evals[0], "eval").manifest.config.episodes
-        cand.success = 100 * sum(r.success_rate for r in per) / len(per)
-        crossing = [r.plan_crossing_rate for r in per]
-        cand.crossing = None if None in crossing else 100 * sum(crossing) / len(per)
-        cand.collision = 100 * sum(r.executed_collision_rate for r in per) / len(per)
+        cand.success = 100 * mean_or_none(r.success_rate for r in per)
+        crossing = mean_or_none(r.plan_crossing_rate for r in per)  # None: a policy makes no plans
+        cand.crossing = None if crossing is None else 100 * crossing
+        cand.collision = 100 * mean_or_none(r.executed_collision_rate for r in per)
     return list(found.values())
 
 
