@@ -1,11 +1,40 @@
 """Generic obstacle geometry: axis-aligned boxes over some state dimensions, distances to them, and the collision
-test of :class:`cdrb_cli.envs.spec.BoxObstacles` (vectorized over any batch of states)."""
+test (vectorized over any batch of states). :class:`BoxObstacles` is the obstacle record an EnvSpec holds; this
+module imports no other part of ``envs``, so the spec, the registry and the families can all use it."""
 
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from cdrb_cli.envs.spec import BoxObstacles
+from cdrb_cli.schema_base import Record
+
+MAX_BOXES = 20_000
+
+
+class BoxObstacles(Record):
+    """Axis-aligned boxes over the state dimensions ``dims``. A state collides when the point made of those
+    dimensions is closer than ``inflate`` to any box (the agent's own radius), or lies outside ``[low, high]``."""
+
+    dims: list[int] = Field(min_length=1, max_length=16)
+    centers: list[list[float]] = Field(max_length=MAX_BOXES)
+    half_sizes: list[list[float]] = Field(max_length=MAX_BOXES)
+    inflate: float = Field(0.0, ge=0)
+    low: list[float]
+    high: list[float]
+
+    @model_validator(mode="after")
+    def _check_shapes(self) -> BoxObstacles:
+        d = len(self.dims)
+        if len(self.centers) != len(self.half_sizes):
+            raise ValueError("centers and half_sizes must have the same length")
+        if any(len(c) != d for c in self.centers) or any(len(h) != d for h in self.half_sizes):
+            raise ValueError("every box needs one center and half size per dimension in dims")
+        if len(self.low) != d or len(self.high) != d or any(lo >= hi for lo, hi in zip(self.low, self.high)):
+            raise ValueError("low/high must give one increasing bound per dimension")
+        if any(h < 0 for hs in self.half_sizes for h in hs):
+            raise ValueError("half sizes must be non-negative")
+        return self
 
 
 def box_distance(points: np.ndarray, centers: np.ndarray, half_sizes: np.ndarray, chunk: int = 65536) -> np.ndarray:

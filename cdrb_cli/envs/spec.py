@@ -13,36 +13,10 @@ from typing import Annotated
 from pydantic import Field, model_validator
 
 from cdrb_cli.envs.family import Scene
+from cdrb_cli.envs.geometry import BoxObstacles  # noqa: F401  (part of the spec's public names)
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.registry import Dispatch
 from cdrb_cli.schema_base import Record
-
-MAX_BOXES = 20_000
-
-
-class BoxObstacles(Record):
-    """Axis-aligned boxes over the state dimensions ``dims``. A state collides when the point made of those
-    dimensions is closer than ``inflate`` to any box (the agent's own radius), or lies outside ``[low, high]``."""
-
-    dims: list[int] = Field(min_length=1, max_length=16)
-    centers: list[list[float]] = Field(max_length=MAX_BOXES)
-    half_sizes: list[list[float]] = Field(max_length=MAX_BOXES)
-    inflate: float = Field(0.0, ge=0)
-    low: list[float]
-    high: list[float]
-
-    @model_validator(mode="after")
-    def _check_shapes(self) -> BoxObstacles:
-        d = len(self.dims)
-        if len(self.centers) != len(self.half_sizes):
-            raise ValueError("centers and half_sizes must have the same length")
-        if any(len(c) != d for c in self.centers) or any(len(h) != d for h in self.half_sizes):
-            raise ValueError("every box needs one center and half size per dimension in dims")
-        if len(self.low) != d or len(self.high) != d or any(lo >= hi for lo, hi in zip(self.low, self.high)):
-            raise ValueError("low/high must give one increasing bound per dimension")
-        if any(h < 0 for hs in self.half_sizes for h in hs):
-            raise ValueError("half sizes must be non-negative")
-        return self
 
 
 class EnvSpec(Record):
