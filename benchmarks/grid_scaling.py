@@ -1,4 +1,4 @@
-"""Wall time of one grid of 8 small runs with 1 vs 2 local workers (issue 19's scaling figure).
+"""Wall time of one grid of 8 small runs with 1 vs 2 local workers.
 
 The grid: Maze Tight, MLP and CDRB x 4 training seeds (8 trainings of 400 steps with small nets, 8 evaluations
 of 20 episodes, one report), on the shared demonstrations and buffer, which are built once before timing. Each

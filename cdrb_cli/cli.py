@@ -45,6 +45,20 @@ SeedOpt = typer.Option(
 )
 ForceOpt = typer.Option(False, "--force", help="Overwrite --out if it exists (otherwise an existing file is an error).")
 JsonOpt = typer.Option(False, "--json", help="Print a JSON result on stdout instead of the path.")
+GridSetOpt = typer.Option(
+    [],
+    "--set",
+    metavar="KEY=VALUE",
+    help="Replace a top-level key of the grid file, e.g. --set demos=40 --set 'seeds=[0]' --set out=runs/small "
+    "(VALUE is read as TOML; `out` is then relative to the current folder). Repeatable; `cdrb select` takes the "
+    "same --set as the `cdrb grid` run that made the evals.",
+)
+GridIncludeOpt = typer.Option(
+    [],
+    "--include",
+    metavar="FILE",
+    help="A settings file applied after the grid's own settings (e.g. smaller nets for a smoke run). Repeatable.",
+)
 DeviceOpt = typer.Option("auto", "--device", help="auto (CUDA when present), cpu or cuda.")
 
 
@@ -1108,8 +1122,8 @@ def quickstart(
 
         choose_gl_backend()
     from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.stages.pipeline import DEFAULT_ENV, DEFAULT_METHODS, check_methods
-    from cdrb_cli.stages.pipeline import quickstart as run_quickstart
+    from cdrb_cli.stages.quickstart import DEFAULT_ENV, DEFAULT_METHODS, check_methods
+    from cdrb_cli.stages.quickstart import quickstart as run_quickstart
     from cdrb_cli.torch_utils import setup_torch
 
     method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else DEFAULT_METHODS
@@ -1140,16 +1154,17 @@ def quickstart(
 @app.command()
 def select(
     grid_file: Path = typer.Argument(..., help="A tuning grid (TOML) whose evals `cdrb grid` has run."),
-    out: Path = typer.Option(..., "--out", "-o", help="The settings file to write (TOML), for test grids to include."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", metavar="FILE", help="The settings file to write (TOML), for test grids to include."
+    ),
     table: Path | None = typer.Option(
-        None, "--table", help="Also write every candidate's scores: CSV (.csv) or a markdown table (other names)."
+        None,
+        "--table",
+        metavar="FILE",
+        help="Also write every candidate's scores: CSV (.csv) or a markdown table (other names).",
     ),
-    overrides: list[str] = typer.Option(
-        [], "--set", metavar="KEY=VALUE", help="The same --set as the `cdrb grid` run that made the evals."
-    ),
-    includes: list[Path] = typer.Option(
-        [], "--include", metavar="FILE", help="The same --include as the `cdrb grid` run that made the evals."
-    ),
+    overrides: list[str] = GridSetOpt,
+    includes: list[Path] = GridIncludeOpt,
     force: bool = ForceOpt,
 ) -> None:
     """Choose each method's settings on the tuning stream from a tuning grid's evals, and write them as a settings
@@ -1183,19 +1198,8 @@ def grid(
     ),
     retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the tasks' commands (one per line) and stop."),
-    overrides: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Replace a top-level key of the grid file, e.g. --set demos=40 --set 'seeds=[0]' --set out=runs/small "
-        "(VALUE is read as TOML; `out` is then relative to the current folder). Repeatable.",
-    ),
-    includes: list[Path] = typer.Option(
-        [],
-        "--include",
-        metavar="FILE",
-        help="A settings file applied after the grid's own settings (e.g. smaller nets for a smoke run). Repeatable.",
-    ),
+    overrides: list[str] = GridSetOpt,
+    includes: list[Path] = GridIncludeOpt,
     as_json: bool = JsonOpt,
 ) -> None:
     """Run a grid of experiments: collect -> cluster -> train -> eval -> report for every environment, method,

@@ -1,4 +1,4 @@
-"""The artifact format: round trips, validation order, and every kind of bad file (issue #2)."""
+"""The artifact format: round trips, validation order, and every kind of bad file."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The replay buffer and the degradation D: exactness (uniform over ball ∩ buffer), pinning, schedules,
-normalizer, k-means snapping (issue #4)."""
+normalizer, k-means snapping."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""CLI conventions: help, version, inspect, exit codes, one-line errors, stdout hygiene (issue #2)."""
+"""CLI conventions: help, version, inspect, exit codes, one-line errors, stdout hygiene."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The scripted expert and `cdrb collect` (issue #3)."""
+"""The scripted expert and `cdrb collect`."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Faults: kill -9 at random points, crashes before rename, NaN losses, hostile files, fuzzed files (issue #7)."""
+"""Faults: kill -9 at random points, crashes before rename, NaN losses, hostile files, fuzzed files."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`cdrb grid` (issue 19): the grid file, its stage graph, execution on a local pool and on a local Ray instance,
+"""`cdrb grid`: the grid file, its stage graph, execution on a local pool and on a local Ray instance,
 a worker killed mid-task, a failing task, and re-running a finished grid."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Maze maps, geometry and the collision check (issue #3)."""
+"""Maze maps, geometry and the collision check."""
 
 from __future__ import annotations
 

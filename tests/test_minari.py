@@ -1,4 +1,4 @@
-"""Minari interop (issue 20): datasets made here with Minari's own API import, train, plan and evaluate; exported
+"""Minari interop: datasets made here with Minari's own API import, train, plan and evaluate; exported
 cdrb demos open with `minari.load_dataset`; import(export(demos)) keeps every array; bad datasets are one-line
 errors. No network: every dataset lives under a temporary MINARI_DATASETS_PATH."""
 

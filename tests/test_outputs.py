@@ -1,4 +1,4 @@
-"""One rule for every output path (issue: hostile files and careless flags, round two): existing -> error unless
+"""One rule for every output path: existing -> error unless
 --force; never an input of the same run; only regular files are replaced; pictures and reports checked before
 any work; one writer per output at a time; files honour the umask; temp files of a killed writer are cleaned."""
 

@@ -1,4 +1,4 @@
-"""Planning: start and goal held exactly, bad points refused, iterates, pictures (issue #4)."""
+"""Planning: start and goal held exactly, bad points refused, iterates, pictures."""
 
 from __future__ import annotations
 

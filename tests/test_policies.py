@@ -1,4 +1,4 @@
-"""Closed-loop policies (issue #17): the transition data, Diffusion BC's training and acting, closed-loop eval."""
+"""Closed-loop policies: the transition data, Diffusion BC's training and acting, closed-loop eval."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The comparison protocol (issue #14): tuning vs test pairs, the official-code protocol and executor, the plan
+"""The comparison protocol: tuning vs test pairs, the official-code protocol and executor, the plan
 clock's timeout, and the plan metrics that catch jumps through walls."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Closed-loop planning: re-planning during an episode and plan repair (issue 18)."""
+"""Closed-loop planning: re-planning during an episode and plan repair."""
 
 from __future__ import annotations
 

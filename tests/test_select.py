@@ -123,3 +123,24 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
         "<!-- t1:end -->\nafter\n"
     )
     assert "| Maze Tight (paper) | 38.29 ± 1.80 | 98.00 ± 0.00 |" in text and "old" not in text
+
+
+def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_path):
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.report import paper_figures, replace_block
+
+    figures = paper_figures()
+    assert len(figures) == 8 and figures["maze-tight"]["cdrb"] == (98.0, 0.0)
+    assert set(figures["fetch-push"]) == {"mlp", "diffuser", "diffusion-bc", "diffusion-ql", "cdrb"}
+    own = tmp_path / "own.toml"
+    own.write_text('["maze"]\ncdrb = [1, 2.5]\n')
+    assert paper_figures(own) == {"maze": {"cdrb": (1.0, 2.5)}}
+    for text in ('["maze"]\ncdrb = [1]\n', "maze = 3\n", '["maze"]\ncdrb = ["a", 1]\n', "= =\n"):
+        own.write_text(text)
+        with pytest.raises(BadInput, match="--paper-figures"):
+            paper_figures(own)
+    doc = "a\n<!-- t:begin -->\nold\n<!-- t:end -->\nb\n<!-- t:begin -->\nkeep\n<!-- t:end -->\n"
+    assert replace_block(doc, "t", "new\n", "doc.md").startswith("a\n<!-- t:begin -->\nnew\n<!-- t:end -->\nb\n")
+    assert "keep" in replace_block(doc, "t", "new", "doc.md")  # the first block only
+    with pytest.raises(BadInput, match="no <!-- u:begin -->"):
+        replace_block(doc, "u", "new", "doc.md")

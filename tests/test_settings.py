@@ -1,5 +1,5 @@
 """A hyper-parameter is declared once, as a config field: --set, --config files, `cdrb config` and the errors all
-come from the config records (issue: one interface per axis)."""
+come from the config records."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Training: the loss decreases, checkpoints resume bit for bit (also after SIGKILL), bad inputs are refused
-(issue #4)."""
+"""Training: the loss decreases, checkpoints resume bit for bit (also after SIGKILL), bad inputs are refused."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""docs/tutorial.md's shell pipeline, run for real with tiny settings (issue #6)."""
+"""docs/tutorial.md's shell pipeline, run for real with tiny settings."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Rollout videos rendered by MuJoCo (issue 20): the plan is drawn into the scene. Rendering runs in a fresh
+"""Rollout videos rendered by MuJoCo: the plan is drawn into the scene. Rendering runs in a fresh
 process, since MUJOCO_GL must be chosen before MuJoCo is first imported."""
 
 from __future__ import annotations

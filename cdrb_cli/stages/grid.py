@@ -258,7 +258,9 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             try:
                 make_spec(e)
             except BadInput as exc:
-                raise BadInput(f"{path}: variant {v.name}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
+                raise BadInput(
+                    f"{path}: variant {v.name}: envs: {exc.message}", hint="`cdrb envs` lists them"
+                ) from None
     if len(set(spec.seeds)) != len(spec.seeds) or len(set(spec.envs)) != len(spec.envs):
         raise BadInput(f"{path}: envs and seeds must each be listed once", hint="remove the repeats")
     if spec.snapshot_at:

@@ -18,7 +18,7 @@ import numpy as np
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.evaluate import mean_or_none, sample_std, sum_failures
+from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, sum_failures
 
 PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
 
@@ -30,20 +30,27 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
 
     import tomllib
 
+    where = path or PAPER_FIGURES
     try:
-        text = (
-            Path(path).read_text()
-            if path is not None
-            else resources.files("cdrb_cli").joinpath(PAPER_FIGURES).read_text()
-        )
+        if path is not None:
+            text = Path(path).read_text()
+        else:
+            text = resources.files("cdrb_cli").joinpath(PAPER_FIGURES).read_text()
         raw = tomllib.loads(text)
-        return {env: {m: (float(v[0]), float(v[1])) for m, v in by.items()} for env, by in raw.items()}
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, TypeError, ValueError, IndexError) as exc:
-        where = path or PAPER_FIGURES
-        raise BadInput(
-            f"--paper-figures {where}: not a table of [env] method = [mean, std] ({exc})",
-            hint="see cdrb_cli/paper_table1.toml for the shape",
-        ) from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise BadInput(f"--paper-figures {where}: cannot read it ({exc})", hint="give a TOML file") from None
+    out = {}
+    for env, by in raw.items():
+        ok = isinstance(by, dict) and all(
+            isinstance(v, list) and len(v) == 2 and all(isinstance(x, int | float) for x in v) for v in by.values()
+        )
+        if not ok:
+            raise BadInput(
+                f"--paper-figures {where}: [{env}] is not a table of method = [mean, std]",
+                hint="see cdrb_cli/paper_table1.toml for the shape",
+            )
+        out[env] = {m: (float(v[0]), float(v[1])) for m, v in by.items()}
+    return out
 
 
 def _env_name(spec) -> str:
@@ -87,17 +94,6 @@ def controller_name(ev) -> str:
     c = ev.manifest.config.controller
     settings = ", ".join(f"{k} {v}" for k, v in c.model_dump().items() if k != "name")
     return f"{c.name} ({settings})"
-
-
-def ci95(values) -> float:
-    """Half-width of the 95% confidence interval of the mean over seeds (Student t, n - 1 degrees of freedom);
-    0 for a single seed."""
-    v = np.asarray(values, dtype=np.float64)
-    if v.size < 2:
-        return 0.0
-    from scipy.stats import t
-
-    return float(t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size))
 
 
 def method_label(ev) -> str:
