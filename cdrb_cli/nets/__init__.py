@@ -5,7 +5,7 @@ Every trajectory network maps ``(x (B, H, F), k (B,))`` to ``(B, H, F)``; the ML
 
 from __future__ import annotations
 
-from cdrb_cli.configs import MLPConfig, SieveConfig, TransformerConfig, UNetConfig
+from cdrb_cli.nets.config import MLPConfig, SieveConfig, TransformerConfig, UNetConfig
 
 
 def build_net(config, feature_dim: int, horizon: int, cond_dim: int = 0):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cdrb_cli.configs import MLPConfig
+from cdrb_cli.nets.config import MLPConfig
 
 
 class TrajectoryMLP(nn.Module):

@@ -14,7 +14,7 @@ import math
 import torch
 from torch import nn
 
-from cdrb_cli.configs import SieveConfig
+from cdrb_cli.nets.config import SieveConfig
 
 
 class _Block(nn.Module):

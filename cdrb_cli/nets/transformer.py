@@ -9,7 +9,7 @@ import math
 import torch
 from torch import nn
 
-from cdrb_cli.configs import TransformerConfig
+from cdrb_cli.nets.config import TransformerConfig
 from cdrb_cli.nets.embeddings import SinusoidalEmbedding
 
 

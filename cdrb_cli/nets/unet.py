@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cdrb_cli.configs import UNetConfig
+from cdrb_cli.nets.config import UNetConfig
 from cdrb_cli.nets.embeddings import SinusoidalEmbedding
 
 
