@@ -249,9 +249,13 @@ def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, t
     model = models["mlp"]
     config = eval_config(model, 2, [0])
     ev = evaluate(model, config, tmp_path / "e.h5")
+    from cdrb_cli.artifacts.migrations import migrate_minor_arrays
+
     old = {k: v for k, v in ev.arrays.items() if k not in ("episodes/replans", "episodes/planning_seconds")}
-    for r in episode_results(old):
+    read = migrate_minor_arrays("eval", (2, 3), old)  # what reading a 2.3 file gives
+    for r in episode_results(read):
         assert r.replans == 0 and r.planning_seconds == r.plan_seconds
+    assert migrate_minor_arrays("eval", (2, 5), old) == old  # nothing back-filled for a current file
     # an open-loop eval config from before the replan field is the same config: the file stays up to date
     data = config.model_dump()
     del data["replan"]

@@ -121,3 +121,34 @@ def migrate_minor(kind: str, version: tuple[int, int], manifest: Manifest) -> Ma
         if version < since:
             manifest = fn(kind, manifest)
     return manifest
+
+
+def _eval_replans_2_4(arrays: Arrays) -> Arrays:
+    """Before 2.4 an episode planned once (or called its policy step by step): no re-plans, and the episode's
+    planning time is its one plan's."""
+    n = len(arrays["episodes/seed"])
+    return {
+        "episodes/replans": np.zeros(n, dtype=np.int64),
+        "episodes/planning_seconds": arrays["episodes/plan_seconds"],
+    }
+
+
+def _eval_failure_2_5(arrays: Arrays) -> Arrays:
+    """Before 2.5 failed episodes were not classified by cause: code -1 (not measured) for every episode."""
+    return {"episodes/failure": np.full(len(arrays["episodes/seed"]), -1, dtype=np.int64)}
+
+
+#: kind -> (version, datasets a file older than it lacks, as a function of its arrays); the datasets are added in
+#: memory when the file is read, so every reader sees the current layout
+MINOR_ARRAY_MIGRATIONS: dict[str, list[tuple[tuple[int, int], Callable[[Arrays], Arrays]]]] = {
+    "eval": [((2, 4), _eval_replans_2_4), ((2, 5), _eval_failure_2_5)]
+}
+
+
+def migrate_minor_arrays(kind: str, version: tuple[int, int], arrays: Arrays) -> Arrays:
+    """The arrays of a file of schema ``version`` with every dataset added since back-filled (never replacing one
+    the file has)."""
+    for since, fn in MINOR_ARRAY_MIGRATIONS.get(kind, []):
+        if version < since:
+            arrays = {**fn(arrays), **arrays}
+    return arrays

@@ -95,12 +95,9 @@ def episode_results(arrays: dict[str, np.ndarray]) -> list[EpisodeResult]:
     n = len(arrays["episodes/seed"])
     cast = {np.ndarray: np.asarray, int: int, float: float, bool: bool}
     hints = typing.get_type_hints(EpisodeResult)
+    # a plan measure absent from a file is "not measured": a policy's eval, or an eval from before schema 2.2 (the
+    # datasets added later are back-filled when the file is read: artifacts.migrations)
     cols = {f: arrays.get(f"episodes/{f}", np.full(n, _SINCE_2_2.get(f, np.nan))) for f in fields}
-    if "episodes/failure" not in arrays:  # before schema 2.5: not classified
-        cols["failure"] = np.full(n, -1, dtype=np.int64)
-    if "episodes/replans" not in arrays:  # before schema 2.4: one plan (or one policy call) per episode
-        cols["replans"] = np.zeros(n, dtype=np.int64)
-        cols["planning_seconds"] = cols["plan_seconds"]
     return [EpisodeResult(**{f: cast[hints[f]](cols[f][i]) for f in fields}) for i in range(n)]
 
 
