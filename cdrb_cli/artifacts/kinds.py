@@ -202,9 +202,10 @@ class Model(ArtifactBase):
         DatasetSpec("curve/valid_loss", "f", ("V",), required=False),
         DatasetSpec("buffer/points", "f", ("K", "feature_dim"), required=False),
     )
-    # ema/ may be empty: a method whose averages are its own modules (Diffusion-QL) keeps none
+    # ema/ may be empty: a method whose averages are its own modules (Diffusion-QL) keeps none; weights/ only for a
+    # method with no network (the straight line), whose state says 0 parameters
     groups = (
-        GroupSpec("weights/", "f"),
+        GroupSpec("weights/", "f", required=False),
         GroupSpec("ema/", "f", required=False),
         GroupSpec("optim/", "fi", required=False),
     )
@@ -220,6 +221,8 @@ class Model(ArtifactBase):
         steps = arrays["curve/step"]
         if (np.diff(steps) <= 0).any() or (steps > manifest.state.step).any() or (steps < 1).any():
             return "curve/step must increase, from 1 to the model's step"
+        if manifest.state.parameters > 0 and not any(k.startswith("weights/") for k in arrays):
+            return f"no datasets under /weights/, but the model has {manifest.state.parameters} parameters"
         return None
 
     def tensors(self, prefix: str) -> dict[str, np.ndarray]:

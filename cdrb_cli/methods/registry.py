@@ -99,6 +99,7 @@ METHODS: Registry[MethodEntry] = Registry(
         "cdrb": "cdrb_cli.methods.cdrb",
         "diffusion-bc": "cdrb_cli.methods.diffusion_bc",
         "diffusion-ql": "cdrb_cli.methods.diffusion_ql",
+        "straight": "cdrb_cli.methods.straight",
     },
     MethodEntry,
 )
