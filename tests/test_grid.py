@@ -402,3 +402,27 @@ def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
         load_grid(grid, ["demos"])
     with pytest.raises(BadInput, match="demos"):
         load_grid(grid, ["demos=1"])  # validated like the file's own value
+
+
+@pytest.mark.parametrize(
+    "line, words",
+    [
+        ("steps = true", "steps: Input should be a valid integer"),
+        ("seeds = [-1]", "seeds.0: Input should be greater than or equal to 0"),
+        ("seeds = [1.5]", "seeds.0: Input should be a valid integer"),
+        ('preset = "bogus"', "preset: Input should be 'quick' or 'paper'"),
+        ('device = "tpu"', "device: String should match"),
+        ("demos = 1000000000", "demos: Input should be less than or equal to 1000000"),
+        ('methods = ["mlp", "mlp"]', "envs, methods and seeds must each be listed once"),
+        ("report = 1", "report: Input should be a valid boolean"),
+    ],
+)
+def test_grid_values_are_checked_strictly_at_load_time(tmp_path, line, words):
+    key = line.split(" = ")[0]
+    text = "\n".join(ln for ln in TINY.splitlines() if not ln.startswith(f"{key} ="))
+    with pytest.raises(BadInput, match=words.replace("(", r"\(").replace("[", r"\[")) as err:
+        load_grid(_grid(tmp_path, f"{line}\n{text}"))
+    assert "grid.toml" in err.value.message
+    if "listed once" not in words:  # a value's own error, given with --set, names the flag
+        with pytest.raises(BadInput, match=rf"--set {key}="):
+            load_grid(_grid(tmp_path, text), [line.replace(" = ", "=")])

@@ -29,14 +29,20 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
 
 from cdrb_cli import __version__, artifacts, ui
+from cdrb_cli.configs import MAX_SEED
 from cdrb_cli.errors import BadInput, RunFailed
 
 KINDS = ("collect", "cluster", "train", "eval", "report")
+#: integers and flags of a grid file are strict: `steps = true` or `seeds = [1.5]` is an error, not 1
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+SeedValue = Annotated[int, Strict(), Field(ge=0, le=MAX_SEED)]
+Steps = Annotated[int, Strict(), Field(gt=0, le=10_000_000)]
 STDERR_LINES = 15
 
 
@@ -88,7 +94,7 @@ class Variant(_Strict):
     stream: Literal["tune", "test"] | None = Field(
         None, description="start/goal pairs of its evals (default: eval_stream)"
     )
-    eval_settings: bool = Field(
+    eval_settings: Bool = Field(
         True,
         description="false: the settings' eval flags do not apply to this variant (e.g. a protocol with its own "
         "executor, where a method's tuned controller flags do not belong)",
@@ -116,24 +122,32 @@ class GridSpec(_Strict):
     out: Path = Field(description="folder for every artifact of the grid (shared storage on a cluster)")
     envs: list[str] = Field(min_length=1, description="environment ids (`cdrb envs`)")
     methods: list[str] = Field(min_length=1, description="methods (`cdrb methods`)")
-    seeds: list[int] = Field(min_length=1, description="training seeds; each model is evaluated on the same seed")
-    preset: str = Field("quick", description="training preset of every method")
-    device: str = Field("cpu", description="training and evaluation device (cpu, cuda, auto)")
-    demos: int = Field(1000, ge=2, description="demonstrations collected per environment")
-    data_seed: int = Field(0, description="seed of `cdrb collect` and `cdrb cluster`")
-    k: int = Field(1000, ge=0, description="replay-buffer clusters (`cdrb cluster --k`; 0 keeps the full buffer)")
-    steps: int | None = Field(None, gt=0, description="training steps of every run (default: the preset's)")
-    eval_episodes: int = Field(100, ge=1, description="evaluation episodes per model")
+    seeds: list[SeedValue] = Field(
+        min_length=1, max_length=1000, description="training seeds; each model is evaluated on the same seed"
+    )
+    preset: Literal["quick", "paper"] = Field("quick", description="training preset of every method")
+    device: str = Field(
+        "cpu",
+        pattern=r"^(cpu|auto|cuda(:[0-9]{1,2})?)$",
+        description="training and evaluation device (cpu, cuda, auto)",
+    )
+    demos: Int = Field(1000, ge=2, le=1_000_000, description="demonstrations collected per environment")
+    data_seed: SeedValue = Field(0, description="seed of `cdrb collect` and `cdrb cluster`")
+    k: Int = Field(
+        1000, ge=0, le=10_000_000, description="replay-buffer clusters (`cdrb cluster --k`; 0 keeps the full buffer)"
+    )
+    steps: Steps | None = Field(None, description="training steps of every run (default: the preset's)")
+    eval_episodes: Int = Field(100, ge=1, le=1_000_000, description="evaluation episodes per model")
     eval_stream: Literal["tune", "test"] = Field("test", description="start/goal pairs: tune or test stream")
-    eval_seeds: list[int] | None = Field(
+    eval_seeds: list[SeedValue] | None = Field(
         None, description="evaluation seeds of every model (default: the model's own training seed)"
     )
-    snapshot_at: list[int] = Field(
+    snapshot_at: list[Steps] = Field(
         default_factory=list,
         description="learning curves: every training also writes its model at these steps (below `steps`), and each "
         "snapshot is evaluated like the final model",
     )
-    report: bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
+    report: Bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
     settings: list[Settings] = Field(default_factory=list, description="per env/method extra flags")
     variants: list[Variant] = Field(default_factory=list, description="named flag sets: one more grid axis")
     resources: dict[str, Resources] = Field(default_factory=_default_resources)
@@ -218,7 +232,14 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         raw[key] = value
         if key == "out":
             cwd_out = Path(str(value)).resolve()
-    spec = _validated(GridSpec, raw, path)
+    try:
+        spec = GridSpec.model_validate(raw)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        given = {parse_override(t)[0]: t for t in overrides}
+        origin = f"--set {given[err['loc'][0]]}" if err["loc"] and err["loc"][0] in given else str(path)
+        raise BadInput(f"{origin}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
     spec.settings = (
         _included_settings(spec.include, path.parent, (path,))
         + spec.settings
@@ -261,8 +282,8 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
                 raise BadInput(
                     f"{path}: variant {v.name}: envs: {exc.message}", hint="`cdrb envs` lists them"
                 ) from None
-    if len(set(spec.seeds)) != len(spec.seeds) or len(set(spec.envs)) != len(spec.envs):
-        raise BadInput(f"{path}: envs and seeds must each be listed once", hint="remove the repeats")
+    if any(len(set(v)) != len(v) for v in (spec.seeds, spec.envs, spec.methods)):
+        raise BadInput(f"{path}: envs, methods and seeds must each be listed once", hint="remove the repeats")
     if spec.snapshot_at:
         if spec.steps is None or any(s <= 0 or s >= spec.steps for s in spec.snapshot_at):
             raise BadInput(
