@@ -426,3 +426,34 @@ def test_grid_values_are_checked_strictly_at_load_time(tmp_path, line, words):
     if "listed once" not in words:  # a value's own error, given with --set, names the flag
         with pytest.raises(BadInput, match=rf"--set {key}="):
             load_grid(_grid(tmp_path, text), [line.replace(" = ", "=")])
+
+
+def test_a_grid_never_writes_over_its_own_files_or_a_users_summary(tmp_path):
+    from cdrb_cli.stages.grid import grid
+
+    own = _grid(tmp_path, TINY.replace('out = "runs"', 'out = "."'), name="grid.json")  # a TOML file named grid.json
+    before = own.read_text()
+    with pytest.raises(BadInput, match="write over its own input file"):
+        grid(own, backend="pool", workers=1)
+    assert own.read_text() == before
+    (tmp_path / "runs").mkdir()
+    mine = tmp_path / "runs" / "grid.json"
+    mine.write_text("my notes\n")
+    with pytest.raises(BadInput, match="exists and is not a grid summary"):
+        grid(_grid(tmp_path, TINY), backend="pool", workers=1)
+    assert mine.read_text() == "my notes\n"
+
+
+def test_grid_tasks_do_not_import_modules_from_the_current_folder(tmp_path):
+    marker = tmp_path / "imported"
+    (tmp_path / "typer.py").write_text(f"open({str(marker)!r}, 'w').write('x')\nraise SystemExit(3)\n")
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
+    grid = _grid(tmp_path, text)
+    cdrb = Path(sys.executable).parent / "cdrb"  # the entry point: its own folder, not the current one, on sys.path
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run(
+        [str(cdrb), "grid", str(grid), "--backend", "pool", "-j", "1"],
+        capture_output=True, text=True, cwd=tmp_path, env=env, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not marker.exists()

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, Strict, ValidationError, field_validator
 
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.configs import MAX_SEED
@@ -151,6 +151,8 @@ class GridSpec(_Strict):
     settings: list[Settings] = Field(default_factory=list, description="per env/method extra flags")
     variants: list[Variant] = Field(default_factory=list, description="named flag sets: one more grid axis")
     resources: dict[str, Resources] = Field(default_factory=_default_resources)
+    #: the grid file and every settings file it read: inputs a run must never write over
+    _sources: list[Path] = PrivateAttr(default_factory=list)
 
     @field_validator("resources")
     @classmethod
@@ -181,15 +183,20 @@ def _validated(model: type[BaseModel], raw: dict, path: Path):
         raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
 
 
-def _included_settings(paths: list[Path], base: Path, chain: tuple[Path, ...]) -> list[Settings]:
-    """The settings of ``paths`` (relative to ``base``) in order, each file's own includes first."""
+def _included_settings(
+    paths: list[Path], base: Path, chain: tuple[Path, ...], read: list[Path] | None = None
+) -> list[Settings]:
+    """The settings of ``paths`` (relative to ``base``) in order, each file's own includes first; every file read
+    is appended to ``read``."""
     out: list[Settings] = []
     for rel in paths:
         path = (base / rel).resolve()
         if path in chain:
             raise BadInput(f"{chain[-1]}: include {rel}: includes itself (through {path.name})", hint="remove the loop")
         sfile = _validated(SettingsFile, _read_toml(path, "settings file"), path)
-        out += _included_settings(sfile.include, path.parent, (*chain, path))
+        if read is not None:
+            read.append(path)
+        out += _included_settings(sfile.include, path.parent, (*chain, path), read)
         out += sfile.settings
     return out
 
@@ -240,11 +247,13 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         given = {parse_override(t)[0]: t for t in overrides}
         origin = f"--set {given[err['loc'][0]]}" if err["loc"] and err["loc"][0] in given else str(path)
         raise BadInput(f"{origin}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
+    read = [path]
     spec.settings = (
-        _included_settings(spec.include, path.parent, (path,))
+        _included_settings(spec.include, path.parent, (path,), read)
         + spec.settings
-        + _included_settings(list(extra_includes), Path.cwd(), (path,))
+        + _included_settings(list(extra_includes), Path.cwd(), (path,), read)
     )
+    spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
     for env in spec.envs:
         try:
@@ -488,6 +497,26 @@ def _write_memo(spec: GridSpec, task: Task, cache: dict) -> None:
         tmp.write_text(json.dumps(_fingerprint(task, cache), indent=1))
 
 
+def check_outputs(spec: GridSpec, tasks: list[Task]) -> None:
+    """Before any work: no task and no summary may write over the grid file or a settings file it read, and
+    OUT/grid.json, which every run rewrites, must be a grid summary if it exists (not a file of the user's)."""
+    sources = {p.resolve() for p in spec._sources}
+    summary = spec.out / "grid.json"
+    for out in [summary] + [p for t in tasks for p in t.outputs]:
+        if out.resolve() in sources:
+            raise BadInput(f"{out}: the grid would write over its own input file", hint="choose another `out` folder")
+    if summary.exists():
+        try:
+            body = json.loads(summary.read_text()) if summary.is_file() and summary.stat().st_size < 2**26 else None
+        except (OSError, ValueError):
+            body = None
+        if not isinstance(body, dict) or not {"tasks", "counts"} <= body.keys():
+            raise BadInput(
+                f"{summary}: exists and is not a grid summary; a grid run writes its summary there",
+                hint="move the file or choose another `out` folder",
+            )
+
+
 # ------------------------------------------------------------------------------------------------ execution
 def execute(payload: dict) -> dict:
     """Run one task's `cdrb` command in a fresh process (on this machine or a Ray worker). A training whose
@@ -497,7 +526,9 @@ def execute(payload: dict) -> dict:
         argv.append("--resume")
     for out in payload["outputs"]:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))))
+    # PYTHONSAFEPATH: the task's `python -m` must not import modules from the current folder (a `typer.py` beside
+    # the grid would run in every task); cdrb is imported from where it is installed
+    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1")
     t = time.time()
     proc = subprocess.run([sys.executable, "-m", "cdrb_cli", *argv], capture_output=True, text=True, env=env)
     tail = [ln for ln in proc.stderr.splitlines() if ln.strip()][-STDERR_LINES:]
@@ -700,6 +731,7 @@ def grid(
     tasks = expand(spec)
     if dry_run:
         return tasks
+    check_outputs(spec, tasks)
     spec.out.mkdir(parents=True, exist_ok=True)
     with artifacts.claim_output(spec.out / "grid.json", force=True):
         runner = make_backend(backend, workers, address)
