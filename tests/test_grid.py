@@ -457,3 +457,40 @@ def test_grid_tasks_do_not_import_modules_from_the_current_folder(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert not marker.exists()
+
+
+def test_hostile_grid_files_and_memos_are_refused_or_redone_without_hanging(tmp_path):
+    from cdrb_cli.stages.grid import MAX_TASKS, is_done, memo_path
+
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    (tmp_path / "zero.toml").symlink_to("/dev/zero")
+    big = tmp_path / "big.toml"
+    big.write_text(TINY + "# " + "x" * (1 << 20) + "\n")
+    for path in (fifo, tmp_path / "zero.toml", big):
+        with pytest.raises(BadInput, match="not a grid file"):
+            load_grid(path)
+    deep = tmp_path / "deep.toml"
+    deep.write_text("a" + ".a" * 5000 + " = 1\n" + TINY)
+    with pytest.raises(BadInput, match="deep.toml"):
+        load_grid(deep)
+    seeds = ", ".join(str(i) for i in range(1000))
+    with pytest.raises(BadInput, match=f"at most {MAX_TASKS:,}"):
+        load_grid(_grid(tmp_path, TINY.replace("seeds = [0, 1]", f"seeds = [{seeds}]") + "".join(
+            f'[[variants]]\nname = "v{i}"\n' for i in range(60)
+        )))  # fmt: skip
+
+    spec = load_grid(_grid(tmp_path, TINY))
+    task = expand(spec)[0]
+    memo = memo_path(spec, task)
+    memo.parent.mkdir(parents=True)
+    for make in (
+        lambda: os.mkfifo(memo),
+        lambda: memo.symlink_to("/dev/zero"),
+        lambda: memo.write_text("[" * 200_000 + "]" * 200_000),
+    ):
+        make()
+        t = time.time()
+        assert not is_done(spec, task, {})  # a stale memo: the task is redone
+        assert time.time() - t < 10
+        memo.unlink()

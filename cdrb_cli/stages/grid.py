@@ -163,15 +163,46 @@ class GridSpec(_Strict):
         return _default_resources() | value
 
 
+#: the largest grid or settings file read, and the most tasks a grid may expand to
+MAX_FILE_BYTES = 1 << 20
+MAX_TASKS = 100_000
+
+
+def _read_small(path: Path, limit: int = MAX_FILE_BYTES) -> str | None:
+    """The text of ``path`` when it is a regular file (not a link, FIFO or device) of at most ``limit`` bytes, read
+    without following a link or blocking on a FIFO; else None."""
+    import stat
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > limit:
+            return None
+        with os.fdopen(fd, "rb", closefd=False) as fh:
+            data = fh.read(limit + 1)
+        return None if len(data) > limit else data.decode("utf-8", errors="replace")
+    finally:
+        os.close(fd)
+
+
 def _read_toml(path: Path, what: str) -> dict:
     import tomllib
 
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise BadInput(f"{path}: no such {what}", hint="see docs/cli.md, `cdrb grid`, for the format")
+    text = _read_small(path)
+    if text is None:
+        raise BadInput(
+            f"{path}: not a {what} (a regular file of at most {MAX_FILE_BYTES >> 20} MiB, not a link)",
+            hint="name the TOML file itself",
+        )
     try:
-        return tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise BadInput(f"{path}: not valid TOML ({exc})", hint="fix the file") from None
+        return tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise BadInput(f"{path}: not valid TOML ({str(exc)[:200]})", hint="fix the file") from None
 
 
 def _validated(model: type[BaseModel], raw: dict, path: Path):
@@ -301,6 +332,12 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             )
         if len(set(spec.snapshot_at)) != len(spec.snapshot_at):
             raise BadInput(f"{path}: snapshot_at: list each step once", hint="remove the repeats")
+    runs = len(spec.envs) * len(spec.methods) * len(spec.seeds) * max(1, len(spec.variants))
+    if runs * (2 + len(spec.snapshot_at)) > MAX_TASKS:
+        raise BadInput(
+            f"{path}: the grid expands to about {runs * (2 + len(spec.snapshot_at)):,} tasks (at most {MAX_TASKS:,})",
+            hint="split it into several grid files",
+        )
     if spec.report and spec.eval_seeds is not None and len(spec.seeds) > 1:
         raise BadInput(
             f"{path}: eval_seeds with several training seeds: a report would pool the same evaluation seeds twice",
@@ -481,10 +518,10 @@ def _fingerprint(task: Task, cache: dict) -> dict:
 
 def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
     """The task's memo matches its command, the cdrb version and every input and output file."""
-    path = memo_path(spec, task)
+    text = _read_small(memo_path(spec, task))  # a memo that is not a small regular file is stale: redo the task
     try:
-        memo = json.loads(path.read_text())
-    except (OSError, ValueError):
+        memo = json.loads(text) if text is not None else None
+    except (ValueError, RecursionError):
         return False
     now = _fingerprint(task, cache)
     return memo == now and all(now["outputs"].values())
