@@ -494,3 +494,41 @@ def test_hostile_grid_files_and_memos_are_refused_or_redone_without_hanging(tmp_
         assert not is_done(spec, task, {})  # a stale memo: the task is redone
         assert time.time() - t < 10
         memo.unlink()
+
+
+def _train_pids(grid_out: Path) -> list[int]:
+    pids = []
+    for pid in os.listdir("/proc"):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        if pid.isdigit() and "cdrb_cli train" in cmd and str(grid_out) in cmd:
+            pids.append(int(pid))
+    return pids
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig):
+    """SIGTERM: the grid stops its running tasks and exits 130 at once (a training keeps its checkpoint); SIGKILL:
+    the tasks die with it. Either way nothing outlives it by more than a few seconds."""
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
+    grid = _grid(tmp_path, text.replace("steps = 20", "steps = 100000"))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", "grid", str(grid), "--backend", "pool", "-j", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )  # fmt: skip
+    out = tmp_path / "runs"
+    deadline = time.time() + 300
+    while not _train_pids(out) and time.time() < deadline:
+        time.sleep(0.2)
+    assert _train_pids(out), "the training never started"
+    time.sleep(3)
+    proc.send_signal(sig)
+    t = time.time()
+    rc = proc.wait(timeout=30)
+    assert rc == (130 if sig == signal.SIGTERM else -9)
+    assert time.time() - t < 15
+    while _train_pids(out) and time.time() - t < 10:
+        time.sleep(0.2)
+    assert not _train_pids(out)

@@ -23,8 +23,10 @@ import concurrent.futures as cf
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -567,9 +569,59 @@ def execute(payload: dict) -> dict:
     # the grid would run in every task); cdrb is imported from where it is installed
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1")
     t = time.time()
-    proc = subprocess.run([sys.executable, "-m", "cdrb_cli", *argv], capture_output=True, text=True, env=env)
-    tail = [ln for ln in proc.stderr.splitlines() if ln.strip()][-STDERR_LINES:]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=_die_with_parent(),
+    )
+    with _RUNNING_LOCK:
+        _RUNNING.add(proc)
+    try:
+        _, stderr = proc.communicate()
+    finally:
+        with _RUNNING_LOCK:
+            _RUNNING.discard(proc)
+    tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
     return {"rc": proc.returncode, "seconds": time.time() - t, "stderr": tail}
+
+
+#: the task processes this process started and that still run (the pool's threads start them)
+_RUNNING: set[subprocess.Popen] = set()
+_RUNNING_LOCK = threading.Lock()
+
+
+def _die_with_parent():
+    """What a task's process runs before it starts (Linux): ask the kernel to send it SIGTERM when the thread that
+    started it dies, so a grid killed with -9 leaves no training running and holding its output's lock. The
+    function is looked up here, in the parent: the child only calls it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return lambda: prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def stop_running(grace: float = 5.0) -> None:
+    """SIGTERM every running task process (a training keeps its last checkpoint and exits), SIGKILL what is left
+    after ``grace`` seconds."""
+    with _RUNNING_LOCK:
+        procs = list(_RUNNING)
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    deadline = time.time() + grace
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.0, deadline - time.time()))
+        except subprocess.TimeoutExpired:
+            p.kill()
 
 
 @dataclass
@@ -792,6 +844,9 @@ def grid(
                     bar.advance(job)
 
                 run = run_grid(spec, runner, retries=retries, on_event=on_event)
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the running tasks stop too, instead of being waited for
+            stop_running()
+            raise
         finally:
             runner.close()
     failed = [r for r in run.results if r.status == "failed"]
