@@ -156,6 +156,14 @@ def test_missing_grid_file_and_ray_flags(tmp_path):
     assert proc.returncode == 2 and "no such grid file" in proc.stderr
     proc = _cli("grid", str(_grid(tmp_path)), "--backend", "pool", "--address", "ray://x:1")
     assert proc.returncode == 2 and "--address" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    proc = _cli("grid", str(_grid(tmp_path)), "--address", "garbage")
+    assert proc.returncode == 2 and "--address 'garbage': not a Ray address" in proc.stderr
+    proc = _cli("grid", "/dev/zero")
+    assert proc.returncode == 2 and "/dev/zero: not a grid file" in proc.stderr
+    (tmp_path / "afile").write_text("x")
+    proc = _cli("grid", str(_grid(tmp_path)), "--set", f"out={tmp_path / 'afile'}", "--backend", "pool")
+    assert proc.returncode == 2 and "is a file, not a folder" in proc.stderr
+    assert (tmp_path / "afile").read_text() == "x"
 
 
 # ------------------------------------------------------------------------------------------------ execution

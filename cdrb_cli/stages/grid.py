@@ -539,6 +539,8 @@ def _write_memo(spec: GridSpec, task: Task, cache: dict) -> None:
 def check_outputs(spec: GridSpec, tasks: list[Task]) -> None:
     """Before any work: no task and no summary may write over the grid file or a settings file it read, and
     OUT/grid.json, which every run rewrites, must be a grid summary if it exists (not a file of the user's)."""
+    if spec.out.exists() and not spec.out.is_dir():
+        raise BadInput(f"out = {spec.out}: is a file, not a folder", hint="choose a folder for the grid's artifacts")
     sources = {p.resolve() for p in spec._sources}
     summary = spec.out / "grid.json"
     for out in [summary] + [p for t in tasks for p in t.outputs]:
@@ -692,6 +694,11 @@ class RayBackend:
 
 def make_backend(backend: str, workers: int | None, address: str | None):
     """``auto``: Ray when it is installed, else the local pool."""
+    if address is not None and not re.fullmatch(r"(ray://)?[A-Za-z0-9_.\-\[\]:]+:[0-9]{1,5}|auto", address):
+        raise BadInput(
+            f"--address {address[:100]!r}: not a Ray address",
+            hint="use HOST:PORT (a head node's GCS port) or ray://HOST:PORT (Ray Client), or auto",
+        )
     if backend in ("auto", "ray"):
         try:
             import ray  # noqa: F401
