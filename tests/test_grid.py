@@ -369,10 +369,16 @@ def test_eval_only_variants_share_the_base_model_and_cluster_variants_get_their_
     assert "--max-lag" not in official.argv and "official-code" in official.argv  # the settings' flags left out
     assert "eval maze-tight/official/mlp-s0" not in tasks
     # a variant with cluster flags: its own buffer, clustered from the same demos, and its own models
-    cluster = tasks["cluster maze-tight/k20"]
-    assert cluster.argv[-4:] == ["--k", "20", "--out", str(out / "k20" / "buffer.h5")]
+    (cluster,) = [t for t in tasks.values() if t.kind == "cluster" and "20" in t.argv]
+    assert cluster.argv[-4:-1] == ["--k", "20", "--out"] and cluster.outputs[0].parent == out
+    assert cluster.outputs[0] != out / "buffer-k50.h5"  # not the grid's own buffer
     k20 = tasks["train maze-tight/k20/cdrb-s0"]
-    assert str(out / "k20" / "buffer.h5") in k20.argv and "cluster maze-tight/k20" in k20.deps
+    assert str(cluster.outputs[0]) in k20.argv and cluster.id in k20.deps
+    # settings may give cluster flags too: runs with the same flags share one buffer, whoever sets them
+    shared = text + '\n[[settings]]\nmethod = "mlp"\ncluster = ["--k", "20"]\n'
+    spec2 = load_grid(_grid(tmp_path, shared))
+    clusters = [t for t in expand(spec2) if t.kind == "cluster"]
+    assert len(clusters) == 2  # the grid's buffer and the k = 20 one (mlp needs none: no task for it)
     assert tasks["eval maze-tight/k20/cdrb-s0"].meta["stream"] == "tune"
     assert "--stream" in gated.argv and gated.argv[gated.argv.index("--stream") + 1] == "test"
     assert {t.id for t in expand(spec) if t.kind == "report"} == {"report gated", "report official", "report k20"}

@@ -144,3 +144,38 @@ def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_pa
     assert "keep" in replace_block(doc, "t", "new", "doc.md")  # the first block only
     with pytest.raises(BadInput, match="no <!-- u:begin -->"):
         replace_block(doc, "u", "new", "doc.md")
+
+
+def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp_path):
+    """A variant that trains on its own buffer (cluster flags, e.g. state-action features): the settings file
+    carries those flags, so the test grid that includes it clusters the same buffer for that method."""
+    from cdrb_cli.stages.grid import expand, load_grid
+    from cdrb_cli.stages.select import Candidate, settings_text
+
+    tune = tmp_path / "tune.toml"
+    tune.write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["cdrb", "mlp"]\nseeds = [0]\nsteps = 20\neval_stream = "tune"\n'
+        '[[variants]]\nname = "quick"\n'
+        '[[variants]]\nname = "sa"\ncluster = ["--features", "state-action"]\n'
+        'train = ["--set", "features=state-action"]\n'
+        '[[variants]]\nname = "timed"\neval = ["--max-lag", "0"]\n'
+    )
+    spec = load_grid(tune)
+    best = {
+        ("maze-tight", "cdrb"): Candidate("maze-tight", "cdrb", "sa", 1, 20),
+        ("maze-tight", "mlp"): Candidate("maze-tight", "mlp", "timed", 2, 20),
+    }
+    (tmp_path / "tuned.toml").write_text(settings_text(spec, tune, best))
+    test = tmp_path / "test.toml"
+    test.write_text(
+        'include = ["tuned.toml"]\nout = "x"\nenvs = ["maze-tight"]\nmethods = ["cdrb", "mlp"]\nseeds = [0]\n'
+    )
+    tasks = {t.id: t for t in expand(load_grid(test))}
+    (cluster,) = [t for t in tasks.values() if t.kind == "cluster"]
+    assert cluster.argv[cluster.argv.index("--features") + 1] == "state-action"
+    train = tasks["train maze-tight/cdrb-s0"].argv
+    assert str(cluster.outputs[0]) in train and "features=state-action" in train
+    assert train[train.index("--steps") + 1] == "20"
+    mlp = tasks["train maze-tight/mlp-s0"].argv  # an eval-only pick: the base model's flags, and its eval knob
+    assert "features=state-action" not in mlp and "--buffer" not in mlp
+    assert tasks["eval maze-tight/mlp-s0"].argv[-6:-4] == ["--max-lag", "0"]

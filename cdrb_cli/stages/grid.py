@@ -20,6 +20,7 @@ which skips it when its artifact is up to date (the CLI's own rule) and resumes 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import hashlib
 import json
 import os
 import re
@@ -63,6 +64,11 @@ class Settings(_Strict):
     method: str | None = None
     collect: list[str] = Field(
         default_factory=list, description="extra `cdrb collect` flags, e.g. ['--set', 'expert.routes=[\"over\"]']"
+    )
+    cluster: list[str] = Field(
+        default_factory=list,
+        description="extra `cdrb cluster` flags of the buffer the matching runs train with, e.g. "
+        "['--features', 'state-action'] (runs with the same flags share one buffer)",
     )
     train: list[str] = Field(default_factory=list, description="extra `cdrb train` flags, e.g. ['--steps', '4000']")
     eval: list[str] = Field(default_factory=list, description="extra `cdrb eval` flags, e.g. ['--max-lag', '0.6']")
@@ -368,6 +374,14 @@ BASE = Variant.model_construct(
 )
 
 
+def cluster_flags_for(spec: GridSpec, env: str, method: str, variant: Variant = BASE) -> list[str]:
+    """The extra `cdrb cluster` flags of the buffer ``method`` trains with on ``env`` in ``variant``: the settings'
+    that apply, then the variant's."""
+    return [f for s in spec.settings if s.env in (None, env) and s.method in (None, method) for f in s.cluster] + list(
+        variant.cluster
+    )
+
+
 def flags_for(spec: GridSpec, env: str, method: str, variant: Variant = BASE) -> tuple[list[str], list[str]]:
     """The extra `cdrb train` and `cdrb eval` flags of ``method`` on ``env`` in ``variant``: the settings that
     apply, in order (included files first), then the variant's own."""
@@ -388,8 +402,8 @@ def expand(spec: GridSpec) -> list[Task]:
     evals: dict[str, list[tuple[str, Path]]] = {v.name: [] for v in variants}
     for env in spec.envs:
         folder = out / env
-        demos, buffer = folder / "demos.h5", folder / f"buffer-k{spec.k}.h5"
-        collect_id, cluster_id = f"collect {env}", f"cluster {env}"
+        demos = folder / "demos.h5"
+        collect_id = f"collect {env}"
         collect_extra = [f for s in spec.settings if s.env in (None, env) for f in s.collect]
         tasks.append(
             Task(
@@ -400,36 +414,17 @@ def expand(spec: GridSpec) -> list[Task]:
                 [demos],
             )
         )
-        if any(METHODS.get(m).needs_buffer for m in spec.methods):
-            tasks.append(
-                Task(
-                    cluster_id,
-                    "cluster",
-                    ["cluster", str(demos), "--k", str(spec.k), "--seed", str(spec.data_seed)] + ["--out", str(buffer)],
-                    [buffer],
-                    [collect_id],
-                    [demos],
-                )
-            )
-        for v in variants:  # a variant with cluster flags has a buffer of its own
-            if v.cluster and any(METHODS.get(m).needs_buffer and v.applies(env, m) for m in spec.methods):
-                path = folder / v.name / "buffer.h5"
-                argv = ["cluster", str(demos), "--k", str(spec.k), "--seed", str(spec.data_seed), *v.cluster]
-                tasks.append(
-                    Task(
-                        f"cluster {env}/{v.name}", "cluster", argv + ["--out", str(path)], [path], [collect_id], [demos]
-                    )
-                )
+        buffers: dict[str, tuple[str, Path]] = {}  # cluster flags (JSON) -> (task id, buffer path)
+
         for method in spec.methods:
             needs_buffer = METHODS.get(method).needs_buffer
             for v in variants:
                 if not v.applies(env, method):
                     continue
                 own_model = bool(v.train or v.cluster)  # else an eval-only variant of the base model
-                own_buffer = bool(v.cluster) and needs_buffer
-                vbuffer, vcluster = (
-                    (folder / v.name / "buffer.h5", f"cluster {env}/{v.name}") if own_buffer else (buffer, cluster_id)
-                )
+                if needs_buffer:
+                    flags = cluster_flags_for(spec, env, method, v if own_model else BASE)
+                    vcluster, vbuffer = _buffer(spec, env, flags, buffers, tasks)
                 deps = [collect_id] + ([vcluster] if needs_buffer else [])
                 inputs = [demos] + ([vbuffer] if needs_buffer else [])
                 mfolder = folder / v.name if own_model else folder
@@ -482,6 +477,22 @@ def expand(spec: GridSpec) -> list[Task]:
             )
         )
     return tasks
+
+
+def _buffer(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks: list[Task]) -> tuple[str, Path]:
+    """The cluster task and buffer of ``env``'s demos clustered with ``flags``, added to ``tasks`` on first use:
+    runs with the same flags share one buffer (none: ``buffer-kK.h5``; else ``buffer-kK-<hash of the flags>.h5``)."""
+    key = json.dumps(flags)
+    if key not in buffers:
+        folder = spec.out / env
+        demos = folder / "demos.h5"
+        tag = hashlib.sha256(key.encode()).hexdigest()[:8] if flags else ""
+        path = folder / (f"buffer-k{spec.k}-{tag}.h5" if flags else f"buffer-k{spec.k}.h5")
+        task_id = f"cluster {env}" + (f"/{tag}" if tag else "")
+        argv = ["cluster", str(demos), "--k", str(spec.k), "--seed", str(spec.data_seed), *flags, "--out", str(path)]
+        tasks.append(Task(task_id, "cluster", argv, [path], [f"collect {env}"], [demos]))
+        buffers[key] = (task_id, path)
+    return buffers[key]
 
 
 def train_snapshot(model: Path, step: int) -> Path:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.grid import BASE, GridSpec, Variant, expand, flags_for
+from cdrb_cli.stages.grid import BASE, GridSpec, Variant, cluster_flags_for, expand, flags_for
 from cdrb_cli.stages.metrics import mean_or_none
 
 RULE = (
@@ -109,15 +109,17 @@ def _without_steps(flags: list[str]) -> list[str]:
     return out
 
 
-def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str]]:
-    """The `cdrb train` and `cdrb eval` flags that reproduce ``cand``: what applied to it in the tuning grid, with
-    its training length when the grid set one."""
+def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str], list[str]]:
+    """The `cdrb cluster`, `cdrb train` and `cdrb eval` flags that reproduce ``cand``: what applied to it in the
+    tuning grid (an eval-only variant's model is the base model), with its training length when the grid set one."""
     variant = next((v for v in spec.variants if v.name == cand.variant), BASE)
-    train, evaluate = flags_for(spec, cand.env, cand.method, variant if variant.train else BASE)
+    model_variant = variant if (variant.train or variant.cluster) else BASE
+    cluster = cluster_flags_for(spec, cand.env, cand.method, model_variant)
+    train = flags_for(spec, cand.env, cand.method, model_variant)[0]
     evaluate = flags_for(spec, cand.env, cand.method, variant)[1]
     if cand.steps is not None:
         train = [*_without_steps(train), "--steps", str(cand.steps)]
-    return train, evaluate
+    return cluster, train, evaluate
 
 
 def _toml_list(items: list[str]) -> str:
@@ -138,12 +140,13 @@ def settings_text(spec: GridSpec, grid_file: Path, best: dict[tuple[str, str], C
         "",
     ]
     for (env, method), cand in best.items():
-        train, evaluate = chosen_flags(spec, cand)
+        cluster, train, evaluate = chosen_flags(spec, cand)
         lines += [
             "[[settings]]",
             f"env = {json.dumps(env)}",
             f"method = {json.dumps(method)}",
             f"chosen = {json.dumps(cand.name)}",
+            *([f"cluster = {_toml_list(cluster)}"] if cluster else []),
             f"train = {_toml_list(train)}",
             f"eval = {_toml_list(evaluate)}",
             "",
