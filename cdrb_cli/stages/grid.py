@@ -481,13 +481,14 @@ def expand(spec: GridSpec) -> list[Task]:
 
 def _buffer(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks: list[Task]) -> tuple[str, Path]:
     """The cluster task and buffer of ``env``'s demos clustered with ``flags``, added to ``tasks`` on first use:
-    runs with the same flags share one buffer (none: ``buffer-kK.h5``; else ``buffer-kK-<hash of the flags>.h5``)."""
+    runs with the same flags share one buffer (none: ``buffer-kK.h5``; else ``buffer-<hash of the flags>.h5``, since
+    the flags may change k)."""
     key = json.dumps(flags)
     if key not in buffers:
         folder = spec.out / env
         demos = folder / "demos.h5"
         tag = hashlib.sha256(key.encode()).hexdigest()[:8] if flags else ""
-        path = folder / (f"buffer-k{spec.k}-{tag}.h5" if flags else f"buffer-k{spec.k}.h5")
+        path = folder / (f"buffer-{tag}.h5" if flags else f"buffer-k{spec.k}.h5")
         task_id = f"cluster {env}" + (f"/{tag}" if tag else "")
         argv = ["cluster", str(demos), "--k", str(spec.k), "--seed", str(spec.data_seed), *flags, "--out", str(path)]
         tasks.append(Task(task_id, "cluster", argv, [path], [f"collect {env}"], [demos]))
