@@ -249,13 +249,14 @@ def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, t
     model = models["mlp"]
     config = eval_config(model, 2, [0])
     ev = evaluate(model, config, tmp_path / "e.h5")
-    from cdrb_cli.artifacts.migrations import migrate_minor_arrays
+    from cdrb_cli.artifacts.migrations import backfill_arrays
 
     old = {k: v for k, v in ev.arrays.items() if k not in ("episodes/replans", "episodes/planning_seconds")}
-    read = migrate_minor_arrays("eval", (2, 3), old)  # what reading a 2.3 file gives
+    read = backfill_arrays("eval", old)  # what reading a 2.3 file gives
     for r in episode_results(read):
         assert r.replans == 0 and r.planning_seconds == r.plan_seconds
-    assert migrate_minor_arrays("eval", (2, 5), old) == old  # nothing back-filled for a current file
+    full = backfill_arrays("eval", ev.arrays)  # nothing replaced in a file that has every dataset
+    assert full.keys() == ev.arrays.keys() and all(full[k] is ev.arrays[k] for k in full)
     # an open-loop eval config from before the replan field is the same config: the file stays up to date
     data = config.model_dump()
     del data["replan"]

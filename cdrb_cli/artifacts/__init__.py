@@ -49,11 +49,11 @@ from cdrb_cli.artifacts.kinds import (
     PlansManifest,
 )
 from cdrb_cli.artifacts.migrations import (
+    backfill_arrays,
     can_migrate,
     migrate_arrays,
     migrate_manifest,
     migrate_minor,
-    migrate_minor_arrays,
 )
 from cdrb_cli.artifacts.outputs import check_output, claim_output
 from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
@@ -174,7 +174,7 @@ def _load(path: Path, kind: str | None) -> ArtifactBase:
             verify_content(path, f, arrays, required=parse_version(version) >= CHECKSUM_SINCE)
             if old:
                 arrays = migrate_arrays(found_kind, major, arrays)
-            arrays = migrate_minor_arrays(found_kind, parse_version(version), arrays)
+            arrays = backfill_arrays(found_kind, arrays, parse_version(version))
             problem = cls.check_data(manifest, arrays)
             if problem is not None:
                 raise ArtifactError(f"{path}: {problem}", hint="the file is corrupt or hostile; re-create it")

@@ -138,17 +138,21 @@ def _eval_failure_2_5(arrays: Arrays) -> Arrays:
     return {"episodes/failure": np.full(len(arrays["episodes/seed"]), -1, dtype=np.int64)}
 
 
-#: kind -> (version, datasets a file older than it lacks, as a function of its arrays); the datasets are added in
-#: memory when the file is read, so every reader sees the current layout
-MINOR_ARRAY_MIGRATIONS: dict[str, list[tuple[tuple[int, int], Callable[[Arrays], Arrays]]]] = {
-    "eval": [((2, 4), _eval_replans_2_4), ((2, 5), _eval_failure_2_5)]
+#: kind -> (the minor version that added some optional datasets, their names, their meaning for a file without them
+#: as a function of its arrays)
+OPTIONAL_ARRAYS: dict[str, list[tuple[tuple[int, int], tuple[str, ...], Callable[[Arrays], Arrays]]]] = {
+    "eval": [
+        ((2, 4), ("episodes/replans", "episodes/planning_seconds"), _eval_replans_2_4),
+        ((2, 5), ("episodes/failure",), _eval_failure_2_5),
+    ]
 }
 
 
-def migrate_minor_arrays(kind: str, version: tuple[int, int], arrays: Arrays) -> Arrays:
-    """The arrays of a file of schema ``version`` with every dataset added since back-filled (never replacing one
-    the file has)."""
-    for since, fn in MINOR_ARRAY_MIGRATIONS.get(kind, []):
-        if version < since:
+def backfill_arrays(kind: str, arrays: Arrays, version: tuple[int, int] | None = None) -> Arrays:
+    """``arrays`` with the optional datasets it lacks filled in with what their absence means, never replacing one
+    it has: those added after ``version`` (the reader, for an older file), or with no version every one (what the
+    eval stage computes from: a file may leave optional datasets out)."""
+    for since, names, fn in OPTIONAL_ARRAYS.get(kind, []):
+        if (version is None or version < since) and not all(n in arrays for n in names):
             arrays = {**fn(arrays), **arrays}
     return arrays

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdrb_cli import artifacts, ui
+from cdrb_cli.artifacts.migrations import backfill_arrays
 from cdrb_cli.configs import EvalConfig, EvalSummary, SeedResult
 from cdrb_cli.envs.family import Env, EnvFamily, Episode
 from cdrb_cli.envs.geometry import largest_jump
@@ -95,8 +96,9 @@ def episode_results(arrays: dict[str, np.ndarray]) -> list[EpisodeResult]:
     n = len(arrays["episodes/seed"])
     cast = {np.ndarray: np.asarray, int: int, float: float, bool: bool}
     hints = typing.get_type_hints(EpisodeResult)
-    # a plan measure absent from a file is "not measured": a policy's eval, or an eval from before schema 2.2 (the
-    # datasets added later are back-filled when the file is read: artifacts.migrations)
+    # optional datasets a file left out read as what their absence means (artifacts.migrations); a plan measure
+    # absent from a file is "not measured": a policy's eval, or an eval from before schema 2.2
+    arrays = backfill_arrays("eval", arrays)
     cols = {f: arrays.get(f"episodes/{f}", np.full(n, _SINCE_2_2.get(f, np.nan))) for f in fields}
     return [EpisodeResult(**{f: cast[hints[f]](cols[f][i]) for f in fields}) for i in range(n)]
 
