@@ -1338,8 +1338,26 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _interrupted(args: list[str]) -> None:
-    resume = "; continue the training with --resume" if "train" in args or "quickstart" in args else ""
-    _error(f"interrupted; artifacts already written are intact{resume}")
+    _error(f"interrupted; artifacts already written are intact{_how_to_continue(args)}")
+
+
+def _how_to_continue(args: list[str]) -> str:
+    """What to run after an interrupt: ``--resume`` only where a training left a checkpoint to continue."""
+    if "quickstart" in args:
+        return "; run the same command again to continue where it stopped"
+    if "train" not in args:
+        return ""
+    out = Path("model.h5")
+    for i, a in enumerate(args):
+        if a in ("--out", "-o") and i + 1 < len(args):
+            out = Path(args[i + 1])
+        elif a.startswith("--out="):
+            out = Path(a.split("=", 1)[1])
+    from cdrb_cli.artifacts import unfinished_model
+
+    if unfinished_model(out):
+        return "; continue the training with --resume"
+    return f"; no checkpoint of {out} was written yet: run the same command again to start over"
 
 
 if __name__ == "__main__":

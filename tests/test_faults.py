@@ -226,6 +226,30 @@ def _get(obj, where):
     return obj
 
 
+def test_an_interrupt_before_the_first_checkpoint_does_not_advertise_resume(small_data, tmp_path):
+    """Stopped before any checkpoint exists, a training has nothing for --resume to continue: the line says so."""
+    from tests.test_train import TINY_FLAGS
+
+    demos, buffer = small_data
+    out = tmp_path / "m.h5"
+    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "100000", "--set", "checkpoint_every=50000"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", *map(str, args), *TINY_FLAGS, "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        time.sleep(8)  # started and training, far from step 50,000
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    last = stderr.strip().splitlines()[-1]
+    assert proc.returncode == 130 and not out.exists(), stderr
+    assert last.startswith("error: interrupted") and "--resume" not in last and "no checkpoint of" in last, last
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_interrupts_exit_130_with_one_line_and_partial_models_are_refused(small_data, tmp_path, cdrb, sig):
     """Ctrl-C (or SIGTERM) during training: exit 130, one line saying how to continue, no temp file; the unfinished
