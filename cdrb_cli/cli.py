@@ -757,7 +757,7 @@ def plan(
     pairs: int = typer.Option(
         0, "--pairs", min=0, max=100_000, help="Instead: N start/goal pairs drawn by the eval protocol."
     ),
-    n: int = typer.Option(1, "--n", min=1, max=10_000, help="Plans per start/goal pair."),
+    n: int = typer.Option(1, "--num-plans", "-n", min=1, max=10_000, help="Plans per start/goal pair."),
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with the raw weights instead of the EMA."),
@@ -775,7 +775,7 @@ def plan(
 
     CDRB (the paper's sampling algorithm): start from random buffer states, then repeatedly restore and
     re-degrade with shrinking balls.
-    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 --n 8 --plot plans.png --show-steps 4[/cyan]"""
+    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 -n 8 --plot plans.png --show-steps 4[/cyan]"""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import PlanConfig
     from cdrb_cli.envs.registry import family_of

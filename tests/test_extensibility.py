@@ -233,7 +233,18 @@ def test_a_new_family_and_method_run_through_the_cli(toy_family, toy_method, tmp
 
     plans = tmp_path / "plans.h5"
     code = _cdrb(
-        "plan", model, "--start", "-2,0.5", "--goal", "2,-0.5", "--n", "2", "--out", plans, "--plot", tmp_path / "p.png"
+        "plan",
+        model,
+        "--start",
+        "-2,0.5",
+        "--goal",
+        "2,-0.5",
+        "--num-plans",
+        "2",
+        "--out",
+        plans,
+        "--plot",
+        tmp_path / "p.png",
     )[0]
     assert code == 0
     p = artifacts.load(plans, "plans")

@@ -436,7 +436,7 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
     r = cdrb("train", demos, "--buffer", buffer, "--method", "cdrb", *TINY_FLAGS, "--steps", "20", "--out", model)
     assert r.returncode == 0, r.stderr
     plans, pic = tmp_path / "p.h5", tmp_path / "p.png"
-    r = cdrb("plan", model, "--pairs", "2", "--n", "2", "--seed", "3", "--out", plans, "--plot", pic)
+    r = cdrb("plan", model, "--pairs", "2", "-n", "2", "--seed", "3", "--out", plans, "--plot", pic)
     assert r.returncode == 0, r.stderr
     a = artifacts.load(plans, "plans").arrays
     spec = make_spec("fetch-push-obstacle")
