@@ -80,8 +80,9 @@ def candidates(spec: GridSpec) -> list[Candidate]:
             hint="run `cdrb grid` on the same file (with the same --set/--include) first",
         )
     for cand in found.values():
-        per = [r for p in cand.evals for r in per_seed(artifacts.load(p, "eval"))]
-        cand.seeds, cand.episodes = len(per), artifacts.load(cand.evals[0], "eval").manifest.config.episodes
+        evals = [artifacts.load(p, "eval") for p in cand.evals]
+        per = [r for ev in evals for r in per_seed(ev)]
+        cand.seeds, cand.episodes = len(per), evals[0].manifest.config.episodes
         cand.success = 100 * mean_or_none(r.success_rate for r in per)
         crossing = mean_or_none(r.plan_crossing_rate for r in per)  # None: a policy makes no plans
         cand.crossing = None if crossing is None else 100 * crossing
