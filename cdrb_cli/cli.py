@@ -1062,7 +1062,8 @@ def report(
         check_output(out, force, "--out", evals)
     figures = rep.paper_figures(paper_figures) if paper else False
     arts = [_load(p, "eval") for p in evals]
-    rows = rep.collect_rows(arts)
+    # per-seed rows list every file as it is; the grouped rows (and their bar chart) need one protocol per env
+    rows = rep.collect_rows(arts) if not per_seed or plot is not None else []
     if per_seed:
         text = rep.render_seed_rows(rep.seed_rows(arts), fmt)
     else:

@@ -114,6 +114,12 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
             assert ev.manifest.config.stream == "test" and ev.manifest.config.seeds == [seed]
             official = artifacts.load(out / "maze-tight" / "official-code" / f"eval-{s['method']}-s{seed}.h5", "eval")
             assert official.manifest.config.protocol == "official-code"
+    # per-seed rows list evals of both protocols side by side (the grouped table refuses to mix them)
+    both = sorted((out / "maze-tight").glob("*/eval-*.h5"))
+    rows = list(
+        csv.DictReader(_cdrb("report", *both, "--per-seed", "--format", "csv", cwd=tmp_path).stdout.splitlines())
+    )
+    assert len(rows) == 8 and {r["protocol"] for r in rows} == {"centre-start/corner-goal", "official-code"}
     docs = tmp_path / "doc.md"
     docs.write_text("intro\n<!-- t1:begin -->\nold\n<!-- t1:end -->\nafter\n")
     evals = sorted((out / "maze-tight" / "ours").glob("eval-*.h5"))
