@@ -108,6 +108,12 @@ class Variant(_Strict):
         "executor, where a method's tuned controller flags do not belong)",
     )
 
+    @property
+    def own_model(self) -> bool:
+        """Whether the variant trains models of its own (train or cluster flags); else it is eval-only and evaluates
+        the grid's base models."""
+        return bool(self.train or self.cluster)
+
     def applies(self, env: str, method: str) -> bool:
         return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
 
@@ -421,16 +427,17 @@ def expand(spec: GridSpec) -> list[Task]:
             for v in variants:
                 if not v.applies(env, method):
                     continue
-                own_model = bool(v.train or v.cluster)  # else an eval-only variant of the base model
+                own_model = v.own_model
+                model_v = v if own_model else BASE  # whose training flags and buffer the models have
                 if needs_buffer:
-                    flags = cluster_flags_for(spec, env, method, v if own_model else BASE)
+                    flags = cluster_flags_for(spec, env, method, model_v)
                     vcluster, vbuffer = _buffer(spec, env, flags, buffers, tasks)
                 deps = [collect_id] + ([vcluster] if needs_buffer else [])
                 inputs = [demos] + ([vbuffer] if needs_buffer else [])
                 mfolder = folder / v.name if own_model else folder
                 efolder = folder / v.name if v.name else folder
                 vtag = f"{v.name}/" if own_model else ""
-                train_extra, eval_extra = flags_for(spec, env, method, v)
+                train_extra, eval_extra = flags_for(spec, env, method, model_v)[0], flags_for(spec, env, method, v)[1]
                 for seed in spec.seeds:
                     model = mfolder / f"{method}-s{seed}.h5"
                     train_id = f"train {env}/{vtag}{method}-s{seed}"
@@ -438,7 +445,7 @@ def expand(spec: GridSpec) -> list[Task]:
                         trains.add(train_id)
                         argv = ["train", str(demos), "--method", method, "--preset", spec.preset, "--seed", str(seed)]
                         argv += ["--buffer", str(vbuffer)] if needs_buffer else []
-                        argv += [*flags_for(spec, env, method, v if own_model else BASE)[0]]
+                        argv += train_extra
                         argv += ["--steps", str(spec.steps)] if spec.steps else []
                         if spec.snapshot_at:
                             argv += ["--snapshot-at", ",".join(map(str, sorted(spec.snapshot_at)))]

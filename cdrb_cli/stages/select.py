@@ -114,7 +114,7 @@ def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str],
     """The `cdrb cluster`, `cdrb train` and `cdrb eval` flags that reproduce ``cand``: what applied to it in the
     tuning grid (an eval-only variant's model is the base model), with its training length when the grid set one."""
     variant = next((v for v in spec.variants if v.name == cand.variant), BASE)
-    model_variant = variant if (variant.train or variant.cluster) else BASE
+    model_variant = variant if variant.own_model else BASE
     cluster = cluster_flags_for(spec, cand.env, cand.method, model_variant)
     train = flags_for(spec, cand.env, cand.method, model_variant)[0]
     evaluate = flags_for(spec, cand.env, cand.method, variant)[1]
