@@ -235,16 +235,19 @@ def seed_rows(evals) -> list[dict]:
     return rows
 
 
+def plain_table(rows: list[dict], cell, skip: tuple[str, ...] = ()) -> str:
+    """A markdown table of ``rows``: one column per key (less ``skip``), each value written by ``cell``."""
+    keys = [k for k in rows[0] if k not in skip]
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(cell(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
 def render_seed_rows(rows: list[dict], fmt: str) -> str:
     """Per-seed rows as CSV, JSON or a markdown table."""
     if fmt in ("json", "csv"):
         return render(rows, fmt)
-    keys = [k for k in rows[0] if k != "path"]
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    for r in rows:
-        cells = ["–" if r[k] is None else f"{r[k]:.1f}" if isinstance(r[k], float) else str(r[k]) for k in keys]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return plain_table(rows, lambda v: "–" if v is None else f"{v:.1f}" if isinstance(v, float) else str(v), ("path",))
 
 
 def replace_block(text: str, name: str, block: str, where: str) -> str:

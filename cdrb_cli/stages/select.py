@@ -10,8 +10,6 @@ variant's, and the chosen training length) are written as ``[[settings]]`` of a 
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 from dataclasses import dataclass, field
 from datetime import date
@@ -176,20 +174,12 @@ def table_rows(cands: list[Candidate], best: dict[tuple[str, str], Candidate]) -
 
 
 def table_text(rows: list[dict], fmt: str) -> str:
+    """The candidates' scores as CSV or a markdown table (the chosen one marked)."""
+    from cdrb_cli.stages.report import plain_table, render
+
     if fmt == "csv":
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-        return buf.getvalue()
-    head = list(rows[0])
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [
-            "–" if r[k] is None else ("**yes**" if r[k] is True else "" if r[k] is False else str(r[k])) for k in head
-        ]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        return render(rows, "csv")
+    return plain_table(rows, lambda v: "–" if v is None else "**yes**" if v is True else "" if v is False else str(v))
 
 
 def select(
