@@ -17,7 +17,7 @@ from pathlib import Path
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.grid import BASE, GridSpec, Variant, cluster_flags_for, expand, flags_for
+from cdrb_cli.stages.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
 from cdrb_cli.stages.metrics import mean_or_none
 
 RULE = (
@@ -215,5 +215,3 @@ def select(
             tmp.write_text(table_text(table_rows(cands, best), fmt))
     return out
 
-
-__all__ = ["RULE", "Candidate", "Variant", "candidates", "choose", "chosen_flags", "select"]
