@@ -1068,19 +1068,21 @@ def report(
         text = rep.render_seed_rows(rep.seed_rows(arts), fmt)
     else:
         text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
-    plot_bars, plot_side_by_side = rep.plot_bars, rep.plot_side_by_side
     if plot is not None:
-        plot_bars(rows, plot)
+        rep.plot_bars(rows, plot)
         ui.log(f"picture: {plot}")
     if plans_plot is not None:
-        plot_side_by_side(arts, plans_plot)
+        rep.plot_side_by_side(arts, plans_plot)
         ui.log(f"picture: {plans_plot}")
-    if docs is not None:
-        from cdrb_cli.artifacts import atomic_path
+    if docs is not None:  # an output like --out (never an input, locked, atomic), rewritten in place by design
+        from cdrb_cli.artifacts import atomic_path, claim_output
 
-        new = rep.replace_block(docs.read_text(), block, text, str(docs))
-        with atomic_path(docs) as tmp:
-            tmp.write_text(new)
+        with claim_output(docs, True, "--docs", evals), atomic_path(docs) as tmp:
+            try:
+                old = docs.read_text(encoding="utf-8")
+            except UnicodeDecodeError:
+                raise BadInput(f"--docs {docs}: not a text file", hint="name the markdown file") from None
+            tmp.write_text(rep.replace_block(old, block, text, str(docs)))
         ui.log(f"block {block} of {docs} rewritten")
     if out is not None:
         from cdrb_cli.artifacts import atomic_path, claim_output

@@ -112,3 +112,22 @@ def test_two_runs_on_one_output_the_second_stops(small_data, tmp_path, cdrb):
     r = cdrb(*[a if a != "100000" else "3" for a in args], "--force")
     assert r.returncode == 0, r.stderr
     assert not stale.exists() and not (tmp_path / ".m.h5.lock").exists()
+
+
+def test_report_docs_block_is_an_output_like_out(tmp_path, cdrb):
+    """`report --docs FILE --block NAME` rewrites FILE in place: never an input of the run, never a binary file, and
+    only the marked block changes."""
+    ev = write(tmp_path / "e.h5", "eval")
+    r = cdrb("report", ev, "--docs", ev, "--block", "t")
+    assert r.returncode == 2 and "is an input of this command" in r.stderr
+    binary = tmp_path / "b.md"
+    binary.write_bytes(ev.read_bytes())
+    r = cdrb("report", ev, "--docs", binary, "--block", "t")
+    assert r.returncode == 2 and "not a text file" in r.stderr and binary.read_bytes() == ev.read_bytes()
+    doc = tmp_path / "d.md"
+    doc.write_text("head\n<!-- t:begin -->\nold\n<!-- t:end -->\ntail\n")
+    r = cdrb("report", ev, "--docs", doc, "--block", "t")
+    assert r.returncode == 0 and r.stdout.strip() == str(doc)
+    text = doc.read_text()
+    assert text.startswith("head\n<!-- t:begin -->\n| Success rate (%) |") and text.endswith("<!-- t:end -->\ntail\n")
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name or p.name.endswith(".lock")]
