@@ -213,6 +213,14 @@ class SeedResult(Record):
     seed: Seed
     episodes: int
     success_rate: float
+    weighted_success_rate: float | None = Field(
+        None,
+        description="episodes that succeeded with no planned state in an obstacle (the official code's weighted "
+        "success: a plan with a state in a wall fails); None: a policy makes no plans, or not measured",
+    )
+    clean_success_rate: float | None = Field(
+        None, description="episodes that succeeded with no executed collision (None: not measured)"
+    )
     in_wall_fraction: float | None = Field(description="planned states in an obstacle (None: a policy makes no plans)")
     plan_crossing_rate: float | None = Field(
         None, description="plans with a state in an obstacle or a segment through one (None: not measured)"
@@ -240,6 +248,10 @@ class EvalSummary(Record):
     model_preset: str
     success_mean: float
     success_std: float
+    weighted_success_mean: float | None = Field(None, description="SeedResult.weighted_success_rate, mean over seeds")
+    weighted_success_std: float | None = None
+    clean_success_mean: float | None = Field(None, description="SeedResult.clean_success_rate, mean over seeds")
+    clean_success_std: float | None = None
     in_wall_mean: float | None = Field(description="None: a policy makes no plans")
     in_wall_std: float | None
     plan_crossing_mean: float | None = None

@@ -386,3 +386,29 @@ def test_each_method_keeps_its_own_controller_but_only_one(evals, tmp_path, cdrb
     artifacts.save(paths[1], "eval", ev.manifest.model_copy(update={"config": c}), artifacts.load(paths[1]).arrays)
     r = cdrb("report", *paths)
     assert r.returncode == 2 and "different sampler settings" in r.stderr
+
+
+def test_weighted_success_and_success_without_collision_follow_their_definitions():
+    """Weighted success (the official code's): success with no planned state in an obstacle; success without
+    collision: success with no executed collision. Checked on every combination of the three flags."""
+    import itertools
+
+    from cdrb_cli.stages.evaluate import EpisodeResult, seed_result
+
+    results = []
+    for i, (ok, wall, hit) in enumerate(itertools.product([True, False], [0.0, 0.25], [False, True])):
+        results.append(
+            EpisodeResult(
+                seed=0, episode_seed=i, success=ok, steps=10, final_distance=0.0, plan_in_wall_fraction=wall,
+                plan_crosses_obstacle=wall > 0, plan_max_jump=0.1, plan_step_limit=1.0, executed_collision=hit,
+                path_length=1.0, expert_path_length=1.0, plan_seconds=0.01, start=np.zeros(2), goal=np.ones(2),
+            )
+        )  # fmt: skip
+    r = seed_result(0, results)
+    assert r.success_rate == 0.5
+    assert r.weighted_success_rate == 2 / 8  # success, plan free: with or without an executed collision
+    assert r.clean_success_rate == 2 / 8  # success, no collision: with or without a plan in a wall
+    both = sum(x.success and x.plan_in_wall_fraction == 0 and not x.executed_collision for x in results)
+    assert both == 1
+    policy = seed_result(0, results, policy=True)
+    assert policy.weighted_success_rate is None and policy.clean_success_rate == 2 / 8

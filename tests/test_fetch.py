@@ -22,7 +22,7 @@ from cdrb_cli.envs.registry import EXPERTS, family_of, make_spec
 from cdrb_cli.seeding import STREAM_COLLECT
 from cdrb_cli.stages.collect import rollout
 
-SIX = [i for i in TASKS if not i.endswith("-cross")]
+SIX = [i for i in TASKS if not i.endswith("-mixed")]
 EPS = 0.001
 
 
@@ -261,7 +261,7 @@ def test_collect_fetch_end_to_end_with_routes_and_pictures(tmp_path, cdrb):
     out, pic = tmp_path / "demos.h5", tmp_path / "demos.png"
     gifs = tmp_path / "gifs"
     r = cdrb(
-        "collect", "fetch-pick-place-obstacle-cross", "-n", "12", "--seed", "2", "--out", out, "--plot", pic,
+        "collect", "fetch-pick-place-obstacle", "-n", "12", "--seed", "2", "--out", out, "--plot", pic,
         "--video", gifs, "--videos", "1",
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
@@ -282,7 +282,7 @@ def test_collect_set_expert_routes_keeps_one_route_kind(tmp_path, cdrb):
     only, every Reach Obstacle demo that leaves the corridor does so above the walls' top, never past their ends."""
     out = tmp_path / "demos.h5"
     r = cdrb(
-        "collect", "fetch-reach-obstacle-cross", "-n", "8", "--seed", "1", "--workers", "1",
+        "collect", "fetch-reach-obstacle", "-n", "8", "--seed", "1", "--workers", "1",
         "--set", 'expert.routes=["over"]', "--out", out,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr

@@ -170,3 +170,20 @@ def test_a_2_2_file_reads_with_the_goal_pinned_like_the_start(tmp_path):
         f["manifest"] = np.bytes_(json.dumps(m).encode())
     env = artifacts.load(path, "model").manifest.env
     assert env.pinned_end_dims is None and env.pin_end_dims == env.pin_dims
+
+
+def test_fetch_scenes_before_the_goal_distance_rule_read_as_drawn(tmp_path):
+    """Fetch scenes gained ``min_goal_distance`` (goals kept 7 cm from the start) in demos/buffer/model/plans 2.4
+    and eval 2.6; an older file's scene drew goals at any distance and reads as 0, a current one as written."""
+    from cdrb_cli.artifacts.migrations import migrate_minor
+    from cdrb_cli.envs.registry import make_spec
+
+    scene = make_spec("fetch-push-obstacle").scene.model_dump(mode="json")
+    old = {k: v for k, v in scene.items() if k != "min_goal_distance"}
+    for kind, version in (("demos", (2, 3)), ("eval", (2, 5))):
+        m = migrate_minor(kind, version, {"env": {"scene": old}})
+        assert m["env"]["scene"]["min_goal_distance"] == 0.0
+    kept = migrate_minor("model", (2, 3), {"env": {"scene": {**scene, "min_goal_distance": 0.09}}})
+    assert kept["env"]["scene"]["min_goal_distance"] == 0.09
+    maze = {"env": {"scene": {"family": "pointmaze"}}}
+    assert migrate_minor("demos", (2, 3), maze) == maze

@@ -111,8 +111,22 @@ def _renames_2_2(kind: str, m: Manifest) -> Manifest:
     return m
 
 
-#: (version, manifest migration) for minor versions that renamed values; applied to every older file in order
-MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [((2, 2), _renames_2_2)]
+def _fetch_draws_2_4(kind: str, m: Manifest) -> Manifest:
+    """Fetch scenes written before goals kept their distance from the start drew goals at any distance: their
+    ``min_goal_distance`` is 0 (a file that records one keeps it; demos/buffer/model/plans 2.4, eval 2.6)."""
+    env = m.get("env")
+    scene = env.get("scene") if isinstance(env, dict) else None
+    if not isinstance(scene, dict) or scene.get("family") != "fetch" or "min_goal_distance" in scene:
+        return m
+    return {**m, "env": {**env, "scene": {**scene, "min_goal_distance": 0.0}}}
+
+
+#: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
+#: older files did not follow; applied to every older file in order
+MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
+    ((2, 2), _renames_2_2),
+    ((2, 6), _fetch_draws_2_4),
+]
 
 
 def migrate_minor(kind: str, version: tuple[int, int], manifest: Manifest) -> Manifest:

@@ -455,11 +455,13 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
     jump = np.array([r.plan_max_jump for r in results]) / np.maximum(limit, 1e-12)
     bounded = bool((limit > 0).all())
     failures = failure_counts([r.failure for r in results])
+    clean = float(np.mean([r.success and not r.executed_collision for r in results]))
     if policy:  # no plans: nothing planned to measure
         return SeedResult(
             seed=int(seed),
             episodes=len(results),
             success_rate=float(succ.mean()),
+            clean_success_rate=clean,
             in_wall_fraction=None,
             executed_collision_rate=float(np.mean([r.executed_collision for r in results])),
             path_length_ratio=float(ratio[measured].mean()) if measured.any() else None,
@@ -471,6 +473,8 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
         seed=int(seed),
         episodes=len(results),
         success_rate=float(succ.mean()),
+        weighted_success_rate=float(np.mean([r.success and r.plan_in_wall_fraction == 0 for r in results])),
+        clean_success_rate=clean,
         in_wall_fraction=float(np.mean([r.plan_in_wall_fraction for r in results])),
         plan_crossing_rate=float(np.mean([r.plan_crosses_obstacle for r in results])),
         jump_ratio=float(jump.mean()) if bounded else None,
@@ -490,6 +494,10 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
     def mean(name):
         return mean_or_none(getattr(p, name) for p in per_seed)
 
+    def std(name):
+        values = [getattr(p, name) for p in per_seed]
+        return None if any(v is None for v in values) else sample_std(values)
+
     succ = [p.success_rate for p in per_seed]
     wall = [p.in_wall_fraction for p in per_seed]
     planned = all(w is not None for w in wall)
@@ -499,6 +507,10 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
         model_preset=preset,
         success_mean=float(np.mean(succ)),
         success_std=sample_std(succ),
+        weighted_success_mean=mean("weighted_success_rate"),
+        weighted_success_std=std("weighted_success_rate"),
+        clean_success_mean=mean("clean_success_rate"),
+        clean_success_std=std("clean_success_rate"),
         in_wall_mean=float(np.mean(wall)) if planned else None,
         in_wall_std=sample_std(wall) if planned else None,
         plan_crossing_mean=mean("plan_crossing_rate"),

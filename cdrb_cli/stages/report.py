@@ -189,6 +189,8 @@ def collect_rows(evals) -> list[dict]:
                     "success_mean": 100 * float(succ.mean()),
                     "success_std": 100 * sample_std(succ),
                     "success_ci95": 100 * ci95(succ),
+                    **_rate("weighted_success", [r.weighted_success_rate for r in per]),
+                    **_rate("clean_success", [r.clean_success_rate for r in per]),
                     "in_wall_mean": None if wall is None else 100 * wall,
                     "in_wall_std": None if wall is None else 100 * sample_std([r.in_wall_fraction for r in per]),
                     "crossing_mean": None if crossing is None else 100 * crossing,
@@ -208,6 +210,14 @@ def collect_rows(evals) -> list[dict]:
     return rows
 
 
+def _rate(name: str, values: list) -> dict:
+    """``NAME_mean`` and ``NAME_std`` in percent over seeds; None when a seed did not measure it."""
+    mean = mean_or_none(values)
+    if mean is None:
+        return {f"{name}_mean": None, f"{name}_std": None}
+    return {f"{name}_mean": 100 * mean, f"{name}_std": 100 * sample_std(values)}
+
+
 def seed_rows(evals) -> list[dict]:
     """One row per eval file and evaluation seed (the per-seed table the docs keep beside each grouped row)."""
     rows = []
@@ -224,6 +234,8 @@ def seed_rows(evals) -> list[dict]:
                     "seed": r.seed,
                     "episodes": r.episodes,
                     "success": 100 * r.success_rate,
+                    "weighted_success": None if r.weighted_success_rate is None else 100 * r.weighted_success_rate,
+                    "success_without_collision": 100 * r.clean_success_rate,
                     "in_obstacle": None if r.in_wall_fraction is None else 100 * r.in_wall_fraction,
                     "plans_through_obstacle": None if r.plan_crossing_rate is None else 100 * r.plan_crossing_rate,
                     "collisions": 100 * r.executed_collision_rate,
@@ -323,11 +335,11 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
     lines += [
         "",
         "| env | method | controller | pairs | seeds x episodes | success (%) ± std [95% CI] | "
-        "planned states in walls (%) | "
+        "weighted success (%) | success without collision (%) | planned states in walls (%) | "
         "plans through an obstacle (%) | largest jump / allowed | plans with an impossible jump (%) | "
         "executed collisions (%) | path length / expert | plan time (ms) | re-plans per episode | "
         "planning per episode (ms) | failed episodes by cause |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
 
     def opt(v, f):
@@ -341,6 +353,8 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
             lines.append(
                 f"| {name[env]} | {m} | {r['controller']} | {r['pairs']} | {r['seeds']} x {r['episodes']} | "
                 f"{r['success_mean']:.1f} ± {r['success_std']:.1f} [± {r['success_ci95']:.1f}] | "
+                f"{_pm(r['weighted_success_mean'], r['weighted_success_std'])} | "
+                f"{_pm(r['clean_success_mean'], r['clean_success_std'])} | "
                 f"{_pm(r['in_wall_mean'], r['in_wall_std'])} | {opt(r['crossing_mean'], '.1f')} | "
                 f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "

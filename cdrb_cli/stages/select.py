@@ -214,4 +214,3 @@ def select(
         with artifacts.claim_output(table, force, "--table", inputs), artifacts.atomic_path(table) as tmp:
             tmp.write_text(table_text(table_rows(cands, best), fmt))
     return out
-

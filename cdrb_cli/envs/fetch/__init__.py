@@ -1,9 +1,9 @@
 """The Fetch family: gymnasium-robotics' Fetch Reach, Push and Pick & Place, each with and without walls.
 
 Ids: ``fetch-reach``, ``fetch-push``, ``fetch-pick-place`` and their ``-obstacle`` variants (the paper's six Fetch
-rows), plus ``-obstacle-cross`` variants whose block and goal are always on opposite sides of the wall. The state
-is the stock observation (10-D for Reach, 25-D with a block; docs/environments.md lists the entries), the goal the
-grip site's (Reach) or the block's position; success is within 5 cm (stock). Walls are MuJoCo geoms
+rows: every pair must get past the wall), plus ``-obstacle-mixed`` variants whose goals may lie on either side.
+The state is the stock observation (10-D for Reach, 25-D with a block; docs/environments.md lists the entries),
+the goal the grip site's (Reach) or the block's position; success is within 5 cm (stock). Walls are MuJoCo geoms
 (:mod:`cdrb_cli.envs.fetch.env`); the collision test covers the gripper and the block with their extents
 (:mod:`cdrb_cli.envs.fetch.geometry`); starts and goals are drawn by :mod:`cdrb_cli.envs.fetch.tasks`.
 """
@@ -36,23 +36,29 @@ OBJECT_LABELS += ["finger_l", "finger_r", "block_roll", "block_pitch", "block_ya
 OBJECT_LABELS += ["block_wx", "block_wy", "block_wz", "grip_vx", "grip_vy", "grip_vz", "finger_vl", "finger_vr"]
 
 #: id -> (task, obstacle, cross, horizon, episode length, description). Horizons follow the official code's
-#: (Reach 28, Push/Pick 36, obstacle tasks 56 planned states, one per env step); episodes are fixed-length, the
-#: expert holding at the goal once there.
+#: (Reach 28, Push/Pick 36, Push and Pick & Place obstacle tasks 56 planned states); episodes are fixed-length, the
+#: expert holding at the goal once there. The Table-1 obstacle tasks draw only pairs that must get past the wall;
+#: the ``-mixed`` ids keep the draw with both sides allowed.
 TASKS: dict[str, tuple[str, bool, bool, int, int, str]] = {
     "fetch-reach": ("reach", False, False, 28, 50, "Fetch Reach: move the gripper to a point"),
     "fetch-push": ("push", False, False, 36, 50, "Fetch Push: push a block to a point on the table"),
     "fetch-pick-place": ("pick-place", False, False, 36, 50, "Fetch Pick & Place: carry a block to a point"),
-    "fetch-reach-obstacle": ("reach", True, False, 56, 80, "Fetch Reach between two tall walls"),
-    "fetch-push-obstacle": ("push", True, False, 56, 100, "Fetch Push past a short wall"),
-    "fetch-pick-place-obstacle": ("pick-place", True, False, 56, 100, "Fetch Pick & Place over a tall wall"),
-    "fetch-reach-obstacle-cross": ("reach", True, True, 56, 80, "Reach obstacle, goals outside the corridor"),
-    "fetch-push-obstacle-cross": ("push", True, True, 56, 100, "Push obstacle, block and goal across the wall"),
-    "fetch-pick-place-obstacle-cross": ("pick-place", True, True, 56, 100, "Pick obstacle, across the wall"),
+    "fetch-reach-obstacle": ("reach", True, True, 28, 80, "Fetch Reach out of a corridor of two tall walls"),
+    "fetch-push-obstacle": ("push", True, True, 56, 100, "Fetch Push past a short wall, to its other side"),
+    "fetch-pick-place-obstacle": ("pick-place", True, True, 56, 100, "Fetch Pick & Place over or around a tall wall"),
+    "fetch-reach-obstacle-mixed": ("reach", True, False, 28, 80, "Reach obstacle, goals inside the corridor too"),
+    "fetch-push-obstacle-mixed": ("push", True, False, 56, 100, "Push obstacle, goals on either side of the wall"),
+    "fetch-pick-place-obstacle-mixed": ("pick-place", True, False, 56, 100, "Pick obstacle, goals on either side"),
 }
-#: env steps per planned state where 1 is too short: the scripted pusher takes up to 90 steps around the short wall
-#: (p90 66 > 56), so Push Obstacle's 56 planned states cover 112 steps (the block path is what its controller uses;
-#: docs/benchmarks.md, controller ceilings)
-STRIDES = {"fetch-push-obstacle": 2, "fetch-push-obstacle-cross": 2}
+#: env steps per planned state where 1 is too short for the expert's path: the scripted pusher takes up to 90 steps
+#: around the short wall (p90 66 > 56), and reaching out of the corridor up to 48 (> 28 planned states); the
+#: expert's cut-plan ceilings are in docs/benchmarks.md
+STRIDES = {
+    "fetch-push-obstacle": 2,
+    "fetch-push-obstacle-mixed": 2,
+    "fetch-reach-obstacle": 2,
+    "fetch-reach-obstacle-mixed": 2,
+}
 DISPLAY_NAMES = {
     "fetch-reach": "Reach",
     "fetch-push": "Push",

@@ -22,8 +22,10 @@ What the official code leaves open, chosen here (docs/environments.md):
   come within 1.5 cm of a wall, or while a footprint comes within 3 cm of the table's edge (the stock range
   reaches 1.2 cm from the far edge, where a push that overshoots by that much drops the block). Reach goals
   are kept 2 cm above the table's reach of the gripper.
-* *Cross* variants put the block and the goal on opposite sides of the wall (reach: the goal outside the
-  corridor), so every episode must pass the wall.
+* *Cross* scenes (the Table-1 obstacle tasks) put the block and the goal on opposite sides of the wall (reach: the
+  goal outside the corridor), so every episode must pass the wall.
+* No goal lies within ``min_goal_distance`` (7 cm) of where the block (Reach: the gripper) starts, so no episode
+  is won at reset.
 """
 
 from __future__ import annotations
@@ -78,6 +80,13 @@ class FetchScene(Scene):
         0.03, ge=0, le=0.2, description="block and goal footprints keep this far inside the table edge, m"
     )
     cross: bool = Field(False, description="block and goal on opposite sides of the wall (reach: goal outside)")
+    min_goal_distance: float = Field(
+        0.07,
+        ge=0,
+        le=0.5,
+        description="goals at least this far from where the block (Reach: the gripper) starts, m: no episode is won "
+        "at reset (success is within 5 cm; 2 cm more for the block settling at reset)",
+    )
 
 
 def _tall(x=(1.15, 1.45), z=(0.17, 0.77), y=0.749, thick=0.005) -> Box:
@@ -146,6 +155,8 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
                 continue
             if scene.cross and side(scene, goal) == 0:
                 continue
+            if np.linalg.norm(goal - home) < scene.min_goal_distance:
+                continue
             return (), tuple(float(v) for v in goal)
         block = rng.uniform(-scene.obj_range, scene.obj_range, 2) + (cx, cy)
         if np.linalg.norm(block - home[:2]) < 0.1:
@@ -162,6 +173,8 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
         if not on_table(goal) or in_boxes(goal, clear) or (grasp is not None and in_boxes(goal, grasp)):
             continue
         if scene.cross and side(scene, goal) == side(scene, block3):
+            continue
+        if np.linalg.norm(goal - block3) < scene.min_goal_distance:
             continue
         return tuple(float(v) for v in block), tuple(float(v) for v in goal)
     raise RuntimeError(f"no start/goal drawn for the {scene.task} scene in {tries} tries")
