@@ -26,9 +26,11 @@ from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import STREAM_TUNE
 from cdrb_cli.stages.evaluate import run_episode
 
-#: per family: (label, controller name, config overrides) of each controller setting measured
+#: per family: (label, controller name, config overrides) of each controller setting measured; a controller that a
+#: protocol prescribes runs under that protocol (its goal pin, episode length and early end)
 SETTINGS = {
     "fetch": [
+        ("official executor (official-code protocol)", "fetch-official", {}),
         ("track K=1", "fetch-track", {"gain": 1.0, "follow_block": False}),
         ("track K=2", "fetch-track", {"gain": 2.0, "follow_block": False}),
         ("track K=2, follow block", "fetch-track", {"gain": 2.0, "follow_block": True}),
@@ -68,11 +70,14 @@ def measure(env_id: str, episodes: int, seed: int, horizon: int | None, stride: 
                 ctl = c.build(spec, env, cfg, k)
             except BadInput:  # not a controller for this task (e.g. fetch-push-path off Push)
                 continue
+            protocol = next((p for p in fam.protocols() if fam.protocol_controller(p) == name), fam.protocol)
+            run_spec = fam.protocol_spec(spec, protocol)
             t0 = time.time()
             ok, coll = [], []
             for ep, plan in zip(eps, plans):
                 ctl.reset(plan)
-                run = run_episode(env, spec, ep, ctl.act, spec.episode_limit)
+                done = lambda: getattr(ctl, "finished", False)  # noqa: B023 (called within this iteration)
+                run = run_episode(env, run_spec, ep, ctl.act, run_spec.episode_limit, done)
                 ok.append(run.success)
                 coll.append(run.collision)
             rows.append(

@@ -374,7 +374,7 @@ def collect(
     where an offscreen GL context can be made, matplotlib drawings otherwise; the command says which)."""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.collect import collect as run_collect
-    from cdrb_cli.stages.collect import collect_config
+    from cdrb_cli.stages.collect import collect_config, route_shares
 
     if video is not None:
         from cdrb_cli.envs.render import choose_gl_backend
@@ -395,6 +395,8 @@ def collect(
         f"success {s.success_rate:.1%}, mean length {s.mean_length:.0f} steps (max {s.max_length}), "
         f"states inside obstacles: {s.states_in_walls}, {s.wall_time_s:.1f}s"
     )
+    if s.routes:
+        ui.log(f"routes: {route_shares(s.routes)}")
     if s.success_rate < 0.99:
         ui.warn(f"expert success {s.success_rate:.1%} is below 99%")
     if plot is not None:

@@ -41,6 +41,7 @@ CONTROLLERS: Registry[ControllerEntry] = Registry(
         "waypoint": "cdrb_cli.envs.pointmaze.controllers",
         "fetch-track": "cdrb_cli.envs.fetch.controllers",
         "fetch-push-path": "cdrb_cli.envs.fetch.controllers",
+        "fetch-official": "cdrb_cli.envs.fetch.official",
     },
     ControllerEntry,
 )

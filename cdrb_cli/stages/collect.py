@@ -152,6 +152,16 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
     return write_demos(out, spec, config, all_states, all_actions, all_goals, seeds, success, routes, t0)
 
 
+def route_shares(routes: dict[str, dict[str, int]]) -> str:
+    """The share of each route label over all episodes (``over 48%, around x- 27%, ...``), most common first."""
+    totals: dict[str, int] = {}
+    for group in routes.values():
+        for label, n in group.items():
+            totals[label] = totals.get(label, 0) + n
+    n = max(sum(totals.values()), 1)
+    return ", ".join(f"{label} {100 * c / n:.0f}%" for label, c in sorted(totals.items(), key=lambda kv: -kv[1]))
+
+
 def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions, goals, seeds, success, routes, t0):
     """Write per-episode lists (states (T+1, obs), actions (T+1, act) with a zero last row, goals (T+1, goal), reset
     seeds, success) as a demos artifact: flat step arrays, the episode index, the train/valid split drawn from

@@ -109,13 +109,22 @@ def measured(arrays: dict[str, np.ndarray]) -> bool:
 
 
 def run_episode(
-    env: Env, spec: EnvSpec, episode: Episode, act: Callable[[np.ndarray, int], np.ndarray], steps: int
+    env: Env,
+    spec: EnvSpec,
+    episode: Episode,
+    act: Callable[[np.ndarray, int], np.ndarray],
+    steps: int,
+    done: Callable[[], bool] | None = None,
 ) -> Rollout:
-    """Execute ``act(state, t) -> action`` from the episode's seeded reset for ``steps`` steps, and measure."""
+    """Execute ``act(state, t) -> action`` from the episode's seeded reset for ``steps`` steps, and measure;
+    ``done``: the episode ends early once it says so after an action (an executor whose plan ran out)."""
     obs, goal = env.reset(episode)
     states = [obs]
     for t in range(steps):
-        obs = env.step(act(obs, t))
+        action = act(obs, t)
+        if done is not None and done():
+            break
+        obs = env.step(action)
         states.append(obs)
     return measure(spec, np.array(states), goal, steps)
 
@@ -129,7 +138,7 @@ def measure(spec: EnvSpec, S: np.ndarray, goal: np.ndarray, steps: int) -> Rollo
     return Rollout(
         states=S,
         success=first is not None,
-        steps=first if first is not None else steps,
+        steps=first if first is not None else len(S) - 1,
         final_distance=float(family.distance(spec, S, goal)[-1]),
         collision=collision,
         path_length=family.path_length(spec, S if first is None else S[: first + 1]),
@@ -207,6 +216,8 @@ def evaluate(
     if METHODS.get(model.manifest.config.method.name).kind == "policy":
         return evaluate_policy(model, config, out, spec, device, video_dir, videos)
     method = load_planner(model, device=device, ema=config.use_ema)
+    if spec.pin_end_dims != model.manifest.env.pin_end_dims:  # a protocol that pins more (the official Fetch pin)
+        method.pinned_end = spec.pin_end_dims
     METHODS.get(method.name).check_sampler(config.sampler)
     env = family.make_env(spec)
     controller = CONTROLLERS.get(config.controller.name).build(
@@ -297,7 +308,9 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
     jumps = largest_jump(states, spec.obstacles.dims)
     for e, episode in enumerate(ctx.episodes):
         controller.reset(ctx.plans[e])
-        run = run_episode(ctx.env, spec, episode, controller.act, ctx.steps)
+        run = run_episode(
+            ctx.env, spec, episode, controller.act, ctx.steps, lambda: getattr(controller, "finished", False)
+        )
         result = _result(
             ctx.seed,
             episode,

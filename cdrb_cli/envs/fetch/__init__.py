@@ -103,8 +103,13 @@ class FetchFamily(EnvFamily):
     name = "fetch"
     scene_type = FetchScene
     experts = ("fetch-scripted", "sac")
-    controllers = ("fetch-track", "fetch-push-path")
+    controllers = ("fetch-track", "fetch-push-path", "fetch-official")
     protocol = "stock-centre draws, walls rejected"
+    extra_protocols = {
+        "official-code": "as the official CDRB code evaluates: its executor (controller `fetch-official`: a step "
+        "budget per planned state, a 1 cm gate, its pick and push rules), the gripper pinned to the goal with the "
+        "block, success at any step until the plan runs out"
+    }
     point_format = "--goal x,y,z; --start the block's x,y (gripper at home) or, for Reach, the gripper's x,y,z"
 
     # -------------------------------------------------------------- environments
@@ -150,6 +155,23 @@ class FetchFamily(EnvFamily):
         return training_env(spec, seed)
 
     # -------------------------------------------------------------- protocol
+    def protocol_spec(self, spec: EnvSpec, protocol: str) -> EnvSpec:
+        """``official-code``: the goal pins the gripper with the block (dims 0:6, the official ``--cond-end 6``),
+        and the episode is as long as the executor's budget allows (it ends when the plan runs out; Push's reset
+        steps do not count toward the budget, hence the margin)."""
+        if protocol != "official-code":
+            return spec
+        from cdrb_cli.envs.fetch.official import MAX_RESET_STEPS, official_steps
+
+        limit = spec.horizon * official_steps(spec)
+        if spec.scene.task == "push":
+            limit += 4 * MAX_RESET_STEPS
+        pins = list(range(6)) if has_object(spec) else spec.pinned_end_dims
+        return spec.model_copy(update={"episode_limit": max(limit, spec.episode_limit), "pinned_end_dims": pins})
+
+    def protocol_controller(self, protocol: str) -> str | None:
+        return "fetch-official" if protocol == "official-code" else None
+
     def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
         out = []
         for s in episode_seeds(seed, n, stream):
