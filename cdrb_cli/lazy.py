@@ -2,10 +2,10 @@
 
 ``from cdrb_cli.lazy import torch`` binds a stand-in for the ``torch`` module without importing it: the import
 happens on the first attribute access, through the normal import system (the standard library's ``LazyLoader``
-puts a half-loaded module in ``sys.modules``, which torch's own start-up can trip over on Python 3.12). Method modules use it so
-that their declarations (hyper-parameter records, registry entries) can be read (by ``cdrb inspect``, the JSON
-Schemas, or the CLI's choices) without paying torch's 1-2 s start-up. Code that runs a method touches ``torch.*``
-and gets the real module; if torch was imported already, this is that module.
+puts a half-loaded module in ``sys.modules``, which torch's own start-up can trip over on Python 3.12). Method
+modules use it so that their declarations (hyper-parameter records, registry entries) can be read (by ``cdrb
+inspect``, the JSON Schemas, or the CLI's choices) without paying torch's 1-2 s start-up. Code that runs a method
+touches ``torch.*`` and gets the real module; if torch was imported already, this is that module.
 """
 
 from __future__ import annotations

@@ -3,19 +3,23 @@
 Walls follow the official CDRB code's obstacle files (``fetch_env/assets``) where they are consistent:
 
 * push: a short wall, x in [1.22, 1.38], y in [0.728, 0.772] (official), 6 cm tall (official: 10 cm). While it
-  pushes, the gripper's palm (12.8 cm wide) rides 7 cm above the table, so beside a 10 cm wall nearly every push
-  near it collides; at 6 cm only the fingers can touch it, which is the official short wall's intent: the block
-  cannot pass it, the gripper can;
+  pushes, the gripper's palm (12.8 cm wide) rides 7 cm above the table, so beside a 10 cm wall pushes near it
+  collide: the scripted expert crosses 53.5% of crossing pairs with the official 10 cm wall, 97.5% at 6 cm
+  (docs/environments.md). At 6 cm only the fingers can touch it, which keeps the official short wall's intent:
+  the block cannot pass it, the gripper can;
 * pick & place: a tall wall, centre (1.3, 0.75, 0.4), half size (0.15, 0.022, 0.3): top at z = 0.7;
 * reach: two tall walls either side of the start, x in [1.15, 1.45], z in [0.17, 0.77] (the official check script's
   two walls; its shipped XML has one). The official walls leave a 13 cm corridor (y 0.705-0.835) for a gripper
-  whose link is 12.8 cm wide, so every state inside touches a wall; cdrb widens the corridor to 23 cm (walls at
-  y = 0.749 +- 0.12), keeping "two walls either side of the start".
+  whose link is 12.8 cm wide, so nearly every state inside touches a wall (the scripted expert leaves it in 10% of
+  episodes, 95% of its states in a wall); cdrb widens the corridor to 23 cm (walls at y = 0.749 +- 0.12), keeping
+  "two walls either side of the start".
 
 What the official code leaves open, chosen here (docs/environments.md):
 
-* *Start*: every official wall runs through the stock start pose. The gripper is driven to a *home* clear of the
-  walls: the stock start for reach; 5 cm above the wall's top, over the stock start, for push and pick & place.
+* *Start*: every official wall runs through the stock start pose; the official env starts where the walls pushed the
+  arm out during settling (:data:`OFFICIAL_START`). The gripper is driven to a *home* there (:data:`OBSTACLE_HOME`),
+  clear of the walls: exactly the official start for Reach and Push; for Pick & Place 4.7 cm further past the
+  tall wall's end (the official start rests against it).
 * *Objects and goals* are drawn around the stock sampling centre (the stock start's x-y; +-0.15 m, as stock), the
   block at least 0.1 m from the home's x-y (stock rule), and redrawn while the block's or the goal's footprint
   (grown by ``wall_margin``) overlaps a wall, or (pick & place) the open gripper grasping the block there would
@@ -93,9 +97,26 @@ def _tall(x=(1.15, 1.45), z=(0.17, 0.77), y=0.749, thick=0.005) -> Box:
     return Box(center=((x[0] + x[1]) / 2, y, (z[0] + z[1]) / 2), half=((x[1] - x[0]) / 2, thick, (z[1] - z[0]) / 2))
 
 
-PUSH_WALL = Box(center=(1.3, 0.75, 0.43), half=(0.08, 0.022, 0.03))
+PUSH_WALL = Box(center=(1.3, 0.75, 0.43), half=(0.08, 0.022, 0.03))  # official: 10 cm tall (see above)
 PICK_WALL = Box(center=(1.3, 0.75, 0.4), half=(0.15, 0.022, 0.3))
-REACH_WALLS = [_tall(y=0.749 - 0.12), _tall(y=0.749 + 0.12)]
+REACH_WALLS = [_tall(y=0.749 - 0.12), _tall(y=0.749 + 0.12)]  # official: a 13 cm corridor (see above)
+
+#: the official start of the obstacle tasks: the stock start after the walls pushed the arm out during the stock
+#: settling steps (measured with gymnasium-robotics 1.4.2)
+OFFICIAL_START = {
+    "reach": (1.3608, 0.7627, 0.5402),
+    "push": (1.3978, 0.7489, 0.4161),
+    "pick-place": (1.4629, 0.7489, 0.5450),
+}
+#: cdrb's start: the official one where it is clear of the walls (Reach, Push); Pick & Place's rests against the tall
+#: wall's end and moves 4.7 cm further out in x: the gripper link clears the wall by 1.3 cm, room for the 8 mm the
+#: expert's routes keep from a wall (at 1.50 m the expert succeeds in 97.5% of 200 episodes with 1,447 states in a
+#: wall; at 1.51 m in 100% with none)
+OBSTACLE_HOME = {
+    "reach": OFFICIAL_START["reach"],
+    "push": OFFICIAL_START["push"],
+    "pick-place": (1.5100, 0.7489, 0.5450),
+}
 
 
 def scene_for(task: TaskName, obstacle: bool, cross: bool = False) -> FetchScene:
@@ -104,9 +125,7 @@ def scene_for(task: TaskName, obstacle: bool, cross: bool = False) -> FetchScene
     home = (sx, sy, sz)
     if obstacle:
         walls = {"reach": REACH_WALLS, "push": [PUSH_WALL], "pick-place": [PICK_WALL]}[task]
-        if task != "reach":
-            top = max(float(w.high[2]) for w in walls)
-            home = (sx, sy, top + 0.05 + 0.02)  # finger tips 2 cm below the grip site, 5 cm above the top
+        home = OBSTACLE_HOME[task]
     extra = {}
     if obstacle and task == "reach":  # goals on either side of the corridor need a wider y range
         extra = {"target_range_y": 0.30, "wall_margin": 0.02}
