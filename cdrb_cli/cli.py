@@ -28,6 +28,39 @@ except ImportError:  # pragma: no cover
 from cdrb_cli import PROG, __version__, interrupts, ui
 from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, BadInput, CdrbError
 
+#: what `--help` shows for a value of each Python type typer names (a flag shows nothing)
+_READABLE = {"bool": "", "int": "N", "float": "X", "str": "TEXT", "path": "FILE", "file": "FILE", "directory": "DIR"}
+
+
+def _readable_help() -> None:
+    """Help that names values as a person reads them (N, X, FILE, TEXT, DEMOS) instead of Python types (``<int>``,
+    ``<list[str]>``, ``{demos}``). Typer has no hook for its type labels, so its two label methods are wrapped."""
+    import re
+
+    from typer import core
+
+    label = core._TyperParameter.display_type
+    usage = core.TyperArgument._usage_display_name
+
+    def display_type(self, ctx) -> str:
+        text = label(self, ctx)
+        m = re.fullmatch(r"<(list\[)?(\w+)(?: range)?\]?>", text)
+        if m is None:
+            return text
+        word = _READABLE.get(m.group(2).lower(), m.group(2).upper())
+        return f"{word}..." if m.group(1) and word else word
+
+    def usage_name(self) -> str:
+        name = (self.metavar or self.name or "").upper()
+        name = name if self.required else f"[{name}]"
+        return name + ("..." if self.nargs != 1 else "")
+
+    core._TyperParameter.display_type = display_type
+    core.TyperArgument._usage_display_name = usage_name
+
+
+_readable_help()
+
 app = typer.Typer(
     name=PROG,
     help="Cold Diffusion on the Replay Buffer: plan robot trajectories through states the robot has visited.\n\n"

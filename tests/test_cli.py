@@ -127,3 +127,34 @@ def test_help_text_is_reflowed_not_hard_wrapped(cdrb):
 def test_shell_completion_script(cdrb):
     r = cdrb("--show-completion", "bash")
     assert r.returncode == 0 and "_cdrb_completion" in r.stdout and "complete" in r.stdout
+
+
+def _commands(group, prefix=()):
+    """Every command path of the typer app's click group (sub-groups included)."""
+    import typer.main
+
+    cmd = typer.main.get_command(group) if not hasattr(group, "commands") else group
+    for name, sub in sorted(getattr(cmd, "commands", {}).items()):
+        yield (*prefix, name)
+        if hasattr(sub, "commands"):
+            yield from _commands(sub, (*prefix, name))
+
+
+def test_help_names_values_as_a_person_reads_them():
+    """No Python type names in any command's help (<bool>, <int range>, <list[str]>, {demos}): values read N, X,
+    FILE, TEXT or the option's own metavar, and required arguments are upper case in the usage line."""
+    import re
+
+    from typer.testing import CliRunner
+
+    from cdrb_cli.cli import app
+
+    runner = CliRunner()
+    paths = list(_commands(app))
+    assert len(paths) >= 15
+    for path in paths:
+        out = runner.invoke(app, [*path, "--help"], env={"COLUMNS": "200"}).output
+        found = re.findall(r"<(?:bool|int|float|str|path|file|list\[\w+\])[^>]*>|\{[a-z_]+\}", out)
+        assert not found, (path, found)
+    train = runner.invoke(app, ["train", "--help"], env={"COLUMNS": "200"}).output
+    assert "Usage: cdrb train [OPTIONS] DEMOS" in train and re.search(r"--steps\s+N\s", train)

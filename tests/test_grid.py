@@ -309,7 +309,8 @@ def test_the_shipped_experiment_files_load_and_expand():
         head = path.read_text().split("\nout =")[0]
         counts = {k: sum(t.kind == k for t in tasks) for k in ("train", "eval")}
         for kind, n in counts.items():
-            assert f"{n} {'trainings' if kind == 'train' else 'evals'}" in head.replace(" training ", " "), (path, kind)
+            word = {"train": "training", "eval": "eval"}[kind] + ("" if n == 1 else "s")
+            assert f" {n} {word}" in head, (path, kind)
     # the included settings files of the test grids hold exactly one entry per env x method they choose for
     for path in sorted((root / "tuned").glob("*.toml")):
         from cdrb_cli.stages.grid import SettingsFile, _read_toml

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
+from cdrb_cli.envs.registry import FAMILIES, family_of
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.checkpoint import load_method
 from cdrb_cli.methods.config import train_config
@@ -55,8 +56,13 @@ def test_only_a_model_with_no_parameters_may_have_no_weights(small_data, tmp_pat
         artifacts.load(tmp_path / "n.h5")
 
 
-@pytest.mark.parametrize("env", ["maze-tight", "fetch-push-obstacle"])
+STOCK = [i for fam in FAMILIES.entries() for i in fam.env_ids() if not i.endswith("-mixed")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env", STOCK)
 def test_it_trains_plans_evaluates_and_reports_through_the_cli(env, tmp_path, cdrb):
+    """On every stock env, under each of its protocols (the official executor's early end included)."""
     demos, model, ev = tmp_path / "d.h5", tmp_path / "m.h5", tmp_path / "e.h5"
     assert cdrb("collect", env, "-n", "6", "--out", demos).returncode == 0
     assert cdrb("train", demos, "--method", "straight", "--out", model).returncode == 0
@@ -68,3 +74,11 @@ def test_it_trains_plans_evaluates_and_reports_through_the_cli(env, tmp_path, cd
     np.testing.assert_allclose(steps, np.broadcast_to(steps[:, :1], steps.shape), atol=1e-4)  # equal steps: a line
     proc = cdrb("report", ev, "--format", "json")
     assert proc.returncode == 0 and '"method": "straight"' in proc.stdout
+    spec = e.manifest.env
+    for protocol in family_of(spec).extra_protocols:
+        out = tmp_path / f"e-{protocol}.h5"
+        proc = cdrb(
+            "eval", model, "--seeds", "0", "--episodes", "2", "--stream", "tune", "--protocol", protocol, "--out", out
+        )
+        assert proc.returncode == 0, proc.stderr
+        assert artifacts.load(out, "eval").manifest.config.protocol == protocol
