@@ -40,7 +40,6 @@ def _readable_help() -> None:
     from typer import core
 
     label = core._TyperParameter.display_type
-    usage = core.TyperArgument._usage_display_name
 
     def display_type(self, ctx) -> str:
         text = label(self, ctx)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
+import time
 from contextlib import contextmanager
 from typing import Any
 
@@ -62,9 +64,54 @@ def emit(result: Any, as_json: bool = False) -> None:
     sys.stdout.flush()
 
 
+#: seconds between the plain progress lines written when stderr is not a terminal (env CDRB_PROGRESS_SECONDS)
+PROGRESS_SECONDS = 30.0
+
+
+class LineProgress(Progress):
+    """Progress for a stderr that is not a terminal (nohup, CI and SLURM logs): a live bar there is printed only when
+    it ends, so each task instead gets one plain line every ``interval`` seconds and one when it completes."""
+
+    def __init__(self, *columns, interval: float, **kwargs):
+        super().__init__(*columns, **{**kwargs, "disable": True})
+        self.interval = interval
+        self._printed: dict = {}
+
+    def update(self, task_id, **kwargs) -> None:
+        super().update(task_id, **kwargs)
+        self._line(task_id)
+
+    def advance(self, task_id, advance: float = 1) -> None:
+        super().advance(task_id, advance)
+        self._line(task_id)
+
+    def _line(self, task_id) -> None:
+        task = self._tasks[task_id]
+        done = task.total is not None and task.completed >= task.total
+        now = time.monotonic()
+        last = self._printed.setdefault(task_id, task.start_time or now)
+        if last == "done" or (not done and now - last < self.interval):
+            return
+        self._printed[task_id] = "done" if done else now
+        total = "?" if task.total is None else f"{task.total:g}"
+        pct = f" ({100 * task.completed / task.total:.0f}%)" if task.total else ""
+        elapsed = time.strftime("%H:%M:%S", time.gmtime(task.elapsed or 0))
+        eta = (
+            ""
+            if done or not task.time_remaining
+            else f", eta {time.strftime('%H:%M:%S', time.gmtime(task.time_remaining))}"
+        )
+        info = task.fields.get("info") or ""
+        line = f"{task.description}: {task.completed:g}/{total}{pct}, {elapsed} elapsed{eta}" + (
+            f", {info}" if info else ""
+        )
+        err.print(Text(plain(line)))
+
+
 @contextmanager
 def progress(transient: bool = False):
-    """A rich progress display on stderr. Tasks may carry a ``info`` field shown after the bar."""
+    """A rich progress display on stderr (plain lines every ``CDRB_PROGRESS_SECONDS`` when stderr is not a terminal).
+    Tasks may carry a ``info`` field shown after the bar."""
     columns = [
         SpinnerColumn(),
         TextColumn("{task.description}", markup=False, style="bold"),
@@ -75,6 +122,11 @@ def progress(transient: bool = False):
         TimeRemainingColumn(),
         TextColumn("{task.fields[info]}", markup=False),
     ]
+    if not err.is_terminal and not _quiet:
+        interval = float(os.environ.get("CDRB_PROGRESS_SECONDS", PROGRESS_SECONDS))
+        with LineProgress(*columns, console=err, interval=interval) as p:
+            yield p
+        return
     with Progress(*columns, console=err, transient=transient, disable=_quiet) as p:
         yield p
 

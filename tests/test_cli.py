@@ -158,3 +158,20 @@ def test_help_names_values_as_a_person_reads_them():
         assert not found, (path, found)
     train = runner.invoke(app, ["train", "--help"], env={"COLUMNS": "200"}).output
     assert "Usage: cdrb train [OPTIONS] DEMOS" in train and re.search(r"--steps\s+N\s", train)
+
+
+def test_progress_prints_plain_lines_while_it_runs_when_stderr_is_not_a_terminal(small_data, tmp_path, cdrb):
+    """With stderr piped (nohup, CI, SLURM) training prints a plain progress line every CDRB_PROGRESS_SECONDS while it
+    runs, with rising step counts, and one at the end; not the escape codes of a live bar."""
+    import re
+
+    demos, buffer = small_data
+    r = cdrb(
+        "train", demos.path, "--buffer", buffer.path, "--steps", "60", "--set", "net.dim=8",
+        "--set", "checkpoint_every=20", "--out", tmp_path / "m.h5",
+        env={"CDRB_PROGRESS_SECONDS": "0"},
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    counts = [int(m) for m in re.findall(r"^train cdrb: (\d+)/60", r.stderr, re.M)]
+    assert len(counts) >= 3 and counts == sorted(counts) and counts[-1] == 60 and counts[0] < 60
+    assert "\x1b[" not in r.stderr
