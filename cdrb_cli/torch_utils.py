@@ -9,12 +9,17 @@ from cdrb_cli.errors import BadInput
 
 def cpu_threads() -> int:
     """Torch CPU threads: ``OMP_NUM_THREADS`` when set (the standard knob: give each of several runs sharing a
-    machine its share, since threads beyond the free cores spin against each other and slow every run by far more
-    than the share), else every core up to 8."""
+    machine its share), else the cores the machine's load leaves free, at least 1 and at most 8. Threads beyond the
+    free cores spin against the other work and slow the run by far more than their share (docs/cli.md)."""
     env = os.environ.get("OMP_NUM_THREADS", "").strip()
     if env.isdigit() and int(env) > 0:
         return min(int(env), 256)
-    return max(1, min(os.cpu_count() or 1, 8))
+    cores = max(1, min(os.cpu_count() or 1, 8))
+    try:
+        busy = os.getloadavg()[0]  # runnable processes, 1-minute average (before this run adds its own)
+    except (OSError, AttributeError):  # no load average on this platform
+        busy = 0.0
+    return max(1, min(cores, int(cores - busy + 0.5)))
 
 
 def setup_torch(device: str = "auto", threads: int | None = None):

@@ -175,3 +175,18 @@ def test_progress_prints_plain_lines_while_it_runs_when_stderr_is_not_a_terminal
     counts = [int(m) for m in re.findall(r"^train cdrb: (\d+)/60", r.stderr, re.M)]
     assert len(counts) >= 3 and counts == sorted(counts) and counts[-1] == 60 and counts[0] < 60
     assert "\x1b[" not in r.stderr
+
+
+@pytest.mark.parametrize("load, expected", [(0.05, 4), (1.2, 3), (2.6, 1), (9.0, 1)])
+def test_default_threads_leave_the_busy_cores_alone(monkeypatch, load, expected):
+    """Without OMP_NUM_THREADS a run takes the cores the load average leaves free (at least one); with it, that."""
+    import os
+
+    from cdrb_cli import torch_utils
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(os, "getloadavg", lambda: (load, load, load))
+    assert torch_utils.cpu_threads() == expected
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert torch_utils.cpu_threads() == 3
