@@ -409,3 +409,21 @@ def test_a_signal_inside_a_polled_loop_waits_for_the_check_and_is_never_lost():
     finally:
         restore()
     assert signal.getsignal(signal.SIGTERM) is not interrupts._handler
+
+
+def test_a_planted_lock_file_link_or_fifo_is_refused_and_its_target_untouched(small_data, tmp_path, cdrb):
+    """A symlink planted as an output's lock file (``.NAME.lock``) used to be followed: its target was truncated to
+    the writer's pid. Now the run exits 2 naming the lock file, and the target keeps its content; a FIFO there is
+    refused the same way (no hang)."""
+    import os
+
+    demos, _ = small_data
+    precious = tmp_path / "p.txt"
+    precious.write_text("precious\n")
+    (tmp_path / ".b.h5.lock").symlink_to(precious)
+    r = cdrb("cluster", demos.path, "--k", "5", "--out", tmp_path / "b.h5", timeout=60)
+    assert r.returncode == 2 and ".b.h5.lock" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert precious.read_text() == "precious\n" and not (tmp_path / "b.h5").exists()
+    os.mkfifo(tmp_path / ".c.h5.lock")
+    r = cdrb("cluster", demos.path, "--k", "5", "--out", tmp_path / "c.h5", timeout=30)
+    assert r.returncode == 2 and ".c.h5.lock" in r.stderr and not (tmp_path / "c.h5").exists()

@@ -99,7 +99,19 @@ def _locked(path: Path, flag: str) -> Iterator[None]:
         return
     lock = _lock_path(path)
     while True:
-        fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o644)
+        try:  # never through a link: a planted link would have the pid written into (and truncate) its target
+            fd = os.open(lock, os.O_CREAT | os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o644)
+        except OSError as exc:
+            raise BadInput(
+                f"{flag} {path}: its lock file {lock} is not a regular file ({exc.strerror.lower()})",
+                hint=f"remove {lock} (cdrb creates it while writing {path.name})",
+            ) from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise BadInput(
+                f"{flag} {path}: its lock file {lock} is not a regular file",
+                hint=f"remove {lock} (cdrb creates it while writing {path.name})",
+            )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
