@@ -152,9 +152,16 @@ def source_of(settings: Sequence[Setting], loc: Sequence[Any]) -> Setting | None
 
 
 def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], what: str) -> BaseModel:
-    """``model.model_validate(data)``, with the first error reported against the setting that caused it."""
+    """``model`` validated strictly from ``data`` as JSON (no coercion: ``true`` is not the number 1, ``1`` or
+    ``"yes"`` not a boolean, ``3.5`` not an integer), with the first error reported against the setting that caused
+    it."""
     try:
-        return model.model_validate(data)
+        text = json.dumps(data)
+    except (TypeError, ValueError) as exc:
+        hint = "values are numbers, booleans, strings or lists of them"
+        raise BadInput(f"{what} settings: {exc}", hint=hint) from None
+    try:
+        return model.model_validate_json(text, strict=True)
     except ValidationError as exc:
         err = exc.errors()[0]
         # tagged unions add the tag to the location (("net", "unet", "dim")): drop it

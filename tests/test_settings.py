@@ -177,3 +177,19 @@ def test_options_of_the_other_stage_are_refused(cdrb):
     assert cdrb("config", "train", "--controller", "pd").returncode == 2
     r = cdrb("config", "eval", "--format", "toml")
     assert r.returncode == 2 and "only train reads a --config file" in r.stderr
+
+
+@pytest.mark.parametrize(
+    "setting", ["steps=true", "lr=true", "net.residual=1", 'net.residual="yes"', "steps=3.5", "steps=3.0"]
+)
+def test_settings_are_not_coerced(small_data, tmp_path, cdrb, setting):
+    """A value of another type is an error naming the setting, never coerced (true was 1 step, 1 was true)."""
+    demos, buffer = small_data
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--set", setting, "--dry-run")
+    assert r.returncode == 2 and f"--set {setting}:" in r.stderr and r.stderr.count("\n") == 1
+    toml = tmp_path / "c.toml"
+    key, value = setting.split("=", 1)
+    section, _, field = key.rpartition(".")
+    toml.write_text((f"[{section}]\n" if section else "") + f"{field} = {value}\n")
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", toml, "--dry-run")
+    assert r.returncode == 2 and f"--config {toml}" in r.stderr
