@@ -412,3 +412,21 @@ def test_weighted_success_and_success_without_collision_follow_their_definitions
     assert both == 1
     policy = seed_result(0, results, policy=True)
     assert policy.weighted_success_rate is None and policy.clean_success_rate == 2 / 8
+
+
+def test_one_seed_shows_no_interval(tmp_path):
+    """A one-seed row has no spread: the report says n/a instead of a misleading ± 0.0 [± 0.0]."""
+    from cdrb_cli.stages.report import render
+
+    row = {
+        "env": "maze-tight", "method": "cdrb", "controller": "pd", "pairs": "test", "seeds": 1, "episodes": 4,
+        "success_mean": 25.0, "success_std": 0.0, "success_ci95": 0.0, "weighted_success_mean": 25.0,
+        "weighted_success_std": 0.0, "clean_success_mean": 25.0, "clean_success_std": 0.0, "in_wall_mean": 1.0,
+        "in_wall_std": 0.0, "crossing_mean": 0.0, "jump_ratio": 0.5, "impossible_jump_mean": 0.0,
+        "collision_mean": 0.0, "path_ratio": 1.1, "plan_ms": 1.0, "replans": 0.0, "episode_planning_ms": 1.0,
+        "failures": "", "env_name": "Maze Tight",
+    }  # fmt: skip
+    text = render([row], "markdown")
+    assert "25.00 ± n/a" in text and "25.0 ± n/a (1 seed)" in text and "± 0.0" not in text
+    text = render([{**row, "seeds": 3, "success_std": 2.0, "success_ci95": 5.0}], "markdown")
+    assert "25.0 ± 2.0 [± 5.0]" in text

@@ -316,7 +316,8 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
             if r is None:
                 vals.append("–")
                 continue
-            v = f"{r['success_mean']:.2f} ± {r['success_std']:.2f}"
+            spread = f"{r['success_std']:.2f}" if r["seeds"] > 1 else "n/a"
+            v = f"{r['success_mean']:.2f} ± {spread}"
             vals.append(f"**{v}**" if r["success_mean"] == best else v)
         lines.append(f"| {name[env]} | " + " | ".join(vals) + " |")
         if paper and env in figures:
@@ -352,10 +353,10 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
                 continue
             lines.append(
                 f"| {name[env]} | {m} | {r['controller']} | {r['pairs']} | {r['seeds']} x {r['episodes']} | "
-                f"{r['success_mean']:.1f} ± {r['success_std']:.1f} [± {r['success_ci95']:.1f}] | "
-                f"{_pm(r['weighted_success_mean'], r['weighted_success_std'])} | "
-                f"{_pm(r['clean_success_mean'], r['clean_success_std'])} | "
-                f"{_pm(r['in_wall_mean'], r['in_wall_std'])} | {opt(r['crossing_mean'], '.1f')} | "
+                f"{_success_cell(r)} | "
+                f"{_pm(r['weighted_success_mean'], r['weighted_success_std'], r['seeds'])} | "
+                f"{_pm(r['clean_success_mean'], r['clean_success_std'], r['seeds'])} | "
+                f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])} | {opt(r['crossing_mean'], '.1f')} | "
                 f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "
                 f"{opt(r['replans'], '.1f')} | {opt(r['episode_planning_ms'], '.1f')} | {r['failures'] or '–'} |"
@@ -396,9 +397,18 @@ def _num(v, missing=np.nan) -> float:
     return missing if v is None else v
 
 
-def _pm(mean, std) -> str:
-    """``mean ± std`` with 2 decimals, or n/a (a policy's plan measures)."""
-    return "n/a" if mean is None else f"{mean:.2f} ± {std:.2f}"
+def _success_cell(r: dict) -> str:
+    """``mean ± std [± 95% CI]`` over seeds; with one seed there is no spread to show (n/a, not a zero)."""
+    if r["seeds"] < 2:
+        return f"{r['success_mean']:.1f} ± n/a (1 seed)"
+    return f"{r['success_mean']:.1f} ± {r['success_std']:.1f} [± {r['success_ci95']:.1f}]"
+
+
+def _pm(mean, std, seeds: int = 2) -> str:
+    """``mean ± std`` with 2 decimals (the spread n/a for one seed), or n/a (a policy's plan measures)."""
+    if mean is None:
+        return "n/a"
+    return f"{mean:.2f} ± {std:.2f}" if seeds > 1 else f"{mean:.2f} ± n/a"
 
 
 def plot_side_by_side(evals, path, n: int = 12) -> Path:
