@@ -77,6 +77,7 @@ SeedOpt = typer.Option(
 )
 ForceOpt = typer.Option(False, "--force", help="Overwrite --out if it exists (otherwise an existing file is an error).")
 JsonOpt = typer.Option(False, "--json", help="Print a JSON result on stdout instead of the path.")
+ListJsonOpt = typer.Option(False, "--json", help="Print JSON on stdout instead of the table.")
 GridSetOpt = typer.Option(
     [],
     "--set",
@@ -232,7 +233,7 @@ def _check_positive(flag: str, value) -> None:
 @app.command()
 def inspect(
     file: Path = typer.Argument(..., help="Any cdrb artifact (.h5)."),
-    as_json: bool = JsonOpt,
+    as_json: bool = ListJsonOpt,
 ) -> None:
     """Validate an artifact and print its kind, version, provenance, summary and dataset shapes.
 
@@ -286,7 +287,7 @@ def _spec(env: str | None, maze_map: Path | None):
 
 @app.command()
 def envs(
-    as_json: bool = JsonOpt,
+    as_json: bool = ListJsonOpt,
     maze_map: Path | None = MapOpt,
 ) -> None:
     """List the environments: family, dimensions, default plan horizon and stride, episode limit.
@@ -318,7 +319,7 @@ def envs(
 
 
 @app.command()
-def methods(as_json: bool = JsonOpt) -> None:
+def methods(as_json: bool = ListJsonOpt) -> None:
     """List the methods `cdrb train --method` accepts: kind, samplers, networks, whether they need a buffer."""
     rows = [
         {
