@@ -1,6 +1,6 @@
 """cdrb: Cold Diffusion on the Replay Buffer, as a command-line toolkit.
 
-The Python API mirrors the CLI stages; the one entry point most users need is :func:`load`, which opens and
+The Python API: :mod:`cdrb_cli.api` plans and evaluates like `cdrb plan` and `cdrb eval`; :func:`load` opens and
 validates any cdrb artifact and returns a typed object::
 
     import cdrb_cli

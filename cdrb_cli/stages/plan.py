@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -14,6 +15,16 @@ from cdrb_cli.methods.base import Planner
 from cdrb_cli.methods.checkpoint import load_method
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_PLAN, step_rng
+
+
+class SampledPlans(NamedTuple):
+    """What :func:`sample_plans` returns (a tuple, in this order)."""
+
+    plans: np.ndarray  # (Q*n, H, F), raw units
+    pair_index: np.ndarray  # (Q*n,) the pair of each plan
+    iterates: np.ndarray | None  # (Q*n, S, H, F) kept intermediate iterates
+    iterate_steps: list[int] | None  # the diffusion step of each kept iterate
+    seconds: float  # mean seconds per sampled batch
 
 
 def sample_plans(
@@ -30,7 +41,7 @@ def sample_plans(
 ):
     """Plans for every (start, goal) pair, ``n`` per pair, in raw units, pinned exactly to the raw start/goal.
 
-    Returns (plans (Q*n, H, F), pair_index, iterates (Q*n, S, H, F) or None, iterate_steps, seconds per batch)."""
+    Returns a :class:`SampledPlans` (plans, pair_index, iterates, iterate_steps, seconds per batch)."""
     norm = method.normalizer
     pair_index = np.repeat(np.arange(len(starts)), n)
     s_raw, g_raw = starts[pair_index], goals[pair_index]
@@ -45,7 +56,7 @@ def sample_plans(
             iters.append(np.stack([norm.unnormalize(x.cpu().numpy().astype(np.float64)) for _, x in res.iterates], 1))
             iter_steps = [k for k, _ in res.iterates]
     it = np.concatenate(iters) if iters else None
-    return np.concatenate(plans), pair_index, it, iter_steps, float(np.mean(batch_times))
+    return SampledPlans(np.concatenate(plans), pair_index, it, iter_steps, float(np.mean(batch_times)))
 
 
 def _sampler_call(

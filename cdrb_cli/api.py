@@ -1,0 +1,139 @@
+"""The Python API: what the CLI's plan and eval stages do, for notebooks and scripts, with typed results.
+
+::
+
+    from cdrb_cli import api
+
+    planner = api.Planner("model.h5")                 # any planner's model artifact (CDRB, Diffuser, MLP, straight)
+    plans = planner.plan(start=[0.0, 0.0], goal=[6.0, 6.0], n=8, seed=0)
+    plans.states.shape                                 # (8, H, obs_dim), raw units, start and goal held exactly
+    plans.through_obstacle.mean()                      # share of plans with a state or a step in an obstacle
+
+    summary = api.evaluate("model.h5", "eval.h5", episodes=20, seeds=[0], stream="tune")
+    summary.success_mean, summary.weighted_success_mean
+
+Starts and goals are written as on the command line: the goal's coordinates (the state at rest there) or a full
+state. Every call is deterministic given ``seed`` (and the torch thread count, see docs/cli.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cdrb_cli import artifacts
+from cdrb_cli.configs import EvalSummary
+from cdrb_cli.envs.registry import family_of
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
+
+__all__ = ["Plans", "Planner", "evaluate"]
+
+
+@dataclass(frozen=True)
+class Plans:
+    """Plans for one or more start/goal pairs."""
+
+    #: (P, H, obs_dim) planned states, raw units
+    states: np.ndarray
+    #: (P, H, F) the planned features (the states, and actions for state-action models)
+    features: np.ndarray
+    #: (P,) which start/goal pair each plan is for
+    pair_index: np.ndarray
+    #: (P,) share of each plan's states inside an obstacle
+    in_obstacle: np.ndarray
+    #: (P,) a planned state in an obstacle, or a straight step between two states through one
+    through_obstacle: np.ndarray
+    #: seconds per sampled batch
+    seconds: float
+
+
+class Planner:
+    """A planner loaded from a model artifact (``cdrb train``), ready to plan on its environment."""
+
+    def __init__(self, model: str | Path, device: str = "cpu", ema: bool = True):
+        from cdrb_cli.stages.plan import load_planner
+        from cdrb_cli.torch_utils import setup_torch
+
+        self.model = artifacts.load(Path(model), "model")
+        self.device = setup_torch(device)
+        self.method = load_planner(self.model, device=self.device, ema=ema)
+
+    @property
+    def spec(self) -> EnvSpec:
+        """The environment the model was trained on."""
+        return self.model.manifest.env
+
+    def state(self, point: Sequence[float] | np.ndarray, at_goal: bool = False) -> np.ndarray:
+        """A full state from goal coordinates (at rest there) or a full state, checked to be free."""
+        fam = family_of(self.spec)
+        p = np.asarray(point, dtype=np.float64).reshape(-1)
+        if p.size == len(self.spec.goal_dims):
+            state = fam.goal_state(self.spec, p)[0]
+        elif p.size == self.spec.obs_dim:
+            state = p
+        else:
+            raise BadInput(
+                f"a point of {p.size} numbers for {self.spec.id}",
+                hint=f"give {len(self.spec.goal_dims)} goal coordinates or a full state of {self.spec.obs_dim}",
+            )
+        return fam.checked_point(self.spec, state, ",".join(f"{v:g}" for v in p), "goal" if at_goal else "start")
+
+    def plan(
+        self,
+        start: Sequence[float] | np.ndarray,
+        goal: Sequence[float] | np.ndarray,
+        n: int = 1,
+        seed: int = 0,
+        sampler: str | None = None,
+        steps: int | None = None,
+    ) -> Plans:
+        """``n`` plans from ``start`` to ``goal`` (``sampler`` and denoising ``steps``: the model's by default)."""
+        from cdrb_cli.methods.registry import METHODS
+        from cdrb_cli.stages.plan import sample_plans
+
+        if n < 1:
+            raise BadInput(f"n = {n}: plan at least once", hint="n >= 1")
+        sampler = METHODS.get(self.method.name).check_sampler(sampler or self.model.manifest.config.method.sampler)
+        s, g = self.state(start)[None], self.state(goal, at_goal=True)[None]
+        out = sample_plans(self.method, s, g, n, seed, sampler, steps, device=self.device)
+        fam = family_of(self.spec)
+        states = out.plans[..., : self.spec.obs_dim]
+        return Plans(
+            states=states,
+            features=out.plans,
+            pair_index=out.pair_index,
+            in_obstacle=fam.in_collision(self.spec, states).mean(axis=-1),
+            through_obstacle=fam.path_in_collision(self.spec, states),
+            seconds=out.seconds,
+        )
+
+
+def evaluate(
+    model: str | Path,
+    out: str | Path,
+    episodes: int = 100,
+    seeds: Sequence[int] = (0,),
+    stream: str = "test",
+    controller: str | None = None,
+    protocol: str | None = None,
+    device: str = "cpu",
+    force: bool = False,
+) -> EvalSummary:
+    """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary."""
+    from cdrb_cli.artifacts.outputs import claim_output
+    from cdrb_cli.stages.evaluate import eval_config
+    from cdrb_cli.stages.evaluate import evaluate as run_eval
+    from cdrb_cli.torch_utils import setup_torch
+
+    if stream not in ("test", "tune"):
+        raise BadInput(f"stream = {stream!r}", hint="'test' (reported tables) or 'tune' (choosing settings)")
+    m = artifacts.load(Path(model), "model")
+    config = eval_config(m, episodes, list(seeds), controller=controller, protocol=protocol, stream=stream)
+    dev = setup_torch(device)
+    with claim_output(Path(out), force, "out", inputs=[m.path]) as path:
+        result = run_eval(m, config, path, device=dev)
+    return result.manifest.summary
