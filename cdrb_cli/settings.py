@@ -167,7 +167,7 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
         # tagged unions add the tag to the location (("net", "unet", "dim")): drop it
         loc = _field_loc(model, err.get("loc", ()))
         key = ".".join(str(p) for p in loc)
-        msg = err.get("msg", "invalid")
+        msg = err.get("msg", "invalid").replace("valid array", "valid list")  # JSON says array; settings say list
         if err.get("type") == "extra_forbidden":
             msg = f"unknown setting {key!r}"
         elif err.get("type") == "list_type":
