@@ -916,8 +916,9 @@ def eval_cmd(
         None,
         "--protocol",
         metavar="NAME",
-        help="The evaluation protocol (default: the environment's; mazes also take 'official-code': goals at cell "
-        "centres, success within 0.55 m, the official executor). `cdrb envs --json` lists them.",
+        help="The evaluation protocol (default: the environment's). 'official-code' evaluates as the official CDRB "
+        "code: mazes with goals at cell centres, success within 0.55 m and its executor; Fetch with its executor "
+        "(fetch-official: a step budget per planned state, a 1 cm gate) and the gripper pinned to the goal.",
     ),
     replan: str | None = typer.Option(
         None,
