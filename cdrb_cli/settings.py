@@ -50,12 +50,28 @@ def _key(text: str, source: str) -> Path_:
     return parts
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+    """A JSON object's pairs -> a dict, refusing a key given twice (JSON's last-one-wins hides a mistake)."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"key {key[:80]!r} is given twice")
+        out[key] = value
+    return out
+
+
+def loads_json(text: str) -> Any:
+    """``json.loads`` that refuses duplicate keys (a ValueError naming the key)."""
+    return json.loads(text, object_pairs_hook=_unique_keys)
+
+
 def parse_value(text: str) -> Any:
     """``--set`` value text -> a Python value (JSON first, then a comma list, then the text itself)."""
     try:
-        return json.loads(text)
-    except ValueError:
-        pass
+        return loads_json(text)
+    except ValueError as exc:
+        if "given twice" in str(exc):
+            raise BadInput(f"--set value {text[:200]!r}: {exc}", hint="give each key once") from None
     if "," in text:
         return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
     return text
@@ -100,7 +116,7 @@ def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
     try:
         text = path.read_text(encoding="utf-8")
         if path.suffix.lower() == ".json":
-            data = json.loads(text)
+            data = loads_json(text)
         else:
             try:
                 import tomllib

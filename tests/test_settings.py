@@ -193,3 +193,14 @@ def test_settings_are_not_coerced(small_data, tmp_path, cdrb, setting):
     toml.write_text((f"[{section}]\n" if section else "") + f"{field} = {value}\n")
     r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", toml, "--dry-run")
     assert r.returncode == 2 and f"--config {toml}" in r.stderr
+
+
+def test_a_json_key_given_twice_is_refused(small_data, tmp_path, cdrb):
+    """JSON lets the last of two equal keys win silently; a settings file or --set value with one is exit 2."""
+    demos, buffer = small_data
+    cfg = tmp_path / "c.json"
+    cfg.write_text('{"steps": 5, "lr": 0.001, "steps": 7}')
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", cfg, "--dry-run")
+    assert r.returncode == 2 and "'steps' is given twice" in r.stderr and r.stderr.count("\n") == 1
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--set", 'net={"dim": 8, "dim": 16}', "--dry-run")
+    assert r.returncode == 2 and "'dim' is given twice" in r.stderr
