@@ -67,20 +67,12 @@ class Planner:
         """The environment the model was trained on."""
         return self.model.manifest.env
 
-    def state(self, point: Sequence[float] | np.ndarray, at_goal: bool = False) -> np.ndarray:
-        """A full state from goal coordinates (at rest there) or a full state, checked to be free."""
-        fam = family_of(self.spec)
-        p = np.asarray(point, dtype=np.float64).reshape(-1)
-        if p.size == len(self.spec.goal_dims):
-            state = fam.goal_state(self.spec, p)[0]
-        elif p.size == self.spec.obs_dim:
-            state = p
-        else:
-            raise BadInput(
-                f"a point of {p.size} numbers for {self.spec.id}",
-                hint=f"give {len(self.spec.goal_dims)} goal coordinates or a full state of {self.spec.obs_dim}",
-            )
-        return fam.checked_point(self.spec, state, ",".join(f"{v:g}" for v in p), "goal" if at_goal else "start")
+    def state(self, point: Sequence[float] | np.ndarray, flag: str = "--start") -> np.ndarray:
+        """A full state from a point written as ``cdrb plan`` takes it (``flag``: ``--start`` or ``--goal``): goal
+        coordinates at rest, a full state, or the family's own start form (Fetch: the block's x,y); checked to be
+        free, with the CLI's one-line errors."""
+        values = np.asarray(point, dtype=np.float64).reshape(-1)
+        return family_of(self.spec).parse_point(self.spec, ",".join(repr(float(v)) for v in values), flag)
 
     def plan(
         self,
@@ -98,7 +90,7 @@ class Planner:
         if n < 1:
             raise BadInput(f"n = {n}: plan at least once", hint="n >= 1")
         sampler = METHODS.get(self.method.name).check_sampler(sampler or self.model.manifest.config.method.sampler)
-        s, g = self.state(start)[None], self.state(goal, at_goal=True)[None]
+        s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
         out = sample_plans(self.method, s, g, n, seed, sampler, steps, device=self.device)
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]

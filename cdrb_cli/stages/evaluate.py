@@ -28,7 +28,14 @@ from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import EVAL_STREAMS, STREAM_EVAL, step_rng
-from cdrb_cli.stages.metrics import failure_code, failure_counts, mean_or_none, sample_std, sum_failures
+from cdrb_cli.stages.metrics import (
+    failure_code,
+    failure_counts,
+    mean_or_none,
+    sample_std,
+    std_or_none,
+    sum_failures,
+)
 from cdrb_cli.stages.plan import load_planner, sample_plans
 
 
@@ -508,8 +515,7 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
         return mean_or_none(getattr(p, name) for p in per_seed)
 
     def std(name):
-        values = [getattr(p, name) for p in per_seed]
-        return None if any(v is None for v in values) else sample_std(values)
+        return std_or_none(getattr(p, name) for p in per_seed)
 
     succ = [p.success_rate for p in per_seed]
     wall = [p.in_wall_fraction for p in per_seed]

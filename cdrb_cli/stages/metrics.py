@@ -48,6 +48,12 @@ def mean_or_none(values) -> float | None:
     return float(np.mean(values)) if values and all(v is not None for v in values) else None
 
 
+def std_or_none(values) -> float | None:
+    """The sample standard deviation, or None when there is no value or any is None (as :func:`mean_or_none`)."""
+    values = list(values)
+    return sample_std(values) if values and all(v is not None for v in values) else None
+
+
 def ci95(values) -> float:
     """Half-width of the 95% confidence interval of the mean over seeds (Student t, n - 1 degrees of freedom);
     0 for a single seed."""

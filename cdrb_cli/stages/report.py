@@ -18,7 +18,7 @@ import numpy as np
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, sum_failures
+from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, std_or_none, sum_failures
 
 PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
 
@@ -212,10 +212,8 @@ def collect_rows(evals) -> list[dict]:
 
 def _rate(name: str, values: list) -> dict:
     """``NAME_mean`` and ``NAME_std`` in percent over seeds; None when a seed did not measure it."""
-    mean = mean_or_none(values)
-    if mean is None:
-        return {f"{name}_mean": None, f"{name}_std": None}
-    return {f"{name}_mean": 100 * mean, f"{name}_std": 100 * sample_std(values)}
+    mean, std = mean_or_none(values), std_or_none(values)
+    return {f"{name}_mean": None if mean is None else 100 * mean, f"{name}_std": None if std is None else 100 * std}
 
 
 def seed_rows(evals) -> list[dict]:
