@@ -76,8 +76,7 @@ def measure(env_id: str, episodes: int, seed: int, horizon: int | None, stride: 
             ok, coll = [], []
             for ep, plan in zip(eps, plans):
                 ctl.reset(plan)
-                done = lambda: getattr(ctl, "finished", False)  # noqa: B023 (called within this iteration)
-                run = run_episode(env, run_spec, ep, ctl.act, run_spec.episode_limit, done)
+                run = run_episode(env, run_spec, ep, ctl.act, run_spec.episode_limit, lambda: ctl.finished)  # noqa: B023
                 ok.append(run.success)
                 coll.append(run.collision)
             rows.append(

@@ -71,6 +71,8 @@ class Controller(ABC):
     """Executes a plan: ``reset(plan)`` with the plan's raw states (H, D), then ``act(state, t)`` every step."""
 
     name: ClassVar[str] = "base"
+    #: the controller has nothing left to execute: the episode ends there (an executor whose plan ran out)
+    finished: bool = False
 
     @abstractmethod
     def reset(self, plan: np.ndarray) -> None: ...

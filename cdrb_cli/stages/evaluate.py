@@ -315,9 +315,7 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
     jumps = largest_jump(states, spec.obstacles.dims)
     for e, episode in enumerate(ctx.episodes):
         controller.reset(ctx.plans[e])
-        run = run_episode(
-            ctx.env, spec, episode, controller.act, ctx.steps, lambda: getattr(controller, "finished", False)
-        )
+        run = run_episode(ctx.env, spec, episode, controller.act, ctx.steps, lambda: controller.finished)
         result = _result(
             ctx.seed,
             episode,

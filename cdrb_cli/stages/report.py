@@ -170,9 +170,7 @@ def collect_rows(evals) -> list[dict]:
         for label, group in methods.items():
             per = pooled[label]
             succ = np.array([r.success_rate for r in per])
-            wall = mean_or_none([r.in_wall_fraction for r in per])  # None for a policy: it makes no plans
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
-            crossing = mean_or_none([r.plan_crossing_rate for r in per])
             impossible = mean_or_none([r.impossible_jump_rate for r in per])
             first = group[0]
             rows.append(
@@ -191,10 +189,8 @@ def collect_rows(evals) -> list[dict]:
                     "success_ci95": 100 * ci95(succ),
                     **_rate("weighted_success", [r.weighted_success_rate for r in per]),
                     **_rate("clean_success", [r.clean_success_rate for r in per]),
-                    "in_wall_mean": None if wall is None else 100 * wall,
-                    "in_wall_std": None if wall is None else 100 * sample_std([r.in_wall_fraction for r in per]),
-                    "crossing_mean": None if crossing is None else 100 * crossing,
-                    "crossing_std": None if crossing is None else 100 * sample_std([r.plan_crossing_rate for r in per]),
+                    **_rate("in_wall", [r.in_wall_fraction for r in per]),  # None for a policy: it makes no plans
+                    **_rate("crossing", [r.plan_crossing_rate for r in per]),
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
                     "impossible_jump_mean": None if impossible is None else 100 * impossible,
                     "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
