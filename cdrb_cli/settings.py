@@ -50,12 +50,16 @@ def _key(text: str, source: str) -> Path_:
     return parts
 
 
+class DuplicateKey(ValueError):
+    """A JSON object gives one key twice."""
+
+
 def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
     """A JSON object's pairs -> a dict, refusing a key given twice (JSON's last-one-wins hides a mistake)."""
     out: dict = {}
     for key, value in pairs:
         if key in out:
-            raise ValueError(f"key {key[:80]!r} is given twice")
+            raise DuplicateKey(f"key {key[:80]!r} is given twice")
         out[key] = value
     return out
 
@@ -69,9 +73,10 @@ def parse_value(text: str) -> Any:
     """``--set`` value text -> a Python value (JSON first, then a comma list, then the text itself)."""
     try:
         return loads_json(text)
-    except ValueError as exc:
-        if "given twice" in str(exc):
-            raise BadInput(f"--set value {text[:200]!r}: {exc}", hint="give each key once") from None
+    except DuplicateKey as exc:
+        raise BadInput(f"--set value {text[:200]!r}: {exc}", hint="give each key once") from None
+    except ValueError:
+        pass
     if "," in text:
         return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
     return text
