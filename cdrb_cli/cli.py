@@ -1202,6 +1202,13 @@ def select(
         metavar="FILE",
         help="Also write every candidate's scores: CSV (.csv) or a markdown table (other names).",
     ),
+    curves: Path | None = typer.Option(
+        None,
+        "--curves",
+        metavar="FILE",
+        help="Also write the learning curves as CSV: one row per candidate, training length and training seed "
+        "(success, weighted success, success without collision, plans through an obstacle, collisions; per cent).",
+    ),
     overrides: list[str] = GridSetOpt,
     includes: list[Path] = GridIncludeOpt,
     force: bool = ForceOpt,
@@ -1215,7 +1222,7 @@ def select(
     steps. Prints the path of the settings file."""
     from cdrb_cli.stages.select import select as run_select
 
-    ui.emit(run_select(grid_file, out, force=force, table=table, overrides=overrides, includes=includes))
+    ui.emit(run_select(grid_file, out, force=force, table=table, curves=curves, overrides=overrides, includes=includes))
 
 
 # ------------------------------------------------------------------------------------------------ grid

@@ -101,6 +101,19 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     }  # fmt: skip
     rows = grid_select("mazes-curves", "mazes.toml", "--set", "steps=100", "--set", "snapshot_at=[50]")
     assert sorted({int(r["steps"]) for r in rows}) == [50, 100]
+    # the learning curves: one row per candidate x training length x training seed, whose mean is the pooled score
+    curves_args = [*tune, "--set", f"out={tmp_path / 'runs' / 'mazes-curves'}", "--set", "steps=100"]
+    curves_args = [a for a in curves_args if a not in ("--backend", "pool", "-j", "2")] + ["--set", "snapshot_at=[50]"]
+    _cdrb("select", exp / "tune" / "mazes-curves.toml", *curves_args, "--out", tmp_path / "again.toml",
+          "--curves", tmp_path / "curves.csv", cwd=tmp_path)  # fmt: skip
+    with open(tmp_path / "curves.csv", newline="") as fh:
+        points = list(csv.DictReader(fh))
+    seeds = tomllib.loads((exp / "tune" / "mazes-curves.toml").read_text())["seeds"]
+    for r in rows:
+        key = (r["method"], r["candidate"], r["steps"])
+        mine = [p for p in points if (p["method"], p["candidate"], p["steps"]) == key]
+        assert sorted(int(p["seed"]) for p in mine) == sorted(seeds)
+        assert float(r["success"]) == pytest.approx(sum(float(p["success"]) for p in mine) / len(mine), abs=0.01)
     final = tomllib.loads((exp / "tuned" / "mazes.toml").read_text())["settings"]
 
     out = tmp_path / "runs" / "table1"

@@ -286,3 +286,42 @@ def test_state_action_ends_are_degraded_in_training_as_in_sampling(small_data, t
     state_cfg = train_config(demos, small_data[1], "cdrb", tiny("cdrb"))
     norm = check_inputs(demos, small_data[1], "state")
     assert build_method(state_cfg, demos.manifest.env, norm, small_data[1].points).kept == (0, -1)
+
+
+def test_the_ema_copies_until_its_start_then_averages_every_n_steps():
+    """The fused EMA update against its definition: a copy of every tensor (integer buffers included) up to
+    ``ema_start``, then ``e <- d e + (1 - d) p`` on the parameters every ``ema_every`` steps, untouched between."""
+    import copy
+    import types
+
+    import torch
+
+    from cdrb_cli.stages.train import _ema_updater
+
+    live = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
+    avg = copy.deepcopy(live)
+    cfg = types.SimpleNamespace(ema_start=2, ema_every=3, ema_decay=0.9)
+    update = _ema_updater({"net": avg}, {"net": live}, cfg)
+
+    def nudge():
+        with torch.no_grad():
+            for p in live.parameters():
+                p.add_(torch.randn_like(p))
+            live[1].num_batches_tracked += 5
+            live[1].running_mean.add_(1.0)
+
+    torch.manual_seed(0)
+    for step in (1, 2):
+        nudge()
+        update(step)
+        for (k, a), b in zip(avg.state_dict().items(), live.state_dict().values()):
+            assert torch.equal(a, b), (step, k)
+    before = [p.clone() for p in avg.parameters()]
+    nudge()
+    update(4)  # not a multiple of ema_every: nothing moves
+    assert all(torch.equal(p, q) for p, q in zip(avg.parameters(), before))
+    nudge()
+    update(6)
+    for e, old, p in zip(avg.parameters(), before, live.parameters()):
+        assert torch.allclose(e, 0.9 * old + 0.1 * p, atol=1e-6)
+        assert not torch.equal(e, p)

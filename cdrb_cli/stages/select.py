@@ -18,7 +18,7 @@ from pathlib import Path
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.stages.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
-from cdrb_cli.stages.metrics import mean_or_none
+from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
 RULE = (
     "highest tuning success, then fewest plans through an obstacle, then fewest executed collisions, "
@@ -37,7 +37,10 @@ class Candidate:
     order: int
     steps: int | None
     evals: list[Path] = field(default_factory=list)
+    training_seeds: list[int] = field(default_factory=list)
+    models: list[dict] = field(default_factory=list)
     success: float = 0.0
+    success_std: float | None = None
     crossing: float | None = None
     collision: float = 0.0
     seeds: int = 0
@@ -72,6 +75,7 @@ def candidates(spec: GridSpec) -> list[Candidate]:
         key = (m["env"], m["method"], m["variant"], m["steps"])
         cand = found.setdefault(key, Candidate(*key[:3], order[m["variant"]], m["steps"]))
         (cand.evals if task.outputs[0].exists() else missing).append(task.outputs[0])
+        cand.training_seeds.append(m["seed"])
     if missing:
         raise BadInput(
             f"{len(missing)} of the grid's tuning evals are not there yet (e.g. {missing[0]})",
@@ -79,6 +83,8 @@ def candidates(spec: GridSpec) -> list[Candidate]:
         )
     for cand in found.values():
         evals = [artifacts.load(p, "eval") for p in cand.evals]
+        cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
+        cand.success_std = std_or_none(r["success"] for r in cand.models)
         per = [r for ev in evals for r in per_seed(ev)]
         cand.seeds, cand.episodes = len(per), evals[0].manifest.config.episodes
         cand.success = 100 * mean_or_none(r.success_rate for r in per)
@@ -86,6 +92,33 @@ def candidates(spec: GridSpec) -> list[Candidate]:
         cand.crossing = None if crossing is None else 100 * crossing
         cand.collision = 100 * mean_or_none(r.executed_collision_rate for r in per)
     return list(found.values())
+
+
+def _model_scores(seed: int, per: list) -> dict:
+    """One trained model's tuning scores (per cent, pooled over its evaluation seeds): a learning-curve point."""
+
+    def pct(values) -> float | None:
+        v = mean_or_none(values)
+        return None if v is None else round(100 * v, 2)
+
+    return {
+        "seed": seed,
+        "episodes": sum(r.episodes for r in per),
+        "success": pct(r.success_rate for r in per),
+        "weighted_success": pct(r.weighted_success_rate for r in per),
+        "success_without_collision": pct(r.clean_success_rate for r in per),
+        "plans_through_obstacle": pct(r.plan_crossing_rate for r in per),
+        "collisions": pct(r.executed_collision_rate for r in per),
+    }
+
+
+def curve_rows(cands: list[Candidate]) -> list[dict]:
+    """One row per candidate x training seed: the learning curves (a policy's planned columns are empty)."""
+    return [
+        {"env": c.env, "method": c.method, "candidate": c.variant or "base", "steps": c.steps} | m
+        for c in cands
+        for m in c.models
+    ]
 
 
 def choose(cands: list[Candidate]) -> dict[tuple[str, str], Candidate]:
@@ -165,6 +198,7 @@ def table_rows(cands: list[Candidate], best: dict[tuple[str, str], Candidate]) -
                 "seeds": c.seeds,
                 "episodes": c.episodes,
                 "success": round(c.success, 2),
+                "success_std": None if c.success_std is None else round(c.success_std, 2),
                 "plans_through_obstacle": None if c.crossing is None else round(c.crossing, 2),
                 "collisions": round(c.collision, 2),
                 "chosen": best[(c.env, c.method)] is c,
@@ -187,6 +221,7 @@ def select(
     out: Path,
     force: bool = False,
     table: Path | None = None,
+    curves: Path | None = None,
     overrides: list[str] = (),
     includes: list[Path] = (),
 ) -> Path:
@@ -196,8 +231,9 @@ def select(
     spec = load_grid(grid_file, overrides, includes)
     inputs = [grid_file, *includes]
     artifacts.check_output(out, force, "--out", inputs)
-    if table is not None:
-        artifacts.check_output(table, force, "--table", inputs)
+    for path, flag in ((table, "--table"), (curves, "--curves")):
+        if path is not None:
+            artifacts.check_output(path, force, flag, inputs)
     cands = candidates(spec)
     if not cands:
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
@@ -213,4 +249,9 @@ def select(
         fmt = "csv" if table.suffix == ".csv" else "markdown"
         with artifacts.claim_output(table, force, "--table", inputs), artifacts.atomic_path(table) as tmp:
             tmp.write_text(table_text(table_rows(cands, best), fmt))
+    if curves is not None:
+        from cdrb_cli.stages.report import render
+
+        with artifacts.claim_output(curves, force, "--curves", inputs), artifacts.atomic_path(curves) as tmp:
+            tmp.write_text(render(curve_rows(cands), "csv"))
     return out

@@ -179,6 +179,7 @@ def train(
             rng = step_rng(config.seed, STREAM_VALID, 0)  # the same validation draws at every checkpoint
             return float(method.loss(valid_batch, rng))
 
+    update_ema = _ema_updater(ema, modules, config)
     t0 = time.time() - wall
     running, count = 0.0, 0
     last_loss = curve[-1][1] if curve else None
@@ -199,7 +200,7 @@ def train(
                     hint="lower the learning rate (--set lr=...), then `--resume` or `--force`",
                 ) from None
             step += 1
-            _update_ema(ema, modules, step, config)
+            update_ema(step)
             running += loss
             count += 1
             if step % log_every == 0 or step == config.steps:
@@ -220,18 +221,41 @@ def train(
     return artifacts.load(out, "model")
 
 
-def _update_ema(ema: dict, modules: dict, step: int, config: TrainConfig) -> None:
-    """The EMA copies follow the weights exactly until ``ema_start``, then average every ``ema_every`` steps."""
+def _ema_updater(ema: dict, modules: dict, config: TrainConfig):
+    """The per-step EMA update: the copies follow the weights exactly until ``ema_start``, then average every
+    ``ema_every`` steps. One fused (``_foreach``) call per module and step instead of one per tensor: the same
+    arithmetic, a handful of kernels on a GPU where a U-Net has hundreds of tensors."""
     import torch
 
-    with torch.no_grad():
-        for name, avg in ema.items():
-            live = modules[name]
-            if step <= config.ema_start:
-                avg.load_state_dict(live.state_dict())
-            elif step % config.ema_every == 0:
-                for e, p in zip(avg.parameters(), live.parameters()):
-                    e.mul_(config.ema_decay).add_(p.detach(), alpha=1 - config.ema_decay)
+    pairs = []
+    for name, avg in ema.items():
+        live = modules[name]
+        # state_dict() tensors share storage with the modules' parameters and buffers: copies into them are copies
+        # into the modules; every floating tensor is averaged, integer buffers (counters) are copied
+        a, b = avg.state_dict(keep_vars=False), live.state_dict(keep_vars=False)
+        keys = [k for k in a if a[k].is_floating_point()]
+        pairs.append(
+            (
+                [a[k] for k in keys],
+                [b[k] for k in keys],
+                [(a[k], b[k]) for k in a if not a[k].is_floating_point()],
+                [p for p in avg.parameters()],
+                [p for p in live.parameters()],
+            )
+        )
+
+    def update(step: int) -> None:
+        with torch.no_grad():
+            for avg_all, live_all, others, avg_params, live_params in pairs:
+                if step <= config.ema_start:
+                    torch._foreach_copy_(avg_all, live_all)
+                    for x, y in others:
+                        x.copy_(y)
+                elif step % config.ema_every == 0:
+                    torch._foreach_mul_(avg_params, config.ema_decay)
+                    torch._foreach_add_(avg_params, live_params, alpha=1 - config.ema_decay)
+
+    return update
 
 
 def _saved_step(out: Path):
