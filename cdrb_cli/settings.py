@@ -28,6 +28,16 @@ Path_ = tuple[str, ...]
 
 #: a --config file larger than this is refused (a settings file is a few lines)
 MAX_CONFIG_BYTES = 1 << 20
+#: the deepest setting name (``method.sampler.steps`` is 3): deeper is a mistake, and unbounded depth recurses
+MAX_KEY_PARTS = 8
+#: how much of a user's text an error line echoes
+ECHO_CHARS = 120
+
+
+def clip(text: str, n: int = ECHO_CHARS) -> str:
+    """``text`` cut to ``n`` characters for an error line (a 5 KB key is named, not echoed)."""
+    text = str(text)
+    return text if len(text) <= n else f"{text[: n - 3]}..."
 
 
 @dataclass(frozen=True)
@@ -44,9 +54,17 @@ class Setting:
 
 
 def _key(text: str, source: str) -> Path_:
-    parts = tuple(p.strip().replace("-", "_") for p in text.split("."))
+    parts = tuple(p.strip().replace("-", "_") for p in text.split(".", MAX_KEY_PARTS))
+    if len(parts) > MAX_KEY_PARTS:
+        raise BadInput(
+            f"{clip(source)}: a setting name has at most {MAX_KEY_PARTS} dotted parts",
+            hint="`cdrb config COMMAND` lists the settings",
+        )
     if not text.strip() or any(not p.isidentifier() for p in parts):
-        raise BadInput(f"{source}: {text!r} is not a setting name", hint="write KEY=VALUE, e.g. --set net.dim=32")
+        raise BadInput(
+            f"{clip(source)}: {clip(repr(text), 60)} is not a setting name",
+            hint="write KEY=VALUE, e.g. --set net.dim=32",
+        )
     return parts
 
 
@@ -74,7 +92,7 @@ def parse_value(text: str) -> Any:
     try:
         return loads_json(text)
     except DuplicateKey as exc:
-        raise BadInput(f"--set value {text[:200]!r}: {exc}", hint="give each key once") from None
+        raise BadInput(f"--set value {clip(repr(text))}: {exc}", hint="give each key once") from None
     except ValueError:
         pass
     if "," in text:
@@ -86,9 +104,9 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
     out = []
     for item in items:
         if "=" not in item:
-            raise BadInput(f"{flag} {item!r}: expected KEY=VALUE", hint=f"e.g. {flag} net.dim=32")
+            raise BadInput(f"{flag} {clip(repr(item))}: expected KEY=VALUE", hint=f"e.g. {flag} net.dim=32")
         key, text = item.split("=", 1)
-        source = f"{flag} {item}"
+        source = f"{flag} {clip(item)}"
         out.append(Setting(_key(key, source), parse_value(text.strip()), source))
     return out
 
@@ -102,6 +120,11 @@ def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
     out = []
     for k, v in data.items():
         path = prefix + _key(str(k), source)
+        if len(path) > MAX_KEY_PARTS:
+            raise BadInput(
+                f"{clip(source)}: {clip('.'.join(path), 60)}: a setting name has at most {MAX_KEY_PARTS} parts",
+                hint="`cdrb config COMMAND` lists the settings",
+            )
         if isinstance(v, dict):
             out += _flatten(v, path, source)
         else:
@@ -190,11 +213,11 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
         key = ".".join(str(p) for p in loc)
         msg = err.get("msg", "invalid").replace("valid array", "valid list")  # JSON says array; settings say list
         if err.get("type") == "extra_forbidden":
-            msg = f"unknown setting {key!r}"
+            msg = f"unknown setting {clip(repr(key), 60)}"
         elif err.get("type") == "list_type":
             msg += " (a list: write 1,4,8, or [512] for a single value)"
         setting = source_of(settings, loc)
-        where = setting.source if setting is not None else f"{what} {key}"
+        where = clip(setting.source if setting is not None else f"{what} {key}")
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         raise BadInput(f"{where}: {msg}{more}", hint=f"`cdrb config {what}` lists every setting") from None
 

@@ -204,3 +204,26 @@ def test_a_json_key_given_twice_is_refused(small_data, tmp_path, cdrb):
     assert r.returncode == 2 and "'steps' is given twice" in r.stderr and r.stderr.count("\n") == 1
     r = cdrb("train", demos.path, "--buffer", buffer.path, "--set", 'net={"dim": 8, "dim": 16}', "--dry-run")
     assert r.returncode == 2 and "'dim' is given twice" in r.stderr
+
+
+def test_a_very_deep_or_very_long_key_is_one_short_line(small_data, tmp_path, cdrb):
+    """A 5,000-part dotted key (on --set, in a settings file, in a grid file) is refused in one line that names the
+    flag or file without echoing the key; a 4.5 KB key is cut in the error."""
+    demos, buffer = small_data
+    deep = ".".join(["a"] * 5000)
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--set", f"{deep}=1", "--dry-run")
+    assert r.returncode == 2 and "at most 8 dotted parts" in r.stderr, r.stderr[-500:]
+    assert r.stderr.count("\n") == 1 and len(r.stderr) < 400
+    cfg = tmp_path / "deep.toml"
+    cfg.write_text(f"{deep} = 1\n")
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", cfg, "--dry-run")
+    assert r.returncode == 2 and f"--config {cfg}" in r.stderr and r.stderr.count("\n") == 1, r.stderr[-500:]
+    assert len(r.stderr) < 400 + len(str(cfg))
+    grid = tmp_path / "deep-grid.toml"
+    grid.write_text(f'out = "g"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\n{deep} = 1\n')
+    r = cdrb("grid", grid, "--dry-run")
+    assert r.returncode == 2 and str(grid) in r.stderr and r.stderr.count("\n") == 1, r.stderr[-500:]
+    assert len(r.stderr) < 400 + len(str(grid))
+    long_key = "k" * 4500
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--set", f"{long_key}=1", "--dry-run")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and len(r.stderr) < 400, r.stderr[-500:]

@@ -36,7 +36,7 @@ def save_figure(fig, path: str | Path) -> Path:
     path = Path(path)
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
+        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png", bbox_inches="tight")
     pyplot().close(fig)
     return path
 
@@ -78,6 +78,30 @@ def draw_ends(ax, spec: EnvSpec, starts: np.ndarray | None, goals: np.ndarray | 
     if goals is not None:
         g = fam.xy(spec, goals)
         ax.plot(g[:, 0], g[:, 1], "*", ms=10, mfc="gold", mec="black", zorder=4)
+
+
+def plan_legend(target, in_wall: bool = True, bodies: bool = False, **kwargs) -> None:
+    """The key of every plans picture (one colour per plan, start circle, goal star, red cross = planned state in an
+    obstacle; ``bodies``: Fetch's thin gripper and thick block paths) on an axes or a figure."""
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color="0.35", lw=1.0, label="a plan (one colour each)")]
+    if bodies:
+        handles = [
+            Line2D([], [], color="0.35", lw=0.8, label="gripper, planned"),
+            Line2D([], [], color="0.35", lw=2.6, label="block, planned"),
+        ]
+    handles += [
+        Line2D([], [], ls="", marker="o", ms=5, mfc="white", mec="black", label="start"),
+        Line2D([], [], ls="", marker="*", ms=10, mfc="gold", mec="black", label="goal"),
+    ]
+    if in_wall:
+        handles.append(
+            Line2D([], [], ls="", marker="x", ms=5, mew=1.0, color="red", label="planned state in an obstacle")
+        )
+    kwargs.setdefault("fontsize", 7)
+    kwargs.setdefault("framealpha", 0.85)
+    target.legend(handles=handles, **kwargs)
 
 
 def plot_demos(demos, path: str | Path, n: int = 60, seed: int = 0) -> Path:
@@ -154,6 +178,7 @@ def plot_plans(
             step = iterate_steps[j] if iterate_steps is not None else j
             draw(axes[j], iterates[:, j], f"iterate k={step}")
     draw(axes[-1], plans, title or "plans", in_wall)
+    plan_legend(fig, loc="upper center", ncol=4, bbox_to_anchor=(0.5, 0.02))
     return save_figure(fig, path)
 
 

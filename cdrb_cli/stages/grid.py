@@ -39,6 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, Strict, Validati
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.configs import MAX_SEED
 from cdrb_cli.errors import BadInput, RunFailed
+from cdrb_cli.settings import clip
 
 KINDS = ("collect", "cluster", "train", "eval", "report")
 #: integers and flags of a grid file are strict: `steps = true` or `seeds = [1.5]` is an error, not 1
@@ -224,7 +225,7 @@ def _validated(model: type[BaseModel], raw: dict, path: Path):
         return model.model_validate(raw)
     except ValidationError as exc:
         err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
         raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
 
 
@@ -252,7 +253,7 @@ def parse_override(text: str) -> tuple[str, object]:
 
     key, sep, value = text.partition("=")
     if not sep or not key.strip():
-        raise BadInput(f"--set {text}: expected KEY=VALUE", hint="e.g. --set demos=40 or --set 'seeds=[0]'")
+        raise BadInput(f"--set {clip(text)}: expected KEY=VALUE", hint="e.g. --set demos=40 or --set 'seeds=[0]'")
     try:
         return key.strip(), tomllib.loads(f"v = {value}")["v"]
     except tomllib.TOMLDecodeError:
@@ -275,7 +276,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         key, value = parse_override(text)
         if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
             raise BadInput(
-                f"--set {text}: {key!r} is not a top-level grid key that --set can change",
+                f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
                 hint="one of "
                 + ", ".join(
                     k for k in GridSpec.model_fields if k not in ("settings", "variants", "include", "resources")
@@ -288,9 +289,9 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         spec = GridSpec.model_validate(raw)
     except ValidationError as exc:
         err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
         given = {parse_override(t)[0]: t for t in overrides}
-        origin = f"--set {given[err['loc'][0]]}" if err["loc"] and err["loc"][0] in given else str(path)
+        origin = f"--set {clip(given[err['loc'][0]])}" if err["loc"] and err["loc"][0] in given else str(path)
         raise BadInput(f"{origin}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
     read = [path]
     spec.settings = (

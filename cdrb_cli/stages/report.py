@@ -374,16 +374,30 @@ def plot_bars(rows: list[dict], path) -> Path:
     x = np.arange(len(envs))
     for i, m in enumerate(methods):
         for ax, key, std in ((axes[0], "success_mean", "success_std"), (axes[1], "in_wall_mean", "in_wall_std")):
-            vals = [_num(cell[(e, m)][key]) if (e, m) in cell else np.nan for e in envs]
-            errs = [_num(cell[(e, m)][std], 0.0) if (e, m) in cell else 0 for e in envs]
-            ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=label(m))
-    for ax, title in ((axes[0], "success rate (%)"), (axes[1], "planned states inside walls (%)")):
+            vals = np.array([_num(cell[(e, m)][key]) if (e, m) in cell else np.nan for e in envs])
+            errs = np.array([_num(cell[(e, m)][std], 0.0) if (e, m) in cell else 0 for e in envs])
+            # a rate lies in [0, 100]: the bar's std whisker stops there instead of reaching below zero
+            whisker = [np.minimum(errs, np.nan_to_num(vals)), np.minimum(errs, 100 - np.nan_to_num(vals))]
+            ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=whisker, capsize=3, label=label(m))
+    panels = ((axes[0], "success rate", "success (%)"), (axes[1], "planned states inside obstacles", "states (%)"))
+    for ax, title, ylabel in panels:
         ax.set_xticks(x)
         ax.set_xticklabels([label(name[e]) for e in envs])
         ax.set_title(title, fontsize=10)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(bottom=0)
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylim(0, 105)
     axes[0].legend(fontsize=8)
+    seeds = sorted({int(r.get("seeds", 0) or 0) for r in rows})
+    fig.text(
+        0.5,
+        0.0,
+        f"mean over evaluation seeds ({', '.join(map(str, seeds))} per bar); whiskers: sample std, cut at 0 and 100",
+        ha="center",
+        va="top",
+        fontsize=8,
+    )
     return save_figure(fig, path)
 
 
@@ -408,7 +422,7 @@ def _pm(mean, std, seeds: int = 2) -> str:
 def plot_side_by_side(evals, path, n: int = 12) -> Path:
     """The plans of every method for the same start/goal pairs (the first ``n`` episodes of the first seed)."""
     from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, pyplot, save_figure, set_title
+    from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, plan_legend, pyplot, save_figure, set_title
 
     evals = [ev for ev in evals if "plans" in ev.arrays]
     if not evals:
@@ -425,8 +439,12 @@ def plot_side_by_side(evals, path, n: int = 12) -> Path:
         draw_scene(ax, spec)
         draw_plans(ax, spec, plans, family_of(spec).in_collision(spec, plans[..., : spec.obs_dim]), markers=False)
         draw_ends(ax, spec, plans[:, 0, : spec.obs_dim], plans[:, -1, : spec.obs_dim])
-        s = ev.manifest.summary
+        s = ev.manifest.summary  # the eval's own figures, to the report table's precision
         set_title(
-            ax, f"{method_label(ev)}: success {100 * s.success_mean:.0f}%, in walls {100 * s.in_wall_mean:.1f}%", 9
+            ax,
+            f"{method_label(ev)}: success {100 * s.success_mean:.1f}%, "
+            f"planned states in walls {100 * s.in_wall_mean:.2f}% (eval); {len(plans)} of its plans",
+            8,
         )
+    plan_legend(fig, loc="upper center", ncol=4, bbox_to_anchor=(0.5, 0.02))
     return save_figure(fig, path)

@@ -97,7 +97,7 @@ def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
 def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, title: str) -> Path:
     """Top and side views of plans (P, H, D): gripper paths thin, block paths thick, one colour per plan; planned
     states in an obstacle as red crosses (at the block when there is one), starts as circles, goals as stars."""
-    from cdrb_cli.envs.render import COLOURS, pyplot, save_figure, set_title
+    from cdrb_cli.envs.render import COLOURS, plan_legend, pyplot, save_figure, set_title
 
     plt = pyplot()
     plans = np.asarray(plans)
@@ -120,6 +120,7 @@ def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, t
             ax.plot(g[:, h], g[:, v], "*", ms=10, mfc="gold", mec="black", zorder=4)
         set_title(ax, f"{view} view", fontsize=9)
     fig.suptitle(f"{spec.id}: {title}", fontsize=10)
+    plan_legend(fig, bodies=spec.scene.task != "reach", loc="upper center", ncol=5, bbox_to_anchor=(0.5, 0.02))
     return save_figure(fig, path)
 
 

@@ -1,0 +1,66 @@
+"""The README's tour, extracted and run as written in a fresh folder, with only its sizes made small."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cdrb_cli import artifacts
+
+ROOT = Path(__file__).resolve().parent.parent
+#: the sizes the test shrinks (each must occur in the tour: a tour edited away from them fails here, not silently)
+SMALL = {
+    r"-n 1000 ": "-n 40 ",
+    r"--k 1000 ": "--k 60 ",
+    r"--steps 3000 ": "--steps 10 --set horizon=16 --set stride=10 --set net.dim=8 --set net.dim_mults=1,2 "
+    "--set method.diffusion_steps=8 ",
+    r"--seeds 0,1,2,3,4 --episodes 100 ": "--seeds 0 --episodes 2 ",
+    r"-n 8 --show-steps 4 ": "-n 2 --show-steps 2 ",
+}
+
+
+def tour() -> str:
+    text = (ROOT / "README.md").read_text()
+    return re.search(r"## A tour\n.*?```bash\n(.*?)```", text, re.S).group(1)
+
+
+@pytest.mark.slow
+def test_the_readme_tour_runs_as_written_in_a_fresh_folder(tmp_path):
+    script = tour()
+    for pattern, small in SMALL.items():
+        assert re.search(pattern, script), pattern
+        script = re.sub(pattern, small, script)
+    (tmp_path / "experiments").symlink_to(ROOT / "experiments")  # the tour runs beside the repository's files
+    bindir = Path(sys.executable).parent
+    env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}")
+    env |= {"MINARI_DATASETS_PATH": str(tmp_path / "minari"), "MPLBACKEND": "Agg"}
+    proc = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", script],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    folder = tmp_path / "tour"
+    for name, kind in [
+        ("demos.h5", "demos"),
+        ("buffer.h5", "buffer"),
+        ("cdrb.h5", "model"),
+        ("plans.h5", "plans"),
+        ("eval-cdrb.h5", "eval"),
+        ("imported.h5", "demos"),
+    ]:
+        artifacts.load(folder / name, kind)
+    for name in ("demos.png", "buffer.png", "plans.png", "results.png", "eval-plans.png"):
+        assert (folder / name).stat().st_size > 5000, name
+    assert any((folder / "gifs").glob("*.gif"))
+    exported = artifacts.load(folder / "demos.h5", "demos").arrays["steps/observations"]
+    assert artifacts.load(folder / "imported.h5", "demos").arrays["steps/observations"].shape == exported.shape
+    assert "| Maze Tight |" in proc.stdout  # the report's table on stdout
