@@ -89,6 +89,13 @@ class TrainConfig(Record):
     ema_start: int = Field(ge=0, description="the EMA copies the weights until this step")
     ema_every: int = Field(gt=0, description="update the EMA every this many steps")
     checkpoint_every: int = Field(gt=0, description="write a checkpoint into --out every this many steps")
+    checkpoint_seconds: float = Field(
+        60.0,
+        ge=0,
+        le=86400,
+        description="also write a checkpoint when this many seconds passed since the last one (0: by steps only), "
+        "so a slow run killed early can --resume",
+    )
     split: Literal["train", "all"] = Field("train", description="episodes trained on: train, or all (no validation)")
     start_fraction: float = Field(
         0.9, ge=0, le=1, description="share of training windows that start at an episode's first state"

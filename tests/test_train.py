@@ -94,9 +94,17 @@ def test_resume_continues_to_the_same_result(small_data, tmp_path, method):
     np.testing.assert_array_equal(full.arrays["curve/loss"], resumed.arrays["curve/loss"])
 
 
-def test_kill_and_resume_matches_uninterrupted(small_data, tmp_path, cdrb):
+@pytest.mark.parametrize(
+    "checkpoints",
+    [
+        ["--set", "checkpoint_every=10", "--set", "checkpoint_seconds=0"],  # by steps only
+        ["--set", "checkpoint_every=100000", "--set", "checkpoint_seconds=0.3"],  # by time only (none by steps)
+    ],
+    ids=["by-steps", "by-time"],
+)
+def test_kill_and_resume_matches_uninterrupted(small_data, tmp_path, cdrb, checkpoints):
     demos, buffer = small_data
-    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "300", "--set", "checkpoint_every=10", *TINY_FLAGS]
+    args = ["train", demos.path, "--buffer", buffer.path, "--steps", "300", *checkpoints, *TINY_FLAGS]
     ref = tmp_path / "ref.h5"
     r = cdrb(*args, "--out", ref)
     assert r.returncode == 0, r.stderr

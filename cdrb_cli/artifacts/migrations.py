@@ -121,10 +121,20 @@ def _fetch_draws_2_4(kind: str, m: Manifest) -> Manifest:
     return {**m, "env": {**env, "scene": {**scene, "min_goal_distance": 0.0}}}
 
 
+def _checkpoint_seconds_2_5(kind: str, m: Manifest) -> Manifest:
+    """Models written before training also checkpointed by time checkpointed by steps only: their
+    ``checkpoint_seconds`` is 0 (model 2.5)."""
+    cfg = m.get("config")
+    if kind != "model" or not isinstance(cfg, dict) or "checkpoint_seconds" in cfg:
+        return m
+    return {**m, "config": {**cfg, "checkpoint_seconds": 0.0}}
+
+
 #: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
 #: older files did not follow; applied to every older file in order
 MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
     ((2, 2), _renames_2_2),
+    ((2, 5), _checkpoint_seconds_2_5),
     ((2, 6), _fetch_draws_2_4),
 ]
 

@@ -181,6 +181,7 @@ def train(
 
     update_ema = _ema_updater(ema, modules, config)
     t0 = time.time() - wall
+    last_save = time.time()
     running, count = 0.0, 0
     last_loss = curve[-1][1] if curve else None
     for m in modules.values():
@@ -207,17 +208,20 @@ def train(
                 last_loss = running / count
                 running, count = 0.0, 0
                 ckpt = step % config.checkpoint_every == 0 or step == config.steps
+                # by time as well (no validation loss there, so the curve does not depend on the clock)
+                timed = 0 < config.checkpoint_seconds <= time.time() - last_save and not ckpt
                 snap = step in snapshots
                 valid = valid_loss() if (ckpt or snap) else None
                 curve.append((step, last_loss, valid if ckpt else None))
                 bar.update(task, completed=step, info=f"loss {last_loss:.4f}")
-                if ckpt or snap:
+                if ckpt or snap or timed:
                     wall = time.time() - t0
                 if snap:  # what a run of `step` steps writes at its end
                     cfg = config.model_copy(update={"steps": step})
                     save(True, last_loss, valid, snapshot_path(out, step), cfg, curve[:-1] + [(step, last_loss, valid)])
-                if ckpt:
+                if ckpt or timed:
                     save(step == config.steps, last_loss, curve[-1][2])
+                    last_save = time.time()
     return artifacts.load(out, "model")
 
 
