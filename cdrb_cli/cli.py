@@ -234,13 +234,23 @@ def _check_positive(flag: str, value) -> None:
 def inspect(
     file: Path = typer.Argument(..., help="Any cdrb artifact (.h5)."),
     as_json: bool = ListJsonOpt,
+    plot: Path | None = typer.Option(
+        None,
+        "--plot",
+        metavar="FILE",
+        help="For a model: also draw its training curve (training and validation loss per step) to FILE (PNG).",
+    ),
+    force: bool = ForceOpt,
 ) -> None:
     """Validate an artifact and print its kind, version, provenance, summary and dataset shapes.
 
     Safe on any file: it never executes content and refuses hostile shapes before reading them."""
-    from cdrb_cli.stages.inspect import describe, render
+    from cdrb_cli.stages.inspect import describe, plot_training, render
 
+    _check_outputs(force, [file], plot=plot)
     info = describe(file)
+    if plot is not None:
+        ui.log(f"picture: {plot_training(file, plot)}")
     if as_json:
         ui.emit(info, as_json=True)
     else:

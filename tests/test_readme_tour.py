@@ -58,7 +58,7 @@ def test_the_readme_tour_runs_as_written_in_a_fresh_folder(tmp_path):
         ("imported.h5", "demos"),
     ]:
         artifacts.load(folder / name, kind)
-    for name in ("demos.png", "buffer.png", "plans.png", "results.png", "eval-plans.png"):
+    for name in ("demos.png", "buffer.png", "plans.png", "results.png", "eval-plans.png", "curve.png"):
         assert (folder / name).stat().st_size > 5000, name
     assert any((folder / "gifs").glob("*.gif"))
     exported = artifacts.load(folder / "demos.h5", "demos").arrays["steps/observations"]

@@ -333,3 +333,19 @@ def test_the_ema_copies_until_its_start_then_averages_every_n_steps():
     for e, old, p in zip(avg.parameters(), before, live.parameters()):
         assert torch.allclose(e, 0.9 * old + 0.1 * p, atol=1e-6)
         assert not torch.equal(e, p)
+
+
+def test_inspect_plot_draws_a_models_training_curve(small_data, tmp_path, cdrb):
+    demos, buffer = small_data
+    model = tmp_path / "m.h5"
+    train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=20, checkpoint_every=10)), model)
+    png = tmp_path / "curve.png"
+    r = cdrb("inspect", model, "--plot", png)
+    assert r.returncode == 0 and f"picture: {png}" in r.stderr, r.stderr
+    assert png.stat().st_size > 5000
+    r = cdrb("inspect", model, "--plot", png)  # an existing picture is kept unless --force
+    assert r.returncode == 2 and "--plot" in r.stderr and r.stderr.count("\n") == 1
+    assert cdrb("inspect", model, "--plot", png, "--force").returncode == 0
+    r = cdrb("inspect", demos.path, "--plot", tmp_path / "d.png")
+    assert r.returncode == 2 and "a demos artifact" in r.stderr and r.stderr.count("\n") == 1
+    assert not (tmp_path / "d.png").exists() and r.stdout == ""

@@ -89,3 +89,40 @@ def render(info: dict[str, Any]) -> None:
     if hidden:
         table.add_row(f"(+{hidden} weight/optimizer tensors)", "", "")
     out.print(table)
+
+
+def plot_training(path: str | Path, out: Path) -> Path:
+    """A model's training curve: the training loss at every logged step and the validation loss at every
+    checkpoint (log scale), titled with the method, its steps and its wall time."""
+    import numpy as np
+
+    from cdrb_cli.envs.render import pyplot, save_figure
+    from cdrb_cli.errors import BadInput
+
+    art = load(path)
+    if art.kind != "model":
+        raise BadInput(
+            f"--plot: {path} is a {art.kind} artifact; --plot draws a model's training curve",
+            hint="pass a model (.h5 written by `cdrb train`), or drop --plot",
+        )
+    steps = np.asarray(art.arrays.get("curve/step", np.zeros(0)))
+    loss = np.asarray(art.arrays.get("curve/loss", np.zeros(0)))
+    if not len(steps):
+        raise BadInput(f"--plot: {path} records no training curve (a method with nothing to learn)", hint="drop --plot")
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    ax.plot(steps, loss, "-", lw=1.2, label="training loss (mean since the last log)")
+    if "curve/valid_step" in art.arrays:
+        ax.plot(art.arrays["curve/valid_step"], art.arrays["curve/valid_loss"], "o-", ms=4, lw=1.0,
+                label="validation loss (held-out episodes)")  # fmt: skip
+    if (loss > 0).all():
+        ax.set_yscale("log")
+    ax.set_xlabel("gradient step")
+    ax.set_ylabel("loss")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    m, state = art.manifest, art.manifest.state
+    done = "finished" if state.finished else "unfinished checkpoint"
+    ax.set_title(f"{m.config.method.name} on {m.env.id}: {state.step} steps, {state.wall_time_s / 60:.1f} min ({done})",
+                 fontsize=9)  # fmt: skip
+    return save_figure(fig, out)
