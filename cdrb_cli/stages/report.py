@@ -355,10 +355,23 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "
                 f"{opt(r['replans'], '.1f')} | {opt(r['episode_planning_ms'], '.1f')} | {r['failures'] or '–'} |"
             )
+    lines += ["", COLUMN_NOTES]
     text = "\n".join(lines) + "\n"
     if fmt == "table":
         return text.replace("**", "")
     return text
+
+
+#: what the less obvious columns of the detailed table measure (printed under it)
+COLUMN_NOTES = (
+    "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
+    "planned state in one, or a straight segment between two consecutive planned states that crosses one (a plan "
+    "can have every state free and still jump a wall). Largest jump / allowed and plans with an impossible jump: "
+    "the longest step between consecutive planned states against the distance the dynamics allow in one plan step; "
+    "planners output paths that the controller follows at its own pace, so almost every plan has a step longer "
+    "than that (a learned plan's 100% here is expected and not a failure); a wall between two planned states is "
+    "what the crossing column catches."
+)
 
 
 def plot_bars(rows: list[dict], path) -> Path:
