@@ -226,7 +226,7 @@ def draw_path_in_scene(scene, points: np.ndarray, rgba, width: float) -> None:
 def _matplotlib_frames(spec: EnvSpec, plan, states, goal, every: int) -> list[np.ndarray]:
     plt = pyplot()
     fam = family_of(spec)
-    fig, ax = plt.subplots(figsize=(4, 4), dpi=80)
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=96)
     draw_scene(ax, spec)
     p, s = fam.xy(spec, plan), fam.xy(spec, states)
     g = fam.xy(spec, fam.goal_state(spec, goal))[0]
@@ -246,11 +246,27 @@ def _matplotlib_frames(spec: EnvSpec, plan, states, goal, every: int) -> list[np
     return frames
 
 
+#: rollout GIFs: milliseconds per frame (each frame is ``every`` environment steps) and how long the last frame stays
+GIF_FRAME_MS, GIF_HOLD_MS = 100, 1500
+
+
+def _captioned(frame: np.ndarray, text: str):
+    """A frame with a caption band under it (what the viewer is looking at: method, episode, step, outcome)."""
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(frame)
+    band = 22
+    out = Image.new("RGB", (img.width, img.height + band), "white")
+    out.paste(img, (0, 0))
+    ImageDraw.Draw(out).text((6, img.height + 5), text, fill=(20, 20, 20))
+    return out
+
+
 def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 4) -> list[Path]:
     """One GIF per executed episode ``(plan, states, goal, success)``: simulator frames where offscreen rendering
-    works, otherwise (with a message saying why) matplotlib frames of the plan and the executed path."""
-    from PIL import Image
-
+    works, otherwise (with a message saying why) matplotlib frames of the plan and the executed path. Each frame
+    carries a caption (label, episode, environment step, outcome); frames play at :data:`GIF_FRAME_MS` and the last
+    one stays :data:`GIF_HOLD_MS`. A progress bar counts the episodes drawn."""
     from cdrb_cli import ui
     from cdrb_cli.artifacts import atomic_path
 
@@ -259,29 +275,42 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
     folder.mkdir(parents=True, exist_ok=True)
     use_simulator = True
     written = []
-    for i, (plan, states, goal, ok) in enumerate(episodes):
-        frames = None
-        if use_simulator:
-            try:
-                frames = fam.render_frames(spec, states, goal, every, plan=plan)
-            except Exception as exc:  # no GL context on this machine, or a family without simulator frames
-                import os
+    episodes = list(episodes)
+    with ui.progress() as bar:
+        task = bar.add_task("rollout GIFs", total=len(episodes), info="")
+        for i, (plan, states, goal, ok) in enumerate(episodes):
+            frames = None
+            if use_simulator:
+                try:
+                    frames = fam.render_frames(spec, states, goal, every, plan=plan)
+                except Exception as exc:  # no GL context on this machine, or a family without simulator frames
+                    import os
 
-                use_simulator = False
-                gl = os.environ.get("MUJOCO_GL")
-                ui.warn(
-                    f"simulator frames are unavailable ({type(exc).__name__}"
-                    + (f", MUJOCO_GL={gl}" if gl else "")
-                    + "); drawing the rollouts with matplotlib instead "
-                    "(MuJoCo renders offscreen with libosmesa6 installed, or on a machine with EGL)"
+                    use_simulator = False
+                    gl = os.environ.get("MUJOCO_GL")
+                    ui.warn(
+                        f"simulator frames are unavailable ({type(exc).__name__}"
+                        + (f", MUJOCO_GL={gl}" if gl else "")
+                        + "); drawing the rollouts with matplotlib instead "
+                        "(MuJoCo renders offscreen with libosmesa6 installed, or on a machine with EGL)"
+                    )
+            if frames is None:
+                frames = _matplotlib_frames(spec, plan, states, goal, every)
+            outcome = "success" if ok else "failure"
+            name = label or "rollout"
+            total = len(states) - 1
+            images = [
+                _captioned(
+                    f, f"{name}  episode {i}  step {min(j * every, total)}/{total}  {outcome}  (blue plan, red path)"
                 )
-        if frames is None:
-            frames = _matplotlib_frames(spec, plan, states, goal, every)
-        path = folder / f"{label or 'rollout'}_{i:02d}_{'success' if ok else 'fail'}.gif"
-        images = [Image.fromarray(f) for f in frames]
-        with atomic_path(path) as tmp:
-            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=40, loop=0)
-        written.append(path)
+                for j, f in enumerate(frames)
+            ]
+            path = folder / f"{name}_{i:02d}_{'success' if ok else 'fail'}.gif"
+            durations = [GIF_FRAME_MS] * (len(images) - 1) + [GIF_HOLD_MS]
+            with atomic_path(path) as tmp:
+                images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=durations, loop=0)
+            written.append(path)
+            bar.update(task, advance=1)
     if written:
         import os
 

@@ -125,7 +125,7 @@ def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, t
 
 
 def mujoco_frames(
-    spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360, plan: np.ndarray | None = None
+    spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 480, plan: np.ndarray | None = None
 ) -> list[np.ndarray]:
     """MuJoCo frames of a Fetch path (raises when no GL context can be made). The arm is driven kinematically
     through the grip positions by the mocap (a picture of the path, not a re-simulation); the block is placed at

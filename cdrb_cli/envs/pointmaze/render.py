@@ -37,7 +37,7 @@ def draw_maze(ax, spec: EnvSpec, show_cells: bool = True) -> None:
 
 
 def mujoco_frames(
-    spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 360, plan: np.ndarray | None = None
+    spec: EnvSpec, states: np.ndarray, goal, every: int, size: int = 480, plan: np.ndarray | None = None
 ) -> list[np.ndarray]:
     """Top-down MuJoCo frames of the ball following ``states``, the ``plan`` drawn as a blue line on the floor
     and the path so far as a red one (raises when no GL context can be made)."""
