@@ -88,8 +88,8 @@ def plan_legend(target, in_wall: bool = True, bodies: bool = False, **kwargs) ->
     handles = [Line2D([], [], color="0.35", lw=1.0, label="a plan (one colour each)")]
     if bodies:
         handles = [
-            Line2D([], [], color="0.35", lw=0.8, label="gripper, planned"),
-            Line2D([], [], color="0.35", lw=2.6, label="block, planned"),
+            Line2D([], [], color="0.35", lw=0.8, label="gripper path (thin)"),
+            Line2D([], [], color="0.35", lw=2.6, label="block path (thick)"),
         ]
     handles += [
         Line2D([], [], ls="", marker="o", ms=5, mfc="white", mec="black", label="start"),

@@ -39,6 +39,15 @@ def draw_view(ax, spec: EnvSpec, view: str = "top") -> None:
     ax.tick_params(labelsize=7)
 
 
+def fit_side(ax, spec: EnvSpec, z: np.ndarray) -> None:
+    """Crop a side view to what it shows: from below the table top to 5 cm over the highest drawn point or wall
+    (at least 20 cm over the table), instead of the whole reachable height."""
+    tops = [float(np.max(z))] if np.size(z) else []
+    tops += [w.high[2] for w in spec.scene.walls]
+    top = max([TABLE_TOP + 0.2, *(t + 0.05 for t in tops)])
+    ax.set_ylim(LIMITS[2][0], min(top, LIMITS[2][1]))
+
+
 def draw_top(ax, spec: EnvSpec) -> None:
     draw_view(ax, spec, "top")
 
@@ -63,7 +72,7 @@ def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
     """Top and side views of a sample of demonstrations: gripper paths thin, block paths thick, coloured by
     the side of the wall the goal is on; starts as circles, goals as stars."""
     from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.envs.render import COLOURS, pyplot, save_figure, set_title
+    from cdrb_cli.envs.render import COLOURS, plan_legend, pyplot, save_figure, set_title
 
     plt = pyplot()
     spec = demos.manifest.env
@@ -84,13 +93,19 @@ def plot_demos(demos, path: str | Path, n: int = 40, seed: int = 0) -> Path:
             ax.plot(p[h], p[v], "o", ms=3, mfc="white", mec=colour, zorder=3)
             ax.plot(goal[h], goal[v], "*", ms=6, mfc="gold", mec="black", mew=0.4, zorder=4)
         set_title(ax, f"{view} view", fontsize=9)
+        if view == "side":
+            fit_side(
+                ax, spec, np.concatenate([demos.episode(int(e))[0][:, [2, 5][: len(bodies)]].ravel() for e in ids])
+            )
     s = demos.manifest.summary
     what = "gripper" if spec.scene.task == "reach" else "gripper (thin) and block (thick)"
     fig.suptitle(
-        f"{spec.id}: {len(ids)} of {s.episodes} demos, {what}; success {s.success_rate:.1%}, "
-        f"{s.states_in_walls} states in obstacles",
+        f"{spec.id}: {len(ids)} of {s.episodes} demos, {what}, one colour per goal region; success "
+        f"{s.success_rate:.1%}, {s.states_in_walls} states in obstacles",
         fontsize=10,
     )
+    plan_legend(fig, in_wall=False, bodies=spec.scene.task != "reach", loc="upper center", ncol=4,
+                bbox_to_anchor=(0.5, 0.02))  # fmt: skip
     return save_figure(fig, path)
 
 
@@ -119,6 +134,8 @@ def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, t
             g = np.asarray(goals)[:, spec.goal_dims]
             ax.plot(g[:, h], g[:, v], "*", ms=10, mfc="gold", mec="black", zorder=4)
         set_title(ax, f"{view} view", fontsize=9)
+        if view == "side":
+            fit_side(ax, spec, plans[..., [2, 5][: len(bodies)]])
     fig.suptitle(f"{spec.id}: {title}", fontsize=10)
     plan_legend(fig, bodies=spec.scene.task != "reach", loc="upper center", ncol=5, bbox_to_anchor=(0.5, 0.02))
     return save_figure(fig, path)
