@@ -380,6 +380,13 @@ def collect(
     valid_fraction: float | None = typer.Option(
         None, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation (default 0.1)."
     ),
+    starts: str = typer.Option(
+        "protocol",
+        "--starts",
+        metavar="WHERE",
+        help="Where demonstrations start: protocol (the environment's start region) or, for mazes, anywhere (any "
+        "free cell), so plans can start wherever the robot is; protocol+anywhere alternates between the two.",
+    ),
     maze_map: Path | None = MapOpt,
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
     plot: Path | None = typer.Option(
@@ -429,7 +436,14 @@ def collect(
     from cdrb_cli.settings import parse_set
 
     config = collect_config(
-        spec, episodes, seed=seed, expert=expert, policy=policy, valid_fraction=valid_fraction, settings=parse_set(sets)
+        spec,
+        episodes,
+        seed=seed,
+        expert=expert,
+        policy=policy,
+        valid_fraction=valid_fraction,
+        settings=parse_set(sets),
+        starts=starts,
     )
     demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out, workers=workers), env=spec)
     s = demos.manifest.summary
@@ -866,6 +880,11 @@ def plan(
         f"{sm.plans} plans for {sm.pairs} pairs: {sm.in_wall_fraction:.2%} of planned states inside obstacles "
         f"({sm.plans_with_wall_states} plans touch one), {sm.seconds_per_plan * 1000:.1f} ms/plan"
     )
+    from cdrb_cli.stages.plan import disconnected_warning
+
+    warning = disconnected_warning(spec, result.arrays["plans"], m.manifest.config.stride)
+    if warning:
+        ui.warn(warning)
     if plot is not None:
         from cdrb_cli.envs.render import plot_plans
 

@@ -28,6 +28,13 @@ class CollectConfig(Record):
     episodes: int = Field(gt=0, le=1_000_000)
     expert: Annotated[ExpertConfig, Dispatch(EXPERTS, key="kind", attr="config")]
     valid_fraction: float = Field(0.1, ge=0, lt=1)
+    starts: str = Field(
+        "protocol",
+        min_length=1,
+        max_length=40,
+        description="where demonstrations start: the environment's protocol (mazes: its start cells), or a protocol "
+        "of the family that draws other starts (mazes: anywhere = any free cell)",
+    )
     seed: Seed
 
 

@@ -202,3 +202,30 @@ def test_parallel_collect_gives_the_same_demos(tmp_path, cdrb):
     # the default: one process per core, but never fewer than 100 episodes each
     assert collect_workers(150, None) == 1 and collect_workers(10_000, None) == min(os.cpu_count() or 1, 8)
     assert collect_workers(3, 16) == 3
+
+
+def test_demos_that_start_anywhere(tmp_path, cdrb):
+    """`--starts anywhere` (mazes): episodes start all over the free space, not only in the start region, the
+    expert still reaches its goals without touching a wall, and the choice is recorded; the default keeps the
+    protocol's starts; a family without such a start distribution refuses it in one line."""
+    from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+
+    spec = make_spec("maze-tight")
+    geom = MazeGeometry(spec.scene.maze)
+    region = {tuple(c) for c in geom.start_cells.tolist()}
+
+    def start_cells(demos):
+        firsts = demos.arrays["steps/observations"][demos.arrays["episodes/start"], :2]
+        return [tuple(c) for c in geom.xy_to_cell(firsts).tolist()]
+
+    out = tmp_path / "any.h5"
+    demos = collect(spec, collect_config(spec, 60, seed=0, starts="anywhere"), out)
+    cells = start_cells(demos)
+    assert sum(c not in region for c in cells) > len(cells) / 2
+    assert demos.manifest.config.starts == "anywhere"
+    assert demos.manifest.summary.success_rate >= 0.95 and demos.manifest.summary.states_in_walls == 0
+    usual = collect(spec, collect_config(spec, 30, seed=0), tmp_path / "usual.h5")
+    assert all(c in region for c in start_cells(usual)) and usual.manifest.config.starts == "protocol"
+    r = cdrb("collect", "fetch-reach", "-n", "2", "--starts", "anywhere", "--out", tmp_path / "f.h5")
+    assert r.returncode == 2 and "--starts 'anywhere'" in r.stderr and r.stderr.count("\n") == 1
+    assert not (tmp_path / "f.h5").exists()

@@ -422,7 +422,8 @@ def test_one_seed_shows_no_interval(tmp_path):
         "env": "maze-tight", "method": "cdrb", "controller": "pd", "pairs": "test", "seeds": 1, "episodes": 4,
         "success_mean": 25.0, "success_std": 0.0, "success_ci95": 0.0, "weighted_success_mean": 25.0,
         "weighted_success_std": 0.0, "clean_success_mean": 25.0, "clean_success_std": 0.0, "in_wall_mean": 1.0,
-        "in_wall_std": 0.0, "crossing_mean": 0.0, "jump_ratio": 0.5, "impossible_jump_mean": 0.0,
+        "in_wall_std": 0.0, "crossing_mean": 0.0, "first_step_ratio": 1.2, "jump_ratio": 0.5,
+        "impossible_jump_mean": 0.0,
         "collision_mean": 0.0, "path_ratio": 1.1, "plan_ms": 1.0, "replans": 0.0, "episode_planning_ms": 1.0,
         "failures": "", "env_name": "Maze Tight",
     }  # fmt: skip
@@ -430,3 +431,25 @@ def test_one_seed_shows_no_interval(tmp_path):
     assert "25.00 ± n/a" in text and "25.0 ± n/a (1 seed)" in text and "± 0.0" not in text
     text = render([{**row, "seeds": 3, "success_std": 2.0, "success_ci95": 5.0}], "markdown")
     assert "25.0 ± 2.0 [± 5.0]" in text
+
+
+def test_first_step_ratio_is_the_median_first_step_over_the_allowed_step():
+    """The report's first-step column: per episode the first planned step (obstacle dims) over the step limit,
+    the median over every episode of every eval; None without plans or without a known limit."""
+    from types import SimpleNamespace
+
+    from cdrb_cli.stages.report import first_step_ratio
+
+    def ev(first_steps, limit):
+        plans = np.zeros((len(first_steps), 3, 4))
+        plans[:, 1, 0] = first_steps
+        plans[:, 1, 2] = 9.0  # a velocity dim: not a position, not measured
+        env = SimpleNamespace(obstacles=SimpleNamespace(dims=(0, 1)))
+        arrays = {"plans": plans, "episodes/plan_step_limit": np.full(len(first_steps), limit)}
+        return SimpleNamespace(arrays=arrays, manifest=SimpleNamespace(env=env))
+
+    assert first_step_ratio([ev([0.1, 0.2, 0.9], 0.1)]) == pytest.approx(2.0)
+    assert first_step_ratio([ev([0.1], 0.1), ev([0.3, 0.5], 0.1)]) == pytest.approx(3.0)
+    assert first_step_ratio([ev([0.1], 0.0)]) is None
+    policy = SimpleNamespace(arrays={}, manifest=None)
+    assert first_step_ratio([policy]) is None

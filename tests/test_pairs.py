@@ -16,15 +16,21 @@ STREAMS = {"test": STREAM_EVAL, "tuning": STREAM_TUNE}
 N = 40
 
 
-@pytest.mark.parametrize("env_id", STOCK)
+#: (env id, protocol) of every stock env under every protocol that draws its own starts
+DRAWS = [(i, None) for i in STOCK] + [
+    (i, p) for fam in FAMILIES.entries() for i in fam.env_ids() for p in fam.start_protocols
+]
+
+
+@pytest.mark.parametrize("env_id,protocol", DRAWS)
 @pytest.mark.parametrize("stream", sorted(STREAMS))
-def test_no_pair_is_won_at_reset(env_id, stream):
+def test_no_pair_is_won_at_reset(env_id, protocol, stream):
     """Reset every drawn episode in the simulator: the reset state is never within the success radius of its goal
     (two eval seeds, as a table's seeds would draw)."""
     spec = make_spec(env_id)
     fam = family_of(spec)
     for seed in (0, 1):
-        eps = fam.draw_episodes(spec, N, seed, STREAMS[stream])
+        eps = fam.draw_protocol_episodes(spec, N, seed, STREAMS[stream], protocol)
         starts, goals = fam.reset_states(spec, eps)
         won = fam.success(spec, starts, goals)
         assert not won.any(), f"{env_id} {stream} seed {seed}: episodes {np.flatnonzero(won).tolist()} won at reset"
@@ -53,3 +59,25 @@ def test_mixed_draws_keep_both_sides():
     eps = fam.draw_episodes(spec, 60, 0, STREAM_EVAL)
     same = [side(spec.scene, np.array(e.start + (0.0,))) == side(spec.scene, np.array(e.goal)) for e in eps]
     assert 0 < sum(same) < len(same)
+
+
+@pytest.mark.parametrize("env_id", [i for i in STOCK if "anywhere" in family_of(make_spec(i)).start_protocols])
+def test_anywhere_draws_start_in_free_cells_beyond_the_start_region(env_id):
+    """`anywhere` starts cover the free cells (not only the protocol's start cells), every goal is a goal cell
+    reachable from its start, and the draw is the same for the same seed."""
+    from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    geom = MazeGeometry(spec.scene.maze)
+    eps = fam.draw_protocol_episodes(spec, 400, 0, STREAM_EVAL, "anywhere")
+    assert eps == fam.draw_protocol_episodes(spec, 400, 0, STREAM_EVAL, "anywhere")
+    starts = {e.start for e in eps}
+    protocol_starts = {tuple(c) for c in geom.start_cells.tolist()}
+    goals = {tuple(c) for c in geom.goal_cells.tolist()}
+    assert all(geom.free[s] for s in starts)
+    if len(protocol_starts) < int(geom.free.sum()) / 2:  # a start region (Maze Tight: the centre): mostly outside it
+        assert len(starts - protocol_starts) > len(starts) / 2
+    assert len(starts) > 0.5 * int(geom.free.sum())  # and spread over the free cells
+    for e in eps:
+        assert e.goal in goals and e.goal != e.start and geom.bfs(e.goal)[e.start] >= 0

@@ -145,3 +145,26 @@ def test_start_and_goal_pins_can_differ(small_data, method_name):
     assert not np.allclose(plans[:, -1, 2], goals[0, 2])
     other, *_ = sample_plans(method, starts, goals * [1, 1, -3, 7], 2, seed=0)  # only unpinned goal dims differ
     np.testing.assert_array_equal(plans, other)
+
+
+def test_plans_that_leave_their_start_or_cross_a_wall_are_warned_about():
+    """A plan walking from its start in steps the dynamics allow is fine; one whose first step leaps far from the
+    start, or one whose straight step crosses a wall, gets one warning line saying which."""
+    from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+    from cdrb_cli.envs.registry import family_of, make_spec
+    from cdrb_cli.stages.plan import disconnected_warning
+
+    spec = make_spec("maze-tight")
+    allowed = family_of(spec).max_step(spec) * 2
+    start = MazeGeometry(spec.scene.maze).cell_to_xy([7, 7])  # the centre cell
+    walk = start + np.outer(np.arange(20), [allowed * 0.5, 0.0])  # east along the centre row, half a step each
+    plans = np.zeros((1, 20, spec.obs_dim))
+    plans[0, :, :2] = walk
+    assert disconnected_warning(spec, plans, stride=2) is None
+    leap = plans.copy()
+    leap[0, 1:, 1] += 0.6  # every state after the start 0.6 m north: the first step is ~4x what is allowed
+    text = disconnected_warning(spec, leap, stride=2)
+    assert text is not None and "first planned step" in text and "\n" not in text
+    through = np.zeros((1, 2, spec.obs_dim))
+    through[0, :, :2] = [start, start + [6.0, 6.0]]  # one straight step from the centre to a corner: through walls
+    assert "pass through an obstacle" in disconnected_warning(spec, through, stride=2)

@@ -157,6 +157,8 @@ class EnvFamily(ABC):
     protocol: ClassVar[str]
     #: other protocols `cdrb eval --protocol` accepts (name -> description), applied by :meth:`protocol_spec`
     extra_protocols: ClassVar[dict[str, str]] = {}
+    #: extra protocols that draw other starts, which `cdrb collect --starts` may also use for demonstrations
+    start_protocols: ClassVar[tuple[str, ...]] = ()
     #: how a --start/--goal point is written, for help and errors
     point_format: ClassVar[str] = "comma-separated numbers"
 
@@ -206,6 +208,13 @@ class EnvFamily(ABC):
     @abstractmethod
     def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
         """``n`` episodes of protocol ``stream`` under ``seed``: the same for every method and run."""
+
+    def draw_protocol_episodes(
+        self, spec: EnvSpec, n: int, seed: int, stream: int, protocol: str | None = None
+    ) -> list[Episode]:
+        """The episodes of ``protocol`` (None or one whose pairs are the default's: :meth:`draw_episodes`); a
+        family whose extra protocol draws other starts (e.g. ``anywhere``) overrides this."""
+        return self.draw_episodes(spec, n, seed, stream)
 
     def goal_state(self, spec: EnvSpec, goals: np.ndarray) -> np.ndarray:
         """The states (n, obs_dim) plans are pinned to for goals (n, goal_dim): the goal at rest."""

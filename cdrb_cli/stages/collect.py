@@ -49,6 +49,7 @@ def collect_config(
     policy: Path | None = None,
     valid_fraction: float | None = None,
     settings: Sequence[Setting] = (),
+    starts: str = "protocol",
 ) -> CollectConfig:
     """The config of ``cdrb collect``: ``expert`` is one of the family's experts (default: its first), with
     ``settings`` on its fields (``--set expert.routes='["over"]'``)."""
@@ -73,9 +74,29 @@ def collect_config(
                 f"{s.source}: expert.{s.path[1]} comes from --policy (the file and its sha256)",
                 hint="pass the policy with --policy PATH",
             )
+    parts = starts.split("+")
+    if any(p != "protocol" and p not in family.start_protocols for p in parts) or len(set(parts)) != len(parts):
+        choices = ", ".join(["protocol", *family.start_protocols])
+        raise BadInput(
+            f"--starts {starts!r}: not a start distribution of the {family.name} environments",
+            hint=f"use {choices}, or several joined by + (episodes alternate between them)",
+        )
     split = {"valid_fraction": valid_fraction} if valid_fraction is not None else {}
     base = {"env": spec.id, "episodes": episodes, "expert": expert_cfg.model_dump(mode="json"), "seed": seed, **split}
+    if starts != "protocol":  # recorded only when it differs, so the demos of the default stay what they were
+        base["starts"] = starts
     return validate(CollectConfig, apply(base, settings), settings, "collect")
+
+
+def draw_starts(family, spec: EnvSpec, episodes: int, seed: int, starts: str) -> list[Episode]:
+    """The episodes of a collect: drawn by the protocol, or by another start distribution of the family, or (``A+B``)
+    alternately by each of several (episode i by distribution i mod n, each with its own draws)."""
+    parts = starts.split("+")
+    draws = [
+        family.draw_protocol_episodes(spec, episodes, seed, STREAM_COLLECT, None if p == "protocol" else p)
+        for p in parts
+    ]
+    return [draws[i % len(parts)][i] for i in range(episodes)]
 
 
 _WORKER_ENVS: dict[str, tuple] = {}  # a pool worker keeps one env and expert per (spec, config)
@@ -115,7 +136,7 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
     t0 = time.time()
     seed, episodes = config.seed, config.episodes
     family = family_of(spec)
-    plan = family.draw_episodes(spec, episodes, seed, STREAM_COLLECT)
+    plan = draw_starts(family, spec, episodes, seed, config.starts)
     chunk = 20  # episodes per task: small enough for a live progress bar, large enough to amortise the hand-off
     parts = [plan[i : i + chunk] for i in range(0, episodes, chunk)]
     n_workers = min(collect_workers(episodes, workers), len(parts))  # a worker without a part would only start up

@@ -239,7 +239,9 @@ def evaluate(
     with ui.progress() as bar:
         task = bar.add_task(f"eval {method.name}", total=len(config.seeds) * config.episodes, info="")
         for seed in config.seeds:
-            episodes = family.draw_episodes(spec, config.episodes, seed, EVAL_STREAMS[config.stream])
+            episodes = family.draw_protocol_episodes(
+                spec, config.episodes, seed, EVAL_STREAMS[config.stream], config.protocol
+            )
             starts, goals = family.reset_states(spec, episodes, env)
             plans, _, _, _, sec_batch = sample_plans(
                 method,
@@ -401,7 +403,9 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
     with ui.progress() as bar:
         task = bar.add_task(f"eval {policy.name}", total=len(config.seeds) * config.episodes, info="")
         for seed in config.seeds:
-            episodes = family.draw_episodes(spec, config.episodes, seed, EVAL_STREAMS[config.stream])
+            episodes = family.draw_protocol_episodes(
+                spec, config.episodes, seed, EVAL_STREAMS[config.stream], config.protocol
+            )
             rng = step_rng(config.seed, STREAM_EVAL, seed)
             for b in range(0, len(episodes), POLICY_BATCH):
                 batch = episodes[b : b + POLICY_BATCH]

@@ -159,3 +159,36 @@ def make_plans(model, starts, goals, config: PlanConfig, out, device="cpu", batc
         arrays["iterate_steps"] = np.asarray(iter_steps, dtype=np.int64)
     artifacts.save(out, "plans", manifest, arrays)
     return artifacts.load(out, "plans")
+
+
+#: a plan's first step may be this many times what the dynamics allow in one plan step before `cdrb plan` warns
+FIRST_STEP_TOLERANCE = 1.5
+
+
+def disconnected_warning(spec, plans: np.ndarray, stride: int) -> str | None:
+    """One line when plans do not start where the robot is (a median first step over ``FIRST_STEP_TOLERANCE`` times
+    what the dynamics allow in one plan step) or pass through an obstacle (a state in one, or a straight step
+    between two states through one); None when neither. Longer steps later in a plan are normal (plans are paths
+    the controller follows at its own pace) and not warned about."""
+    family = family_of(spec)
+    states = np.asarray(plans)[..., : spec.obs_dim].reshape(-1, plans.shape[-2], spec.obs_dim)
+    problems = []
+    crossing = np.asarray(family.path_in_collision(spec, states), dtype=bool)
+    if crossing.any():
+        problems.append(f"{int(crossing.sum())} of {len(states)} plans pass through an obstacle")
+    max_step = family.max_step(spec)
+    if max_step is not None and states.shape[1] > 1:
+        allowed = max_step * stride
+        dims = list(spec.obstacles.dims)
+        first = float(np.median(np.linalg.norm(states[:, 1, dims] - states[:, 0, dims], axis=-1)))
+        if first > FIRST_STEP_TOLERANCE * allowed:
+            problems.append(
+                f"the first planned step is {first:.2f} (median), {first / allowed:.1f}x the {allowed:.2f} the "
+                "dynamics allow in one plan step"
+            )
+    if not problems:
+        return None
+    return (
+        "; ".join(problems) + ": the start may lie where the training data never starts "
+        "(`cdrb collect --starts anywhere`, docs/design.md 'Plans from anywhere')"
+    )

@@ -122,6 +122,21 @@ def per_seed(ev) -> list:
     return per
 
 
+def first_step_ratio(evals) -> float | None:
+    """The median, over every episode of ``evals``, of the first planned step's length (in the obstacle dims)
+    against what the dynamics allow in one plan step: about 1 when plans start where the robot is, far above 1 when
+    a plan leaves its pinned start at once. None for policies, evals without plans, or an unknown limit."""
+    ratios = []
+    for ev in evals:
+        plans, limit = ev.arrays.get("plans"), ev.arrays.get("episodes/plan_step_limit")
+        if plans is None or limit is None or plans.shape[1] < 2 or not (np.asarray(limit) > 0).all():
+            return None
+        dims = list(ev.manifest.env.obstacles.dims)
+        step = np.linalg.norm(plans[:, 1, dims] - plans[:, 0, dims], axis=-1)
+        ratios.append(step / np.asarray(limit))
+    return float(np.median(np.concatenate(ratios))) if ratios else None
+
+
 def collect_rows(evals) -> list[dict]:
     """One row per (environment, method). Several evals of one method (e.g. one per training seed) are pooled as
     separate seeds; within an environment every method must use the same protocol and the same evaluation seeds,
@@ -192,6 +207,7 @@ def collect_rows(evals) -> list[dict]:
                     **_rate("in_wall", [r.in_wall_fraction for r in per]),  # None for a policy: it makes no plans
                     **_rate("crossing", [r.plan_crossing_rate for r in per]),
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
+                    "first_step_ratio": first_step_ratio(group),
                     "impossible_jump_mean": None if impossible is None else 100 * impossible,
                     "collision_mean": 100 * float(np.mean([r.executed_collision_rate for r in per])),
                     "path_ratio": float(np.mean(ratios)) if ratios else None,
@@ -331,10 +347,11 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
         "",
         "| env | method | controller | pairs | seeds x episodes | success (%) ± std [95% CI] | "
         "weighted success (%) | success without collision (%) | planned states in walls (%) | "
-        "plans through an obstacle (%) | largest jump / allowed | plans with an impossible jump (%) | "
+        "plans through an obstacle (%) | first step / allowed (median) | largest jump / allowed | "
+        "plans with an impossible jump (%) | "
         "executed collisions (%) | path length / expert | plan time (ms) | re-plans per episode | "
         "planning per episode (ms) | failed episodes by cause |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
 
     def opt(v, f):
@@ -351,7 +368,8 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
                 f"{_pm(r['weighted_success_mean'], r['weighted_success_std'], r['seeds'])} | "
                 f"{_pm(r['clean_success_mean'], r['clean_success_std'], r['seeds'])} | "
                 f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])} | {opt(r['crossing_mean'], '.1f')} | "
-                f"{opt(r['jump_ratio'], '.2f')} | {opt(r['impossible_jump_mean'], '.1f')} | "
+                f"{opt(r['first_step_ratio'], '.2f')} | {opt(r['jump_ratio'], '.2f')} | "
+                f"{opt(r['impossible_jump_mean'], '.1f')} | "
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "
                 f"{opt(r['replans'], '.1f')} | {opt(r['episode_planning_ms'], '.1f')} | {r['failures'] or '–'} |"
             )
@@ -366,7 +384,9 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
 COLUMN_NOTES = (
     "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
     "planned state in one, or a straight segment between two consecutive planned states that crosses one (a plan "
-    "can have every state free and still jump a wall). Largest jump / allowed and plans with an impossible jump: "
+    "can have every state free and still jump a wall). First step / allowed: how far a plan's first step leaves the "
+    "start, against one plan step of the dynamics (near 1: the plan starts where the robot is). Largest jump / "
+    "allowed and plans with an impossible jump: "
     "the longest step between consecutive planned states against the distance the dynamics allow in one plan step; "
     "planners output paths that the controller follows at its own pace, so almost every plan has a step longer "
     "than that (a learned plan's 100% here is expected and not a failure); a wall between two planned states is "

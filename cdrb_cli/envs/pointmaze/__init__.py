@@ -93,6 +93,10 @@ def maze_spec(env_id: str, layout: MazeLayout) -> EnvSpec:
     )
 
 
+#: the protocol (and demonstration start distribution) whose starts are any free cell
+ANYWHERE = "anywhere"
+
+
 class PointMazeFamily(EnvFamily):
     name = "pointmaze"
     scene_type = PointMazeScene
@@ -101,8 +105,11 @@ class PointMazeFamily(EnvFamily):
     protocol = "centre-start/corner-goal"
     extra_protocols = {
         "official-code": "as the official CDRB code evaluates: the goal at the exact cell centre, success within "
-        f"{OFFICIAL_SUCCESS_RADIUS} m, its executor (controller `waypoint`: <= 5 env steps per planned state)"
+        f"{OFFICIAL_SUCCESS_RADIUS} m, its executor (controller `waypoint`: <= 5 env steps per planned state)",
+        ANYWHERE: "starts in any free cell from which the goal is reachable (at rest, the stock reset noise), goals "
+        "the stock protocol's goal cells: plans from wherever the robot may be",
     }
+    start_protocols = (ANYWHERE,)
     point_format = "x,y (at rest) or x,y,vx,vy, e.g. 0,0"
 
     # -------------------------------------------------------------- environments
@@ -192,6 +199,18 @@ class PointMazeFamily(EnvFamily):
         out = []
         for s in episode_seeds(seed, n, stream):
             start, goal = geom.draw_start_goal(np.random.default_rng([int(s), 7]))
+            out.append(Episode(int(s), tuple(int(v) for v in start), tuple(int(v) for v in goal)))
+        return out
+
+    def draw_protocol_episodes(
+        self, spec: EnvSpec, n: int, seed: int, stream: int, protocol: str | None = None
+    ) -> list[Episode]:
+        if protocol != ANYWHERE:
+            return self.draw_episodes(spec, n, seed, stream)
+        geom = MazeGeometry(spec.scene.maze)
+        out = []
+        for s in episode_seeds(seed, n, stream):
+            start, goal = geom.draw_anywhere_goal(np.random.default_rng([int(s), 11]))
             out.append(Episode(int(s), tuple(int(v) for v in start), tuple(int(v) for v in goal)))
         return out
 

@@ -245,6 +245,17 @@ class MazeGeometry:
                 return s, g
         raise RunFailed("could not draw a start/goal pair: no goal cell is reachable from the start cells")
 
+    def draw_anywhere_goal(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """A start in any free cell and a different goal cell reachable from it, uniformly: plans from wherever the
+        robot may be, to the protocol's goals."""
+        starts, goals = np.argwhere(self.free), self.goal_cells
+        for _ in range(1000):
+            s = starts[int(rng.integers(len(starts)))]
+            g = goals[int(rng.integers(len(goals)))]
+            if (s != g).any() and self.bfs(g)[tuple(s)] >= 0:
+                return s, g
+        raise RunFailed("could not draw a start/goal pair: no goal cell is reachable from the free cells")
+
     def exit_label(self, states: np.ndarray) -> str:
         """The compass direction (from the start region's centre) of the first non-start cell a path enters."""
         starts = {tuple(c) for c in self.start_cells.tolist()}
