@@ -13,6 +13,7 @@ registered plugin is a valid choice too. Training hyper-parameters come from the
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -432,6 +433,13 @@ def collect(
         choose_gl_backend()  # before MuJoCo is imported
         _check_video_folder(video)
     _check_outputs(force, out=out, plot=plot)
+    cores = os.cpu_count() or 1
+    if workers is not None and workers > 2 * cores:
+        raise BadInput(
+            f"--workers {workers}: more than twice this machine's {cores} cores (each worker holds an environment "
+            "and about 120 MB)",
+            hint=f"use at most {2 * cores}, or leave --workers out (one per core)",
+        )
     spec = _spec(env, maze_map)
     from cdrb_cli.settings import parse_set
 
