@@ -721,7 +721,11 @@ def train(
     d = _load(demos, "demos")
     b = _load(buffer, "buffer") if buffer is not None else None
     config = resolve_train_config(d.manifest.env, buffer_info(b), settings, seed=seed)
+    from cdrb_cli.stages.train import TRAIN_BYTES_PER_PARAMETER, check_size
+
+    n_params = check_size(d, b, config)
     if dry_run:
+        ui.log(f"{n_params:,} parameters (about {n_params * TRAIN_BYTES_PER_PARAMETER / 2**20:,.0f} MiB to train)")
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return
     snapshots = _ints(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []

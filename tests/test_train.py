@@ -349,3 +349,17 @@ def test_inspect_plot_draws_a_models_training_curve(small_data, tmp_path, cdrb):
     r = cdrb("inspect", demos.path, "--plot", tmp_path / "d.png")
     assert r.returncode == 2 and "a demos artifact" in r.stderr and r.stderr.count("\n") == 1
     assert not (tmp_path / "d.png").exists() and r.stdout == ""
+
+
+def test_a_network_too_big_for_memory_is_refused_before_allocating(small_data, tmp_path, cdrb):
+    """Counted on the meta device: the dry run and the run itself refuse a U-Net whose training state alone exceeds
+    the memory available (no 21 GB allocation attempted), in one line; a normal one reports its size."""
+    demos, _ = small_data
+    big = ["--set", "net.dim=4096", "--set", "net.dim_mults=8,8,8"]
+    for extra in (["--dry-run"], ["--out", tmp_path / "big.h5"]):
+        r = cdrb("train", demos.path, "--method", "diffuser", *big, *extra)
+        assert r.returncode == 2 and "parameters: training needs at least" in r.stderr, r.stderr[-500:]
+        assert r.stderr.count("\n") == 1 and r.stdout == ""
+    assert not (tmp_path / "big.h5").exists()
+    r = cdrb("train", demos.path, "--method", "diffuser", *TINY_FLAGS, "--dry-run")
+    assert r.returncode == 0 and " parameters (about " in r.stderr

@@ -267,3 +267,46 @@ def _saved_step(out: Path):
         return artifacts.load(out, "model").manifest.state.step
     except BadInput:
         return "none"
+
+
+#: bytes a float32 parameter costs in training: the weight, its EMA copy, its gradient and Adam's two moments
+TRAIN_BYTES_PER_PARAMETER = 5 * 4
+
+
+def parameter_count(demos, buffer, config: TrainConfig) -> int:
+    """The parameters of the network ``config`` builds, counted on torch's meta device (nothing is allocated, so
+    a network too large for the machine is measured, not attempted)."""
+    import torch
+
+    normalizer = check_inputs(demos, buffer, config.features)
+    entry = METHODS.get(config.method.name)
+    points = buffer.points if (buffer is not None and entry.needs_buffer) else None
+    with torch.device("meta"):
+        method = build_method(config, demos.manifest.env, normalizer, points, device="meta")
+    return sum(p.numel() for m in method.modules().values() for p in m.parameters())
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the OS can still give (Linux MemAvailable; None where unknown)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_size(demos, buffer, config: TrainConfig) -> int:
+    """The network's parameter count; a network whose weights, EMA, gradients and Adam state alone exceed the
+    memory available is refused before anything is allocated."""
+    n = parameter_count(demos, buffer, config)
+    need, free = n * TRAIN_BYTES_PER_PARAMETER, available_memory()
+    if free is not None and need > free:
+        raise BadInput(
+            f"the network has {n:,} parameters: training needs at least {need / 2**30:,.1f} GiB (weights, EMA, "
+            f"gradients, Adam), more than the {free / 2**30:,.1f} GiB available",
+            hint="lower net.dim or net.dim_mults (`cdrb config train` lists them)",
+        )
+    return n
