@@ -79,7 +79,11 @@ def test_protocol_pairs_and_plot(tiny_models, tmp_path, cdrb):
         (["--start", "0,0", "--goal", "9,0"], "outside the map"),
         (["--start", "0,0", "--goal", "0.45,3"], "inside a wall"),
         (["--start", "0,0,1", "--goal", "6,6"], "expected 2 or 4 numbers"),
-        (["--start", "0,0,1e30,0", "--goal", "6,6"], "a velocity beyond"),
+        (["--start", "0,0,1e30,0", "--goal", "6,6"], "beyond"),
+        (["--start", "0,0,9,0", "--goal", "6,6"], "a velocity beyond"),
+        (["--start", "1_3,0", "--goal", "6,6"], "not a list of numbers"),  # Python's float() reads 13
+        (["--start", "nan,0", "--goal", "6,6"], "not a list of numbers"),
+        (["--start", "0x1,0", "--goal", "6,6"], "not a list of numbers"),
         (["--start", "0,0", "--goal", "6,6", "-n", "1e9"], "--num-plans"),
         (["--start", "0,0", "--goal", "6,6", "--num-plans", "2000000"], "--num-plans"),
         (["--start", "a,b", "--goal", "6,6"], "not a list of numbers"),

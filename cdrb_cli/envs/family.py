@@ -23,6 +23,7 @@ import numpy as np
 
 from cdrb_cli.errors import BadInput
 from cdrb_cli.schema_base import Record
+from cdrb_cli.settings import clip
 
 if TYPE_CHECKING:
     from cdrb_cli.envs.spec import EnvSpec
@@ -32,6 +33,10 @@ if TYPE_CHECKING:
 #: object never moved (never grasped or pushed); the executed path hit an obstacle the plan avoided; the rest (the
 #: controller lost the plan or ran out of time)
 FAILURE_CAUSES = ("plan", "grasp", "collision", "tracking")
+
+
+#: the largest magnitude a --start/--goal number may have (no state of any family comes near it)
+POINT_LIMIT = 10_000.0
 
 
 @dataclass(frozen=True)
@@ -244,11 +249,23 @@ class EnvFamily(ABC):
         return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
     def numbers(self, text: str, flag: str) -> list[float]:
-        """The comma-separated numbers of a --start/--goal value (one-line error otherwise)."""
-        try:
-            return [float(v) for v in text.replace(" ", "").split(",") if v != ""]
-        except ValueError:
-            raise BadInput(f"{flag} {text!r}: not a list of numbers", hint=f"write {self.point_format}") from None
+        """The comma-separated numbers of a --start/--goal value: plain decimals (``1_3``, ``nan``, ``inf`` and hex
+        are not read as numbers, though Python's ``float`` would), each within +-10,000 (one-line error otherwise)."""
+        import re
+
+        parts = [v for v in text.replace(" ", "").split(",") if v != ""]
+        number = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d{1,3})?")
+        if not parts or len(parts) > 1000 or not all(number.fullmatch(v) for v in parts):
+            raise BadInput(
+                f"{flag} {clip(repr(text), 80)}: not a list of numbers", hint=f"write {self.point_format}"
+            ) from None
+        values = [float(v) for v in parts]
+        if any(abs(v) > POINT_LIMIT for v in values):
+            raise BadInput(
+                f"{flag} {clip(repr(text), 80)}: a value beyond +-{POINT_LIMIT:,.0f}",
+                hint=f"write {self.point_format}",
+            )
+        return values
 
     def checked_point(self, spec: EnvSpec, state: np.ndarray, text: str, flag: str) -> np.ndarray:
         """``state`` when it is finite and one the agent can be in (:meth:`check_point`); else a one-line error."""
