@@ -199,3 +199,77 @@ def test_bad_datasets_are_one_line_errors(tmp_path, datasets):
     assert r.returncode == 0
     r = _cli("export", tmp_path / "d.h5", "--minari", "../escape")
     assert r.returncode == 2 and "not a dataset name" in r.stderr
+
+
+def test_hostile_dataset_folders_are_refused_before_minari_reads_them(tmp_path, datasets):
+    """A FIFO as the main data (which would hang the import), a link to a file outside the dataset (whose bytes
+    would be read and hashed as the dataset's), a data file declaring 3 GB in a few KB, and a 2 MB metadata.json:
+    each one line, exit 2, within seconds, nothing written."""
+    import shutil
+    import time
+
+    import h5py
+
+    _make_dataset("test/base-v0", "PointMaze_UMaze-v3", episodes=1, steps=3)
+    base = datasets / "test" / "base-v0"
+
+    def variant(name):
+        folder = datasets / "test" / f"{name}-v0"
+        shutil.copytree(base, folder)
+        return folder, folder / "data" / "main_data.hdf5"
+
+    folder, main = variant("fifo")
+    main.unlink()
+    os.mkfifo(main)
+    folder, main = variant("link")
+    (tmp_path / "secret.txt").write_text("not the dataset's")
+    os.symlink(tmp_path / "secret.txt", folder / "data" / "extra.bin")
+    folder, main = variant("bomb")
+    with h5py.File(main, "a") as f:
+        f.create_dataset("bomb", shape=(100_000_000, 4), dtype="f8")  # declared, never written: a sparse promise
+    folder, main = variant("meta")
+    meta = folder / "data" / "metadata.json"
+    meta.write_text(meta.read_text()[:-1] + ', "pad": "' + "x" * (2 << 20) + '"}')
+    cases = [("fifo", "not a regular file"), ("link", "is a link"), ("bomb", "declare"), ("meta", "larger than")]
+    for name, words in cases:
+        t = time.time()
+        r = _cli("import", "minari", f"test/{name}-v0", "--out", tmp_path / "x.h5")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (name, r.stderr[-800:])
+        assert time.time() - t < 30 and not (tmp_path / "x.h5").exists()
+    main = base / "data" / "main_data.hdf5"
+    before = main.read_bytes()
+    r = _cli("import", "minari", "test/base-v0", "--out", main, "--force")  # onto its own data file
+    assert r.returncode == 2 and "inside the dataset" in r.stderr and main.read_bytes() == before
+    r = _cli("import", "minari", "test/base-v0", "--out", tmp_path / "ok.h5")  # the untouched dataset still imports
+    assert r.returncode == 0, r.stderr[-800:]
+
+
+def test_export_never_deletes_or_races_another_dataset(tmp_path, datasets):
+    """Two exports of one name at once: one writes, the other stops (no silent replace); a name nested inside an
+    existing dataset is refused, and so is --force on a dataset holding another; a 300-character name or a --root
+    that is a file is one line before any dataset is written."""
+    r = _cli("collect", "maze-tight", "-n", "4", "--out", tmp_path / "d.h5")
+    assert r.returncode == 0
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "cdrb_cli", "export", str(tmp_path / "d.h5"), "--minari", "race/same"]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) for _ in "ab"]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    assert sorted(rc for rc, _ in results) == [0, 2], results
+    loser = next(err for rc, err in results if rc == 2)
+    assert "another cdrb run" in loser or "exists" in loser
+    assert (datasets / "race" / "same-v0" / "data" / "metadata.json").is_file()
+    r = _cli("export", tmp_path / "d.h5", "--minari", "race/same-v0/inner")
+    assert r.returncode == 2 and "inside the dataset" in r.stderr
+    os.makedirs(datasets / "outer-v0" / "data")
+    (datasets / "outer-v0" / "data" / "metadata.json").write_text("{}")
+    nested = datasets / "outer-v0" / "sub" / "x-v0" / "data"
+    os.makedirs(nested)
+    (nested / "metadata.json").write_text("{}")
+    r = _cli("export", tmp_path / "d.h5", "--minari", "outer", "--force")
+    assert r.returncode == 2 and "holds other datasets" in r.stderr and (nested / "metadata.json").exists()
+    r = _cli("export", tmp_path / "d.h5", "--minari", "n" * 300)
+    assert r.returncode == 2 and "not a dataset name" in r.stderr and r.stderr.count("\n") == 1
+    (tmp_path / "afile").write_text("x")
+    r = _cli("export", tmp_path / "d.h5", "--minari", "ok", "--root", tmp_path / "afile")
+    assert r.returncode == 2 and "--root" in r.stderr and (tmp_path / "afile").read_text() == "x"

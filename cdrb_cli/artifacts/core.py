@@ -211,7 +211,7 @@ def _attr_str(f: h5py.File, name: str) -> str | None:
     return value if isinstance(value, str) and len(value) < 64 else None
 
 
-def _walk(f: h5py.File) -> dict[str, h5py.Dataset]:
+def _walk(f: h5py.File, max_objects: int = MAX_OBJECTS) -> dict[str, h5py.Dataset]:
     """All datasets by path, without following links out of the file; refuses files with too many objects."""
     found: dict[str, h5py.Dataset] = {}
     count = 0
@@ -220,8 +220,8 @@ def _walk(f: h5py.File) -> dict[str, h5py.Dataset]:
         nonlocal count
         for key in group.keys():
             count += 1
-            if count > MAX_OBJECTS:
-                raise ArtifactError(f"{f.filename}: more than {MAX_OBJECTS} HDF5 objects", hint="not a cdrb artifact")
+            if count > max_objects:
+                raise ArtifactError(f"{f.filename}: more than {max_objects} HDF5 objects", hint="not a cdrb artifact")
             link = group.get(key, getlink=True)
             name = f"{prefix}{key}"
             if not isinstance(link, h5py.HardLink):
@@ -241,6 +241,29 @@ def _walk(f: h5py.File) -> dict[str, h5py.Dataset]:
 
     visit(f, "")
     return found
+
+
+def check_foreign_h5(path: Path, max_objects: int) -> None:
+    """An HDF5 file cdrb did not write (a dataset's data) checked as artifacts are before anything is read: an
+    HDF5 file, hard links only, no virtual or external storage, at most ``max_objects`` objects, and declared
+    dataset sizes within :data:`FILE_EXPANSION` times the bytes the file occupies (a 1 MB file declaring 3 GB is
+    refused, not allocated)."""
+    f = _open(path)
+    try:
+        datasets = _walk(f, max_objects)
+        declared = 0
+        for ds in datasets.values():
+            if ds.dtype.kind not in "biufc":
+                continue  # strings and the like: read by their library, not by cdrb
+            declared += int(np.prod(ds.shape, dtype=np.float64)) * ds.dtype.itemsize
+        if declared > FILE_EXPANSION * _stored_bytes(path) + 2**20:
+            raise ArtifactError(
+                f"{path}: its datasets declare {declared / 2**20:,.0f} MiB in a {_stored_bytes(path) / 2**20:,.1f} "
+                "MiB file",
+                hint="the file is damaged or hostile",
+            )
+    finally:
+        f.close()
 
 
 def _stored_bytes(path: Path) -> int:

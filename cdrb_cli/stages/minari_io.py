@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import __version__, artifacts, ui
+from cdrb_cli.artifacts.outputs import _locked
 from cdrb_cli.errors import BadInput
 
 #: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
@@ -65,6 +66,48 @@ def locate(source: str) -> Path:
         f"{source}: no such Minari dataset in {_root()} (cdrb never downloads)",
         hint=f"`minari download {source}` first, set MINARI_DATASETS_PATH, or give the dataset's folder",
     )
+
+
+#: a Minari dataset folder cdrb reads: at most this many files, metadata this large, HDF5 objects per data file
+MAX_DATASET_FILES = 10_000
+MAX_METADATA_BYTES = 1 << 20
+MAX_DATASET_OBJECTS = 5_000_000
+
+
+def check_dataset_folder(folder: Path, source: str) -> None:
+    """Everything in a dataset folder is checked before Minari opens it: only regular files and folders (no link,
+    which could point outside the dataset or at a device, no FIFO), a bounded number of them, a small
+    metadata.json, and each HDF5 file by the artifact reader's rules (no links out, no virtual or external storage,
+    declared sizes within what the file holds)."""
+    import stat
+
+    from cdrb_cli.artifacts.core import check_foreign_h5
+
+    count = 0
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        for name in [*dirnames, *filenames]:
+            count += 1
+            p = Path(dirpath) / name
+            mode = p.lstat().st_mode
+            if stat.S_ISLNK(mode) or not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+                what = "a link" if stat.S_ISLNK(mode) else "not a regular file"
+                raise BadInput(
+                    f"{source}: {ui.plain(str(p.relative_to(folder)), 120)} is {what}",
+                    hint="a Minari dataset folder holds regular files only",
+                )
+            if count > MAX_DATASET_FILES:
+                raise BadInput(f"{source}: more than {MAX_DATASET_FILES:,} files", hint="give the dataset's own folder")
+    for meta in folder.rglob("metadata.json"):
+        if meta.stat().st_size > MAX_METADATA_BYTES:
+            raise BadInput(
+                f"{source}: {meta.relative_to(folder)} is larger than {MAX_METADATA_BYTES >> 10} KiB",
+                hint="the dataset is damaged or hostile",
+            )
+    for data in sorted(folder.rglob("*.hdf5")) + sorted(folder.rglob("*.h5")):
+        try:
+            check_foreign_h5(data, MAX_DATASET_OBJECTS)
+        except BadInput as exc:
+            raise BadInput(f"{source}: {exc.message}", hint=exc.hint) from None
 
 
 def _sha_files(folder: Path) -> dict[str, str]:
@@ -127,6 +170,13 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
     minari = _minari()
     t0 = time.time()
     data = locate(source)
+    folder = data.parent if data.name == "data" else data
+    if Path(out).resolve().is_relative_to(folder.resolve()):
+        raise BadInput(
+            f"--out {out}: inside the dataset being imported ({folder})",
+            hint="write the demos artifact outside the dataset's folder",
+        )
+    check_dataset_folder(folder, source)
     try:
         dataset = minari.MinariDataset(data)
     except Exception as exc:  # a damaged or foreign folder: Minari's own complaint, on one line
@@ -191,9 +241,11 @@ DATASET_ID = re.compile(r"^(?:[A-Za-z0-9_.-]+/)*[A-Za-z0-9_.-]+-v\d+$")
 def dataset_id_for(name: str) -> str:
     """``name`` as a Minari dataset id (``[namespace/]name-vN``; ``-v0`` is added when no version is given)."""
     full = name if re.search(r"-v\d+$", name) else f"{name}-v0"
-    if not DATASET_ID.match(full) or ".." in full.split("/"):
+    parts = full.split("/")
+    if not DATASET_ID.match(full) or ".." in parts or "." in parts or len(full) > 200 or len(parts) > 8:
         raise BadInput(
-            f"--minari {name!r}: not a dataset name (letters, digits, . _ -, optional namespace/, optional -vN)",
+            f"--minari {ui.plain(repr(name), 80)}: not a dataset name (letters, digits, . _ -, optional namespace/, "
+            "optional -vN; at most 200 characters)",
             hint="e.g. cdrb/maze-tight-expert-v0",
         )
     return full
@@ -204,15 +256,16 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
     returns the dataset's folder. Written in a temporary folder beside it and renamed into place."""
     from cdrb_cli.envs.registry import family_of
 
-    minari = _minari()
+    _minari()  # installed, or one line saying how
     import gymnasium
     from minari.data_collector.episode_buffer import EpisodeBuffer
 
     dataset_id = dataset_id_for(name)
     root = Path(root) if root is not None else _root()
+    if root.exists() and not root.is_dir():
+        raise BadInput(f"--root {root}: not a folder", hint="give the folder Minari datasets live in")
     final = root / dataset_id
-    if final.exists() and not force:
-        raise BadInput(f"--minari {dataset_id}: {final} exists", hint="pass --force to replace it, or another name")
+    _check_export_target(final, root, dataset_id, force)
     spec = demos.manifest.env
     family = family_of(spec)
     env_spec = family.to_gym(spec)
@@ -251,7 +304,36 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
         f"{ENV_TAG} {spec.id}; demonstrator: {expert.kind}; success: cdrb's test (within {spec.success_radius} of "
         "the goal), per step in infos['success'] and as the sparse reward."
     )
-    root.mkdir(parents=True, exist_ok=True)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    with _locked(final, "--minari"):
+        _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
+        return _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description)
+
+
+def _check_export_target(final: Path, root: Path, dataset_id: str, force: bool) -> None:
+    """The dataset folder an export may write: not an existing dataset unless ``force``, never a dataset nested
+    in another (its parent's --force would delete it) nor one holding others, nothing but a plain folder."""
+    for parent in final.relative_to(root).parents:
+        if parent != Path(".") and (root / parent / "data" / "metadata.json").exists():
+            raise BadInput(
+                f"--minari {dataset_id}: inside the dataset {parent}", hint="choose a name outside other datasets"
+            )
+    if final.is_symlink() or (final.exists() and not final.is_dir()):
+        raise BadInput(f"--minari {dataset_id}: {final} is not a folder", hint="remove it or choose another name")
+    if final.exists():
+        if not force:
+            raise BadInput(f"--minari {dataset_id}: {final} exists", hint="pass --force to replace it, or another name")
+        nested = [m for m in final.rglob("metadata.json") if m.parent != final / "data"]
+        if nested:
+            raise BadInput(
+                f"--minari {dataset_id}: {final} holds other datasets ({nested[0].parent.parent.relative_to(root)})",
+                hint="--force replaces one dataset, never others inside it",
+            )
+
+
+def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description) -> Path:
+    """Minari writes the dataset into a temporary root beside ``root``'s datasets; it is then renamed into place."""
+    minari = _minari()
     tmp_root = Path(tempfile.mkdtemp(prefix=".cdrb-export-", dir=root))
     old = os.environ.get("MINARI_DATASETS_PATH")
     try:
