@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -359,10 +360,31 @@ def methods(as_json: bool = ListJsonOpt) -> None:
     )
 
 
-def _check_video_folder(video: Path) -> None:
-    """--video names a folder (made if missing): refuse an existing file."""
+def _check_video_folder(video: Path, out: Path | None = None) -> None:
+    """--video names a folder (made if missing), checked before any work: not an existing file, under a folder
+    that can be made and written (not under a file), and not the folder of the run's own --out (a GIF could take
+    the artifact's name)."""
     if video.exists() and not video.is_dir():
         raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
+    first = video
+    while not first.exists() and first != first.parent:
+        first = first.parent
+    if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
+        what = "is not a folder" if not first.is_dir() else "is not writable"
+        raise BadInput(f"--video {video}: {first} {what}", hint="pass a folder that can be made and written")
+    if out is not None and Path(out).resolve().parent == video.resolve():
+        raise BadInput(
+            f"--out {out}: inside the --video folder {video}", hint="keep the artifact outside the GIFs' folder"
+        )
+
+
+def _report_gifs(video: Path, since: float, out: Path) -> None:
+    """Say where the GIFs went, or that none were written (an up-to-date artifact is not re-run)."""
+    written = [p for p in video.glob("*.gif") if p.stat().st_mtime >= since - 1] if video.is_dir() else []
+    if written:
+        ui.log(f"{len(written)} GIF(s) in {video}/")
+    else:
+        ui.log(f"no GIFs written: {out} is up to date, so nothing ran (--force re-runs it with --video)")
 
 
 # ------------------------------------------------------------------------------------------------ collect
@@ -431,7 +453,7 @@ def collect(
         from cdrb_cli.envs.render import choose_gl_backend
 
         choose_gl_backend()  # before MuJoCo is imported
-        _check_video_folder(video)
+        _check_video_folder(video, out)
     _check_outputs(force, out=out, plot=plot)
     cores = os.cpu_count() or 1
     if workers is not None and workers > 2 * cores:
@@ -1021,7 +1043,7 @@ def eval_cmd(
     _check_positive("--repair-steps", repair_steps)
     seed_list = _int_list(seeds, "--seeds")
     if video is not None:
-        _check_video_folder(video)
+        _check_video_folder(video, out)
     if replan_plot is not None and replan in (None, "never"):
         raise BadInput("--replan-plot draws the plans of a closed-loop episode", hint="add --replan every:N")
     _check_outputs(force, [model], out=out, replan_plot=replan_plot)
@@ -1048,6 +1070,7 @@ def eval_cmd(
         repair_steps=repair_steps,
     )
     n_videos = videos if video is not None else 0
+    started = time.time()
     ev = produce(
         out,
         "eval",
@@ -1080,7 +1103,7 @@ def eval_cmd(
         + (f"; failed episodes by cause: {failure_text(s.failures)}" if s.failures and any(s.failures.values()) else "")
     )
     if video is not None:
-        ui.log(f"rollout GIFs: {video}/")
+        _report_gifs(video, started, out)
     if replan_plot is not None and replan_plot.exists():
         ui.log(f"picture: {replan_plot}")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)

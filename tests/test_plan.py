@@ -172,3 +172,22 @@ def test_plans_that_leave_their_start_or_cross_a_wall_are_warned_about():
     through = np.zeros((1, 2, spec.obs_dim))
     through[0, :, :2] = [start, start + [6.0, 6.0]]  # one straight step from the centre to a corner: through walls
     assert "pass through an obstacle" in disconnected_warning(spec, through, stride=2)
+
+
+def test_video_folders_are_checked_before_the_run_and_reported_truthfully(tiny_models, small_data, tmp_path, cdrb):
+    """--video under a file, or --out inside the --video folder, is one line before any work (the eval, or the
+    demos, would otherwise be written and then fail, or be overwritten by a GIF); an up-to-date eval says that it
+    wrote no GIFs instead of pointing at an empty folder."""
+    model = tiny_models["mlp"].path
+    (tmp_path / "vfile").write_text("x")
+    ev = tmp_path / "e.h5"
+    r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", tmp_path / "vfile" / "sub", "--out", ev)
+    assert r.returncode == 2 and "is not a folder" in r.stderr and r.stderr.count("\n") == 1 and not ev.exists()
+    gifs = tmp_path / "gifs"
+    gifs.mkdir()
+    r = cdrb("collect", "maze-tight", "-n", "2", "--out", gifs / "demo_00_success.gif", "--video", gifs)
+    assert r.returncode == 2 and "inside the --video folder" in r.stderr and not any(gifs.iterdir())
+    r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", gifs, "--videos", "1", "--out", ev)
+    assert r.returncode == 0 and "1 GIF(s) in" in r.stderr, r.stderr[-500:]
+    r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", tmp_path / "gifs2", "--out", ev)
+    assert r.returncode == 0 and "no GIFs written" in r.stderr and "up to date" in r.stderr, r.stderr[-500:]
