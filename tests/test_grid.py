@@ -156,6 +156,10 @@ def test_missing_grid_file_and_ray_flags(tmp_path):
     assert proc.returncode == 2 and "no such grid file" in proc.stderr
     proc = _cli("grid", str(_grid(tmp_path)), "--backend", "pool", "--address", "ray://x:1")
     assert proc.returncode == 2 and "--address" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    t = time.time()
+    proc = _cli("grid", str(_grid(tmp_path)), "--backend", "ray", "--address", "127.0.0.1:1")  # nobody listens
+    assert proc.returncode == 2 and "no Ray cluster answers" in proc.stderr and time.time() - t < 30, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
     proc = _cli("grid", str(_grid(tmp_path)), "--address", "garbage")
     assert proc.returncode == 2 and "--address 'garbage': not a Ray address" in proc.stderr
     proc = _cli("grid", "/dev/zero")

@@ -712,6 +712,28 @@ class RayBackend:
         self.ray.shutdown()
 
 
+#: seconds `cdrb grid --address` waits for the cluster to answer before saying it does not
+ADDRESS_TIMEOUT = 5.0
+
+
+def _probe(address: str) -> None:
+    """A TCP connection to ``address`` (HOST:PORT or ray://HOST:PORT) within :data:`ADDRESS_TIMEOUT` seconds, so an
+    address nobody listens on is one line instead of Ray retrying for minutes."""
+    import socket
+
+    hostport = address.removeprefix("ray://")
+    host, _, port = hostport.rpartition(":")
+    host = host.strip("[]")
+    try:
+        socket.create_connection((host, int(port)), timeout=ADDRESS_TIMEOUT).close()
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or type(exc).__name__
+        raise BadInput(
+            f"--address {address}: no Ray cluster answers there within {ADDRESS_TIMEOUT:g} s ({reason})",
+            hint="start the head node (`ray start --head`) or check the host and port",
+        ) from None
+
+
 def make_backend(backend: str, workers: int | None, address: str | None):
     """``auto``: Ray when it is installed, else the local pool."""
     if address is not None and not re.fullmatch(r"(ray://)?[A-Za-z0-9_.\-\[\]:]+:[0-9]{1,5}|auto", address):
@@ -730,6 +752,8 @@ def make_backend(backend: str, workers: int | None, address: str | None):
             ui.log("Ray is not installed: running on a local pool")
             backend = "pool"
         else:
+            if address not in (None, "auto"):
+                _probe(address)
             return RayBackend(address, workers)
     if address:
         raise BadInput("--address needs the Ray backend", hint="drop --address or use --backend ray")
