@@ -551,3 +551,28 @@ def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig):
     while _train_pids(out) and time.time() - t < 10:
         time.sleep(0.2)
     assert not _train_pids(out)
+
+
+def test_file_flags_in_a_grid_are_relative_to_the_file_that_declares_them(tmp_path):
+    """`--config tiny.toml` in a grid's settings (or in an included file, or a variant) means the file beside
+    that grid or settings file, as `out` does, from whatever folder the grid is run; absolute paths stay."""
+    sub = tmp_path / "exp"
+    (sub / "shared").mkdir(parents=True)
+    (sub / "shared" / "common.toml").write_text('[[settings]]\nmethod = "mlp"\ntrain = ["--config", "mlp.toml"]\n')
+    text = (
+        'include = ["shared/common.toml"]\n'
+        + TINY
+        + (
+            '[[settings]]\nmethod = "cdrb"\ntrain = ["--config=cdrb.toml"]\n'
+            f'[[variants]]\nname = "abs"\ntrain = ["--config", "{tmp_path / "abs.toml"}"]\n'
+        )
+    )
+    grid = _grid(sub, text)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    proc = _cli("grid", str(grid), "--dry-run", cwd=elsewhere)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert any(f"--config {sub / 'shared' / 'mlp.toml'}" in ln for ln in lines if "--method mlp" in ln)
+    assert any(f"--config={sub / 'cdrb.toml'}" in ln for ln in lines if "--method cdrb" in ln)
+    assert any(f"--config {tmp_path / 'abs.toml'}" in ln for ln in lines)

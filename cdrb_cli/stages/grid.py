@@ -229,6 +229,37 @@ def _validated(model: type[BaseModel], raw: dict, path: Path):
         raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
 
 
+#: flags whose value is a file: a relative one in a grid or settings file means relative to that file's folder
+PATH_FLAGS = ("--maze-map", "--policy", "--config", "--paper-figures")
+
+
+def _anchored(flags: list[str], base: Path) -> list[str]:
+    """``flags`` with every relative file value of :data:`PATH_FLAGS` made absolute against ``base`` (the folder of
+    the file that declares them), as `out` is: a grid means the same files from whatever folder it is run."""
+    out, i = [], 0
+    while i < len(flags):
+        f = flags[i]
+        name, eq, value = f.partition("=")
+        if name in PATH_FLAGS and eq and not Path(value).is_absolute():
+            out.append(f"{name}={base / value}")
+        elif f in PATH_FLAGS and i + 1 < len(flags) and not Path(flags[i + 1]).is_absolute():
+            out += [f, str(base / flags[i + 1])]
+            i += 1
+        else:
+            out.append(f)
+        i += 1
+    return out
+
+
+def _anchor_all(items: list, base: Path) -> list:
+    """Settings or variants with their flag lists anchored at ``base``."""
+    fields = ("collect", "cluster", "train", "eval")
+    return [
+        item.model_copy(update={k: _anchored(getattr(item, k), base) for k in fields if hasattr(item, k)})
+        for item in items
+    ]
+
+
 def _included_settings(
     paths: list[Path], base: Path, chain: tuple[Path, ...], read: list[Path] | None = None
 ) -> list[Settings]:
@@ -243,7 +274,7 @@ def _included_settings(
         if read is not None:
             read.append(path)
         out += _included_settings(sfile.include, path.parent, (*chain, path), read)
-        out += sfile.settings
+        out += _anchor_all(sfile.settings, path.parent)
     return out
 
 
@@ -296,9 +327,10 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     read = [path]
     spec.settings = (
         _included_settings(spec.include, path.parent, (path,), read)
-        + spec.settings
+        + _anchor_all(spec.settings, path.parent)
         + _included_settings(list(extra_includes), Path.cwd(), (path,), read)
     )
+    spec.variants = _anchor_all(spec.variants, path.parent)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
     for env in spec.envs:
