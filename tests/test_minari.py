@@ -273,3 +273,31 @@ def test_export_never_deletes_or_races_another_dataset(tmp_path, datasets):
     (tmp_path / "afile").write_text("x")
     r = _cli("export", tmp_path / "d.h5", "--minari", "ok", "--root", tmp_path / "afile")
     assert r.returncode == 2 and "--root" in r.stderr and (tmp_path / "afile").read_text() == "x"
+
+
+def test_damaged_episodes_are_one_line_naming_the_dataset(tmp_path, datasets):
+    """NaN in the states, or fewer actions than steps, in an otherwise valid dataset: one line naming the dataset
+    and the episode, exit 2, nothing written."""
+    import shutil
+
+    import h5py
+
+    _make_dataset("test/good-v0", "PointMaze_UMaze-v3", episodes=1, steps=5)
+    good = datasets / "test" / "good-v0"
+    for name, damage in (("nan", "nan"), ("short", "actions")):
+        folder = datasets / "test" / f"{name}-v0"
+        shutil.copytree(good, folder)
+        with h5py.File(folder / "data" / "main_data.hdf5", "a") as f:
+            ep = f["episode_0"]
+            if damage == "nan":
+                obs = ep["observations/observation"][()]
+                obs[2, 0] = np.nan
+                ep["observations/observation"][...] = obs
+            else:
+                acts = ep["actions"][()]
+                del ep["actions"]
+                ep.create_dataset("actions", data=acts[:-2])
+        r = _cli("import", "minari", f"test/{name}-v0", "--out", tmp_path / "x.h5")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and f"test/{name}-v0: episode 0" in lines[0], r.stderr[-800:]
+        assert not (tmp_path / "x.h5").exists()

@@ -201,7 +201,18 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
                     hint="cdrb imports goal-conditioned datasets (dict observations with the goal)",
                 )
             S, G = np.asarray(obs["observation"], np.float64), np.asarray(obs["desired_goal"], np.float64)
-            A = np.asarray(ep.actions, np.float64).reshape(len(S) - 1, -1)
+            A = np.asarray(ep.actions, np.float64)
+            where = f"{source}: episode {ui.plain(str(ep.id), 40)}"
+            if S.ndim != 2 or len(S) < 2:
+                raise BadInput(f"{where}: fewer than 2 states", hint="every episode needs a start and a step")
+            if len(G) != len(S) or len(A) != len(S) - 1:
+                raise BadInput(
+                    f"{where}: {len(S)} observations, {len(G)} goals and {len(A)} actions (expected T, T and T-1)",
+                    hint="the dataset is damaged",
+                )
+            if not (np.isfinite(S).all() and np.isfinite(G).all() and np.isfinite(A).all()):
+                raise BadInput(f"{where}: NaN or infinite values", hint="the dataset is damaged")
+            A = A.reshape(len(S) - 1, -1)
             for what, arr, want in (("observation", S, spec.obs_dim), ("desired_goal", G, spec.goal_dim)):
                 if arr.ndim != 2 or arr.shape[1] != want:
                     raise BadInput(
