@@ -181,6 +181,11 @@ class ReplanConfig(Record):
             raise ValueError("repair_k/repair_steps repair a plan when re-planning: set a replan mode too")
         if self.repair_steps is not None and self.repair_k is None:
             raise ValueError("repair_steps needs repair_k")
+        if self.repair_steps is not None and self.repair_k is not None and self.repair_steps > self.repair_k:
+            raise ValueError(
+                f"repair_steps {self.repair_steps} > repair_k {self.repair_k}: a repair restores from step k down "
+                "to 1, in at most k steps"
+            )
         return self
 
     @classmethod

@@ -218,6 +218,10 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
             msg += " (a list: write 1,4,8, or [512] for a single value)"
         setting = source_of(settings, loc)
         where = clip(setting.source if setting is not None else f"{what} {key}")
+        if err.get("type") == "value_error":  # a check across several fields of a record: name every one given
+            given = list(dict.fromkeys(s.source for s in settings if tuple(s.path[: len(loc)]) == tuple(map(str, loc))))
+            if len(given) > 1:
+                where = clip(" with ".join(given), 200)
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         raise BadInput(f"{where}: {msg}{more}", hint=f"`cdrb config {what}` lists every setting") from None
 

@@ -232,6 +232,9 @@ def test_eval_cli_closed_loop(models, tmp_path, cdrb):
         (["--replan", "every:10", "--repair-steps", "3"], "--repair-steps 3"),
         (["--replan-plot", "x.png"], "--replan-plot"),
         (["--set", "replan.every=5"], "replan"),
+        (["--replan", "every:10", "--repair-k", "2", "--repair-steps", "50"], "repair_steps 50 > repair_k 2"),
+        # a check across two settings names both, not only the last one given
+        (["--replan", "deviation:0.05", "--set", "replan.every=3"], "--set replan.every=3 with --replan"),
     ],
 )
 def test_eval_cli_closed_loop_bad_inputs(models, tmp_path, cdrb, args, needle):
