@@ -178,6 +178,24 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
 
 
 # ------------------------------------------------------------------------------------------------ reading
+def check_input_file(path: str | Path, flag: str, max_bytes: int, what: str = "file", hint: str = "check the path"):
+    """The one check every non-artifact input file passes before it is opened: it exists, is a regular file (a
+    FIFO would block the read, a device never end, a folder is not a file) and is at most ``max_bytes``; each
+    failure is one line naming ``flag``. Returns the path."""
+    import stat
+
+    path = Path(path)
+    try:
+        st = path.stat()
+    except OSError:
+        raise BadInput(f"{flag} {path}: no such {what}", hint=hint) from None
+    if not stat.S_ISREG(st.st_mode):
+        raise BadInput(f"{flag} {path}: not a regular file", hint=f"pass the {what} itself")
+    if st.st_size > max_bytes:
+        raise BadInput(f"{flag} {path}: larger than {max_bytes >> 20:,} MiB", hint=f"is this the {what}?")
+    return path
+
+
 def _open(path: Path) -> h5py.File:
     if not path.exists():
         raise BadInput(f"{path}: no such file", hint="check the path")

@@ -168,14 +168,16 @@ class SacExpert:
     def __init__(self, spec: EnvSpec, policy_path: str | Path, deterministic: bool = True):
         from stable_baselines3 import SAC
 
-        path = Path(policy_path)
-        if not path.is_file():
-            raise BadInput(
-                f"--policy {path}: no such file", hint="train one with `cdrb expert train ENV --out expert.zip`"
-            )
+        from cdrb_cli.artifacts.core import check_input_file
+
+        path = check_input_file(policy_path, "--policy", MAX_POLICY_BYTES, "policy zip", POLICY_HINT)
         custom = _replacements(path, spec)  # every pickled entry of the zip, replaced: nothing is unpickled
+        import warnings
+
         try:
-            self.model = SAC.load(str(path), env=None, device="cpu", custom_objects=custom)
+            with warnings.catch_warnings():  # a damaged zip makes torch and SB3 warn before they fail: one line only
+                warnings.simplefilter("ignore")
+                self.model = SAC.load(str(path), env=None, device="cpu", custom_objects=custom)
         except Exception as exc:
             raise BadInput(
                 f"--policy {path}: not a stable-baselines3 SAC policy zip for {spec.id} ({type(exc).__name__})",
@@ -212,14 +214,20 @@ class SacExpert:
         return bool(family_of(self.spec).success(self.spec, obs, goal))
 
 
+#: an SB3 SAC zip for these tasks is a few MB; a file far larger is not one
+MAX_POLICY_BYTES = 1 << 30
+POLICY_HINT = "train one with `cdrb expert train ENV --out expert.zip`"
+
+
 def configure(policy: Path | None) -> SacExpertConfig:
     """The expert config of ``cdrb collect --expert sac --policy FILE``."""
     from cdrb_cli.artifacts import sha256_file
 
     if policy is None:
         raise BadInput("--expert sac needs --policy FILE", hint="train one with `cdrb expert train ENV`")
-    if not Path(policy).is_file():
-        raise BadInput(f"--policy {policy}: no such file", hint="train one with `cdrb expert train ENV`")
+    from cdrb_cli.artifacts.core import check_input_file
+
+    check_input_file(policy, "--policy", MAX_POLICY_BYTES, "policy zip", POLICY_HINT)
     return SacExpertConfig(policy_path=str(Path(policy).resolve()), policy_sha256=sha256_file(policy))
 
 
