@@ -137,6 +137,8 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + '\n[[settings]]\nmethod = "mlp"\ncollect = ["--workers", "1"]\n', "every method shares"),
         (TINY + "\n[resources.training]\ncpus = 2\n", "training"),
         (TINY + '\n[[variants]]\nname = "a/b"\n', "variants.0.name"),
+        (TINY + '\n[[settings]]\ntrain = ["--stepz", "5"]\n', "'--stepz' is not a `cdrb train` option"),
+        (TINY + '\n[[variants]]\nname = "v"\neval = ["--max-lagg=0.6"]\n', "is not a `cdrb eval` option"),
     ],
 )
 def test_bad_grid_files_are_one_line_errors_naming_the_file(tmp_path, text, words):

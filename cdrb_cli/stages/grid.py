@@ -260,6 +260,47 @@ def _anchor_all(items: list, base: Path) -> list:
     ]
 
 
+def _known_options() -> dict[str, set[str]]:
+    """The option names each grid-run command takes, from the CLI itself (`cdrb collect`, `cluster`, `train`,
+    `eval`)."""
+    import typer
+
+    from cdrb_cli.cli import app
+
+    root = typer.main.get_command(app)
+    out = {}
+    for name in ("collect", "cluster", "train", "eval"):
+        cmd = root.commands[name]
+        out[name] = {o for p in cmd.params for o in (*getattr(p, "opts", ()), *getattr(p, "secondary_opts", ()))}
+    return out
+
+
+def _check_flags(spec: GridSpec, path: Path) -> None:
+    """Every flag a grid's settings and variants pass is an option of the command it goes to: a mistyped flag is
+    one line when the grid is read, not a failure of every task hours later."""
+    known = _known_options()
+    items = [("settings", i, s) for i, s in enumerate(spec.settings)] + [
+        ("variants", i, v) for i, v in enumerate(spec.variants)
+    ]
+    for kind, i, item in items:
+        for command in ("collect", "cluster", "train", "eval"):
+            for flag in getattr(item, command, []):
+                name = flag.split("=", 1)[0]
+                if name.startswith("-") and not _is_number(name) and name not in known[command]:
+                    raise BadInput(
+                        f"{path}: {kind}[{i}].{command}: {clip(repr(flag), 60)} is not a `cdrb {command}` option",
+                        hint=f"`cdrb {command} --help` lists them",
+                    )
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _included_settings(
     paths: list[Path], base: Path, chain: tuple[Path, ...], read: list[Path] | None = None
 ) -> list[Settings]:
@@ -331,6 +372,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         + _included_settings(list(extra_includes), Path.cwd(), (path,), read)
     )
     spec.variants = _anchor_all(spec.variants, path.parent)
+    _check_flags(spec, path)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
     for env in spec.envs:
