@@ -232,3 +232,54 @@ def test_demos_that_start_anywhere(tmp_path, cdrb):
     r = cdrb("collect", "fetch-reach", "-n", "2", "--starts", "anywhere", "--out", tmp_path / "f.h5")
     assert r.returncode == 2 and "--starts 'anywhere'" in r.stderr and r.stderr.count("\n") == 1
     assert not (tmp_path / "f.h5").exists()
+
+
+def _children(pid: int) -> set[int]:
+    """Every live descendant of ``pid`` (from /proc)."""
+    import pathlib
+
+    parents = {}
+    for stat in pathlib.Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z":
+            parents[int(stat.parent.name)] = int(fields[1])
+    out, frontier = set(), {pid}
+    while frontier:
+        frontier = {c for c, p in parents.items() if p in frontier} - out
+        out |= frontier
+    return out
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_a_collect_killed_with_sigkill_leaves_no_worker(tmp_path):
+    """kill -9 of `cdrb collect --workers 2` once its workers run: within 5 s no process it started is left (the
+    workers and multiprocessing's resource tracker used to stay, 120 MB each)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", "collect", "fetch-pick-place-obstacle", "-n", "4000", "--workers", "2",
+         "--out", str(tmp_path / "d.h5")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    deadline = time.time() + 120
+    kids: set[int] = set()
+    while time.time() < deadline and len(kids) < 2:
+        time.sleep(0.2)
+        kids = _children(proc.pid)
+    assert len(kids) >= 2, "the workers never started"
+    time.sleep(2)  # past the workers' start-up
+    kids = _children(proc.pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 5
+    while time.time() < deadline and any(os.path.exists(f"/proc/{k}") and _children(1) & {k} for k in kids):
+        time.sleep(0.2)
+    alive = [k for k in kids if os.path.exists(f"/proc/{k}") and open(f"/proc/{k}/stat").read().split()[2] != "Z"]
+    assert not alive, f"left running: {alive}"
+    assert not (tmp_path / "d.h5").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -116,8 +117,21 @@ def _env_and_expert(spec: EnvSpec, config: CollectConfig) -> tuple[Env, Expert]:
     return family_of(spec).make_env(spec), EXPERTS.get(config.expert.kind).build(spec, config.expert)
 
 
-def _worker_init() -> None:
-    os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported there: the pool is the parallelism
+def _worker_init(parent: int | None = None) -> None:
+    """A rollout worker's start: one torch thread (the pool is the parallelism), and on Linux the kernel's promise
+    to SIGTERM it when its parent dies (a collect killed with -9 leaves no worker, and so no resource tracker,
+    running)."""
+    os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported there
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            return
+        if parent is not None and os.getppid() != parent:  # the parent died before the promise was made
+            os._exit(1)
 
 
 def collect_workers(episodes: int, workers: int | None) -> int:
@@ -149,7 +163,9 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
             env, agent = _env_and_expert(spec, config)
             results = ([rollout(env, agent, spec, ep, spec.episode_limit) for ep in part] for part in parts)
         else:
-            pool = ProcessPoolExecutor(n_workers, mp_context=get_context("spawn"), initializer=_worker_init)
+            pool = ProcessPoolExecutor(
+                n_workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
+            )
             results = pool.map(_rollouts, [spec] * len(parts), [config] * len(parts), parts)  # in order
         try:
             for part in results:
