@@ -578,3 +578,17 @@ def test_file_flags_in_a_grid_are_relative_to_the_file_that_declares_them(tmp_pa
     assert any(f"--config {sub / 'shared' / 'mlp.toml'}" in ln for ln in lines if "--method mlp" in ln)
     assert any(f"--config={sub / 'cdrb.toml'}" in ln for ln in lines if "--method cdrb" in ln)
     assert any(f"--config {tmp_path / 'abs.toml'}" in ln for ln in lines)
+
+
+def test_a_second_grid_on_the_same_out_names_the_grid_file_not_a_flag(tmp_path):
+    """While another run holds OUT/grid.json, the grid stops in one line naming its file and `out` (the user
+    passed no --out)."""
+    from cdrb_cli import artifacts
+
+    grid = _grid(tmp_path)
+    (tmp_path / "runs").mkdir()
+    with artifacts.claim_output(tmp_path / "runs" / "grid.json", force=True):
+        proc = _cli("grid", str(grid), "--backend", "pool")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "another cdrb run" in lines[0], proc.stderr
+    assert f"{grid}: out =" in lines[0] and "--out" not in lines[0]

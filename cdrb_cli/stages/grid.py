@@ -947,7 +947,7 @@ def grid(
         return tasks
     check_outputs(spec, tasks)
     spec.out.mkdir(parents=True, exist_ok=True)
-    with artifacts.claim_output(spec.out / "grid.json", force=True):
+    with artifacts.claim_output(spec.out / "grid.json", force=True, flag=f"{path}: out ="):
         runner = make_backend(backend, workers, address)
         try:
             runner.check(spec)
