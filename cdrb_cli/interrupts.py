@@ -15,10 +15,18 @@ from contextlib import contextmanager
 
 _requested = False
 _polling = 0
+_delivered = 0
+
+
+def delivered() -> int:
+    """How many SIGINT/SIGTERM the handler has received: a ``KeyboardInterrupt`` raised while this did not move
+    came from code, not from the user (e.g. a plugin raising it)."""
+    return _delivered
 
 
 def _handler(signum, frame) -> None:
-    global _requested
+    global _requested, _delivered
+    _delivered += 1
     if not _polling:
         raise KeyboardInterrupt  # raised now, so nothing is left to answer later
     _requested = True

@@ -42,9 +42,19 @@ def load_plugins() -> None:
 
     names = [(ep.value.split(":")[0], f"entry point {ep.name}") for ep in entry_points(group=PLUGIN_GROUP)]
     names += [(m.strip(), PLUGIN_ENV) for m in os.environ.get(PLUGIN_ENV, "").split(",") if m.strip()]
+    from cdrb_cli import interrupts
+
     for module, source in names:
+        signals = interrupts.delivered()
         try:
             importlib.import_module(module)
+        except KeyboardInterrupt:
+            if interrupts.delivered() != signals:
+                raise  # the user's Ctrl-C or a SIGTERM: an interrupt, as anywhere else
+            raise BadInput(
+                f"plugin {module!r} ({source}) failed to import: it raised KeyboardInterrupt itself",
+                hint=f"fix the plugin or remove it from {source}",
+            ) from None
         except (Exception, SystemExit) as exc:
             raise BadInput(
                 f"plugin {module!r} ({source}) failed to import: {type(exc).__name__}: {exc}",

@@ -158,6 +158,7 @@ def test_a_second_run_names_the_settings_that_differ(small_data, tmp_path, cdrb)
     [
         ("raise RuntimeError('boom')", "failed to import: RuntimeError: boom"),
         ("import sys; sys.exit('bye')", "failed to import: SystemExit: bye"),
+        ("raise KeyboardInterrupt", "it raised KeyboardInterrupt itself"),  # not the user's Ctrl-C: not exit 130
         (
             "from cdrb_cli.methods.registry import METHODS\nMETHODS.register(object())",
             "a method entry must be a MethodEntry",
