@@ -88,6 +88,12 @@ def claim_output(
         yield path
 
 
+def locked(path: str | Path, flag: str):
+    """An exclusive lock on ``path``'s ``.NAME.lock`` for a ``with`` block, for outputs that are not one file (a
+    Minari dataset folder): a second writer stops with one line naming ``flag`` and the holder's pid."""
+    return _locked(Path(path), flag)
+
+
 def _lock_path(path: Path) -> Path:
     return path.with_name(f".{path.name}.lock")
 

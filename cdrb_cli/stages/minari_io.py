@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import __version__, artifacts, ui
-from cdrb_cli.artifacts.outputs import _locked
+from cdrb_cli.artifacts.outputs import locked
 from cdrb_cli.errors import BadInput
 
 #: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
@@ -316,7 +316,7 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
         "the goal), per step in infos['success'] and as the sparse reward."
     )
     final.parent.mkdir(parents=True, exist_ok=True)
-    with _locked(final, "--minari"):
+    with locked(final, "--minari"):
         _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
         return _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description)
 
