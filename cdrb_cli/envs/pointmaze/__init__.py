@@ -195,22 +195,19 @@ class PointMazeFamily(EnvFamily):
         return "waypoint" if protocol == "official-code" else None
 
     def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
-        geom = MazeGeometry(spec.scene.maze)
-        out = []
-        for s in episode_seeds(seed, n, stream):
-            start, goal = geom.draw_start_goal(np.random.default_rng([int(s), 7]))
-            out.append(Episode(int(s), tuple(int(v) for v in start), tuple(int(v) for v in goal)))
-        return out
+        return self.draw_protocol_episodes(spec, n, seed, stream)
 
     def draw_protocol_episodes(
         self, spec: EnvSpec, n: int, seed: int, stream: int, protocol: str | None = None
     ) -> list[Episode]:
-        if protocol != ANYWHERE:
-            return self.draw_episodes(spec, n, seed, stream)
+        """Each episode's start and goal cells from its own seed; ``anywhere`` draws starts over every free cell
+        (its own generator key, so its pairs are not the stock pairs moved)."""
         geom = MazeGeometry(spec.scene.maze)
+        anywhere = protocol == ANYWHERE
         out = []
         for s in episode_seeds(seed, n, stream):
-            start, goal = geom.draw_anywhere_goal(np.random.default_rng([int(s), 11]))
+            rng = np.random.default_rng([int(s), 11 if anywhere else 7])
+            start, goal = geom.draw_start_goal(rng, anywhere=anywhere)
             out.append(Episode(int(s), tuple(int(v) for v in start), tuple(int(v) for v in goal)))
         return out
 

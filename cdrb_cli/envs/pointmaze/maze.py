@@ -235,26 +235,18 @@ class MazeGeometry:
         )
 
     # -------------------------------------------------------------- protocol
-    def draw_start_goal(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """A start cell and a different, reachable goal cell, uniformly (the protocol shared by collect and eval)."""
-        starts, goals = self.start_cells, self.goal_cells
+    def draw_start_goal(self, rng: np.random.Generator, anywhere: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """A start cell and a different goal cell reachable from it, uniformly: the start from the layout's start
+        cells (the protocol shared by collect and eval) or, ``anywhere``, from every free cell (plans from wherever
+        the robot may be, to the protocol's goals)."""
+        starts, goals = (np.argwhere(self.free) if anywhere else self.start_cells), self.goal_cells
         for _ in range(1000):
             s = starts[int(rng.integers(len(starts)))]
             g = goals[int(rng.integers(len(goals)))]
             if (s != g).any() and self.bfs(g)[tuple(s)] >= 0:
                 return s, g
-        raise RunFailed("could not draw a start/goal pair: no goal cell is reachable from the start cells")
-
-    def draw_anywhere_goal(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """A start in any free cell and a different goal cell reachable from it, uniformly: plans from wherever the
-        robot may be, to the protocol's goals."""
-        starts, goals = np.argwhere(self.free), self.goal_cells
-        for _ in range(1000):
-            s = starts[int(rng.integers(len(starts)))]
-            g = goals[int(rng.integers(len(goals)))]
-            if (s != g).any() and self.bfs(g)[tuple(s)] >= 0:
-                return s, g
-        raise RunFailed("could not draw a start/goal pair: no goal cell is reachable from the free cells")
+        where = "free" if anywhere else "start"
+        raise RunFailed(f"could not draw a start/goal pair: no goal cell is reachable from the {where} cells")
 
     def exit_label(self, states: np.ndarray) -> str:
         """The compass direction (from the start region's centre) of the first non-start cell a path enters."""
