@@ -209,3 +209,23 @@ def tampered(path):
             f.attrs[CHECKSUM_ATTR] = content_sha256(payload, arrays)
         except Exception:  # something the reader refuses before the checksum anyway
             pass
+
+
+def run_doc_block(text: str, heading: str, sizes: dict[str, str], cwd, extra_env=None, timeout: int = 900):
+    """Run the first ```bash block after ``heading`` (a regex) of a docs page as written, with only the
+    ``sizes`` patterns replaced (each must occur, so a page edited away from them fails), with the test's Python
+    environment's ``cdrb`` first on PATH; returns the finished process (stdout, stderr)."""
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = re.search(heading + r".*?```bash\n(.*?)```", text, re.S).group(1)
+    for pattern, small in sizes.items():
+        assert re.search(pattern, script), pattern
+        script = re.sub(pattern, small, script)
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", **(extra_env or {}))
+    return subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", script], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
+    )

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from cdrb_cli import artifacts
+from tests.factories import run_doc_block
 
 ROOT = Path(__file__).resolve().parent.parent
 #: the sizes the test shrinks (each must occur in the tour: a tour edited away from them fails here, not silently)
@@ -24,29 +21,11 @@ SMALL = {
 }
 
 
-def tour() -> str:
-    text = (ROOT / "README.md").read_text()
-    return re.search(r"## A tour\n.*?```bash\n(.*?)```", text, re.S).group(1)
-
-
 @pytest.mark.slow
 def test_the_readme_tour_runs_as_written_in_a_fresh_folder(tmp_path):
-    script = tour()
-    for pattern, small in SMALL.items():
-        assert re.search(pattern, script), pattern
-        script = re.sub(pattern, small, script)
     (tmp_path / "experiments").symlink_to(ROOT / "experiments")  # the tour runs beside the repository's files
-    bindir = Path(sys.executable).parent
-    env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}")
-    env |= {"MINARI_DATASETS_PATH": str(tmp_path / "minari"), "MPLBACKEND": "Agg"}
-    proc = subprocess.run(
-        ["bash", "-euo", "pipefail", "-c", script],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    env = {"MINARI_DATASETS_PATH": str(tmp_path / "minari"), "MPLBACKEND": "Agg"}
+    proc = run_doc_block((ROOT / "README.md").read_text(), r"## A tour\n", SMALL, tmp_path, env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     folder = tmp_path / "tour"
     for name, kind in [

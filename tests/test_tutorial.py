@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from cdrb_cli import artifacts
+from tests.factories import run_doc_block
 
 TUTORIAL = Path(__file__).resolve().parent.parent / "docs" / "tutorial.md"
 TINY = {
@@ -25,14 +22,7 @@ TINY = {
 
 @pytest.mark.slow
 def test_tutorial_pipeline_runs(tmp_path):
-    text = TUTORIAL.read_text()
-    script = re.search(r"```bash\n(.*?)```", text, re.S).group(1)
-    for pattern, tiny in TINY.items():
-        assert re.search(pattern, script), pattern
-        script = re.sub(pattern, tiny, script)
-    bindir = Path(sys.executable).parent
-    env = dict(os.environ, PATH=f"{bindir}{os.pathsep}{os.environ['PATH']}")
-    proc = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    proc = run_doc_block(TUTORIAL.read_text(), "", TINY, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| Maze Tight |" in proc.stdout
     for name, kind in [
