@@ -274,7 +274,7 @@ def check_foreign_h5(path: Path, max_objects: int) -> None:
             if ds.dtype.kind not in "biufc":
                 continue  # strings and the like: read by their library, not by cdrb
             declared += int(np.prod(ds.shape, dtype=np.float64)) * ds.dtype.itemsize
-        if declared > FILE_EXPANSION * _stored_bytes(path) + 2**20:
+        if declared > _expansion_limit(path):
             raise ArtifactError(
                 f"{path}: its datasets declare {declared / 2**20:,.0f} MiB in a {_stored_bytes(path) / 2**20:,.1f} "
                 "MiB file",
@@ -282,6 +282,11 @@ def check_foreign_h5(path: Path, max_objects: int) -> None:
             )
     finally:
         f.close()
+
+
+def _expansion_limit(path: Path) -> int:
+    """The most bytes a file's datasets may declare: :data:`FILE_EXPANSION` times what it occupies, plus 1 MiB."""
+    return FILE_EXPANSION * _stored_bytes(path) + 2**20
 
 
 def _stored_bytes(path: Path) -> int:
@@ -370,7 +375,7 @@ def read_h5(
             if ds.shape is None:
                 raise ArtifactError(f"{path}: dataset /{name} has no shape (empty dataspace)", hint="re-create it")
             total += int(np.prod(ds.shape, dtype=np.float64)) * dt.itemsize
-        limit = min(MAX_TOTAL_BYTES, FILE_EXPANSION * _stored_bytes(path) + 2**20)
+        limit = min(MAX_TOTAL_BYTES, _expansion_limit(path))
         if total > limit:
             raise ArtifactError(
                 f"{path}: datasets declare {total / 2**20:.0f} MiB, "
