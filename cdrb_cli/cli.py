@@ -291,6 +291,66 @@ EnvArg = typer.Argument(None, help="Environment id (see `cdrb envs`); omit it wi
 MapOpt = typer.Option(None, "--maze-map", help="A maze map text file: rows of # wall, . free, S start, G goal, C both.")
 
 
+SceneMapOpt = typer.Option(
+    None,
+    "--maze-map",
+    help="Plan in this map instead of the model's: the training map with walls added (obstacles the data never "
+    "saw; the model is not retrained). Same size and cell size as the training map.",
+)
+MaskOpt = typer.Option(
+    False,
+    "--mask-buffer",
+    help="CDRB: remove the buffer states that collide in the map planned in before sampling, and re-draw restored "
+    "states that collide from the states left.",
+)
+BestOfOpt = typer.Option(
+    1,
+    "--best-of",
+    min=1,
+    max=64,
+    help="Sample N plans per pair in one batch and keep the first with no step through an obstacle (else the one "
+    "with the fewest).",
+)
+GuideOpt = typer.Option(
+    0.0,
+    "--guide-scale",
+    min=0.0,
+    max=1e6,
+    help="Diffuser: follow the gradient of the plan's collision cost (depth inside obstacles) with this step after "
+    "every denoising step (0: off). Tune it on --stream tune.",
+)
+
+
+RouteOpt = typer.Option(
+    None,
+    "--route-k",
+    min=1,
+    metavar="K",
+    help="CDRB: start from the shortest route through the buffer's states joined by collision-free steps, "
+    "degraded to step K and restored, instead of from random buffer states (plans around new obstacles).",
+)
+
+
+RouteBufferOpt = typer.Option(
+    None,
+    "--route-buffer",
+    help="With --route-k, for a planner that carries no buffer (Diffuser): the buffer artifact whose states the "
+    "routes go through (`cdrb cluster` of the model's demos).",
+)
+
+
+def _avoid(mask_buffer: bool, best_of: int, guide_scale: float, route_k: int | None, route_buffer: Path | None):
+    from cdrb_cli.configs import AvoidConfig
+
+    return AvoidConfig(
+        mask_buffer=mask_buffer,
+        best_of=best_of,
+        guide_scale=guide_scale,
+        route_k=route_k,
+        route_buffer=None if route_buffer is None else str(route_buffer),
+    )
+
+
 def _spec(env: str | None, maze_map: Path | None):
     from cdrb_cli.envs.registry import make_spec
 
@@ -860,6 +920,12 @@ def plan(
     device: str = DeviceOpt,
     out: Path = typer.Option(Path("plans.h5"), "--out", "-o", help="Plans artifact to write."),
     plot: Path | None = typer.Option(None, "--plot", help="Draw the scene and the plans to this PNG."),
+    maze_map: Path | None = SceneMapOpt,
+    mask_buffer: bool = MaskOpt,
+    best_of: int = BestOfOpt,
+    route_k: int | None = RouteOpt,
+    route_buffer: Path | None = RouteBufferOpt,
+    guide_scale: float = GuideOpt,
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -868,19 +934,24 @@ def plan(
 
     CDRB (the paper's sampling algorithm): start from random buffer states, then repeatedly restore and
     re-degrade with shrinking balls.
-    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 -n 8 --plot plans.png --show-steps 4[/cyan]"""
+    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 -n 8 --plot plans.png --show-steps 4[/cyan]
+
+    New obstacles, no retraining: [cyan]--maze-map closed.txt --mask-buffer --best-of 8[/cyan] plans in the
+    training map with walls added, from the buffer states outside them, keeping the best of 8 plans."""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import PlanConfig
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.seeding import STREAM_PLAN
-    from cdrb_cli.stages.plan import make_plans
+    from cdrb_cli.stages.plan import check_avoid, make_plans, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--sample-steps", sample_steps)
     _check_outputs(force, [model], out=out, plot=plot)
     m = _trained_model(model, allow_partial)
-    spec = m.manifest.env
+    avoid = _avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer)
+    check_avoid(m.manifest.config.method.name, avoid)
+    spec = scene_spec(m, maze_map)
     family = family_of(spec)
     entry = METHODS.get(m.manifest.config.method.name)
     chosen = entry.check_sampler(sampler or m.manifest.config.method.sampler)
@@ -899,21 +970,36 @@ def plan(
         s_arr = np.array([family.parse_point(spec, t, "--start") for t in start])
         g_arr = np.array([family.parse_point(spec, t, "--goal") for t in goal])
     config = PlanConfig(
-        sampler=chosen, n=n, sample_steps=sample_steps, use_ema=not raw_weights, keep_iterates=show_steps, seed=seed
+        sampler=chosen,
+        n=n,
+        sample_steps=sample_steps,
+        use_ema=not raw_weights,
+        keep_iterates=show_steps,
+        avoid=avoid,
+        scene=None if maze_map is None else str(maze_map),
+        seed=seed,
     )
     result = produce(
         out,
         "plans",
         force,
         config,
-        lambda: make_plans(m, s_arr, g_arr, config, out, device=setup_torch(device), batch_size=batch_size),
+        lambda: make_plans(m, s_arr, g_arr, config, out, device=setup_torch(device), batch_size=batch_size, spec=spec),
         parents=[m],
+        env=spec,
     )
     sm = result.manifest.summary
     ui.log(
         f"{sm.plans} plans for {sm.pairs} pairs: {sm.in_wall_fraction:.2%} of planned states inside obstacles "
         f"({sm.plans_with_wall_states} plans touch one), {sm.seconds_per_plan * 1000:.1f} ms/plan"
     )
+    if sm.masked is not None:
+        ui.log(
+            f"masked buffer: {sm.masked.removed} of {sm.masked.buffer_states} buffer states removed, "
+            f"{sm.masked.redrawn} restored state(s) re-drawn"
+        )
+        if sm.masked.warning():
+            ui.warn(sm.masked.warning())
     from cdrb_cli.stages.plan import disconnected_warning
 
     warning = disconnected_warning(spec, result.arrays["plans"], m.manifest.config.stride)
@@ -1005,6 +1091,17 @@ def eval_cmd(
     replan_plot: Path | None = typer.Option(
         None, "--replan-plot", help="With --replan: the first episode's successive plans over its path (PNG)."
     ),
+    maze_map: Path | None = typer.Option(
+        None,
+        "--maze-map",
+        help="Evaluate in this map instead of the model's: the training map with walls added (obstacles the data "
+        "never saw; the model is not retrained). `--protocol detour` keeps the pairs the new walls make longer.",
+    ),
+    mask_buffer: bool = MaskOpt,
+    best_of: int = BestOfOpt,
+    route_k: int | None = RouteOpt,
+    route_buffer: Path | None = RouteBufferOpt,
+    guide_scale: float = GuideOpt,
     sampler: str | None = SamplerOpt,
     sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
     raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with raw instead of EMA weights."),
@@ -1027,7 +1124,10 @@ def eval_cmd(
 
     Closed loop (planners): [cyan]--replan every:20[/cyan] plans again every 20 steps from the current state,
     [cyan]--replan deviation:0.5 --repair-k 4[/cyan] repairs the plan when the agent is 0.5 m off it; the eval then
-    records re-plans and the planning time of whole episodes (`--replan-plot` draws one episode's plans)."""
+    records re-plans and the planning time of whole episodes (`--replan-plot` draws one episode's plans).
+
+    New obstacles, no retraining: [cyan]--maze-map closed.txt --protocol detour --mask-buffer --best-of 8[/cyan]
+    evaluates in the training map with walls added, on the pairs they lengthen."""
     if video is not None:
         from cdrb_cli.envs.render import choose_gl_backend
 
@@ -1068,7 +1168,13 @@ def eval_cmd(
         replan=replan,
         repair_k=repair_k,
         repair_steps=repair_steps,
+        avoid=_avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer),
+        maze_map=maze_map,
     )
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.stages.plan import scene_spec
+
+    eval_spec = family_of(m.manifest.env).protocol_spec(scene_spec(m, maze_map), config.protocol)
     n_videos = videos if video is not None else 0
     started = time.time()
     ev = produce(
@@ -1077,14 +1183,24 @@ def eval_cmd(
         force,
         config,
         lambda: evaluate(
-            m, config, out, device=setup_torch(device), video_dir=video, videos=n_videos, replan_plot=replan_plot
+            m,
+            config,
+            out,
+            device=setup_torch(device),
+            video_dir=video,
+            videos=n_videos,
+            replan_plot=replan_plot,
+            spec=eval_spec,
         ),
         parents=[m],
+        env=eval_spec,
     )
     s = ev.manifest.summary
     crossing = "" if s.plan_crossing_mean is None else f"; plans through obstacles {100 * s.plan_crossing_mean:.1f}%"
+    if s.masked is not None and s.masked.warning():
+        ui.warn(s.masked.warning())
     ui.log(
-        f"{s.method} on {ui.plain(m.manifest.env.id)} ({stream} pairs): success {100 * s.success_mean:.1f} ± "
+        f"{s.method} on {ui.plain(ev.manifest.env.id)} ({stream} pairs): success {100 * s.success_mean:.1f} ± "
         f"{100 * s.success_std:.1f}% over {len(seed_list)} seeds x {episodes} episodes; "
         + (
             f"planned states in obstacles {100 * s.in_wall_mean:.2f}%{crossing}; "

@@ -124,12 +124,85 @@ class TrainState(Record):
 SamplerName = Annotated[str, RegisteredName(METHODS, values=lambda entry: entry.samplers, what="sampler")]
 
 
+class AvoidConfig(Record):
+    """How a planner keeps its plans out of obstacles, at plan time, with the model unchanged (for obstacles the
+    training data never saw: `--maze-map` at plan/eval time)."""
+
+    mask_buffer: bool = Field(
+        False,
+        description="buffer methods (CDRB): remove the buffer states that collide in the scene planned in before "
+        "sampling, and re-draw from the remaining buffer any restored state that collides (the smallest ball that "
+        "holds one)",
+    )
+    best_of: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="sample this many plans per start/goal pair in one batch and keep the first with no step "
+        "through an obstacle, else the one with the fewest (1: one plan, as the paper)",
+    )
+    route_k: int | None = Field(
+        None,
+        ge=1,
+        le=100_000,
+        description="buffer methods (CDRB): start from the shortest route through the buffer's states joined by "
+        "collision-free steps, degraded to step k and restored (the method's repair), instead of from random "
+        "buffer states; None: sample from scratch",
+    )
+    route_buffer: str | None = Field(
+        None,
+        max_length=4096,
+        description="a buffer artifact whose states the routes go through, for a planner that carries no buffer "
+        "(Diffuser); None: the model's own buffer",
+    )
+    guide_scale: float = Field(
+        0.0,
+        ge=0,
+        le=1e6,
+        description="methods with guidance (Diffuser): after every denoising step, move the plan down the gradient "
+        "of its collision cost (depth inside obstacles, in raw units) by this scale; 0: no guidance",
+    )
+
+    def label(self) -> str:
+        """A short description, e.g. 'masked buffer, best of 8'."""
+        parts = ["masked buffer"] if self.mask_buffer else []
+        parts += [f"buffer route, k {self.route_k}"] if self.route_k else []
+        parts += [f"guided x{self.guide_scale:g}"] if self.guide_scale else []
+        parts += [f"best of {self.best_of}"] if self.best_of > 1 else []
+        return ", ".join(parts) or "plain"
+
+
+class MaskCounts(Record):
+    """What masking a buffer did: states removed before sampling, restored states re-drawn after it."""
+
+    buffer_states: int
+    removed: int = Field(description="buffer states in collision in the scene, removed before sampling")
+    redrawn: int = Field(description="restored states in collision, re-drawn from the kept buffer states")
+    unreachable: int = Field(description="of those, states with no kept buffer state within the largest ball")
+
+    def warning(self) -> str | None:
+        """One line when the masked buffer left restored states inside an obstacle, or kept few states."""
+        kept = self.buffer_states - self.removed
+        if self.unreachable:
+            return (
+                f"masked buffer: {self.unreachable} restored state(s) in an obstacle had no kept buffer state within "
+                "the largest ball and stay there: the buffer has too few states left around the new obstacles"
+            )
+        if kept < 0.5 * self.buffer_states:
+            return f"masked buffer: the new obstacles removed {self.removed} of {self.buffer_states} buffer states"
+        return None
+
+
 class PlanConfig(Record):
     sampler: SamplerName
     n: int = Field(gt=0, le=10_000, description="plans per start/goal pair")
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = True
     keep_iterates: int = Field(0, ge=0)
+    avoid: AvoidConfig = Field(default_factory=AvoidConfig, description="keeping plans out of obstacles")
+    scene: str | None = Field(
+        None, description="the map file planned in instead of the model's (its content is the manifest's env)"
+    )
     seed: Seed
 
 
@@ -138,9 +211,13 @@ class PlanSummary(Record):
     plans: int
     in_wall_fraction: float = Field(description="planned states inside an obstacle (walls, for mazes)")
     plans_with_wall_states: int
+    plans_crossing: int | None = Field(
+        None, description="plans with a state in an obstacle or a straight step through one (None: not measured)"
+    )
     seconds_per_batch: float
     seconds_per_plan: float
     device: str
+    masked: MaskCounts | None = Field(None, description="with a masked buffer: what masking removed and re-drew")
 
 
 # --------------------------------------------------------------------------------------------- eval
@@ -225,6 +302,10 @@ class EvalConfig(Record):
     replan: ReplanConfig = Field(
         default_factory=ReplanConfig, description="planners: when to plan again during an episode, and how"
     )
+    avoid: AvoidConfig = Field(default_factory=AvoidConfig, description="planners: keeping plans out of obstacles")
+    scene: str | None = Field(
+        None, description="the map file evaluated in instead of the model's (its content is the manifest's env)"
+    )
     seed: Seed
 
 
@@ -284,6 +365,7 @@ class EvalSummary(Record):
     failures: dict[str, int] | None = Field(None, description="failed episodes per cause, summed over seeds")
     per_seed: list[SeedResult]
     wall_time_s: float
+    masked: MaskCounts | None = Field(None, description="with a masked buffer: what masking removed and re-drew")
 
 
 def net_classes() -> list[type[Record]]:

@@ -197,6 +197,17 @@ class EnvFamily(ABC):
         training reinforcement-learning experts."""
         raise BadInput(f"{spec.id}: the {self.name} family has no gymnasium env for RL experts")
 
+    def with_map(self, spec: EnvSpec, path: Path, flag: str = "--maze-map") -> EnvSpec:
+        """The spec of ``spec``'s task in the scene a file describes (new obstacles at plan and eval time, with the
+        model unchanged); a one-line :class:`BadInput` when the family takes no such file or the file does not fit
+        the model's scene."""
+        raise BadInput(f"{flag} {path}: the {self.name} environments take no new map", hint=f"drop {flag}")
+
+    def scene_change_warning(self, spec: EnvSpec) -> str | None:
+        """One line when ``spec`` (from :meth:`with_map`) opens space the model's training scene had closed (the
+        model has no data there); None otherwise."""
+        return None
+
     # -------------------------------------------------------------- protocol
     def protocols(self) -> list[str]:
         """Every protocol name, the default first."""
@@ -306,6 +317,25 @@ class EnvFamily(ABC):
         from cdrb_cli.envs.geometry import path_crosses_boxes
 
         return path_crosses_boxes(paths, spec.obstacles)
+
+    def crossing_counts(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
+        """Per path (..., T, D): how many of its T - 1 straight steps touch an obstacle (a step counts when either
+        end is in collision or the segment between them passes through one): :meth:`path_in_collision` of each
+        two-state segment, so it holds for every family."""
+        paths = np.asarray(paths)
+        segments = np.stack([paths[..., :-1, :], paths[..., 1:, :]], axis=-2)  # (..., T-1, 2, D)
+        return np.asarray(self.path_in_collision(spec, segments), dtype=bool).sum(axis=-1)
+
+    def collision_cost(self, spec: EnvSpec):
+        """A differentiable cost of raw states (torch, (..., D)) that is 0 outside every obstacle and grows with the
+        depth inside one (:func:`~cdrb_cli.envs.geometry.box_penetration` over ``spec.obstacles`` grown by the
+        agent's radius), for collision-guided sampling; None when the family has none."""
+        from cdrb_cli.envs.geometry import box_arrays, box_penetration
+
+        ob = spec.obstacles
+        centers, halves = box_arrays(ob)
+        dims = list(ob.dims)
+        return lambda states: box_penetration(states[..., dims], centers, halves, ob.inflate)
 
     def goal_path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         """Boolean over paths (..., T, D): the planned path of what the task brings to the goal crosses an obstacle

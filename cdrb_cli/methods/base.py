@@ -164,6 +164,24 @@ class Planner(Method):
 
     #: whether :meth:`repair` restores from a partly degraded plan (False: it plans from scratch)
     repairs: ClassVar[bool] = False
+    #: whether :meth:`mask` can keep sampling away from states (a method that samples from a buffer)
+    masks: ClassVar[bool] = False
+    #: whether sampling can follow the gradient of a cost (:meth:`set_guide`)
+    guides: ClassVar[bool] = False
+    #: (cost of normalized plans (P, H, F) -> (P,), scale) that :meth:`sample` follows, or None
+    guide: tuple | None = None
+
+    def mask(self, collides) -> dict[str, int]:
+        """Keep sampling away from the states ``collides`` (normalized feature rows (N, F) -> bool (N,)) marks, for
+        obstacles the training data never saw. Returns counts to report (e.g. buffer states removed)."""
+        raise NotImplementedError(f"{self.name} samples from no buffer it could mask")
+
+    def set_guide(self, cost, scale: float) -> None:
+        """Follow ``cost`` (normalized plans (P, H, F) -> (P,), differentiable) down its gradient with step ``scale``
+        while sampling (None or scale 0: off)."""
+        if cost is not None and scale > 0 and not self.guides:
+            raise NotImplementedError(f"{self.name} has no guided sampling")
+        self.guide = (cost, float(scale)) if cost is not None and scale > 0 else None
 
     def repair_steps(self) -> int | None:
         """The largest degradation step ``k`` :meth:`repair` accepts (None: the method has no such step)."""

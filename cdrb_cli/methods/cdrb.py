@@ -12,6 +12,10 @@ improved update (Bansal et al.'s Algorithm 2), tau_{k-1} = tau_k - D(x0, k) + D(
 
 Plan repair (``repair``, for closed-loop evaluation): a previous plan, shifted to the current state, is degraded
 to a small step k by the same ball sampler and restored from k down to 1 with the same updates.
+
+A masked buffer (``mask``, for obstacles the data never saw): the buffer states inside them are removed before
+sampling, so every degraded plan is made of free states; a restored state that still lies inside one is re-drawn
+from the kept buffer states of the smallest ball around it that holds one.
 """
 
 from __future__ import annotations
@@ -72,6 +76,9 @@ class CDRB(Planner):
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = BallSampler(self.points, self.eps)
         self._torch_ball = None  # built on first use on a non-CPU device
+        self._collides = None  # with a masked buffer: which normalized features collide (re-drawn after restoring)
+        self.redrawn = 0  # restored states re-drawn from the masked buffer (counted over every sample call)
+        self.unreachable = 0  # of those, states with no kept buffer state within the largest ball (left as restored)
         # the first and last planned states are left out of the degradation when pinning fixes every feature there;
         # when it fixes only some (spec.pinned_dims / pinned_end_dims, or the action part of state-action features)
         # they are degraded like the rest and pinning restores the pinned dims, so training sees the ends as sampling
@@ -89,7 +96,7 @@ class CDRB(Planner):
         if torch.device(device).type == "cpu":
             return None
         if self._torch_ball is None or self._torch_ball.device != torch.device(device):
-            self._torch_ball = TorchBallSampler(self.points, self.eps, device=device)
+            self._torch_ball = TorchBallSampler(self.ball.points.astype(np.float32), self.eps, device=device)
         return self._torch_ball
 
     def _degrade(self, x: torch.Tensor, k, rng: np.random.Generator) -> torch.Tensor:
@@ -142,7 +149,48 @@ class CDRB(Planner):
             else:
                 x = x - self._degrade(x0, int(k), rng) + self._degrade(x0, int(k_next), rng)
             x = self.pin(x, start, goal)
+        if self._collides is not None:
+            x0 = self._redraw(x0, rng)
         return SampleResult(plans=x0, iterates=kept)
+
+    masks = True
+
+    def mask(self, collides) -> dict[str, int]:
+        """Remove the buffer states ``collides`` marks from what the ball sampler draws (the start of sampling and
+        every degradation), and re-draw each restored state that collides from the kept buffer states in the
+        smallest ball eps_k (k >= 1) that holds one (:meth:`_redraw`)."""
+        keep = ~np.asarray(collides(self.points), dtype=bool)
+        if not keep.any():
+            raise ValueError("every buffer state collides in this scene")
+        self.ball = BallSampler(self.points[keep], self.eps)
+        self._torch_ball = None
+        self._collides = collides
+        from scipy.spatial import cKDTree
+
+        self._kept_tree = cKDTree(self.ball.points)
+        return {"buffer_states": int(len(keep)), "removed": int((~keep).sum())}
+
+    def _redraw(self, x0: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        """``x0`` with every planned state between the pinned ends that collides replaced by a uniform draw from the
+        kept buffer states inside the smallest ball eps_k (k = 1..T-1) around it that holds one: the degradation at
+        the least step that leaves the obstacle. A state with none within eps_{T-1} stays (counted)."""
+        z = x0.detach().cpu().numpy().astype(np.float64)
+        P, H, F = z.shape
+        inner = z[:, 1:-1].reshape(-1, F)
+        bad = np.flatnonzero(np.asarray(self._collides(inner), dtype=bool))
+        if not bad.size:
+            return x0
+        nearest, _ = self._kept_tree.query(inner[bad])
+        k = np.searchsorted(self.eps, nearest, side="right")  # the least k with eps_k > distance (strictly inside)
+        ok = k < self.T
+        self.redrawn += int(bad.size)
+        self.unreachable += int((~ok).sum())
+        rows = bad[ok]
+        if rows.size:
+            idx = self.ball.sample(inner[rows], self.eps[k[ok]], rng)  # never -1: the nearest kept state is inside
+            inner[rows] = self.ball.points[idx]
+        z[:, 1:-1] = inner.reshape(P, H - 2, F)
+        return torch.from_numpy(z.astype(np.float32)).to(x0.device)
 
     def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
         P = start.shape[0]

@@ -9,7 +9,9 @@
   fewer steps for lower latency;
 * the same temporal U-Net as CDRB, so a comparison isolates the diffusion process;
 * plan repair (``repair``, for closed-loop evaluation): a previous plan noised to timestep k and denoised from
-  there, the Gaussian counterpart of CDRB's repair.
+  there, the Gaussian counterpart of CDRB's repair;
+* guided sampling (``set_guide``): after every denoising step the plan moves down the gradient of a cost (a
+  collision cost for obstacles the data never saw), as Diffuser guides with a value function.
 
 The schedulers are the `diffusers` library's DDPMScheduler / DDIMScheduler.
 """
@@ -106,8 +108,21 @@ class Diffuser(Planner):
                 out = self.pin(out, start, goal)
             kwargs = {"eta": 0.0} if sampler == "ddim" else {}
             x = sched.step(out, int(t), x, generator=gen, **kwargs).prev_sample
+            if self.guide is not None:
+                x = self._guided(x)
             x = self.pin(x, start, goal)
         return SampleResult(plans=x, iterates=kept)
+
+    guides = True
+
+    def _guided(self, x: torch.Tensor) -> torch.Tensor:
+        """One gradient step of the guide's cost (Diffuser's guided sampling, with a collision cost): x - scale
+        grad cost(x)."""
+        cost, scale = self.guide
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            (grad,) = torch.autograd.grad(cost(y).sum(), y)
+        return x - scale * grad
 
     def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
         sched = self._sampler(sampler, steps)

@@ -15,6 +15,7 @@ import time
 import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from cdrb_cli.stages.metrics import (
     std_or_none,
     sum_failures,
 )
-from cdrb_cli.stages.plan import load_planner, sample_plans
+from cdrb_cli.stages.plan import load_planner, mask_counts, prepare_planner, sample_plans
 
 
 @dataclass(frozen=True)
@@ -214,15 +215,22 @@ def evaluate(
     video_dir=None,
     videos: int = 0,
     replan_plot=None,
+    spec: EnvSpec | None = None,
 ):
     """Evaluate a model (a planner open or closed loop, or a policy) and write the eval artifact ``out``;
-    ``replan_plot``: a picture of the first closed-loop episode's successive plans over its executed path."""
+    ``replan_plot``: a picture of the first closed-loop episode's successive plans over its executed path;
+    ``spec``: the spec evaluated in (default: the model's, in ``config.scene``'s map, under ``config.protocol``)."""
     t0 = time.time()
     family = family_of(model.manifest.env)
-    spec = family.protocol_spec(model.manifest.env, config.protocol)
+    if spec is None:
+        base = model.manifest.env
+        if config.scene is not None:
+            base = family.with_map(base, Path(config.scene))
+        spec = family.protocol_spec(base, config.protocol)
     if METHODS.get(model.manifest.config.method.name).kind == "policy":
         return evaluate_policy(model, config, out, spec, device, video_dir, videos)
     method = load_planner(model, device=device, ema=config.use_ema)
+    avoid = prepare_planner(method, spec, config.avoid)
     if spec.pin_end_dims != model.manifest.env.pin_end_dims:  # a protocol that pins more (the official Fetch pin)
         method.pinned_end = spec.pin_end_dims
     METHODS.get(method.name).check_sampler(config.sampler)
@@ -253,13 +261,14 @@ def evaluate(
                 config.sample_steps,
                 batch_size=max(1, config.episodes),
                 device=device,
+                avoid=avoid,
             )
             sec_plan = sec_batch / len(plans)
             ctx = _SeedRun(family, spec, seed, episodes, plans, env, expert, sec_plan, steps, step_limit)
             if config.replan.mode == "never":
                 runs = _open_loop(ctx, starts, goals, controller)
             else:
-                runs = _closed_loop(ctx, method, config)
+                runs = _closed_loop(ctx, method, config, avoid)
             for plan, states_visited, result, history in runs:
                 results.append(result)
                 if len(executed) < videos:
@@ -274,6 +283,7 @@ def evaluate(
     if keep_plans:
         arrays["plans"] = np.concatenate(all_plans).astype(np.float32)
     summary = summarize(method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3))
+    summary = summary.model_copy(update={"masked": mask_counts(method, avoid)})
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
     )
@@ -335,7 +345,7 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
         yield ctx.plans[e], run.states, result, None
 
 
-def _closed_loop(ctx: _SeedRun, method, config: EvalConfig):
+def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None):
     """Yield (last plan, states, result, (plans, steps they were made at)) for every episode of one eval seed
     executed closed loop (stages/replan.py) in lockstep groups; the plan measures cover every plan an episode
     made."""
@@ -359,6 +369,7 @@ def _closed_loop(ctx: _SeedRun, method, config: EvalConfig):
             config.sampler,
             config.sample_steps,
             method.device,
+            avoid,
         )
         for episode, run in zip(group, runs):
             made = np.stack(run.plans)[..., : spec.obs_dim]  # (plans, H, obs_dim)
@@ -563,6 +574,8 @@ def eval_config(
     replan: str | None = None,
     repair_k: int | None = None,
     repair_steps: int | None = None,
+    avoid=None,
+    maze_map: Path | None = None,
 ) -> EvalConfig:
     """The EvalConfig of ``cdrb eval`` for a model: the family's controller (``controller``, else
     ``--set controller.name=...``, else the family's first) with ``settings`` on its fields (``--set
@@ -596,6 +609,15 @@ def eval_config(
             f"{given}: {entry.name} is a policy that acts closed loop; it executes no plan with a controller",
             hint="drop the controller flags (`cdrb eval --help`)",
         )
+    if entry.kind == "policy" and avoid is not None and avoid != type(avoid)():
+        raise BadInput(
+            f"--mask-buffer/--best-of/--guide-scale: {entry.name} is a policy: it makes no plans to choose or guide",
+            hint="drop those flags (`cdrb eval --help`)",
+        )
+    if avoid is not None:
+        from cdrb_cli.stages.plan import check_avoid
+
+        check_avoid(entry.name, avoid)
     protocol = protocol or family.protocol
     if protocol not in family.protocols():
         raise BadInput(
@@ -628,7 +650,10 @@ def eval_config(
         "protocol": protocol,
         "stream": stream,
         "seed": seed,
+        "scene": None if maze_map is None else str(maze_map),
     }
+    if avoid is not None:
+        base["avoid"] = avoid.model_dump()
     if replan is not None:
         try:
             fields = ReplanConfig.parse(replan)
@@ -640,6 +665,9 @@ def eval_config(
         if value is not None:
             settings = [*settings, Setting(("replan", key), value, f"{flag} {value}")]
     config = validate(EvalConfig, apply(base, settings), settings, "eval")
+    if maze_map is not None or protocol in family.extra_protocols:  # a protocol that cannot draw fails here, at once
+        where = spec if maze_map is None else family.with_map(spec, Path(maze_map))
+        family.draw_protocol_episodes(where, 1, config.seeds[0], EVAL_STREAMS[config.stream], protocol)
     k = config.replan.repair_k
     steps = getattr(model.manifest.config.method, "diffusion_steps", None)
     if k is not None and steps is not None and k > steps - 1:

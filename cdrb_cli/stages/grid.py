@@ -230,7 +230,7 @@ def _validated(model: type[BaseModel], raw: dict, path: Path):
 
 
 #: flags whose value is a file: a relative one in a grid or settings file means relative to that file's folder
-PATH_FLAGS = ("--maze-map", "--policy", "--config", "--paper-figures")
+PATH_FLAGS = ("--maze-map", "--policy", "--config", "--paper-figures", "--route-buffer")
 
 
 def _anchored(flags: list[str], base: Path) -> list[str]:
@@ -543,6 +543,7 @@ def expand(spec: GridSpec) -> list[Task]:
                         )
                         if m == model:
                             evals[v.name].append((f"eval {tag}", ev))
+    _link_flag_files(tasks)
     for name, items in evals.items():
         if not items or not spec.report:
             continue
@@ -559,6 +560,30 @@ def expand(spec: GridSpec) -> list[Task]:
             )
         )
     return tasks
+
+
+def flag_files(argv: list[str]) -> list[Path]:
+    """The files named by :data:`PATH_FLAGS` in a command line (``--flag FILE`` or ``--flag=FILE``)."""
+    out = []
+    for i, a in enumerate(argv):
+        name, eq, value = a.partition("=")
+        if name in PATH_FLAGS and eq:
+            out.append(Path(value))
+        elif a in PATH_FLAGS and i + 1 < len(argv):
+            out.append(Path(argv[i + 1]))
+    return out
+
+
+def _link_flag_files(tasks: list[Task]) -> None:
+    """Every file a task's flags name becomes one of its inputs (its memo then hashes it, so editing a map re-runs
+    the evals that read it), and a task that writes such a file becomes one of its dependencies."""
+    writer = {Path(os.path.normpath(p)): t.id for t in tasks for p in t.outputs}
+    for t in tasks:
+        for f in (Path(os.path.normpath(f)) for f in flag_files(t.argv)):
+            if f not in t.inputs:
+                t.inputs.append(f)
+            if f in writer and writer[f] not in t.deps and writer[f] != t.id:
+                t.deps.append(writer[f])
 
 
 def _buffer(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks: list[Task]) -> tuple[str, Path]:

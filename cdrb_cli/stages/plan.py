@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from cdrb_cli import artifacts
-from cdrb_cli.configs import PlanConfig, PlanSummary
+from cdrb_cli.configs import AvoidConfig, MaskCounts, PlanConfig, PlanSummary
 from cdrb_cli.envs.registry import family_of
+from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
-from cdrb_cli.methods.base import Planner
+from cdrb_cli.methods.base import Planner, SampleResult
 from cdrb_cli.methods.checkpoint import load_method
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_PLAN, step_rng
+from cdrb_cli.stages.routes import BufferGraph
 
 
 class SampledPlans(NamedTuple):
@@ -25,6 +29,164 @@ class SampledPlans(NamedTuple):
     iterates: np.ndarray | None  # (Q*n, S, H, F) kept intermediate iterates
     iterate_steps: list[int] | None  # the diffusion step of each kept iterate
     seconds: float  # mean seconds per sampled batch
+
+
+# ------------------------------------------------------------------------------------------------ new obstacles
+def scene_spec(model, maze_map: Path | None, flag: str = "--maze-map") -> EnvSpec:
+    """The spec plans run in: the model's, or its task in the map ``maze_map`` (obstacles the training data never
+    saw; the family checks the map fits the model and warns when it opens space the data never covered)."""
+    spec = model.manifest.env
+    if maze_map is None:
+        return spec
+    family = family_of(spec)
+    new = family.with_map(spec, Path(maze_map), flag)
+    warning = family.scene_change_warning(new)
+    if warning:
+        from cdrb_cli import ui
+
+        ui.warn(warning)
+    return new
+
+
+def check_avoid(method_name: str, avoid: AvoidConfig) -> None:
+    """Refuse an avoidance setting the method cannot apply (one line naming the flag)."""
+    entry = METHODS.get(method_name)
+    if entry.kind != "planner":
+        return
+    cls = entry.method
+    if avoid.mask_buffer and not cls.masks:
+        raise BadInput(
+            f"--mask-buffer: {method_name} samples from no replay buffer it could mask",
+            hint="drop --mask-buffer (use --best-of N, or --guide-scale for Diffuser)",
+        )
+    if avoid.route_k is not None and not cls.repairs:
+        raise BadInput(
+            f"--route-k: {method_name} cannot restore a plan from a part-way step (it has no repair)",
+            hint="drop --route-k (CDRB and Diffuser repair)",
+        )
+    if avoid.route_k is not None and not entry.needs_buffer and avoid.route_buffer is None:
+        raise BadInput(
+            f"--route-k: {method_name} carries no replay buffer to route through",
+            hint="add --route-buffer BUFFER.h5 (from `cdrb cluster` on the model's demos)",
+        )
+    if avoid.route_buffer is not None and avoid.route_k is None:
+        raise BadInput("--route-buffer without --route-k", hint="add --route-k K, or drop --route-buffer")
+    if avoid.guide_scale > 0 and not cls.guides:
+        raise BadInput(
+            f"--guide-scale: {method_name} has no guided sampling", hint="drop --guide-scale (Diffuser has it)"
+        )
+
+
+#: points per planned step that the guidance cost also checks (between consecutive states), so a guided plan is
+#: pushed off a jump through a wall and not only off states inside one
+GUIDE_SUBSTEPS = 4
+
+
+@dataclass
+class Avoidance:
+    """What keeps a planner's plans out of the obstacles of ``spec`` at plan time (:func:`prepare_planner`):
+    best-of-N by the collision test, and routes through the buffer to start repairs from."""
+
+    spec: EnvSpec
+    best_of: int = 1
+    graph: BufferGraph | None = None
+    route_k: int | None = None
+    masked: dict[str, int] | None = None  # what masking the buffer removed
+    unrouted: int = 0  # pairs no buffer route joined (planned from scratch)
+
+    def choose(self, plans: np.ndarray) -> np.ndarray:
+        """Indices into ``plans`` (P * n, H, F), raw and grouped by pair, of the plan kept for each pair: the one
+        with the fewest steps through an obstacle (none, when one has none), the shortest path among those."""
+        family = family_of(self.spec)
+        states = plans[..., : self.spec.obs_dim]
+        counts = family.crossing_counts(self.spec, states).reshape(-1, self.best_of)
+        dims = list(self.spec.obstacles.dims)
+        length = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1).sum(-1).reshape(-1, self.best_of)
+        order = np.lexsort((length, counts), axis=-1) if counts.size else counts
+        return np.arange(len(counts)) * self.best_of + order[:, 0]
+
+    def routes(self, starts: np.ndarray, goals: np.ndarray, horizon: int, features: int) -> np.ndarray | None:
+        """Raw buffer routes (n, horizon, features) for raw start/goal states (n, obs_dim); a pair with no route
+        gets the straight line (counted in ``unrouted``)."""
+        pad = np.zeros((len(starts), features - starts.shape[1]))
+        s, g = np.concatenate([starts, pad], 1), np.concatenate([goals, pad], 1)
+        out = []
+        for a, b in zip(s, g):
+            r = self.graph.route(a, b, horizon)
+            if r is None:
+                self.unrouted += 1
+                r = np.linspace(a, b, horizon)
+            out.append(r)
+        return np.stack(out)
+
+
+def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig) -> Avoidance:
+    """Apply ``avoid`` to a loaded planner for the scene of ``spec``: mask its buffer, set its collision guidance
+    (the family's cost of each state and of points between consecutive states), build the buffer graph its routes
+    come from. Returns the :class:`Avoidance` the sampler calls use."""
+    family = family_of(spec)
+    norm, obs = method.normalizer, method.obs_dim
+    out = Avoidance(spec, best_of=avoid.best_of, route_k=avoid.route_k)
+    if avoid.mask_buffer:
+
+        def collides(features: np.ndarray) -> np.ndarray:
+            return np.asarray(family.in_collision(spec, norm.unnormalize(features)[..., :obs]), dtype=bool)
+
+        try:
+            out.masked = method.mask(collides)
+        except ValueError as exc:
+            raise BadInput(f"--mask-buffer: {exc}", hint="the new obstacles cover the whole buffer") from None
+    if avoid.route_k is not None:
+        top = method.repair_steps()
+        if top is None or avoid.route_k > top:
+            raise BadInput(
+                f"--route-k {avoid.route_k}: {method.name} repairs from steps 1..{top}",
+                hint=f"use --route-k {max(1, (top or 8) // 8)}",
+            )
+        out.graph = BufferGraph(spec, route_states(method, spec, avoid.route_buffer))
+    if avoid.guide_scale > 0:
+        raw_cost = family.collision_cost(spec)
+        fractions = np.arange(GUIDE_SUBSTEPS) / GUIDE_SUBSTEPS
+
+        def cost(x):
+            import torch
+
+            states = norm.unnormalize(x)[..., :obs]
+            w = torch.as_tensor(fractions, dtype=x.dtype, device=x.device)[None, None, :, None]
+            pts = states[:, :-1, None, :] * (1 - w) + states[:, 1:, None, :] * w  # (P, H-1, substeps, obs)
+            return raw_cost(pts).sum(dim=(1, 2)) + raw_cost(states[:, -1]).reshape(len(x))
+
+        method.set_guide(cost, avoid.guide_scale)
+    return out
+
+
+def route_states(method: Planner, spec: EnvSpec, route_buffer: str | None) -> np.ndarray:
+    """Raw feature rows (K, method.feature_dim) that buffer routes go through: the model's own (masked) buffer,
+    or the states of the buffer artifact ``route_buffer`` (which must be of the model's environment)."""
+    if route_buffer is None:
+        return method.normalizer.unnormalize(method.ball.points)
+    from cdrb_cli.buffer import Normalizer
+
+    try:
+        buf = artifacts.load(route_buffer, "buffer")
+    except BadInput as exc:
+        raise BadInput(f"--route-buffer: {exc.message}", hint=exc.hint) from None
+    env = buf.manifest.env
+    if env.obs_dim != spec.obs_dim or env.id != spec.id.split("+")[0]:
+        raise BadInput(
+            f"--route-buffer {route_buffer}: a buffer of {env.id}, but the model plans in {spec.id.split('+')[0]}",
+            hint="cluster the model's own demos (`cdrb cluster DEMOS`)",
+        )
+    states = Normalizer(buf.low, buf.high).unnormalize(buf.points)[:, : spec.obs_dim]
+    pad = np.zeros((len(states), method.feature_dim - spec.obs_dim))
+    return np.concatenate([states, pad], axis=1)
+
+
+def mask_counts(method: Planner, avoid: Avoidance | None) -> MaskCounts | None:
+    """What masking did so far: the counts from :func:`prepare_planner` and the method's re-draw tallies."""
+    if avoid is None or avoid.masked is None:
+        return None
+    return MaskCounts(**avoid.masked, redrawn=int(method.redrawn), unreachable=int(method.unreachable))
 
 
 def sample_plans(
@@ -38,8 +200,10 @@ def sample_plans(
     keep_iterates: int = 0,
     batch_size: int = 256,
     device="cpu",
+    avoid: Avoidance | None = None,
 ):
-    """Plans for every (start, goal) pair, ``n`` per pair, in raw units, pinned exactly to the raw start/goal.
+    """Plans for every (start, goal) pair, ``n`` per pair, in raw units, pinned exactly to the raw start/goal (with
+    ``avoid``, each the best of its N samples, or repaired from a buffer route).
 
     Returns a :class:`SampledPlans` (plans, pair_index, iterates, iterate_steps, seconds per batch)."""
     norm = method.normalizer
@@ -49,7 +213,9 @@ def sample_plans(
     for b, a in enumerate(range(0, len(pair_index), batch_size)):
         sl = slice(a, a + batch_size)
         rng = step_rng(seed, STREAM_PLAN, b)
-        out, res, seconds = _sampler_call(method, s_raw[sl], g_raw[sl], rng, sampler, steps, keep_iterates, device)
+        out, res, seconds = _sampler_call(
+            method, s_raw[sl], g_raw[sl], rng, sampler, steps, keep_iterates, device, avoid=avoid
+        )
         batch_times.append(seconds)
         plans.append(out)
         if keep_iterates and res.iterates:
@@ -60,12 +226,42 @@ def sample_plans(
 
 
 def _sampler_call(
-    method: Planner, starts, goals, rng, sampler, steps, keep_iterates=0, device="cpu", previous=None, repair_k=None
+    method: Planner,
+    starts,
+    goals,
+    rng,
+    sampler,
+    steps,
+    keep_iterates=0,
+    device="cpu",
+    previous=None,
+    repair_k=None,
+    avoid: Avoidance | None = None,
 ):
     """One sampler call for raw start/goal states (n, obs_dim): normalized in, plans (n, H, F) out in raw units and
     pinned exactly to the raw states; with ``previous`` (raw plans) and ``repair_k``, a repair instead of a plan
-    from scratch. Returns (plans, the method's SampleResult, seconds of the call)."""
+    from scratch; with ``avoid``, N plans per pair in the same call and the best kept, and plans from scratch
+    repaired from buffer routes. Returns (plans, the
+    method's SampleResult, seconds of the call)."""
     import torch
+
+    if avoid is not None and avoid.best_of > 1:
+        reps = avoid.best_of
+        starts, goals = np.repeat(starts, reps, axis=0), np.repeat(goals, reps, axis=0)
+        previous = None if previous is None else np.repeat(previous, reps, axis=0)
+        if avoid.route_k is not None and previous is None:  # one route per pair, repaired N times
+            routes = avoid.routes(starts[::reps], goals[::reps], method.horizon, method.feature_dim)
+            previous, repair_k = np.repeat(routes, reps, axis=0), avoid.route_k
+        out, res, seconds = _sampler_call(
+            method, starts, goals, rng, sampler, steps, keep_iterates, device, previous, repair_k
+        )
+        keep = avoid.choose(out)
+        pick = torch.as_tensor(keep, device=res.plans.device)
+        res = SampleResult(plans=res.plans[pick], iterates=[(k, x[pick]) for k, x in res.iterates])
+        return out[keep], res, seconds
+    if avoid is not None and avoid.route_k is not None and previous is None:
+        previous = avoid.routes(starts, goals, method.horizon, method.feature_dim)
+        repair_k = avoid.route_k
 
     def normalized(states):  # the state part of a normalized feature vector
         pad = np.zeros((len(states), method.feature_dim - method.obs_dim))
@@ -98,12 +294,13 @@ def replan_batch(
     previous: np.ndarray | None = None,
     repair_k: int | None = None,
     device="cpu",
+    avoid: Avoidance | None = None,
 ) -> tuple[np.ndarray, float]:
     """One plan per (start, goal) state pair, in raw units and pinned exactly: from scratch, or with ``previous``
     (raw plans (n, H, F), already shifted to the starts) and ``repair_k``, repaired from degradation step k
     (:meth:`~cdrb_cli.methods.base.Planner.repair`; ``steps`` then counts the repair's denoising steps).
     Returns (plans (n, H, F), seconds of the sampler call)."""
-    out, _, seconds = _sampler_call(method, starts, goals, rng, sampler, steps, 0, device, previous, repair_k)
+    out, _, seconds = _sampler_call(method, starts, goals, rng, sampler, steps, 0, device, previous, repair_k, avoid)
     return out, seconds
 
 
@@ -118,10 +315,15 @@ def load_planner(model, device="cpu", ema: bool = True) -> Planner:
     return load_method(model, device=device, ema=ema)
 
 
-def make_plans(model, starts, goals, config: PlanConfig, out, device="cpu", batch_size: int = 256):
-    spec = model.manifest.env
+def make_plans(
+    model, starts, goals, config: PlanConfig, out, device="cpu", batch_size: int = 256, spec: EnvSpec | None = None
+):
+    """`cdrb plan`: plans for every (start, goal) pair in ``spec``'s scene (default: the model's), written to
+    ``out``."""
+    spec = spec or model.manifest.env
     method = load_planner(model, device=device, ema=config.use_ema)
     METHODS.get(method.name).check_sampler(config.sampler)
+    avoid = prepare_planner(method, spec, config.avoid)
     plans, pair_index, iterates, iter_steps, sec = sample_plans(
         method,
         starts,
@@ -133,13 +335,17 @@ def make_plans(model, starts, goals, config: PlanConfig, out, device="cpu", batc
         config.keep_iterates,
         batch_size,
         device,
+        avoid,
     )
-    in_wall = family_of(spec).in_collision(spec, plans[..., : spec.obs_dim])
+    family = family_of(spec)
+    in_wall = family.in_collision(spec, plans[..., : spec.obs_dim])
     summary = PlanSummary(
         pairs=int(len(starts)),
         plans=int(len(plans)),
         in_wall_fraction=float(in_wall.mean()),
         plans_with_wall_states=int(in_wall.any(axis=1).sum()),
+        plans_crossing=int(np.asarray(family.path_in_collision(spec, plans[..., : spec.obs_dim])).sum()),
+        masked=mask_counts(method, avoid),
         seconds_per_batch=round(sec, 6),
         seconds_per_plan=round(sec / min(batch_size, len(plans)), 6),
         device=str(device),

@@ -92,6 +92,7 @@ def run_closed_loop(
     sampler=None,
     sample_steps=None,
     device="cpu",
+    avoid=None,
 ) -> list[ClosedLoopEpisode]:
     """Run ``episodes`` in lockstep from their open-loop plans ``first_plans`` (n, H, F), planning again as
     ``replan`` says; ``seeds`` = (the command's seed, the eval seed, the group index) seed every re-plan."""
@@ -141,6 +142,7 @@ def run_closed_loop(
                 previous,
                 replan.repair_k,
                 device,
+                avoid,
             )
             for j, i in enumerate(idx):
                 runs[i].plans.append(plans[j])

@@ -62,6 +62,11 @@ class PointMazeScene(Scene):
         0.25, ge=0, description="uniform noise (per axis, in cells) added to start and goal cell centres at reset"
     )
     goal_noise: bool = Field(True, description="false: the goal is the exact cell centre (the official code's)")
+    trained_maze: MazeLayout | None = Field(
+        None,
+        description="when plans run in another map than the model was trained in (`--maze-map` at plan/eval time): "
+        "the training map; null: the same map",
+    )
 
 
 def _timing_for(layout: MazeLayout) -> tuple[int, int]:
@@ -95,6 +100,8 @@ def maze_spec(env_id: str, layout: MazeLayout) -> EnvSpec:
 
 #: the protocol (and demonstration start distribution) whose starts are any free cell
 ANYWHERE = "anywhere"
+#: the protocol of a changed map: pairs whose shortest path the new walls made longer
+DETOUR = "detour"
 
 
 class PointMazeFamily(EnvFamily):
@@ -108,6 +115,8 @@ class PointMazeFamily(EnvFamily):
         f"{OFFICIAL_SUCCESS_RADIUS} m, its executor (controller `waypoint`: <= 5 env steps per planned state)",
         ANYWHERE: "starts in any free cell from which the goal is reachable (at rest, the stock reset noise), goals "
         "the stock protocol's goal cells: plans from wherever the robot may be",
+        DETOUR: "with --maze-map: the protocol's start and goal cells, only pairs whose shortest path in the new map "
+        "is longer than in the training map (the new walls block the way the data went)",
     }
     start_protocols = (ANYWHERE,)
     point_format = "x,y (at rest) or x,y,vx,vy, e.g. 0,0"
@@ -122,6 +131,41 @@ class PointMazeFamily(EnvFamily):
     def spec_from_file(self, path: Path) -> EnvSpec:
         layout = load_map_file(path)
         return maze_spec(f"map:{layout.name}", layout)
+
+    def with_map(self, spec: EnvSpec, path: Path, flag: str = "--maze-map") -> EnvSpec:
+        """The model's maze task in another map of the same size and cell size (walls added or moved); the spec's
+        id becomes ``<id>+<map name>`` and its scene keeps the training map (``trained_maze``)."""
+        layout = load_map_file(path)
+        trained = spec.scene.trained_maze or spec.scene.maze
+        if (layout.n_rows, layout.n_cols, layout.cell_size) != (trained.n_rows, trained.n_cols, trained.cell_size):
+            raise BadInput(
+                f"{flag} {path}: a {layout.n_rows}x{layout.n_cols} map, but the model was trained in a "
+                f"{trained.n_rows}x{trained.n_cols} map (cell {trained.cell_size:g} m)",
+                hint="draw the new walls into a copy of the training map (`cdrb envs --json` shows its rows)",
+            )
+        base = spec.id.split("+")[0] if spec.scene.trained_maze is not None else spec.id
+        scene = spec.scene.model_copy(update={"maze": layout, "trained_maze": trained})
+        return spec.model_copy(
+            update={
+                "id": f"{base}+{layout.name}"[:200],
+                "scene": scene,
+                "obstacles": MazeGeometry(layout).obstacles(spec.obstacles.inflate),
+            }
+        )
+
+    def scene_change_warning(self, spec: EnvSpec) -> str | None:
+        trained = spec.scene.trained_maze
+        if trained is None:
+            return None
+        opened = MazeGeometry(spec.scene.maze).free & ~MazeGeometry(trained).free
+        if not opened.any():
+            return None
+        cells = ", ".join(f"({i},{j})" for i, j in np.argwhere(opened)[:4])
+        more = f" and {int(opened.sum()) - 4} more" if opened.sum() > 4 else ""
+        return (
+            f"{spec.scene.maze.name}: {int(opened.sum())} cell(s) free here were walls in training ({cells}{more}): "
+            "the model has no data there, so plans will not use them"
+        )
 
     def display_name(self, env_id: str) -> str:
         return DISPLAY_NAMES.get(env_id, env_id)
@@ -203,12 +247,33 @@ class PointMazeFamily(EnvFamily):
         """Each episode's start and goal cells from its own seed; ``anywhere`` draws starts over every free cell
         (its own generator key, so its pairs are not the stock pairs moved)."""
         geom = MazeGeometry(spec.scene.maze)
+        if protocol == DETOUR:
+            return self._detour_episodes(spec, geom, n, seed, stream)
         anywhere = protocol == ANYWHERE
         out = []
         for s in episode_seeds(seed, n, stream):
             rng = np.random.default_rng([int(s), 11 if anywhere else 7])
             start, goal = geom.draw_start_goal(rng, anywhere=anywhere)
             out.append(Episode(int(s), tuple(int(v) for v in start), tuple(int(v) for v in goal)))
+        return out
+
+    def _detour_episodes(self, spec: EnvSpec, geom: MazeGeometry, n: int, seed: int, stream: int) -> list[Episode]:
+        """Episodes whose start/goal pair is drawn uniformly from the pairs the new map makes longer."""
+        if spec.scene.trained_maze is None:
+            raise BadInput(
+                f"--protocol {DETOUR}: {spec.id} runs in the map it was trained in, so no pair needs a detour",
+                hint="add --maze-map NEW_MAP (the training map with walls added)",
+            )
+        pairs = geom.detour_pairs(MazeGeometry(spec.scene.trained_maze))
+        if not len(pairs):
+            raise BadInput(
+                f"--protocol {DETOUR}: the walls of {spec.scene.maze.name} lengthen no start-to-goal path",
+                hint="close a passage the protocol's pairs use, or use the stock protocol",
+            )
+        out = []
+        for s in episode_seeds(seed, n, stream):
+            pair = pairs[int(np.random.default_rng([int(s), 13]).integers(len(pairs)))]
+            out.append(Episode(int(s), tuple(int(v) for v in pair[:2]), tuple(int(v) for v in pair[2:])))
         return out
 
     def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:

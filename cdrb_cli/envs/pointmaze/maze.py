@@ -248,6 +248,18 @@ class MazeGeometry:
         where = "free" if anywhere else "start"
         raise RunFailed(f"could not draw a start/goal pair: no goal cell is reachable from the {where} cells")
 
+    def detour_pairs(self, trained: MazeGeometry) -> np.ndarray:
+        """Every (start cell, goal cell) pair of this map's protocol whose shortest path here is longer than in the
+        ``trained`` map (a route the training map had is blocked), as rows (si, sj, gi, gj)."""
+        out = []
+        for g in self.goal_cells:
+            here, before = self.bfs(g), trained.bfs(g)
+            for s in self.start_cells:
+                a, b = here[tuple(s)], before[tuple(s)]
+                if (s != g).any() and a >= 0 and (b < 0 or a > b):
+                    out.append([*s, *g])
+        return np.asarray(out, dtype=np.int64).reshape(-1, 4)
+
     def exit_label(self, states: np.ndarray) -> str:
         """The compass direction (from the start region's centre) of the first non-start cell a path enters."""
         starts = {tuple(c) for c in self.start_cells.tolist()}

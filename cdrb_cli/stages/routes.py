@@ -1,0 +1,104 @@
+"""Routes through the replay buffer, for planning around obstacles the training data never saw.
+
+The buffer's states are where the robot has been. A graph joins each buffer state to its nearest neighbours (in
+the obstacle dimensions) by a straight step that touches no obstacle of the scene planned in; a start and a goal
+join it the same way. The shortest route from start to goal through that graph, resampled to a plan's length at
+even spacing, is a plan made only of visited states and free steps. `--route-k K` starts the planner's own repair
+from it (CDRB: degraded to step K by the ball sampler and restored; a Gaussian planner: noised to timestep K and
+denoised), so the model turns the route into a plan of its kind instead of sampling one from scratch that follows
+the data's habits through a passage that is now closed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cdrb_cli.envs.registry import family_of
+from cdrb_cli.envs.spec import EnvSpec
+
+#: neighbours each buffer state (and each start and goal) is joined to, when the step between them is free
+NEIGHBOURS = 16
+
+
+class BufferGraph:
+    """The graph of ``states`` (K, F) raw feature rows (the state first) joined by free straight steps."""
+
+    def __init__(self, spec: EnvSpec, states: np.ndarray, neighbours: int = NEIGHBOURS):
+        from scipy.sparse import coo_matrix
+        from scipy.spatial import cKDTree
+
+        self.spec = spec
+        self.family = family_of(spec)
+        self.states = np.asarray(states, dtype=np.float64)
+        self.dims = list(spec.obstacles.dims)
+        self.k = int(min(neighbours, max(len(self.states) - 1, 1)))
+        self.tree = cKDTree(self.states[:, self.dims])
+        K = len(self.states)
+        dist, nbr = self.tree.query(self.states[:, self.dims], k=self.k + 1)
+        i = np.repeat(np.arange(K), self.k + 1)
+        j, d = nbr.reshape(-1), dist.reshape(-1)
+        keep = (j != i) & (j < K)
+        i, j, d = i[keep], j[keep], d[keep]
+        lo, hi = np.minimum(i, j), np.maximum(i, j)
+        pairs, first = np.unique(lo * K + hi, return_index=True)
+        i, j, d = lo[first], hi[first], d[first]
+        free = ~self._crosses(self.states[i], self.states[j])
+        i, j, d = i[free], j[free], np.maximum(d[free], 1e-9)
+        self.edges = (np.concatenate([i, j]), np.concatenate([j, i]), np.concatenate([d, d]))
+        self._coo = coo_matrix
+        self.n_edges = int(free.sum())
+
+    def _crosses(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Whether the straight step between raw states a and b (n, F) touches an obstacle."""
+        obs = self.spec.obs_dim
+        return np.asarray(self.family.path_in_collision(self.spec, np.stack([a[:, :obs], b[:, :obs]], 1)), bool)
+
+    def _attach(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The buffer states a raw state joins by a free step among its nearest, and their distances."""
+        d, j = self.tree.query(state[self.dims], k=self.k)
+        d, j = np.atleast_1d(d), np.atleast_1d(j)
+        ok = j < len(self.states)
+        d, j = d[ok], j[ok]
+        free = ~self._crosses(np.repeat(state[None], len(j), 0), self.states[j])
+        return j[free], np.maximum(d[free], 1e-9)
+
+    def route(self, start: np.ndarray, goal: np.ndarray, horizon: int) -> np.ndarray | None:
+        """The shortest route from ``start`` to ``goal`` (raw feature rows) through the graph, as ``horizon`` raw
+        feature rows at even spacing along it (start and goal exact); None when no route joins them."""
+        from scipy.sparse.csgraph import dijkstra
+
+        start, goal = np.asarray(start, np.float64), np.asarray(goal, np.float64)
+        if not self._crosses(start[None], goal[None])[0]:
+            return _resample(np.stack([start, goal]), self.dims, horizon)
+        s_nodes, s_d = self._attach(start)
+        g_nodes, g_d = self._attach(goal)
+        if not len(s_nodes) or not len(g_nodes):
+            return None
+        K = len(self.states)
+        S, G = K, K + 1  # the start and the goal as two extra nodes
+        rows = np.concatenate([self.edges[0], np.full(len(s_nodes), S), g_nodes])
+        cols = np.concatenate([self.edges[1], s_nodes, np.full(len(g_nodes), G)])
+        vals = np.concatenate([self.edges[2], s_d, g_d])
+        graph = self._coo((vals, (rows, cols)), shape=(K + 2, K + 2)).tocsr()
+        dist, pred = dijkstra(graph, directed=True, indices=S, return_predecessors=True)
+        if not np.isfinite(dist[G]):
+            return None
+        path, node = [], pred[G]
+        while node != S:
+            path.append(int(node))
+            node = pred[node]
+        points = np.concatenate([start[None], self.states[path[::-1]], goal[None]])
+        return _resample(points, self.dims, horizon)
+
+
+def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
+    """``n`` rows evenly spaced by arc length (over ``dims``) along the polyline ``points`` (m, F), every feature
+    interpolated linearly; the first and last rows are the polyline's ends."""
+    seg = np.linalg.norm(np.diff(points[:, dims], axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return np.repeat(points[:1], n, axis=0)
+    t = np.linspace(0.0, s[-1], n)
+    out = np.stack([np.interp(t, s, points[:, f]) for f in range(points.shape[1])], axis=1)
+    out[0], out[-1] = points[0], points[-1]
+    return out
