@@ -347,7 +347,7 @@ def _avoid(mask_buffer: bool, best_of: int, guide_scale: float, route_k: int | N
         best_of=best_of,
         guide_scale=guide_scale,
         route_k=route_k,
-        route_buffer=None if route_buffer is None else str(route_buffer),
+        route_buffer=None if route_buffer is None else route_buffer.name,
     )
 
 
@@ -943,7 +943,7 @@ def plan(
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.seeding import STREAM_PLAN
-    from cdrb_cli.stages.plan import check_avoid, make_plans, scene_spec
+    from cdrb_cli.stages.plan import check_avoid, load_route_buffer, make_plans, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--sample-steps", sample_steps)
@@ -951,6 +951,7 @@ def plan(
     m = _trained_model(model, allow_partial)
     avoid = _avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer)
     check_avoid(m.manifest.config.method.name, avoid)
+    route_art = load_route_buffer(route_buffer)
     spec = scene_spec(m, maze_map)
     family = family_of(spec)
     entry = METHODS.get(m.manifest.config.method.name)
@@ -976,7 +977,7 @@ def plan(
         use_ema=not raw_weights,
         keep_iterates=show_steps,
         avoid=avoid,
-        scene=None if maze_map is None else str(maze_map),
+        scene=None if maze_map is None else maze_map.name,
         seed=seed,
     )
     result = produce(
@@ -984,8 +985,18 @@ def plan(
         "plans",
         force,
         config,
-        lambda: make_plans(m, s_arr, g_arr, config, out, device=setup_torch(device), batch_size=batch_size, spec=spec),
-        parents=[m],
+        lambda: make_plans(
+            m,
+            s_arr,
+            g_arr,
+            config,
+            out,
+            device=setup_torch(device),
+            batch_size=batch_size,
+            spec=spec,
+            route_buffer=route_art,
+        ),
+        parents=[m] if route_art is None else [m, route_art],
         env=spec,
     )
     sm = result.manifest.summary
@@ -1172,9 +1183,10 @@ def eval_cmd(
         maze_map=maze_map,
     )
     from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.stages.plan import scene_spec
+    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
 
     eval_spec = family_of(m.manifest.env).protocol_spec(scene_spec(m, maze_map), config.protocol)
+    route_art = load_route_buffer(route_buffer)
     n_videos = videos if video is not None else 0
     started = time.time()
     ev = produce(
@@ -1191,8 +1203,9 @@ def eval_cmd(
             videos=n_videos,
             replan_plot=replan_plot,
             spec=eval_spec,
+            route_buffer=route_art,
         ),
-        parents=[m],
+        parents=[m] if route_art is None else [m, route_art],
         env=eval_spec,
     )
     s = ev.manifest.summary

@@ -152,8 +152,8 @@ class AvoidConfig(Record):
     route_buffer: str | None = Field(
         None,
         max_length=4096,
-        description="a buffer artifact whose states the routes go through, for a planner that carries no buffer "
-        "(Diffuser); None: the model's own buffer",
+        description="the file name of the buffer artifact whose states the routes go through, for a planner that "
+        "carries no buffer (Diffuser; the artifact is a parent); None: the model's own buffer",
     )
     guide_scale: float = Field(
         0.0,
@@ -201,7 +201,7 @@ class PlanConfig(Record):
     keep_iterates: int = Field(0, ge=0)
     avoid: AvoidConfig = Field(default_factory=AvoidConfig, description="keeping plans out of obstacles")
     scene: str | None = Field(
-        None, description="the map file planned in instead of the model's (its content is the manifest's env)"
+        None, description="the name of the map file planned in instead of the model's (its content is the env)"
     )
     seed: Seed
 
@@ -304,7 +304,7 @@ class EvalConfig(Record):
     )
     avoid: AvoidConfig = Field(default_factory=AvoidConfig, description="planners: keeping plans out of obstacles")
     scene: str | None = Field(
-        None, description="the map file evaluated in instead of the model's (its content is the manifest's env)"
+        None, description="the name of the map file evaluated in instead of the model's (its content is the env)"
     )
     seed: Seed
 

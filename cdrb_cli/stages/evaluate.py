@@ -216,21 +216,23 @@ def evaluate(
     videos: int = 0,
     replan_plot=None,
     spec: EnvSpec | None = None,
+    route_buffer=None,
 ):
     """Evaluate a model (a planner open or closed loop, or a policy) and write the eval artifact ``out``;
     ``replan_plot``: a picture of the first closed-loop episode's successive plans over its executed path;
-    ``spec``: the spec evaluated in (default: the model's, in ``config.scene``'s map, under ``config.protocol``)."""
+    ``spec``: the spec evaluated in (the model's under ``config.protocol`` when None; a caller with
+    ``config.scene`` passes the spec of that map); ``route_buffer``: the buffer artifact of
+    ``config.avoid.route_buffer`` (a parent of the eval)."""
     t0 = time.time()
     family = family_of(model.manifest.env)
     if spec is None:
-        base = model.manifest.env
         if config.scene is not None:
-            base = family.with_map(base, Path(config.scene))
-        spec = family.protocol_spec(base, config.protocol)
+            raise ValueError("config.scene is set: pass the spec of its map (stages.plan.scene_spec)")
+        spec = family.protocol_spec(model.manifest.env, config.protocol)
     if METHODS.get(model.manifest.config.method.name).kind == "policy":
         return evaluate_policy(model, config, out, spec, device, video_dir, videos)
     method = load_planner(model, device=device, ema=config.use_ema)
-    avoid = prepare_planner(method, spec, config.avoid)
+    avoid = prepare_planner(method, spec, config.avoid, route_buffer)
     if spec.pin_end_dims != model.manifest.env.pin_end_dims:  # a protocol that pins more (the official Fetch pin)
         method.pinned_end = spec.pin_end_dims
     METHODS.get(method.name).check_sampler(config.sampler)
@@ -284,8 +286,9 @@ def evaluate(
         arrays["plans"] = np.concatenate(all_plans).astype(np.float32)
     summary = summarize(method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3))
     summary = summary.model_copy(update={"masked": mask_counts(method, avoid)})
+    parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
-        "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
+        "eval", env=spec, config=config, seed=config.seed, parents=parents, summary=summary
     )
     artifacts.save(out, "eval", manifest, arrays)
     if video_dir is not None and executed:
@@ -650,7 +653,7 @@ def eval_config(
         "protocol": protocol,
         "stream": stream,
         "seed": seed,
-        "scene": None if maze_map is None else str(maze_map),
+        "scene": None if maze_map is None else Path(maze_map).name,
     }
     if avoid is not None:
         base["avoid"] = avoid.model_dump()

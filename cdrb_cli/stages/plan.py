@@ -120,10 +120,11 @@ class Avoidance:
         return np.stack(out)
 
 
-def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig) -> Avoidance:
+def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_buffer=None) -> Avoidance:
     """Apply ``avoid`` to a loaded planner for the scene of ``spec``: mask its buffer, set its collision guidance
     (the family's cost of each state and of points between consecutive states), build the buffer graph its routes
-    come from. Returns the :class:`Avoidance` the sampler calls use."""
+    come from (``route_buffer``: a buffer artifact, for a planner without its own). Returns the
+    :class:`Avoidance` the sampler calls use."""
     family = family_of(spec)
     norm, obs = method.normalizer, method.obs_dim
     out = Avoidance(spec, best_of=avoid.best_of, route_k=avoid.route_k)
@@ -143,7 +144,9 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig) -> Avoid
                 f"--route-k {avoid.route_k}: {method.name} repairs from steps 1..{top}",
                 hint=f"use --route-k {max(1, (top or 8) // 8)}",
             )
-        out.graph = BufferGraph(spec, route_states(method, spec, avoid.route_buffer))
+        if avoid.route_buffer is not None and route_buffer is None:
+            raise ValueError("config.avoid.route_buffer is set: pass its buffer artifact")
+        out.graph = BufferGraph(spec, route_states(method, spec, route_buffer))
     if avoid.guide_scale > 0:
         raw_cost = family.collision_cost(spec)
         fractions = np.arange(GUIDE_SUBSTEPS) / GUIDE_SUBSTEPS
@@ -160,24 +163,30 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig) -> Avoid
     return out
 
 
-def route_states(method: Planner, spec: EnvSpec, route_buffer: str | None) -> np.ndarray:
+def load_route_buffer(path: Path | None):
+    """The buffer artifact of ``--route-buffer`` (None without it); a one-line error naming the flag."""
+    if path is None:
+        return None
+    try:
+        return artifacts.load(path, "buffer")
+    except BadInput as exc:
+        raise BadInput(f"--route-buffer: {exc.message}", hint=exc.hint) from None
+
+
+def route_states(method: Planner, spec: EnvSpec, route_buffer=None) -> np.ndarray:
     """Raw feature rows (K, method.feature_dim) that buffer routes go through: the model's own (masked) buffer,
     or the states of the buffer artifact ``route_buffer`` (which must be of the model's environment)."""
     if route_buffer is None:
         return method.normalizer.unnormalize(method.ball.points)
     from cdrb_cli.buffer import Normalizer
 
-    try:
-        buf = artifacts.load(route_buffer, "buffer")
-    except BadInput as exc:
-        raise BadInput(f"--route-buffer: {exc.message}", hint=exc.hint) from None
-    env = buf.manifest.env
-    if env.obs_dim != spec.obs_dim or env.id != spec.id.split("+")[0]:
+    env, task = route_buffer.manifest.env, spec.id.split("+")[0]
+    if env.obs_dim != spec.obs_dim or env.id != task:
         raise BadInput(
-            f"--route-buffer {route_buffer}: a buffer of {env.id}, but the model plans in {spec.id.split('+')[0]}",
+            f"--route-buffer {route_buffer.path}: a buffer of {env.id}, but the model plans in {task}",
             hint="cluster the model's own demos (`cdrb cluster DEMOS`)",
         )
-    states = Normalizer(buf.low, buf.high).unnormalize(buf.points)[:, : spec.obs_dim]
+    states = Normalizer(route_buffer.low, route_buffer.high).unnormalize(route_buffer.points)[:, : spec.obs_dim]
     pad = np.zeros((len(states), method.feature_dim - spec.obs_dim))
     return np.concatenate([states, pad], axis=1)
 
@@ -316,14 +325,22 @@ def load_planner(model, device="cpu", ema: bool = True) -> Planner:
 
 
 def make_plans(
-    model, starts, goals, config: PlanConfig, out, device="cpu", batch_size: int = 256, spec: EnvSpec | None = None
+    model,
+    starts,
+    goals,
+    config: PlanConfig,
+    out,
+    device="cpu",
+    batch_size: int = 256,
+    spec: EnvSpec | None = None,
+    route_buffer=None,
 ):
     """`cdrb plan`: plans for every (start, goal) pair in ``spec``'s scene (default: the model's), written to
-    ``out``."""
+    ``out``; ``route_buffer``: the buffer artifact of ``config.avoid.route_buffer`` (a parent of the plans)."""
     spec = spec or model.manifest.env
     method = load_planner(model, device=device, ema=config.use_ema)
     METHODS.get(method.name).check_sampler(config.sampler)
-    avoid = prepare_planner(method, spec, config.avoid)
+    avoid = prepare_planner(method, spec, config.avoid, route_buffer)
     plans, pair_index, iterates, iter_steps, sec = sample_plans(
         method,
         starts,
@@ -351,7 +368,13 @@ def make_plans(
         device=str(device),
     )
     manifest = artifacts.make_manifest(
-        "plans", env=spec, config=config, seed=config.seed, parents=[model], summary=summary, method=method.name
+        "plans",
+        env=spec,
+        config=config,
+        seed=config.seed,
+        parents=[model] if route_buffer is None else [model, route_buffer],
+        summary=summary,
+        method=method.name,
     )
     arrays = {
         "plans": plans.astype(np.float32),

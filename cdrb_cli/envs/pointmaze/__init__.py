@@ -262,7 +262,7 @@ class PointMazeFamily(EnvFamily):
         if spec.scene.trained_maze is None:
             raise BadInput(
                 f"--protocol {DETOUR}: {spec.id} runs in the map it was trained in, so no pair needs a detour",
-                hint="add --maze-map NEW_MAP (the training map with walls added)",
+                hint="add --maze-map NEW_MAP, the training map with walls added",
             )
         pairs = geom.detour_pairs(MazeGeometry(spec.scene.trained_maze))
         if not len(pairs):
