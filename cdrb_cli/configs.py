@@ -4,7 +4,7 @@ so a pipeline can tell whether a stage is up to date (same config, same parents)
 from __future__ import annotations
 
 import typing
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -104,6 +104,10 @@ class TrainConfig(Record):
         "so a slow run killed early can --resume",
     )
     split: Literal["train", "all"] = Field("train", description="episodes trained on: train, or all (no validation)")
+
+    #: fields that only say when progress is saved, never what is computed: a model made with other values of
+    #: them is still up to date (artifacts.existing)
+    bookkeeping: ClassVar[tuple[str, ...]] = ("checkpoint_seconds",)
     start_fraction: float = Field(
         0.9, ge=0, le=1, description="share of training windows that start at an episode's first state"
     )

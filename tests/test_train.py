@@ -386,3 +386,18 @@ def test_start_weight_weighs_the_states_after_the_start(small_data):
         weights[1 : 1 + span] = w
         want = float((sq * weights).sum() / weights.sum())
         assert float(method.loss(batch, np.random.default_rng(0))) == pytest.approx(want, rel=1e-5)
+
+
+def test_bookkeeping_settings_do_not_make_a_model_out_of_date(small_data, tmp_path):
+    """A model is up to date for a config that differs only in when progress is saved (``checkpoint_seconds``),
+    and out of date for one that changes what is computed."""
+    demos, buffer = small_data
+    cfg = train_config(demos, None, "mlp", tiny("mlp", steps=5, checkpoint_every=5, checkpoint_seconds=0))
+    model = train(demos, None, cfg, tmp_path / "m.h5")
+    parents = [demos]
+    assert artifacts.existing(model.path, "model", cfg, parents).up_to_date
+    assert artifacts.existing(
+        model.path, "model", cfg.model_copy(update={"checkpoint_seconds": 60.0}), parents
+    ).up_to_date
+    other = artifacts.existing(model.path, "model", cfg.model_copy(update={"lr": 1e-2}), parents)
+    assert other.status == "different" and "lr" in other.reason

@@ -278,6 +278,9 @@ def existing(
     if env is not None and art.manifest.env != env:
         return Existing("different", art, "it was made for another environment")
     state = getattr(art.manifest, "state", None)
+    # settings that only say when to save progress (never what is computed) do not make a file out of date
+    same = {f: getattr(art.manifest.config, f) for f in getattr(config, "bookkeeping", ()) if hasattr(config, f)}
+    config = config.model_copy(update=same) if same else config
     if art.manifest.config == config and (state is None or state.finished):
         return Existing("up-to-date", art)
     if state is not None:
