@@ -427,3 +427,29 @@ def test_a_planted_lock_file_link_or_fifo_is_refused_and_its_target_untouched(sm
     os.mkfifo(tmp_path / ".c.h5.lock")
     r = cdrb("cluster", demos.path, "--k", "5", "--out", tmp_path / "c.h5", timeout=30)
     assert r.returncode == 2 and ".c.h5.lock" in r.stderr and not (tmp_path / "c.h5").exists()
+
+
+def test_a_deleted_input_made_again_by_the_same_command_is_the_same_input(tmp_path, cdrb):
+    """Demos deleted and collected again (new timestamps, so other bytes) are the same input of the buffer and the
+    model made from them: both stay up to date. Demos of another seed are other inputs."""
+    from tests.test_train import TINY_FLAGS
+
+    demos, buffer, model = tmp_path / "d.h5", tmp_path / "b.h5", tmp_path / "m.h5"
+    collect = ("collect", "maze-tight", "-n", "6", "--seed", "3", "--out", demos)
+    cluster = ("cluster", demos, "--k", "20", "--out", buffer)
+    train = ("train", demos, "--buffer", buffer, "--method", "cdrb", *TINY_FLAGS, "--steps", "4", "--out", model)
+    for args in (collect, cluster, train):
+        assert cdrb(*args).returncode == 0
+    first = demos.read_bytes()
+    demos.unlink()
+    time.sleep(1.1)  # another created_at
+    assert cdrb(*collect).returncode == 0
+    assert demos.read_bytes() != first  # other bytes ...
+    for args in (cluster, train):  # ... the same data: nothing to redo
+        r = cdrb(*args)
+        assert r.returncode == 0 and "up to date" in r.stderr, r.stderr
+    other = tmp_path / "d2.h5"
+    assert cdrb("collect", "maze-tight", "-n", "6", "--seed", "4", "--out", other).returncode == 0
+    shutil.copyfile(other, demos)
+    r = cdrb(*cluster)
+    assert r.returncode == 2 and "made from other inputs" in r.stderr

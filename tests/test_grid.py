@@ -592,3 +592,28 @@ def test_a_second_grid_on_the_same_out_names_the_grid_file_not_a_flag(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "another cdrb run" in lines[0], proc.stderr
     assert f"{grid}: out =" in lines[0] and "--out" not in lines[0]
+
+
+def test_files_named_by_eval_flags_are_inputs_and_their_writers_come_first(tmp_path):
+    """An eval that reads a map file hashes it in its memo (editing the map re-runs it); one that reads a buffer
+    the grid writes runs after the clustering that writes it."""
+    text = (
+        TINY
+        + """
+[[variants]]
+name = "plain"
+
+[[variants]]
+name = "routed"
+methods = ["mlp"]
+eval = ["--maze-map", "maps/closed.txt", "--route-buffer", "runs/maze-tight/buffer-k50.h5"]
+"""
+    )
+    tasks = {t.id: t for t in expand(load_grid(_grid(tmp_path, text)))}
+    ev = tasks["eval maze-tight/routed/mlp-s0"]
+    buffer = (tmp_path / "runs" / "maze-tight" / "buffer-k50.h5").resolve()
+    inputs = {p.resolve() for p in ev.inputs}
+    assert (tmp_path / "maps" / "closed.txt").resolve() in inputs and buffer in inputs
+    writer = next(t.id for t in tasks.values() if buffer in [p.resolve() for p in t.outputs])
+    assert writer.startswith("cluster") and writer in ev.deps
+    assert "train maze-tight/mlp-s0" in ev.deps

@@ -206,7 +206,12 @@ def save(path: str | Path, artifact_or_kind, manifest=None, arrays: Mapping[str,
 
 def parent_ref(artifact: ArtifactBase) -> ParentRef:
     assert artifact.path is not None and artifact.sha256 is not None
-    return ParentRef(kind=artifact.kind, path=text(artifact.path.resolve()), sha256=artifact.sha256)
+    return ParentRef(
+        kind=artifact.kind,
+        path=text(artifact.path.resolve()),
+        sha256=artifact.sha256,
+        data_sha256=artifact.data_sha256,
+    )
 
 
 def make_manifest(kind: str, *, env, config, seed: int, parents: Sequence[ArtifactBase] = (), **fields: Any):
@@ -251,6 +256,17 @@ class Existing:
 RECOMPUTE_BEFORE = {"eval": (2, 2)}
 
 
+def same_inputs(recorded: Sequence[ParentRef], parents: Sequence[ArtifactBase]) -> bool:
+    """Whether ``parents`` are the inputs ``recorded``: each the same bytes, or (recorded from schema 2.7 on) the
+    same data, so an input deleted and made again by the same command still counts as the same."""
+    if [r.kind for r in recorded] != [p.kind for p in parents]:
+        return False
+    return all(
+        r.sha256 == p.sha256 or (r.data_sha256 is not None and r.data_sha256 == p.data_sha256)
+        for r, p in zip(recorded, parents)
+    )
+
+
 def existing(
     path: str | Path,
     kind: str,
@@ -268,7 +284,7 @@ def existing(
         art = load(path, kind)
     except BadInput as exc:
         return Existing("invalid", reason=exc.message)
-    if [p.sha256 for p in art.manifest.parents] != [p.sha256 for p in parents]:
+    if not same_inputs(art.manifest.parents, parents):
         return Existing("different", art, "it was made from other inputs")
     since = RECOMPUTE_BEFORE.get(kind)
     if since is not None and parse_version(art.manifest.schema_version) < since:

@@ -505,6 +505,24 @@ class ArtifactBase:
         """What is inconsistent between the arrays and the manifest (a message), or None."""
         return None
 
+    #: manifest fields that identify what an artifact holds (the rest say when, where, by which build it was
+    #: written, or summarize timings)
+    IDENTITY: ClassVar[tuple[str, ...]] = ("kind", "seed", "env", "config", "parents")
+
+    @property
+    def data_sha256(self) -> str:
+        """The hash of what this artifact holds: its arrays and the manifest's :attr:`IDENTITY` fields, its parents
+        by their own data hashes (their byte hash for a parent recorded before schema 2.7). A file deleted and made
+        again by the same deterministic command has the same data hash, though its bytes (its timestamps) differ."""
+        cached = getattr(self, "_data_sha256", None)
+        if cached is None:
+            m = self.manifest.model_dump(mode="json")
+            ident = {k: m[k] for k in self.IDENTITY if k in m and k != "parents"}
+            ident["parents"] = [[p["kind"], p.get("data_sha256") or p["sha256"]] for p in m.get("parents", [])]
+            payload = json.dumps(ident, sort_keys=True, separators=(",", ":")).encode()
+            cached = self._data_sha256 = content_sha256(payload, self.arrays)
+        return cached
+
     def __getitem__(self, name: str) -> np.ndarray:
         return self.arrays[name]
 

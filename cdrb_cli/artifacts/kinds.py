@@ -34,11 +34,18 @@ CHECKSUM_SINCE = (2, 1)
 
 
 class ParentRef(Record):
-    """An input artifact: its kind, the path it was read from, and the sha256 of its bytes."""
+    """An input artifact: its kind, the path it was read from, the sha256 of its bytes and of its data (what the
+    file says, without when and how it was written: :meth:`~cdrb_cli.artifacts.core.ArtifactBase.data_sha256`)."""
 
     kind: str
     path: str
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    data_sha256: str | None = Field(
+        None,
+        pattern=r"^[0-9a-f]{64}$",
+        description="the input's data hash: the same for a file re-made by the same deterministic command (null in "
+        "files before schema 2.7: only the bytes' hash identifies the input)",
+    )
 
 
 class ManifestBase(Record):

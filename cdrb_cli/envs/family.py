@@ -203,6 +203,10 @@ class EnvFamily(ABC):
         the model's scene."""
         raise BadInput(f"{flag} {path}: the {self.name} environments take no new map", hint=f"drop {flag}")
 
+    def scene_changed(self, spec: EnvSpec) -> bool:
+        """Whether ``spec`` runs in another scene than its model was trained in (:meth:`with_map`)."""
+        return False
+
     def scene_change_warning(self, spec: EnvSpec) -> str | None:
         """One line when ``spec`` (from :meth:`with_map`) opens space the model's training scene had closed (the
         model has no data there); None otherwise."""

@@ -80,10 +80,16 @@ def draw_ends(ax, spec: EnvSpec, starts: np.ndarray | None, goals: np.ndarray | 
         ax.plot(g[:, 0], g[:, 1], "*", ms=10, mfc="gold", mec="black", zorder=4)
 
 
-def plan_legend(target, in_wall: bool = True, bodies: bool = False, **kwargs) -> None:
+#: the colour of obstacles added after training (`--maze-map` at plan/eval time)
+NEW_WALL = "#c0641a"
+
+
+def plan_legend(target, in_wall: bool = True, bodies: bool = False, new_walls: bool = False, **kwargs) -> None:
     """The key of every plans picture (one colour per plan, start circle, goal star, red cross = planned state in an
-    obstacle; ``bodies``: Fetch's thin gripper and thick block paths) on an axes or a figure."""
+    obstacle; ``bodies``: Fetch's thin gripper and thick block paths; ``new_walls``: walls added after training) on
+    an axes or a figure."""
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     handles = [Line2D([], [], color="0.35", lw=1.0, label="a plan (one colour each)")]
     if bodies:
@@ -99,6 +105,8 @@ def plan_legend(target, in_wall: bool = True, bodies: bool = False, **kwargs) ->
         handles.append(
             Line2D([], [], ls="", marker="x", ms=5, mew=1.0, color="red", label="planned state in an obstacle")
         )
+    if new_walls:
+        handles.append(Patch(color=NEW_WALL, label="wall added after training"))
     kwargs.setdefault("fontsize", 7)
     kwargs.setdefault("framealpha", 0.85)
     target.legend(handles=handles, **kwargs)
@@ -178,7 +186,8 @@ def plot_plans(
             step = iterate_steps[j] if iterate_steps is not None else j
             draw(axes[j], iterates[:, j], f"iterate k={step}")
     draw(axes[-1], plans, title or "plans", in_wall)
-    plan_legend(fig, loc="upper center", ncol=4, bbox_to_anchor=(0.5, 0.02))
+    changed = family_of(spec).scene_changed(spec)
+    plan_legend(fig, loc="upper center", ncol=5 if changed else 4, bbox_to_anchor=(0.5, 0.02), new_walls=changed)
     return save_figure(fig, path)
 
 

@@ -417,6 +417,11 @@ def disconnected_warning(spec, plans: np.ndarray, stride: int) -> str | None:
             )
     if not problems:
         return None
+    if family.scene_changed(spec):
+        return "; ".join(problems) + (
+            " in a map the model was not trained in (try --mask-buffer, --route-k K, --best-of N: docs/design.md "
+            "'New obstacles without retraining')"
+        )
     return (
         "; ".join(problems) + ": the start may lie where the training data never starts "
         "(`cdrb collect --starts anywhere`, docs/design.md 'Plans from anywhere')"

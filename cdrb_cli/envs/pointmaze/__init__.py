@@ -153,6 +153,9 @@ class PointMazeFamily(EnvFamily):
             }
         )
 
+    def scene_changed(self, spec: EnvSpec) -> bool:
+        return spec.scene.trained_maze is not None
+
     def scene_change_warning(self, spec: EnvSpec) -> str | None:
         trained = spec.scene.trained_maze
         if trained is None:

@@ -10,7 +10,8 @@ from cdrb_cli.envs.spec import EnvSpec
 
 
 def draw_maze(ax, spec: EnvSpec, show_cells: bool = True) -> None:
-    """Walls as grey boxes (their true extent), start cells green, goal cells red, agent-radius outline dotted."""
+    """Walls as grey boxes (their true extent), start cells green, goal cells red, agent-radius outline dotted;
+    walls the training map did not have in orange."""
     from matplotlib.patches import Rectangle
 
     ob = spec.obstacles
@@ -24,6 +25,13 @@ def draw_maze(ax, spec: EnvSpec, show_cells: bool = True) -> None:
                 ax.add_patch(Rectangle((x - s / 2, y - s / 2), s, s, color=colour, lw=0, zorder=0))
     for c, h in zip(centers, halves):
         ax.add_patch(Rectangle(c - h, 2 * h[0], 2 * h[1], color="#555555", lw=0, zorder=1))
+    if spec.scene.trained_maze is not None:  # walls the training data never saw, in their own colour
+        from cdrb_cli.envs.render import NEW_WALL
+
+        g, before = MazeGeometry(spec.scene.maze), MazeGeometry(spec.scene.trained_maze)
+        for cell in np.argwhere(~g.free & before.free):
+            x, y = g.cell_to_xy(cell)
+            ax.add_patch(Rectangle((x - g.s / 2, y - g.s / 2), g.s, g.s, color=NEW_WALL, lw=0, zorder=1.5))
         r = ob.inflate
         if r > 0:
             ax.add_patch(
