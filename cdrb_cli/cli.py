@@ -1307,10 +1307,9 @@ def report(
         from cdrb_cli.artifacts import atomic_path, claim_output
 
         with claim_output(docs, True, "--docs", evals), atomic_path(docs) as tmp:
-            try:
-                old = docs.read_text(encoding="utf-8")
-            except UnicodeDecodeError:
-                raise BadInput(f"--docs {docs}: not a text file", hint="name the markdown file") from None
+            from cdrb_cli.artifacts.core import read_input_text
+
+            old = read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file")
             tmp.write_text(rep.replace_block(old, block, text, str(docs)))
         ui.log(f"block {block} of {docs} rewritten")
     if out is not None:

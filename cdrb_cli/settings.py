@@ -134,15 +134,12 @@ def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
 
 def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
     """Settings from a TOML (``.toml``) or JSON file."""
+    from cdrb_cli.artifacts.core import read_input_text
+
     path = Path(path)
     source = f"{flag} {path}"
-    if not path.is_file():
-        what = "is not a regular file" if path.exists() else "no such file"
-        raise BadInput(f"{source}: {what}", hint="pass a TOML or JSON file")
-    if path.stat().st_size > MAX_CONFIG_BYTES:
-        raise BadInput(f"{source}: larger than {MAX_CONFIG_BYTES // 1024} KiB", hint="a settings file is a few lines")
+    text = read_input_text(path, flag, MAX_CONFIG_BYTES, "settings file", "pass a TOML or JSON file")
     try:
-        text = path.read_text(encoding="utf-8")
         if path.suffix.lower() == ".json":
             data = loads_json(text)
         else:

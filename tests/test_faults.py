@@ -453,3 +453,36 @@ def test_a_deleted_input_made_again_by_the_same_command_is_the_same_input(tmp_pa
     shutil.copyfile(other, demos)
     r = cdrb(*cluster)
     assert r.returncode == 2 and "made from other inputs" in r.stderr
+
+
+def test_every_text_input_goes_through_the_guarded_reader(tmp_path, cdrb):
+    """Maps, settings files and grid files: a link to a file outside its folder, a FIFO and a binary file are each
+    refused with one line naming the flag, before any work and without blocking; a link inside the folder is read."""
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    outside = tmp_path / "secret.txt"
+    outside.write_text("# not a map\n")
+    (maps / "escape.txt").symlink_to(outside)
+    os.mkfifo(maps / "fifo.txt")
+    (maps / "binary.txt").write_bytes(b"\xff\xfe\x00#")
+    (maps / "real.txt").write_text("#####\n#S.G#\n#####\n")
+    (maps / "alias.txt").symlink_to(maps / "real.txt")
+    link_out = "a link to a file outside its folder"
+    cases = [
+        (("collect", "--maze-map", maps / "escape.txt", "-n", "1"), "--maze-map", link_out),
+        (("collect", "--maze-map", maps / "fifo.txt", "-n", "1"), "--maze-map", "not a regular file"),
+        (("collect", "--maze-map", maps / "binary.txt", "-n", "1"), "--maze-map", "not a text file"),
+        (("train", "x.h5", "--config", maps / "escape.txt"), "--config", link_out),
+        (("train", "x.h5", "--config", maps / "fifo.txt"), "--config", "not a regular file"),
+        (("grid", maps / "escape.txt"), "", "not a grid file"),
+    ]
+    for args, flag, needle in cases:
+        t0 = time.time()
+        r = cdrb(*args, "--out", tmp_path / "never.h5") if args[0] != "grid" else cdrb(*args)
+        assert time.time() - t0 < 10
+        assert r.returncode == 2, (args, r.stderr)
+        assert needle in r.stderr and flag in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "never.h5").exists()
+    from cdrb_cli.envs.pointmaze.maze import load_map_file
+
+    assert load_map_file(maps / "alias.txt").rows == ["#####", "#S.G#", "#####"]

@@ -56,7 +56,7 @@ def test_config_files(tmp_path):
     bad.write_text("steps = = 3\n")
     with pytest.raises(BadInput, match="not valid TOML"):
         read_config_file(bad)
-    with pytest.raises(BadInput, match="no such file"):
+    with pytest.raises(BadInput, match="no such settings file"):
         read_config_file(tmp_path / "absent.toml")
 
 

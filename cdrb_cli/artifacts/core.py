@@ -178,22 +178,64 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
 
 
 # ------------------------------------------------------------------------------------------------ reading
-def check_input_file(path: str | Path, flag: str, max_bytes: int, what: str = "file", hint: str = "check the path"):
-    """The one check every non-artifact input file passes before it is opened: it exists, is a regular file (a
-    FIFO would block the read, a device never end, a folder is not a file) and is at most ``max_bytes``; each
-    failure is one line naming ``flag``. Returns the path."""
+def _guarded_fd(path: Path, flag: str, max_bytes: int, what: str, hint: str) -> int:
+    """An open read-only descriptor of ``path`` after the checks every input file passes (see
+    :func:`check_input_file`); the caller closes it."""
     import stat
 
     path = Path(path)
+    source = f"{flag} {path}" if flag else str(path)
+    if not os.path.lexists(path):
+        raise BadInput(f"{source}: no such {what}", hint=hint)
+    target = path
+    if path.is_symlink():  # a link is followed only to a file in its own folder
+        target = path.resolve()
+        if target.parent != path.parent.resolve():
+            raise BadInput(f"{source}: a link to a file outside its folder ({target})", hint=f"pass the {what} itself")
     try:
-        st = path.stat()
-    except OSError:
-        raise BadInput(f"{flag} {path}: no such {what}", hint=hint) from None
-    if not stat.S_ISREG(st.st_mode):
-        raise BadInput(f"{flag} {path}: not a regular file", hint=f"pass the {what} itself")
+        fd = os.open(target, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        raise BadInput(f"{source}: cannot open it ({exc.strerror or type(exc).__name__})", hint=hint) from None
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):  # a FIFO would block the read, a device never end, a folder is not a file
+        os.close(fd)
+        raise BadInput(f"{source}: not a regular file", hint=f"pass the {what} itself")
     if st.st_size > max_bytes:
-        raise BadInput(f"{flag} {path}: larger than {max_bytes >> 20:,} MiB", hint=f"is this the {what}?")
-    return path
+        os.close(fd)
+        raise BadInput(f"{source}: larger than {_size_text(max_bytes)}", hint=f"is this the {what}?")
+    return fd
+
+
+def _size_text(n: int) -> str:
+    return f"{n >> 20:,} MiB" if n >= 1 << 20 else f"{n >> 10:,} KiB"
+
+
+def check_input_file(path: str | Path, flag: str, max_bytes: int, what: str = "file", hint: str = "check the path"):
+    """The one check every non-artifact input file passes before it is opened: it exists, is a regular file (a
+    FIFO would block the read, a device never end, a folder is not a file), is at most ``max_bytes``, and is not a
+    link to a file outside its folder; each failure is one line naming ``flag``. Returns the path."""
+    os.close(_guarded_fd(Path(path), flag, max_bytes, what, hint))
+    return Path(path)
+
+
+def read_input_text(
+    path: str | Path, flag: str, max_bytes: int, what: str = "file", hint: str = "check the path"
+) -> str:
+    """The text (UTF-8) of an input file that passed :func:`check_input_file`'s checks, read from the descriptor
+    that was checked (no race with a swapped file), never more than ``max_bytes``."""
+    fd = _guarded_fd(Path(path), flag, max_bytes, what, hint)
+    try:
+        with os.fdopen(fd, "rb", closefd=False) as fh:
+            data = fh.read(max_bytes + 1)
+    finally:
+        os.close(fd)
+    source = f"{flag} {path}" if flag else str(path)
+    if len(data) > max_bytes:
+        raise BadInput(f"{source}: larger than {_size_text(max_bytes)}", hint=f"is this the {what}?")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise BadInput(f"{source}: not a text file (not UTF-8)", hint=f"pass the {what} itself") from None
 
 
 def _open(path: Path) -> h5py.File:

@@ -184,23 +184,14 @@ MAX_TASKS = 100_000
 
 
 def _read_small(path: Path, limit: int = MAX_FILE_BYTES) -> str | None:
-    """The text of ``path`` when it is a regular file (not a link, FIFO or device) of at most ``limit`` bytes, read
-    without following a link or blocking on a FIFO; else None."""
-    import stat
+    """The text of ``path`` through the guarded reader (a regular file of at most ``limit`` bytes, no link out of
+    its folder, never blocking on a FIFO); None when it is not one."""
+    from cdrb_cli.artifacts.core import read_input_text
 
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
-    except OSError:
+        return read_input_text(path, "", limit)
+    except BadInput:
         return None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode) or st.st_size > limit:
-            return None
-        with os.fdopen(fd, "rb", closefd=False) as fh:
-            data = fh.read(limit + 1)
-        return None if len(data) > limit else data.decode("utf-8", errors="replace")
-    finally:
-        os.close(fd)
 
 
 def _read_toml(path: Path, what: str) -> dict:
@@ -211,7 +202,8 @@ def _read_toml(path: Path, what: str) -> dict:
     text = _read_small(path)
     if text is None:
         raise BadInput(
-            f"{path}: not a {what} (a regular file of at most {MAX_FILE_BYTES >> 20} MiB, not a link)",
+            f"{path}: not a {what} (a regular text file of at most {MAX_FILE_BYTES >> 20} MiB, no link out of its "
+            "folder)",
             hint="name the TOML file itself",
         )
     try:
@@ -308,10 +300,11 @@ def _included_settings(
     is appended to ``read``."""
     out: list[Settings] = []
     for rel in paths:
-        path = (base / rel).resolve()
+        given = Path(os.path.normpath(base / rel))
+        path = given.resolve()
         if path in chain:
             raise BadInput(f"{chain[-1]}: include {rel}: includes itself (through {path.name})", hint="remove the loop")
-        sfile = _validated(SettingsFile, _read_toml(path, "settings file"), path)
+        sfile = _validated(SettingsFile, _read_toml(given, "settings file"), path)
         if read is not None:
             read.append(path)
         out += _included_settings(sfile.include, path.parent, (*chain, path), read)
@@ -341,8 +334,8 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     from cdrb_cli.envs.registry import make_spec
     from cdrb_cli.methods.registry import METHODS
 
+    raw = _read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
     path = Path(path).resolve()
-    raw = _read_toml(path, "grid file")
     cwd_out = None
     for text in overrides:
         key, value = parse_override(text)
@@ -666,9 +659,10 @@ def check_outputs(spec: GridSpec, tasks: list[Task]) -> None:
         if out.resolve() in sources:
             raise BadInput(f"{out}: the grid would write over its own input file", hint="choose another `out` folder")
     if summary.exists():
+        text = _read_small(summary, 1 << 26)
         try:
-            body = json.loads(summary.read_text()) if summary.is_file() and summary.stat().st_size < 2**26 else None
-        except (OSError, ValueError):
+            body = json.loads(text) if text is not None else None
+        except (ValueError, RecursionError):
             body = None
         if not isinstance(body, dict) or not {"tasks", "counts"} <= body.keys():
             raise BadInput(

@@ -30,12 +30,14 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
 
     import tomllib
 
+    from cdrb_cli.artifacts.core import read_input_text
+
     where = path or PAPER_FIGURES
+    if path is not None:
+        text = read_input_text(path, "--paper-figures", 1 << 20, "figures file", "give a TOML file")
+    else:
+        text = resources.files("cdrb_cli").joinpath(PAPER_FIGURES).read_text()
     try:
-        if path is not None:
-            text = Path(path).read_text()
-        else:
-            text = resources.files("cdrb_cli").joinpath(PAPER_FIGURES).read_text()
         raw = tomllib.loads(text)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise BadInput(f"--paper-figures {where}: cannot read it ({exc})", hint="give a TOML file") from None

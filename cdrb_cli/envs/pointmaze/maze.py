@@ -110,20 +110,13 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
 MAX_MAP_BYTES = 1 << 20
 
 
-def load_map_file(path: str | Path) -> MazeLayout:
+def load_map_file(path: str | Path, flag: str = "--maze-map") -> MazeLayout:
+    """A map file, read through the guarded reader (a regular text file of at most 1 MiB, no link out of its
+    folder) and parsed; every problem is one line naming ``flag`` or the line."""
+    from cdrb_cli.artifacts.core import read_input_text
+
     path = Path(path)
-    if not path.exists():
-        raise BadInput(f"--maze-map {path}: no such file", hint="check the path")
-    if not path.is_file():  # a FIFO would hang, /dev/zero read forever
-        raise BadInput(f"--maze-map {path}: not a regular file", hint="pass a text file")
-    if path.stat().st_size > MAX_MAP_BYTES:
-        raise BadInput(f"--maze-map {path}: larger than {MAX_MAP_BYTES // 1024} KiB", hint="a map is a few lines")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise BadInput(
-            f"--maze-map {path}: cannot read it as text ({type(exc).__name__})", hint="pass a text file"
-        ) from None
+    text = read_input_text(path, flag, MAX_MAP_BYTES, "map file", "pass a text file of rows of # . S G")
     return parse_map(text, name=path.stem, source=str(path))
 
 
