@@ -54,18 +54,35 @@ class Plans:
 class Planner:
     """A planner loaded from a model artifact (``cdrb train``), ready to plan on its environment."""
 
-    def __init__(self, model: str | Path, device: str = "cpu", ema: bool = True):
-        from cdrb_cli.stages.plan import load_planner
+    def __init__(
+        self,
+        model: str | Path,
+        device: str = "cpu",
+        ema: bool = True,
+        maze_map: str | Path | None = None,
+        mask_buffer: bool = False,
+        best_of: int = 1,
+        route_k: int | None = None,
+        guide_scale: float = 0.0,
+    ):
+        """``maze_map``: plan in the training map with walls added (`cdrb plan --maze-map`); ``mask_buffer``,
+        ``best_of``, ``route_k``, ``guide_scale``: keep plans out of obstacles as the CLI flags of those names do."""
+        from cdrb_cli.configs import AvoidConfig
+        from cdrb_cli.stages.plan import check_avoid, load_planner, prepare_planner, scene_spec
         from cdrb_cli.torch_utils import setup_torch
 
         self.model = artifacts.load(Path(model), "model")
         self.device = setup_torch(device)
         self.method = load_planner(self.model, device=self.device, ema=ema)
+        avoid = AvoidConfig(mask_buffer=mask_buffer, best_of=best_of, route_k=route_k, guide_scale=guide_scale)
+        check_avoid(self.method.name, avoid)
+        self._spec = scene_spec(self.model, maze_map)
+        self.avoidance = prepare_planner(self.method, self._spec, avoid)
 
     @property
     def spec(self) -> EnvSpec:
-        """The environment the model was trained on."""
-        return self.model.manifest.env
+        """The environment plans are made in: the model's, or its task in ``maze_map``."""
+        return self._spec
 
     def state(self, point: Sequence[float] | np.ndarray, flag: str = "--start") -> np.ndarray:
         """A full state from a point written as ``cdrb plan`` takes it (``flag``: ``--start`` or ``--goal``): goal
@@ -91,7 +108,7 @@ class Planner:
             raise BadInput(f"n = {n}: plan at least once", hint="n >= 1")
         sampler = METHODS.get(self.method.name).check_sampler(sampler or self.model.manifest.config.method.sampler)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
-        out = sample_plans(self.method, s, g, n, seed, sampler, steps, device=self.device)
+        out = sample_plans(self.method, s, g, n, seed, sampler, steps, device=self.device, avoid=self.avoidance)
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]
         return Plans(
@@ -114,18 +131,38 @@ def evaluate(
     protocol: str | None = None,
     device: str = "cpu",
     force: bool = False,
+    maze_map: str | Path | None = None,
+    mask_buffer: bool = False,
+    best_of: int = 1,
+    route_k: int | None = None,
+    guide_scale: float = 0.0,
 ) -> EvalSummary:
-    """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary."""
+    """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary
+    (``maze_map`` and the avoidance settings as in :class:`Planner`; ``protocol="detour"`` with a map)."""
     from cdrb_cli.artifacts.outputs import claim_output
+    from cdrb_cli.configs import AvoidConfig
     from cdrb_cli.stages.evaluate import eval_config
     from cdrb_cli.stages.evaluate import evaluate as run_eval
+    from cdrb_cli.stages.plan import scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
     if stream not in ("test", "tune"):
         raise BadInput(f"stream = {stream!r}", hint="'test' (reported tables) or 'tune' (choosing settings)")
     m = artifacts.load(Path(model), "model")
-    config = eval_config(m, episodes, list(seeds), controller=controller, protocol=protocol, stream=stream)
+    avoid = AvoidConfig(mask_buffer=mask_buffer, best_of=best_of, route_k=route_k, guide_scale=guide_scale)
+    map_path = None if maze_map is None else Path(maze_map)
+    config = eval_config(
+        m,
+        episodes,
+        list(seeds),
+        controller=controller,
+        protocol=protocol,
+        stream=stream,
+        avoid=avoid,
+        maze_map=map_path,
+    )
+    spec = family_of(m.manifest.env).protocol_spec(scene_spec(m, map_path), config.protocol)
     dev = setup_torch(device)
     with claim_output(Path(out), force, "out", inputs=[m.path]) as path:
-        result = run_eval(m, config, path, device=dev)
+        result = run_eval(m, config, path, device=dev, spec=spec)
     return result.manifest.summary

@@ -254,3 +254,16 @@ def test_eval_in_a_new_map_end_to_end(models, small_data, cdrb, tmp_path):
     assert r.returncode == 0, r.stderr
     parents = artifacts.load(d_out, "eval").manifest.parents
     assert [p.kind for p in parents] == ["model", "buffer"] and parents[1].sha256 == buffer.sha256
+
+
+def test_api_plans_in_a_new_map(models):
+    from cdrb_cli import api
+
+    planner = api.Planner(models["cdrb"].path, maze_map=NORTH, mask_buffer=True, best_of=2, route_k=2)
+    assert planner.spec.id == "maze-tight+maze-tight-closed-north"
+    g = MazeGeometry(planner.spec.scene.maze)
+    plans = planner.plan(start=g.cell_to_xy([5, 7]), goal=g.cell_to_xy([1, 1]), n=3, seed=0)
+    assert plans.states.shape[0] == 3
+    assert not family_of(planner.spec).in_collision(planner.spec, plans.states[:, 1:-1]).any()
+    with pytest.raises(BadInput, match="inside a wall"):  # the closed gap is a wall now
+        planner.plan(start=g.cell_to_xy([4, 7]), goal=g.cell_to_xy([1, 1]))

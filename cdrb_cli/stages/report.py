@@ -99,12 +99,17 @@ def controller_name(ev) -> str:
 
 
 def method_label(ev) -> str:
-    """The method, its preset when not the quick one, and how it was executed when closed loop (e.g.
-    ``cdrb [every 20, repair k=4]``): each is its own row."""
+    """The method, its preset when not the quick one, how it was executed when closed loop and how it kept its plans
+    out of obstacles (e.g. ``cdrb [every 20, repair k=4]``, ``cdrb [masked buffer, best of 4]``): each is its own
+    row."""
     s = ev.manifest.summary
     label = s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
-    replan = ev.manifest.config.replan
-    return label if replan.mode == "never" else f"{label} [{replan.label()}]"
+    config = ev.manifest.config
+    how = [config.replan.label()] if config.replan.mode != "never" else []
+    avoid = getattr(config, "avoid", None)
+    if avoid is not None and avoid.label() != "plain":
+        how.append(avoid.label())
+    return f"{label} [{'; '.join(how)}]" if how else label
 
 
 def per_seed(ev) -> list:
