@@ -198,3 +198,18 @@ def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp
     mlp = tasks["train maze-tight/mlp-s0"].argv  # an eval-only pick: the base model's flags, and its eval knob
     assert "features=state-action" not in mlp and "--buffer" not in mlp
     assert tasks["eval maze-tight/mlp-s0"].argv[-6:-4] == ["--max-lag", "0"]
+
+
+def test_selected_file_flags_are_relative_to_the_settings_file(tmp_path):
+    from cdrb_cli.stages.select import relative_files
+
+    folder = tmp_path / "experiments" / "tuned"
+    maps = tmp_path / "experiments" / "maps" / "closed.txt"
+    flags = ["--max-lag", "0.6", "--maze-map", str(tmp_path / "experiments" / "tune" / ".." / "maps" / "closed.txt")]
+    flags += [f"--route-buffer={tmp_path / 'runs' / 'b.h5'}", "--protocol", "detour"]
+    out = relative_files(flags, folder)
+    assert out == ["--max-lag", "0.6", "--maze-map", "../maps/closed.txt", "--route-buffer=../../runs/b.h5"] + [
+        "--protocol",
+        "detour",
+    ]
+    assert (folder / out[3]).resolve() == maps.resolve()

@@ -158,8 +158,28 @@ def _toml_list(items: list[str]) -> str:
     return "[" + ", ".join(json.dumps(x) for x in items) + "]"
 
 
-def settings_text(spec: GridSpec, grid_file: Path, best: dict[tuple[str, str], Candidate]) -> str:
-    """The settings file: a provenance table, then one ``[[settings]]`` entry per env x method."""
+def relative_files(flags: list[str], folder: Path) -> list[str]:
+    """``flags`` with every file value of the grid's path flags (absolute once a grid is read) written relative to
+    ``folder``, the settings file's own: a grid that includes the file then finds the same files from anywhere."""
+    import os
+
+    from cdrb_cli.stages.grid import PATH_FLAGS
+
+    out = list(flags)
+    for i, f in enumerate(out):
+        name, eq, value = f.partition("=")
+        if name in PATH_FLAGS and eq and os.path.isabs(value):
+            out[i] = f"{name}={os.path.relpath(os.path.normpath(value), folder)}"
+        elif f in PATH_FLAGS and i + 1 < len(out) and os.path.isabs(out[i + 1]):
+            out[i + 1] = os.path.relpath(os.path.normpath(out[i + 1]), folder)
+    return out
+
+
+def settings_text(
+    spec: GridSpec, grid_file: Path, best: dict[tuple[str, str], Candidate], folder: Path | None = None
+) -> str:
+    """The settings file: a provenance table, then one ``[[settings]]`` entry per env x method (file flags relative
+    to ``folder``, the file's own folder)."""
     seeds = ",".join(map(str, spec.eval_seeds)) if spec.eval_seeds else "those of training"
     lines = [
         "# Written by `cdrb select`: the settings chosen on the tuning stream, one entry per env x method.",
@@ -173,6 +193,8 @@ def settings_text(spec: GridSpec, grid_file: Path, best: dict[tuple[str, str], C
     ]
     for (env, method), cand in best.items():
         cluster, train, evaluate = chosen_flags(spec, cand)
+        if folder is not None:
+            cluster, train, evaluate = (relative_files(f, folder) for f in (cluster, train, evaluate))
         lines += [
             "[[settings]]",
             f"env = {json.dumps(env)}",
@@ -244,7 +266,7 @@ def select(
             f"{'n/a' if c.crossing is None else f'{c.crossing:.1f}%'}, collisions {c.collision:.1f}%)"
         )
     with artifacts.claim_output(out, force, "--out", inputs), artifacts.atomic_path(out) as tmp:
-        tmp.write_text(settings_text(spec, Path(grid_file), best))
+        tmp.write_text(settings_text(spec, Path(grid_file), best, Path(out).resolve().parent))
     if table is not None:
         fmt = "csv" if table.suffix == ".csv" else "markdown"
         with artifacts.claim_output(table, force, "--table", inputs), artifacts.atomic_path(table) as tmp:
