@@ -365,10 +365,11 @@ def test_a_network_too_big_for_memory_is_refused_before_allocating(small_data, t
     assert r.returncode == 0 and " parameters (about " in r.stderr
 
 
-def test_start_weight_weighs_the_states_after_the_start(small_data):
-    """CDRB's start_weight against its definition: with a network that predicts zeros, the loss is the mean over
-    plan positions of the squared error, the start_span states after the pinned start weighted start_weight (the
-    weights normalised to mean 1); 1 gives the plain mean (older models' loss)."""
+@pytest.mark.parametrize("name", ["cdrb", "diffuser"])
+def test_start_weight_weighs_the_states_after_the_start(small_data, name):
+    """start_weight against its definition (CDRB, and Diffuser predicting x0): with a network that predicts zeros,
+    the loss is the mean over plan positions of the squared error, the start_span states after the pinned start
+    weighted start_weight (the weights normalised to mean 1); 1 gives the plain mean (older models' loss)."""
     import torch
 
     from cdrb_cli.buffer import Normalizer
@@ -377,7 +378,8 @@ def test_start_weight_weighs_the_states_after_the_start(small_data):
     demos, buffer = small_data
     batch = torch.from_numpy(np.asarray(buffer.points[None, :16], dtype=np.float32)).repeat(4, 1, 1)
     for w, span in ((1.0, 4), (50.0, 4), (9.0, 2)):
-        cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", **{"method.start_weight": w, "method.start_span": span}))
+        b = buffer if name == "cdrb" else None
+        cfg = train_config(demos, b, name, tiny(name, **{"method.start_weight": w, "method.start_span": span}))
         method = build_method(cfg, demos.manifest.env, Normalizer(low=buffer.low, high=buffer.high), buffer.points)
         method.net = lambda x, k: torch.zeros_like(x)
         start, goal = method.ends(batch, method.obs_dim)

@@ -28,10 +28,10 @@ from pydantic import Field
 from cdrb_cli.buffer import BallSampler, TorchBallSampler, radii
 from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import Planner, SampleResult, keep_schedule
-from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
+from cdrb_cli.methods.registry import METHODS, MethodEntry, StartWeightParams, start_weighted
 
 
-class CDRBParams(MethodParams):
+class CDRBParams(StartWeightParams):
     name: Literal["cdrb"] = "cdrb"
     schedule: Literal["linear", "log", "geometric", "sqrt", "sigmoid"] = Field(
         "linear",
@@ -55,14 +55,6 @@ class CDRBParams(MethodParams):
     loss_weight_power: float = Field(
         0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
     )
-    start_weight: float = Field(
-        1.0,
-        ge=1,
-        le=1000,
-        description="loss weight of the planned states right after the pinned start (the first start_span), so the "
-        "plan leaves the start as the data does; 1 = every state alike",
-    )
-    start_span: int = Field(4, ge=1, le=64, description="how many states after the start start_weight covers")
 
 
 class CDRB(Planner):
@@ -112,12 +104,7 @@ class CDRB(Planner):
         k = rng.integers(1, self.T, size=B)
         noisy = self.pin(self._degrade(batch, k, rng), start, goal)
         pred = self.pin(self.net(noisy, torch.as_tensor(k, device=batch.device)), start, goal)
-        sq = (pred - batch) ** 2
-        w_start = self.config.method.start_weight
-        if w_start != 1.0:  # the first states after the start weigh more (their mean weight stays comparable)
-            w = torch.ones(sq.shape[1], dtype=sq.dtype, device=sq.device)
-            w[1 : 1 + self.config.method.start_span] = w_start
-            sq = sq * (w / w.mean())[None, :, None]
+        sq = start_weighted((pred - batch) ** 2, self.config.method)
         per_sample = torch.mean(sq, dim=(1, 2))
         p = self.config.method.loss_weight_power
         if p > 0:

@@ -25,7 +25,7 @@ from pydantic import Field
 
 from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import Planner, SampleResult, keep_schedule
-from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
+from cdrb_cli.methods.registry import METHODS, MethodEntry, StartWeightParams, start_weighted
 from cdrb_cli.seeding import torch_generator
 
 _BETAS = {"cosine": "squaredcos_cap_v2", "linear": "linear"}
@@ -38,7 +38,7 @@ def _schedulers():
     return DDPMScheduler, DDIMScheduler
 
 
-class DiffuserParams(MethodParams):
+class DiffuserParams(StartWeightParams):
     name: Literal["diffuser"] = "diffuser"
     diffusion_steps: int = Field(gt=1, le=100_000, description="T, the number of diffusion steps")
     beta_schedule: Literal["cosine", "linear"] = Field("cosine", description="the DDPM noise schedule")
@@ -80,8 +80,8 @@ class Diffuser(Planner):
         noisy = self.pin(self.train_sched.add_noise(batch, noise, t), start, goal)
         pred = self.net(noisy, t)
         if self.config.method.predict == "x0":
-            return torch.mean((self.pin(pred, start, goal) - batch) ** 2)
-        return torch.mean((pred - noise) ** 2)
+            return torch.mean(start_weighted((self.pin(pred, start, goal) - batch) ** 2, self.config.method))
+        return torch.mean(start_weighted((pred - noise) ** 2, self.config.method))
 
     def _sampler(self, name: str, steps: int | None):
         p = self.config.method

@@ -13,6 +13,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal, get_args, get_origin
 
+from pydantic import Field
+
 from cdrb_cli.errors import BadInput
 from cdrb_cli.registry import Registry
 from cdrb_cli.schema_base import Record
@@ -30,6 +32,32 @@ class MethodParams(Record):
 
     name: str
     sampler: str
+
+
+class StartWeightParams(MethodParams):
+    """The loss weighting of the planned states right after the pinned start, for the trajectory planners that
+    share it (CDRB, Diffuser): declared once here."""
+
+    start_weight: float = Field(
+        1.0,
+        ge=1,
+        le=1000,
+        description="loss weight of the planned states right after the pinned start (the first start_span), so the "
+        "plan leaves the start as the data does; 1 = every state alike",
+    )
+    start_span: int = Field(4, ge=1, le=64, description="how many states after the start start_weight covers")
+
+
+def start_weighted(sq, params: StartWeightParams):
+    """Squared errors (B, H, F) with the ``start_span`` states after the start weighted ``start_weight`` (the mean
+    weight kept at 1, so losses stay comparable); unchanged when the weight is 1."""
+    if params.start_weight == 1.0:
+        return sq
+    import torch
+
+    w = torch.ones(sq.shape[1], dtype=sq.dtype, device=sq.device)
+    w[1 : 1 + params.start_span] = params.start_weight
+    return sq * (w / w.mean())[None, :, None]
 
 
 @dataclass(frozen=True)
