@@ -50,3 +50,21 @@ def small_data(tmp_path_factory):
     demos = collect(spec, collect_config(spec, episodes=40, seed=0, valid_fraction=0.1), root / "demos.h5")
     buffer = cluster(demos, ClusterConfig(k=100, seed=0), root / "buffer.h5")
     return demos, buffer
+
+
+@pytest.fixture(scope="session")
+def tiny_models(small_data, tmp_path_factory):
+    """CDRB, Diffuser and the MLP trained 30 steps at the tiny settings on ``small_data``, shared by the planning
+    tests (untrained in effect: what they test holds for any weights)."""
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    root = tmp_path_factory.mktemp("models")
+    out = {}
+    for method in ("cdrb", "diffuser", "mlp"):
+        b = buffer if method == "cdrb" else None
+        cfg = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=30))
+        out[method] = train(demos, b, cfg, root / f"{method}.h5")
+    return out

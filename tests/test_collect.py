@@ -89,7 +89,7 @@ def test_cli_collect_bad_inputs(tmp_path, cdrb):
         (("collect", "maze", "-n", "2000000"), "--episodes"),
         (("collect", "--maze-map", "/dev/zero", "-n", "2"), "not a regular file"),
         (("collect", "--maze-map", fifo, "-n", "2"), "not a regular file"),
-        (("collect", "--maze-map", huge, "-n", "2"), "larger than 1024 KiB"),
+        (("collect", "--maze-map", huge, "-n", "2"), "larger than 1 MiB"),
         (("collect", "maze", "-n", "2", "--workers", str(2 * (os.cpu_count() or 1) + 1)), "--workers"),
         (("collect", "maze", "--expert", "sac", "--policy", fifo, "-n", "2"), "--policy"),  # a FIFO: no read, no hang
         (("collect", "maze", "--expert", "sac", "--policy", bad, "-n", "2"), "not a stable-baselines3"),

@@ -13,9 +13,6 @@ from cdrb_cli.configs import AvoidConfig
 from cdrb_cli.envs.pointmaze.maze import MazeGeometry
 from cdrb_cli.envs.registry import family_of, make_spec
 from cdrb_cli.errors import BadInput
-from cdrb_cli.methods.config import train_config
-from cdrb_cli.stages.train import train
-from tests.test_train import tiny
 
 MAPS = Path(__file__).resolve().parent.parent / "experiments" / "maps"
 NORTH = MAPS / "maze-tight-closed-north.txt"
@@ -29,18 +26,6 @@ def _write(tmp_path, rows, name="new"):
     p = tmp_path / f"{name}.txt"
     p.write_text("\n".join(rows) + "\n")
     return p
-
-
-@pytest.fixture(scope="module")
-def models(small_data, tmp_path_factory):
-    demos, buffer = small_data
-    root = tmp_path_factory.mktemp("obstacle-models")
-    out = {}
-    for method in ("cdrb", "diffuser", "mlp"):
-        b = buffer if method == "cdrb" else None
-        cfg = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=30))
-        out[method] = train(demos, b, cfg, root / f"{method}.h5")
-    return out
 
 
 # ------------------------------------------------------------------------------------------------ the map
@@ -136,10 +121,10 @@ def test_best_of_keeps_a_free_plan_then_the_shortest():
 
 
 # ------------------------------------------------------------------------------------------------ masking
-def test_masked_buffer_never_restores_a_state_inside_the_new_wall(models):
+def test_masked_buffer_never_restores_a_state_inside_the_new_wall(tiny_models):
     from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans
 
-    model = models["cdrb"]
+    model = tiny_models["cdrb"]
     spec = family_of(model.manifest.env).with_map(model.manifest.env, NORTH)
     family = family_of(spec)
     plain = load_planner(model)
@@ -166,17 +151,17 @@ def test_masked_buffer_never_restores_a_state_inside_the_new_wall(models):
     assert before.shape == after.shape
 
 
-def test_mask_and_route_refused_where_they_do_not_apply(models, cdrb, tmp_path):
+def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_path):
     out = tmp_path / "e.h5"
-    r = cdrb("eval", models["diffuser"].path, "--mask-buffer", "-n", "2", "--seeds", "0", "--out", out)
+    r = cdrb("eval", tiny_models["diffuser"].path, "--mask-buffer", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "--mask-buffer: diffuser samples from no replay buffer" in r.stderr
-    r = cdrb("eval", models["cdrb"].path, "--guide-scale", "0.1", "-n", "2", "--seeds", "0", "--out", out)
+    r = cdrb("eval", tiny_models["cdrb"].path, "--guide-scale", "0.1", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "--guide-scale: cdrb has no guided sampling" in r.stderr
-    r = cdrb("eval", models["mlp"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
+    r = cdrb("eval", tiny_models["mlp"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "--route-k: mlp cannot restore" in r.stderr
-    r = cdrb("eval", models["diffuser"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
+    r = cdrb("eval", tiny_models["diffuser"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "add --route-buffer" in r.stderr
-    r = cdrb("eval", models["cdrb"].path, "--protocol", "detour", "-n", "2", "--seeds", "0", "--out", out)
+    r = cdrb("eval", tiny_models["cdrb"].path, "--protocol", "detour", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "add --maze-map" in r.stderr
     assert not out.exists() and len(r.stderr.strip().splitlines()) == 1
 
@@ -233,33 +218,35 @@ def test_collision_cost_gradient_moves_a_state_out_of_the_wall():
 
 
 # ------------------------------------------------------------------------------------------------ end to end
-def test_eval_in_a_new_map_end_to_end(models, small_data, cdrb, tmp_path):
+def test_eval_in_a_new_map_end_to_end(tiny_models, small_data, cdrb, tmp_path):
     _, buffer = small_data
     out = tmp_path / "e.h5"
     args = ["--maze-map", NORTH, "--protocol", "detour", "-n", "4", "--seeds", "0", "--stream", "tune"]
-    r = cdrb("eval", models["cdrb"].path, *args, "--mask-buffer", "--best-of", "2", "--route-k", "2", "--out", out)
+    r = cdrb("eval", tiny_models["cdrb"].path, *args, "--mask-buffer", "--best-of", "2", "--route-k", "2", "--out", out)
     assert r.returncode == 0, r.stderr
     ev = artifacts.load(out, "eval")
     assert ev.manifest.env.id == "maze-tight+maze-tight-closed-north"
-    assert ev.manifest.env.scene.trained_maze == models["cdrb"].manifest.env.scene.maze
+    assert ev.manifest.env.scene.trained_maze == tiny_models["cdrb"].manifest.env.scene.maze
     assert ev.manifest.config.scene == NORTH.name
     assert ev.manifest.config.avoid == AvoidConfig(mask_buffer=True, best_of=2, route_k=2)
     assert ev.manifest.summary.masked is not None and ev.manifest.summary.masked.removed >= 0
     # the second run is up to date; another map is a different eval
-    r = cdrb("eval", models["cdrb"].path, *args, "--mask-buffer", "--best-of", "2", "--route-k", "2", "--out", out)
+    r = cdrb("eval", tiny_models["cdrb"].path, *args, "--mask-buffer", "--best-of", "2", "--route-k", "2", "--out", out)
     assert r.returncode == 0 and "up to date" in r.stderr
     # Diffuser routed through a buffer artifact: the buffer is a parent
     d_out = tmp_path / "d.h5"
-    r = cdrb("eval", models["diffuser"].path, *args, "--route-k", "2", "--route-buffer", buffer.path, "--out", d_out)
+    r = cdrb(
+        "eval", tiny_models["diffuser"].path, *args, "--route-k", "2", "--route-buffer", buffer.path, "--out", d_out
+    )
     assert r.returncode == 0, r.stderr
     parents = artifacts.load(d_out, "eval").manifest.parents
     assert [p.kind for p in parents] == ["model", "buffer"] and parents[1].sha256 == buffer.sha256
 
 
-def test_api_plans_in_a_new_map(models):
+def test_api_plans_in_a_new_map(tiny_models):
     from cdrb_cli import api
 
-    planner = api.Planner(models["cdrb"].path, maze_map=NORTH, mask_buffer=True, best_of=2, route_k=2)
+    planner = api.Planner(tiny_models["cdrb"].path, maze_map=NORTH, mask_buffer=True, best_of=2, route_k=2)
     assert planner.spec.id == "maze-tight+maze-tight-closed-north"
     g = MazeGeometry(planner.spec.scene.maze)
     plans = planner.plan(start=g.cell_to_xy([5, 7]), goal=g.cell_to_xy([1, 1]), n=3, seed=0)

@@ -7,20 +7,7 @@ import pytest
 
 from cdrb_cli import artifacts
 from cdrb_cli.methods.config import train_config
-from cdrb_cli.stages.train import train
 from tests.test_train import tiny
-
-
-@pytest.fixture(scope="module")
-def tiny_models(small_data, tmp_path_factory):
-    demos, buffer = small_data
-    root = tmp_path_factory.mktemp("models")
-    out = {}
-    for method in ("cdrb", "diffuser", "mlp"):
-        b = buffer if method == "cdrb" else None
-        cfg = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=30))
-        out[method] = train(demos, b, cfg, root / f"{method}.h5")
-    return out
 
 
 @pytest.mark.parametrize("method", ["cdrb", "diffuser", "mlp"])

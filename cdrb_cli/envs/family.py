@@ -164,6 +164,8 @@ class EnvFamily(ABC):
     extra_protocols: ClassVar[dict[str, str]] = {}
     #: extra protocols that draw other starts, which `cdrb collect --starts` may also use for demonstrations
     start_protocols: ClassVar[tuple[str, ...]] = ()
+    #: extra protocols that draw their pairs from a changed scene (`--maze-map` at eval), refused without one
+    scene_protocols: ClassVar[tuple[str, ...]] = ()
     #: how a --start/--goal point is written, for help and errors
     point_format: ClassVar[str] = "comma-separated numbers"
 

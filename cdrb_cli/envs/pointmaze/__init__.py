@@ -119,6 +119,7 @@ class PointMazeFamily(EnvFamily):
         "is longer than in the training map (the new walls block the way the data went)",
     }
     start_protocols = (ANYWHERE,)
+    scene_protocols = (DETOUR,)
     point_format = "x,y (at rest) or x,y,vx,vy, e.g. 0,0"
 
     # -------------------------------------------------------------- environments
