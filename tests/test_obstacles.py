@@ -254,3 +254,26 @@ def test_api_plans_in_a_new_map(tiny_models):
     assert not family_of(planner.spec).in_collision(planner.spec, plans.states[:, 1:-1]).any()
     with pytest.raises(BadInput, match="inside a wall"):  # the closed gap is a wall now
         planner.plan(start=g.cell_to_xy([4, 7]), goal=g.cell_to_xy([1, 1]))
+
+
+def test_pairs_without_a_buffer_route_are_said(tiny_models, capsys):
+    """A start the buffer cannot reach by a free step gets the straight line, and the count is reported."""
+    from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans, warn_unrouted
+
+    model = tiny_models["cdrb"]
+    spec = family_of(model.manifest.env).with_map(model.manifest.env, NORTH)
+    method = load_planner(model)
+    from cdrb_cli.stages.routes import BufferGraph
+
+    avoid = prepare_planner(method, spec, AvoidConfig(mask_buffer=True, route_k=2))
+    g = MazeGeometry(spec.scene.maze)
+    states = avoid.graph.states
+    cells = g.xy_to_cell(states[:, :2])
+    centre = (cells[:, 0] >= 5) & (cells[:, 0] <= 9) & (cells[:, 1] >= 5) & (cells[:, 1] <= 9)
+    avoid.graph = BufferGraph(spec, states[centre])  # only the centre region's states: no way out to a corner
+    start = np.array([[*g.cell_to_xy([5, 7]), 0, 0]])
+    goal = family_of(spec).goal_state(spec, np.array([g.cell_to_xy([1, 1])]))
+    sample_plans(method, start, goal, 1, 0, avoid=avoid)
+    assert avoid.unrouted == 1
+    warn_unrouted(avoid)
+    assert "no route through the buffer joined 1 start/goal pair(s)" in capsys.readouterr().err

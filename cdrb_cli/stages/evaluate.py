@@ -37,7 +37,7 @@ from cdrb_cli.stages.metrics import (
     std_or_none,
     sum_failures,
 )
-from cdrb_cli.stages.plan import load_planner, mask_counts, prepare_planner, sample_plans
+from cdrb_cli.stages.plan import load_planner, mask_counts, prepare_planner, sample_plans, warn_unrouted
 
 
 @dataclass(frozen=True)
@@ -281,6 +281,7 @@ def evaluate(
             all_plans.append(plans)
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
     env.close()
+    warn_unrouted(avoid)
     arrays = episode_arrays(results)
     if keep_plans:
         arrays["plans"] = np.concatenate(all_plans).astype(np.float32)

@@ -191,6 +191,17 @@ def route_states(method: Planner, spec: EnvSpec, route_buffer=None) -> np.ndarra
     return np.concatenate([states, pad], axis=1)
 
 
+def warn_unrouted(avoid: Avoidance | None) -> None:
+    """Say how many pairs no buffer route joined (each was repaired from the straight line instead)."""
+    if avoid is not None and avoid.unrouted:
+        from cdrb_cli import ui
+
+        ui.warn(
+            f"--route-k: no route through the buffer joined {avoid.unrouted} start/goal pair(s); they were repaired "
+            "from the straight line (the buffer has no free steps around them)"
+        )
+
+
 def mask_counts(method: Planner, avoid: Avoidance | None) -> MaskCounts | None:
     """What masking did so far: the counts from :func:`prepare_planner` and the method's re-draw tallies."""
     if avoid is None or avoid.masked is None:
@@ -361,6 +372,7 @@ def make_plans(
         device,
         avoid,
     )
+    warn_unrouted(avoid)
     family = family_of(spec)
     in_wall = family.in_collision(spec, plans[..., : spec.obs_dim])
     summary = PlanSummary(
