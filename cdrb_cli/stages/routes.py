@@ -24,7 +24,6 @@ class BufferGraph:
     """The graph of ``states`` (K, F) raw feature rows (the state first) joined by free straight steps."""
 
     def __init__(self, spec: EnvSpec, states: np.ndarray, neighbours: int = NEIGHBOURS):
-        from scipy.sparse import coo_matrix
         from scipy.spatial import cKDTree
 
         self.spec = spec
@@ -40,12 +39,11 @@ class BufferGraph:
         keep = (j != i) & (j < K)
         i, j, d = i[keep], j[keep], d[keep]
         lo, hi = np.minimum(i, j), np.maximum(i, j)
-        pairs, first = np.unique(lo * K + hi, return_index=True)
+        _, first = np.unique(lo * K + hi, return_index=True)  # each undirected pair once
         i, j, d = lo[first], hi[first], d[first]
         free = ~self._crosses(self.states[i], self.states[j])
         i, j, d = i[free], j[free], np.maximum(d[free], 1e-9)
         self.edges = (np.concatenate([i, j]), np.concatenate([j, i]), np.concatenate([d, d]))
-        self._coo = coo_matrix
         self.n_edges = int(free.sum())
 
     def _crosses(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -65,6 +63,7 @@ class BufferGraph:
     def route(self, start: np.ndarray, goal: np.ndarray, horizon: int) -> np.ndarray | None:
         """The shortest route from ``start`` to ``goal`` (raw feature rows) through the graph, as ``horizon`` raw
         feature rows at even spacing along it (start and goal exact); None when no route joins them."""
+        from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         start, goal = np.asarray(start, np.float64), np.asarray(goal, np.float64)
@@ -79,7 +78,7 @@ class BufferGraph:
         rows = np.concatenate([self.edges[0], np.full(len(s_nodes), S), g_nodes])
         cols = np.concatenate([self.edges[1], s_nodes, np.full(len(g_nodes), G)])
         vals = np.concatenate([self.edges[2], s_d, g_d])
-        graph = self._coo((vals, (rows, cols)), shape=(K + 2, K + 2)).tocsr()
+        graph = coo_matrix((vals, (rows, cols)), shape=(K + 2, K + 2)).tocsr()
         dist, pred = dijkstra(graph, directed=True, indices=S, return_predecessors=True)
         if not np.isfinite(dist[G]):
             return None
