@@ -180,7 +180,7 @@ def route_states(method: Planner, spec: EnvSpec, route_buffer=None) -> np.ndarra
         return method.normalizer.unnormalize(method.ball.points)
     from cdrb_cli.buffer import Normalizer
 
-    env, task = route_buffer.manifest.env, spec.id.split("+")[0]
+    env, task = route_buffer.manifest.env, method.spec.id  # the model's own task, before any map change
     if env.obs_dim != spec.obs_dim or env.id != task:
         raise BadInput(
             f"--route-buffer {route_buffer.path}: a buffer of {env.id}, but the model plans in {task}",

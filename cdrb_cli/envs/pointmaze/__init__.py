@@ -144,7 +144,8 @@ class PointMazeFamily(EnvFamily):
                 f"{trained.n_rows}x{trained.n_cols} map (cell {trained.cell_size:g} m)",
                 hint="draw the new walls into a copy of the training map (`cdrb envs --json` shows its rows)",
             )
-        base = spec.id.split("+")[0] if spec.scene.trained_maze is not None else spec.id
+        # the id of a spec already in another map is <id>+<map name>: its task's id is what precedes the map's name
+        base = spec.id.removesuffix(f"+{spec.scene.maze.name}") if spec.scene.trained_maze is not None else spec.id
         scene = spec.scene.model_copy(update={"maze": layout, "trained_maze": trained})
         return spec.model_copy(
             update={
