@@ -293,9 +293,11 @@ MapOpt = typer.Option(None, "--maze-map", help="A maze map text file: rows of # 
 
 SceneMapOpt = typer.Option(
     None,
+    "--scene",
     "--maze-map",
-    help="Plan in this map instead of the model's: the training map with walls added (obstacles the data never "
-    "saw; the model is not retrained). Same size and cell size as the training map.",
+    metavar="FILE",
+    help="Plan among obstacles the data never saw, the model not retrained: for a maze, a map file (the training "
+    "map with walls added, same size and cell size); for Fetch, a TOML file of [[boxes]] (center, half) put down.",
 )
 MaskOpt = typer.Option(
     False,
@@ -1104,9 +1106,12 @@ def eval_cmd(
     ),
     maze_map: Path | None = typer.Option(
         None,
+        "--scene",
         "--maze-map",
-        help="Evaluate in this map instead of the model's: the training map with walls added (obstacles the data "
-        "never saw; the model is not retrained). `--protocol detour` keeps the pairs the new walls make longer.",
+        metavar="FILE",
+        help="Evaluate among obstacles the data never saw, the model not retrained: for a maze, a map file (the "
+        "training map with walls added); for Fetch, a TOML file of [[boxes]] (center, half) put down. `--protocol "
+        "detour` keeps the pairs whose way the new obstacles block.",
     ),
     mask_buffer: bool = MaskOpt,
     best_of: int = BestOfOpt,

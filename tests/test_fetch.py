@@ -468,6 +468,31 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
     assert r.returncode == 0, r.stderr
     e = artifacts.load(ev, "eval")
     assert e.manifest.config.controller.name == "fetch-push-path" and len(e.arrays["episodes/success"]) == 2
+    # a box put down after training: plan and eval run among it, the model unchanged, and record the scene
+    box = tmp_path / "box.toml"
+    box.write_text("name = 'post'\n[[boxes]]\ncenter = [1.15, 0.95, 0.45]\nhalf = [0.03, 0.03, 0.05]\n")
+    r = cdrb(
+        "plan",
+        model,
+        "--pairs",
+        "2",
+        "--scene",
+        box,
+        "--mask-buffer",
+        "--out",
+        tmp_path / "pb.h5",
+        "--plot",
+        tmp_path / "pb.png",
+    )
+    assert r.returncode == 0, r.stderr
+    p = artifacts.load(tmp_path / "pb.h5", "plans")
+    assert p.manifest.env.id == "fetch-push-obstacle+post" and p.manifest.config.scene == "box.toml"
+    r = cdrb("eval", model, "--episodes", "2", "--seeds", "0", "--scene", box, "--best-of", "2", "--out", ev, "--force")
+    assert r.returncode == 0, r.stderr
+    e = artifacts.load(ev, "eval")
+    assert e.manifest.env.scene.extra_boxes[0].center == (1.15, 0.95, 0.45) and e.manifest.config.avoid.best_of == 2
+    r = cdrb("eval", model, "--episodes", "2", "--scene", tmp_path / "none.toml", "--out", tmp_path / "bad.h5")
+    assert r.returncode == 2 and "--scene" in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
 def test_failure_causes_follow_their_definition():

@@ -3,6 +3,7 @@ buffer routes and collision guidance."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -277,3 +278,118 @@ def test_pairs_without_a_buffer_route_are_said(tiny_models, capsys):
     assert avoid.unrouted == 1
     warn_unrouted(avoid)
     assert "no route through the buffer joined 1 start/goal pair(s)" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------------ Fetch: boxes put down
+SCENES = Path(__file__).resolve().parent.parent / "experiments" / "scenes"
+X_PLUS = SCENES / "reach-closed-x-plus.toml"
+
+
+def _scene_file(tmp_path, text, name="box"):
+    p = tmp_path / f"{name}.toml"
+    p.write_text(text)
+    return p
+
+
+def test_fetch_scene_file_puts_boxes_down_and_keeps_the_task():
+    from cdrb_cli.envs.fetch.tasks import side
+
+    spec = make_spec("fetch-reach-obstacle")
+    fam = family_of(spec)
+    new = fam.with_map(spec, X_PLUS)
+    assert new.id == "fetch-reach-obstacle+reach-closed-x-plus" and fam.scene_changed(new)
+    assert new.scene.walls == spec.scene.walls and len(new.scene.extra_boxes) == 1 and not fam.scene_changed(spec)
+    # the corridor's x+ exit: free in training, in the board now (the gripper link is 4.7 cm ahead of the grip site)
+    exit_ = np.zeros(spec.obs_dim)
+    exit_[:3] = (1.42, 0.749, 0.55)
+    assert not fam.in_collision(spec, exit_[None])[0] and fam.in_collision(new, exit_[None])[0]
+    # a step out of the corridor through the exit crosses the board only in the new scene
+    out = exit_.copy()
+    out[0] = 1.56
+    path = np.stack([exit_ - np.r_[0.1, np.zeros(spec.obs_dim - 1)], out])[None]
+    assert not fam.path_in_collision(spec, path)[0] and fam.path_in_collision(new, path)[0]
+    assert side(new.scene, np.array([1.3, 0.95, 0.5])) == side(spec.scene, np.array([1.3, 0.95, 0.5])) == 1
+    again = fam.with_map(new, X_PLUS)  # a second change replaces the first
+    assert again.id == new.id and again.scene.extra_boxes == new.scene.extra_boxes
+
+
+def test_fetch_boxes_are_physics():
+    """Driving the gripper out of the corridor's x+ end: it leaves in training, the board stops it in the new scene."""
+    spec = make_spec("fetch-reach-obstacle")
+    fam = family_of(spec)
+    board_x = 1.45
+    for scene, passes in ((spec, True), (fam.with_map(spec, X_PLUS), False)):
+        env = fam.make_env(scene)
+        try:
+            env.reset(fam.draw_episodes(scene, 1, 0, 1)[0])
+            for _ in range(20):
+                s = env.step(np.array([1.0, 0.0, 0.0, 0.0]))
+        finally:
+            env.close()
+        assert (s[0] > board_x + 0.05) == passes, s[:3]
+
+
+def test_fetch_detour_pairs_have_their_shortest_route_blocked():
+    from cdrb_cli.envs.fetch.expert import FetchExpertConfig, routers
+    from cdrb_cli.envs.fetch.geometry import gripper_obstacles
+    from cdrb_cli.envs.geometry import in_boxes
+
+    spec = make_spec("fetch-reach-obstacle")
+    fam = family_of(spec)
+    new = fam.with_map(spec, X_PLUS)
+    episodes = fam.draw_protocol_episodes(new, 30, 5, 1, "detour")
+    assert len(episodes) == 30 and len({e.seed for e in episodes}) == 30
+    assert [e.seed for e in fam.draw_protocol_episodes(new, 10, 5, 1, "detour")] == [e.seed for e in episodes[:10]]
+    trained = routers(spec.scene, spec.scene.walls, FetchExpertConfig())[0]
+    home = np.asarray(spec.scene.home)
+    board = gripper_obstacles(new.scene.extra_boxes)
+    for ep in episodes:
+        goal = np.asarray(ep.goal)
+        ways = trained.options(home, goal, ["over", "around"])
+        shortest = min(ways, key=lambda k: np.linalg.norm(np.diff([home, *ways[k]], axis=0), axis=1).sum())
+        assert shortest == "around x+"  # the one route the board closes
+        assert not in_boxes(goal, board)
+    # the stock draws hold pairs the board does not block: the protocol is a filter, not the stream
+    stock = {e.seed for e in fam.draw_episodes(new, 40, 5, 1)}
+    assert not stock <= {e.seed for e in fam.draw_protocol_episodes(new, 40, 5, 1, "detour")}
+
+
+def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
+    spec = make_spec("fetch-reach-obstacle")
+    fam = family_of(spec)
+    with pytest.raises(BadInput, match="runs in the scene it was trained in"):
+        fam.draw_protocol_episodes(spec, 3, 0, 1, "detour")
+    corner = _scene_file(tmp_path, "[[boxes]]\ncenter = [1.10, 1.05, 0.45]\nhalf = [0.02, 0.02, 0.02]\n", "corner")
+    with pytest.raises(BadInput, match=r"block the shortest route of 0 of \d+ drawn pairs"):
+        fam.draw_protocol_episodes(fam.with_map(spec, corner), 3, 0, 1, "detour")
+
+
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("[[boxes]\n", "not valid TOML"),
+        ("[[boxes]]\ncenter = [1.3, 0.5, 0.5]\nhalf = [0.1, 0.1, 0.1]\ncolour = 'red'\n", "unknown key"),
+        ("[[boxes]]\ncenter = [1.3, 0.5]\nhalf = [0.1, 0.1, 0.1]\n", "boxes[0].center: expected three numbers"),
+        ("[[boxes]]\ncenter = [1.3, 0.5, true]\nhalf = [0.1, 0.1, 0.1]\n", "boxes[0].center: expected three numbers"),
+        ("[[boxes]]\ncenter = [1.3, 0.5, 0.5]\nhalf = [0.1, -0.1, 0.1]\n", "boxes[0].half: each half size"),
+        (
+            "[[boxes]]\ncenter = [1.3, 0.5, 0.5]\nhalf = [0.1, 0.1, 0.1]\n[[boxes]]\ncenter = [1e9, 0, 0]\n"
+            "half = [0.1, 0.1, 0.1]\n",
+            "boxes[1].center beyond",
+        ),
+        ("name = 'x'\n", "boxes: Field required"),
+        ("[[boxes]]\ncenter = [1.36, 0.76, 0.60]\nhalf = [0.01, 0.01, 0.01]\n", "overlaps the gripper at its home"),
+    ],
+)
+def test_bad_fetch_scene_files_get_one_line_errors(tmp_path, text, needle):
+    spec = make_spec("fetch-reach-obstacle")
+    with pytest.raises(BadInput, match=re.escape(needle)) as err:
+        family_of(spec).with_map(spec, _scene_file(tmp_path, text))
+    assert str(tmp_path) in err.value.message and "\n" not in err.value.message
+
+
+def test_scene_files_of_the_other_family_are_refused():
+    with pytest.raises(BadInput, match="a maze map, but fetch-reach-obstacle is a Fetch task"):
+        family_of(make_spec("fetch-reach-obstacle")).with_map(make_spec("fetch-reach-obstacle"), NORTH)
+    with pytest.raises(BadInput, match="a scene settings file, but maze-tight is a maze"):
+        family_of(make_spec("maze-tight")).with_map(make_spec("maze-tight"), X_PLUS)

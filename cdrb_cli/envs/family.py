@@ -199,11 +199,11 @@ class EnvFamily(ABC):
         training reinforcement-learning experts."""
         raise BadInput(f"{spec.id}: the {self.name} family has no gymnasium env for RL experts")
 
-    def with_map(self, spec: EnvSpec, path: Path, flag: str = "--maze-map") -> EnvSpec:
+    def with_map(self, spec: EnvSpec, path: Path, flag: str = "--scene") -> EnvSpec:
         """The spec of ``spec``'s task in the scene a file describes (new obstacles at plan and eval time, with the
         model unchanged); a one-line :class:`BadInput` when the family takes no such file or the file does not fit
         the model's scene."""
-        raise BadInput(f"{flag} {path}: the {self.name} environments take no new map", hint=f"drop {flag}")
+        raise BadInput(f"{flag} {path}: the {self.name} environments take no new scene", hint=f"drop {flag}")
 
     def scene_changed(self, spec: EnvSpec) -> bool:
         """Whether ``spec`` runs in another scene than its model was trained in (:meth:`with_map`)."""

@@ -106,7 +106,7 @@ def plan_legend(target, in_wall: bool = True, bodies: bool = False, new_walls: b
             Line2D([], [], ls="", marker="x", ms=5, mew=1.0, color="red", label="planned state in an obstacle")
         )
     if new_walls:
-        handles.append(Patch(color=NEW_WALL, label="wall added after training"))
+        handles.append(Patch(color=NEW_WALL, label="obstacle added after training"))
     kwargs.setdefault("fontsize", 7)
     kwargs.setdefault("framealpha", 0.85)
     target.legend(handles=handles, **kwargs)

@@ -222,7 +222,7 @@ def _validated(model: type[BaseModel], raw: dict, path: Path):
 
 
 #: flags whose value is a file: a relative one in a grid or settings file means relative to that file's folder
-PATH_FLAGS = ("--maze-map", "--policy", "--config", "--paper-figures", "--route-buffer")
+PATH_FLAGS = ("--maze-map", "--scene", "--policy", "--config", "--paper-figures", "--route-buffer")
 
 
 def _anchored(flags: list[str], base: Path) -> list[str]:

@@ -32,14 +32,15 @@ class SampledPlans(NamedTuple):
 
 
 # ------------------------------------------------------------------------------------------------ new obstacles
-def scene_spec(model, maze_map: Path | None, flag: str = "--maze-map") -> EnvSpec:
-    """The spec plans run in: the model's, or its task in the map ``maze_map`` (obstacles the training data never
-    saw; the family checks the map fits the model and warns when it opens space the data never covered)."""
+def scene_spec(model, maze_map: Path | None, flag: str | None = None) -> EnvSpec:
+    """The spec plans run in: the model's, or its task in the scene file ``maze_map`` (a maze map with walls added,
+    Fetch boxes put down: obstacles the training data never saw; the family checks the file fits the model and
+    warns when it opens space the data never covered). Errors name ``flag``, else the family's own flag."""
     spec = model.manifest.env
     if maze_map is None:
         return spec
     family = family_of(spec)
-    new = family.with_map(spec, Path(maze_map), flag)
+    new = family.with_map(spec, Path(maze_map)) if flag is None else family.with_map(spec, Path(maze_map), flag)
     warning = family.scene_change_warning(new)
     if warning:
         from cdrb_cli import ui

@@ -24,6 +24,10 @@ from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import episode_seeds
 
+#: the protocol of a changed scene: pairs whose shortest route the boxes put down block
+DETOUR = "detour"
+#: a detour draw gives up when fewer than one in this many candidate pairs needs a detour
+DETOUR_SCAN = 200
 FETCH_DT = 0.04  # 20 substeps x 2 ms
 SUCCESS_RADIUS = 0.05  # stock distance_threshold
 MAX_DELTA = 0.05  # the mocap moves at most this far per axis per step
@@ -111,8 +115,11 @@ class FetchFamily(EnvFamily):
     extra_protocols = {
         "official-code": "as the official CDRB code evaluates: its executor (controller `fetch-official`: a step "
         "budget per planned state, a 1 cm gate, its pick and push rules), the gripper pinned to the goal with the "
-        "block, success at any step until the plan runs out"
+        "block, success at any step until the plan runs out",
+        DETOUR: "with --scene: the stock draws (never inside a new box), only pairs whose shortest route in the "
+        "training scene a new box blocks (the way the data went is closed)",
     }
+    scene_protocols = (DETOUR,)
     point_format = "--goal x,y,z; --start the block's x,y (gripper at home) or, for Reach, the gripper's x,y,z"
 
     # -------------------------------------------------------------- environments
@@ -145,7 +152,27 @@ class FetchFamily(EnvFamily):
         return import_gymnasium_robotics().spec(f"Fetch{task}-v4")
 
     def details(self, spec: EnvSpec) -> dict[str, Any]:
-        return {"task": spec.scene.task, "walls": len(spec.scene.walls), "cross": spec.scene.cross}
+        scene = spec.scene
+        return {
+            "task": scene.task,
+            "walls": len(scene.walls),
+            "cross": scene.cross,
+            "extra_boxes": len(scene.extra_boxes),
+        }
+
+    def with_map(self, spec: EnvSpec, path, flag: str = "--scene") -> EnvSpec:
+        """The model's task among the boxes a scene file puts down (:mod:`cdrb_cli.envs.fetch.scenes`)."""
+        from cdrb_cli.envs.fetch.scenes import load_scene_change, with_boxes
+
+        if str(path).lower().endswith(".txt"):
+            raise BadInput(
+                f"{flag} {path}: a maze map, but {spec.id} is a Fetch task",
+                hint="pass a TOML scene file of [[boxes]] (docs/cli.md, `cdrb plan --help`)",
+            )
+        return with_boxes(spec, load_scene_change(path, flag), f"{flag} {path}")
+
+    def scene_changed(self, spec: EnvSpec) -> bool:
+        return bool(spec.scene.extra_boxes)
 
     def make_env(self, spec: EnvSpec):
         from cdrb_cli.envs.fetch.env import FetchEnv
@@ -181,6 +208,34 @@ class FetchFamily(EnvFamily):
             start, goal = draw_task(spec.scene, np.random.default_rng([int(s), 11]))
             out.append(Episode(int(s), start, goal))
         return out
+
+    def draw_protocol_episodes(
+        self, spec: EnvSpec, n: int, seed: int, stream: int, protocol: str | None = None
+    ) -> list[Episode]:
+        """``detour``: the first ``n`` of the stream's draws whose shortest route in the training scene a new box
+        blocks (:func:`~cdrb_cli.envs.fetch.scenes.blocks_shortest_route`); the other protocols: the stock draws."""
+        if protocol != DETOUR:
+            return self.draw_episodes(spec, n, seed, stream)
+        from cdrb_cli.envs.fetch.scenes import blocks_shortest_route
+
+        if not spec.scene.extra_boxes:
+            raise BadInput(
+                f"--protocol {DETOUR}: {spec.id} runs in the scene it was trained in, so no pair needs a detour",
+                hint="add --scene FILE, a TOML file of the boxes put down",
+            )
+        out: list[Episode] = []
+        candidates = self.draw_episodes(spec, DETOUR_SCAN * n, seed, stream)  # a prefix of the same stream
+        for ep in candidates:
+            start = np.asarray(spec.scene.home) if not ep.start else np.array([*ep.start, BLOCK_Z])
+            if blocks_shortest_route(spec, start, np.asarray(ep.goal)):
+                out.append(ep)
+                if len(out) == n:
+                    return out
+        raise BadInput(
+            f"--protocol {DETOUR}: the boxes of {spec.scene.change} block the shortest route of {len(out)} of "
+            f"{len(candidates)} drawn pairs, fewer than the {n} asked for",
+            hint="put the boxes where the data's routes go, or ask for fewer episodes",
+        )
 
     def goal_state(self, spec: EnvSpec, goals: np.ndarray) -> np.ndarray:
         goals = np.atleast_2d(goals)
@@ -223,17 +278,17 @@ class FetchFamily(EnvFamily):
 
     # -------------------------------------------------------------- geometry
     def in_collision(self, spec: EnvSpec, states: np.ndarray) -> np.ndarray:
-        return states_in_obstacles(states, spec.scene.walls, spec.scene.task)
+        return states_in_obstacles(states, spec.scene.solid, spec.scene.task)
 
     def path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
-        return paths_in_obstacles(paths, spec.scene.walls, spec.scene.task)
+        return paths_in_obstacles(paths, spec.scene.solid, spec.scene.task)
 
     def goal_path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         """With a block: the planned block path through a wall or off the table (a gripper that dips into the
         short wall on its way over is the controller's to avoid, and counts as "collision" if it does)."""
         if not has_object(spec):
             return self.path_in_collision(spec, paths)
-        return path_crosses_boxes(paths, block_obstacles(spec.scene.walls))
+        return path_crosses_boxes(paths, block_obstacles(spec.scene.solid))
 
     def execution_failure(self, spec: EnvSpec, states: np.ndarray, collided: bool) -> str:
         """ "grasp" when the block never moved more than :data:`MOVED` from where it started (never grasped, never

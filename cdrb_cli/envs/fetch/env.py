@@ -48,13 +48,14 @@ def fetch_class(scene: FetchScene):
 
         def _initialize_simulation(self):
             spec = mujoco.MjSpec.from_file(self.fullpath)
-            for i, wall in enumerate(scene.walls):
+            n_walls = len(scene.walls)
+            for i, wall in enumerate(scene.solid):  # the task's walls, then the boxes put down after training
                 body = spec.worldbody.add_body(name=f"cdrb_wall{i}", pos=list(wall.center))
                 body.add_geom(
                     name=f"cdrb_wall{i}",
                     type=mujoco.mjtGeom.mjGEOM_BOX,
                     size=list(wall.half),
-                    rgba=[0.85, 0.45, 0.40, 1.0],
+                    rgba=[0.85, 0.45, 0.40, 1.0] if i < n_walls else [0.75, 0.39, 0.10, 1.0],
                 )
             self.model = spec.compile()
             self.data = mujoco.MjData(self.model)
@@ -62,7 +63,7 @@ def fetch_class(scene: FetchScene):
             self.model.vis.global_.offwidth = self.width
             self.model.vis.global_.offheight = self.height
             geom = mujoco.mjtObj.mjOBJ_GEOM
-            self._wall_geoms = [mujoco.mj_name2id(self.model, geom, f"cdrb_wall{i}") for i in range(len(scene.walls))]
+            self._wall_geoms = [mujoco.mj_name2id(self.model, geom, f"cdrb_wall{i}") for i in range(len(scene.solid))]
             self._env_setup(initial_qpos=self.initial_qpos)
             self.initial_time = self.data.time
             self.initial_qpos = np.copy(self.data.qpos)

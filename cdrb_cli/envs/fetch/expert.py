@@ -146,29 +146,33 @@ class Router:
         return out
 
 
+def routers(scene, walls: list[Box], config: FetchExpertConfig) -> tuple[Router, Router]:
+    """(the grip site's router, the carried or pushed block's router) among ``walls`` with ``config``'s clearance."""
+    c = config.clearance
+    opening = MAX_OPENING if scene.task == "pick-place" else 0.0  # routes keep room for open fingers
+    sides = partial(side, scene)
+    grip = partial(gripper_obstacles, walls, opening)
+    grip_router = Router([grip(margin=NEAR)], [grip(margin=c)], c, sides)
+
+    def blocks(margin):  # the unturned block: a box, conservative for routes
+        return block_obstacles(walls, (0, 1, 2), margin=margin, rounded=False)
+
+    if scene.task == "push":  # a pushed block drifts and the pusher rides beside it: 3 cm more
+        return grip_router, Router([blocks(NEAR)], [blocks(c + 0.03)], c, sides)
+    held = MAX_OPENING / 2  # a carried block: the block and the gripper holding it (the grip site at its centre)
+
+    def carried(m):
+        return [blocks(m), gripper_obstacles(walls, held, margin=m)]
+
+    return grip_router, Router(carried(NEAR), carried(c), c, sides)
+
+
 class _Base:
     def __init__(self, spec: EnvSpec, config: FetchExpertConfig):
         self.spec = spec
         self.cfg = config
-        walls: list[Box] = spec.scene.walls
-        c = config.clearance
-        opening = MAX_OPENING if spec.scene.task == "pick-place" else 0.0  # routes keep room for open fingers
-        sides = partial(side, spec.scene)
-        grip = partial(gripper_obstacles, walls, opening)
-        self.grip_router = Router([grip(margin=NEAR)], [grip(margin=c)], c, sides)
-
-        def blocks(margin):  # the unturned block: a box, conservative for routes
-            return block_obstacles(walls, (0, 1, 2), margin=margin, rounded=False)
-
-        if spec.scene.task == "push":  # a pushed block drifts and the pusher rides beside it: 3 cm more
-            self.block_router = Router([blocks(NEAR)], [blocks(c + 0.03)], c, sides)
-        else:  # a carried block: the block and the gripper holding it (the grip site at its centre)
-            held = MAX_OPENING / 2
-
-            def carried(m):
-                return [blocks(m), gripper_obstacles(walls, held, margin=m)]
-
-            self.block_router = Router(carried(NEAR), carried(c), c, sides)
+        # every solid box of the scene: the expert of a changed scene routes around the boxes put down too
+        self.grip_router, self.block_router = routers(spec.scene, spec.scene.solid, config)
         self.rng = np.random.default_rng(0)
         self.route_name = "direct"
         self.goal = np.zeros(3)

@@ -28,9 +28,12 @@ def draw_view(ax, spec: EnvSpec, view: str = "top") -> None:
     else:
         ax.add_patch(Rectangle((x0, LIMITS[2][0]), x1 - x0, TABLE_TOP - LIMITS[2][0], color=TABLE, lw=0, zorder=0))
         ax.axhline(TABLE_TOP, color="#8c7b5a", lw=0.8, zorder=0)
-    for w in spec.scene.walls:
-        lo, hi = w.low, w.high
-        ax.add_patch(Rectangle((lo[h], lo[v]), hi[h] - lo[h], hi[v] - lo[v], color=WALL, alpha=0.85, lw=0, zorder=1))
+    from cdrb_cli.envs.render import NEW_WALL
+
+    n_walls = len(spec.scene.walls)
+    for i, w in enumerate(spec.scene.solid):  # boxes put down after training in the new-wall colour
+        lo, hi, colour = w.low, w.high, WALL if i < n_walls else NEW_WALL
+        ax.add_patch(Rectangle((lo[h], lo[v]), hi[h] - lo[h], hi[v] - lo[v], color=colour, alpha=0.85, lw=0, zorder=1))
     ax.set_xlim(*LIMITS[h])
     ax.set_ylim(*LIMITS[v])
     ax.set_aspect("equal")
@@ -43,7 +46,7 @@ def fit_side(ax, spec: EnvSpec, z: np.ndarray) -> None:
     """Crop a side view to what it shows: from below the table top to 5 cm over the highest drawn point or wall
     (at least 20 cm over the table), instead of the whole reachable height."""
     tops = [float(np.max(z))] if np.size(z) else []
-    tops += [w.high[2] for w in spec.scene.walls]
+    tops += [w.high[2] for w in spec.scene.solid]
     top = max([TABLE_TOP + 0.2, *(t + 0.05 for t in tops)])
     ax.set_ylim(LIMITS[2][0], min(top, LIMITS[2][1]))
 
@@ -137,7 +140,15 @@ def plot_plans(spec: EnvSpec, plans, path: str | Path, starts, goals, in_wall, t
         if view == "side":
             fit_side(ax, spec, plans[..., [2, 5][: len(bodies)]])
     fig.suptitle(f"{spec.id}: {title}", fontsize=10)
-    plan_legend(fig, bodies=spec.scene.task != "reach", loc="upper center", ncol=5, bbox_to_anchor=(0.5, 0.02))
+    changed = bool(spec.scene.extra_boxes)
+    plan_legend(
+        fig,
+        bodies=spec.scene.task != "reach",
+        new_walls=changed,
+        loc="upper center",
+        ncol=6 if changed else 5,
+        bbox_to_anchor=(0.5, 0.02),
+    )
     return save_figure(fig, path)
 
 

@@ -84,6 +84,15 @@ class FetchScene(Scene):
         0.03, ge=0, le=0.2, description="block and goal footprints keep this far inside the table edge, m"
     )
     cross: bool = Field(False, description="block and goal on opposite sides of the wall (reach: goal outside)")
+    extra_boxes: list[Box] = Field(
+        default_factory=list,
+        max_length=16,
+        description="boxes put down after the data were collected (`--scene FILE` at plan and eval time): solid in "
+        "the simulator and in every collision test, but not part of the task (the sides of the walls, the routes)",
+    )
+    change: str | None = Field(
+        None, max_length=64, description="name of the scene change that put the extra boxes down (its file's stem)"
+    )
     min_goal_distance: float = Field(
         0.07,
         ge=0,
@@ -91,6 +100,11 @@ class FetchScene(Scene):
         description="goals at least this far from where the block (Reach: the gripper) starts, m: no episode is won "
         "at reset (success is within 5 cm; 2 cm more for the block settling at reset)",
     )
+
+    @property
+    def solid(self) -> list[Box]:
+        """Everything a body may not overlap: the task's walls and the boxes put down after training."""
+        return [*self.walls, *self.extra_boxes]
 
 
 def _tall(x=(1.15, 1.45), z=(0.17, 0.77), y=0.749, thick=0.005) -> Box:
@@ -149,10 +163,11 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
     """One episode's (block x-y (empty for reach), goal x-y-z), drawn with ``rng`` by the rules above."""
     cx, cy = scene.center
     home = np.asarray(scene.home)
-    clear = block_obstacles(scene.walls, dims=(0, 1, 2), margin=scene.wall_margin, rounded=False)
+    solid = scene.solid
+    clear = block_obstacles(solid, dims=(0, 1, 2), margin=scene.wall_margin, rounded=False)
     # pick & place: the open gripper around the block (at its start and at its goal) keeps clear of the walls too
-    grasp = gripper_obstacles(scene.walls, MAX_OPENING, margin=GRASP_MARGIN) if scene.task == "pick-place" else None
-    reach_clear = gripper_obstacles(scene.walls, margin=scene.wall_margin)
+    grasp = gripper_obstacles(solid, MAX_OPENING, margin=GRASP_MARGIN) if scene.task == "pick-place" else None
+    reach_clear = gripper_obstacles(solid, margin=scene.wall_margin)
     inset = BLOCK_HALF + scene.edge_margin
     (x0, x1), (y0, y1) = TABLE_XY
 

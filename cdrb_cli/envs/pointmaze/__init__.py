@@ -136,6 +136,11 @@ class PointMazeFamily(EnvFamily):
     def with_map(self, spec: EnvSpec, path: Path, flag: str = "--maze-map") -> EnvSpec:
         """The model's maze task in another map of the same size and cell size (walls added or moved); the spec's
         id becomes ``<id>+<map name>`` and its scene keeps the training map (``trained_maze``)."""
+        if str(path).lower().endswith((".toml", ".json")):
+            raise BadInput(
+                f"{flag} {path}: a scene settings file, but {spec.id} is a maze",
+                hint="pass a map text file: the training map with walls added (`cdrb envs --json` shows its rows)",
+            )
         layout = load_map_file(path, flag)
         trained = spec.scene.trained_maze or spec.scene.maze
         if (layout.n_rows, layout.n_cols, layout.cell_size) != (trained.n_rows, trained.n_cols, trained.cell_size):

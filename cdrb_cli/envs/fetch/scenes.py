@@ -1,0 +1,127 @@
+"""Fetch scene changes: boxes put down on or above the table after the data were collected.
+
+A scene file (TOML) lists the boxes, each an axis-aligned box by its centre and half sizes in metres, and may name
+the change (else the file's stem names it)::
+
+    name = "reach-closed-x-plus"
+    [[boxes]]
+    center = [1.455, 0.749, 0.47]
+    half = [0.005, 0.125, 0.30]
+
+`cdrb plan` / `cdrb eval --scene FILE` run a model trained in the stock scene among them: the boxes are MuJoCo
+geoms (they are physics) and obstacles of every collision test, while the task itself (its walls, which side of
+them a point is on, the routes the data took) stays the training scene's. ``--protocol detour`` then draws the
+pairs whose shortest route in the training scene a new box blocks (:func:`blocks_shortest_route`).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, ValidationError
+
+from cdrb_cli.envs.fetch.geometry import MAX_OPENING, Box, gripper_obstacles
+from cdrb_cli.envs.geometry import in_boxes
+from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
+from cdrb_cli.schema_base import Record
+from cdrb_cli.settings import clip
+
+MAX_SCENE_BYTES = 64 * 1024
+#: no box reaches further than this from the origin, nor is larger than this in any half size, m (the table is
+#: 1.3 m from the robot's base; a box of metres is a mistake)
+MAX_COORD, MAX_HALF = 5.0, 1.0
+HINT = "write [[boxes]] tables with center = [x, y, z] and half = [hx, hy, hz] in metres (docs/cli.md)"
+
+
+class SceneChange(Record):
+    """Boxes put down after the data were collected, and the change's name."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+    boxes: list[Box] = Field(min_length=1, max_length=16)
+
+
+def load_scene_change(path: str | Path, flag: str = "--scene") -> SceneChange:
+    """A scene file, read through the guarded reader and checked; every problem is one line naming ``flag``."""
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    from cdrb_cli.artifacts.core import read_input_text
+
+    path = Path(path)
+    source = f"{flag} {path}"
+    text = read_input_text(path, flag, MAX_SCENE_BYTES, "scene file", "pass a TOML file of [[boxes]]")
+    try:
+        data = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BadInput(f"{source}: not valid TOML ({clip(first, 120)})", hint=HINT) from None
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9._-]", "-", path.stem)[:64] or "scene")
+    for i, box in enumerate(data.get("boxes", []) if isinstance(data.get("boxes"), list) else []):
+        for key in ("center", "half"):
+            value = box.get(key) if isinstance(box, dict) else None
+            numbers = isinstance(value, list) and all(type(v) in (int, float) for v in value)
+            if value is not None and not (numbers and len(value) == 3):
+                raise BadInput(f"{source}: boxes[{i}].{key}: expected three numbers [x, y, z]", hint=HINT)
+    try:
+        change = SceneChange.model_validate(data)  # numbers checked above; lists become tuples
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err.get("loc", ()))
+        msg = f"unknown key {key!r}" if err.get("type") == "extra_forbidden" else f"{key}: {err.get('msg', 'invalid')}"
+        raise BadInput(f"{source}: {clip(msg, 160)}", hint=HINT) from None
+    for i, box in enumerate(change.boxes):
+        if any(abs(v) > MAX_COORD for v in box.center):
+            raise BadInput(f"{source}: boxes[{i}].center beyond {MAX_COORD:g} m", hint=HINT)
+        if any(not 0 < h <= MAX_HALF for h in box.half):
+            raise BadInput(f"{source}: boxes[{i}].half: each half size in (0, {MAX_HALF:g}] m", hint=HINT)
+    return change
+
+
+def with_boxes(spec: EnvSpec, change: SceneChange, source: str) -> EnvSpec:
+    """``spec``'s task among ``change``'s boxes (replacing any boxes the spec already had): the id becomes
+    ``<task id>+<change name>``; one line naming ``source`` when a box covers the gripper's home (every episode
+    starts there)."""
+    from cdrb_cli.envs.fetch.geometry import body_obstacles
+
+    scene = spec.scene
+    opening = MAX_OPENING if scene.task == "pick-place" else 0.0
+    for i, box in enumerate(change.boxes):
+        if in_boxes(np.asarray(scene.home), gripper_obstacles([box], opening)):
+            raise BadInput(
+                f"{source}: boxes[{i}] overlaps the gripper at its home {tuple(round(v, 3) for v in scene.home)}, "
+                "where every episode starts",
+                hint="move the box away from the start (the gripper link is 13 cm wide and reaches 18 cm up)",
+            )
+    base = spec.id.removesuffix(f"+{scene.change}") if scene.change else spec.id
+    new = scene.model_copy(update={"extra_boxes": list(change.boxes), "change": change.name})
+    return spec.model_copy(
+        update={"id": f"{base}+{change.name}"[:200], "scene": new, "obstacles": body_obstacles(new.solid, new.task)[0]}
+    )
+
+
+def blocks_shortest_route(spec: EnvSpec, start: np.ndarray, goal: np.ndarray) -> bool:
+    """Whether a box of ``spec.scene.extra_boxes`` blocks the shortest route the scripted expert's router finds
+    from ``start`` to ``goal`` (the carried point: the grip site for Reach, the block otherwise) in the training
+    scene: the pair needs a detour the data did not take."""
+    from cdrb_cli.envs.fetch.expert import FetchExpertConfig, routers
+
+    scene = spec.scene
+    if not scene.extra_boxes:
+        return False
+    config = FetchExpertConfig()
+    carried = 0 if scene.task == "reach" else 1
+    trained = routers(scene, scene.walls, config)[carried]
+    new = routers(scene, scene.extra_boxes, config)[carried]
+    a, b = np.asarray(start, float), np.asarray(goal, float)
+    options = trained.options(a, b, ["over", "around"]) or {"direct": [b]}
+    path = min(([a, *map(np.asarray, way)] for way in options.values()), key=_length)
+    return any(new.blocked(p, q, end_legs=True) for p, q in zip(path, path[1:]))
+
+
+def _length(points) -> float:
+    return float(sum(np.linalg.norm(q - p) for p, q in zip(points, points[1:])))
