@@ -231,6 +231,16 @@ def test_eval_in_a_new_map_end_to_end(tiny_models, small_data, cdrb, tmp_path):
     assert ev.manifest.config.scene == NORTH.name
     assert ev.manifest.config.avoid == AvoidConfig(mask_buffer=True, best_of=2, route_k=2)
     assert ev.manifest.summary.masked is not None and ev.manifest.summary.masked.removed >= 0
+    # the report's "through a new wall" column: the plans' crossings of the closed gap's cells, by definition
+    from cdrb_cli.stages.report import collect_rows, new_crossing_rates
+
+    spec = ev.manifest.env
+    gap = MazeGeometry(spec.scene.maze).cell_to_xy([4, 7])
+    plans = ev.arrays["plans"][..., : spec.obs_dim]
+    near = np.linalg.norm(plans[..., :2] - gap, axis=-1).min(-1) < 0.2  # a state within the gap cell's box
+    rates = new_crossing_rates(ev)
+    assert rates is not None and (near.mean() <= rates[0] + 1e-9)
+    assert collect_rows([ev])[0]["new_crossing_mean"] == pytest.approx(100 * rates[0])
     # the second run is up to date; another map is a different eval
     r = cdrb("eval", tiny_models["cdrb"].path, *args, "--mask-buffer", "--best-of", "2", "--route-k", "2", "--out", out)
     assert r.returncode == 0 and "up to date" in r.stderr
@@ -311,6 +321,30 @@ def test_fetch_scene_file_puts_boxes_down_and_keeps_the_task():
     assert side(new.scene, np.array([1.3, 0.95, 0.5])) == side(spec.scene, np.array([1.3, 0.95, 0.5])) == 1
     again = fam.with_map(new, X_PLUS)  # a second change replaces the first
     assert again.id == new.id and again.scene.extra_boxes == new.scene.extra_boxes
+
+
+def test_new_obstacle_crossings_count_only_the_new_obstacles():
+    spec = make_spec("fetch-reach-obstacle")
+    fam = family_of(spec)
+    new = fam.with_map(spec, X_PLUS)
+    assert fam.new_obstacle_crossings(spec, np.zeros((1, 2, spec.obs_dim))) is None  # the training scene
+    a, b, c = (np.zeros(spec.obs_dim) for _ in range(3))
+    a[:3], b[:3], c[:3] = (1.30, 0.749, 0.55), (1.56, 0.749, 0.55), (1.30, 0.50, 0.55)
+    through_board, through_wall = np.stack([a, b]), np.stack([a, c])
+    out_of_reach = np.stack([a, a + np.r_[0, 0, 1.0, np.zeros(spec.obs_dim - 3)]])  # above the workspace
+    paths = np.stack([through_board, through_wall, out_of_reach])
+    assert fam.path_in_collision(new, paths).tolist() == [True, True, True]
+    assert fam.new_obstacle_crossings(new, paths).tolist() == [True, False, False]
+    maze = make_spec("maze-tight")
+    closed = family_of(maze).with_map(maze, NORTH)
+    g = MazeGeometry(closed.scene.maze)
+    across_gap = np.array([[[*g.cell_to_xy([5, 7]), 0, 0], [*g.cell_to_xy([3, 7]), 0, 0]]])
+    across_old = np.array([[[*g.cell_to_xy([5, 6]), 0, 0], [*g.cell_to_xy([3, 6]), 0, 0]]])  # an old wall cell
+    assert family_of(maze).path_in_collision(closed, np.concatenate([across_gap, across_old])).all()
+    assert family_of(maze).new_obstacle_crossings(closed, np.concatenate([across_gap, across_old])).tolist() == [
+        True,
+        False,
+    ]
 
 
 def test_fetch_boxes_are_physics():

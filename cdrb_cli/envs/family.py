@@ -209,6 +209,12 @@ class EnvFamily(ABC):
         """Whether ``spec`` runs in another scene than its model was trained in (:meth:`with_map`)."""
         return False
 
+    def new_obstacle_crossings(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray | None:
+        """Boolean over paths (..., T, D): a state in, or a straight step through, an obstacle the training scene did
+        not have (:meth:`with_map`); None when ``spec`` runs in its training scene. Leaving the workspace does not
+        count here (it is no new obstacle)."""
+        return None
+
     def scene_change_warning(self, spec: EnvSpec) -> str | None:
         """One line when ``spec`` (from :meth:`with_map`) opens space the model's training scene had closed (the
         model has no data there); None otherwise."""

@@ -144,6 +144,22 @@ def first_step_ratio(evals) -> float | None:
     return float(np.median(np.concatenate(ratios))) if ratios else None
 
 
+def new_crossing_rates(ev) -> list[float] | None:
+    """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, an obstacle
+    the training scene did not have (walls added to a maze, boxes put down in a Fetch scene); None when the eval
+    ran in its training scene or stored no plans."""
+    from cdrb_cli.envs.registry import family_of
+
+    plans, spec = ev.arrays.get("plans"), ev.manifest.env
+    if plans is None:
+        return None
+    crosses = family_of(spec).new_obstacle_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
+    if crosses is None:
+        return None
+    seeds = np.asarray(ev.arrays["episodes/seed"])
+    return [float(crosses[seeds == s].mean()) for s in dict.fromkeys(seeds.tolist())]
+
+
 def collect_rows(evals) -> list[dict]:
     """One row per (environment, method). Several evals of one method (e.g. one per training seed) are pooled as
     separate seeds; within an environment every method must use the same protocol and the same evaluation seeds,
@@ -194,6 +210,8 @@ def collect_rows(evals) -> list[dict]:
             succ = np.array([r.success_rate for r in per])
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
             impossible = mean_or_none([r.impossible_jump_rate for r in per])
+            new_rates = [new_crossing_rates(ev) for ev in group]
+            new_rates = [x for rates in new_rates for x in rates] if all(new_rates) else [None]
             first = group[0]
             rows.append(
                 {
@@ -213,6 +231,7 @@ def collect_rows(evals) -> list[dict]:
                     **_rate("clean_success", [r.clean_success_rate for r in per]),
                     **_rate("in_wall", [r.in_wall_fraction for r in per]),  # None for a policy: it makes no plans
                     **_rate("crossing", [r.plan_crossing_rate for r in per]),
+                    **_rate("new_crossing", new_rates),  # None in the training scene
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
                     "first_step_ratio": first_step_ratio(group),
                     "impossible_jump_mean": None if impossible is None else 100 * impossible,
@@ -240,7 +259,8 @@ def seed_rows(evals) -> list[dict]:
     rows = []
     for ev in evals:
         c = ev.manifest.config
-        for r in per_seed(ev):
+        new_rates = new_crossing_rates(ev)
+        for i, r in enumerate(per_seed(ev)):
             rows.append(
                 {
                     "env": ui.plain(ev.manifest.env.id),
@@ -255,6 +275,7 @@ def seed_rows(evals) -> list[dict]:
                     "success_without_collision": 100 * r.clean_success_rate,
                     "in_obstacle": None if r.in_wall_fraction is None else 100 * r.in_wall_fraction,
                     "plans_through_obstacle": None if r.plan_crossing_rate is None else 100 * r.plan_crossing_rate,
+                    "plans_through_new_obstacle": None if new_rates is None else 100 * new_rates[i],
                     "collisions": 100 * r.executed_collision_rate,
                     "plan_ms": 1000 * r.plan_seconds,
                     "failures": failure_text(r.failures),
@@ -354,11 +375,12 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
         "",
         "| env | method | controller | pairs | seeds x episodes | success (%) ± std [95% CI] | "
         "weighted success (%) | success without collision (%) | planned states in walls (%) | "
-        "plans through an obstacle (%) | first step / allowed (median) | largest jump / allowed | "
+        "plans through an obstacle (%) | through a new one (%) | first step / allowed (median) | "
+        "largest jump / allowed | "
         "plans with an impossible jump (%) | "
         "executed collisions (%) | path length / expert | plan time (ms) | re-plans per episode | "
         "planning per episode (ms) | failed episodes by cause |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
 
     def opt(v, f):
@@ -375,6 +397,7 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
                 f"{_pm(r['weighted_success_mean'], r['weighted_success_std'], r['seeds'])} | "
                 f"{_pm(r['clean_success_mean'], r['clean_success_std'], r['seeds'])} | "
                 f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])} | {opt(r['crossing_mean'], '.1f')} | "
+                f"{opt(r.get('new_crossing_mean'), '.1f')} | "
                 f"{opt(r['first_step_ratio'], '.2f')} | {opt(r['jump_ratio'], '.2f')} | "
                 f"{opt(r['impossible_jump_mean'], '.1f')} | "
                 f"{r['collision_mean']:.1f} | {opt(r['path_ratio'], '.2f')} | {r['plan_ms']:.1f} | "
@@ -391,9 +414,10 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
 COLUMN_NOTES = (
     "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
     "planned state in one, or a straight segment between two consecutive planned states that crosses one (a plan "
-    "can have every state free and still jump a wall). First step / allowed: how far a plan's first step leaves the "
-    "start, against one plan step of the dynamics (near 1: the plan starts where the robot is). Largest jump / "
-    "allowed and plans with an impossible jump: "
+    "can have every state free and still jump a wall); through a new one: the same for the obstacles the "
+    "training scene did not have (`--scene`/`--maze-map`; – in the training scene). First step / allowed: how far "
+    "a plan's first step leaves the start, against one plan step of the dynamics (near 1: the plan starts where "
+    "the robot is). Largest jump / allowed and plans with an impossible jump: "
     "the longest step between consecutive planned states against the distance the dynamics allow in one plan step; "
     "planners output paths that the controller follows at its own pace, so almost every plan has a step longer "
     "than that (a learned plan's 100% here is expected and not a failure); a wall between two planned states is "

@@ -174,6 +174,12 @@ class FetchFamily(EnvFamily):
     def scene_changed(self, spec: EnvSpec) -> bool:
         return bool(spec.scene.extra_boxes)
 
+    def new_obstacle_crossings(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray | None:
+        """Through a box put down after training, by any body (as :meth:`path_in_collision`, those boxes alone)."""
+        if not spec.scene.extra_boxes:
+            return None
+        return paths_in_obstacles(paths, spec.scene.extra_boxes, spec.scene.task, bounded=False)
+
     def make_env(self, spec: EnvSpec):
         from cdrb_cli.envs.fetch.env import FetchEnv
 

@@ -165,12 +165,15 @@ def _open_fingers_in_walls(states: np.ndarray, walls: list[Box], task: str) -> n
     return out
 
 
-def paths_in_obstacles(paths: np.ndarray, walls: list[Box], task: str) -> np.ndarray:
+def paths_in_obstacles(paths: np.ndarray, walls: list[Box], task: str, bounded: bool = True) -> np.ndarray:
     """Boolean over paths (..., T, D): a state in an obstacle, or a straight step between two states along which
-    a body passes through a wall (for the fingers, as wide as the wider of the step's two states)."""
+    a body passes through a wall (for the fingers, as wide as the wider of the step's two states); ``bounded=False``:
+    the walls alone, leaving the workspace not counted."""
     paths = np.asarray(paths)
     out = np.zeros(paths.shape[:-2], dtype=bool)
     for ob in body_obstacles(walls, task):
+        if not bounded:
+            ob = ob.model_copy(update={"low": [-1e3] * len(ob.low), "high": [1e3] * len(ob.high)})
         out |= path_crosses_boxes(paths, ob)  # its states too
     out |= _open_fingers_in_walls(paths, walls, task).any(axis=-1)
     if task == "pick-place" and walls and paths.shape[-2] > 1:

@@ -163,6 +163,29 @@ class PointMazeFamily(EnvFamily):
     def scene_changed(self, spec: EnvSpec) -> bool:
         return spec.scene.trained_maze is not None
 
+    def new_obstacle_crossings(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray | None:
+        """Through a cell that is a wall here and was free in the training map (each such cell a box, the agent's
+        radius around it)."""
+        from cdrb_cli.envs.geometry import path_crosses_boxes
+        from cdrb_cli.envs.spec import BoxObstacles
+
+        trained = spec.scene.trained_maze
+        if trained is None:
+            return None
+        here = MazeGeometry(spec.scene.maze)
+        added = np.argwhere(~here.free & MazeGeometry(trained).free)
+        if not len(added):
+            return np.zeros(np.asarray(paths).shape[:-2], dtype=bool)
+        boxes = BoxObstacles(
+            dims=[0, 1],
+            centers=[here.cell_to_xy(c).tolist() for c in added],
+            half_sizes=[[here.s / 2, here.s / 2]] * len(added),
+            inflate=spec.obstacles.inflate,
+            low=[-1e3, -1e3],
+            high=[1e3, 1e3],
+        )
+        return path_crosses_boxes(paths, boxes)
+
     def scene_change_warning(self, spec: EnvSpec) -> str | None:
         trained = spec.scene.trained_maze
         if trained is None:
