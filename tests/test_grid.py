@@ -412,6 +412,14 @@ def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_pa
         load_grid(_grid(tmp_path, text.replace("report = false", "report = true")))
 
 
+def test_eval_seed_offset_gives_each_model_fresh_pairs_of_its_own(tmp_path):
+    spec = load_grid(_grid(tmp_path, TINY.replace("eval_episodes = 3", "eval_episodes = 3\neval_seed_offset = 10")))
+    evals = {t.meta["seed"]: t.argv for t in expand(spec) if t.kind == "eval" and t.meta["method"] == "mlp"}
+    assert {s: argv[argv.index("--seeds") + 1] for s, argv in evals.items()} == {0: "10", 1: "11"}
+    plain = {t.meta["seed"]: t.argv for t in expand(load_grid(_grid(tmp_path))) if t.kind == "eval"}
+    assert plain[1][plain[1].index("--seeds") + 1] == "1"
+
+
 def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
     grid = _grid(tmp_path, TINY)
     monkeypatch.chdir(tmp_path)

@@ -157,6 +157,12 @@ class GridSpec(_Strict):
     eval_seeds: list[SeedValue] | None = Field(
         None, description="evaluation seeds of every model (default: the model's own training seed)"
     )
+    eval_seed_offset: SeedValue = Field(
+        0,
+        le=1_000_000,
+        description="without eval_seeds: each model is evaluated on its training seed plus this (fresh pairs of the "
+        "same stream, for a row re-measured after a choice made on seeing its test figures)",
+    )
     snapshot_at: list[Steps] = Field(
         default_factory=list,
         description="learning curves: every training also writes its model at these steps (below `steps`), and each "
@@ -522,7 +528,7 @@ def expand(spec: GridSpec) -> list[Task]:
                         tasks.append(Task(train_id, "train", argv, outputs, deps, inputs))
                     points = [(s, train_snapshot(model, s)) for s in sorted(spec.snapshot_at)] + [(spec.steps, model)]
                     stream = v.stream or spec.eval_stream
-                    seeds = spec.eval_seeds if spec.eval_seeds is not None else [seed]
+                    seeds = spec.eval_seeds if spec.eval_seeds is not None else [seed + spec.eval_seed_offset]
                     for steps, m in points:
                         at = f".step{steps}" if m != model else ""
                         tag = f"{env}/{v.name + '/' if v.name else ''}{method}-s{seed}{at}"
