@@ -152,6 +152,42 @@ def test_masked_buffer_never_restores_a_state_inside_the_new_wall(tiny_models):
     assert before.shape == after.shape
 
 
+def test_replans_in_a_new_map_keep_the_masked_buffer_and_the_best_of(tiny_models):
+    """Closed loop among new walls: every re-plan comes from the masked buffer and the best-of choice, as the
+    first plan does (a re-plan from where the robot got stuck must not walk back into the new wall)."""
+    from cdrb_cli.configs import ReplanConfig
+    from cdrb_cli.envs.pointmaze.controllers import CONTROLLERS
+    from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans
+    from cdrb_cli.stages.replan import run_closed_loop
+
+    model = tiny_models["cdrb"]
+    spec = family_of(model.manifest.env).with_map(model.manifest.env, NORTH)
+    family = family_of(spec)
+    method = load_planner(model)
+    avoid = prepare_planner(method, spec, AvoidConfig(mask_buffer=True, best_of=2))
+    episodes = family.draw_protocol_episodes(spec, 3, 0, 1, "detour")
+    starts, goals = family.reset_states(spec, episodes)
+    first = sample_plans(method, starts, family.goal_state(spec, goals), 1, 0, avoid=avoid).plans
+    entry = CONTROLLERS.get("pd")
+    runs = run_closed_loop(
+        family,
+        spec,
+        method,
+        episodes,
+        first,
+        lambda env: entry.build(spec, env, entry.config(), method.config.stride),
+        ReplanConfig(mode="every", every=15),
+        60,
+        (0, 0, 0),
+        avoid=avoid,
+    )
+    replans = [p for run in runs for p in run.plans[1:]]
+    assert len(replans) >= 3  # each episode planned again at least once
+    inner = np.stack([p[1:-1, :4] for p in replans])
+    assert not family.in_collision(spec, inner).any()
+    assert method.redrawn > 0  # the untrained network restored states in walls: the masked buffer re-drew them
+
+
 def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_path):
     out = tmp_path / "e.h5"
     r = cdrb("eval", tiny_models["diffuser"].path, "--mask-buffer", "-n", "2", "--seeds", "0", "--out", out)
