@@ -59,13 +59,14 @@ class Planner:
         model: str | Path,
         device: str = "cpu",
         ema: bool = True,
-        maze_map: str | Path | None = None,
+        scene: str | Path | None = None,
         mask_buffer: bool = False,
         best_of: int = 1,
         route_k: int | None = None,
         guide_scale: float = 0.0,
     ):
-        """``maze_map``: plan in the training map with walls added (`cdrb plan --maze-map`); ``mask_buffer``,
+        """``scene``: plan among obstacles the data never saw (`cdrb plan --scene`: a maze map with walls added, a
+        Fetch TOML file of boxes put down); ``mask_buffer``,
         ``best_of``, ``route_k``, ``guide_scale``: keep plans out of obstacles as the CLI flags of those names do."""
         from cdrb_cli.configs import AvoidConfig
         from cdrb_cli.stages.plan import check_avoid, load_planner, prepare_planner, scene_spec
@@ -76,12 +77,12 @@ class Planner:
         self.method = load_planner(self.model, device=self.device, ema=ema)
         avoid = AvoidConfig(mask_buffer=mask_buffer, best_of=best_of, route_k=route_k, guide_scale=guide_scale)
         check_avoid(self.method.name, avoid)
-        self._spec = scene_spec(self.model, maze_map)
+        self._spec = scene_spec(self.model, scene)
         self.avoidance = prepare_planner(self.method, self._spec, avoid)
 
     @property
     def spec(self) -> EnvSpec:
-        """The environment plans are made in: the model's, or its task in ``maze_map``."""
+        """The environment plans are made in: the model's, or its task in ``scene``."""
         return self._spec
 
     def state(self, point: Sequence[float] | np.ndarray, flag: str = "--start") -> np.ndarray:
@@ -131,14 +132,14 @@ def evaluate(
     protocol: str | None = None,
     device: str = "cpu",
     force: bool = False,
-    maze_map: str | Path | None = None,
+    scene: str | Path | None = None,
     mask_buffer: bool = False,
     best_of: int = 1,
     route_k: int | None = None,
     guide_scale: float = 0.0,
 ) -> EvalSummary:
     """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary
-    (``maze_map`` and the avoidance settings as in :class:`Planner`; ``protocol="detour"`` with a map)."""
+    (``scene`` and the avoidance settings as in :class:`Planner`; ``protocol="detour"`` with a scene)."""
     from cdrb_cli.artifacts.outputs import claim_output
     from cdrb_cli.configs import AvoidConfig
     from cdrb_cli.stages.evaluate import eval_config
@@ -150,7 +151,7 @@ def evaluate(
         raise BadInput(f"stream = {stream!r}", hint="'test' (reported tables) or 'tune' (choosing settings)")
     m = artifacts.load(Path(model), "model")
     avoid = AvoidConfig(mask_buffer=mask_buffer, best_of=best_of, route_k=route_k, guide_scale=guide_scale)
-    map_path = None if maze_map is None else Path(maze_map)
+    map_path = None if scene is None else Path(scene)
     config = eval_config(
         m,
         episodes,

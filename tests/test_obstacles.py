@@ -293,7 +293,7 @@ def test_eval_in_a_new_map_end_to_end(tiny_models, small_data, cdrb, tmp_path):
 def test_api_plans_in_a_new_map(tiny_models):
     from cdrb_cli import api
 
-    planner = api.Planner(tiny_models["cdrb"].path, maze_map=NORTH, mask_buffer=True, best_of=2, route_k=2)
+    planner = api.Planner(tiny_models["cdrb"].path, scene=NORTH, mask_buffer=True, best_of=2, route_k=2)
     assert planner.spec.id == "maze-tight+maze-tight-closed-north"
     g = MazeGeometry(planner.spec.scene.maze)
     plans = planner.plan(start=g.cell_to_xy([5, 7]), goal=g.cell_to_xy([1, 1]), n=3, seed=0)
