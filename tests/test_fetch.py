@@ -493,6 +493,8 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
     assert e.manifest.env.scene.extra_boxes[0].center == (1.15, 0.95, 0.45) and e.manifest.config.avoid.best_of == 2
     r = cdrb("eval", model, "--episodes", "2", "--scene", tmp_path / "none.toml", "--out", tmp_path / "bad.h5")
     assert r.returncode == 2 and "--scene" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    r = cdrb("eval", model, "--episodes", "2", "--set", "scene.extra_boxes=[]", "--out", tmp_path / "bad.h5")
+    assert r.returncode == 2 and "pass --scene FILE" in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
 def test_failure_causes_follow_their_definition():
