@@ -64,10 +64,12 @@ class Planner:
         best_of: int = 1,
         route_k: int | None = None,
         guide_scale: float = 0.0,
+        route_clearance: float = 0.0,
     ):
         """``scene``: plan among obstacles the data never saw (`cdrb plan --scene`: a maze map with walls added, a
         Fetch TOML file of boxes put down); ``mask_buffer``,
-        ``best_of``, ``route_k``, ``guide_scale``: keep plans out of obstacles as the CLI flags of those names do."""
+        ``best_of``, ``route_k``, ``route_clearance``, ``guide_scale``: keep plans out of obstacles as the CLI flags
+        of those names do."""
         from cdrb_cli.configs import AvoidConfig
         from cdrb_cli.stages.plan import check_avoid, load_planner, prepare_planner, scene_spec
         from cdrb_cli.torch_utils import setup_torch
@@ -75,7 +77,13 @@ class Planner:
         self.model = artifacts.load(Path(model), "model")
         self.device = setup_torch(device)
         self.method = load_planner(self.model, device=self.device, ema=ema)
-        avoid = AvoidConfig(mask_buffer=mask_buffer, best_of=best_of, route_k=route_k, guide_scale=guide_scale)
+        avoid = AvoidConfig(
+            mask_buffer=mask_buffer,
+            best_of=best_of,
+            route_k=route_k,
+            route_clearance=route_clearance,
+            guide_scale=guide_scale,
+        )
         check_avoid(self.method.name, avoid)
         self._spec = scene_spec(self.model, scene)
         self.avoidance = prepare_planner(self.method, self._spec, avoid)
@@ -137,6 +145,7 @@ def evaluate(
     best_of: int = 1,
     route_k: int | None = None,
     guide_scale: float = 0.0,
+    route_clearance: float = 0.0,
 ) -> EvalSummary:
     """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary
     (``scene`` and the avoidance settings as in :class:`Planner`; ``protocol="detour"`` with a scene)."""
@@ -150,7 +159,13 @@ def evaluate(
     if stream not in ("test", "tune"):
         raise BadInput(f"stream = {stream!r}", hint="'test' (reported tables) or 'tune' (choosing settings)")
     m = artifacts.load(Path(model), "model")
-    avoid = AvoidConfig(mask_buffer=mask_buffer, best_of=best_of, route_k=route_k, guide_scale=guide_scale)
+    avoid = AvoidConfig(
+        mask_buffer=mask_buffer,
+        best_of=best_of,
+        route_k=route_k,
+        route_clearance=route_clearance,
+        guide_scale=guide_scale,
+    )
     map_path = None if scene is None else Path(scene)
     config = eval_config(
         m,

@@ -323,6 +323,15 @@ GuideOpt = typer.Option(
 )
 
 
+RouteClearanceOpt = typer.Option(
+    0.0,
+    "--route-clearance",
+    min=0.0,
+    max=1000.0,
+    metavar="C",
+    help="With --route-k: routes keep this distance from obstacles where the buffer allows (buffer states within "
+    "C of one, along an obstacle dimension, cost 5x per step; metres).",
+)
 RouteOpt = typer.Option(
     None,
     "--route-k",
@@ -341,7 +350,14 @@ RouteBufferOpt = typer.Option(
 )
 
 
-def _avoid(mask_buffer: bool, best_of: int, guide_scale: float, route_k: int | None, route_buffer: Path | None):
+def _avoid(
+    mask_buffer: bool,
+    best_of: int,
+    guide_scale: float,
+    route_k: int | None,
+    route_buffer: Path | None,
+    route_clearance: float = 0.0,
+):
     from cdrb_cli.configs import AvoidConfig
 
     return AvoidConfig(
@@ -349,6 +365,7 @@ def _avoid(mask_buffer: bool, best_of: int, guide_scale: float, route_k: int | N
         best_of=best_of,
         guide_scale=guide_scale,
         route_k=route_k,
+        route_clearance=route_clearance,
         route_buffer=None if route_buffer is None else route_buffer.name,
     )
 
@@ -926,6 +943,7 @@ def plan(
     mask_buffer: bool = MaskOpt,
     best_of: int = BestOfOpt,
     route_k: int | None = RouteOpt,
+    route_clearance: float = RouteClearanceOpt,
     route_buffer: Path | None = RouteBufferOpt,
     guide_scale: float = GuideOpt,
     seed: int = SeedOpt,
@@ -951,7 +969,7 @@ def plan(
     _check_positive("--sample-steps", sample_steps)
     _check_outputs(force, [model], out=out, plot=plot)
     m = _trained_model(model, allow_partial)
-    avoid = _avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer)
+    avoid = _avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer, route_clearance)
     check_avoid(m.manifest.config.method.name, avoid)
     route_art = load_route_buffer(route_buffer)
     spec = scene_spec(m, maze_map)
@@ -1116,6 +1134,7 @@ def eval_cmd(
     mask_buffer: bool = MaskOpt,
     best_of: int = BestOfOpt,
     route_k: int | None = RouteOpt,
+    route_clearance: float = RouteClearanceOpt,
     route_buffer: Path | None = RouteBufferOpt,
     guide_scale: float = GuideOpt,
     sampler: str | None = SamplerOpt,
@@ -1184,7 +1203,7 @@ def eval_cmd(
         replan=replan,
         repair_k=repair_k,
         repair_steps=repair_steps,
-        avoid=_avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer),
+        avoid=_avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer, route_clearance),
         maze_map=maze_map,
     )
     from cdrb_cli.envs.registry import family_of

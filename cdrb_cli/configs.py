@@ -153,6 +153,14 @@ class AvoidConfig(Record):
         "collision-free steps, degraded to step k and restored (the method's repair), instead of from random "
         "buffer states; None: sample from scratch",
     )
+    route_clearance: float = Field(
+        0.0,
+        ge=0,
+        le=1e3,
+        description="with route_k: buffer states within this distance of an obstacle (along an obstacle dimension, "
+        "in its units) cost 5x per step in the route search, so routes keep that clearance where the buffer allows; "
+        "0: the shortest free route",
+    )
     route_buffer: str | None = Field(
         None,
         max_length=4096,
@@ -170,7 +178,8 @@ class AvoidConfig(Record):
     def label(self) -> str:
         """A short description, e.g. 'masked buffer, best of 8'."""
         parts = ["masked buffer"] if self.mask_buffer else []
-        parts += [f"buffer route, k {self.route_k}"] if self.route_k else []
+        clear = f", clearance {self.route_clearance:g}" if self.route_clearance else ""
+        parts += [f"buffer route, k {self.route_k}{clear}"] if self.route_k else []
         parts += [f"guided x{self.guide_scale:g}"] if self.guide_scale else []
         parts += [f"best of {self.best_of}"] if self.best_of > 1 else []
         return ", ".join(parts) or "plain"

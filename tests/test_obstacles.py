@@ -198,6 +198,8 @@ def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_p
     assert r.returncode == 2 and "--route-k: mlp cannot restore" in r.stderr
     r = cdrb("eval", tiny_models["diffuser"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "add --route-buffer" in r.stderr
+    r = cdrb("eval", tiny_models["cdrb"].path, "--route-clearance", "0.1", "-n", "2", "--seeds", "0", "--out", out)
+    assert r.returncode == 2 and "--route-clearance without --route-k" in r.stderr
     r = cdrb("eval", tiny_models["cdrb"].path, "--protocol", "detour", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "add --maze-map" in r.stderr
     assert not out.exists() and len(r.stderr.strip().splitlines()) == 1
@@ -230,6 +232,35 @@ def test_buffer_route_takes_free_steps_around_the_new_wall():
     cells = g.xy_to_cell(states[:, :2])
     centre = states[(cells[:, 0] >= 5) & (cells[:, 0] <= 9) & (cells[:, 1] >= 5) & (cells[:, 1] <= 9)]
     assert BufferGraph(spec, centre).route(start, goal, 64) is None
+
+
+def test_route_clearance_keeps_routes_off_the_walls_where_the_buffer_allows():
+    from cdrb_cli.stages.routes import BufferGraph
+
+    base = make_spec("maze-tight")
+    spec = family_of(base).with_map(base, NORTH)
+    family = family_of(spec)
+    g = MazeGeometry(spec.scene.maze)
+    rng = np.random.default_rng(1)
+    free = np.argwhere(g.free)
+    xy = np.concatenate([g.cell_to_xy(free) + rng.uniform(-0.45, 0.45, (len(free), 2)) for _ in range(4)])
+    states = np.concatenate([xy, np.zeros((len(xy), 2))], 1)
+    states = states[~family.in_collision(spec, states)]
+    start, goal = np.array([*g.cell_to_xy([5, 7]), 0, 0]), np.array([*g.cell_to_xy([1, 6]), 0, 0])
+    clearance = 0.3
+    near = BufferGraph(spec, states, clearance=clearance).near
+    # "near" is its definition: a state that collides when moved the clearance along x or y
+    probes = [states + s * clearance * np.eye(4)[d] for d in (0, 1) for s in (-1, 1)]
+    assert all(near[family.in_collision(spec, q)].all() for q in probes) and near.any() and not near.all()
+
+    def share_near(route):
+        moved = [route + s * np.eye(4)[d] * clearance for d in (0, 1) for s in (-1, 1)]
+        return np.mean(np.any([family.in_collision(spec, m) for m in moved], axis=0))
+
+    plain = BufferGraph(spec, states).route(start, goal, 128)
+    kept = BufferGraph(spec, states, clearance=clearance).route(start, goal, 128)
+    assert family.crossing_counts(spec, kept) == 0
+    assert share_near(kept) < share_near(plain)
 
 
 # ------------------------------------------------------------------------------------------------ guidance

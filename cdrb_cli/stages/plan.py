@@ -70,6 +70,8 @@ def check_avoid(method_name: str, avoid: AvoidConfig) -> None:
             f"--route-k: {method_name} carries no replay buffer to route through",
             hint="add --route-buffer BUFFER.h5 (from `cdrb cluster` on the model's demos)",
         )
+    if avoid.route_clearance > 0 and avoid.route_k is None:
+        raise BadInput("--route-clearance without --route-k", hint="add --route-k K, or drop --route-clearance")
     if avoid.route_buffer is not None and avoid.route_k is None:
         raise BadInput("--route-buffer without --route-k", hint="add --route-k K, or drop --route-buffer")
     if avoid.guide_scale > 0 and not cls.guides:
@@ -147,7 +149,7 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
             )
         if avoid.route_buffer is not None and route_buffer is None:
             raise ValueError("config.avoid.route_buffer is set: pass its buffer artifact")
-        out.graph = BufferGraph(spec, route_states(method, spec, route_buffer))
+        out.graph = BufferGraph(spec, route_states(method, spec, route_buffer), clearance=avoid.route_clearance)
     if avoid.guide_scale > 0:
         raw_cost = family.collision_cost(spec)
         fractions = np.arange(GUIDE_SUBSTEPS) / GUIDE_SUBSTEPS

@@ -18,18 +18,26 @@ from cdrb_cli.envs.spec import EnvSpec
 
 #: neighbours each buffer state (and each start and goal) is joined to, when the step between them is free
 NEIGHBOURS = 16
+#: with a clearance, a step to or from a buffer state that close to an obstacle costs this many times its length
+NEAR_COST = 5.0
 
 
 class BufferGraph:
-    """The graph of ``states`` (K, F) raw feature rows (the state first) joined by free straight steps."""
+    """The graph of ``states`` (K, F) raw feature rows (the state first) joined by free straight steps.
 
-    def __init__(self, spec: EnvSpec, states: np.ndarray, neighbours: int = NEIGHBOURS):
+    ``clearance`` (in the obstacle dimensions' units): a buffer state that collides when moved that far along any
+    obstacle dimension (either way) is *near* an obstacle, and a step to or from it costs :data:`NEAR_COST` times its
+    length, so the shortest route keeps that clearance wherever the buffer allows (the scripted experts keep one; a
+    route that hugs a wall's end leads the body into it). 0: every free step costs its length."""
+
+    def __init__(self, spec: EnvSpec, states: np.ndarray, neighbours: int = NEIGHBOURS, clearance: float = 0.0):
         from scipy.spatial import cKDTree
 
         self.spec = spec
         self.family = family_of(spec)
         self.states = np.asarray(states, dtype=np.float64)
         self.dims = list(spec.obstacles.dims)
+        self.near = self._near(clearance)
         self.k = int(min(neighbours, max(len(self.states) - 1, 1)))
         self.tree = cKDTree(self.states[:, self.dims])
         K = len(self.states)
@@ -43,8 +51,22 @@ class BufferGraph:
         i, j, d = lo[first], hi[first], d[first]
         free = ~self._crosses(self.states[i], self.states[j])
         i, j, d = i[free], j[free], np.maximum(d[free], 1e-9)
+        d = d * np.where(self.near[i] | self.near[j], NEAR_COST, 1.0)
         self.edges = (np.concatenate([i, j]), np.concatenate([j, i]), np.concatenate([d, d]))
         self.n_edges = int(free.sum())
+
+    def _near(self, clearance: float) -> np.ndarray:
+        """Per buffer state: does it collide when moved ``clearance`` along some obstacle dimension?"""
+        near = np.zeros(len(self.states), dtype=bool)
+        if clearance <= 0:
+            return near
+        obs = self.spec.obs_dim
+        for dim in self.dims:
+            for sign in (-1.0, 1.0):
+                moved = self.states[:, :obs].copy()
+                moved[:, dim] += sign * clearance
+                near |= np.asarray(self.family.in_collision(self.spec, moved), dtype=bool)
+        return near
 
     def _crosses(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether the straight step between raw states a and b (n, F) touches an obstacle."""
@@ -58,7 +80,8 @@ class BufferGraph:
         ok = j < len(self.states)
         d, j = d[ok], j[ok]
         free = ~self._crosses(np.repeat(state[None], len(j), 0), self.states[j])
-        return j[free], np.maximum(d[free], 1e-9)
+        j, d = j[free], np.maximum(d[free], 1e-9)
+        return j, d * np.where(self.near[j], NEAR_COST, 1.0)
 
     def route(self, start: np.ndarray, goal: np.ndarray, horizon: int) -> np.ndarray | None:
         """The shortest route from ``start`` to ``goal`` (raw feature rows) through the graph, as ``horizon`` raw
