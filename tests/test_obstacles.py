@@ -480,6 +480,8 @@ def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
         ),
         ("name = 'x'\n", "boxes: Field required"),
         ("[[boxes]]\ncenter = [1.36, 0.76, 0.60]\nhalf = [0.01, 0.01, 0.01]\n", "overlaps the gripper at its home"),
+        # a roof on the corridor's walls: clear of the gripper, but the arm's wrist reaches through it at the start
+        ("[[boxes]]\ncenter = [1.30, 0.749, 0.78]\nhalf = [0.16, 0.125, 0.01]\n", "cuts through the robot's wrist"),
     ],
 )
 def test_bad_fetch_scene_files_get_one_line_errors(tmp_path, text, needle):

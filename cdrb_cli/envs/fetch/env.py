@@ -155,6 +155,22 @@ class FetchEnv:
     def render(self):
         return self.env.render()
 
+    def robot_contacts(self) -> list[tuple[int, str]]:
+        """(index into ``scene.solid``, robot body) of every box the robot penetrates now, over its whole arm (the
+        collision test of states models only the gripper)."""
+        import mujoco
+
+        u = self.env
+        mujoco.mj_forward(u.model, u.data)
+        solid = {g: i for i, g in enumerate(u._wall_geoms)}
+        out = []
+        for c in u.data.contact[: u.data.ncon]:
+            for box, other in ((c.geom1, c.geom2), (c.geom2, c.geom1)):
+                body = mujoco.mj_id2name(u.model, mujoco.mjtObj.mjOBJ_BODY, int(u.model.geom_bodyid[other]))
+                if box in solid and c.dist < 0 and (body or "").startswith("robot0:"):
+                    out.append((solid[box], body))
+        return sorted(set(out))
+
     def close(self) -> None:
         self.env.close()
 

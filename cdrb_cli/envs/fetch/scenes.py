@@ -99,9 +99,34 @@ def with_boxes(spec: EnvSpec, change: SceneChange, source: str) -> EnvSpec:
             )
     base = spec.id.removesuffix(f"+{scene.change}") if scene.change else spec.id
     new = scene.model_copy(update={"extra_boxes": list(change.boxes), "change": change.name})
-    return spec.model_copy(
+    out = spec.model_copy(
         update={"id": f"{base}+{change.name}"[:200], "scene": new, "obstacles": body_obstacles(new.solid, new.task)[0]}
     )
+    _check_arm_clear(out, source)
+    return out
+
+
+def _check_arm_clear(spec: EnvSpec, source: str) -> None:
+    """Refuse boxes that the robot's arm (not only its gripper) penetrates where every episode starts: measured in
+    the simulator after its reset, since the state's collision test models the gripper alone."""
+    from cdrb_cli.envs.family import Episode
+    from cdrb_cli.envs.fetch.env import FetchEnv
+    from cdrb_cli.envs.fetch.tasks import draw_task
+
+    n_walls = len(spec.scene.walls)
+    start, goal = draw_task(spec.scene, np.random.default_rng(0))
+    env = FetchEnv(spec)
+    try:
+        env.reset(Episode(0, start, goal))
+        hits = [(i - n_walls, body) for i, body in env.robot_contacts() if i >= n_walls]
+    finally:
+        env.close()
+    if hits:
+        i, body = hits[0]
+        raise BadInput(
+            f"{source}: boxes[{i}] cuts through the robot's {body.removeprefix('robot0:')} where every episode starts",
+            hint="move the box clear of the arm (the arm reaches above and behind the gripper)",
+        )
 
 
 def blocks_shortest_route(spec: EnvSpec, start: np.ndarray, goal: np.ndarray) -> bool:
