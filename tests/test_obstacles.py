@@ -480,6 +480,12 @@ def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
         ),
         ("name = 'x'\n", "boxes: Field required"),
         ("[[boxes]]\ncenter = [1.36, 0.76, 0.60]\nhalf = [0.01, 0.01, 0.01]\n", "overlaps the gripper at its home"),
+        # a box over the whole goal region: nothing left to draw
+        (
+            "[[boxes]]\ncenter = [1.34, 0.45, 0.56]\nhalf = [0.2, 0.12, 0.16]\n"
+            "[[boxes]]\ncenter = [1.34, 1.05, 0.56]\nhalf = [0.2, 0.12, 0.16]\n",
+            "leave no room to draw",
+        ),
         # a roof on the corridor's walls: clear of the gripper, but the arm's wrist reaches through it at the start
         ("[[boxes]]\ncenter = [1.30, 0.749, 0.78]\nhalf = [0.16, 0.125, 0.01]\n", "cuts through the robot's wrist"),
     ],

@@ -114,7 +114,13 @@ def _check_arm_clear(spec: EnvSpec, source: str) -> None:
     from cdrb_cli.envs.fetch.tasks import draw_task
 
     n_walls = len(spec.scene.walls)
-    start, goal = draw_task(spec.scene, np.random.default_rng(0))
+    try:
+        start, goal = draw_task(spec.scene, np.random.default_rng(0))
+    except RuntimeError:
+        raise BadInput(
+            f"{source}: the boxes leave no room to draw a start and a goal of {spec.id.split('+')[0]}",
+            hint="use smaller boxes, or put them where the task's blocks and goals are not drawn",
+        ) from None
     env = FetchEnv(spec)
     try:
         env.reset(Episode(0, start, goal))
