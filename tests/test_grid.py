@@ -299,7 +299,7 @@ def test_ray_runs_the_same_grid(tmp_path):
 
 def test_the_shipped_experiment_files_load_and_expand():
     root = Path(__file__).resolve().parent.parent / "experiments"
-    files = sorted(p for p in root.glob("*/*.toml") if p.parent.name not in ("tuned", "data"))
+    files = sorted(p for p in root.glob("*/*.toml") if p.parent.name not in ("tuned", "data", "scenes"))
     assert len(files) >= 10
     for path in files:
         spec = load_grid(path)

@@ -81,8 +81,9 @@ def test_it_trains_plans_evaluates_and_reports_through_the_cli(env, tmp_path, cd
         proc = cdrb(
             "eval", model, "--seeds", "0", "--episodes", "2", "--stream", "tune", "--protocol", protocol, "--out", out
         )
-        if protocol in family.scene_protocols:  # pairs of a changed map: refused in the training map
-            assert proc.returncode == 2 and "--maze-map" in proc.stderr and not out.exists(), proc.stderr
+        if protocol in family.scene_protocols:  # pairs of a changed scene: refused in the training scene
+            assert proc.returncode == 2 and "runs in the" in proc.stderr and not out.exists(), proc.stderr
+            assert "--maze-map" in proc.stderr or "--scene" in proc.stderr, proc.stderr
             continue
         assert proc.returncode == 0, proc.stderr
         assert artifacts.load(out, "eval").manifest.config.protocol == protocol
