@@ -51,6 +51,19 @@ class Plans:
     seconds: float
 
 
+def _avoid(mask_buffer: bool, best_of: int, route_k: int | None, route_clearance: float, guide_scale: float):
+    """The avoidance settings of :class:`Planner` and :func:`evaluate` (their arguments of the same names)."""
+    from cdrb_cli.configs import AvoidConfig
+
+    return AvoidConfig(
+        mask_buffer=mask_buffer,
+        best_of=best_of,
+        route_k=route_k,
+        route_clearance=route_clearance,
+        guide_scale=guide_scale,
+    )
+
+
 class Planner:
     """A planner loaded from a model artifact (``cdrb train``), ready to plan on its environment."""
 
@@ -70,20 +83,13 @@ class Planner:
         Fetch TOML file of boxes put down); ``mask_buffer``,
         ``best_of``, ``route_k``, ``route_clearance``, ``guide_scale``: keep plans out of obstacles as the CLI flags
         of those names do."""
-        from cdrb_cli.configs import AvoidConfig
         from cdrb_cli.stages.plan import check_avoid, load_planner, prepare_planner, scene_spec
         from cdrb_cli.torch_utils import setup_torch
 
         self.model = artifacts.load(Path(model), "model")
         self.device = setup_torch(device)
         self.method = load_planner(self.model, device=self.device, ema=ema)
-        avoid = AvoidConfig(
-            mask_buffer=mask_buffer,
-            best_of=best_of,
-            route_k=route_k,
-            route_clearance=route_clearance,
-            guide_scale=guide_scale,
-        )
+        avoid = _avoid(mask_buffer, best_of, route_k, route_clearance, guide_scale)
         check_avoid(self.method.name, avoid)
         self._spec = scene_spec(self.model, scene)
         self.avoidance = prepare_planner(self.method, self._spec, avoid)
@@ -150,7 +156,6 @@ def evaluate(
     """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary
     (``scene`` and the avoidance settings as in :class:`Planner`; ``protocol="detour"`` with a scene)."""
     from cdrb_cli.artifacts.outputs import claim_output
-    from cdrb_cli.configs import AvoidConfig
     from cdrb_cli.stages.evaluate import eval_config
     from cdrb_cli.stages.evaluate import evaluate as run_eval
     from cdrb_cli.stages.plan import scene_spec
@@ -159,14 +164,9 @@ def evaluate(
     if stream not in ("test", "tune"):
         raise BadInput(f"stream = {stream!r}", hint="'test' (reported tables) or 'tune' (choosing settings)")
     m = artifacts.load(Path(model), "model")
-    avoid = AvoidConfig(
-        mask_buffer=mask_buffer,
-        best_of=best_of,
-        route_k=route_k,
-        route_clearance=route_clearance,
-        guide_scale=guide_scale,
-    )
+    avoid = _avoid(mask_buffer, best_of, route_k, route_clearance, guide_scale)
     map_path = None if scene is None else Path(scene)
+    where = scene_spec(m, map_path)
     config = eval_config(
         m,
         episodes,
@@ -176,8 +176,9 @@ def evaluate(
         stream=stream,
         avoid=avoid,
         maze_map=map_path,
+        scene=where,
     )
-    spec = family_of(m.manifest.env).protocol_spec(scene_spec(m, map_path), config.protocol)
+    spec = family_of(m.manifest.env).protocol_spec(where, config.protocol)
     dev = setup_torch(device)
     with claim_output(Path(out), force, "out", inputs=[m.path]) as path:
         result = run_eval(m, config, path, device=dev, spec=spec)

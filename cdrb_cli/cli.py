@@ -1188,6 +1188,10 @@ def eval_cmd(
             raise BadInput("--max-lag with --set controller.max_lag", hint="give it once")
         settings.append(Setting(("controller", "max_lag"), max_lag or None, f"--max-lag {max_lag:g}"))
     m = _trained_model(model, allow_partial)
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
+
+    scene = scene_spec(m, maze_map)
     config = eval_config(
         m,
         episodes,
@@ -1205,11 +1209,9 @@ def eval_cmd(
         repair_steps=repair_steps,
         avoid=_avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer, route_clearance),
         maze_map=maze_map,
+        scene=scene,
     )
-    from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
-
-    eval_spec = family_of(m.manifest.env).protocol_spec(scene_spec(m, maze_map), config.protocol)
+    eval_spec = family_of(m.manifest.env).protocol_spec(scene, config.protocol)
     route_art = load_route_buffer(route_buffer)
     n_videos = videos if video is not None else 0
     started = time.time()

@@ -580,12 +580,14 @@ def eval_config(
     repair_steps: int | None = None,
     avoid=None,
     maze_map: Path | None = None,
+    scene: EnvSpec | None = None,
 ) -> EvalConfig:
     """The EvalConfig of ``cdrb eval`` for a model: the family's controller (``controller``, else
     ``--set controller.name=...``, else the family's first) with ``settings`` on its fields (``--set
     controller.kp=20``, ``--max-lag``) and ``extra_steps``; the method's sampler (default: the model's); closed-loop
     planning from ``replan`` (``never``, ``every:N`` or ``deviation:D``), ``repair_k`` and ``repair_steps`` (or
-    ``--set replan.<field>``)."""
+    ``--set replan.<field>``). ``maze_map``: the scene file the eval runs in (recorded by name), ``scene`` its
+    spec when the caller built it already (:func:`~cdrb_cli.stages.plan.scene_spec`), else it is built here."""
     from cdrb_cli.configs import ReplanConfig
     from cdrb_cli.settings import Setting, apply, lookup, validate
 
@@ -675,7 +677,7 @@ def eval_config(
             settings = [*settings, Setting(("replan", key), value, f"{flag} {value}")]
     config = validate(EvalConfig, apply(base, settings), settings, "eval")
     if maze_map is not None or protocol in family.extra_protocols:  # a protocol that cannot draw fails here, at once
-        where = spec if maze_map is None else family.with_map(spec, Path(maze_map))
+        where = spec if maze_map is None else scene or family.with_map(spec, Path(maze_map))
         family.draw_protocol_episodes(where, 1, config.seeds[0], EVAL_STREAMS[config.stream], protocol)
     k = config.replan.repair_k
     steps = getattr(model.manifest.config.method, "diffusion_steps", None)
