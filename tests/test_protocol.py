@@ -115,6 +115,31 @@ def test_plan_clock_timeout():
     assert [waits.plan_time(at_start, t) for t in range(8)] == [0, 0, 0, 2, 2, 2, 2, 4]
 
 
+def test_look_ahead_moves_the_clock_to_a_ball_past_its_target():
+    """A plan whose first states lie behind a ball moving along it (a re-plan from a moving state): without
+    ``look_ahead`` the gated clock holds the ball to planned state 1, which it has passed; with it the clock jumps
+    to the state after the nearest of the next ``look_ahead``, and never further."""
+    spec = make_spec("maze")
+    env = PointMaze(spec)
+    entry = CONTROLLERS.get("pd")
+    plan = np.zeros((20, 4))
+    plan[:, 0] = 0.1 * np.arange(20.0)
+    plan[:, 2] = 5.0  # moving along +x
+    plan[1, 0] = -0.5  # the first planned step jumps back
+    plain = entry.build(spec, env, entry.config(max_lag=0.6), 2)
+    ahead = entry.build(spec, env, entry.config(max_lag=0.6, look_ahead=4), 2)
+    for c in (plain, ahead):
+        c.reset(plan)
+    ball = np.array([0.3, 0.0, 5.0, 0.0])  # nearest planned states: 3 (0.3 m), within the 4 after state 1
+    assert plain.plan_time(ball, 0) // 2 + 1 == 1  # still driven back to state 1 (0.8 m away: the clock pauses)
+    assert plain.act(ball, 1)[0] < 0  # pushed backwards
+    assert ahead.plan_time(ball, 0) // 2 + 1 == 4  # jumped to state 3, driven to state 4, and the clock runs on
+    assert ahead.act(ball, 1)[0] > 0
+    far = entry.build(spec, env, entry.config(max_lag=0.6, look_ahead=1), 2)
+    far.reset(plan)
+    assert far.plan_time(np.array([1.5, 0.0, 0.0, 0.0]), 0) // 2 + 1 <= 3  # at most look_ahead states on, per step
+
+
 def test_official_executor_reaches_goals_of_expert_plans():
     """The waypoint executor (kp 1, kd 0.1, <= 5 steps per state) replaying expert plans under the official
     protocol: it follows the plan and ends within the official 0.55 m."""
@@ -139,6 +164,8 @@ def test_official_executor_reaches_goals_of_expert_plans():
     [
         ("pd", {"max_wait": 0}),
         ("pd", {"max_lag": None, "max_wait": 5}),
+        ("pd", {"max_lag": None, "look_ahead": 4}),
+        ("inverse-dynamics", {"look_ahead": -1}),
         ("waypoint", {"reach": 0.0}),
         ("waypoint", {"max_steps": 0}),
     ],

@@ -15,7 +15,11 @@ With ``max_lag`` set, the clock pauses while the ball is more than ``max_lag`` m
 driven to, so a ball that lags (after a fast first step, or around a corner) catches up along the plan instead of
 cutting across toward a reference that has run ahead; ``max_wait`` bounds the pause: after that many environment
 steps waiting on one planned state the clock moves on anyway (a plan the ball cannot follow no longer stalls the
-episode). Both are chosen per method on the tuning stream (docs/design.md).
+episode). ``look_ahead`` lets the gated clock also move *forward* to where the ball is: when one of the next
+``look_ahead`` planned states is nearer the ball than the state it is driven to, the clock jumps to the nearest,
+so a plan that starts behind a moving ball (a re-plan whose first states lag or jitter back) is not chased
+backwards, which would stall the ball until it is back within ``max_lag`` of a state it has passed. All three are
+chosen on the tuning stream (docs/design.md).
 
 * ``WaypointController`` is the official CDRB executor: u = clip(kp (p* - p) - kd v) toward one planned state at
   a time (kp = 1, kd = 0.1), moving to the next when within ``reach`` (0.1 m) of it or after ``max_steps`` (5)
@@ -42,11 +46,17 @@ _MAX_LAG_HELP = (
     "null: follow the plan on the environment's clock"
 )
 _MAX_WAIT_HELP = "the clock moves on after this many env steps paused on one planned state (null: no timeout)"
+_LOOK_AHEAD_HELP = (
+    "the gated clock jumps ahead to the nearest of this many next planned states when one is nearer the ball than "
+    "its target (0: never)"
+)
 
 
 def _check_wait(config):
     if config.max_wait is not None and config.max_lag is None:
         raise ValueError("max_wait bounds the gated clock's pause: set max_lag too (or leave max_wait null)")
+    if config.look_ahead and config.max_lag is None:
+        raise ValueError("look_ahead moves the gated clock: set max_lag too (or leave look_ahead 0)")
     return config
 
 
@@ -58,6 +68,7 @@ class PDConfig(ControllerConfig):
     kd: float = Field(1.0, ge=0, le=1e6, description="velocity gain")
     max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, le=1e3, description=_MAX_LAG_HELP)
     max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
+    look_ahead: int = Field(0, ge=0, le=100_000, description=_LOOK_AHEAD_HELP)
 
     _wait = model_validator(mode="after")(_check_wait)
 
@@ -68,6 +79,7 @@ class InverseDynamicsConfig(ControllerConfig):
     name: Literal["inverse-dynamics"] = "inverse-dynamics"
     max_lag: float | None = Field(DEFAULT_MAX_LAG, gt=0, le=1e3, description=_MAX_LAG_HELP)
     max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
+    look_ahead: int = Field(0, ge=0, le=100_000, description=_LOOK_AHEAD_HELP)
 
     _wait = model_validator(mode="after")(_check_wait)
 
@@ -85,10 +97,10 @@ class WaypointConfig(ControllerConfig):
 class MazeController(Controller):
     """Shared by the PointMaze controllers: the plan, its stride, and the (optionally gated) plan clock."""
 
-    def __init__(self, stride: int, max_lag: float | None = None, max_wait: int | None = None):
+    def __init__(self, stride: int, max_lag: float | None = None, max_wait: int | None = None, look_ahead: int = 0):
         if max_lag is not None and max_lag <= 0:
             raise ValueError(f"max_lag must be positive or None, got {max_lag}")
-        self.stride, self.max_lag, self.max_wait = stride, max_lag, max_wait
+        self.stride, self.max_lag, self.max_wait, self.look_ahead = stride, max_lag, max_wait, look_ahead
         self.plan = np.zeros((1, 4))
         self.clock = self.waited = 0
 
@@ -108,6 +120,12 @@ class MazeController(Controller):
         if self.max_lag is None:
             return t
         target = self._target_index(self.clock)
+        if self.look_ahead:
+            ahead = self.plan[target : target + self.look_ahead + 1, :2]
+            nearest = target + int(np.argmin(np.linalg.norm(ahead - obs[:2], axis=1)))
+            if nearest > target:  # the ball is past its target: drive it to the state after the nearest
+                self.clock, self.waited = nearest * self.stride, 0
+                target = self._target_index(self.clock)
         if np.linalg.norm(self.plan[target, :2] - obs[:2]) < self.max_lag:
             self.clock += 1
         elif self.max_wait is not None and self.waited >= self.max_wait:
@@ -122,8 +140,16 @@ class MazeController(Controller):
 class PDController(MazeController):
     name = "pd"
 
-    def __init__(self, stride: int, kp: float, kd: float, max_lag: float | None = None, max_wait: int | None = None):
-        super().__init__(stride, max_lag, max_wait)
+    def __init__(
+        self,
+        stride: int,
+        kp: float,
+        kd: float,
+        max_lag: float | None = None,
+        max_wait: int | None = None,
+        look_ahead: int = 0,
+    ):
+        super().__init__(stride, max_lag, max_wait, look_ahead)
         self.kp, self.kd = kp, kd
 
     def act(self, obs, t):
@@ -144,8 +170,9 @@ class InverseDynamicsController(MazeController):
         dt: float,
         max_lag: float | None = None,
         max_wait: int | None = None,
+        look_ahead: int = 0,
     ):
-        super().__init__(stride, max_lag, max_wait)
+        super().__init__(stride, max_lag, max_wait, look_ahead)
         self.m, self.c, self.g, self.h = mass, damping, gear, dt
 
     def _position_at(self, step: float) -> np.ndarray:
@@ -191,13 +218,13 @@ class WaypointController(Controller):
 
 
 def _pd(spec, env, config: PDConfig, stride: int) -> PDController:
-    return PDController(stride, config.kp, config.kd, config.max_lag, config.max_wait)
+    return PDController(stride, config.kp, config.kd, config.max_lag, config.max_wait, config.look_ahead)
 
 
 def _inverse_dynamics(spec, env, config: InverseDynamicsConfig, stride: int) -> InverseDynamicsController:
     d = env.dynamics
     return InverseDynamicsController(
-        stride, d["mass"], d["damping"], d["gear"], d["dt"], config.max_lag, config.max_wait
+        stride, d["mass"], d["damping"], d["gear"], d["dt"], config.max_lag, config.max_wait, config.look_ahead
     )
 
 
