@@ -2,7 +2,8 @@
 # One piece of a grid on a borrowed machine whose artifacts do not outlive it: run `cdrb grid` until a deadline,
 # then pack what the pipeline cannot rebuild cheaply (every eval artifact, the grid's summary, the task log) into
 # OUT_DIR, one archive per environment, so `cdrb select` / `cdrb report` can read them back on another machine.
-# Models stay behind (they are re-trained from the same seed when a later piece needs them).
+# Models stay behind (they are re-trained from the same seed when a later piece needs them); evals are written
+# without their plans (gpu_grid_evals.toml).
 #
 # Usage: bash benchmarks/gpu_grid.sh GRID_FILE OUT_DIR SECONDS [cdrb grid flags...]
 #   e.g. bash benchmarks/gpu_grid.sh experiments/tune/fetch-curves.toml "$OUT" 480 \
@@ -15,13 +16,15 @@ out=${2:?usage: gpu_grid.sh GRID_FILE OUT_DIR SECONDS [grid flags...]}
 seconds=${3:?usage: gpu_grid.sh GRID_FILE OUT_DIR SECONDS [grid flags...]}
 shift 3
 py=${PYTHON:-python3}
+here=$(cd "$(dirname "$0")" && pwd)
 work=${WORK:-runs/piece}
 mkdir -p "$out" && out=$(cd "$out" && pwd)
 { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; nproc; } >"$out/machine.txt" 2>/dev/null || true
 
 t0=$(date +%s)
 timeout --signal=TERM --kill-after=30 "$seconds" \
-  "$py" -m cdrb_cli grid "$grid" --backend pool --set "out=\"$work\"" "$@" >"$out/grid.stdout" 2>"$out/grid.log"
+  "$py" -m cdrb_cli grid "$grid" --backend pool --set "out=\"$work\"" --include "$here/gpu_grid_evals.toml" "$@" \
+  >"$out/grid.stdout" 2>"$out/grid.log"
 rc=$?
 t1=$(date +%s)
 

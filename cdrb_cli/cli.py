@@ -1143,6 +1143,12 @@ def eval_cmd(
     allow_partial: bool = PartialOpt,
     video: Path | None = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder."),
     videos: int = typer.Option(3, "--videos", min=1, help="How many rollout GIFs with --video."),
+    keep_plans: bool = typer.Option(
+        True,
+        "--plans/--no-plans",
+        help="Keep each episode's (first) plan in the eval artifact, for the report's first-step column, new-obstacle "
+        "crossings and `cdrb report --plans-plot`; --no-plans writes a file a fraction of the size.",
+    ),
     device: str = DeviceOpt,
     out: Path = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write."),
     seed: int = SeedOpt,
@@ -1225,6 +1231,7 @@ def eval_cmd(
             config,
             out,
             device=setup_torch(device),
+            keep_plans=keep_plans,
             video_dir=video,
             videos=n_videos,
             replan_plot=replan_plot,

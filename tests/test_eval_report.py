@@ -203,6 +203,21 @@ def test_tuning_pairs_and_the_official_protocol(evals, tmp_path, cdrb):
     assert r.returncode == 2 and "--stream" in r.stderr
 
 
+def test_an_eval_without_plans(evals, tmp_path, cdrb):
+    """`--no-plans` keeps every episode measure but not the plans: the report reads it (the first-step column
+    n/a) and `--plans-plot` says which flag left them out."""
+    model = evals["cdrb"].manifest.parents[0].path
+    r = cdrb("eval", model, "--seeds", "0", "-n", "4", "--no-plans", "--out", tmp_path / "bare.h5")
+    assert r.returncode == 0, r.stderr
+    bare = artifacts.load(tmp_path / "bare.h5", "eval")
+    assert "plans" not in bare.arrays and len(bare.arrays["episodes/success"]) == 4
+    assert bare.arrays["episodes/plan_crosses_obstacle"].shape == (4,)
+    rows = json.loads(cdrb("report", tmp_path / "bare.h5", "--format", "json").stdout)
+    assert len(rows) == 1 and rows[0]["method"] == "cdrb"
+    r = cdrb("report", tmp_path / "bare.h5", "--plans-plot", tmp_path / "p.png")
+    assert r.returncode == 2 and "--no-plans" in r.stderr and not (tmp_path / "p.png").exists()
+
+
 def test_report_formats_and_pictures(evals, tmp_path, cdrb):
     paths = [evals[m].path for m in ("cdrb", "diffuser", "mlp")]
     r = cdrb(
