@@ -486,8 +486,9 @@ def collect(
         "protocol",
         "--starts",
         metavar="WHERE",
-        help="Where demonstrations start: protocol (the environment's start region) or, for mazes, anywhere (any "
-        "free cell), so plans can start wherever the robot is; protocol+anywhere alternates between the two.",
+        help="Where demonstrations start: protocol (the environment's start region) or anywhere (mazes: any free "
+        "cell; Fetch: the gripper anywhere in the workspace), so plans can start wherever the robot is; "
+        "protocol+anywhere alternates between the two.",
     ),
     maze_map: Path | None = MapOpt,
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),

@@ -208,9 +208,9 @@ def test_parallel_collect_gives_the_same_demos(tmp_path, cdrb):
 
 
 def test_demos_that_start_anywhere(tmp_path, cdrb):
-    """`--starts anywhere` (mazes): episodes start all over the free space, not only in the start region, the
+    """`--starts anywhere`: maze episodes start all over the free space, not only in the start region, the
     expert still reaches its goals without touching a wall, and the choice is recorded; the default keeps the
-    protocol's starts; a family without such a start distribution refuses it in one line."""
+    protocol's starts; Fetch's start the gripper away from home; a name no family knows is refused in one line."""
     from cdrb_cli.envs.pointmaze.maze import MazeGeometry
 
     spec = make_spec("maze-tight")
@@ -229,9 +229,15 @@ def test_demos_that_start_anywhere(tmp_path, cdrb):
     assert demos.manifest.summary.success_rate >= 0.95 and demos.manifest.summary.states_in_walls == 0
     usual = collect(spec, collect_config(spec, 30, seed=0), tmp_path / "usual.h5")
     assert all(c in region for c in start_cells(usual)) and usual.manifest.config.starts == "protocol"
-    r = cdrb("collect", "fetch-reach", "-n", "2", "--starts", "anywhere", "--out", tmp_path / "f.h5")
-    assert r.returncode == 2 and "--starts 'anywhere'" in r.stderr and r.stderr.count("\n") == 1
-    assert not (tmp_path / "f.h5").exists()
+    r = cdrb("collect", "fetch-reach", "-n", "2", "--starts", "everywhere", "--out", tmp_path / "f.h5")
+    assert r.returncode == 2 and "--starts 'everywhere'" in r.stderr and r.stderr.count("\n") == 1
+    assert "protocol, anywhere" in r.stderr and not (tmp_path / "f.h5").exists()
+    # Fetch: the gripper starts anywhere in the workspace in every other episode, at home in the others
+    fetch = make_spec("fetch-reach-obstacle")
+    demos = collect(fetch, collect_config(fetch, 4, seed=0, starts="protocol+anywhere"), tmp_path / "f.h5")
+    grips = demos.arrays["steps/observations"][demos.arrays["episodes/start"], :3]
+    away = np.linalg.norm(grips - np.array(fetch.scene.home), axis=1) > 0.02
+    assert away.tolist() == [False, True, False, True] and demos.manifest.summary.success_rate >= 0.75
 
 
 def _children(pid: int) -> set[int]:

@@ -213,6 +213,44 @@ def test_draws_avoid_walls_are_seeded_and_cross_when_asked(env_id):
             assert side(spec.scene, np.array(e.goal)) != side(spec.scene, start)
 
 
+@pytest.mark.parametrize("env_id", ["fetch-reach-obstacle", "fetch-push-obstacle", "fetch-pick-place-obstacle"])
+def test_anywhere_starts_the_gripper_elsewhere_clear_of_every_wall(env_id):
+    """`--protocol anywhere`: the stock block/goal draws, the gripper started at a seeded point of the workspace,
+    reached (within 1 cm) and at rest, the whole arm touching no wall there, clear of the block; the expert still
+    gets to the goal from there."""
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    stock = fam.draw_episodes(spec, 8, 1, STREAM_COLLECT)
+    eps = fam.draw_protocol_episodes(spec, 6, 1, STREAM_COLLECT, "anywhere")
+    assert eps == fam.draw_protocol_episodes(spec, 6, 1, STREAM_COLLECT, "anywhere")
+    n_block = 0 if spec.scene.task == "reach" else 2
+    by_seed = {e.seed: e for e in stock}
+    assert all(e.seed in by_seed and e.goal == by_seed[e.seed].goal for e in eps)  # kept draws of the stream
+    assert all(e.start[:n_block] == by_seed[e.seed].start for e in eps)
+    env = fam.make_env(spec)
+    entry = EXPERTS.get("fetch-scripted")
+    expert = entry.build(spec, entry.configure(None))
+    try:
+        grips = []
+        for ep in eps:
+            state, _ = env.reset(ep)
+            grip = np.array(ep.start[n_block:])
+            assert np.linalg.norm(state[:3] - grip) < 0.01
+            assert not env.robot_contacts() and not fam.in_collision(spec, state[None])[0]
+            assert np.abs(state[-5:-2]).max() < 1e-3  # the grip site at rest
+            if n_block:
+                assert np.linalg.norm(state[:3] - state[3:6]) >= 0.09
+            grips.append(grip)
+        assert np.linalg.norm(np.array(grips) - np.array(spec.scene.home), axis=1).min() > 0.01
+        assert np.ptp(np.array(grips), axis=0).min() > 0.05  # spread over the workspace, not one pose
+        ok = [rollout(env, expert, spec, ep, spec.episode_limit)[3] for ep in eps[:3]]
+        assert sum(ok) >= 2, ok
+        env.reset(by_seed[eps[0].seed])  # a stock episode after one from anywhere starts at home again
+        assert np.linalg.norm(env.observe()[:3] - np.array(spec.scene.home)) < 0.01
+    finally:
+        env.close()
+
+
 def test_routes_around_a_wall_end_turn_where_the_clearance_holds():
     """A goal beside the wall's end: the route turns outside the clearance zone, so its last leg does not run along
     the wall at the end legs' smaller margin (a drifting block would graze it)."""

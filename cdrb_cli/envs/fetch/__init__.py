@@ -17,7 +17,7 @@ import numpy as np
 
 from cdrb_cli.envs.family import EnvFamily, Episode
 from cdrb_cli.envs.fetch.geometry import block_obstacles, body_obstacles, paths_in_obstacles, states_in_obstacles
-from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_task, scene_for, side
+from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_gripper_start, draw_task, scene_for, side
 from cdrb_cli.envs.geometry import path_crosses_boxes
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.envs.spec import EnvSpec
@@ -26,6 +26,10 @@ from cdrb_cli.seeding import episode_seeds
 
 #: the protocol of a changed scene: pairs whose shortest route the boxes put down block
 DETOUR = "detour"
+#: the protocol whose gripper starts anywhere in the workspace (tasks.draw_gripper_start)
+ANYWHERE = "anywhere"
+#: a gripper start is drawn again at most this many times while the arm touches a wall there
+ANYWHERE_TRIES = 50
 #: a detour draw gives up when fewer than one in this many candidate pairs needs a detour
 DETOUR_SCAN = 200
 FETCH_DT = 0.04  # 20 substeps x 2 ms
@@ -118,7 +122,11 @@ class FetchFamily(EnvFamily):
         "block, success at any step until the plan runs out",
         DETOUR: "with --scene: the stock draws (never inside a new box), only pairs whose shortest route in the "
         "training scene a new box blocks (the way the data went is closed)",
+        ANYWHERE: "the stock block and goal draws, the gripper starting anywhere in the workspace (drawn as Reach "
+        "draws its goals, clear of the walls and the block, and where the whole arm touches no wall), at rest: "
+        "plans from wherever the robot may be",
     }
+    start_protocols = (ANYWHERE,)
     scene_protocols = (DETOUR,)
     point_format = "--goal x,y,z; --start the block's x,y (gripper at home) or, for Reach, the gripper's x,y,z"
 
@@ -219,7 +227,10 @@ class FetchFamily(EnvFamily):
         self, spec: EnvSpec, n: int, seed: int, stream: int, protocol: str | None = None
     ) -> list[Episode]:
         """``detour``: the first ``n`` of the stream's draws whose shortest route in the training scene a new box
-        blocks (:func:`~cdrb_cli.envs.fetch.scenes.blocks_shortest_route`); the other protocols: the stock draws."""
+        blocks (:func:`~cdrb_cli.envs.fetch.scenes.blocks_shortest_route`); ``anywhere``: the stock draws with the
+        gripper started elsewhere (:meth:`_anywhere_episodes`); the other protocols: the stock draws."""
+        if protocol == ANYWHERE:
+            return self._anywhere_episodes(spec, n, seed, stream)
         if protocol != DETOUR:
             return self.draw_episodes(spec, n, seed, stream)
         from cdrb_cli.envs.fetch.scenes import blocks_shortest_route
@@ -241,6 +252,35 @@ class FetchFamily(EnvFamily):
             f"--protocol {DETOUR}: the boxes of {spec.scene.change} block the shortest route of {len(out)} of "
             f"{len(candidates)} drawn pairs, fewer than the {n} asked for",
             hint="put the boxes where the data's routes go, or ask for fewer episodes",
+        )
+
+    def _anywhere_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
+        """The stock draws of the stream, each with a gripper start (:func:`~cdrb_cli.envs.fetch.tasks.
+        draw_gripper_start`, seeded by the episode) checked in the simulator: the grip site got within 1 cm of it
+        and no part of the arm touches a wall there; a pair with no such start in :data:`ANYWHERE_TRIES` draws is
+        left out for the stream's next one."""
+        from cdrb_cli.envs.fetch.env import FetchEnv
+
+        out: list[Episode] = []
+        env = FetchEnv(spec)
+        try:
+            for ep in self.draw_episodes(spec, 4 * n, seed, stream):  # a prefix of the same stream
+                rng = np.random.default_rng([ep.seed, 12])
+                for _ in range(ANYWHERE_TRIES):
+                    grip = draw_gripper_start(spec.scene, rng, ep.start, ep.goal)
+                    trial = Episode(ep.seed, (*ep.start, *grip), ep.goal)
+                    state, _ = env.reset(trial)
+                    if np.linalg.norm(state[:3] - grip) < 0.01 and not env.robot_contacts():
+                        out.append(trial)
+                        break
+                if len(out) == n:
+                    return out
+        finally:
+            env.close()
+        raise BadInput(
+            f"--protocol {ANYWHERE}: the arm reaches {len(out)} of {4 * n} drawn pairs' gripper starts in "
+            f"{spec.id} without touching a wall, fewer than the {n} asked for",
+            hint="ask for fewer episodes",
         )
 
     def goal_state(self, spec: EnvSpec, goals: np.ndarray) -> np.ndarray:

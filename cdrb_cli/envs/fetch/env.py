@@ -9,17 +9,20 @@
   collide and the gripper is then driven to the scene's *home* (the stock start, or above the wall), clear of
   every wall; the home is where every episode starts;
 * objects and goals are placed from the family's draw (:mod:`cdrb_cli.envs.fetch.tasks`), around the stock
-  sampling centre, never overlapping a wall.
+  sampling centre, never overlapping a wall; an episode drawn from anywhere also drives the gripper to its start
+  the same way (walls passable while it moves; the family keeps only starts where the arm then touches none).
 
 Success is measured by cdrb (within ``spec.success_radius`` at any step); episodes never end early.
 """
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from cdrb_cli.envs.family import Episode
-from cdrb_cli.envs.fetch.tasks import FetchScene, draw_task
+from cdrb_cli.envs.fetch.tasks import FetchScene, draw_task, split_start
 from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
 from cdrb_cli.envs.spec import EnvSpec
 
@@ -70,22 +73,39 @@ def fetch_class(scene: FetchScene):
             self.initial_qvel = np.copy(self.data.qvel)
 
         def _env_setup(self, initial_qpos):
+            with self._walls_passable():
+                super()._env_setup(initial_qpos)  # the stock settling
+                self.cdrb_stock_start = self.initial_gripper_xpos.copy()
+                self._drive_grip(scene.home)
+            self.initial_gripper_xpos = self._utils.get_site_xpos(self.model, self.data, "robot0:grip").copy()
+
+        @contextlib.contextmanager
+        def _walls_passable(self):
             walls = self._wall_geoms
             saved = self.model.geom_contype[walls].copy(), self.model.geom_conaffinity[walls].copy()
             self.model.geom_contype[walls] = 0
             self.model.geom_conaffinity[walls] = 0
-            super()._env_setup(initial_qpos)  # the stock settling, walls passable
-            self.cdrb_stock_start = self.initial_gripper_xpos.copy()
-            home = np.asarray(scene.home, dtype=np.float64)
-            target = home.copy()
+            try:
+                yield
+            finally:
+                self.model.geom_contype[walls], self.model.geom_conaffinity[walls] = saved
+                self._mujoco.mj_forward(self.model, self.data)
+
+        def _drive_grip(self, at) -> None:
+            at = np.asarray(at, dtype=np.float64)
+            target = at.copy()
             for _ in range(3):  # the weld holds the grip site a little off the mocap: correct for it
                 self._utils.set_mocap_pos(self.model, self.data, "robot0:mocap", target)
                 for _ in range(_SETTLE_STEPS):
                     self._mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
-                target += home - self._utils.get_site_xpos(self.model, self.data, "robot0:grip")
-            self.model.geom_contype[walls], self.model.geom_conaffinity[walls] = saved
-            self._mujoco.mj_forward(self.model, self.data)
-            self.initial_gripper_xpos = self._utils.get_site_xpos(self.model, self.data, "robot0:grip").copy()
+                target += at - self._utils.get_site_xpos(self.model, self.data, "robot0:grip")
+
+        def move_grip(self, at) -> None:
+            """Drive the grip site to ``at`` (walls passable on the way, as at setup) and let the arm settle there:
+            where an episode from anywhere starts. Whether the arm then touches a wall is the caller's to check
+            (:meth:`FetchEnv.robot_contacts`)."""
+            with self._walls_passable():
+                self._drive_grip(at)
 
         #: draw the block and goal at every reset (the training env's gymnasium resets); FetchEnv turns it off:
         #: it places each episode's own block and goal right after the reset
@@ -138,8 +158,11 @@ class FetchEnv:
     def reset(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
         u = self.env
         u.reset(seed=int(episode.seed))
+        block, grip = split_start(self.spec.scene.task, tuple(episode.start))
+        if grip is not None:
+            u.move_grip(grip)
         if u.has_object:
-            u.place_object(np.asarray(episode.start, dtype=np.float64))
+            u.place_object(np.asarray(block, dtype=np.float64))
         self.goal = np.asarray(episode.goal, dtype=np.float64).copy()
         u.goal = self.goal.copy()
         u._render_callback()

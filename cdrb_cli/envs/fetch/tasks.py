@@ -30,6 +30,11 @@ What the official code leaves open, chosen here (docs/environments.md):
   goal outside the corridor), so every episode must pass the wall.
 * No goal lies within ``min_goal_distance`` (7 cm) of where the block (Reach: the gripper) starts, so no episode
   is won at reset.
+* *From anywhere* (`--protocol anywhere`): the gripper starts at a point drawn as Reach draws its goals (the task's
+  x-y range around the centre, the home's height +- the range, above the table, clear of every wall by
+  ``wall_margin``), at least :data:`GRIP_BLOCK_CLEARANCE` from the block and ``min_goal_distance`` from a Reach
+  goal; the environment drives it there at reset (:func:`draw_gripper_start`; the family keeps the draws whose arm
+  touches no wall there).
 """
 
 from __future__ import annotations
@@ -64,6 +69,8 @@ STOCK_START = {
 GRASP_MARGIN = 0.015
 #: the block's centre height at rest on the table
 BLOCK_Z = TABLE_TOP + BLOCK_HALF - 0.0001
+#: from anywhere: the gripper starts at least this far from the block's centre (the open fingers clear it), m
+GRIP_BLOCK_CLEARANCE = 0.1
 
 
 class FetchScene(Scene):
@@ -212,3 +219,38 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
             continue
         return tuple(float(v) for v in block), tuple(float(v) for v in goal)
     raise RuntimeError(f"no start/goal drawn for the {scene.task} scene in {tries} tries")
+
+
+def draw_gripper_start(scene: FetchScene, rng: np.random.Generator, block, goal, tries: int = 10_000) -> tuple:
+    """Where the gripper starts an episode drawn from anywhere (module docstring): a grip-site x-y-z, given the
+    episode's block x-y (empty for Reach) and goal."""
+    cx, cy = scene.center
+    ry = scene.target_range_y or scene.target_range
+    clear = gripper_obstacles(scene.solid, margin=scene.wall_margin)
+    low = TABLE_TOP + GRIP_ABOVE_TABLE + 0.02
+    block3 = None if len(block) == 0 else np.array([block[0], block[1], BLOCK_Z])
+    for _ in range(tries):
+        at = np.array(
+            [
+                cx + rng.uniform(-scene.target_range, scene.target_range),
+                cy + rng.uniform(-ry, ry),
+                max(scene.home[2] + rng.uniform(-scene.target_range, scene.target_range), low),
+            ]
+        )
+        if in_boxes(at, clear):
+            continue
+        if block3 is not None and np.linalg.norm(at - block3) < GRIP_BLOCK_CLEARANCE:
+            continue
+        if block3 is None and np.linalg.norm(at - np.asarray(goal)) < scene.min_goal_distance:
+            continue
+        return tuple(float(v) for v in at)
+    raise RuntimeError(f"no gripper start drawn for the {scene.task} scene in {tries} tries")
+
+
+def split_start(task: str, start: tuple) -> tuple[tuple, tuple | None]:
+    """An episode's start as (block x-y, or empty for Reach; grip-site x-y-z, or None at home): the block's x-y
+    first, then the gripper's x-y-z when the episode starts it elsewhere than home."""
+    n_block = 0 if task == "reach" else 2
+    if len(start) not in (n_block, n_block + 3):
+        raise ValueError(f"a {task} episode starts with {n_block} or {n_block + 3} numbers, got {len(start)}")
+    return tuple(start[:n_block]), (tuple(start[n_block:]) or None)
