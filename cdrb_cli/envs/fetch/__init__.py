@@ -267,7 +267,14 @@ class FetchFamily(EnvFamily):
             for ep in self.draw_episodes(spec, 4 * n, seed, stream):  # a prefix of the same stream
                 rng = np.random.default_rng([ep.seed, 12])
                 for _ in range(ANYWHERE_TRIES):
-                    grip = draw_gripper_start(spec.scene, rng, ep.start, ep.goal)
+                    try:
+                        grip = draw_gripper_start(spec.scene, rng, ep.start, ep.goal)
+                    except RuntimeError:
+                        raise BadInput(
+                            f"--protocol {ANYWHERE}: the walls and boxes of {spec.id} leave no room to start the "
+                            "gripper",
+                            hint="use fewer or smaller boxes, or the stock protocol",
+                        ) from None
                     trial = Episode(ep.seed, (*ep.start, *grip), ep.goal)
                     state, _ = env.reset(trial)
                     if np.linalg.norm(state[:3] - grip) < 0.01 and not env.robot_contacts():
