@@ -52,7 +52,7 @@ _LOOK_AHEAD_HELP = (
 )
 
 
-def _check_wait(config):
+def _check_gated_clock(config):
     if config.max_wait is not None and config.max_lag is None:
         raise ValueError("max_wait bounds the gated clock's pause: set max_lag too (or leave max_wait null)")
     if config.look_ahead and config.max_lag is None:
@@ -70,7 +70,7 @@ class PDConfig(ControllerConfig):
     max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
     look_ahead: int = Field(0, ge=0, le=100_000, description=_LOOK_AHEAD_HELP)
 
-    _wait = model_validator(mode="after")(_check_wait)
+    _gated = model_validator(mode="after")(_check_gated_clock)
 
 
 class InverseDynamicsConfig(ControllerConfig):
@@ -81,7 +81,7 @@ class InverseDynamicsConfig(ControllerConfig):
     max_wait: int | None = Field(None, gt=0, le=100_000, description=_MAX_WAIT_HELP)
     look_ahead: int = Field(0, ge=0, le=100_000, description=_LOOK_AHEAD_HELP)
 
-    _wait = model_validator(mode="after")(_check_wait)
+    _gated = model_validator(mode="after")(_check_gated_clock)
 
 
 class WaypointConfig(ControllerConfig):
