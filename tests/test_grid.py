@@ -303,6 +303,7 @@ def test_the_shipped_experiment_files_load_and_expand():
     assert len(files) >= 10
     for path in files:
         spec = load_grid(path)
+        spec.reuse = []  # the counts below are of a clean checkout, with nothing finished to reuse
         tasks = expand(spec)
         evals = [t for t in tasks if t.kind == "eval"]
         assert evals and all(t.meta["stream"] in t.argv for t in evals)
@@ -625,3 +626,52 @@ eval = ["--maze-map", "maps/closed.txt", "--route-buffer", "runs/maze-tight/buff
     writer = next(t.id for t in tasks.values() if buffer in [p.resolve() for p in t.outputs])
     assert writer.startswith("cluster") and writer in ev.deps
     assert "train maze-tight/mlp-s0" in ev.deps
+
+
+# ------------------------------------------------------------------------------------------------ reuse
+def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path):
+    """A test grid with `reuse` reads a tuning grid's demos, buffer and models where it ran the same commands: a
+    training of S steps is the curve run's snapshot at S; other seeds, other flags and altered files are run here."""
+    curves = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["cdrb"]').replace('out = "runs"', 'out = "curves"')
+    curves = curves.replace("steps = 20", 'steps = 100\nsnapshot_at = [50]\nreport = false\neval_stream = "tune"')
+    curves = curves.replace("seeds = [0, 1]", "seeds = [0]")
+    proc = _cli("grid", str(_grid(tmp_path, curves, "curves.toml")), "--backend", "pool", "-j", "2")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    table = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["cdrb"]').replace("steps = 20\n", "")
+    # the flags `cdrb select` writes repeat what the grid's settings already pass: the same command
+    chosen = 'train = ["--set", "method.diffusion_steps=8", "--steps", "50"]'
+    table = 'reuse = ["curves"]\n' + table + f'\n[[settings]]\nmethod = "cdrb"\n{chosen}\n'
+    grid = _grid(tmp_path, table, "table.toml")
+    spec = load_grid(grid)
+    tasks = {t.id: t for t in expand(spec)}
+    curve_dir = (tmp_path / "curves" / "maze-tight").resolve()
+    # seed 0 is the curve run's snapshot; seed 1 has no curve run and trains here, on the curve grid's demos/buffer
+    assert sorted(t for t in tasks if t.split()[0] in ("collect", "cluster", "train")) == ["train maze-tight/cdrb-s1"]
+    assert spec._reused["train maze-tight/cdrb-s0"] == str(curve_dir / "cdrb-s0.step50.h5")
+    ev = tasks["eval maze-tight/cdrb-s0"]
+    assert ev.argv[1] == str(curve_dir / "cdrb-s0.step50.h5") and ev.deps == []
+    train1 = tasks["train maze-tight/cdrb-s1"].argv
+    assert str(curve_dir / "demos.h5") in train1 and str(curve_dir / "buffer-k50.h5") in train1
+    # the length must be one the curve run wrote, the flags the same
+    for other in ('train = ["--steps", "60"]', 'train = ["--steps", "50", "--set", "method.diffusion_steps=4"]'):
+        spec = load_grid(_grid(tmp_path, table.replace(chosen, other), "other.toml"))
+        assert "train maze-tight/cdrb-s0" in {t.id for t in expand(spec)}, other
+    # run: the test grid trains seed 1 only, and its seed-0 eval reads the snapshot
+    proc = _cli("grid", str(grid), "--backend", "pool", "-j", "2", "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    assert "train maze-tight/cdrb-s1" in {t["id"] for t in summary["tasks"]}
+    assert set(summary["reused"]) == {"collect maze-tight", "cluster maze-tight", "train maze-tight/cdrb-s0"}
+    assert "taken from finished runs of" in proc.stderr
+    from cdrb_cli import artifacts
+
+    manifest = artifacts.load(tmp_path / "runs" / "maze-tight" / "eval-cdrb-s0.h5").manifest
+    snap_sha = artifacts.sha256_file(curve_dir / "cdrb-s0.step50.h5")
+    assert any(p.sha256 == snap_sha for p in manifest.parents)
+    assert not (tmp_path / "runs" / "maze-tight" / "cdrb-s0.h5").exists()
+    # a curve file that no longer matches its memo is not reused: the test grid trains that model itself
+    with open(curve_dir / "cdrb-s0.step50.h5", "ab") as fh:
+        fh.write(b"\0")
+    assert "train maze-tight/cdrb-s0" in {t.id for t in expand(load_grid(grid))}
+    with pytest.raises(BadInput, match="reuse: names the grid's own"):
+        load_grid(_grid(tmp_path, table.replace('reuse = ["curves"]', 'reuse = ["runs"]'), "self.toml"))

@@ -169,11 +169,21 @@ class GridSpec(_Strict):
         "snapshot is evaluated like the final model",
     )
     report: Bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
+    reuse: list[Path] = Field(
+        default_factory=list,
+        max_length=16,
+        description="`out` folders of other grids whose finished collections, clusterings and trainings this grid "
+        "reads instead of running its own: a task is taken from there when a finished task there ran the same "
+        "command up to its output path and device (a training also when it wrote a model at exactly this one's "
+        "steps, as a snapshot or as its final model)",
+    )
     settings: list[Settings] = Field(default_factory=list, description="per env/method extra flags")
     variants: list[Variant] = Field(default_factory=list, description="named flag sets: one more grid axis")
     resources: dict[str, Resources] = Field(default_factory=_default_resources)
     #: the grid file and every settings file it read: inputs a run must never write over
     _sources: list[Path] = PrivateAttr(default_factory=list)
+    #: the tasks taken from the grids of ``reuse`` (task id -> the file read instead), set by :func:`expand`
+    _reused: dict[str, str] = PrivateAttr(default_factory=dict)
 
     @field_validator("resources")
     @classmethod
@@ -342,9 +352,10 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
 
     raw = _read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
     path = Path(path).resolve()
-    cwd_out = None
+    cwd_out, set_keys = None, set()
     for text in overrides:
         key, value = parse_override(text)
+        set_keys.add(key)
         if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
             raise BadInput(
                 f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
@@ -374,6 +385,9 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     _check_flags(spec, path)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
+    spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
+    if spec.out in spec.reuse:
+        raise BadInput(f"{path}: reuse: names the grid's own `out` folder", hint="list other grids' `out` folders")
     for env in spec.envs:
         try:
             make_spec(env)
@@ -543,6 +557,8 @@ def expand(spec: GridSpec) -> list[Task]:
                         if m == model:
                             evals[v.name].append((f"eval {tag}", ev))
     _link_flag_files(tasks)
+    if spec.reuse:
+        tasks = reuse_finished(spec, tasks)
     for name, items in evals.items():
         if not items or not spec.report:
             continue
@@ -583,6 +599,143 @@ def _link_flag_files(tasks: list[Task]) -> None:
                 t.inputs.append(f)
             if f in writer and writer[f] not in t.deps and writer[f] != t.id:
                 t.deps.append(writer[f])
+
+
+# ------------------------------------------------------------------------------------------------ reuse
+#: what says where a task writes, on what hardware and how verbosely, and how long a training runs: not part of
+#: what it makes (a training's length is matched apart: a snapshot at S steps is the model a run of S steps writes)
+_UNKEYED = ("out", "device", "steps", "snapshot_at", "force", "resume", "as_json", "plot", "video", "videos", "workers")
+_REUSABLE = ("collect", "cluster", "train")
+
+
+def _option_table(command: str) -> dict[str, tuple[str, bool, bool]]:
+    """``command``'s options, from the CLI itself: option string -> (parameter name, takes a value, the value a
+    flag sets: True, or False for its ``--no-`` form)."""
+    import typer
+
+    from cdrb_cli.cli import app
+
+    cmd = typer.main.get_command(app).commands[command]
+    table: dict[str, tuple[str, bool, bool]] = {}
+    for p in cmd.params:
+        if p.param_type_name != "option":
+            continue
+        flag = bool(getattr(p, "is_flag", False))
+        for o in p.opts:
+            table[o] = (p.name, not flag, True)
+        for o in p.secondary_opts:
+            table[o] = (p.name, False, False)
+    return table
+
+
+def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tuple[str, str | None, list[str]]:
+    """What a collect/cluster/train command makes, independent of where and of how its flags are spelled: (its
+    arguments and options, the last value of each winning as on the command line, ``--set KEY=VALUE`` as a map,
+    every file written by a task replaced by the key of the command that wrote it and every other file by its sha256,
+    without the :data:`_UNKEYED` options; its ``--steps``; its ``--snapshot-at`` steps)."""
+    table = _option_table(argv[0])
+    positional, options, sets, i = [], {}, {}, 1
+
+    def file_key(value: str) -> str:
+        norm = os.path.normpath(value)
+        return written_by.get(norm) or (f"sha256:{_sha(Path(norm), cache)}" if Path(norm).is_file() else value)
+
+    while i < len(argv):
+        token = argv[i]
+        name, eq, inline = token.partition("=")
+        entry = table.get(name if eq and name.startswith("--") else token)
+        if entry is None:
+            positional.append(file_key(token))
+            i += 1
+            continue
+        pname, takes_value, value = entry
+        if takes_value:
+            value = inline if eq else (argv[i + 1] if i + 1 < len(argv) else "")
+        i += 2 if takes_value and not eq else 1
+        if pname == "sets":
+            k, _, v = str(value).partition("=")
+            sets[k.strip()] = v.strip()
+        else:
+            options[pname] = file_key(value) if isinstance(value, str) else value
+    steps = options.get("steps")
+    snaps = [v.strip() for v in str(options.get("snapshot_at", "")).split(",") if v.strip()]
+    kept = {k: v for k, v in options.items() if k not in _UNKEYED}
+    key = json.dumps([argv[0], positional, sorted(kept.items()), sorted(sets.items())], default=str)
+    return key, None if steps is None else str(steps), snaps
+
+
+def _finished_elsewhere(folder: Path, cache: dict) -> list[dict]:
+    """The finished collect/cluster/train tasks of the grid whose ``out`` is ``folder``, from its memos: each memo
+    whose input and output files all still have the sha256 it recorded (whatever cdrb version wrote them: an
+    artifact describes itself), in the order collect, cluster, train."""
+    found = []
+    for memo_file in sorted((folder / ".grid").glob("*.json")) if (folder / ".grid").is_dir() else []:
+        text = _read_small(memo_file)
+        try:
+            memo = json.loads(text) if text is not None else None
+        except (ValueError, RecursionError):
+            continue
+        if not isinstance(memo, dict) or not isinstance(memo.get("argv"), list) or not memo["argv"]:
+            continue
+        if memo["argv"][0] not in _REUSABLE or not all(isinstance(a, str) for a in memo["argv"]):
+            continue
+        files = {**dict(memo.get("inputs") or {}), **dict(memo.get("outputs") or {})}
+        if not memo.get("outputs") or any(not v or _sha(Path(p), cache) != v for p, v in files.items()):
+            continue
+        found.append(memo)
+    return sorted(found, key=lambda m: _REUSABLE.index(m["argv"][0]))
+
+
+def reuse_finished(spec: GridSpec, tasks: list[Task]) -> list[Task]:
+    """``tasks`` with every collection, clustering and training that a grid of ``spec.reuse`` has finished taken
+    from there: the task is dropped and the tasks that read its artifact read the other grid's file. A training
+    matches a finished one of the same command (:func:`_command_key`) whose final model or snapshots include every
+    step this one writes. Records what was taken in ``spec._reused`` (task id -> file)."""
+    cache: dict = {}
+    written_by: dict[str, str] = {}  # a file of the other grids -> the key of what wrote it
+    offers: dict[str, list[tuple[dict[str, str], str]]] = {}  # key -> [(steps -> file, memo folder)]
+    for folder in spec.reuse:
+        for memo in _finished_elsewhere(folder, cache):
+            key, steps, snaps = _command_key(memo["argv"], written_by, cache)
+            outputs = list(memo["outputs"])
+            points = {str(steps): outputs[0]}
+            if memo["argv"][0] == "train":
+                for s in snaps:
+                    snap = str(train_snapshot(Path(outputs[0]), int(s))) if s.isdigit() else None
+                    if snap in outputs:
+                        points[s] = snap
+            for p in outputs:
+                written_by[os.path.normpath(p)] = key
+            offers.setdefault(key, []).append((points, str(folder)))
+
+    own_written_by: dict[str, str] = {}
+    moved: dict[str, str] = {}  # this grid's file -> the other grid's
+    dropped: set[str] = set()
+    for t in tasks:
+        if t.kind not in _REUSABLE:
+            continue
+        key, steps, snaps = _command_key(t.argv, own_written_by, cache)
+        for p in t.outputs:
+            own_written_by[os.path.normpath(p)] = key
+        wanted = [str(steps)] + (snaps if t.kind == "train" else [])
+        files = [str(t.outputs[0])] + ([str(train_snapshot(t.outputs[0], int(s))) for s in snaps] if snaps else [])
+        for points, _ in offers.get(key, []):
+            if all(w in points for w in wanted):
+                moved.update({os.path.normpath(f): points[w] for f, w in zip(files, wanted, strict=True)})
+                dropped.add(t.id)
+                break
+    if not dropped:
+        return tasks
+    kept = []
+    for t in tasks:
+        if t.id in dropped:
+            continue
+        t.argv = [moved.get(os.path.normpath(a), a) for a in t.argv]
+        t.inputs = [Path(moved.get(os.path.normpath(p), p)) for p in t.inputs]
+        t.deps = [d for d in t.deps if d not in dropped]
+        kept.append(t)
+    spec._reused = {t.id: moved[os.path.normpath(t.outputs[0])] for t in tasks if t.id in dropped}
+    return kept
 
 
 def _buffer(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks: list[Task]) -> tuple[str, Path]:
@@ -949,6 +1102,7 @@ def run_grid(
         "backend": backend.name,
         "tasks": [r.__dict__ for r in ordered],
         "counts": {s: sum(r.status == s for r in ordered) for s in ("done", "up to date", "failed", "skipped")},
+        "reused": spec._reused,
     }
     with artifacts.atomic_path(summary) as tmp:
         tmp.write_text(json.dumps(body, indent=1, default=str))
@@ -968,6 +1122,15 @@ def grid(
     """Load, expand and run a grid file with a progress bar and one line per finished task (stderr)."""
     spec = load_grid(path, overrides, includes)
     tasks = expand(spec)
+    if spec._reused:
+        kinds = [t.split(" ", 1)[0] for t in spec._reused]
+        ui.log(
+            "taken from finished runs of "
+            + ", ".join(str(f) for f in spec.reuse)
+            + ": "
+            + ", ".join(f"{kinds.count(k)} {k}" for k in _REUSABLE if k in kinds)
+            + " (not run here)"
+        )
     if dry_run:
         return tasks
     check_outputs(spec, tasks)
