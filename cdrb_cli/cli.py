@@ -1281,9 +1281,10 @@ def report(
     fmt: str = typer.Option(
         "table",
         "--format",
-        parser=_choice(lambda: ["table", "markdown", "csv", "json"], "format"),
-        metavar="table|markdown|csv|json",
-        help="table, markdown, csv or json.",
+        parser=_choice(lambda: ["table", "markdown", "summary", "csv", "json"], "format"),
+        metavar="table|markdown|summary|csv|json",
+        help="table, markdown, summary (markdown, a line per environment: the straight line's success as the floor, "
+        "each method's success and weighted success, marked where it does not beat the floor), csv or json.",
     ),
     paper: bool = typer.Option(False, "--paper", help="Add the paper's Table 1 figures under ours."),
     paper_figures: Path | None = typer.Option(
@@ -1314,7 +1315,7 @@ def report(
         raise BadInput(
             "--docs and --block go together", hint="e.g. --docs docs/benchmarks.md --block table1-maze-tight"
         )
-    if docs is not None and fmt not in ("markdown", "table"):
+    if docs is not None and fmt not in ("markdown", "table", "summary"):
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
     if docs is not None and not docs.is_file():
         raise BadInput(f"--docs {docs}: no such file", hint="name an existing markdown file with the marked block")
@@ -1328,7 +1329,11 @@ def report(
     # per-seed rows list every file as it is; the grouped rows (and their bar chart) need one protocol per env
     rows = rep.collect_rows(arts) if not per_seed or plot is not None else []
     if per_seed:
+        if fmt == "summary":
+            raise BadInput("--per-seed has no summary format", hint="use --format table, markdown, csv or json")
         text = rep.render_seed_rows(rep.seed_rows(arts), fmt)
+    elif fmt == "summary":
+        text = rep.render_summary(rows, paper=figures)
     else:
         text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
     if plot is not None:

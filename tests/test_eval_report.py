@@ -241,6 +241,10 @@ def test_report_formats_and_pictures(evals, tmp_path, cdrb):
     assert csv_text.splitlines()[0].startswith("env,method")
     r = cdrb("report", *paths, "--out", tmp_path / "r.md")
     assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "r.md")
+    r = cdrb("report", *paths, "--format", "summary", "--paper")
+    assert r.returncode == 0 and "| Maze Tight | 2 x 4 | no floor measured |" in r.stdout and "38.29 / " in r.stdout
+    r = cdrb("report", *paths, "--format", "summary", "--per-seed")
+    assert r.returncode == 2 and "--per-seed has no summary format" in r.stderr
 
 
 def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
@@ -446,6 +450,35 @@ def test_one_seed_shows_no_interval(tmp_path):
     assert "25.00 ± n/a" in text and "25.0 ± n/a (1 seed)" in text and "± 0.0" not in text
     text = render([{**row, "seeds": 3, "success_std": 2.0, "success_ci95": 5.0}], "markdown")
     assert "25.0 ± 2.0 [± 5.0]" in text
+
+
+def test_the_summary_marks_every_method_that_does_not_beat_the_straight_line():
+    """One line per environment: the straight line is the floor column, a method at or below it is marked, a
+    policy's weighted success is n/a, and a row with no straight-line eval says so rather than marking nothing."""
+    from cdrb_cli.stages.report import render_summary
+
+    def row(env, method, success, weighted, seeds=3):
+        return {"env": env, "env_name": env.title(), "method": method, "seeds": seeds, "episodes": 100,
+                "success_mean": success, "success_std": 1.0, "weighted_success_mean": weighted}  # fmt: skip
+
+    rows = [
+        row("fetch-push", "straight", 40.0, 40.0),
+        row("fetch-push", "mlp", 40.0, 10.0),
+        row("fetch-push", "cdrb", 90.0, 85.0),
+        row("fetch-push", "diffusion-bc", 30.0, None),
+        row("fetch-reach", "cdrb", 10.0, 5.0, seeds=1),
+    ]
+    text = render_summary(rows)
+    lines = {ln.split(" | ")[0].strip("| "): ln for ln in text.splitlines() if ln.startswith("| Fetch")}
+    head = text.splitlines()[0]
+    assert head.index("straight line (floor)") < min(head.index(m) for m in ("mlp", "diffusion-bc", "cdrb"))
+    push = lines["Fetch-Push"]
+    assert "40.0 ± 1.0 (40.0) |" in push and "40.0 ± 1.0 (10.0) ≤ floor" in push  # equal is not beating it
+    assert "90.0 ± 1.0 (85.0) |" in push and "30.0 ± 1.0 (n/a) ≤ floor" in push
+    reach = lines["Fetch-Reach"]
+    assert "no floor measured" in reach and "10.0 ± n/a (5.0)" in reach and "≤ floor" not in reach
+    assert "does not beat the straight line" in text
+    assert "does not beat" not in render_summary([r for r in rows if r["method"] in ("straight", "cdrb")])
 
 
 def test_first_step_ratio_is_the_median_first_step_over_the_allowed_step():

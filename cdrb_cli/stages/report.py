@@ -410,6 +410,61 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
     return text
 
 
+def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
+    """Table 1 in one line per environment (markdown): the straight line's success, the floor, then every learned
+    method's success ± std over seeds with its weighted success, each marked where it does not beat the floor, and
+    with ``paper`` the paper's figures. A row without a straight-line eval says so instead of a floor."""
+    figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
+    envs = list(dict.fromkeys(r["env"] for r in rows))
+    cell = {(r["env"], r["method"]): r for r in rows}
+    floors = [m for m in _order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
+    methods = [m for m in _order(dict.fromkeys(r["method"] for r in rows)) if m not in floors]
+    head = ["Table 1 row", "seeds x pairs", "straight line (floor)", *methods]
+    paper_methods = [m for m in dict.fromkeys(m for env in envs for m in figures.get(env, {}))]
+    if figures:
+        head.append("paper: " + " / ".join(paper_methods))
+    lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
+    below = False
+    for env in envs:
+        here = [cell[(env, m)] for m in floors + methods if (env, m) in cell]
+        shapes = sorted({f"{r['seeds']} x {r['episodes']}" for r in here})
+        floor = next((cell[(env, m)] for m in floors if (env, m) in cell), None)
+        vals = [here[0]["env_name"], " / ".join(shapes), "no floor measured" if floor is None else _summary_cell(floor)]
+        for m in methods:
+            r = cell.get((env, m))
+            if r is None:
+                vals.append("–")
+                continue
+            text = _summary_cell(r)
+            if floor is not None and r["success_mean"] <= floor["success_mean"]:
+                text += " ≤ floor"
+                below = True
+            vals.append(text)
+        if figures:
+            vals.append(
+                " / ".join(f"{figures[env][m][0]:.2f}" if m in figures.get(env, {}) else "–" for m in paper_methods)
+            )
+        lines.append("| " + " | ".join(vals) + " |")
+    notes = [
+        "Cells: success (%) ± sample std over training seeds, then (in brackets) weighted success: successful "
+        "episodes whose plan has no state in an obstacle (a policy makes no plan: n/a)."
+    ]
+    if below:
+        notes.append("≤ floor: the method does not beat the straight line from start to goal on that row.")
+    if figures:
+        notes.append(
+            "The paper's figures were measured with other experts, controllers, success radius, horizon/stride and "
+            "training budgets: see docs/benchmarks.md before comparing."
+        )
+    return "\n".join(lines) + "\n\n" + " ".join(notes) + "\n"
+
+
+def _summary_cell(r: dict) -> str:
+    spread = f"{r['success_std']:.1f}" if r["seeds"] > 1 else "n/a"
+    weighted = "n/a" if r["weighted_success_mean"] is None else f"{r['weighted_success_mean']:.1f}"
+    return f"{r['success_mean']:.1f} ± {spread} ({weighted})"
+
+
 #: what the less obvious columns of the detailed table measure (printed under it)
 COLUMN_NOTES = (
     "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
