@@ -131,6 +131,37 @@ def choose(cands: list[Candidate]) -> dict[tuple[str, str], Candidate]:
     return best
 
 
+#: when a learning curve is extended before anything is chosen from it
+RISING = (
+    "at the longest training length, the method's best candidate (by the rule) succeeds more often than the same "
+    "candidate one length shorter, by more than the standard error of the difference (sample std over training "
+    "seeds)"
+)
+
+
+def still_rising(cands: list[Candidate]) -> dict[tuple[str, str], tuple[Candidate, float, float]]:
+    """Per (env, method) whose curve still rises by :data:`RISING`: (its best candidate at the longest length, the
+    gain in success points over the previous length, the standard error of that gain). A method with one length or
+    one training seed has no curve to judge."""
+    out = {}
+    for key in dict.fromkeys((c.env, c.method) for c in cands):
+        mine = [c for c in cands if (c.env, c.method) == key and c.steps is not None]
+        lengths = sorted({c.steps for c in mine})
+        if len(lengths) < 2:
+            continue
+        last = min((c for c in mine if c.steps == lengths[-1]), key=Candidate.rank)
+        prev = next((c for c in mine if c.steps == lengths[-2] and c.variant == last.variant), None)
+        if prev is None or min(len(last.models), len(prev.models)) < 2:
+            continue
+        a = [m["success"] for m in last.models]
+        b = [m["success"] for m in prev.models]
+        gain = sum(a) / len(a) - sum(b) / len(b)
+        se = ((std_or_none(a) ** 2) / len(a) + (std_or_none(b) ** 2) / len(b)) ** 0.5
+        if gain > se:
+            out[key] = (last, gain, se)
+    return out
+
+
 def _without_steps(flags: list[str]) -> list[str]:
     out, skip = [], False
     for f in flags:
@@ -260,6 +291,11 @@ def select(
     if not cands:
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
     best = choose(cands)
+    for (env, method), (c, gain, se) in still_rising(cands).items():
+        ui.warn(
+            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: +{gain:.1f} ± {se:.1f} points "
+            f"over the previous length): extend it (e.g. --set steps={2 * c.steps}) before choosing from it"
+        )
     for (env, method), c in best.items():
         ui.log(
             f"{env} / {method}: {c.name} (success {c.success:.1f}%, through an obstacle "
