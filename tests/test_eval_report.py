@@ -479,6 +479,10 @@ def test_the_summary_marks_every_method_that_does_not_beat_the_straight_line():
     assert "no floor measured" in reach and "10.0 ± n/a (5.0)" in reach and "≤ floor" not in reach
     assert "does not beat the straight line" in text
     assert "does not beat" not in render_summary([r for r in rows if r["method"] in ("straight", "cdrb")])
+    # a second straight-line row (another executor) is a floor column too, and the higher floor is the one to beat
+    text = render_summary(rows + [row("fetch-push", "straight [every 20]", 95.0, 95.0)])
+    assert "straight line [every 20] (floor)" in text.splitlines()[0]
+    assert "90.0 ± 1.0 (85.0) ≤ floor" in text and "| – |" in text  # Fetch-Reach has no such floor
 
 
 def test_first_step_ratio_is_the_median_first_step_over_the_allowed_step():

@@ -642,7 +642,7 @@ def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path)
     chosen = 'train = ["--set", "method.diffusion_steps=8", "--steps", "50"]'
     table = 'reuse = ["curves"]\n' + table + f'\n[[settings]]\nmethod = "cdrb"\n{chosen}\n'
     grid = _grid(tmp_path, table, "table.toml")
-    spec = load_grid(grid)
+    spec = spec_run = load_grid(grid)
     tasks = {t.id: t for t in expand(spec)}
     curve_dir = (tmp_path / "curves" / "maze-tight").resolve()
     # seed 0 is the curve run's snapshot; seed 1 has no curve run and trains here, on the curve grid's demos/buffer
@@ -669,9 +669,62 @@ def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path)
     snap_sha = artifacts.sha256_file(curve_dir / "cdrb-s0.step50.h5")
     assert any(p.sha256 == snap_sha for p in manifest.parents)
     assert not (tmp_path / "runs" / "maze-tight" / "cdrb-s0.h5").exists()
-    # a curve file that no longer matches its memo is not reused: the test grid trains that model itself
+    # the same reuse through a link to the curves' folder, past memos of any odd shape (never hashing a FIFO)
+    from cdrb_cli import __version__
+
+    (tmp_path / "link").symlink_to(tmp_path / "curves")
+    memos = tmp_path / "curves" / ".grid"
+    os.mkfifo(tmp_path / "fifo")
+    odd = {str(tmp_path / "fifo"): "0" * 64, str(tmp_path): "0" * 64}
+    for i, memo in enumerate(
+        [
+            {"argv": ["train"], "inputs": [], "outputs": "x", "cdrb": __version__},
+            {"argv": ["collect", "maze"], "inputs": {}, "outputs": odd, "cdrb": __version__},
+            {"argv": ["train", "--snapshot-at", "²"], "inputs": {}, "outputs": odd, "cdrb": __version__},
+            [1, 2],
+        ]
+    ):
+        (memos / f"odd{i}.json").write_text(json.dumps(memo))
+    (memos / "odd9.json").write_text("{not json")
+    linked = load_grid(_grid(tmp_path, table.replace('reuse = ["curves"]', 'reuse = ["link"]'), "linked.toml"))
+    assert "train maze-tight/cdrb-s0" not in {t.id for t in expand(linked)}
+    # --set order does not matter unless one key lies inside another
+    moved = chosen.replace('"--set"', '"--set", "net.dim=8", "--set"', 1)
+    spec = load_grid(_grid(tmp_path, table.replace(chosen, moved), "o.toml"))
+    assert "train maze-tight/cdrb-s0" not in {t.id for t in expand(spec)}
+    nested = chosen.replace('"--set"', '"--set", "net.dim_mults=1,2,4", "--set", "net={dim = 8}", "--set"', 1)
+    spec = load_grid(_grid(tmp_path, table.replace(chosen, nested), "n.toml"))
+    assert "train maze-tight/cdrb-s0" in {t.id for t in expand(spec)}
+    # a curve file that changes after the grid took it (a curve trained on meanwhile) is never read: the task
+    # fails; expanded again, it is not reused: the test grid trains that model itself
     with open(curve_dir / "cdrb-s0.step50.h5", "ab") as fh:
         fh.write(b"\0")
+    from cdrb_cli.stages.grid import make_backend, run_grid
+
+    backend = make_backend("pool", 1, None)
+    try:
+        run = run_grid(spec_run, backend, retries=0, tasks=[ev])
+    finally:
+        backend.close()
+    assert [r.status for r in run.results] == ["failed"] and "changed since this grid took it" in run.results[0].stderr[
+        0
+    ]
     assert "train maze-tight/cdrb-s0" in {t.id for t in expand(load_grid(grid))}
     with pytest.raises(BadInput, match="reuse: names the grid's own"):
         load_grid(_grid(tmp_path, table.replace('reuse = ["curves"]', 'reuse = ["runs"]'), "self.toml"))
+
+
+def test_a_finished_curve_is_extended_by_resuming_its_runs(tmp_path):
+    """A curve run to 50 steps, then the same grid with steps = 100 and 50 among the snapshots: each run resumes
+    from its finished model (not refused, not retrained), which becomes the snapshot at 50."""
+    from cdrb_cli import artifacts
+
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
+    grid = _grid(tmp_path, text.replace("steps = 20", "steps = 50\nreport = false"))
+    assert _cli("grid", str(grid), "--backend", "pool").returncode == 0
+    model = tmp_path / "runs" / "maze-tight" / "mlp-s0.h5"
+    short = artifacts.sha256_file(model)
+    proc = _cli("grid", str(grid), "--backend", "pool", "--set", "steps=100", "--set", "snapshot_at=[50]")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert artifacts.sha256_file(model.with_name("mlp-s0.step50.h5")) == short
+    assert artifacts.load(model, "model").manifest.state.step == 100

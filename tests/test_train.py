@@ -259,6 +259,21 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
     long = artifacts.load(out).arrays
     for k, v in artifacts.load(plain).arrays.items():
         np.testing.assert_array_equal(v, long[k], err_msg=k)
+    # a finished 150-step run extended to 200 with --resume: the same final model, and the 150-step model kept as
+    # the snapshot at 150 (a curve lengthened after the fact)
+    ext = tmp_path / "ext.h5"
+    assert cdrb(*args, "--steps", "150", "--out", ext).returncode == 0
+    r = cdrb(*args, "--steps", "200", "--snapshot-at", "150", "--resume", "--out", ext)
+    assert r.returncode == 0 and "resuming" in r.stderr, r.stderr
+    # (the same weights, optimizer state and training loss; its validation curve also has the shorter run's last point)
+    extended = artifacts.load(ext).arrays
+    for k, v in artifacts.load(plain).arrays.items():
+        if k != "curve/valid_loss" and k != "curve/valid_step":
+            np.testing.assert_array_equal(v, extended[k], err_msg=k)
+    kept = artifacts.load(tmp_path / "ext.step150.h5", "model")
+    assert kept.manifest.config == artifacts.load(tmp_path / "ref150.h5").manifest.config
+    for k, v in _weights(artifacts.load(tmp_path / "ref150.h5")).items():
+        np.testing.assert_array_equal(v, _weights(kept)[k], err_msg=k)
     # bad snapshot steps, and an existing snapshot file without --force
     for bad in ("200", "0", "75", "x"):
         r = cdrb(*args, "--steps", "200", "--snapshot-at", bad, "--out", tmp_path / "b.h5")

@@ -25,6 +25,7 @@ import json
 import os
 import re
 import signal
+import stat
 import subprocess
 import sys
 import threading
@@ -628,17 +629,34 @@ def _option_table(command: str) -> dict[str, tuple[str, bool, bool]]:
     return table
 
 
+def _real(path: str | Path) -> str:
+    """A file's path with links resolved (``runs`` may be a link to another disk): one spelling per file."""
+    return os.path.realpath(path)
+
+
+def _regular_sha(path: str, cache: dict) -> str | None:
+    """The sha256 of a regular file, else None (a folder, a FIFO or a missing file is never hashed)."""
+    try:
+        return _sha(Path(path), cache) if stat.S_ISREG(os.stat(path).st_mode) else None
+    except OSError:
+        return None
+
+
 def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tuple[str, str | None, list[str]]:
     """What a collect/cluster/train command makes, independent of where and of how its flags are spelled: (its
-    arguments and options, the last value of each winning as on the command line, ``--set KEY=VALUE`` as a map,
-    every file written by a task replaced by the key of the command that wrote it and every other file by its sha256,
-    without the :data:`_UNKEYED` options; its ``--steps``; its ``--snapshot-at`` steps)."""
+    arguments and options, the last value of each winning as on the command line, its ``--set``s with each one
+    overridden later by the same key dropped (sorted unless one key lies inside another), every file written by a
+    task replaced by the key of the command that wrote it and every other file by its sha256, without the
+    :data:`_UNKEYED` options; its ``--steps``; its ``--snapshot-at`` steps)."""
     table = _option_table(argv[0])
-    positional, options, sets, i = [], {}, {}, 1
+    positional, options, sets, i = [], {}, [], 1
 
     def file_key(value: str) -> str:
-        norm = os.path.normpath(value)
-        return written_by.get(norm) or (f"sha256:{_sha(Path(norm), cache)}" if Path(norm).is_file() else value)
+        real = _real(value)
+        if real in written_by:
+            return written_by[real]
+        sha = _regular_sha(real, cache)
+        return f"sha256:{sha}" if sha else value
 
     while i < len(argv):
         token = argv[i]
@@ -654,75 +672,117 @@ def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tu
         i += 2 if takes_value and not eq else 1
         if pname == "sets":
             k, _, v = str(value).partition("=")
-            sets[k.strip()] = v.strip()
+            sets.append((k.strip(), v.strip()))
         else:
             options[pname] = file_key(value) if isinstance(value, str) else value
+    # a later --set of the same key replaces all an earlier one set, whatever came between: the earlier is moot;
+    # the order of the rest matters only where one key lies inside another (net= then net.dim=)
+    sets = [kv for j, kv in enumerate(sets) if all(kv[0] != later[0] for later in sets[j + 1 :])]
+    if not any(_nested(a, b) for j, (a, _) in enumerate(sets) for b, _ in sets[j + 1 :]):
+        sets.sort()
     steps = options.get("steps")
     snaps = [v.strip() for v in str(options.get("snapshot_at", "")).split(",") if v.strip()]
     kept = {k: v for k, v in options.items() if k not in _UNKEYED}
-    key = json.dumps([argv[0], positional, sorted(kept.items()), sorted(sets.items())], default=str)
+    key = json.dumps([argv[0], positional, sorted(kept.items()), sets], default=str)
     return key, None if steps is None else str(steps), snaps
 
 
-def _finished_elsewhere(folder: Path, cache: dict) -> list[dict]:
-    """The finished collect/cluster/train tasks of the grid whose ``out`` is ``folder``, from its memos: each memo
-    whose input and output files all still have the sha256 it recorded (whatever cdrb version wrote them: an
-    artifact describes itself), in the order collect, cluster, train."""
+def _nested(a: str, b: str) -> bool:
+    """Whether one dotted settings key lies inside the other (``net`` and ``net.dim``)."""
+    return a.startswith(b + ".") or b.startswith(a + ".")
+
+
+def _is_step(text: str) -> bool:
+    return text.isascii() and text.isdigit()
+
+
+def _finished_elsewhere(folders: list[Path], cache: dict) -> list[dict]:
+    """The finished collect/cluster/train tasks of the grids whose ``out`` folders are ``folders``, from their
+    memos: each memo of this cdrb version whose input and output files are all regular files that still have the
+    sha256 it recorded, collections first, then clusterings, then trainings (a key names what its inputs' tasks
+    are, in whichever folder). A memo of any other shape is skipped."""
     found = []
-    for memo_file in sorted((folder / ".grid").glob("*.json")) if (folder / ".grid").is_dir() else []:
-        text = _read_small(memo_file)
-        try:
-            memo = json.loads(text) if text is not None else None
-        except (ValueError, RecursionError):
-            continue
-        if not isinstance(memo, dict) or not isinstance(memo.get("argv"), list) or not memo["argv"]:
-            continue
-        if memo["argv"][0] not in _REUSABLE or not all(isinstance(a, str) for a in memo["argv"]):
-            continue
-        files = {**dict(memo.get("inputs") or {}), **dict(memo.get("outputs") or {})}
-        if not memo.get("outputs") or any(not v or _sha(Path(p), cache) != v for p, v in files.items()):
-            continue
-        found.append(memo)
+    for folder in folders:
+        memos = folder / ".grid"
+        for memo_file in sorted(memos.glob("*.json")) if memos.is_dir() else []:
+            text = _read_small(memo_file)
+            try:
+                memo = json.loads(text) if text is not None else None
+            except (ValueError, RecursionError):
+                continue
+            if not isinstance(memo, dict) or memo.get("cdrb") != __version__:
+                continue
+            argv, inputs, outputs = memo.get("argv"), memo.get("inputs"), memo.get("outputs")
+            if not (isinstance(argv, list) and argv and all(isinstance(a, str) for a in argv)):
+                continue
+            files = [inputs, outputs]
+            if argv[0] not in _REUSABLE or not all(
+                isinstance(f, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in f.items())
+                for f in files
+            ):
+                continue
+            if not outputs or any(_regular_sha(p, cache) != v for p, v in {**inputs, **outputs}.items()):
+                continue
+            found.append(memo)
     return sorted(found, key=lambda m: _REUSABLE.index(m["argv"][0]))
+
+
+def _replace_files(argv: list[str], moved: dict[str, str]) -> list[str]:
+    """``argv`` with every file of ``moved`` (a token, or the value of ``--flag=FILE``) replaced."""
+    out = []
+    for a in argv:
+        name, eq, value = a.partition("=")
+        if eq and name.startswith("--") and _real(value) in moved:
+            out.append(f"{name}={moved[_real(value)]}")
+        else:
+            out.append(moved.get(_real(a), a))
+    return out
 
 
 def reuse_finished(spec: GridSpec, tasks: list[Task]) -> list[Task]:
     """``tasks`` with every collection, clustering and training that a grid of ``spec.reuse`` has finished taken
     from there: the task is dropped and the tasks that read its artifact read the other grid's file. A training
     matches a finished one of the same command (:func:`_command_key`) whose final model or snapshots include every
-    step this one writes. Records what was taken in ``spec._reused`` (task id -> file)."""
+    step this one writes. Records what was taken in ``spec._reused`` (task id -> file), and on every task that
+    reads a taken file the sha256 it must still have when the task runs (``meta["expect"]``)."""
     cache: dict = {}
+    spec._reused = {}
     written_by: dict[str, str] = {}  # a file of the other grids -> the key of what wrote it
-    offers: dict[str, list[tuple[dict[str, str], str]]] = {}  # key -> [(steps -> file, memo folder)]
-    for folder in spec.reuse:
-        for memo in _finished_elsewhere(folder, cache):
-            key, steps, snaps = _command_key(memo["argv"], written_by, cache)
-            outputs = list(memo["outputs"])
-            points = {str(steps): outputs[0]}
-            if memo["argv"][0] == "train":
-                for s in snaps:
-                    snap = str(train_snapshot(Path(outputs[0]), int(s))) if s.isdigit() else None
-                    if snap in outputs:
-                        points[s] = snap
-            for p in outputs:
-                written_by[os.path.normpath(p)] = key
-            offers.setdefault(key, []).append((points, str(folder)))
+    offers: dict[str, list[dict[str, str]]] = {}  # key -> [steps -> file]
+    shas: dict[str, str] = {}  # a file of the other grids -> its sha256 as its memo recorded it
+    for memo in _finished_elsewhere(spec.reuse, cache):
+        key, steps, snaps = _command_key(memo["argv"], written_by, cache)
+        outputs = list(memo["outputs"])
+        points = {str(steps): outputs[0]}
+        if memo["argv"][0] == "train":
+            for s in filter(_is_step, snaps):
+                snap = str(train_snapshot(Path(outputs[0]), int(s)))
+                if snap in outputs:
+                    points[s] = snap
+        for p in outputs:
+            written_by[_real(p)] = key
+            shas[p] = memo["outputs"][p]
+        offers.setdefault(key, []).append(points)
 
     own_written_by: dict[str, str] = {}
-    moved: dict[str, str] = {}  # this grid's file -> the other grid's
-    dropped: set[str] = set()
+    moved: dict[str, str] = {}  # this grid's file (links resolved) -> the other grid's
+    dropped: dict[str, list[str]] = {}  # task id -> its files
     for t in tasks:
         if t.kind not in _REUSABLE:
             continue
         key, steps, snaps = _command_key(t.argv, own_written_by, cache)
         for p in t.outputs:
-            own_written_by[os.path.normpath(p)] = key
+            own_written_by[_real(p)] = key
+        if not all(map(_is_step, snaps)):
+            continue
         wanted = [str(steps)] + (snaps if t.kind == "train" else [])
-        files = [str(t.outputs[0])] + ([str(train_snapshot(t.outputs[0], int(s))) for s in snaps] if snaps else [])
-        for points, _ in offers.get(key, []):
+        files = [str(t.outputs[0])] + [str(train_snapshot(t.outputs[0], int(s))) for s in snaps]
+        if len(files) != len(t.outputs):
+            continue
+        for points in offers.get(key, []):
             if all(w in points for w in wanted):
-                moved.update({os.path.normpath(f): points[w] for f, w in zip(files, wanted, strict=True)})
-                dropped.add(t.id)
+                moved.update({_real(f): points[w] for f, w in zip(files, wanted, strict=True)})
+                dropped[t.id] = [_real(f) for f in files]
                 break
     if not dropped:
         return tasks
@@ -730,11 +790,24 @@ def reuse_finished(spec: GridSpec, tasks: list[Task]) -> list[Task]:
     for t in tasks:
         if t.id in dropped:
             continue
-        t.argv = [moved.get(os.path.normpath(a), a) for a in t.argv]
-        t.inputs = [Path(moved.get(os.path.normpath(p), p)) for p in t.inputs]
+        t.argv = _replace_files(t.argv, moved)
+        t.inputs = [Path(moved.get(_real(p), p)) for p in t.inputs]
         t.deps = [d for d in t.deps if d not in dropped]
+        expect = {str(p): shas[str(p)] for p in t.inputs if str(p) in shas}
+        if expect:
+            t.meta = t.meta | {"expect": expect}
         kept.append(t)
-    spec._reused = {t.id: moved[os.path.normpath(t.outputs[0])] for t in tasks if t.id in dropped}
+    # nothing kept may still name a file that is no longer written here
+    gone = {f for files in dropped.values() for f in files}
+    for t in kept:
+        named = [a.partition("=")[2] if a.startswith("--") else a for a in t.argv] + [str(p) for p in t.inputs]
+        left = [n for n in named if n and _real(n) in gone]
+        if left:
+            raise BadInput(
+                f"reuse: {t.id} still names {left[0]}, which a reused task no longer writes here",
+                hint="drop `reuse` from the grid, or name the file in the grid as it names its outputs",
+            )
+    spec._reused = {tid: moved[files[0]] for tid, files in dropped.items()}
     return kept
 
 
@@ -800,6 +873,19 @@ def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
     return memo == now and all(now["outputs"].values())
 
 
+def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:
+    """Whether every output of ``task`` is the file this grid's memo says the task wrote: the grid's own artifact,
+    which it may replace when the task is out of date (a file the memo does not vouch for is never overwritten)."""
+    text = _read_small(memo_path(spec, task))
+    try:
+        memo = json.loads(text) if text is not None else None
+    except (ValueError, RecursionError):
+        return False
+    recorded = memo.get("outputs") if isinstance(memo, dict) else None
+    now = {str(p): _sha(p, cache) for p in task.outputs}
+    return isinstance(recorded, dict) and recorded == now and all(now.values())
+
+
 def _write_memo(spec: GridSpec, task: Task, cache: dict) -> None:
     path = memo_path(spec, task)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -832,10 +918,12 @@ def check_outputs(spec: GridSpec, tasks: list[Task]) -> None:
 
 # ------------------------------------------------------------------------------------------------ execution
 def execute(payload: dict) -> dict:
-    """Run one task's `cdrb` command in a fresh process (on this machine or a Ray worker). A training whose
-    checkpoint was left unfinished by an earlier attempt is continued with ``--resume``."""
+    """Run one task's `cdrb` command in a fresh process (on this machine or a Ray worker). A training whose model
+    file is there is continued with ``--resume``: a checkpoint an earlier attempt left unfinished, or a finished
+    shorter run of the same settings that the grid now trains longer (a curve extended to more steps); the command
+    itself refuses a file of other settings."""
     argv = list(payload["argv"])
-    if payload["kind"] == "train" and artifacts.unfinished_model(payload["outputs"][0]):
+    if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file():
         argv.append("--resume")
     for out in payload["outputs"]:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
@@ -1028,11 +1116,14 @@ def run_grid(
     backend,
     retries: int = 1,
     on_event: Callable[[str, TaskResult], None] | None = None,
+    tasks: list[Task] | None = None,
 ) -> GridRun:
-    """Execute the grid's tasks on ``backend``: each when its inputs are ready, skipped when its memo is current,
-    retried ``retries`` times on failure; dependants of a failed task are skipped. Writes OUT/grid.json."""
+    """Execute the grid's tasks (``tasks``, default: the expanded grid) on ``backend``: each when its inputs are
+    ready, skipped when its memo is current, retried ``retries`` times on failure; dependants of a failed task are
+    skipped. A task reading another grid's file (``reuse``) fails if that file changed since the grid was expanded.
+    Writes OUT/grid.json."""
     t0 = time.time()
-    tasks = expand(spec)
+    tasks = expand(spec) if tasks is None else tasks
     results = {t.id: TaskResult(t.id, t.kind, outputs=[str(p) for p in t.outputs]) for t in tasks}
     state = {t.id: "pending" for t in tasks}
     cache: dict = {}
@@ -1040,8 +1131,17 @@ def run_grid(
     emit = on_event or (lambda *_: None)
 
     def submit(task: Task) -> None:
+        changed = [p for p, sha in task.meta.get("expect", {}).items() if _regular_sha(p, cache) != sha]
+        if changed:  # another grid rewrote a file this one took from it (e.g. a curve trained on): never read it
+            state[task.id], results[task.id].status = "failed", "failed"
+            results[task.id].stderr = [f"{changed[0]}: changed since this grid took it from a finished run; run again"]
+            emit("failed", results[task.id])
+            return
         res = spec.resources[task.kind]
-        payload = {"argv": task.argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
+        argv = task.argv
+        if task.kind in ("collect", "cluster", "eval") and written_here(spec, task, cache):
+            argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
+        payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
         payload |= {"cpus": res.cpus, "gpus": res.gpus}
         results[task.id].attempts += 1
         state[task.id] = "running"
@@ -1068,6 +1168,7 @@ def run_grid(
                         progressed = True
                     else:
                         submit(task)
+                        progressed = progressed or state[task.id] == "failed"  # settle its dependants next pass
         if not running:
             break
         finished, _ = cf.wait(list(running), return_when=cf.FIRST_COMPLETED)
@@ -1156,7 +1257,7 @@ def grid(
                     ui.log(f"{event:10s} {secs}  {res.id}")
                     bar.advance(job)
 
-                run = run_grid(spec, runner, retries=retries, on_event=on_event)
+                run = run_grid(spec, runner, retries=retries, on_event=on_event, tasks=tasks)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the running tasks stop too, instead of being waited for
             stop_running()
             raise

@@ -134,8 +134,8 @@ def choose(cands: list[Candidate]) -> dict[tuple[str, str], Candidate]:
 #: when a learning curve is extended before anything is chosen from it
 RISING = (
     "at the longest training length, the method's best candidate (by the rule) succeeds more often than the same "
-    "candidate one length shorter, by more than the standard error of the difference (sample std over training "
-    "seeds)"
+    "candidate one length shorter, by more than the standard error of the mean gain (the gains of each training "
+    "seed's run between the two lengths: the points are snapshots of the same runs)"
 )
 
 
@@ -151,12 +151,14 @@ def still_rising(cands: list[Candidate]) -> dict[tuple[str, str], tuple[Candidat
             continue
         last = min((c for c in mine if c.steps == lengths[-1]), key=Candidate.rank)
         prev = next((c for c in mine if c.steps == lengths[-2] and c.variant == last.variant), None)
-        if prev is None or min(len(last.models), len(prev.models)) < 2:
+        if prev is None:
             continue
-        a = [m["success"] for m in last.models]
-        b = [m["success"] for m in prev.models]
-        gain = sum(a) / len(a) - sum(b) / len(b)
-        se = ((std_or_none(a) ** 2) / len(a) + (std_or_none(b) ** 2) / len(b)) ** 0.5
+        before = {m["seed"]: m["success"] for m in prev.models}
+        pairs = [(m["success"], before[m["seed"]]) for m in last.models if m["seed"] in before]
+        if len(pairs) < 2 or any(a is None or b is None for a, b in pairs):
+            continue
+        gains = [a - b for a, b in pairs]
+        gain, se = sum(gains) / len(gains), std_or_none(gains) / len(gains) ** 0.5
         if gain > se:
             out[key] = (last, gain, se)
     return out
@@ -294,7 +296,8 @@ def select(
     for (env, method), (c, gain, se) in still_rising(cands).items():
         ui.warn(
             f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: +{gain:.1f} ± {se:.1f} points "
-            f"over the previous length): extend it (e.g. --set steps={2 * c.steps}) before choosing from it"
+            f"over the previous length): extend it before choosing from it (the same runs, resumed: --set "
+            f"steps={2 * c.steps} with {c.steps} added to snapshot_at)"
         )
     for (env, method), c in best.items():
         ui.log(

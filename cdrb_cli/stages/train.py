@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -156,6 +157,10 @@ def train(
     if resume:
         step, curve, wall = restore(resume, method, ema, optimizers, device)
         ui.log(f"resuming {out} from step {step}")
+        if step in snapshots and resume.manifest.state.finished and not snapshot_path(out, step).exists():
+            # a finished run of `step` steps is the snapshot a longer run writes at `step`: keep it as that
+            with artifacts.atomic_path(snapshot_path(out, step)) as tmp:
+                shutil.copyfile(resume.path, tmp)
         lost = [s for s in snapshots if s <= step and not snapshot_path(out, s).exists()]
         if lost:
             ui.log(f"warning: --snapshot-at {','.join(map(str, lost))}: already past, not written by this run")
