@@ -20,6 +20,7 @@ which skips it when its artifact is up to date (the CLI's own rule) and resumes 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import functools
 import hashlib
 import json
 import os
@@ -609,6 +610,7 @@ _UNKEYED = ("out", "device", "steps", "snapshot_at", "force", "resume", "as_json
 _REUSABLE = ("collect", "cluster", "train")
 
 
+@functools.cache
 def _option_table(command: str) -> dict[str, tuple[str, bool, bool]]:
     """``command``'s options, from the CLI itself: option string -> (parameter name, takes a value, the value a
     flag sets: True, or False for its ``--no-`` form)."""
