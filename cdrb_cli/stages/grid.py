@@ -864,12 +864,20 @@ def _fingerprint(task: Task, cache: dict) -> dict:
     }
 
 
-def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
-    """The task's memo matches its command, the cdrb version and every input and output file."""
-    text = _read_small(memo_path(spec, task))  # a memo that is not a small regular file is stale: redo the task
+def _memo(spec: GridSpec, task: Task) -> dict | None:
+    """The task's memo, or None (a memo that is not a small regular file of JSON is stale: the task is redone)."""
+    text = _read_small(memo_path(spec, task))
     try:
         memo = json.loads(text) if text is not None else None
     except (ValueError, RecursionError):
+        return None
+    return memo if isinstance(memo, dict) else None
+
+
+def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
+    """The task's memo matches its command, the cdrb version and every input and output file."""
+    memo = _memo(spec, task)
+    if memo is None:
         return False
     now = _fingerprint(task, cache)
     return memo == now and all(now["outputs"].values())
@@ -878,12 +886,8 @@ def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
 def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:
     """Whether every output of ``task`` is the file this grid's memo says the task wrote: the grid's own artifact,
     which it may replace when the task is out of date (a file the memo does not vouch for is never overwritten)."""
-    text = _read_small(memo_path(spec, task))
-    try:
-        memo = json.loads(text) if text is not None else None
-    except (ValueError, RecursionError):
-        return False
-    recorded = memo.get("outputs") if isinstance(memo, dict) else None
+    memo = _memo(spec, task)
+    recorded = memo.get("outputs") if memo is not None else None
     now = {str(p): _sha(p, cache) for p in task.outputs}
     return isinstance(recorded, dict) and recorded == now and all(now.values())
 
