@@ -186,6 +186,8 @@ class GridSpec(_Strict):
     _sources: list[Path] = PrivateAttr(default_factory=list)
     #: the tasks taken from the grids of ``reuse`` (task id -> the file read instead), set by :func:`expand`
     _reused: dict[str, str] = PrivateAttr(default_factory=dict)
+    #: sha256 of the files read, by (path, size, mtime): shared by reuse at expansion and the run's memo checks
+    _shas: dict = PrivateAttr(default_factory=dict)
 
     @field_validator("resources")
     @classmethod
@@ -747,7 +749,7 @@ def reuse_finished(spec: GridSpec, tasks: list[Task]) -> list[Task]:
     matches a finished one of the same command (:func:`_command_key`) whose final model or snapshots include every
     step this one writes. Records what was taken in ``spec._reused`` (task id -> file), and on every task that
     reads a taken file the sha256 it must still have when the task runs (``meta["expect"]``)."""
-    cache: dict = {}
+    cache = spec._shas
     spec._reused = {}
     written_by: dict[str, str] = {}  # a file of the other grids -> the key of what wrote it
     offers: dict[str, list[dict[str, str]]] = {}  # key -> [steps -> file]
@@ -1132,7 +1134,7 @@ def run_grid(
     tasks = expand(spec) if tasks is None else tasks
     results = {t.id: TaskResult(t.id, t.kind, outputs=[str(p) for p in t.outputs]) for t in tasks}
     state = {t.id: "pending" for t in tasks}
-    cache: dict = {}
+    cache = spec._shas
     running: dict[cf.Future, Task] = {}
     emit = on_event or (lambda *_: None)
 
