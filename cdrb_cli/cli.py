@@ -209,21 +209,28 @@ def _int_list(text: str, flag: str) -> list[int]:
 PICTURES = (".png", ".pdf", ".svg")
 
 
+def distinct_outputs(**outputs: Path | None) -> None:
+    """Refuse two output flags (``out=..., table=...``; None: not given) that name the same file, before any work."""
+    seen: dict[Path, str] = {}
+    for name, path in outputs.items():
+        if path is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        key = Path(path).resolve()
+        if key in seen:
+            raise BadInput(f"{flag} {path}: the same file as {seen[key]}", hint="give each output its own path")
+        seen[key] = flag
+
+
 def _check_outputs(force: bool, inputs=(), **outputs: Path | None) -> None:
     """Every output path of a command (``out=..., plot=...``), before any work: the rule of
     :func:`cdrb_cli.artifacts.check_output`, pictures with a picture suffix, and no two outputs the same."""
     from cdrb_cli.artifacts import check_output
 
-    given = {name: Path(p) for name, p in outputs.items() if p is not None}
-    seen: dict[Path, str] = {}
-    for name, path in given.items():
-        flag = "--" + name.replace("_", "-")
-        key = path.resolve()
-        if key in seen:
-            raise BadInput(f"{flag} {path}: the same file as {seen[key]}", hint="give each output its own path")
-        seen[key] = flag
-        if name != "out":  # --out is checked (and locked) by the stage that writes it
-            check_output(path, force, flag, inputs, suffixes=PICTURES)
+    distinct_outputs(**outputs)
+    for name, path in outputs.items():
+        if path is not None and name != "out":  # --out is checked (and locked) by the stage that writes it
+            check_output(Path(path), force, "--" + name.replace("_", "-"), inputs, suffixes=PICTURES)
 
 
 def _check_positive(flag: str, value) -> None:
@@ -1319,6 +1326,9 @@ def report(
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
     if docs is not None and not docs.is_file():
         raise BadInput(f"--docs {docs}: no such file", hint="name an existing markdown file with the marked block")
+    if paper_figures is not None and not paper:
+        raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
+    distinct_outputs(docs=docs, out=out, plot=plot, plans_plot=plans_plot)
     _check_outputs(force, evals, out=out, plot=plot, plans_plot=plans_plot)
     if out is not None:
         from cdrb_cli.artifacts import check_output
@@ -1336,6 +1346,14 @@ def report(
         text = rep.render_summary(rows, paper=figures)
     else:
         text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
+    # every check before the first file is written: a bad --docs block or evals without plans leave nothing behind
+    if plans_plot is not None:
+        rep.with_plans(arts)
+    if docs is not None:
+        from cdrb_cli.artifacts.core import read_input_text
+
+        rep.replace_block(read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file"),
+                          block, text, str(docs))  # fmt: skip
     if plot is not None:
         rep.plot_bars(rows, plot)
         ui.log(f"picture: {plot}")
@@ -1453,6 +1471,7 @@ def select(
     steps. Prints the path of the settings file."""
     from cdrb_cli.stages.select import select as run_select
 
+    distinct_outputs(out=out, table=table, curves=curves)
     ui.emit(run_select(grid_file, out, force=force, table=table, curves=curves, overrides=overrides, includes=includes))
 
 
@@ -1474,7 +1493,9 @@ def grid(
         None, "--address", help="A running Ray cluster, e.g. ray://head:10001 (default: start Ray on this machine)."
     ),
     retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
-    dry_run: bool = typer.Option(False, "--dry-run", help="Print the tasks' commands (one per line) and stop."),
+    dry_run: bool = typer.Option(
+        False, "--dry-run", help="Print the tasks' commands (one per line; with --json a list of tasks) and stop."
+    ),
     overrides: list[str] = GridSetOpt,
     includes: list[Path] = GridIncludeOpt,
     as_json: bool = JsonOpt,
@@ -1501,6 +1522,19 @@ def grid(
     if dry_run:
         import shlex
 
+        if as_json:  # one object per task: what it is, its command, what it writes and reads
+            rows = [
+                {
+                    "id": t.id,
+                    "kind": t.kind,
+                    "argv": t.argv,
+                    "outputs": [str(p) for p in t.outputs],
+                    "deps": t.deps,
+                }
+                for t in res
+            ]
+            ui.emit(rows, as_json=True)
+            return
         for task in res:
             sys.stdout.write("cdrb " + shlex.join(task.argv) + "\n")
         return

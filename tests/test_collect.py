@@ -93,6 +93,7 @@ def test_cli_collect_bad_inputs(tmp_path, cdrb):
         (("collect", "maze", "-n", "2", "--workers", str(2 * (os.cpu_count() or 1) + 1)), "--workers"),
         (("collect", "maze", "--expert", "sac", "--policy", fifo, "-n", "2"), "--policy"),  # a FIFO: no read, no hang
         (("collect", "maze", "--expert", "sac", "--policy", bad, "-n", "2"), "not a stable-baselines3"),
+        (("collect", "maze", "-n", "2", "--valid-fraction", "0.9"), "none is left to train on"),
     ]
     for args, needle in cases:
         r = cdrb(*args, cwd=tmp_path)
@@ -289,3 +290,18 @@ def test_a_collect_killed_with_sigkill_leaves_no_worker(tmp_path):
     alive = [k for k in kids if os.path.exists(f"/proc/{k}") and open(f"/proc/{k}/stat").read().split()[2] != "Z"]
     assert not alive, f"left running: {alive}"
     assert not (tmp_path / "d.h5").exists()
+
+
+def test_cluster_refuses_demos_without_train_episodes_and_a_one_state_buffer(small_data, tmp_path, cdrb):
+    """The normalizer is fitted on the train episodes (with --split all too), and CDRB's balls grow to the buffer's
+    diameter: demos with none, or a buffer of one state, are one-line errors, and nothing is written."""
+    from tests import factories
+
+    demos = factories.write(tmp_path / "held-out.h5", "demos")
+    with factories.tampered(demos) as f:
+        f["episodes/valid"][...] = True
+    r = cdrb("cluster", demos, "--split", "all", "--k", "2", "--out", tmp_path / "b.h5")
+    assert r.returncode == 2 and "no train episodes" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = cdrb("cluster", small_data[0].path, "--k", "1", "--out", tmp_path / "b.h5")
+    assert r.returncode == 2 and "--k 1: " in r.stderr and "diameter 0" in r.stderr
+    assert not (tmp_path / "b.h5").exists()

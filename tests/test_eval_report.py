@@ -216,6 +216,25 @@ def test_an_eval_without_plans(evals, tmp_path, cdrb):
     assert len(rows) == 1 and rows[0]["method"] == "cdrb"
     r = cdrb("report", tmp_path / "bare.h5", "--plans-plot", tmp_path / "p.png")
     assert r.returncode == 2 and "--no-plans" in r.stderr and not (tmp_path / "p.png").exists()
+    # the plans are checked before any picture is drawn: the bar chart is not left behind either
+    r = cdrb("report", tmp_path / "bare.h5", "--plot", tmp_path / "bars.png", "--plans-plot", tmp_path / "p.png")
+    assert r.returncode == 2 and not (tmp_path / "bars.png").exists() and not (tmp_path / "p.png").exists()
+
+
+def test_report_checks_every_output_before_writing_one(evals, tmp_path, cdrb):
+    """A --docs file without its block, --docs naming the --out file, or --paper-figures without --paper: one line,
+    exit 2, and no picture or file written or changed."""
+    path = evals["cdrb"].path
+    doc = tmp_path / "doc.md"
+    doc.write_text("hello\n")
+    r = cdrb("report", path, "--docs", doc, "--block", "t", "--plot", tmp_path / "b.png")
+    assert r.returncode == 2 and "<!-- t:begin -->" in r.stderr and not (tmp_path / "b.png").exists()
+    doc.write_text("a\n<!-- t:begin -->\n<!-- t:end -->\nb\n")
+    r = cdrb("report", path, "--docs", doc, "--block", "t", "--out", doc, "--force")
+    assert r.returncode == 2 and "the same file as --docs" in r.stderr
+    assert doc.read_text() == "a\n<!-- t:begin -->\n<!-- t:end -->\nb\n"
+    r = cdrb("report", path, "--paper-figures", tmp_path / "figures.toml")
+    assert r.returncode == 2 and "--paper-figures goes with --paper" in r.stderr
 
 
 def test_report_formats_and_pictures(evals, tmp_path, cdrb):
@@ -306,6 +325,7 @@ def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):
         (["--sampler", "magic"], "not a known sampler"),
         (["--controller", "inverse-dynamics", "--set", "controller.kp=3"], "unknown setting 'controller.kp'"),
         (["--episodes", "0"], "--episodes"),
+        (["--sample-steps", "999"], "--sample-steps 999: the model has T = 8 diffusion steps, so at most 8"),
     ]:
         r = cdrb("eval", model, *args, "--out", tmp_path / "e.h5")
         assert r.returncode == 2 and needle in r.stderr, (args, r.stderr)

@@ -445,6 +445,10 @@ def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
         ("demos = 1000000000", "demos: Input should be less than or equal to 1000000"),
         ('methods = ["mlp", "mlp"]', "envs, methods and seeds must each be listed once"),
         ("report = 1", "report: Input should be a valid boolean"),
+        ("eval_seeds = [0, 0]", "eval_seeds: Value error, list each evaluation seed once"),
+        ("eval_seeds = []", "eval_seeds: List should have at least 1 item"),
+        ("eval_episodes = 200000", "eval_episodes: Input should be less than or equal to 100000"),  # eval's cap
+        ("snapshot_at = [10]", "snapshot_at: 10 is not a multiple of 50"),  # where a quick training records
     ],
 )
 def test_grid_values_are_checked_strictly_at_load_time(tmp_path, line, words):
@@ -456,6 +460,25 @@ def test_grid_values_are_checked_strictly_at_load_time(tmp_path, line, words):
     if "listed once" not in words:  # a value's own error, given with --set, names the flag
         with pytest.raises(BadInput, match=rf"--set {key}="):
             load_grid(_grid(tmp_path, text), [line.replace(" = ", "=")])
+
+
+def test_load_errors_name_the_set_that_gave_the_value_and_reuse_must_be_folders(tmp_path, capsys):
+    grid = _grid(tmp_path, TINY)
+    with pytest.raises(BadInput, match=r'^--set envs=\["nope"\]: envs: '):
+        load_grid(grid, ['envs=["nope"]'])
+    with pytest.raises(BadInput, match=r'^--set methods=\["nope"\]: methods'):
+        load_grid(grid, ['methods=["nope"]'])
+    with pytest.raises(BadInput, match=r"^--set eval_seed_offset=1: .*past the largest seed"):
+        load_grid(grid, ["seeds=[4294967295]", "eval_seed_offset=1"])
+    # a snapshot that checkpoint_every, set in the methods' train flags, puts on their loss curves passes
+    every10 = _grid(tmp_path, TINY + '\n[[settings]]\ntrain = ["--set", "checkpoint_every=10"]\n', "every10.toml")
+    assert load_grid(every10, ["snapshot_at=[10]"]).snapshot_at == [10]
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(BadInput, match=r"reuse: .*afile is a file, not a grid's `out` folder"):
+        load_grid(grid, [f'reuse=["{tmp_path / "afile"}"]'])
+    capsys.readouterr()
+    spec = load_grid(grid, [f'reuse=["{tmp_path / "typo"}"]'])
+    assert spec.reuse == [tmp_path / "typo"] and "typo: no such folder yet" in capsys.readouterr().err
 
 
 def test_a_grid_never_writes_over_its_own_files_or_a_users_summary(tmp_path):
@@ -587,6 +610,10 @@ def test_file_flags_in_a_grid_are_relative_to_the_file_that_declares_them(tmp_pa
     assert any(f"--config {sub / 'shared' / 'mlp.toml'}" in ln for ln in lines if "--method mlp" in ln)
     assert any(f"--config={sub / 'cdrb.toml'}" in ln for ln in lines if "--method cdrb" in ln)
     assert any(f"--config {tmp_path / 'abs.toml'}" in ln for ln in lines)
+    proc = _cli("grid", str(grid), "--dry-run", "--json", cwd=elsewhere)
+    tasks = json.loads(proc.stdout)  # the same tasks as a list, for scripts
+    assert [" ".join(["cdrb", *t["argv"]]) for t in tasks] == [" ".join(ln.split()) for ln in lines]
+    assert {t["kind"] for t in tasks} == {"collect", "cluster", "train", "eval", "report"}
 
 
 def test_a_second_grid_on_the_same_out_names_the_grid_file_not_a_flag(tmp_path):

@@ -48,7 +48,7 @@ def test_the_rule_ranks_success_then_crossings_then_collisions_then_order_then_s
     assert "success" in RULE and "steps" in RULE
 
 
-def _cdrb(*args, cwd: Path) -> subprocess.CompletedProcess:
+def _cdrb(*args, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.run(
         [sys.executable, "-m", "cdrb_cli", *map(str, args)],
@@ -58,7 +58,7 @@ def _cdrb(*args, cwd: Path) -> subprocess.CompletedProcess:
         env=env,
         timeout=900,
     )
-    assert proc.returncode == 0, (args, proc.stderr[-3000:])
+    assert proc.returncode == 0 or not check, (args, proc.stderr[-3000:])
     return proc
 
 
@@ -128,6 +128,26 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
         chosen = next(r for r in mine if r["chosen"] == "True")
         assert float(chosen["success"]) == best and s["chosen"].startswith(chosen["candidate"])
 
+    # select reads only the evals the grid's tasks made: other settings, another method's eval put in place, or an
+    # eval of a model trained again since are refused (one line, exit 2, nothing written)
+    sweep_args = [a for a in tune if a not in ("--backend", "pool", "-j", "2")] + ["--set", "steps=20"]
+    copy = tmp_path / "runs" / "sweep-copy"
+    shutil.copytree(tmp_path / "runs" / "mazes-sweep", copy)
+    again = ["select", exp / "tune" / "mazes-sweep.toml", *sweep_args, "--set", f"out={copy}"]
+    r = _cdrb(*again, "--set", "eval_episodes=3", "--out", tmp_path / "x.toml", cwd=tmp_path, check=False)
+    assert r.returncode == 2 and "not this grid's eval" in r.stderr and "--episodes 2 there, 3 in the grid" in r.stderr
+    quick = copy / "maze-tight" / "quick"
+    shutil.copy(quick / "eval-mlp-s0.h5", quick / "eval-cdrb-s0.h5")
+    r = _cdrb(*again, "--out", tmp_path / "x.toml", cwd=tmp_path, check=False)
+    assert r.returncode == 2 and "it reads mlp-s0.h5, the grid's task cdrb-s0.h5" in r.stderr
+    shutil.copy(tmp_path / "runs" / "mazes-sweep" / "maze-tight" / "quick" / "eval-cdrb-s0.h5", quick)
+    model = copy / "maze-tight" / "cdrb-s0.h5"  # the base model the eval-only variant "quick" evaluates
+    model.write_bytes(model.read_bytes())  # written again, unchanged: still the model it evaluated
+    assert _cdrb(*again, "--out", tmp_path / "x.toml", cwd=tmp_path).returncode == 0
+    shutil.copy(copy / "maze-tight" / "T64" / "cdrb-s0.h5", model)  # another model under its name
+    r = _cdrb(*again, "--out", tmp_path / "y.toml", cwd=tmp_path, check=False)
+    assert r.returncode == 2 and "evaluates an earlier cdrb-s0.h5" in r.stderr and not (tmp_path / "y.toml").exists()
+
     rows = grid_select("mazes-clock", "mazes-clock.toml", "--set", "steps=20")
     assert {r["candidate"] for r in rows} == {
         "time-indexed", "gated-0.6", "gated-0.6-wait10", "gated-0.3-wait10", "official-executor"
@@ -175,6 +195,24 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
         "<!-- t1:end -->\nafter\n"
     )
     assert "| Maze Tight (paper) | 38.29 ± 1.80 | 98.00 ± 0.00 |" in text and "old" not in text
+
+
+def test_settings_files_hold_any_name_as_valid_toml():
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.select import toml_string
+
+    for text in ["plain", "tune 😀.toml", 'q"b\\c', "del\x7f nul\x00 nl\n tab\t", "é 中 \u2028", ""]:
+        assert tomllib.loads(f"v = {toml_string(text)}")["v"] == text
+    with pytest.raises(BadInput, match="not valid Unicode"):
+        toml_string("bad \udcff byte")
+
+
+def test_select_refuses_two_outputs_on_one_file_before_reading_anything(tmp_path):
+    grid = tmp_path / "missing.toml"  # never read: the outputs are checked first
+    for extra in (["--table", tmp_path / "s.toml"], ["--table", tmp_path / "t.md", "--curves", tmp_path / "t.md"]):
+        r = _cdrb("select", grid, "--out", tmp_path / "s.toml", *extra, "--force", cwd=tmp_path, check=False)
+        assert r.returncode == 2 and "the same file as" in r.stderr, r.stderr
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_path):

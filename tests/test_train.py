@@ -283,6 +283,23 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
     assert r.returncode == 2 and "new.step50.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
 
 
+def test_a_bad_snapshot_step_gets_a_hint_that_would_work(small_data):
+    """The hint names a snapshot step that passes the same check, or, when no step below --steps can, the setting
+    that moves where snapshots fall."""
+    from cdrb_cli.stages.train import check_snapshots
+
+    demos, _ = small_data
+    for steps, every in ((200, 50), (30, 500), (30, 10)):
+        cfg = train_config(demos, None, "mlp", {"steps": steps, "checkpoint_every": every})
+        with pytest.raises(BadInput) as err:
+            check_snapshots(cfg, [steps + 1])
+        hint = err.value.hint
+        if "e.g. --snapshot-at " in hint:
+            assert check_snapshots(cfg, [int(hint.split()[-1])])
+        else:
+            assert steps <= 50 and "checkpoint_every" in hint
+
+
 def test_state_action_ends_are_degraded_in_training_as_in_sampling(small_data, tmp_path):
     """With state-action features only the state part of the end states is pinned; sampling starts those ends
     from random buffer features, so training degrades their action part too (and keeps the state part exact)."""

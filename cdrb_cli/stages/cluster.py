@@ -22,6 +22,11 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
     rows = train_rows if config.split == "train" else split_rows(demos, "all")
     if rows.size == 0:
         raise BadInput(f"{demos.path}: no {config.split} episodes to cluster", hint="collect more episodes")
+    if train_rows.size == 0:
+        raise BadInput(
+            f"{demos.path}: no train episodes (the normalizer, shared with `cdrb train`, is fitted on them)",
+            hint="collect more episodes, or with a smaller --valid-fraction",
+        )
     norm = Normalizer.fit(feats[train_rows])
     z = norm.normalize(feats[rows])
     if config.k > len(rows):
@@ -36,6 +41,12 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
         else:
             keep, inertia = kmeans_buffer(z, config.k, seed=config.seed, n_init=config.n_init, max_iter=config.max_iter)
     points = z[keep].astype(np.float32)
+    if diameter(points) <= 0:
+        raise BadInput(
+            f"--k {config.k}: the buffer of {demos.path} would hold a single state (diameter 0), and CDRB's balls "
+            f"grow up to the buffer's diameter",
+            hint="use --k 2 or more, on demos that visit more than one state",
+        )
     summary = ClusterSummary(
         points=int(len(points)),
         source_states=int(len(rows)),

@@ -86,7 +86,19 @@ def collect_config(
     base = {"env": spec.id, "episodes": episodes, "expert": expert_cfg.model_dump(mode="json"), "seed": seed, **split}
     if starts != "protocol":  # recorded only when it differs, so the demos of the default stay what they were
         base["starts"] = starts
-    return validate(CollectConfig, apply(base, settings), settings, "collect")
+    config = validate(CollectConfig, apply(base, settings), settings, "collect")
+    check_split(config.episodes, config.valid_fraction)
+    return config
+
+
+def check_split(episodes: int, valid_fraction: float) -> None:
+    """Refuse a split that leaves no training episode (training and the buffer's normalizer read only those)."""
+    held_out = int(round(valid_fraction * episodes))
+    if held_out >= episodes:
+        raise BadInput(
+            f"--valid-fraction {valid_fraction}: holds out all {episodes} episodes, none is left to train on",
+            hint="collect more episodes or pass a smaller --valid-fraction",
+        )
 
 
 def draw_starts(family, spec: EnvSpec, episodes: int, seed: int, starts: str) -> list[Episode]:
@@ -206,6 +218,7 @@ def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions
     seed, episodes = config.seed, len(states)
     lengths_arr = np.array([len(S) for S in states], dtype=np.int64)
     observations = np.concatenate(states).astype(np.float32)
+    check_split(episodes, config.valid_fraction)
     split_rng = np.random.default_rng([seed, STREAM_COLLECT, 99])
     valid = np.zeros(episodes, dtype=bool)
     valid[split_rng.permutation(episodes)[: int(round(config.valid_fraction * episodes))]] = True

@@ -37,7 +37,14 @@ from cdrb_cli.stages.metrics import (
     std_or_none,
     sum_failures,
 )
-from cdrb_cli.stages.plan import load_planner, mask_counts, prepare_planner, sample_plans, warn_unrouted
+from cdrb_cli.stages.plan import (
+    check_sample_steps,
+    load_planner,
+    mask_counts,
+    prepare_planner,
+    sample_plans,
+    warn_unrouted,
+)
 
 
 @dataclass(frozen=True)
@@ -681,6 +688,7 @@ def eval_config(
         family.draw_protocol_episodes(where, 1, config.seeds[0], EVAL_STREAMS[config.stream], protocol)
     k = config.replan.repair_k
     steps = getattr(model.manifest.config.method, "diffusion_steps", None)
+    check_sample_steps(model, config.sample_steps)
     if k is not None and steps is not None and k > steps - 1:
         raise BadInput(
             f"--repair-k {k}: the model has T = {steps} diffusion steps, so a repair restores from k = 1..{steps - 1}",

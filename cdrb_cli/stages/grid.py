@@ -23,6 +23,7 @@ import concurrent.futures as cf
 import functools
 import hashlib
 import json
+import math
 import os
 import re
 import signal
@@ -154,10 +155,10 @@ class GridSpec(_Strict):
         1000, ge=0, le=10_000_000, description="replay-buffer clusters (`cdrb cluster --k`; 0 keeps the full buffer)"
     )
     steps: Steps | None = Field(None, description="training steps of every run (default: the preset's)")
-    eval_episodes: Int = Field(100, ge=1, le=1_000_000, description="evaluation episodes per model")
+    eval_episodes: Int = Field(100, ge=1, le=100_000, description="evaluation episodes per model and seed")
     eval_stream: Literal["tune", "test"] = Field("test", description="start/goal pairs: tune or test stream")
     eval_seeds: list[SeedValue] | None = Field(
-        None, description="evaluation seeds of every model (default: the model's own training seed)"
+        None, min_length=1, description="evaluation seeds of every model (default: the model's own training seed)"
     )
     eval_seed_offset: SeedValue = Field(
         0,
@@ -188,6 +189,13 @@ class GridSpec(_Strict):
     _reused: dict[str, str] = PrivateAttr(default_factory=dict)
     #: sha256 of the files read, by (path, size, mtime): shared by reuse at expansion and the run's memo checks
     _shas: dict = PrivateAttr(default_factory=dict)
+
+    @field_validator("eval_seeds")
+    @classmethod
+    def _once(cls, value: list[int] | None) -> list[int] | None:
+        if value is not None and len(set(value)) != len(value):
+            raise ValueError("list each evaluation seed once")
+        return value
 
     @field_validator("resources")
     @classmethod
@@ -345,6 +353,15 @@ def parse_override(text: str) -> tuple[str, object]:
         return key.strip(), value
 
 
+def _origin(path: Path, overrides: list[str], *keys) -> str:
+    """Where a top-level key's value came from: the last ``--set`` of one of ``keys``, else the grid file."""
+    given = {parse_override(t)[0]: t for t in overrides}
+    for key in keys:
+        if key in given:
+            return f"--set {clip(given[key])}"
+    return str(path)
+
+
 def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] = ()) -> GridSpec:
     """Read and check a grid file: unknown keys, environments and methods are one-line errors naming the file.
 
@@ -376,9 +393,8 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     except ValidationError as exc:
         err = exc.errors()[0]
         where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
-        given = {parse_override(t)[0]: t for t in overrides}
-        origin = f"--set {clip(given[err['loc'][0]])}" if err["loc"] and err["loc"][0] in given else str(path)
-        raise BadInput(f"{origin}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
+        raise BadInput(f"{_origin(path, overrides, *err['loc'][:1])}: {where}: {err['msg']}",
+                       hint="see docs/cli.md, `cdrb grid`") from None  # fmt: skip
     read = [path]
     spec.settings = (
         _included_settings(spec.include, path.parent, (path,), read)
@@ -392,13 +408,22 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
     if spec.out in spec.reuse:
         raise BadInput(f"{path}: reuse: names the grid's own `out` folder", hint="list other grids' `out` folders")
+    for folder in spec.reuse:
+        if folder.exists() and not folder.is_dir():
+            raise BadInput(
+                f"{_origin(path, overrides, 'reuse')}: reuse: {folder} is a file, not a grid's `out` folder",
+                hint="list the `out` folders of other grids",
+            )
+        if not folder.exists():  # a grid may name the folder of one not run yet (Table 1 before its curves)
+            ui.warn(f"reuse: {folder}: no such folder yet, so nothing is reused from it (a typo?)")
     for env in spec.envs:
         try:
             make_spec(env)
         except BadInput as exc:
-            raise BadInput(f"{path}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
+            raise BadInput(f"{_origin(path, overrides, 'envs')}: envs: {exc.message}",
+                           hint="`cdrb envs` lists them") from None  # fmt: skip
     for m in spec.methods:
-        METHODS.get(m, f"{path}: methods")
+        METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
     # settings may name envs and methods the grid does not run (one settings table for several grids), but every
     # name must exist: a typo would silently apply nothing
     for i, s in enumerate(spec.settings):
@@ -438,6 +463,14 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             )
         if len(set(spec.snapshot_at)) != len(spec.snapshot_at):
             raise BadInput(f"{path}: snapshot_at: list each step once", hint="remove the repeats")
+        _check_snapshot_steps(spec, _origin(path, overrides, "snapshot_at"))
+    if spec.eval_seeds is None and max(spec.seeds) + spec.eval_seed_offset > MAX_SEED:
+        where = _origin(path, overrides, "eval_seed_offset", "seeds")
+        raise BadInput(
+            f"{where}: eval_seed_offset {spec.eval_seed_offset}: training seed {max(spec.seeds)} plus it is past "
+            f"the largest seed ({MAX_SEED})",
+            hint="use smaller seeds or a smaller offset",
+        )
     runs = len(spec.envs) * len(spec.methods) * len(spec.seeds) * max(1, len(spec.variants))
     if runs * (2 + len(spec.snapshot_at)) > MAX_TASKS:
         raise BadInput(
@@ -450,6 +483,41 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
         )
     return spec
+
+
+def _checkpoint_every(spec: GridSpec, env: str, method: str, variant: Variant) -> int | None:
+    """How often a training of ``method`` checkpoints (its preset's value, the method's own, or the last
+    ``--set checkpoint_every=N`` of its flags); None when a ``--config`` file may set it."""
+    from cdrb_cli.methods.registry import METHODS
+    from cdrb_cli.presets import TRAIN
+
+    flags = flags_for(spec, env, method, variant)[0]
+    if any(f == "--config" or f.startswith("--config=") for f in flags):
+        return None
+    every = METHODS.get(method).train_defaults.get(spec.preset, {}).get("checkpoint_every")
+    every = every or TRAIN[spec.preset]["checkpoint_every"]
+    for f, value in zip(flags, flags[1:]):
+        key, _, v = value.partition("=")
+        if f == "--set" and key.strip() == "checkpoint_every" and v.strip().isdigit() and int(v) > 0:
+            every = int(v)
+    return every
+
+
+def _check_snapshot_steps(spec: GridSpec, path: Path | str) -> None:
+    """Every snapshot step on each training's loss curve (a multiple of gcd(50, checkpoint_every), the rule of
+    `cdrb train --snapshot-at`), so a grid that would fail in every training fails when it is read."""
+    for env in spec.envs:
+        for method in spec.methods:
+            for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
+                every = _checkpoint_every(spec, env, method, v)
+                step = math.gcd(50, every) if every else 1
+                bad = [s for s in spec.snapshot_at if s % step]
+                if bad:
+                    raise BadInput(
+                        f"{path}: snapshot_at: {bad[0]} is not a multiple of {step}, where {method}'s training "
+                        f"records its model (every gcd(50, checkpoint_every) steps)",
+                        hint=f"use multiples of {step}, or set checkpoint_every for {method} in its train flags",
+                    )
 
 
 # ------------------------------------------------------------------------------------------------ the stage graph
@@ -610,6 +678,8 @@ def _link_flag_files(tasks: list[Task]) -> None:
 #: what it makes (a training's length is matched apart: a snapshot at S steps is the model a run of S steps writes)
 _UNKEYED = ("out", "device", "steps", "snapshot_at", "force", "resume", "as_json", "plot", "video", "videos", "workers")
 _REUSABLE = ("collect", "cluster", "train")
+#: what says where an eval writes, on what hardware, and what more it keeps: not part of what it measures
+_UNMEASURED = ("out", "device", "force", "as_json", "plans", "video", "videos", "replan_plot", "plot")
 
 
 @functools.cache
@@ -646,22 +716,13 @@ def _regular_sha(path: str, cache: dict) -> str | None:
         return None
 
 
-def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tuple[str, str | None, list[str]]:
-    """What a collect/cluster/train command makes, independent of where and of how its flags are spelled: (its
-    arguments and options, the last value of each winning as on the command line, its ``--set``s with each one
-    overridden later by the same key dropped (sorted unless one key lies inside another), every file written by a
-    task replaced by the key of the command that wrote it and every other file by its sha256, without the
-    :data:`_UNKEYED` options; its ``--steps``; its ``--snapshot-at`` steps)."""
+def parse_command(argv: list[str], file_key=str) -> tuple[list[str], dict[str, object], list[tuple[str, str]]]:
+    """A command line as what it asks for, independent of how its flags are spelled: (its arguments, its options by
+    parameter name with the last value winning as on the command line, its ``--set``s with each one overridden later
+    by the same key dropped, sorted unless one key lies inside another). Every argument and option value goes
+    through ``file_key`` (a file's stand-in: its sha256, the task that wrote it, its name)."""
     table = _option_table(argv[0])
     positional, options, sets, i = [], {}, [], 1
-
-    def file_key(value: str) -> str:
-        real = _real(value)
-        if real in written_by:
-            return written_by[real]
-        sha = _regular_sha(real, cache)
-        return f"sha256:{sha}" if sha else value
-
     while i < len(argv):
         token = argv[i]
         name, eq, inline = token.partition("=")
@@ -684,11 +745,56 @@ def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tu
     sets = [kv for j, kv in enumerate(sets) if all(kv[0] != later[0] for later in sets[j + 1 :])]
     if not any(_nested(a, b) for j, (a, _) in enumerate(sets) for b, _ in sets[j + 1 :]):
         sets.sort()
+    return positional, options, sets
+
+
+def file_sha(path: str | Path, cache: dict) -> str | None:
+    """The sha256 of the regular file at ``path`` (links resolved), else None; ``cache`` is the grid's."""
+    return _regular_sha(_real(path), cache)
+
+
+def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tuple[str, str | None, list[str]]:
+    """What a collect/cluster/train command makes, independent of where and of how its flags are spelled
+    (:func:`parse_command`, every file written by a task replaced by the key of the command that wrote it and every
+    other file by its sha256, without the :data:`_UNKEYED` options); its ``--steps``; its ``--snapshot-at``
+    steps."""
+
+    def file_key(value: str) -> str:
+        real = _real(value)
+        if real in written_by:
+            return written_by[real]
+        sha = _regular_sha(real, cache)
+        return f"sha256:{sha}" if sha else value
+
+    positional, options, sets = parse_command(argv, file_key)
     steps = options.get("steps")
     snaps = [v.strip() for v in str(options.get("snapshot_at", "")).split(",") if v.strip()]
     kept = {k: v for k, v in options.items() if k not in _UNKEYED}
     key = json.dumps([argv[0], positional, sorted(kept.items()), sets], default=str)
     return key, None if steps is None else str(steps), snaps
+
+
+def measure_difference(made: list[str], wanted: list[str]) -> str | None:
+    """How the command that made an eval (``made``, as its manifest records it) differs in what it measures from the
+    command a grid's task runs (``wanted``), or None: files are compared by name (evals are read on machines other
+    than the one that ran them), and options that only say where the output goes, on what device, or what more it
+    keeps (plans, videos) do not count."""
+    parsed = [parse_command(argv, lambda v: Path(v).name if os.sep in v else v) for argv in (made, wanted)]
+    (pos_a, opt_a, sets_a), (pos_b, opt_b, sets_b) = parsed
+    if made[:1] != wanted[:1]:
+        return f"it was made by `cdrb {made[0] if made else ''}`, not `cdrb {wanted[0]}`"
+    if pos_a != pos_b:
+        return f"it reads {' '.join(map(str, pos_a))}, the grid's task {' '.join(map(str, pos_b))}"
+    for name in sorted(set(opt_a) | set(opt_b)):
+        if name in _UNMEASURED:
+            continue
+        a, b = opt_a.get(name), opt_b.get(name)
+        if a != b:
+            flag = "--" + name.replace("_", "-")
+            return f"{flag} {'(not given)' if a is None else a} there, {'(not given)' if b is None else b} in the grid"
+    if sets_a != sets_b:
+        return f"--set {sets_a} there, {sets_b} in the grid"
+    return None
 
 
 def _nested(a: str, b: str) -> bool:

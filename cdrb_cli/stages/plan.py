@@ -345,6 +345,16 @@ def load_planner(model, device="cpu", ema: bool = True) -> Planner:
     return load_method(model, device=device, ema=ema)
 
 
+def check_sample_steps(model, sample_steps: int | None) -> None:
+    """Refuse more denoising steps than the model's T (fewer than all is what ``--sample-steps`` is for)."""
+    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
+    if sample_steps is not None and steps is not None and sample_steps > steps:
+        raise BadInput(
+            f"--sample-steps {sample_steps}: the model has T = {steps} diffusion steps, so at most {steps}",
+            hint=f"use --sample-steps {steps} (all of them) or fewer",
+        )
+
+
 def make_plans(
     model,
     starts,
@@ -359,6 +369,7 @@ def make_plans(
     """`cdrb plan`: plans for every (start, goal) pair in ``spec``'s scene (default: the model's), written to
     ``out``; ``route_buffer``: the buffer artifact of ``config.avoid.route_buffer`` (a parent of the plans)."""
     spec = spec or model.manifest.env
+    check_sample_steps(model, config.sample_steps)
     method = load_planner(model, device=device, ema=config.use_ema)
     METHODS.get(method.name).check_sampler(config.sampler)
     avoid = prepare_planner(method, spec, config.avoid, route_buffer)

@@ -546,18 +546,23 @@ def _pm(mean, std, seeds: int = 2) -> str:
     return f"{mean:.2f} ± {std:.2f}" if seeds > 1 else f"{mean:.2f} ± n/a"
 
 
+def with_plans(evals) -> list:
+    """The evals that :func:`plot_side_by_side` draws (those holding plans, of one environment), or why not."""
+    evals = [ev for ev in evals if "plans" in ev.arrays]
+    if not evals:
+        raise BadInput("--plans-plot: none of the eval files holds plans", hint="run `cdrb eval` without --no-plans")
+    envs = list(dict.fromkeys(ev.manifest.env.id for ev in evals))
+    if len(envs) > 1:
+        raise BadInput("--plans-plot needs evals of a single environment", hint=f"got {', '.join(envs)}")
+    return evals
+
+
 def plot_side_by_side(evals, path, n: int = 12) -> Path:
     """The plans of every method for the same start/goal pairs (the first ``n`` episodes of the first seed)."""
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, plan_legend, pyplot, save_figure, set_title
 
-    evals = [ev for ev in evals if "plans" in ev.arrays]
-    if not evals:
-        raise BadInput("none of the eval files holds plans", hint="run `cdrb eval` without --no-plans")
-    envs = list(dict.fromkeys(ev.manifest.env.id for ev in evals))
-    if len(envs) > 1:
-        raise BadInput("--plans-plot needs evals of a single environment", hint=f"got {', '.join(envs)}")
-    evals = sorted(evals, key=lambda ev: _rank(method_label(ev)))
+    evals = sorted(with_plans(evals), key=lambda ev: _rank(method_label(ev)))
     plt = pyplot()
     fig, axes = plt.subplots(1, len(evals), figsize=(4.6 * len(evals), 4.8), squeeze=False)
     for ax, ev in zip(axes[0], evals):

@@ -10,7 +10,6 @@ variant's, and the chosen training length) are written as ``[[settings]]`` of a 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from datetime import date
 from pathlib import Path
@@ -63,9 +62,11 @@ def candidates(spec: GridSpec) -> list[Candidate]:
     order = {v.name: i for i, v in enumerate(spec.variants or [BASE])}
     found: dict[tuple, Candidate] = {}
     missing = []
+    by_output = {}
     for task in expand(spec):
         if task.kind != "eval":
             continue
+        by_output[task.outputs[0]] = task
         m = task.meta
         if m["stream"] != "tune":
             raise BadInput(
@@ -82,7 +83,7 @@ def candidates(spec: GridSpec) -> list[Candidate]:
             hint="run `cdrb grid` on the same file (with the same --set/--include) first",
         )
     for cand in found.values():
-        evals = [artifacts.load(p, "eval") for p in cand.evals]
+        evals = [_checked_eval(spec, by_output[p], p) for p in cand.evals]
         cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
         cand.success_std = std_or_none(r["success"] for r in cand.models)
         per = [r for ev in evals for r in per_seed(ev)]
@@ -92,6 +93,28 @@ def candidates(spec: GridSpec) -> list[Candidate]:
         cand.crossing = None if crossing is None else 100 * crossing
         cand.collision = 100 * mean_or_none(r.executed_collision_rate for r in per)
     return list(found.values())
+
+
+def _checked_eval(spec: GridSpec, task, path: Path):
+    """The eval artifact at a task's output, refused unless it is what the task measures: the same command but for
+    where files lie (:func:`grid.measure_difference`), and, where the model it evaluated is here, that same model
+    (not one trained again since)."""
+    from cdrb_cli.stages.grid import file_sha, measure_difference
+
+    ev = artifacts.load(path, "eval")
+    hint = "move it away and run `cdrb grid` on the same file (with the same --set/--include) to measure it again"
+    made = list(ev.manifest.argv[1:])
+    while made and made[0].startswith("-"):  # cdrb's own options (-q, --debug) before the command
+        made.pop(0)
+    why = measure_difference(made, task.argv)
+    if why is not None:
+        raise BadInput(f"{path}: not this grid's eval ({task.id}): {why}", hint=hint)
+    model = task.inputs[0]
+    parent = next((p for p in ev.manifest.parents if p.kind == "model"), None)
+    here = file_sha(model, spec._shas)
+    if parent is not None and here is not None and parent.sha256 != here:
+        raise BadInput(f"{path}: evaluates an earlier {model.name} than the one in {model.parent}", hint=hint)
+    return ev
 
 
 def _model_scores(seed: int, per: list) -> dict:
@@ -187,8 +210,29 @@ def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str],
     return cluster, train, evaluate
 
 
+_TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def toml_string(text: str) -> str:
+    """``text`` as a TOML basic string: quote, backslash and control characters escaped, everything else (any
+    Unicode scalar value, emoji included) written as it is. A lone surrogate (a file name that was not valid UTF-8)
+    has no TOML form: refused."""
+    out = []
+    for ch in text:
+        code = ord(ch)
+        if ch in _TOML_ESCAPES:
+            out.append(_TOML_ESCAPES[ch])
+        elif code < 0x20 or code == 0x7F:
+            out.append(f"\\u{code:04x}")
+        elif 0xD800 <= code <= 0xDFFF:
+            raise BadInput(f"{text!r}: not valid Unicode, so a settings file cannot hold it", hint="rename it")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def _toml_list(items: list[str]) -> str:
-    return "[" + ", ".join(json.dumps(x) for x in items) + "]"
+    return "[" + ", ".join(toml_string(x) for x in items) + "]"
 
 
 def relative_files(flags: list[str], folder: Path) -> list[str]:
@@ -218,10 +262,10 @@ def settings_text(
         "# Written by `cdrb select`: the settings chosen on the tuning stream, one entry per env x method.",
         "# Test grids `include` this file; re-run `cdrb select` rather than editing it.",
         "[meta]",
-        f"rule = {json.dumps(RULE)}",
-        f"tuning_grid = {json.dumps(str(grid_file))}",
-        f"stream = {json.dumps('tune, seeds ' + seeds)}",
-        f"written = {json.dumps(date.today().isoformat())}",
+        f"rule = {toml_string(RULE)}",
+        f"tuning_grid = {toml_string(str(grid_file))}",
+        f"stream = {toml_string('tune, seeds ' + seeds)}",
+        f"written = {toml_string(date.today().isoformat())}",
         "",
     ]
     for (env, method), cand in best.items():
@@ -230,9 +274,9 @@ def settings_text(
             cluster, train, evaluate = (relative_files(f, folder) for f in (cluster, train, evaluate))
         lines += [
             "[[settings]]",
-            f"env = {json.dumps(env)}",
-            f"method = {json.dumps(method)}",
-            f"chosen = {json.dumps(cand.name)}",
+            f"env = {toml_string(env)}",
+            f"method = {toml_string(method)}",
+            f"chosen = {toml_string(cand.name)}",
             *([f"cluster = {_toml_list(cluster)}"] if cluster else []),
             f"train = {_toml_list(train)}",
             f"eval = {_toml_list(evaluate)}",

@@ -67,11 +67,18 @@ def check_snapshots(config: TrainConfig, steps: Sequence[int]) -> list[int]:
     """Snapshot steps, validated: below ``steps`` and on the loss curve (multiples of :func:`log_interval`), so
     that each snapshot is exactly the model a run of that many steps writes."""
     every = log_interval(config)
+    fits = every * max(1, config.steps // (4 * every))
+    hint = (
+        f"e.g. --snapshot-at {fits}"
+        if fits < config.steps
+        else f"train longer than {every} steps, or --set checkpoint_every=N for snapshots every gcd(50, N) steps"
+    )
     for s in steps:
         if not 0 < s < config.steps or s % every:
             raise BadInput(
-                f"--snapshot-at {s}: must be below --steps ({config.steps}) and a multiple of {every}",
-                hint=f"e.g. --snapshot-at {every * max(1, config.steps // (4 * every))}",
+                f"--snapshot-at {s}: must be below --steps ({config.steps}) and a multiple of {every} (snapshots "
+                f"fall every gcd(50, checkpoint_every) steps)",
+                hint=hint,
             )
     return sorted(set(steps))
 
