@@ -209,23 +209,11 @@ def _int_list(text: str, flag: str) -> list[int]:
 PICTURES = (".png", ".pdf", ".svg")
 
 
-def distinct_outputs(**outputs: Path | None) -> None:
-    """Refuse two output flags (``out=..., table=...``; None: not given) that name the same file, before any work."""
-    seen: dict[Path, str] = {}
-    for name, path in outputs.items():
-        if path is None:
-            continue
-        flag = "--" + name.replace("_", "-")
-        key = Path(path).resolve()
-        if key in seen:
-            raise BadInput(f"{flag} {path}: the same file as {seen[key]}", hint="give each output its own path")
-        seen[key] = flag
-
-
 def _check_outputs(force: bool, inputs=(), **outputs: Path | None) -> None:
     """Every output path of a command (``out=..., plot=...``), before any work: the rule of
     :func:`cdrb_cli.artifacts.check_output`, pictures with a picture suffix, and no two outputs the same."""
     from cdrb_cli.artifacts import check_output
+    from cdrb_cli.artifacts.outputs import distinct_outputs
 
     distinct_outputs(**outputs)
     for name, path in outputs.items():
@@ -1328,7 +1316,9 @@ def report(
         raise BadInput(f"--docs {docs}: no such file", hint="name an existing markdown file with the marked block")
     if paper_figures is not None and not paper:
         raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
-    distinct_outputs(docs=docs, out=out, plot=plot, plans_plot=plans_plot)
+    from cdrb_cli.artifacts.outputs import distinct_outputs
+
+    distinct_outputs(docs=docs, out=out, plot=plot, plans_plot=plans_plot)  # --docs is rewritten, not created
     _check_outputs(force, evals, out=out, plot=plot, plans_plot=plans_plot)
     if out is not None:
         from cdrb_cli.artifacts import check_output
@@ -1471,7 +1461,6 @@ def select(
     steps. Prints the path of the settings file."""
     from cdrb_cli.stages.select import select as run_select
 
-    distinct_outputs(out=out, table=table, curves=curves)
     ui.emit(run_select(grid_file, out, force=force, table=table, curves=curves, overrides=overrides, includes=includes))
 
 
@@ -1522,7 +1511,7 @@ def grid(
     if dry_run:
         import shlex
 
-        if as_json:  # one object per task: what it is, its command, what it writes and reads
+        if as_json:  # one object per task: what it is, its command, what it writes, the tasks it waits for
             rows = [
                 {
                     "id": t.id,

@@ -267,3 +267,24 @@ def type_name(tp: Any) -> str:
     if tp is type(None):
         return "null"
     return getattr(tp, "__name__", str(tp))
+
+
+_TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def toml_string(text: str) -> str:
+    """``text`` as a TOML basic string: quote, backslash and control characters escaped, everything else (any
+    Unicode scalar value, emoji included) written as it is. A lone surrogate (a file name that was not valid UTF-8)
+    has no TOML form: refused."""
+    out = []
+    for ch in text:
+        code = ord(ch)
+        if ch in _TOML_ESCAPES:
+            out.append(_TOML_ESCAPES[ch])
+        elif code < 0x20 or code == 0x7F:
+            out.append(f"\\u{code:04x}")
+        elif 0xD800 <= code <= 0xDFFF:
+            raise BadInput(f"{text!r}: not valid Unicode, so a settings file cannot hold it", hint="rename it")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'

@@ -146,7 +146,7 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     assert _cdrb(*again, "--out", tmp_path / "x.toml", cwd=tmp_path).returncode == 0
     shutil.copy(copy / "maze-tight" / "T64" / "cdrb-s0.h5", model)  # another model under its name
     r = _cdrb(*again, "--out", tmp_path / "y.toml", cwd=tmp_path, check=False)
-    assert r.returncode == 2 and "evaluates an earlier cdrb-s0.h5" in r.stderr and not (tmp_path / "y.toml").exists()
+    assert r.returncode == 2 and "evaluates another cdrb-s0.h5" in r.stderr and not (tmp_path / "y.toml").exists()
 
     rows = grid_select("mazes-clock", "mazes-clock.toml", "--set", "steps=20")
     assert {r["candidate"] for r in rows} == {
@@ -199,7 +199,7 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
 
 def test_settings_files_hold_any_name_as_valid_toml():
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.stages.select import toml_string
+    from cdrb_cli.settings import toml_string
 
     for text in ["plain", "tune 😀.toml", 'q"b\\c', "del\x7f nul\x00 nl\n tab\t", "é 中 \u2028", ""]:
         assert tomllib.loads(f"v = {toml_string(text)}")["v"] == text

@@ -435,3 +435,18 @@ def test_bookkeeping_settings_do_not_make_a_model_out_of_date(small_data, tmp_pa
     ).up_to_date
     other = artifacts.existing(model.path, "model", cfg.model_copy(update={"lr": 1e-2}), parents)
     assert other.status == "different" and "lr" in other.reason
+
+
+def test_a_buffer_of_one_point_gives_no_ball_radius_unless_one_is_set(small_data):
+    """CDRB's largest ball defaults to the buffer's diameter: a buffer whose states are one point gives none, which
+    is one line naming --buffer, and a radius set by the user is used instead."""
+    from cdrb_cli.methods.config import resolve_train_config
+    from cdrb_cli.methods.registry import BufferInfo
+    from cdrb_cli.settings import from_mapping
+
+    demos, _ = small_data
+    flat = BufferInfo(features="state", diameter=0.0)
+    with pytest.raises(BadInput, match=r"^--buffer: gives cdrb's method.d_max = 0.0"):
+        resolve_train_config(demos.manifest.env, flat, from_mapping({"method.name": "cdrb"}))
+    cfg = resolve_train_config(demos.manifest.env, flat, from_mapping({"method.name": "cdrb", "method.d_max": 1.5}))
+    assert cfg.method.d_max == 1.5

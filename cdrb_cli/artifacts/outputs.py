@@ -64,6 +64,19 @@ def check_output(
     return path
 
 
+def distinct_outputs(**outputs: Path | None) -> None:
+    """Refuse two output flags (``out=..., table=...``; None: not given) that name the same file, before any work."""
+    seen: dict[Path, str] = {}
+    for name, path in outputs.items():
+        if path is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        key = Path(path).resolve()
+        if key in seen:
+            raise BadInput(f"{flag} {path}: the same file as {seen[key]}", hint="give each output its own path")
+        seen[key] = flag
+
+
 def _check_writable(folder: Path, flag: str, path: Path) -> None:
     probe = folder / f".cdrb-probe-{os.getpid()}"
     try:

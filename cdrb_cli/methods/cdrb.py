@@ -26,7 +26,6 @@ import numpy as np
 from pydantic import Field
 
 from cdrb_cli.buffer import BallSampler, TorchBallSampler, radii
-from cdrb_cli.errors import BadInput
 from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import Planner, SampleResult, keep_schedule
 from cdrb_cli.methods.registry import METHODS, MethodEntry, StartWeightParams, start_weighted
@@ -206,18 +205,6 @@ class CDRB(Planner):
             return self._restore(x, start, goal, ks, rng, sampler or self.config.method.sampler, 0)
 
 
-def _d_max_default(spec, buffer) -> dict:
-    """The largest ball radius: the buffer's diameter (a buffer of one state has none to give)."""
-    if buffer is None:
-        return {}
-    if buffer.diameter <= 0:
-        raise BadInput(
-            "--buffer: holds a single state (diameter 0), so CDRB's balls have no radius to grow to",
-            hint="re-cluster with `cdrb cluster --k 2` or more",
-        )
-    return {"d_max": buffer.diameter}
-
-
 METHODS.register(
     MethodEntry(
         params=CDRBParams,
@@ -227,7 +214,7 @@ METHODS.register(
             "quick": {"diffusion_steps": 32, "loss_weight_power": 1.0},
             "paper": {"diffusion_steps": 128, "loss_weight_power": 0.0},
         },
-        data_defaults=_d_max_default,
+        data_defaults=lambda spec, buffer: {"d_max": buffer.diameter} if buffer is not None else {},
         description="cold diffusion through the replay buffer (the paper's method)",
     )
 )

@@ -55,7 +55,6 @@ def defaults(entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: B
     if entry.data_defaults is not None:
         method.update(entry.data_defaults(spec, buffer))
     return {
-        **TRAIN[preset],
         "method": method,
         "net": {"kind": net, **NETS[preset][net]},
         "preset": preset,
@@ -63,8 +62,14 @@ def defaults(entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: B
         "horizon": spec.horizon,
         "stride": spec.plan_stride,
         "seed": seed,
-        **entry.train_defaults.get(preset, {}),
+        **preset_training(entry, preset),
     }
+
+
+def preset_training(entry: MethodEntry, preset: str) -> dict:
+    """The training values (steps, batch, lr, EMA, checkpoints) a preset gives this method: the preset's, then
+    the method's own for that preset (e.g. the straight line's 50 steps)."""
+    return {**TRAIN[preset], **entry.train_defaults.get(preset, {})}
 
 
 def _check_keys(settings: Sequence[Setting]) -> None:
@@ -94,7 +99,14 @@ def resolve_train_config(
             f"{s_feat.source}: the buffer was clustered on {buffer.features!r} features",
             hint="omit it, or re-cluster with the same --features",
         )
-    config = validate(TrainConfig, apply(defaults(entry, preset, net, spec, buffer, seed), settings), settings, "train")
+    given = defaults(entry, preset, net, spec, buffer, seed)
+    for key, value in (entry.data_defaults(spec, buffer) if entry.data_defaults is not None else {}).items():
+        if isinstance(value, (int, float)) and value <= 0 and lookup(settings, ("method", key)) is None:
+            raise BadInput(
+                f"--buffer: gives {entry.name}'s method.{key} = {value} (its states are all one point)",
+                hint=f"re-cluster with `cdrb cluster --k 2` or more, or --set method.{key}=VALUE",
+            )
+    config = validate(TrainConfig, apply(given, settings), settings, "train")
     _check_net(config, settings)
     return config
 

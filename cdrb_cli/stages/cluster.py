@@ -25,7 +25,7 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
     if train_rows.size == 0:
         raise BadInput(
             f"{demos.path}: no train episodes (the normalizer, shared with `cdrb train`, is fitted on them)",
-            hint="collect more episodes, or with a smaller --valid-fraction",
+            hint="collect more episodes, or collect with a smaller --valid-fraction",
         )
     norm = Normalizer.fit(feats[train_rows])
     z = norm.normalize(feats[rows])
@@ -41,17 +41,18 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
         else:
             keep, inertia = kmeans_buffer(z, config.k, seed=config.seed, n_init=config.n_init, max_iter=config.max_iter)
     points = z[keep].astype(np.float32)
-    if diameter(points) <= 0:
+    extent = diameter(points)
+    if extent <= 0:
         raise BadInput(
-            f"--k {config.k}: the buffer of {demos.path} would hold a single state (diameter 0), and CDRB's balls "
-            f"grow up to the buffer's diameter",
+            f"--k {config.k}: every state of the buffer of {demos.path} would be the same point (diameter 0), and "
+            f"CDRB's balls grow up to the buffer's diameter",
             hint="use --k 2 or more, on demos that visit more than one state",
         )
     summary = ClusterSummary(
         points=int(len(points)),
         source_states=int(len(rows)),
         feature_dim=int(points.shape[1]),
-        diameter=round(diameter(points), 6),
+        diameter=round(extent, 6),
         inertia=inertia,
         wall_time_s=round(time.time() - t0, 3),
     )

@@ -91,10 +91,14 @@ def collect_config(
     return config
 
 
+def held_out(episodes: int, valid_fraction: float) -> int:
+    """How many of ``episodes`` the split holds out for validation."""
+    return int(round(valid_fraction * episodes))
+
+
 def check_split(episodes: int, valid_fraction: float) -> None:
     """Refuse a split that leaves no training episode (training and the buffer's normalizer read only those)."""
-    held_out = int(round(valid_fraction * episodes))
-    if held_out >= episodes:
+    if held_out(episodes, valid_fraction) >= episodes:
         raise BadInput(
             f"--valid-fraction {valid_fraction}: holds out all {episodes} episodes, none is left to train on",
             hint="collect more episodes or pass a smaller --valid-fraction",
@@ -221,7 +225,7 @@ def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions
     check_split(episodes, config.valid_fraction)
     split_rng = np.random.default_rng([seed, STREAM_COLLECT, 99])
     valid = np.zeros(episodes, dtype=bool)
-    valid[split_rng.permutation(episodes)[: int(round(config.valid_fraction * episodes))]] = True
+    valid[split_rng.permutation(episodes)[: held_out(episodes, config.valid_fraction)]] = True
     summary = CollectSummary(
         episodes=episodes,
         steps=int(lengths_arr.sum()),

@@ -23,7 +23,6 @@ import concurrent.futures as cf
 import functools
 import hashlib
 import json
-import math
 import os
 import re
 import signal
@@ -354,7 +353,8 @@ def parse_override(text: str) -> tuple[str, object]:
 
 
 def _origin(path: Path, overrides: list[str], *keys) -> str:
-    """Where a top-level key's value came from: the last ``--set`` of one of ``keys``, else the grid file."""
+    """Where a top-level key's value came from: the ``--set`` of the first of ``keys`` that was set (each key's
+    last ``--set``), else the grid file."""
     given = {parse_override(t)[0]: t for t in overrides}
     for key in keys:
         if key in given:
@@ -407,7 +407,8 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     spec.out = cwd_out or (path.parent / spec.out).resolve()
     spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
     if spec.out in spec.reuse:
-        raise BadInput(f"{path}: reuse: names the grid's own `out` folder", hint="list other grids' `out` folders")
+        raise BadInput(f"{_origin(path, overrides, 'reuse', 'out')}: reuse: names the grid's own `out` folder",
+                       hint="list other grids' `out` folders")  # fmt: skip
     for folder in spec.reuse:
         if folder.exists() and not folder.is_dir():
             raise BadInput(
@@ -454,15 +455,18 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
                     f"{path}: variant {v.name}: envs: {exc.message}", hint="`cdrb envs` lists them"
                 ) from None
     if any(len(set(v)) != len(v) for v in (spec.seeds, spec.envs, spec.methods)):
-        raise BadInput(f"{path}: envs, methods and seeds must each be listed once", hint="remove the repeats")
+        raise BadInput(f"{_origin(path, overrides, 'envs', 'methods', 'seeds')}: envs, methods and seeds must each "
+                       "be listed once", hint="remove the repeats")  # fmt: skip
     if spec.snapshot_at:
         if spec.steps is None or any(s <= 0 or s >= spec.steps for s in spec.snapshot_at):
             raise BadInput(
-                f"{path}: snapshot_at: every snapshot must lie between 0 and `steps` (the final model)",
+                f"{_origin(path, overrides, 'snapshot_at', 'steps')}: snapshot_at: every snapshot must lie between 0 "
+                "and `steps` (the final model)",
                 hint="set steps to the curve's last point and list the earlier ones in snapshot_at",
             )
         if len(set(spec.snapshot_at)) != len(spec.snapshot_at):
-            raise BadInput(f"{path}: snapshot_at: list each step once", hint="remove the repeats")
+            raise BadInput(f"{_origin(path, overrides, 'snapshot_at')}: snapshot_at: list each step once",
+                           hint="remove the repeats")  # fmt: skip
         _check_snapshot_steps(spec, _origin(path, overrides, "snapshot_at"))
     if spec.eval_seeds is None and max(spec.seeds) + spec.eval_seed_offset > MAX_SEED:
         where = _origin(path, overrides, "eval_seed_offset", "seeds")
@@ -479,44 +483,46 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         )
     if spec.report and spec.eval_seeds is not None and len(spec.seeds) > 1:
         raise BadInput(
-            f"{path}: eval_seeds with several training seeds: a report would pool the same evaluation seeds twice",
+            f"{_origin(path, overrides, 'eval_seeds', 'seeds', 'report')}: eval_seeds with several training seeds: "
+            "a report would pool the same evaluation seeds twice",
             hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
         )
     return spec
 
 
-def _checkpoint_every(spec: GridSpec, env: str, method: str, variant: Variant) -> int | None:
-    """How often a training of ``method`` checkpoints (its preset's value, the method's own, or the last
-    ``--set checkpoint_every=N`` of its flags); None when a ``--config`` file may set it."""
+def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> int | None:
+    """Where ``method``'s training in ``variant`` records its model (:func:`train.snapshot_step` of its
+    checkpoint_every: the preset's, the method's own, or its train flags' last ``--set checkpoint_every=N``); None
+    when a ``--config`` file may set it or the value is not a positive integer (`cdrb train` then says so)."""
+    from cdrb_cli.methods.config import preset_training
     from cdrb_cli.methods.registry import METHODS
-    from cdrb_cli.presets import TRAIN
+    from cdrb_cli.presets import PRESETS
+    from cdrb_cli.stages.train import snapshot_step
 
-    flags = flags_for(spec, env, method, variant)[0]
-    if any(f == "--config" or f.startswith("--config=") for f in flags):
+    _, options, sets = parse_command(["train", *flags_for(spec, env, method, variant)[0]])
+    if options.get("config_file") is not None:
         return None
-    every = METHODS.get(method).train_defaults.get(spec.preset, {}).get("checkpoint_every")
-    every = every or TRAIN[spec.preset]["checkpoint_every"]
-    for f, value in zip(flags, flags[1:]):
-        key, _, v = value.partition("=")
-        if f == "--set" and key.strip() == "checkpoint_every" and v.strip().isdigit() and int(v) > 0:
-            every = int(v)
-    return every
+    preset = str(options.get("preset") or spec.preset)
+    if preset not in PRESETS:
+        return None
+    every = str(dict(sets).get("checkpoint_every", preset_training(METHODS.get(method), preset)["checkpoint_every"]))
+    return snapshot_step(int(every)) if every.isascii() and every.isdigit() and int(every) > 0 else None
 
 
-def _check_snapshot_steps(spec: GridSpec, path: Path | str) -> None:
-    """Every snapshot step on each training's loss curve (a multiple of gcd(50, checkpoint_every), the rule of
-    `cdrb train --snapshot-at`), so a grid that would fail in every training fails when it is read."""
+def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:
+    """Every snapshot step on each training's loss curve (the rule of `cdrb train --snapshot-at`), so a grid that
+    would fail in every training fails when it is read; ``origin`` names where snapshot_at came from."""
     for env in spec.envs:
         for method in spec.methods:
             for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
-                every = _checkpoint_every(spec, env, method, v)
-                step = math.gcd(50, every) if every else 1
-                bad = [s for s in spec.snapshot_at if s % step]
+                step = _snapshot_step(spec, env, method, v)
+                bad = [s for s in spec.snapshot_at if step and s % step]
                 if bad:
+                    where = f"{method}'s training" + (f" in variant {v.name}" if v.name else "")
                     raise BadInput(
-                        f"{path}: snapshot_at: {bad[0]} is not a multiple of {step}, where {method}'s training "
-                        f"records its model (every gcd(50, checkpoint_every) steps)",
-                        hint=f"use multiples of {step}, or set checkpoint_every for {method} in its train flags",
+                        f"{origin}: snapshot_at: {bad[0]} is not a multiple of {step}, where {where} records its "
+                        f"model (every gcd(50, checkpoint_every) steps)",
+                        hint=f"use multiples of {step}, or set checkpoint_every in {method}'s train flags",
                     )
 
 
@@ -679,7 +685,7 @@ def _link_flag_files(tasks: list[Task]) -> None:
 _UNKEYED = ("out", "device", "steps", "snapshot_at", "force", "resume", "as_json", "plot", "video", "videos", "workers")
 _REUSABLE = ("collect", "cluster", "train")
 #: what says where an eval writes, on what hardware, and what more it keeps: not part of what it measures
-_UNMEASURED = ("out", "device", "force", "as_json", "plans", "video", "videos", "replan_plot", "plot")
+_UNMEASURED = ("out", "device", "force", "as_json", "keep_plans", "video", "videos", "replan_plot", "plot")
 
 
 @functools.cache
@@ -779,21 +785,30 @@ def measure_difference(made: list[str], wanted: list[str]) -> str | None:
     command a grid's task runs (``wanted``), or None: files are compared by name (evals are read on machines other
     than the one that ran them), and options that only say where the output goes, on what device, or what more it
     keeps (plans, videos) do not count."""
-    parsed = [parse_command(argv, lambda v: Path(v).name if os.sep in v else v) for argv in (made, wanted)]
-    (pos_a, opt_a, sets_a), (pos_b, opt_b, sets_b) = parsed
-    if made[:1] != wanted[:1]:
-        return f"it was made by `cdrb {made[0] if made else ''}`, not `cdrb {wanted[0]}`"
+    if not made or made[0] != wanted[0]:
+        what = f"`cdrb {clip(made[0], 40)}`" if made else "no cdrb command"
+        return f"it records {what}, not `cdrb {wanted[0]}`"
+    spelled = {}  # parameter name -> the option as the help spells it
+    for option, (pname, _, _) in reversed(list(_option_table(wanted[0]).items())):
+        if option.startswith("--"):
+            spelled[pname] = option
+    (pos_a, opt_a, sets_a), (pos_b, opt_b, sets_b) = (
+        parse_command(argv, lambda v: Path(v).name if os.sep in v else v) for argv in (made, wanted)
+    )
     if pos_a != pos_b:
-        return f"it reads {' '.join(map(str, pos_a))}, the grid's task {' '.join(map(str, pos_b))}"
+        return f"it reads {clip(' '.join(pos_a) or '(nothing)', 80)}, the grid's task {' '.join(pos_b)}"
     for name in sorted(set(opt_a) | set(opt_b)):
-        if name in _UNMEASURED:
-            continue
         a, b = opt_a.get(name), opt_b.get(name)
+        if name not in _UNMEASURED and a != b:
+            shown = ["(not given)" if v is None else clip(str(v), 40) for v in (a, b)]
+            return f"{spelled.get(name, name)} {shown[0]} there, {shown[1]} in the grid"
+    for key in sorted({k for k, _ in sets_a} | {k for k, _ in sets_b}):
+        a, b = dict(sets_a).get(key), dict(sets_b).get(key)
         if a != b:
-            flag = "--" + name.replace("_", "-")
-            return f"{flag} {'(not given)' if a is None else a} there, {'(not given)' if b is None else b} in the grid"
+            shown = ["(not set)" if v is None else f"{key}={clip(v, 40)}" for v in (a, b)]
+            return f"--set {clip(shown[0], 60)} there, {shown[1]} in the grid"
     if sets_a != sets_b:
-        return f"--set {sets_a} there, {sets_b} in the grid"
+        return "its --set values come in another order"
     return None
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import toml_string
 from cdrb_cli.stages.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
 from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
@@ -98,22 +99,29 @@ def candidates(spec: GridSpec) -> list[Candidate]:
 def _checked_eval(spec: GridSpec, task, path: Path):
     """The eval artifact at a task's output, refused unless it is what the task measures: the same command but for
     where files lie (:func:`grid.measure_difference`), and, where the model it evaluated is here, that same model
-    (not one trained again since)."""
+    (the same bytes or, as every stage judges an input, the same data)."""
     from cdrb_cli.stages.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
-    hint = "move it away and run `cdrb grid` on the same file (with the same --set/--include) to measure it again"
     made = list(ev.manifest.argv[1:])
     while made and made[0].startswith("-"):  # cdrb's own options (-q, --debug) before the command
         made.pop(0)
     why = measure_difference(made, task.argv)
     if why is not None:
-        raise BadInput(f"{path}: not this grid's eval ({task.id}): {why}", hint=hint)
+        raise BadInput(
+            f"{path}: not this grid's eval ({task.id}): {why}",
+            hint="run `cdrb select` with the --set/--include the grid ran with; if they are the same, the grid "
+            "measures this eval again once it is moved away",
+        )
     model = task.inputs[0]
     parent = next((p for p in ev.manifest.parents if p.kind == "model"), None)
     here = file_sha(model, spec._shas)
     if parent is not None and here is not None and parent.sha256 != here:
-        raise BadInput(f"{path}: evaluates an earlier {model.name} than the one in {model.parent}", hint=hint)
+        if not artifacts.same_inputs([parent], [artifacts.load(model, "model")]):
+            raise BadInput(
+                f"{path}: evaluates another {model.name} than the one in {model.parent}",
+                hint="run `cdrb grid` on the same file (same --set/--include): it measures the model there again",
+            )
     return ev
 
 
@@ -210,27 +218,6 @@ def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str],
     return cluster, train, evaluate
 
 
-_TOML_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
-
-
-def toml_string(text: str) -> str:
-    """``text`` as a TOML basic string: quote, backslash and control characters escaped, everything else (any
-    Unicode scalar value, emoji included) written as it is. A lone surrogate (a file name that was not valid UTF-8)
-    has no TOML form: refused."""
-    out = []
-    for ch in text:
-        code = ord(ch)
-        if ch in _TOML_ESCAPES:
-            out.append(_TOML_ESCAPES[ch])
-        elif code < 0x20 or code == 0x7F:
-            out.append(f"\\u{code:04x}")
-        elif 0xD800 <= code <= 0xDFFF:
-            raise BadInput(f"{text!r}: not valid Unicode, so a settings file cannot hold it", hint="rename it")
-        else:
-            out.append(ch)
-    return '"' + "".join(out) + '"'
-
-
 def _toml_list(items: list[str]) -> str:
     return "[" + ", ".join(toml_string(x) for x in items) + "]"
 
@@ -325,8 +312,10 @@ def select(
     includes: list[Path] = (),
 ) -> Path:
     """Score the tuning grid's evals, choose by :data:`RULE`, write the settings file (and the candidates' table)."""
+    from cdrb_cli.artifacts.outputs import distinct_outputs
     from cdrb_cli.stages.grid import load_grid
 
+    distinct_outputs(out=out, table=table, curves=curves)
     spec = load_grid(grid_file, overrides, includes)
     inputs = [grid_file, *includes]
     artifacts.check_output(out, force, "--out", inputs)

@@ -9,7 +9,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cdrb_cli.settings import Setting, type_name
+from cdrb_cli.settings import Setting, toml_string, type_name
 
 #: shown for defaults `cdrb train` fills in from its inputs
 FROM_DATA = "(from the data)"
@@ -137,7 +137,7 @@ def _toml_value(v: Any) -> str:
         return repr(v)
     if isinstance(v, list):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return json.dumps(str(v))
+    return toml_string(str(v))
 
 
 def _toml(rows: list[Row]) -> str:

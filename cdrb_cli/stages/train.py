@@ -60,7 +60,13 @@ def snapshot_path(out: Path, step: int) -> Path:
 
 def log_interval(config: TrainConfig) -> int:
     """Steps between two points of the loss curve: every 50 steps, and at every checkpoint."""
-    return math.gcd(50, config.checkpoint_every)
+    return snapshot_step(config.checkpoint_every)
+
+
+def snapshot_step(checkpoint_every: int) -> int:
+    """Where a training records its model (``--snapshot-at`` steps are multiples of this): the points of its loss
+    curve, every 50 steps and at every checkpoint."""
+    return math.gcd(50, checkpoint_every)
 
 
 def check_snapshots(config: TrainConfig, steps: Sequence[int]) -> list[int]:
