@@ -13,6 +13,7 @@ registered plugin is a valid choice too. Training hyper-parameters come from the
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -27,7 +28,7 @@ try:  # typer >= 0.20 vendors click; older versions use the click package
 except ImportError:  # pragma: no cover
     from click import exceptions as click_exc
 
-from cdrb_cli import PROG, __version__, interrupts, ui
+from cdrb_cli import PROG, __version__, interrupts, provenance, ui
 from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, BadInput, CdrbError
 
 #: what `--help` shows for a value of each Python type typer names (a flag shows nothing)
@@ -1340,8 +1341,10 @@ def report(
     if plans_plot is not None:
         rep.with_plans(arts)
     if docs is not None:
+        from cdrb_cli.artifacts import check_output
         from cdrb_cli.artifacts.core import read_input_text
 
+        check_output(docs, True, "--docs", evals)  # rewritten in place, never one of the evals
         rep.replace_block(read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file"),
                           block, text, str(docs))  # fmt: skip
     if plot is not None:
@@ -1600,7 +1603,8 @@ def main(argv: list[str] | None = None) -> int:
     command = typer.main.get_command(app)
     restore_signals = interrupts.install()
     try:
-        code = command.main(args=args, prog_name=PROG, standalone_mode=False)
+        with provenance.running([PROG, *args]) if argv is not None else contextlib.nullcontext():
+            code = command.main(args=args, prog_name=PROG, standalone_mode=False)
         if code == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into a returned exit code 130
             _interrupted(args)
         return code if isinstance(code, int) else 0

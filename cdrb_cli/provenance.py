@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import datetime as _dt
 import functools
 import platform
 import subprocess
 import sys
+from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
 
@@ -72,8 +75,25 @@ def text(value) -> str:
     return str(value).encode("utf-8", "surrogateescape").decode("utf-8", "replace")
 
 
+#: the command line of a CLI run inside another program (``cli.main(argv)``), which ``sys.argv`` does not hold
+_COMMAND: contextvars.ContextVar[list[str] | None] = contextvars.ContextVar("cdrb_command", default=None)
+
+
+@contextlib.contextmanager
+def running(argv: list[str]) -> Iterator[None]:
+    """Record ``argv`` (program name first) as the command line of the artifacts written inside the block."""
+    token = _COMMAND.set(list(argv))
+    try:
+        yield
+    finally:
+        _COMMAND.reset(token)
+
+
 def command_line() -> list[str]:
-    argv = [text(a) for a in sys.argv]
+    """The command that is writing an artifact: the CLI's own arguments when run by ``cli.main(argv)``, else this
+    process's ``sys.argv`` (program name without its folder)."""
+    given = _COMMAND.get()
+    argv = [text(a) for a in (sys.argv if given is None else given)]
     if argv:
         argv[0] = Path(argv[0]).name
     return argv
