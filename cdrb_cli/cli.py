@@ -218,7 +218,8 @@ def _check_outputs(force: bool, inputs=(), **outputs: Path | None) -> None:
 
     distinct_outputs(**outputs)
     for name, path in outputs.items():
-        if path is not None and name != "out":  # --out is checked (and locked) by the stage that writes it
+        # --out is checked (and locked) by the stage that writes it; --docs is rewritten in place, not created
+        if path is not None and name not in ("out", "docs"):
             check_output(Path(path), force, "--" + name.replace("_", "-"), inputs, suffixes=PICTURES)
 
 
@@ -1317,10 +1318,7 @@ def report(
         raise BadInput(f"--docs {docs}: no such file", hint="name an existing markdown file with the marked block")
     if paper_figures is not None and not paper:
         raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
-    from cdrb_cli.artifacts.outputs import distinct_outputs
-
-    distinct_outputs(docs=docs, out=out, plot=plot, plans_plot=plans_plot)  # --docs is rewritten, not created
-    _check_outputs(force, evals, out=out, plot=plot, plans_plot=plans_plot)
+    _check_outputs(force, evals, docs=docs, out=out, plot=plot, plans_plot=plans_plot)
     if out is not None:
         from cdrb_cli.artifacts import check_output
 
