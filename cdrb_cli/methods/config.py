@@ -49,11 +49,13 @@ def choose(settings: Sequence[Setting]) -> tuple[MethodEntry, str, str]:
     return entry, preset, net
 
 
-def defaults(entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: BufferInfo | None, seed: int) -> dict:
-    """The config a preset gives for this method, net, data and seed, before the user's settings."""
+def defaults(
+    entry: MethodEntry, preset: str, net: str, spec: EnvSpec, buffer: BufferInfo | None, seed: int, data: dict
+) -> dict:
+    """The config a preset gives for this method, net, data and seed, before the user's settings (``data``: the
+    method's values that depend on the data, from ``entry.data_defaults``)."""
     method = {"name": entry.name, **entry.presets.get(preset, {})}
-    if entry.data_defaults is not None:
-        method.update(entry.data_defaults(spec, buffer))
+    method.update(data)
     return {
         "method": method,
         "net": {"kind": net, **NETS[preset][net]},
@@ -99,13 +101,14 @@ def resolve_train_config(
             f"{s_feat.source}: the buffer was clustered on {buffer.features!r} features",
             hint="omit it, or re-cluster with the same --features",
         )
-    given = defaults(entry, preset, net, spec, buffer, seed)
-    for key, value in (entry.data_defaults(spec, buffer) if entry.data_defaults is not None else {}).items():
+    data = entry.data_defaults(spec, buffer) if entry.data_defaults is not None else {}
+    for key, value in data.items():
         if isinstance(value, (int, float)) and value <= 0 and lookup(settings, ("method", key)) is None:
             raise BadInput(
                 f"--buffer: gives {entry.name}'s method.{key} = {value} (its states are all one point)",
                 hint=f"re-cluster with `cdrb cluster --k 2` or more, or --set method.{key}=VALUE",
             )
+    given = defaults(entry, preset, net, spec, buffer, seed, data)
     config = validate(TrainConfig, apply(given, settings), settings, "train")
     _check_net(config, settings)
     return config
