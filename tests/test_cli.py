@@ -190,3 +190,54 @@ def test_default_threads_leave_the_busy_cores_alone(monkeypatch, load, expected)
     assert torch_utils.cpu_threads() == expected
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert torch_utils.cpu_threads() == 3
+
+
+def _documented_commands():
+    """Every `cdrb ...` command a user is shown: the fenced shell blocks of README.md and docs/, and the header of
+    every shipped experiment file (continuation lines joined; what follows a pipe, redirect or comment dropped)."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    for path in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        fenced = False
+        for line in path.read_text().replace("\\\n", " ").splitlines():
+            if line.startswith("```"):
+                fenced = not fenced
+            elif fenced and line.strip().removeprefix("$ ").startswith("cdrb "):
+                yield path.name, line.strip().removeprefix("$ ")
+    for path in sorted((root / "experiments").glob("*/*.toml")):
+        for line in path.read_text().replace("\\\n#", " ").splitlines():
+            found = re.match(r"#\s+(cdrb .*)", line)
+            if found:
+                yield path.name, found.group(1)
+
+
+def test_every_documented_command_parses():
+    """A command copied from the docs or an experiment file's header names a real command, real options and
+    values each option accepts (parsed by the CLI itself, not run)."""
+    import re
+    import shlex
+
+    import typer.main
+
+    from cdrb_cli.cli import app
+
+    cli = typer.main.get_command(app)
+    seen = 0
+    for where, text in _documented_commands():
+        text = re.split(r" #|\s\(| \| | > | 2> | && ", text)[0]
+        args = shlex.split(text)[1:]
+        while args and args[0].startswith("-"):  # cdrb's own options (-q, --debug)
+            args.pop(0)
+        cmd, name = cli, "cdrb"
+        while args and hasattr(cmd, "commands"):
+            assert args[0] in cmd.commands, (where, text)
+            cmd, name = cmd.commands[args[0]], args[0]
+            args = args[1:]
+        try:
+            cmd.make_context(name, args)
+        except Exception as e:  # typer's own click: its usage errors are not the `click` package's classes
+            raise AssertionError(f"{where}: `{text}`: {e}") from None
+        seen += 1
+    assert seen >= 50
