@@ -48,6 +48,14 @@ def test_the_rule_ranks_success_then_crossings_then_collisions_then_order_then_s
     assert "success" in RULE and "steps" in RULE
 
 
+def test_the_spread_between_training_seeds_needs_two_seeds():
+    from cdrb_cli.stages.select import seed_spread
+
+    assert seed_spread([{"success": 40.0}]) is None and seed_spread([]) is None
+    assert seed_spread([{"success": 40.0}, {"success": 60.0}]) == pytest.approx(14.1421, abs=1e-3)
+    assert seed_spread([{"success": 40.0}, {"success": None}]) is None  # a point some eval did not measure
+
+
 def _cdrb(*args, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.run(

@@ -86,7 +86,7 @@ def candidates(spec: GridSpec) -> list[Candidate]:
     for cand in found.values():
         evals = [_checked_eval(spec, by_output[p], p) for p in cand.evals]
         cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
-        cand.success_std = std_or_none(r["success"] for r in cand.models)
+        cand.success_std = seed_spread(cand.models)
         per = [r for ev in evals for r in per_seed(ev)]
         cand.seeds, cand.episodes = len(per), evals[0].manifest.config.episodes
         cand.success = 100 * mean_or_none(r.success_rate for r in per)
@@ -94,6 +94,12 @@ def candidates(spec: GridSpec) -> list[Candidate]:
         cand.crossing = None if crossing is None else 100 * crossing
         cand.collision = 100 * mean_or_none(r.executed_collision_rate for r in per)
     return list(found.values())
+
+
+def seed_spread(models: list[dict]) -> float | None:
+    """The sample std of success between training seeds (:func:`_model_scores` rows); None with fewer than two
+    seeds, where there is no spread to state (a single run is not one that varies by 0)."""
+    return std_or_none(m["success"] for m in models) if len(models) > 1 else None
 
 
 def _checked_eval(spec: GridSpec, task, path: Path):
