@@ -413,6 +413,45 @@ def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_pa
         load_grid(_grid(tmp_path, text.replace("report = false", "report = true")))
 
 
+def test_an_extension_runs_some_curves_further_and_keeps_the_rest(tmp_path):
+    """An [[extend]] entry resumes the matching runs to its steps, with the grid's steps one more snapshot point;
+    runs it does not name keep the grid's curve; the last entry that applies wins."""
+    text = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\nreport = false")
+    text += '\n[[extend]]\nsteps = 300\n\n[[extend]]\nmethods = ["cdrb"]\nsteps = 200\n'
+    spec = load_grid(_grid(tmp_path, text))
+    tasks = {t.id: t for t in expand(spec)}
+    cdrb, mlp = tasks["train maze-tight/cdrb-s0"], tasks["train maze-tight/mlp-s0"]
+    assert cdrb.argv[cdrb.argv.index("--steps") + 1] == "200" and "--snapshot-at" in cdrb.argv
+    assert cdrb.argv[cdrb.argv.index("--snapshot-at") + 1] == "50,100"
+    assert mlp.argv[mlp.argv.index("--steps") + 1] == "300"
+    assert cdrb.outputs[1:] == [spec.out / "maze-tight" / f"cdrb-s0.step{s}.h5" for s in (50, 100)]
+    # the old final length is now a snapshot, evaluated from its snapshot file; the new one is the final model
+    old, new = tasks["eval maze-tight/cdrb-s0.step100"], tasks["eval maze-tight/cdrb-s0"]
+    assert old.inputs == [spec.out / "maze-tight" / "cdrb-s0.step100.h5"] and old.meta["steps"] == 100
+    assert new.inputs == [spec.out / "maze-tight" / "cdrb-s0.h5"] and new.meta["steps"] == 200
+    # one env not named: its curves stay at the grid's steps
+    narrow = load_grid(_grid(tmp_path, TINY.replace("steps = 20", "steps = 100\nreport = false")
+                             + '\n[[extend]]\nenvs = ["maze"]\nsteps = 200\n'))  # fmt: skip
+    train = next(t for t in expand(narrow) if t.id == "train maze-tight/mlp-s0")
+    assert train.argv[train.argv.index("--steps") + 1] == "100" and "--snapshot-at" not in train.argv
+    for extra, words in (
+        ("[[extend]]\nsteps = 100\n", r"extend\[0\]: steps 100 does not extend the curve"),
+        ('[[extend]]\nmethods = ["nope"]\nsteps = 200\n', r"extend\[0\]: methods"),
+        ('[[extend]]\nenvs = ["nope"]\nsteps = 200\n', r"extend\[0\]: envs"),
+        ("[[extend]]\nsteps = 200\nsnapshot = 1\n", "extend.0.snapshot: Extra inputs are not permitted"),
+    ):
+        with pytest.raises(BadInput, match=words):
+            load_grid(_grid(tmp_path, text.split("\n[[extend]]")[0] + "\n" + extra))
+    # the grid's steps, now a snapshot, must lie on the loss curve like any snapshot (quick records every 50)
+    with pytest.raises(BadInput, match="snapshot_at: 120 is not a multiple of 50"):
+        load_grid(
+            _grid(tmp_path, TINY.replace("steps = 20", "steps = 120\nreport = false") + "[[extend]]\nsteps = 200\n")
+        )
+    # given with --set, as TOML inline tables
+    spec = load_grid(_grid(tmp_path, TINY.replace("steps = 20", "steps = 100")), ["extend=[{steps=200}]"])
+    assert spec.curve("maze-tight", "mlp") == (200, [100])
+
+
 def test_eval_seed_offset_gives_each_model_fresh_pairs_of_its_own(tmp_path):
     spec = load_grid(_grid(tmp_path, TINY.replace("eval_episodes = 3", "eval_episodes = 3\neval_seed_offset = 10")))
     evals = {t.meta["seed"]: t.argv for t in expand(spec) if t.kind == "eval" and t.meta["method"] == "mlp"}

@@ -121,6 +121,19 @@ class Variant(_Strict):
         return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
 
 
+class Extension(_Strict):
+    """A learning curve run past the grid's ``steps`` for some environments and methods (where `cdrb select` finds
+    it still rising): the same runs, resumed to ``steps``, with the grid's own ``steps`` one more snapshot. It is
+    written in the grid file, so the curve's length is part of the study it belongs to."""
+
+    envs: list[str] | None = Field(None, description="the environments whose curves run further (default: all)")
+    methods: list[str] | None = Field(None, description="the methods whose curves run further (default: all)")
+    steps: Steps = Field(description="the curve's new last point (more than the grid's `steps`)")
+
+    def applies(self, env: str, method: str) -> bool:
+        return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
+
+
 class Resources(_Strict):
     cpus: float = Field(1.0, gt=0, description="CPU cores a task of this kind asks Ray for (and its torch threads)")
     gpus: float = Field(0.0, ge=0, description="GPUs a task of this kind asks Ray for (fractions share one GPU)")
@@ -170,6 +183,12 @@ class GridSpec(_Strict):
         description="learning curves: every training also writes its model at these steps (below `steps`), and each "
         "snapshot is evaluated like the final model",
     )
+    extend: list[Extension] = Field(
+        default_factory=list,
+        max_length=1000,
+        description="learning curves run further for some envs/methods: [[extend]] entries (the last that applies "
+        "wins); each such run trains to the entry's steps and `steps` becomes one more snapshot",
+    )
     report: Bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
     reuse: list[Path] = Field(
         default_factory=list,
@@ -188,6 +207,14 @@ class GridSpec(_Strict):
     _reused: dict[str, str] = PrivateAttr(default_factory=dict)
     #: sha256 of the files read, by (path, size, mtime): shared by reuse at expansion and the run's memo checks
     _shas: dict = PrivateAttr(default_factory=dict)
+
+    def curve(self, env: str, method: str) -> tuple[int | None, list[int]]:
+        """The training length and the snapshot steps (sorted) of ``method``'s runs on ``env``: the grid's, or those
+        of the last :class:`Extension` that applies (its steps, with the grid's steps one more snapshot)."""
+        ext = next((e for e in reversed(self.extend) if e.applies(env, method)), None)
+        if ext is None:
+            return self.steps, sorted(self.snapshot_at)
+        return ext.steps, sorted([*self.snapshot_at, self.steps])
 
     @field_validator("eval_seeds")
     @classmethod
@@ -468,6 +495,22 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             raise BadInput(f"{_origin(path, overrides, 'snapshot_at')}: snapshot_at: list each step once",
                            hint="remove the repeats")  # fmt: skip
         _check_snapshot_steps(spec, _origin(path, overrides, "snapshot_at"))
+    for i, ext in enumerate(spec.extend):
+        where = f"{_origin(path, overrides, 'extend', 'steps')}: extend[{i}]"
+        if spec.steps is None or ext.steps <= spec.steps:
+            raise BadInput(
+                f"{where}: steps {ext.steps} does not extend the curve (the grid's steps: {spec.steps})",
+                hint="set the grid's `steps` and give the extension more",
+            )
+        for m in ext.methods or []:
+            METHODS.get(m, f"{where}: methods")
+        for e in ext.envs or []:
+            try:
+                make_spec(e)
+            except BadInput as exc:
+                raise BadInput(f"{where}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
+    if spec.extend:
+        _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
     if spec.eval_seeds is None and max(spec.seeds) + spec.eval_seed_offset > MAX_SEED:
         where = _origin(path, overrides, "eval_seed_offset", "seeds")
         raise BadInput(
@@ -476,9 +519,10 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             hint="use smaller seeds or a smaller offset",
         )
     runs = len(spec.envs) * len(spec.methods) * len(spec.seeds) * max(1, len(spec.variants))
-    if runs * (2 + len(spec.snapshot_at)) > MAX_TASKS:
+    per_run = 2 + len(spec.snapshot_at) + bool(spec.extend)
+    if runs * per_run > MAX_TASKS:
         raise BadInput(
-            f"{path}: the grid expands to about {runs * (2 + len(spec.snapshot_at)):,} tasks (at most {MAX_TASKS:,})",
+            f"{path}: the grid expands to about {runs * per_run:,} tasks (at most {MAX_TASKS:,})",
             hint="split it into several grid files",
         )
     if spec.report and spec.eval_seeds is not None and len(spec.seeds) > 1:
@@ -514,9 +558,10 @@ def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:
     would fail in every training fails when it is read; ``origin`` names where snapshot_at came from."""
     for env in spec.envs:
         for method in spec.methods:
+            snaps = spec.curve(env, method)[1]
             for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
                 step = _snapshot_step(spec, env, method, v)
-                bad = [s for s in spec.snapshot_at if step and s % step]
+                bad = [s for s in snaps if step and s % step]
                 if bad:
                     where = f"{method}'s training" + (f" in variant {v.name}" if v.name else "")
                     raise BadInput(
@@ -604,6 +649,7 @@ def expand(spec: GridSpec) -> list[Task]:
                 efolder = folder / v.name if v.name else folder
                 vtag = f"{v.name}/" if own_model else ""
                 train_extra, eval_extra = flags_for(spec, env, method, model_v)[0], flags_for(spec, env, method, v)[1]
+                length, snaps = spec.curve(env, method)
                 for seed in spec.seeds:
                     model = mfolder / f"{method}-s{seed}.h5"
                     train_id = f"train {env}/{vtag}{method}-s{seed}"
@@ -612,13 +658,13 @@ def expand(spec: GridSpec) -> list[Task]:
                         argv = ["train", str(demos), "--method", method, "--preset", spec.preset, "--seed", str(seed)]
                         argv += ["--buffer", str(vbuffer)] if needs_buffer else []
                         argv += train_extra
-                        argv += ["--steps", str(spec.steps)] if spec.steps else []
-                        if spec.snapshot_at:
-                            argv += ["--snapshot-at", ",".join(map(str, sorted(spec.snapshot_at)))]
+                        argv += ["--steps", str(length)] if length else []
+                        if snaps:
+                            argv += ["--snapshot-at", ",".join(map(str, snaps))]
                         argv += ["--out", str(model), "--device", spec.device]
-                        outputs = [model] + [train_snapshot(model, s) for s in sorted(spec.snapshot_at)]
+                        outputs = [model] + [train_snapshot(model, s) for s in snaps]
                         tasks.append(Task(train_id, "train", argv, outputs, deps, inputs))
-                    points = [(s, train_snapshot(model, s)) for s in sorted(spec.snapshot_at)] + [(spec.steps, model)]
+                    points = [(s, train_snapshot(model, s)) for s in snaps] + [(length, model)]
                     stream = v.stream or spec.eval_stream
                     seeds = spec.eval_seeds if spec.eval_seeds is not None else [seed + spec.eval_seed_offset]
                     for steps, m in points:

@@ -335,8 +335,9 @@ def select(
     for (env, method), (c, gain, se) in still_rising(cands).items():
         ui.warn(
             f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: +{gain:.1f} ± {se:.1f} points "
-            f"over the previous length): extend it before choosing from it (the same runs, resumed: --set "
-            f"steps={2 * c.steps} with {c.steps} added to snapshot_at)"
+            f"over the previous length): extend it before choosing from it, unless a common cap stops it there "
+            f"(the same runs, resumed: an [[extend]] entry in the grid file with envs = [{toml_string(env)}], "
+            f"methods = [{toml_string(method)}], steps = {2 * c.steps})"
         )
     for (env, method), c in best.items():
         ui.log(
