@@ -472,15 +472,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         raise BadInput(f"{path}: variants: names must differ (got {', '.join(names)})", hint="rename one")
     # a variant may name methods and envs the grid does not run (a grid narrowed with --set), but each must exist
     for v in spec.variants:
-        for m in v.methods or []:
-            METHODS.get(m, f"{path}: variant {v.name}: methods")
-        for e in v.envs or []:
-            try:
-                make_spec(e)
-            except BadInput as exc:
-                raise BadInput(
-                    f"{path}: variant {v.name}: envs: {exc.message}", hint="`cdrb envs` lists them"
-                ) from None
+        _check_names(f"{path}: variant {v.name}", v.methods, v.envs)
     if any(len(set(v)) != len(v) for v in (spec.seeds, spec.envs, spec.methods)):
         raise BadInput(f"{_origin(path, overrides, 'envs', 'methods', 'seeds')}: envs, methods and seeds must each "
                        "be listed once", hint="remove the repeats")  # fmt: skip
@@ -502,13 +494,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
                 f"{where}: steps {ext.steps} does not extend the curve (the grid's steps: {spec.steps})",
                 hint="set the grid's `steps` and give the extension more",
             )
-        for m in ext.methods or []:
-            METHODS.get(m, f"{where}: methods")
-        for e in ext.envs or []:
-            try:
-                make_spec(e)
-            except BadInput as exc:
-                raise BadInput(f"{where}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
+        _check_names(where, ext.methods, ext.envs)
     if spec.extend:
         _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
     if spec.eval_seeds is None and max(spec.seeds) + spec.eval_seed_offset > MAX_SEED:
@@ -532,6 +518,21 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
         )
     return spec
+
+
+def _check_names(where: str, methods: list[str] | None, envs: list[str] | None) -> None:
+    """Every method and environment a variant or an extension names exists (it may name ones the grid does not
+    run: a grid narrowed with --set)."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.registry import METHODS
+
+    for m in methods or []:
+        METHODS.get(m, f"{where}: methods")
+    for e in envs or []:
+        try:
+            make_spec(e)
+        except BadInput as exc:
+            raise BadInput(f"{where}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
 
 
 def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> int | None:
