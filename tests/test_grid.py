@@ -507,6 +507,12 @@ def test_load_errors_name_the_set_that_gave_the_value_and_reuse_must_be_folders(
         load_grid(grid, ['envs=["nope"]'])
     with pytest.raises(BadInput, match=r'^--set methods=\["nope"\]: methods'):
         load_grid(grid, ['methods=["nope"]'])
+    # a variant may name methods and envs the grid does not run, but not ones that do not exist
+    assert load_grid(_grid(tmp_path, TINY + '[[variants]]\nname = "v"\nenvs = ["maze"]\nmethods = ["diffuser"]\n'))
+    for key in ("methods", "envs"):
+        bad = _grid(tmp_path, TINY + f'[[variants]]\nname = "v"\n{key} = ["nope"]\n', "bad.toml")
+        with pytest.raises(BadInput, match=rf"bad.toml: variant v: {key}"):
+            load_grid(bad)
     with pytest.raises(BadInput, match=r"^--set eval_seed_offset=1: .*past the largest seed"):
         load_grid(grid, ["seeds=[4294967295]", "eval_seed_offset=1"])
     # a snapshot that checkpoint_every, set in the methods' train flags, puts on their loss curves passes
