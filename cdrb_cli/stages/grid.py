@@ -87,7 +87,14 @@ class SettingsFile(_Strict):
     meta: dict[str, str] = Field(default_factory=dict, description="provenance: not read by the grid")
 
 
-class Variant(_Strict):
+class _Scoped(_Strict):
+    """An entry that applies to some environments and methods (``envs``/``methods`` None: all)."""
+
+    def applies(self, env: str, method: str) -> bool:
+        return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
+
+
+class Variant(_Scoped):
     """One more axis of the grid: a named set of extra flags; its evals go to OUT/ENV/NAME/ and get their own report.
 
     A variant with ``train`` flags trains its own models (in OUT/ENV/NAME/); one without is *eval-only*: it evaluates
@@ -117,11 +124,8 @@ class Variant(_Strict):
         the grid's base models."""
         return bool(self.train or self.cluster)
 
-    def applies(self, env: str, method: str) -> bool:
-        return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
 
-
-class Extension(_Strict):
+class Extension(_Scoped):
     """A learning curve run past the grid's ``steps`` for some environments and methods (where `cdrb select` finds
     it still rising): the same runs, resumed to ``steps``, with the grid's own ``steps`` one more snapshot. It is
     written in the grid file, so the curve's length is part of the study it belongs to."""
@@ -129,9 +133,6 @@ class Extension(_Strict):
     envs: list[str] | None = Field(None, description="the environments whose curves run further (default: all)")
     methods: list[str] | None = Field(None, description="the methods whose curves run further (default: all)")
     steps: Steps = Field(description="the curve's new last point (more than the grid's `steps`)")
-
-    def applies(self, env: str, method: str) -> bool:
-        return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
 
 
 class Resources(_Strict):
