@@ -42,7 +42,10 @@ def _readable_help() -> None:
 
     from typer import core
 
-    label = core._TyperParameter.display_type
+    base = getattr(core, "_TyperParameter", None)
+    if base is None or not hasattr(core, "TyperArgument"):  # another typer layout: keep its own labels
+        return
+    label = base.display_type
 
     def display_type(self, ctx) -> str:
         text = label(self, ctx)
@@ -57,7 +60,7 @@ def _readable_help() -> None:
         name = name if self.required else f"[{name}]"
         return name + ("..." if self.nargs != 1 else "")
 
-    core._TyperParameter.display_type = display_type
+    base.display_type = display_type
     core.TyperArgument._usage_display_name = usage_name
 
 

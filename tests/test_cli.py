@@ -160,6 +160,19 @@ def test_help_names_values_as_a_person_reads_them():
     assert "Usage: cdrb train [OPTIONS] DEMOS" in train and re.search(r"--steps\s+N\s", train)
 
 
+def test_help_labels_fall_back_to_typers_own_on_another_typer_layout(monkeypatch):
+    """The label wrapper reaches into typer internals that other typer releases (within the supported range) name
+    differently; there it leaves typer's own labels in place instead of failing every command at import."""
+    from typer import core
+
+    from cdrb_cli import cli
+
+    monkeypatch.delattr(core, "_TyperParameter")
+    before = core.TyperArgument._usage_display_name
+    cli._readable_help()  # raises AttributeError without the fallback
+    assert core.TyperArgument._usage_display_name is before
+
+
 def test_progress_prints_plain_lines_while_it_runs_when_stderr_is_not_a_terminal(small_data, tmp_path, cdrb):
     """With stderr piped (nohup, CI, SLURM) training prints a plain progress line every CDRB_PROGRESS_SECONDS while it
     runs, with rising step counts, and one at the end; not the escape codes of a live bar."""
