@@ -37,6 +37,9 @@ if [ $# -ge 2 ]; then
   "$py" -m cdrb_cli grid "$grid" --backend pool --set 'out="runs/piece"' --set device='"cuda"' \
     --set "envs=[\"$env\"]" --retries 0 -j 2 >/dev/null 2>&1 || true
   ls runs/piece/.grid/collect_"$env".json >/dev/null
-  tar -cf - -C runs piece | xz -T2 -3 >.piece.tar.xz
+  # this env's collection and clustering with their memos, nothing else the folder holds
+  (cd runs && find piece/.grid -name "collect_$env.json" -o -name "cluster_${env}_*.json" -o -name "cluster_$env.json";
+    find "piece/$env" -maxdepth 1 \( -name demos.h5 -o -name "buffer-*.h5" \)) | sort |
+    tar -cf - -C runs -T - | xz -T2 -3 >.piece.tar.xz
   ls -la .piece.tar.xz  # with the working tree it must stay under the device's 64 MiB
 fi
