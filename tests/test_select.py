@@ -102,6 +102,10 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     # the same means, but every run gained alike: paired, a rise; and a gain within the noise is not one
     assert still_rising([point("k2", 0, 1000, [50.0, 70.0, 60.0]), point("k2", 0, 2000, [52.0, 72.0, 62.0])])
     assert not still_rising([point("k2", 0, 1000, [50.0, 70.0, 60.0]), point("k2", 0, 2000, [60.0, 66.0, 60.0])])
+    # a paired gain at the ceiling (every seed solves every episode) leaves nothing to extend for; one seed short
+    # of it still rises
+    assert not still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 100.0])])
+    assert still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 99.0])])
 
 
 def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp_path):

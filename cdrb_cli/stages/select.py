@@ -172,7 +172,8 @@ def choose(cands: list[Candidate]) -> dict[tuple[str, str], Candidate]:
 RISING = (
     "at the longest training length, the method's best candidate (by the rule) succeeds more often than the same "
     "candidate one length shorter, by more than the standard error of the mean gain (the gains of each training "
-    "seed's run between the two lengths: the points are snapshots of the same runs)"
+    "seed's run between the two lengths: the points are snapshots of the same runs), unless every training seed "
+    "succeeds in every episode there (a curve at its ceiling has nothing left to gain)"
 )
 
 
@@ -193,6 +194,8 @@ def still_rising(cands: list[Candidate]) -> dict[tuple[str, str], tuple[Candidat
         before = {m["seed"]: m["success"] for m in prev.models}
         pairs = [(m["success"], before[m["seed"]]) for m in last.models if m["seed"] in before]
         if len(pairs) < 2 or any(a is None or b is None for a, b in pairs):
+            continue
+        if all(a >= 100.0 for a, _ in pairs):  # at the ceiling: longer training cannot raise it
             continue
         gains = [a - b for a, b in pairs]
         gain, se = sum(gains) / len(gains), std_or_none(gains) / len(gains) ** 0.5
