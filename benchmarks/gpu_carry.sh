@@ -8,8 +8,10 @@
 #                  they match there when the checkout sits at the same absolute path (the device script copies it).
 # Both names are ignored by git (add them to .git/info/exclude). The device side is benchmarks/gpu_piece.sh.
 #
-# Usage: bash benchmarks/gpu_carry.sh [GRID ENV]
-#   e.g. bash benchmarks/gpu_carry.sh experiments/tune/fetch-curves.toml fetch-push-obstacle
+# Usage: bash benchmarks/gpu_carry.sh [GRID ENV [grid flags...]]   (the flags as the device's grid will get them,
+#   e.g. the methods it trains; the collection and clustering do not depend on them)
+#   e.g. bash benchmarks/gpu_carry.sh experiments/tune/fetch-curves.toml fetch-push-obstacle \
+#          --set 'methods=["diffuser","cdrb"]'
 set -euo pipefail
 cd "$(dirname "$0")/.."
 py=${PYTHON:-.venv/bin/python}
@@ -32,10 +34,11 @@ ls -la .site.tar.xz
 
 if [ $# -ge 2 ]; then
   grid=$1 env=$2
+  shift 2
   # the same flags as gpu_piece.sh's grid, so the memos of the collection and clustering match there; the
   # trainings fail here at once (no CUDA) and are not memoised
   "$py" -m cdrb_cli grid "$grid" --backend pool --set 'out="runs/piece"' --set device='"cuda"' \
-    --set "envs=[\"$env\"]" --retries 0 -j 2 >/dev/null 2>&1 || true
+    --set "envs=[\"$env\"]" --retries 0 -j 2 "$@" >/dev/null 2>&1 || true
   ls runs/piece/.grid/collect_"$env".json >/dev/null
   # this env's collection and clustering with their memos, nothing else the folder holds
   (cd runs && find piece/.grid -name "collect_$env.json" -o -name "cluster_${env}_*.json" -o -name "cluster_$env.json";
