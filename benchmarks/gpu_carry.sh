@@ -6,7 +6,8 @@
 #   .piece.tar.xz  (with GRID and ENV) the grid's `out` folder after its collection and clustering ran here, so the
 #                  device spends its minutes on training and evals: the grid's memos vouch for the artifacts, and
 #                  they match there when the checkout sits at the same absolute path (the device script copies it).
-# Both names are ignored by git (add them to .git/info/exclude). The device side is benchmarks/gpu_piece.sh.
+# Both names are in .gitignore: they travel only when a call's `carry` names them. The device side is
+# benchmarks/gpu_piece.sh.
 #
 # Usage: bash benchmarks/gpu_carry.sh [GRID ENV [grid flags...]]   (the flags as the device's grid will get them,
 #   e.g. the methods it trains; the collection and clustering do not depend on them)

@@ -18,8 +18,6 @@ cd "$root" || exit 4
 if [ -f .piece.tar.xz ]; then mkdir -p runs && rm -rf runs/piece && tar -xJf .piece.tar.xz -C runs || exit 6; fi
 unset MUJOCO_GL  # EGL would be tried first and its library is absent; cdrb renders nothing here
 export PYTHONPATH=/tmp/site:$root PYTHONUNBUFFERED=1
-python3 -c "import torch, mujoco, gymnasium_robotics, diffusers, cdrb_cli.cli; print(torch.cuda.get_device_name(0))" \
-  2>&1 | tail -1
-python3 -c "import cdrb_cli.cli" 2>/dev/null || exit 5
+python3 -c "import torch, mujoco, gymnasium_robotics, diffusers, cdrb_cli.cli; print(torch.cuda.get_device_name(0))" || exit 5
 echo "prepared in $(($(date +%s) - t0)) s"
 PYTHON=python3 bash benchmarks/gpu_grid.sh "$grid" "$OUT" "$seconds" "$@"
