@@ -354,6 +354,48 @@ def test_includes_apply_in_order_and_a_loop_is_an_error(tmp_path):
         load_grid(grid)
 
 
+def test_a_setting_stated_by_two_included_files_is_passed_once_and_an_override_still_holds(tmp_path):
+    # a tuned settings file repeats what the data file it was chosen under also says
+    (tmp_path / "data.toml").write_text('[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "horizon=16"]\n')
+    (tmp_path / "tuned.toml").write_text(
+        '[meta]\nrule = "x"\n[[settings]]\nenv = "maze-tight"\nmethod = "cdrb"\nchosen = "c"\n'
+        'train = ["--set", "horizon=16", "--steps", "30"]\n'
+        'eval = ["--set=controller.gain=2", "--set=controller.gain=2"]\n'
+    )
+    grid = _grid(tmp_path, 'include = ["data.toml", "tuned.toml"]\n' + TINY.replace('"horizon=16", ', '"horizon=12", '))
+    tasks = {t.id: t.argv for t in expand(load_grid(grid))}
+    train = tasks["train maze-tight/cdrb-s0"]
+    # data's 16, tuned's 16 (dropped: the same value), the grid's own 12: the last one still wins
+    assert [a for a in train if a.startswith("horizon=")] == ["horizon=16", "horizon=12"]
+    evaluate = next(argv for tid, argv in tasks.items() if tid.startswith("eval maze-tight") and "cdrb-s0" in tid)
+    assert evaluate.count("--set=controller.gain=2") == 1
+
+
+def test_without_repeated_sets_keeps_every_flag_that_changes_the_command():
+    from cdrb_cli.stages.grid import without_repeated_sets
+
+    flags = ["--set", "a=1", "--steps", "5", "--set", "a=1", "--set", "b=2"]
+    assert without_repeated_sets(flags) == ["--set", "a=1", "--steps", "5", "--set", "b=2"]
+    # a value overridden in between and then restored is a real change
+    assert without_repeated_sets(["--set", "a=1", "--set", "a=2", "--set", "a=1"]) == [
+        "--set", "a=1", "--set", "a=2", "--set", "a=1",
+    ]  # fmt: skip
+    # so is one whose parent (or child) key was set in between
+    nested = ["--set", "net.dim=8", "--set", "net=big", "--set", "net.dim=8"]
+    assert without_repeated_sets(nested) == nested
+    assert without_repeated_sets(["--set", "net=big", "--set", "net.dim=8", "--set", "net=big"]) == [
+        "--set", "net=big", "--set", "net.dim=8", "--set", "net=big",
+    ]  # fmt: skip
+    # a pair without '=' and a trailing --set are left for the command's own error
+    assert without_repeated_sets(["--set", "oops", "--set", "oops", "--set"]) == [
+        "--set",
+        "oops",
+        "--set",
+        "oops",
+        "--set",
+    ]
+
+
 def test_eval_only_variants_share_the_base_model_and_cluster_variants_get_their_own_buffer(tmp_path):
     text = TINY + (
         '\n[[variants]]\nname = "gated"\neval = ["--max-lag", "0.6"]\n'

@@ -609,7 +609,38 @@ def flags_for(spec: GridSpec, env: str, method: str, variant: Variant = BASE) ->
         if s.env in (None, env) and s.method in (None, method):
             train += s.train
             evaluate += s.eval
-    return train + variant.train, (evaluate if variant.eval_settings else []) + variant.eval
+    return (
+        without_repeated_sets(train + variant.train),
+        without_repeated_sets((evaluate if variant.eval_settings else []) + variant.eval),
+    )
+
+
+def without_repeated_sets(flags: list[str]) -> list[str]:
+    """``flags`` less every ``--set KEY=VALUE`` that gives KEY the value it already has there (a settings file
+    included beside another that states the same setting): the command means the same and reads once. A repeat
+    that restores a value overridden in between (the key itself, or one above or inside it) is kept."""
+    out, value = [], {}
+    i = 0
+    while i < len(flags):
+        f = flags[i]
+        if f == "--set" and i + 1 < len(flags):
+            pair, width = flags[i + 1], 2
+        elif f.startswith("--set="):
+            pair, width = f.removeprefix("--set="), 1
+        else:
+            out.append(f)
+            i += 1
+            continue
+        key, eq, val = pair.partition("=")
+        key = key.strip()
+        if not (eq and value.get(key) == val):
+            out += flags[i : i + width]
+            for other in [k for k in value if _nested(k, key)]:  # a setting above or inside it changed too
+                del value[other]
+            if eq:
+                value[key] = val
+        i += width
+    return out
 
 
 def expand(spec: GridSpec) -> list[Task]:
