@@ -359,6 +359,12 @@ class SeedResult(Record):
 class EvalSummary(Record):
     method: str
     model_preset: str
+    model_steps: int | None = Field(
+        None,
+        description="training length of the model evaluated (its config.steps; a snapshot's is its step): what "
+        "tells a run's final model apart from the same file before its training was extended; None in evals before "
+        "schema 2.10",
+    )
     success_mean: float
     success_std: float
     weighted_success_mean: float | None = Field(None, description="SeedResult.weighted_success_rate, mean over seeds")

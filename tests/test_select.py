@@ -108,6 +108,40 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     assert still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 99.0])])
 
 
+def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path):
+    """A run's final model keeps its name when an [[extend]] entry trains it further: an eval made before (archived,
+    its model elsewhere) has the very command of the longer run's eval, and only the training length it records
+    tells the two apart."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.grid import expand, load_grid
+    from cdrb_cli.stages.select import _checked_eval
+    from tests import factories
+
+    grid = tmp_path / "tune.toml"
+    grid.write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\nsnapshot_at = [50]\n'
+        'eval_stream = "tune"\n'
+    )
+    spec = load_grid(grid)
+    task = next(t for t in expand(spec) if t.id == "eval maze-tight/mlp-s0")
+    manifest, arrays = factories.build("eval")
+
+    def made(steps):
+        summary = manifest.summary.model_copy(update={"model_steps": steps})
+        path = tmp_path / f"eval-{steps}.h5"
+        artifacts.save(
+            path, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv], "summary": summary}), arrays
+        )
+        return path
+
+    with pytest.raises(BadInput, match=r"after 50 training steps; this grid's task \(eval maze-tight/mlp-s0\) meas"):
+        _checked_eval(spec, task, made(50))
+    unchecked = []
+    assert _checked_eval(spec, task, made(100), unchecked).manifest.summary.model_steps == 100 and unchecked == []
+    _checked_eval(spec, task, made(None), unchecked)  # an eval from before evals recorded it, its model not here
+    assert unchecked == [tmp_path / "eval-None.h5"]
+
+
 def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp_path):
     """The documented chain on the shipped files (copied, so the tuned files written are the copies'), narrowed to
     Maze Tight x {MLP, CDRB} with tiny nets: each `cdrb select` writes the settings the next file includes, and the
@@ -166,6 +200,8 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     }  # fmt: skip
     rows = grid_select("mazes-curves", "mazes.toml", "--set", "steps=100", "--set", "snapshot_at=[50]")
     assert sorted({int(r["steps"]) for r in rows}) == [50, 100]
+    for path in (tmp_path / "runs" / "mazes-curves").rglob("eval-*.h5"):  # each eval names its model's length
+        assert artifacts.load(path, "eval").manifest.summary.model_steps == (50 if ".step50." in path.name else 100)
     # the learning curves: one row per candidate x training length x training seed, whose mean is the pooled score
     curves_args = [*tune, "--set", f"out={tmp_path / 'runs' / 'mazes-curves'}", "--set", "steps=100"]
     curves_args = [a for a in curves_args if a not in ("--backend", "pool", "-j", "2")] + ["--set", "snapshot_at=[50]"]

@@ -292,7 +292,9 @@ def evaluate(
     arrays = episode_arrays(results)
     if keep_plans:
         arrays["plans"] = np.concatenate(all_plans).astype(np.float32)
-    summary = summarize(method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3))
+    summary = summarize(
+        method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
+    )
     summary = summary.model_copy(update={"masked": mask_counts(method, avoid)})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
@@ -445,7 +447,9 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
                 bar.update(task, advance=len(batch), info=f"success {np.mean([r.success for r in results]):.1%}")
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
     env.close()
-    summary = summarize(policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3))
+    summary = summarize(
+        policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
+    )
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
     )
@@ -532,8 +536,11 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
     )
 
 
-def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_time_s: float) -> EvalSummary:
-    """Means and sample standard deviations over seeds of the per-seed results."""
+def summarize(
+    method: str, preset: str, per_seed: Sequence[SeedResult], wall_time_s: float, model_steps: int | None = None
+) -> EvalSummary:
+    """Means and sample standard deviations over seeds of the per-seed results (``model_steps``: the training steps
+    of the model evaluated)."""
 
     def mean(name):
         return mean_or_none(getattr(p, name) for p in per_seed)
@@ -548,6 +555,7 @@ def summarize(method: str, preset: str, per_seed: Sequence[SeedResult], wall_tim
     return EvalSummary(
         method=method,
         model_preset=preset,
+        model_steps=model_steps,
         success_mean=float(np.mean(succ)),
         success_std=sample_std(succ),
         weighted_success_mean=mean("weighted_success_rate"),

@@ -83,8 +83,9 @@ def candidates(spec: GridSpec) -> list[Candidate]:
             f"{len(missing)} of the grid's tuning evals are not there yet (e.g. {missing[0]})",
             hint="run `cdrb grid` on the same file (with the same --set/--include) first",
         )
+    unchecked: list[Path] = []
     for cand in found.values():
-        evals = [_checked_eval(spec, by_output[p], p) for p in cand.evals]
+        evals = [_checked_eval(spec, by_output[p], p, unchecked) for p in cand.evals]
         cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
         cand.success_std = seed_spread(cand.models)
         per = [r for ev in evals for r in per_seed(ev)]
@@ -93,6 +94,11 @@ def candidates(spec: GridSpec) -> list[Candidate]:
         crossing = mean_or_none(r.plan_crossing_rate for r in per)  # None: a policy makes no plans
         cand.crossing = None if crossing is None else 100 * crossing
         cand.collision = 100 * mean_or_none(r.executed_collision_rate for r in per)
+    if unchecked:
+        ui.warn(
+            f"{len(unchecked)} evals record no training length and their models are not here (e.g. {unchecked[0]}): "
+            "each is taken to measure its model at the length the grid's task names"
+        )
     return list(found.values())
 
 
@@ -102,10 +108,12 @@ def seed_spread(models: list[dict]) -> float | None:
     return std_or_none(m["success"] for m in models) if len(models) > 1 else None
 
 
-def _checked_eval(spec: GridSpec, task, path: Path):
+def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None = None):
     """The eval artifact at a task's output, refused unless it is what the task measures: the same command but for
-    where files lie (:func:`grid.measure_difference`), and, where the model it evaluated is here, that same model
-    (the same bytes or, as every stage judges an input, the same data)."""
+    where files lie (:func:`grid.measure_difference`), a model of the task's training length (a run's final model
+    keeps its name when a curve is extended), and, where the model it evaluated is here, that same model (the same
+    bytes or, as every stage judges an input, the same data). An eval that records no training length, of a model
+    that is not here, is appended to ``unchecked``."""
     from cdrb_cli.stages.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
@@ -120,8 +128,18 @@ def _checked_eval(spec: GridSpec, task, path: Path):
             "measures this eval again once it is moved away",
         )
     model = task.inputs[0]
+    steps, trained = task.meta.get("steps"), ev.manifest.summary.model_steps
+    if steps is not None and trained is not None and trained != steps:
+        raise BadInput(
+            f"{path}: evaluates {model.name} after {trained} training steps; this grid's task ({task.id}) measures "
+            f"it after {steps}",
+            hint="an eval from before the run was extended: move it away and run `cdrb grid` on the same file, which "
+            "measures the model at its length",
+        )
     parent = next((p for p in ev.manifest.parents if p.kind == "model"), None)
     here = file_sha(model, spec._shas)
+    if steps is not None and trained is None and here is None and unchecked is not None:
+        unchecked.append(path)
     if parent is not None and here is not None and parent.sha256 != here:
         if not artifacts.same_inputs([parent], [artifacts.load(model, "model")]):
             raise BadInput(
