@@ -222,8 +222,10 @@ class DiffusionQL(Policy):
                 rep = cond.repeat_interleave(k, dim=0)
                 cand = self._sample(self.targets.actor, rep, gen)
                 q = torch.min(*self.targets.critic(rep, cand)).view(n, k)
-                pick = torch.multinomial(torch.softmax(q, dim=1), 1, generator=gen).squeeze(1)
-                a = cand.view(n, k, -1)[torch.arange(n), pick]
+                # drawn on the CPU, where the seeded generator lives: the same pick on every device
+                probs = torch.softmax(q, dim=1).cpu()
+                pick = torch.multinomial(probs, 1, generator=gen).squeeze(1).to(cand.device)
+                a = cand.view(n, k, -1)[torch.arange(n, device=cand.device), pick]
         return Normalizer(lo[self.obs_dim :], hi[self.obs_dim :]).unnormalize(a.cpu().numpy().astype(np.float64))
 
 
