@@ -217,6 +217,41 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
     assert ran == ["eval maze-tight/cdrb-s1", "report"]
 
 
+def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):
+    """With one worker the grid hands over one task at a time, the first ready one in its own order: a model's evals
+    run before the next model trains (everything submitted at once would train every model first, so a grid
+    stopped part-way would leave no finished row)."""
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]')
+    spec = load_grid(_grid(tmp_path, text))
+    submitted: list[str] = []
+    in_flight: list[int] = []
+
+    class Recording(PoolBackend):
+        def submit(self, payload):
+            submitted.append(f"{payload['argv'][0]} {Path(payload['outputs'][0]).name}")
+            future = super().submit(payload)
+            in_flight.append(sum(not f.done() for f in futures) + 1)
+            futures.append(future)
+            return future
+
+    futures: list = []
+    backend = Recording(1)
+    try:
+        run = run_grid(spec, backend)
+    finally:
+        backend.close()
+    assert all(r.status == "done" for r in run.results)
+    assert submitted == [
+        "collect demos.h5",
+        "train mlp-s0.h5",
+        "eval eval-mlp-s0.h5",
+        "train mlp-s1.h5",
+        "eval eval-mlp-s1.h5",
+        "report report.md",
+    ]
+    assert max(in_flight) == 1
+
+
 def _kill_when_running(pattern: str, after: float, killed: list, stop: threading.Event) -> None:
     """SIGKILL the first process whose command line contains ``pattern`` once it has run ``after`` seconds."""
     seen: dict[int, float] = {}

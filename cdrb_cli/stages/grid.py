@@ -1212,6 +1212,8 @@ class PoolBackend:
 
     def __init__(self, workers: int):
         self.workers = workers
+        #: tasks handed over at once: the grid keeps the rest and picks them in its own order (see run_grid)
+        self.capacity = workers
         self.pool = cf.ThreadPoolExecutor(max_workers=workers)
 
     def check(self, spec: GridSpec) -> None:
@@ -1329,9 +1331,15 @@ def run_grid(
     """Execute the grid's tasks (``tasks``, default: the expanded grid) on ``backend``: each when its inputs are
     ready, skipped when its memo is current, retried ``retries`` times on failure; dependants of a failed task are
     skipped. A task reading another grid's file (``reuse``) fails if that file changed since the grid was expanded.
-    Writes OUT/grid.json."""
+    A backend with a ``capacity`` (the local pool) is handed at most that many tasks at once, the ready task first
+    in the grid's order (environment by environment, each model's evals right after it): one environment's rows
+    are finished before the next one's trainings start, so a grid stopped part-way leaves whole rows. Writes
+    OUT/grid.json."""
     t0 = time.time()
     tasks = expand(spec) if tasks is None else tasks
+    order = {t.id: i for i, t in enumerate(tasks)}
+    capacity = getattr(backend, "capacity", None)
+    queued: list[Task] = []  # ready to run, waiting for a free slot of the backend
     results = {t.id: TaskResult(t.id, t.kind, outputs=[str(p) for p in t.outputs]) for t in tasks}
     state = {t.id: "pending" for t in tasks}
     cache = spec._shas
@@ -1375,8 +1383,13 @@ def run_grid(
                         emit("up to date", results[task.id])
                         progressed = True
                     else:
-                        submit(task)
-                        progressed = progressed or state[task.id] == "failed"  # settle its dependants next pass
+                        state[task.id] = "queued"
+                        queued.append(task)
+            queued.sort(key=lambda t: order[t.id])
+            while queued and (capacity is None or len(running) < capacity):
+                task = queued.pop(0)
+                submit(task)
+                progressed = progressed or state[task.id] == "failed"  # settle its dependants next pass
         if not running:
             break
         finished, _ = cf.wait(list(running), return_when=cf.FIRST_COMPLETED)
