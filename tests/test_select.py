@@ -332,3 +332,30 @@ def test_selected_file_flags_are_relative_to_the_settings_file(tmp_path):
         "detour",
     ]
     assert (folder / out[3]).resolve() == maps.resolve()
+
+
+def test_select_never_writes_over_a_file_the_grid_reads_or_writes(tmp_path, monkeypatch):
+    """--force overwrites an earlier output, never an input: the settings file the grid includes, or any artifact
+    under its `out` (here an eval the selection would read)."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.grid import expand, load_grid
+    from cdrb_cli.stages.select import select
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data.toml").write_text('[[settings]]\ntrain = ["--steps", "20"]\n')
+    grid = tmp_path / "tune.toml"
+    grid.write_text(
+        'include = ["data.toml"]\nout = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\n'
+        'eval_stream = "tune"\n'
+    )
+    (ev,) = [t.outputs[0] for t in expand(load_grid(grid)) if t.kind == "eval"]
+    ev.parent.mkdir(parents=True)
+    ev.write_bytes(b"an eval")
+    for victim in (tmp_path / "data.toml", ev):
+        before = victim.read_bytes()
+        with pytest.raises(BadInput, match="is an input of this command"):
+            select(grid, victim, force=True)
+        with pytest.raises(BadInput, match="is an input of this command"):
+            select(grid, tmp_path / "s.toml", force=True, curves=victim)
+        assert victim.read_bytes() == before
+    assert not (tmp_path / "s.toml").exists()

@@ -344,7 +344,10 @@ def select(
 
     distinct_outputs(out=out, table=table, curves=curves)
     spec = load_grid(grid_file, overrides, includes)
-    inputs = [grid_file, *includes]
+    # every file the grid reads or writes is an input here: its settings files (included ones too) and the
+    # artifacts under its `out` (demos, models, evals), none of which an output may replace
+    inputs = [grid_file, *includes, *spec._sources]
+    inputs += [p for task in expand(spec) for p in (*task.inputs, *task.outputs)]
     artifacts.check_output(out, force, "--out", inputs)
     for path, flag in ((table, "--table"), (curves, "--curves")):
         if path is not None:
