@@ -307,37 +307,92 @@ def _anchor_all(items: list, base: Path) -> list:
     ]
 
 
-def _known_options() -> dict[str, set[str]]:
-    """The option names each grid-run command takes, from the CLI itself (`cdrb collect`, `cluster`, `train`,
-    `eval`)."""
+#: the options the grid sets itself from its own keys (data_seed, demos, preset, seeds, eval_stream, eval_episodes,
+#: device, out...) and that settings and variants therefore may not pass: a repeated option's last value wins, so
+#: ``train = ["--method", "diffuser"]`` would file a Diffuser under the grid's MLP name
+GRID_OPTIONS = {
+    "collect": {"episodes", "seed", "out"},
+    "cluster": {"out"},
+    "train": {"method", "preset", "seed", "buffer", "snapshot_at", "out", "device"},
+    "eval": {"seeds", "stream", "episodes", "out", "device"},
+}
+#: files a grid's flags name that no grid writes: missing, every task that reads one would fail
+INPUT_FILE_FLAGS = ("--maze-map", "--scene", "--policy", "--config", "--paper-figures")
+
+
+def _check_flag_list(flags: list[str], command: str, where: str) -> None:
+    """One settings or variant flag list for ``cdrb command``: every option exists, is not one the grid sets, has
+    its value, and an integer or number value parses; a controller is a known one; a file it names exists. A
+    mistake is one line when the grid is read, not a failure of every task hours later."""
+    import typing
+
+    from cdrb_cli.envs.registry import CONTROLLERS
+
+    table = _option_table(command)
+    hints = typing.get_type_hints(_command(command).callback)
+    i = 0
+    while i < len(flags):
+        token = flags[i]
+        name, eq, inline = token.partition("=")
+        key = name if eq and name.startswith("--") else token
+        if key not in table:
+            if key.startswith("-") and not _is_number(key):
+                raise BadInput(f"{where}: {clip(repr(token), 60)} is not a `cdrb {command}` option",
+                               hint=f"`cdrb {command} --help` lists them")  # fmt: skip
+            raise BadInput(
+                f"{where}: {clip(repr(token), 60)} is not the value of an option (the grid names the command's "
+                "files itself)",
+                hint='give each value right after its option, e.g. ["--steps", "4000"]',
+            )
+        pname, takes_value, _ = table[key]
+        if pname in GRID_OPTIONS.get(command, ()):
+            raise BadInput(
+                f"{where}: {clip(repr(token), 60)}: the grid sets this `cdrb {command}` option itself",
+                hint="use the grid's own key (seeds, eval_seeds, eval_stream, eval_episodes, demos, data_seed, preset, "
+                "device, out, or a variant's stream)",
+            )
+        i += 1
+        if not takes_value:
+            continue
+        if not eq:
+            if i >= len(flags) or (flags[i].startswith("-") and flags[i] in table):
+                raise BadInput(f"{where}: {clip(repr(token), 60)} has no value",
+                               hint=f"give it one: [{json.dumps(token)}, VALUE]")  # fmt: skip
+            inline = flags[i]
+            i += 1
+        kind = hints.get(pname)
+        base = next((t for t in typing.get_args(kind) if t is not type(None)), kind)
+        if base in (int, float):
+            try:
+                base(inline)
+            except ValueError:
+                what = "an integer" if base is int else "a number"
+                raise BadInput(f"{where}: {token} {clip(repr(inline), 40)}: not {what}",
+                               hint=f"`cdrb {command} --help` says what it takes") from None  # fmt: skip
+        if pname == "controller":
+            CONTROLLERS.get(inline, f"{where}: --controller")
+        if key in INPUT_FILE_FLAGS and not Path(inline).exists():
+            raise BadInput(f"{where}: {key} {clip(inline, 80)}: no such file", hint="fix the path (relative to the "
+                           "file that names it)")  # fmt: skip
+
+
+@functools.cache
+def _command(command: str):
     import typer
 
     from cdrb_cli.cli import app
 
-    root = typer.main.get_command(app)
-    out = {}
-    for name in ("collect", "cluster", "train", "eval"):
-        cmd = root.commands[name]
-        out[name] = {o for p in cmd.params for o in (*getattr(p, "opts", ()), *getattr(p, "secondary_opts", ()))}
-    return out
+    return typer.main.get_command(app).commands[command]
 
 
 def _check_flags(spec: GridSpec, path: Path) -> None:
-    """Every flag a grid's settings and variants pass is an option of the command it goes to: a mistyped flag is
-    one line when the grid is read, not a failure of every task hours later."""
-    known = _known_options()
+    """Every flag list of the grid's settings and variants, by :func:`_check_flag_list`."""
     items = [("settings", i, s) for i, s in enumerate(spec.settings)] + [
         ("variants", i, v) for i, v in enumerate(spec.variants)
     ]
     for kind, i, item in items:
         for command in ("collect", "cluster", "train", "eval"):
-            for flag in getattr(item, command, []):
-                name = flag.split("=", 1)[0]
-                if name.startswith("-") and not _is_number(name) and name not in known[command]:
-                    raise BadInput(
-                        f"{path}: {kind}[{i}].{command}: {clip(repr(flag), 60)} is not a `cdrb {command}` option",
-                        hint=f"`cdrb {command} --help` lists them",
-                    )
+            _check_flag_list(getattr(item, command, []), command, f"{path}: {kind}[{i}].{command}")
 
 
 def _is_number(text: str) -> bool:
@@ -433,6 +488,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     _check_flags(spec, path)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
+    _check_out(spec.out, _origin(path, overrides, "out"))
     spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
     if spec.out in spec.reuse:
         raise BadInput(f"{_origin(path, overrides, 'reuse', 'out')}: reuse: names the grid's own `out` folder",
@@ -469,11 +525,17 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
                     hint="put them in an entry without `method`",
                 )
     names = [v.name for v in spec.variants]
-    if len(set(names)) != len(names):
-        raise BadInput(f"{path}: variants: names must differ (got {', '.join(names)})", hint="rename one")
-    # a variant may name methods and envs the grid does not run (a grid narrowed with --set), but each must exist
+    if len({n.lower() for n in names}) != len(names):  # folders: one on a case-insensitive file system
+        raise BadInput(f"{path}: variants: names must differ, also in case (got {', '.join(names)})",
+                       hint="rename one")  # fmt: skip
     for v in spec.variants:
+        if v.name.lower().endswith(".h5"):
+            raise BadInput(f"{path}: variant {v.name}: a variant's folder lies beside the environment's artifacts, "
+                           "so its name cannot end in .h5", hint="rename it")  # fmt: skip
+    # a variant may name methods and envs the grid does not run (a grid narrowed with --set), but each must exist
+    for i, v in enumerate(spec.variants):
         _check_names(f"{path}: variant {v.name}", v.methods, v.envs)
+        _check_scope(f"{path}: variants[{i}] ({v.name})", v, spec, bool({"envs", "methods"} & set_keys))
     if any(len(set(v)) != len(v) for v in (spec.seeds, spec.envs, spec.methods)):
         raise BadInput(f"{_origin(path, overrides, 'envs', 'methods', 'seeds')}: envs, methods and seeds must each "
                        "be listed once", hint="remove the repeats")  # fmt: skip
@@ -496,8 +558,15 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
                 hint="set the grid's `steps` and give the extension more",
             )
         _check_names(where, ext.methods, ext.envs)
+        _check_scope(where, ext, spec, bool({"envs", "methods"} & set_keys))
     if spec.extend:
         _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
+    if spec.eval_seeds is not None and "eval_seed_offset" in spec.model_fields_set:
+        raise BadInput(
+            f"{_origin(path, overrides, 'eval_seed_offset', 'eval_seeds')}: eval_seeds and eval_seed_offset: the "
+            "offset applies only without eval_seeds",
+            hint="keep one of the two",
+        )
     if spec.eval_seeds is None and max(spec.seeds) + spec.eval_seed_offset > MAX_SEED:
         where = _origin(path, overrides, "eval_seed_offset", "seeds")
         raise BadInput(
@@ -519,6 +588,30 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
         )
     return spec
+
+
+def _check_scope(where: str, item: _Scoped, spec: GridSpec, narrowed: bool) -> None:
+    """An empty ``methods``/``envs`` list is an error (it applies to nothing; leaving the key out means all), and an
+    entry that applies to none of the grid's runs is said, unless the grid was ``narrowed`` with --set (which may
+    leave entries idle on purpose)."""
+    for key in ("methods", "envs"):
+        if getattr(item, key) == []:
+            raise BadInput(f"{where}: {key} = []: applies to nothing", hint=f"leave {key} out to mean all")
+    if not narrowed and not any(item.applies(e, m) for e in spec.envs for m in spec.methods):
+        ui.warn(f"{where}: applies to none of the grid's environments and methods, so it does nothing here")
+
+
+def _check_out(out: Path, where: str) -> None:
+    """The grid's ``out`` is a folder or can become one (no file on its path), and its name has no control
+    characters (every task's command line names files under it, one line per task)."""
+    if any(ord(c) < 32 or ord(c) == 127 for c in str(out)):
+        raise BadInput(f"{where}: out {clip(repr(str(out)), 80)}: has a control character", hint="rename the folder")
+    for folder in (out, *out.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise BadInput(f"{where}: out = {out}: {folder} is a file, not a folder",
+                               hint="choose a folder for the grid's artifacts")  # fmt: skip
+            break
 
 
 def _check_names(where: str, methods: list[str] | None, envs: list[str] | None) -> None:
@@ -771,11 +864,7 @@ _UNMEASURED = ("out", "device", "force", "as_json", "keep_plans", "video", "vide
 def _option_table(command: str) -> dict[str, tuple[str, bool, bool]]:
     """``command``'s options, from the CLI itself: option string -> (parameter name, takes a value, the value a
     flag sets: True, or False for its ``--no-`` form)."""
-    import typer
-
-    from cdrb_cli.cli import app
-
-    cmd = typer.main.get_command(app).commands[command]
+    cmd = _command(command)
     table: dict[str, tuple[str, bool, bool]] = {}
     for p in cmd.params:
         if p.param_type_name != "option":
@@ -1453,9 +1542,9 @@ def grid(
             + ", ".join(f"{kinds.count(k)} {k}" for k in _REUSABLE if k in kinds)
             + " (not run here)"
         )
+    check_outputs(spec, tasks)  # a dry run lists what a real one would do, so it is refused the same way
     if dry_run:
         return tasks
-    check_outputs(spec, tasks)
     spec.out.mkdir(parents=True, exist_ok=True)
     with artifacts.claim_output(spec.out / "grid.json", force=True, flag=f"{path}: out ="):
         runner = make_backend(backend, workers, address)
