@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import sys
 import time
 from collections.abc import Callable
@@ -1346,6 +1347,8 @@ def report(
         from cdrb_cli.artifacts.core import read_input_text
 
         check_output(docs, True, "--docs", evals)  # rewritten in place, never one of the evals
+        if not docs.stat().st_mode & stat.S_IWUSR:
+            raise BadInput(f"--docs {docs}: is read-only", hint=f"make it writable (chmod u+w {docs}) first")
         rep.replace_block(read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file"),
                           block, text, str(docs))  # fmt: skip
     if plot is not None:
@@ -1357,11 +1360,16 @@ def report(
     if docs is not None:  # an output like --out (never an input, locked, atomic), rewritten in place by design
         from cdrb_cli.artifacts import atomic_path, claim_output
 
-        with claim_output(docs, True, "--docs", evals), atomic_path(docs) as tmp:
-            from cdrb_cli.artifacts.core import read_input_text
+        try:
+            with claim_output(docs, True, "--docs", evals), atomic_path(docs) as tmp:
+                from cdrb_cli.artifacts.core import read_input_text
 
-            old = read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file")
-            tmp.write_text(rep.replace_block(old, block, text, str(docs)))
+                old = read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file")
+                tmp.write_text(rep.replace_block(old, block, text, str(docs)))
+                tmp.chmod(stat.S_IMODE(docs.stat().st_mode))  # the file keeps who may read it
+        except PermissionError as exc:  # an immutable file, a folder that refuses the rename
+            raise BadInput(f"--docs {docs}: cannot be replaced ({exc.strerror})",
+                           hint="check the file's and its folder's permissions and attributes") from None  # fmt: skip
         ui.log(f"block {block} of {docs} rewritten")
     if out is not None:
         from cdrb_cli.artifacts import atomic_path, claim_output

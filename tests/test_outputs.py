@@ -131,3 +131,17 @@ def test_report_docs_block_is_an_output_like_out(tmp_path, cdrb):
     text = doc.read_text()
     assert text.startswith("head\n<!-- t:begin -->\n| Success rate (%) |") and text.endswith("<!-- t:end -->\ntail\n")
     assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name or p.name.endswith(".lock")]
+    # the file keeps its permissions; a read-only one is refused, not replaced
+    doc.chmod(0o600)
+    assert cdrb("report", ev, "--docs", doc, "--block", "t").returncode == 0 and doc.stat().st_mode & 0o777 == 0o600
+    doc.chmod(0o444)
+    before = doc.read_bytes()
+    r = cdrb("report", ev, "--docs", doc, "--block", "t")
+    assert r.returncode == 2 and "is read-only" in r.stderr and doc.read_bytes() == before
+    # markers that leave the block ambiguous: nothing is rewritten
+    for bad in ("<!-- t:begin -->\na\n<!-- t:end -->\n<!-- t:begin -->\nb\n<!-- t:end -->\n",
+                "<!-- t:begin -->\n<!-- t:begin -->\na\n<!-- t:end -->\n"):  # fmt: skip
+        doc.chmod(0o644)
+        doc.write_text(bad)
+        r = cdrb("report", ev, "--docs", doc, "--block", "t")
+        assert r.returncode == 2 and "ambiguous" in r.stderr and doc.read_text() == bad, r.stderr

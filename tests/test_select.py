@@ -273,15 +273,29 @@ def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_pa
     own = tmp_path / "own.toml"
     own.write_text('["maze"]\ncdrb = [1, 2.5]\n')
     assert paper_figures(own) == {"maze": {"cdrb": (1.0, 2.5)}}
-    for text in ('["maze"]\ncdrb = [1]\n', "maze = 3\n", '["maze"]\ncdrb = ["a", 1]\n', "= =\n"):
+    bad = ['["maze"]\ncdrb = [1]\n', "maze = 3\n", '["maze"]\ncdrb = ["a", 1]\n', "= =\n", ""]
+    bad += ['["maze"]\ncdrb = [nan, 1]\n', '["maze"]\ncdrb = [-5, 1]\n', '["maze"]\ncdrb = [50, 1e308]\n']
+    bad += ['["maze"]\ncdrb = [true, false]\n', '["mazee"]\ncdrb = [1, 2]\n', '["maze"]\ncdrbb = [1, 2]\n']
+    for text in bad:
         own.write_text(text)
         with pytest.raises(BadInput, match="--paper-figures"):
             paper_figures(own)
-    doc = "a\n<!-- t:begin -->\nold\n<!-- t:end -->\nb\n<!-- t:begin -->\nkeep\n<!-- t:end -->\n"
+    doc = "a\n<!-- t:begin -->\nold\n<!-- t:end -->\nb\n<!-- u:begin -->\nkeep\n<!-- u:end -->\n"
     assert replace_block(doc, "t", "new\n", "doc.md").startswith("a\n<!-- t:begin -->\nnew\n<!-- t:end -->\nb\n")
-    assert "keep" in replace_block(doc, "t", "new", "doc.md")  # the first block only
-    with pytest.raises(BadInput, match="no <!-- u:begin -->"):
-        replace_block(doc, "u", "new", "doc.md")
+    assert "keep" in replace_block(doc, "t", "new", "doc.md")  # only the named block
+    with pytest.raises(BadInput, match="no <!-- v:begin -->"):
+        replace_block(doc, "v", "new", "doc.md")
+    with pytest.raises(BadInput, match="ambiguous"):
+        replace_block(doc + doc, "t", "new", "doc.md")
+    with pytest.raises(BadInput, match="holds a t marker"):
+        replace_block(doc, "t", "x\n<!-- t:end -->\n", "doc.md")
+
+
+def test_names_from_an_artifact_cannot_break_a_markdown_table_or_its_block():
+    from cdrb_cli.stages.report import _markdown_safe
+
+    row = _markdown_safe({"method": "a|b\n<!-- t:end -->\n<script>", "success_mean": 1.0})
+    assert row == {"method": "a\\|b &lt;!-- t:end --> &lt;script>", "success_mean": 1.0}
 
 
 def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp_path):

@@ -18,6 +18,7 @@ import numpy as np
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import clip
 from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, std_or_none, sum_failures
 
 PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
@@ -41,16 +42,34 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
         raw = tomllib.loads(text)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise BadInput(f"--paper-figures {where}: cannot read it ({exc})", hint="give a TOML file") from None
+    import math
+
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.registry import METHODS
+
+    def percent(x) -> bool:
+        return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and 0 <= x <= 100
+
+    if not raw:
+        raise BadInput(f"--paper-figures {where}: has no figures", hint="see cdrb_cli/paper_table1.toml for the shape")
     out = {}
     for env, by in raw.items():
         ok = isinstance(by, dict) and all(
-            isinstance(v, list) and len(v) == 2 and all(isinstance(x, int | float) for x in v) for v in by.values()
+            isinstance(v, list) and len(v) == 2 and all(percent(x) for x in v) for v in by.values()
         )
         if not ok:
             raise BadInput(
-                f"--paper-figures {where}: [{env}] is not a table of method = [mean, std]",
+                f"--paper-figures {where}: [{clip(env, 40)}] is not a table of method = [mean, std], each a "
+                "per cent between 0 and 100",
                 hint="see cdrb_cli/paper_table1.toml for the shape",
             )
+        try:
+            make_spec(env)
+        except BadInput as exc:
+            raise BadInput(f"--paper-figures {where}: [{clip(env, 40)}]: {exc.message}",
+                           hint="`cdrb envs` lists them") from None  # fmt: skip
+        for m in by:
+            METHODS.get(m, f"--paper-figures {where}: [{clip(env, 40)}]")
         out[env] = {m: (float(v[0]), float(v[1])) for m, v in by.items()}
     return out
 
@@ -310,7 +329,24 @@ def replace_block(text: str, name: str, block: str, where: str) -> str:
         raise BadInput(
             f"--docs {where}: no {begin} ... {end} block", hint="add the two marker lines where the table goes"
         )
+    if text.count(begin) != 1 or text.count(end) != 1:
+        raise BadInput(
+            f"--docs {where}: {begin} appears {text.count(begin)} times and {end} {text.count(end)}: which block "
+            "to replace is ambiguous",
+            hint="keep one pair of markers per block name (give the others their own --block names)",
+        )
+    if begin in block or end in block:
+        raise BadInput(f"--docs {where}: the report itself holds a {name} marker", hint="check the evals' names")
     return pattern.sub(lambda _: f"{begin}\n{block.rstrip()}\n{end}", text, count=1)
+
+
+def _markdown_safe(row: dict) -> dict:
+    """``row`` with every text value fit for one table cell: names come from artifacts, which anyone can write, and
+    a line break, a ``|`` or a ``<!-- ... -->`` marker in one would break the table or the docs block it lands in."""
+    return {
+        k: " ".join(v.split()).replace("|", "\\|").replace("<", "&lt;") if isinstance(v, str) else v
+        for k, v in row.items()
+    }
 
 
 def failure_text(counts: dict[str, int] | None) -> str | None:
@@ -341,6 +377,7 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
         w.writeheader()
         w.writerows(rows)
         return buf.getvalue()
+    rows = [_markdown_safe(r) for r in rows]
     envs = list(dict.fromkeys(r["env"] for r in rows))
     methods = _order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
@@ -415,6 +452,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     method's success ± std over seeds with its weighted success, each marked where it does not beat the floor, and
     with ``paper`` the paper's figures. A row without a straight-line eval says so instead of a floor."""
     figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
+    rows = [_markdown_safe(r) for r in rows]
     envs = list(dict.fromkeys(r["env"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     floors = [m for m in _order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
@@ -492,6 +530,7 @@ def plot_bars(rows: list[dict], path) -> Path:
     from cdrb_cli.envs.render import label, pyplot, save_figure
 
     plt = pyplot()
+    rows = [_markdown_safe(r) for r in rows]
     envs = list(dict.fromkeys(r["env"] for r in rows))
     methods = _order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
