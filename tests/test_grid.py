@@ -759,6 +759,8 @@ def test_file_flags_in_a_grid_are_relative_to_the_file_that_declares_them(tmp_pa
         )
     )
     grid = _grid(sub, text)
+    for f in (sub / "shared" / "mlp.toml", sub / "cdrb.toml", tmp_path / "abs.toml"):  # a named file must exist
+        f.write_text("")
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     proc = _cli("grid", str(grid), "--dry-run", cwd=elsewhere)
@@ -802,6 +804,8 @@ methods = ["mlp"]
 eval = ["--maze-map", "maps/closed.txt", "--route-buffer", "runs/maze-tight/buffer-k50.h5"]
 """
     )
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "maps" / "closed.txt").write_text("")
     tasks = {t.id: t for t in expand(load_grid(_grid(tmp_path, text)))}
     ev = tasks["eval maze-tight/routed/mlp-s0"]
     buffer = (tmp_path / "runs" / "maze-tight" / "buffer-k50.h5").resolve()

@@ -372,7 +372,7 @@ def _check_flag_list(flags: list[str], command: str, where: str) -> None:
         if pname == "controller":
             CONTROLLERS.get(inline, f"{where}: --controller")
         if key in INPUT_FILE_FLAGS and not Path(inline).exists():
-            raise BadInput(f"{where}: {key} {clip(inline, 80)}: no such file", hint="fix the path (relative to the "
+            raise BadInput(f"{where}: {key} {clip(inline, 300)}: no such file", hint="fix the path (relative to the "
                            "file that names it)")  # fmt: skip
 
 
