@@ -1319,7 +1319,8 @@ def report(
     if docs is not None and fmt not in ("markdown", "table", "summary"):
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
     if docs is not None and not docs.is_file():
-        raise BadInput(f"--docs {docs}: no such file", hint="name an existing markdown file with the marked block")
+        why = "no such file" if not docs.exists() else "not a regular file (a folder, device or FIFO)"
+        raise BadInput(f"--docs {docs}: {why}", hint="name an existing markdown file with the marked block")
     if paper_figures is not None and not paper:
         raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
     _check_outputs(force, evals, docs=docs, out=out, plot=plot, plans_plot=plans_plot)

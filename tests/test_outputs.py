@@ -138,6 +138,8 @@ def test_report_docs_block_is_an_output_like_out(tmp_path, cdrb):
     before = doc.read_bytes()
     r = cdrb("report", ev, "--docs", doc, "--block", "t")
     assert r.returncode == 2 and "is read-only" in r.stderr and doc.read_bytes() == before
+    r = cdrb("report", ev, "--docs", tmp_path, "--block", "t")
+    assert r.returncode == 2 and "not a regular file" in r.stderr
     # markers that leave the block ambiguous: nothing is rewritten
     for bad in ("<!-- t:begin -->\na\n<!-- t:end -->\n<!-- t:begin -->\nb\n<!-- t:end -->\n",
                 "<!-- t:begin -->\n<!-- t:begin -->\na\n<!-- t:end -->\n"):  # fmt: skip
