@@ -530,7 +530,6 @@ def plot_bars(rows: list[dict], path) -> Path:
     from cdrb_cli.envs.render import label, pyplot, save_figure
 
     plt = pyplot()
-    rows = [_markdown_safe(r) for r in rows]
     envs = list(dict.fromkeys(r["env"] for r in rows))
     methods = _order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
