@@ -56,15 +56,16 @@ class Candidate:
         return (-self.success, self.crossing or 0.0, self.collision, self.order, self.steps or 0)
 
 
-def candidates(spec: GridSpec) -> list[Candidate]:
-    """Every (env, method, variant, training length) of the grid with its tuning scores, in the grid's order."""
+def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
+    """Every (env, method, variant, training length) of the grid with its tuning scores, in the grid's order
+    (``tasks``: the grid's expanded tasks, when the caller has them)."""
     from cdrb_cli.stages.report import per_seed
 
     order = {v.name: i for i, v in enumerate(spec.variants or [BASE])}
     found: dict[tuple, Candidate] = {}
     missing = []
     by_output = {}
-    for task in expand(spec):
+    for task in expand(spec) if tasks is None else tasks:
         if task.kind != "eval":
             continue
         by_output[task.outputs[0]] = task
@@ -347,12 +348,13 @@ def select(
     # every file the grid reads or writes is an input here: its settings files (included ones too) and the
     # artifacts under its `out` (demos, models, evals), none of which an output may replace
     inputs = [grid_file, *includes, *spec._sources]
-    inputs += [p for task in expand(spec) for p in (*task.inputs, *task.outputs)]
+    tasks = expand(spec)
+    inputs += [p for task in tasks for p in (*task.inputs, *task.outputs)]
     artifacts.check_output(out, force, "--out", inputs)
     for path, flag in ((table, "--table"), (curves, "--curves")):
         if path is not None:
             artifacts.check_output(path, force, flag, inputs)
-    cands = candidates(spec)
+    cands = candidates(spec, tasks)
     if not cands:
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
     best = choose(cands)
