@@ -330,13 +330,9 @@ def _check_flag_list(flags: list[str], command: str, where: str) -> None:
 
     table = _option_table(command)
     hints = typing.get_type_hints(_command(command).callback)
-    i = 0
-    while i < len(flags):
-        token = flags[i]
-        name, eq, inline = token.partition("=")
-        key = name if eq and name.startswith("--") else token
-        if key not in table:
-            if key.startswith("-") and not _is_number(key):
+    for token, entry, inline in walk_options(flags, table):
+        if entry is None:
+            if token.startswith("-") and not _is_number(token):
                 raise BadInput(f"{where}: {clip(repr(token), 60)} is not a `cdrb {command}` option",
                                hint=f"`cdrb {command} --help` lists them")  # fmt: skip
             raise BadInput(
@@ -344,22 +340,18 @@ def _check_flag_list(flags: list[str], command: str, where: str) -> None:
                 "files itself)",
                 hint='give each value right after its option, e.g. ["--steps", "4000"]',
             )
-        pname, takes_value, _ = table[key]
+        pname, takes_value, _ = entry
         if pname in GRID_OPTIONS.get(command, ()):
             raise BadInput(
                 f"{where}: {clip(repr(token), 60)}: the grid sets this `cdrb {command}` option itself",
                 hint="use the grid's own key (seeds, eval_seeds, eval_stream, eval_episodes, demos, data_seed, preset, "
                 "device, out, or a variant's stream)",
             )
-        i += 1
         if not takes_value:
             continue
-        if not eq:
-            if i >= len(flags) or (flags[i].startswith("-") and flags[i] in table):
-                raise BadInput(f"{where}: {clip(repr(token), 60)} has no value",
-                               hint=f"give it one: [{json.dumps(token)}, VALUE]")  # fmt: skip
-            inline = flags[i]
-            i += 1
+        if inline is None or ("=" not in token and inline.startswith("-") and inline in table):
+            raise BadInput(f"{where}: {clip(repr(token), 60)} has no value",
+                           hint=f"give it one: [{json.dumps(token)}, VALUE]")  # fmt: skip
         kind = hints.get(pname)
         base = next((t for t in typing.get_args(kind) if t is not type(None)), kind)
         if base in (int, float):
@@ -371,8 +363,9 @@ def _check_flag_list(flags: list[str], command: str, where: str) -> None:
                                hint=f"`cdrb {command} --help` says what it takes") from None  # fmt: skip
         if pname == "controller":
             CONTROLLERS.get(inline, f"{where}: --controller")
-        if key in INPUT_FILE_FLAGS and not Path(inline).exists():
-            raise BadInput(f"{where}: {key} {clip(inline, 300)}: no such file", hint="fix the path (relative to the "
+        option = token.partition("=")[0]
+        if option in INPUT_FILE_FLAGS and not Path(inline).exists():
+            raise BadInput(f"{where}: {option} {clip(inline, 300)}: no such file", hint="fix the path (relative to the "
                            "file that names it)")  # fmt: skip
 
 
@@ -890,25 +883,40 @@ def _regular_sha(path: str, cache: dict) -> str | None:
         return None
 
 
+def walk_options(tokens: list[str], table: dict[str, tuple[str, bool, bool]]):
+    """Walk a command line's tokens (the command's name left off) over its option table (:func:`_option_table`):
+    yield (token, entry, value) for each option, in the ``--x=y`` or the ``--x y`` form, with ``value`` its value
+    (None where the line ends before it; an option without one yields None), and (token, None, token) for each token
+    that is not an option."""
+    i = 0
+    while i < len(tokens):
+        token = tokens[i]
+        name, eq, inline = token.partition("=")
+        entry = table.get(name if eq and name.startswith("--") else token)
+        i += 1
+        if entry is None:
+            yield token, None, token
+        elif not entry[1]:
+            yield token, entry, None
+        elif eq and name.startswith("--"):
+            yield token, entry, inline
+        else:
+            yield token, entry, tokens[i] if i < len(tokens) else None
+            i += 1
+
+
 def parse_command(argv: list[str], file_key=str) -> tuple[list[str], dict[str, object], list[tuple[str, str]]]:
     """A command line as what it asks for, independent of how its flags are spelled: (its arguments, its options by
     parameter name with the last value winning as on the command line, its ``--set``s with each one overridden later
     by the same key dropped, sorted unless one key lies inside another). Every argument and option value goes
     through ``file_key`` (a file's stand-in: its sha256, the task that wrote it, its name)."""
-    table = _option_table(argv[0])
-    positional, options, sets, i = [], {}, [], 1
-    while i < len(argv):
-        token = argv[i]
-        name, eq, inline = token.partition("=")
-        entry = table.get(name if eq and name.startswith("--") else token)
+    positional, options, sets = [], {}, []
+    for token, entry, value in walk_options(argv[1:], _option_table(argv[0])):
         if entry is None:
             positional.append(file_key(token))
-            i += 1
             continue
-        pname, takes_value, value = entry
-        if takes_value:
-            value = inline if eq else (argv[i + 1] if i + 1 < len(argv) else "")
-        i += 2 if takes_value and not eq else 1
+        pname, takes_value, flag_value = entry
+        value = ("" if value is None else value) if takes_value else flag_value
         if pname == "sets":
             k, _, v = str(value).partition("=")
             sets.append((k.strip(), v.strip()))
