@@ -153,6 +153,21 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + '\n[[settings]]\neval = ["--controller", "nope"]\n', "unknown controller"),
         (TINY + '\n[[settings]]\ntrain = ["--config", "missing.toml"]\n', "missing.toml: no such file"),
         (TINY + '\n[[settings]]\ntrain = ["4000"]\n', "'4000' is not the value of an option"),
+        # train settings resolved as `cdrb train` resolves them: a key, a value, a net, a buffer's features, a horizon
+        (
+            TINY + '\n[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "net.dimm=8"]\n',
+            "cdrb on maze-tight: train flags: --set net.dimm=8: unknown setting",
+        ),
+        (TINY + '\n[[settings]]\ntrain = ["--set", "lr=fast"]\n', "mlp on maze-tight: train flags: --set lr=fast"),
+        (TINY + '\n[[settings]]\nmethod = "cdrb"\ntrain = ["--net", "mlp"]\n', "the cdrb method uses --net"),
+        (
+            TINY + '\n[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "features=state-action"]\n',
+            "clustered on 'state'",
+        ),
+        (
+            TINY + '\n[[variants]]\nname = "v"\nmethods = ["cdrb"]\ntrain = ["--set", "horizon=15"]\n',
+            "in variant v: train flags: --set horizon=15",
+        ),
         # out: a file, under a file, a control character
         (TINY.replace('out = "runs"', 'out = "grid.toml"'), "is a file, not a folder"),
         (TINY.replace('out = "runs"', 'out = "grid.toml/sub"'), "is a file, not a folder"),
@@ -334,7 +349,8 @@ def test_a_worker_killed_mid_task_is_retried_and_the_grid_finishes(tmp_path):
 
 
 def test_a_failing_task_is_reported_and_the_others_go_on(tmp_path):
-    text = TINY + '\n[[settings]]\nmethod = "mlp"\ntrain = ["--set", "net.hidden=lots"]\n'
+    # a setting that is valid but makes training diverge: a failure only the run itself can find
+    text = TINY + '\n[[settings]]\nmethod = "mlp"\ntrain = ["--set", "lr=1e30"]\n'
     grid = _grid(tmp_path, text)
     proc = _cli("grid", str(grid), "--backend", "pool", "-j", "2")
     assert proc.returncode == 1 and proc.stdout == ""
@@ -344,7 +360,7 @@ def test_a_failing_task_is_reported_and_the_others_go_on(tmp_path):
     for seed in (0, 1):
         failed = status[f"train maze-tight/mlp-s{seed}"]
         assert failed["status"] == "failed" and failed["attempts"] == 2
-        assert any("net.hidden" in line for line in failed["stderr"])  # the command's own one-line error
+        assert any("training diverged" in line for line in failed["stderr"])  # the command's own one-line error
         assert status[f"eval maze-tight/mlp-s{seed}"]["status"] == "skipped"
         assert status[f"eval maze-tight/cdrb-s{seed}"]["status"] == "done"
     assert status["report"]["status"] == "skipped"

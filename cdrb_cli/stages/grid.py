@@ -502,6 +502,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
                            hint="`cdrb envs` lists them") from None  # fmt: skip
     for m in spec.methods:
         METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
+    _check_train_configs(spec, path)
     # settings may name envs and methods the grid does not run (one settings table for several grids), but every
     # name must exist: a typo would silently apply nothing
     for i, s in enumerate(spec.settings):
@@ -639,6 +640,51 @@ def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> i
         return None
     every = str(dict(sets).get("checkpoint_every", preset_training(METHODS.get(method), preset)["checkpoint_every"]))
     return snapshot_step(int(every)) if every.isascii() and every.isdigit() and int(every) > 0 else None
+
+
+def _check_train_configs(spec: GridSpec, path: Path) -> None:
+    """Every training's settings resolve as `cdrb train` resolves them: on the environment's spec (of its
+    ``--maze-map`` where the collect flags name one) and a buffer of the features its cluster flags ask for. An
+    unknown ``--set`` key, a value of the wrong type or a net the method cannot use is then one line when the grid
+    is read, not a failure of every training hours later. Settings in a ``--config`` file are left to the command."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.config import resolve_train_config
+    from cdrb_cli.methods.registry import METHODS, BufferInfo
+    from cdrb_cli.settings import Setting, parse_set
+
+    train_table = _option_table("train")
+    for env in spec.envs:
+        collect = [f for s in spec.settings if s.env in (None, env) for f in s.collect]
+        maze_map = parse_command(["collect", env, *collect])[1].get("maze_map")
+        try:
+            env_spec = make_spec(None if maze_map else env, maze_map)
+        except BadInput:
+            continue  # the collection says what is wrong with its map
+        for method in spec.methods:
+            entry = METHODS.get(method)
+            for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
+                flags = flags_for(spec, env, method, v)[0]
+                options = parse_command(["train", *flags])[1]
+                if options.get("config_file") is not None:
+                    continue
+                sets = [value for _, e, value in walk_options(flags, train_table) if e and e[0] == "sets"]
+                items = parse_set([x for x in sets if x is not None])
+                items.append(Setting(("method", "name"), method, f"--method {method}"))
+                preset = options.get("preset") or spec.preset
+                items.append(Setting(("preset",), preset, f"--preset {preset}"))
+                for key, name in ((("net", "kind"), "net"), (("steps",), "steps")):
+                    if options.get(name) is not None:
+                        value = int(options[name]) if name == "steps" else options[name]
+                        items.append(Setting(key, value, f"--{name} {options[name]}"))
+                buffer = None
+                if entry.needs_buffer:
+                    cluster = parse_command(["cluster", "demos.h5", *cluster_flags_for(spec, env, method, v)])[1]
+                    buffer = BufferInfo(features=str(cluster.get("features") or "state"), diameter=1.0)
+                try:
+                    resolve_train_config(env_spec, buffer, items)
+                except BadInput as exc:
+                    where = f"{path}: {method} on {env}" + (f" in variant {v.name}" if v.name else "")
+                    raise BadInput(f"{where}: train flags: {exc.message}", hint=exc.hint) from None
 
 
 def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:
