@@ -505,6 +505,26 @@ def test_the_summary_marks_every_method_that_does_not_beat_the_straight_line():
     assert "90.0 ± 1.0 (85.0) ≤ floor" in text and "| – |" in text  # Fetch-Reach has no such floor
 
 
+def test_the_summary_gives_a_method_one_column_whatever_preset_each_row_trained_at():
+    """Rows trained at different presets (the mazes at the quick one, Fetch at the paper one) share each method's
+    column and a note names the rows of the other preset; a row with a method at both presets keeps both columns."""
+    from cdrb_cli.stages.report import render_summary
+
+    def row(env, method, success):
+        return {"env": env, "env_name": env.title(), "method": method, "seeds": 3, "episodes": 100,
+                "success_mean": success, "success_std": 1.0, "weighted_success_mean": success}  # fmt: skip
+
+    rows = [row("maze", "straight", 10.0), row("maze", "cdrb", 99.0), row("fetch-push", "straight (paper)", 30.0),
+            row("fetch-push", "cdrb (paper)", 80.0)]  # fmt: skip
+    text = render_summary(rows)
+    head = text.splitlines()[0]
+    assert head.count("cdrb") == 1 and "(paper)" not in head and head.count("straight line") == 1
+    assert "| Fetch-Push | 3 x 100 | 30.0 ± 1.0 (30.0) | 80.0 ± 1.0 (80.0) |" in text
+    assert "The models of Fetch-Push were trained at the paper preset, the others' at the quick one." in text
+    both = render_summary(rows + [row("fetch-push", "cdrb", 70.0)])
+    assert "cdrb (paper)" in both.splitlines()[0] and "trained at the paper preset" not in both
+
+
 def test_first_step_ratio_is_the_median_first_step_over_the_allowed_step():
     """The report's first-step column: per episode the first planned step (obstacle dims) over the step limit,
     the median over every episode of every eval; None without plans or without a known limit."""

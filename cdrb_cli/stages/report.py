@@ -452,7 +452,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     method's success ± std over seeds with its weighted success, each marked where it does not beat the floor, and
     with ``paper`` the paper's figures. A row without a straight-line eval says so instead of a floor."""
     figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
-    rows = [_markdown_safe(r) for r in rows]
+    rows, preset_note = _preset_columns([_markdown_safe(r) for r in rows])
     envs = list(dict.fromkeys(r["env"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     floors = [m for m in _order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
@@ -497,12 +497,40 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
             "≤ floor: the method does not beat the straight line from start to goal on that row (the best of its "
             "straight-line columns)."
         )
+    if preset_note:
+        notes.append(preset_note)
     if figures:
         notes.append(
             "The paper's figures were measured with other experts, controllers, success radius, horizon/stride and "
             "training budgets: see docs/benchmarks.md before comparing."
         )
     return "\n".join(lines) + "\n\n" + " ".join(notes) + "\n"
+
+
+def _preset_columns(rows: list[dict]) -> tuple[list[dict], str]:
+    """``rows`` with each method's preset taken out of its column name (``mlp (paper)`` -> ``mlp``), so one
+    method is one column across rows whose models were trained at different presets (each row's settings are its
+    own), and a note naming the rows of each preset other than the quick one. Where two of one row's methods would
+    then share a column, ``rows`` are kept as they are."""
+    from cdrb_cli.presets import PRESETS
+
+    merged, where = [], {}
+    for r in rows:
+        label = r["method"]
+        for preset in PRESETS:
+            if preset != "quick" and f" ({preset})" in label:
+                label = label.replace(f" ({preset})", "", 1)
+                where.setdefault(preset, {})[r["env"]] = r["env_name"]
+                break
+        merged.append({**r, "method": label})
+    if len({(r["env"], r["method"]) for r in merged}) < len(merged):
+        return rows, ""
+    note = " ".join(
+        f"The models of {', '.join(names.values())} were trained at the {preset} preset"
+        + (", the others' at the quick one." if len(names) < len({r["env"] for r in rows}) else ".")
+        for preset, names in where.items()
+    )
+    return merged, note
 
 
 def _summary_cell(r: dict) -> str:
