@@ -896,9 +896,10 @@ def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path)
     moved = chosen.replace('"--set"', '"--set", "net.dim=8", "--set"', 1)
     spec = load_grid(_grid(tmp_path, table.replace(chosen, moved), "o.toml"))
     assert "train maze-tight/cdrb-s0" not in {t.id for t in expand(spec)}
-    nested = chosen.replace('"--set"', '"--set", "net.dim_mults=1,2,4", "--set", "net={dim = 8}", "--set"', 1)
-    spec = load_grid(_grid(tmp_path, table.replace(chosen, nested), "n.toml"))
-    assert "train maze-tight/cdrb-s0" in {t.id for t in expand(spec)}
+    from cdrb_cli.stages.grid import parse_command
+
+    inner, outer = ["--set", "controller.gain=2"], ["--set", "controller={kp = 1}"]
+    assert parse_command(["eval", "m.h5", *inner, *outer])[2] != parse_command(["eval", "m.h5", *outer, *inner])[2]
     # a curve file that changes after the grid took it (a curve trained on meanwhile) is never read: the task
     # fails; expanded again, it is not reused: the test grid trains that model itself
     with open(curve_dir / "cdrb-s0.step50.h5", "ab") as fh:
