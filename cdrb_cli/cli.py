@@ -760,23 +760,6 @@ PresetOpt = typer.Option(
 )
 
 
-def _train_settings(method, net, preset, steps, config_file, sets):
-    """The user's training settings in priority order: --config file, --set, then the dedicated flags."""
-    from cdrb_cli.settings import Setting, parse_set, read_config_file
-
-    items = read_config_file(config_file) if config_file is not None else []
-    items += parse_set(sets)
-    for path, value, flag in (
-        (("method", "name"), method, "--method"),
-        (("net", "kind"), net, "--net"),
-        (("preset",), preset, "--preset"),
-        (("steps",), steps, "--steps"),
-    ):
-        if value is not None:
-            items.append(Setting(path, value, f"{flag} {value}"))
-    return items
-
-
 @app.command()
 def train(
     demos: Path = typer.Argument(..., help="Demos artifact from `cdrb collect`."),
@@ -815,12 +798,12 @@ def train(
     resolved config. The model is checkpointed into --out: after a crash, [cyan]--resume[/cyan] continues to
     exactly the result of an uninterrupted run.
     Example: [cyan]cdrb train demos.h5 --buffer buffer.h5 --set horizon=128 --set net.dim=32[/cyan]"""
-    from cdrb_cli.methods.config import buffer_info, resolve_train_config
+    from cdrb_cli.methods.config import buffer_info, resolve_train_config, user_settings
     from cdrb_cli.stages.train import train_or_resume
     from cdrb_cli.torch_utils import setup_torch
 
     _check_positive("--steps", steps)
-    settings = _train_settings(method, net, preset, steps, config_file, sets)
+    settings = user_settings(method, net, preset, steps, config_file, sets)
     d = _load(demos, "demos")
     b = _load(buffer, "buffer") if buffer is not None else None
     config = resolve_train_config(d.manifest.env, buffer_info(b), settings, seed=seed)

@@ -16,7 +16,7 @@ from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import DEFAULT_METHOD, METHODS, BufferInfo, MethodEntry
 from cdrb_cli.nets import horizon_multiple
 from cdrb_cli.presets import DEFAULT_PRESET, NETS, PRESETS, TRAIN
-from cdrb_cli.settings import Setting, apply, from_mapping, lookup, validate
+from cdrb_cli.settings import Setting, apply, from_mapping, lookup, parse_set, read_config_file, validate
 
 
 def _source(setting: Setting | None, fallback: str) -> str:
@@ -83,6 +83,22 @@ def _check_keys(settings: Sequence[Setting]) -> None:
             )
         if s.path == ("seed",):
             raise BadInput(f"{s.source}: the seed is --seed", hint="pass --seed N")
+
+
+def user_settings(method=None, net=None, preset=None, steps=None, config_file=None, sets=()) -> list[Setting]:
+    """What `cdrb train` was asked for, in priority order: the ``--config`` file, the ``--set`` pairs, then the
+    dedicated flags (``--method``, ``--net``, ``--preset``, ``--steps``; None: not given)."""
+    items = read_config_file(config_file) if config_file is not None else []
+    items += parse_set(sets)
+    for path, value, flag in (
+        (("method", "name"), method, "--method"),
+        (("net", "kind"), net, "--net"),
+        (("preset",), preset, "--preset"),
+        (("steps",), steps, "--steps"),
+    ):
+        if value is not None:
+            items.append(Setting(path, value, f"{flag} {value}"))
+    return items
 
 
 def resolve_train_config(

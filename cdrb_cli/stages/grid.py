@@ -648,11 +648,9 @@ def _check_train_configs(spec: GridSpec, path: Path) -> None:
     unknown ``--set`` key, a value of the wrong type or a net the method cannot use is then one line when the grid
     is read, not a failure of every training hours later. Settings in a ``--config`` file are left to the command."""
     from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.methods.config import resolve_train_config
+    from cdrb_cli.methods.config import resolve_train_config, user_settings
     from cdrb_cli.methods.registry import METHODS, BufferInfo
-    from cdrb_cli.settings import Setting, parse_set
 
-    train_table = _option_table("train")
     for env in spec.envs:
         collect = [f for s in spec.settings if s.env in (None, env) for f in s.collect]
         maze_map = parse_command(["collect", env, *collect])[1].get("maze_map")
@@ -663,19 +661,12 @@ def _check_train_configs(spec: GridSpec, path: Path) -> None:
         for method in spec.methods:
             entry = METHODS.get(method)
             for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
-                flags = flags_for(spec, env, method, v)[0]
-                options = parse_command(["train", *flags])[1]
+                _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]])
                 if options.get("config_file") is not None:
                     continue
-                sets = [value for _, e, value in walk_options(flags, train_table) if e and e[0] == "sets"]
-                items = parse_set([x for x in sets if x is not None])
-                items.append(Setting(("method", "name"), method, f"--method {method}"))
+                steps = None if options.get("steps") is None else int(options["steps"])
                 preset = options.get("preset") or spec.preset
-                items.append(Setting(("preset",), preset, f"--preset {preset}"))
-                for key, name in ((("net", "kind"), "net"), (("steps",), "steps")):
-                    if options.get(name) is not None:
-                        value = int(options[name]) if name == "steps" else options[name]
-                        items.append(Setting(key, value, f"--{name} {options[name]}"))
+                items = user_settings(method, options.get("net"), preset, steps, sets=[f"{k}={x}" for k, x in sets])
                 buffer = None
                 if entry.needs_buffer:
                     cluster = parse_command(["cluster", "demos.h5", *cluster_flags_for(spec, env, method, v)])[1]
