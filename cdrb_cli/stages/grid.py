@@ -652,7 +652,7 @@ def _check_train_configs(spec: GridSpec, path: Path) -> None:
     from cdrb_cli.methods.registry import METHODS, BufferInfo
 
     for env in spec.envs:
-        collect = [f for s in spec.settings if s.env in (None, env) for f in s.collect]
+        collect = collect_flags_for(spec, env)
         maze_map = parse_command(["collect", env, *collect])[1].get("maze_map")
         try:
             env_spec = make_spec(None if maze_map else env, maze_map)
@@ -660,7 +660,7 @@ def _check_train_configs(spec: GridSpec, path: Path) -> None:
             continue  # the collection says what is wrong with its map
         for method in spec.methods:
             entry = METHODS.get(method)
-            for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
+            for v in _model_variants(spec, env, method):
                 _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]])
                 if options.get("config_file") is not None:
                     continue
@@ -684,7 +684,7 @@ def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:
     for env in spec.envs:
         for method in spec.methods:
             snaps = spec.curve(env, method)[1]
-            for v in [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]:
+            for v in _model_variants(spec, env, method):
                 step = _snapshot_step(spec, env, method, v)
                 bad = [s for s in snaps if step and s % step]
                 if bad:
@@ -714,6 +714,16 @@ class Task:
 BASE = Variant.model_construct(
     name="", methods=None, envs=None, cluster=[], train=[], eval=[], stream=None, eval_settings=True
 )
+
+
+def collect_flags_for(spec: GridSpec, env: str) -> list[str]:
+    """The extra `cdrb collect` flags of ``env``'s demos: those of every settings entry that applies to it."""
+    return [f for s in spec.settings if s.env in (None, env) for f in s.collect]
+
+
+def _model_variants(spec: GridSpec, env: str, method: str) -> list[Variant]:
+    """The variants whose models ``method`` trains on ``env``: the base, then each variant with its own models."""
+    return [BASE, *(v for v in spec.variants if v.own_model and v.applies(env, method))]
 
 
 def cluster_flags_for(spec: GridSpec, env: str, method: str, variant: Variant = BASE) -> list[str]:
@@ -777,7 +787,7 @@ def expand(spec: GridSpec) -> list[Task]:
         folder = out / env
         demos = folder / "demos.h5"
         collect_id = f"collect {env}"
-        collect_extra = [f for s in spec.settings if s.env in (None, env) for f in s.collect]
+        collect_extra = collect_flags_for(spec, env)
         tasks.append(
             Task(
                 collect_id,
