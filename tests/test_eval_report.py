@@ -505,6 +505,26 @@ def test_the_summary_marks_every_method_that_does_not_beat_the_straight_line():
     assert "90.0 ± 1.0 (85.0) ≤ floor" in text and "| – |" in text  # Fetch-Reach has no such floor
 
 
+def test_the_summary_marks_a_method_above_the_floor_only_by_seed_noise():
+    """Above the straight line's mean is not beating it: a gap inside the seeds' spread (Welch's one-sided test,
+    5%) is marked ≈ floor, a gap well outside it is not, and with no spread on either side any gap counts."""
+    from cdrb_cli.stages.report import _above, render_summary
+
+    def row(method, success, std, seeds=5):
+        return {"env": "fetch-push", "env_name": "Push", "method": method, "seeds": seeds, "episodes": 100,
+                "success_mean": success, "success_std": std, "weighted_success_mean": success}  # fmt: skip
+
+    floor = row("straight", 75.0, 4.5)
+    text = render_summary([floor, row("mlp", 75.2, 1.3), row("cdrb", 89.6, 4.4)])
+    assert "75.2 ± 1.3 (75.2) ≈ floor" in text and "89.6 ± 4.4 (89.6) |" in text
+    assert "not by more than seed noise" in text and "≤ floor" not in text
+    assert "seed noise" not in render_summary([floor, row("cdrb", 89.6, 4.4)])
+    # the test's own boundary: with std 2 on 5 seeds each, a gap of 2 is noise (t = 1.58), a gap of 4 is not (3.16)
+    assert not _above(row("a", 52.0, 2.0), row("s", 50.0, 2.0)) and _above(row("a", 54.0, 2.0), row("s", 50.0, 2.0))
+    assert _above(row("a", 50.1, 0.0), row("s", 50.0, 0.0)) and not _above(row("a", 50.0, 0.0), row("s", 50.0, 0.0))
+    assert _above(row("a", 50.1, 9.0, seeds=1), row("s", 50.0, 9.0))  # one seed: no spread to test, means decide
+
+
 def test_the_summary_gives_a_method_one_column_whatever_preset_each_row_trained_at():
     """Rows trained at different presets (the mazes at the quick one, Fetch at the paper one) share each method's
     column and a note names the rows of the other preset; a row with a method at both presets keeps both columns."""

@@ -449,7 +449,8 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
 
 def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     """Table 1 in one line per environment (markdown): the straight line's success, the floor, then every learned
-    method's success ± std over seeds with its weighted success, each marked where it does not beat the floor, and
+    method's success ± std over seeds with its weighted success, each marked where it does not beat the floor
+    (``≤ floor``: not above its mean; ``≈ floor``: above it by no more than seed noise, :func:`_above`), and
     with ``paper`` the paper's figures. A row without a straight-line eval says so instead of a floor."""
     figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
     rows, preset_note = _preset_columns([_markdown_safe(r) for r in rows])
@@ -463,7 +464,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     if figures:
         head.append("paper: " + " / ".join(paper_methods))
     lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
-    below = False
+    below = level = False
     for env in envs:
         here = [cell[(env, m)] for m in floors + methods if (env, m) in cell]
         shapes = sorted({f"{r['seeds']} x {r['episodes']}" for r in here})
@@ -482,6 +483,9 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
             if floor is not None and r["success_mean"] <= floor["success_mean"]:
                 text += " ≤ floor"
                 below = True
+            elif floor is not None and not _above(r, floor):
+                text += " ≈ floor"
+                level = True
             vals.append(text)
         if figures:
             vals.append(
@@ -497,6 +501,11 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
             "≤ floor: the method does not beat the straight line from start to goal on that row (the best of its "
             "straight-line columns)."
         )
+    if level:
+        notes.append(
+            f"≈ floor: above the straight line's mean, but not by more than seed noise (Welch's one-sided t-test "
+            f"over training seeds, p ≥ {FLOOR_ALPHA})."
+        )
     if preset_note:
         notes.append(preset_note)
     if figures:
@@ -505,6 +514,27 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
             "training budgets: see docs/benchmarks.md before comparing."
         )
     return "\n".join(lines) + "\n\n" + " ".join(notes) + "\n"
+
+
+#: the significance level at which a method's success counts as above the straight line's
+FLOOR_ALPHA = 0.05
+
+
+def _above(r: dict, floor: dict) -> bool:
+    """Whether ``r``'s success is above ``floor``'s by more than seed noise: Welch's one-sided t-test over the
+    training seeds of each (sample std, seed count) at :data:`FLOOR_ALPHA`. With one seed on either side there is
+    no spread to test, and the means decide; with no spread on both sides, any difference is real."""
+    if r["seeds"] < 2 or floor["seeds"] < 2:
+        return r["success_mean"] > floor["success_mean"]
+    if r["success_std"] == 0 and floor["success_std"] == 0:
+        return r["success_mean"] > floor["success_mean"]
+    from scipy.stats import ttest_ind_from_stats
+
+    test = ttest_ind_from_stats(
+        r["success_mean"], r["success_std"], r["seeds"], floor["success_mean"], floor["success_std"],
+        floor["seeds"], equal_var=False, alternative="greater",
+    )  # fmt: skip
+    return bool(test.pvalue < FLOOR_ALPHA)
 
 
 def _preset_columns(rows: list[dict]) -> tuple[list[dict], str]:
