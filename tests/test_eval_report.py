@@ -285,7 +285,10 @@ def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
     cfg = other.manifest.config.model_copy(update={"seeds": [0, 9]})
     artifacts.save(tmp_path / "seeds.h5", "eval", other.manifest.model_copy(update={"config": cfg}), arrays)
     r = cdrb("report", ev.path, tmp_path / "seeds.h5")
-    assert r.returncode == 2 and "different protocols" in r.stderr and "seeds" in r.stderr
+    assert r.returncode == 2 and "different evaluation seeds ([0, 1] for cdrb vs [0, 9] for diffuser)" in r.stderr
+    # the error names the method whose seeds differ, not merely the first two methods (which agree here)
+    r = cdrb("report", ev.path, evals["mlp"].path, tmp_path / "seeds.h5")
+    assert r.returncode == 2 and "for cdrb vs [0, 9] for diffuser" in r.stderr and "for mlp" not in r.stderr
     # the same seeds twice for one method
     r = cdrb("report", ev.path, ev.path)
     assert r.returncode == 2 and "more than one eval file" in r.stderr

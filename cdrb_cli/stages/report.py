@@ -219,9 +219,10 @@ def collect_rows(evals) -> list[dict]:
                 )
             seed_sets[label] = tuple(sorted(seeds))
         if len(set(seed_sets.values())) > 1:
-            (la, sa), (lb, sb) = list(seed_sets.items())[:2]
+            (la, sa) = next(iter(seed_sets.items()))
+            lb, sb = next((lb, sb) for lb, sb in seed_sets.items() if sb != sa)  # a method that differs from the first
             raise BadInput(
-                f"eval files for {env_id} use different protocols (seeds {list(sa)} for {la} vs {list(sb)} for {lb})",
+                f"eval files for {env_id} use different evaluation seeds ({list(sa)} for {la} vs {list(sb)} for {lb})",
                 hint="evaluate every method on the same --seeds",
             )
         for label, group in methods.items():
