@@ -589,11 +589,13 @@ def plot_bars(rows: list[dict], path) -> Path:
     from cdrb_cli.envs.render import label, pyplot, save_figure
 
     plt = pyplot()
+    rows, _ = _preset_columns(rows)  # one bar colour per method across rows trained at different presets
     envs = list(dict.fromkeys(r["env"] for r in rows))
     methods = _order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     name = {r["env"]: r["env_name"] for r in rows}
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    many = len(envs) > 3  # long row names side by side: slant them and widen the figure
+    fig, axes = plt.subplots(1, 2, figsize=(max(11.0, 2.2 * len(envs)), 4.6 if many else 4))
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(envs))
     for i, m in enumerate(methods):
@@ -606,13 +608,18 @@ def plot_bars(rows: list[dict], path) -> Path:
     panels = ((axes[0], "success rate", "success (%)"), (axes[1], "planned states inside obstacles", "states (%)"))
     for ax, title, ylabel in panels:
         ax.set_xticks(x)
-        ax.set_xticklabels([label(name[e]) for e in envs])
+        ax.set_xticklabels([label(name[e]) for e in envs], rotation=25 if many else 0, ha="right" if many else "center")
         ax.set_title(title, fontsize=10)
         ax.set_ylabel(ylabel)
         ax.set_ylim(bottom=0)
         ax.grid(axis="y", alpha=0.3)
-    axes[0].set_ylim(0, 105)
-    axes[0].legend(fontsize=8)
+    if many:  # a legend row above the bars, which reach 100 in every group
+        axes[0].set_ylim(0, 118)
+        axes[0].set_yticks(range(0, 101, 20))
+        axes[0].legend(fontsize=8, ncol=len(methods), loc="upper center")
+    else:
+        axes[0].set_ylim(0, 105)
+        axes[0].legend(fontsize=8)
     seeds = sorted({int(r.get("seeds", 0) or 0) for r in rows})
     fig.text(
         0.5,
