@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import stat
 import sys
 import time
 from collections.abc import Callable
@@ -1301,9 +1300,6 @@ def report(
         )
     if docs is not None and fmt not in ("markdown", "table", "summary"):
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
-    if docs is not None and not docs.is_file():
-        why = "no such file" if not docs.exists() else "not a regular file (a folder, device or FIFO)"
-        raise BadInput(f"--docs {docs}: {why}", hint="name an existing markdown file with the marked block")
     if paper_figures is not None and not paper:
         raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
     _check_outputs(force, evals, docs=docs, out=out, plot=plot, plans_plot=plans_plot)
@@ -1327,34 +1323,15 @@ def report(
     if plans_plot is not None:
         rep.with_plans(arts)
     if docs is not None:
-        from cdrb_cli.artifacts import check_output
-        from cdrb_cli.artifacts.core import read_input_text
-
-        check_output(docs, True, "--docs", evals)  # rewritten in place, never one of the evals
-        if not docs.stat().st_mode & stat.S_IWUSR:
-            raise BadInput(f"--docs {docs}: is read-only", hint=f"make it writable (chmod u+w {docs}) first")
-        rep.replace_block(read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file"),
-                          block, text, str(docs))  # fmt: skip
+        rep.check_docs_block(docs, block, text, evals)
     if plot is not None:
         rep.plot_bars(rows, plot)
         ui.log(f"picture: {plot}")
     if plans_plot is not None:
         rep.plot_side_by_side(arts, plans_plot)
         ui.log(f"picture: {plans_plot}")
-    if docs is not None:  # an output like --out (never an input, locked, atomic), rewritten in place by design
-        from cdrb_cli.artifacts import atomic_path, claim_output
-
-        try:
-            with claim_output(docs, True, "--docs", evals), atomic_path(docs) as tmp:
-                from cdrb_cli.artifacts.core import read_input_text
-
-                old = read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file")
-                tmp.write_text(rep.replace_block(old, block, text, str(docs)))
-                tmp.chmod(stat.S_IMODE(docs.stat().st_mode))  # the file keeps who may read it
-        except PermissionError as exc:  # an immutable file, a folder that refuses the rename
-            raise BadInput(f"--docs {docs}: cannot be replaced ({exc.strerror})",
-                           hint="check the file's and its folder's permissions and attributes") from None  # fmt: skip
-        ui.log(f"block {block} of {docs} rewritten")
+    if docs is not None:
+        rep.write_docs_block(docs, block, text, evals)
     if out is not None:
         from cdrb_cli.artifacts import atomic_path, claim_output
 
@@ -1444,6 +1421,15 @@ def select(
         help="Also write the learning curves as CSV: one row per candidate, training length and training seed "
         "(success, weighted success, success without collision, plans through an obstacle, collisions; per cent).",
     ),
+    docs: Path | None = typer.Option(
+        None,
+        "--docs",
+        metavar="FILE",
+        help="Also write what was chosen (one line per environment, a column per method: tuning success ± std, "
+        "training length, plans through an obstacle) into FILE between <!-- BLOCK:begin --> and "
+        "<!-- BLOCK:end --> (with --block).",
+    ),
+    block: str | None = typer.Option(None, "--block", metavar="NAME", help="The marked block of --docs to replace."),
     overrides: list[str] = GridSetOpt,
     includes: list[Path] = GridIncludeOpt,
     force: bool = ForceOpt,
@@ -1457,7 +1443,21 @@ def select(
     steps. Prints the path of the settings file."""
     from cdrb_cli.stages.select import select as run_select
 
-    ui.emit(run_select(grid_file, out, force=force, table=table, curves=curves, overrides=overrides, includes=includes))
+    if (docs is None) != (block is None):
+        raise BadInput("--docs and --block go together", hint="e.g. --docs README.md --block tuning-fetch")
+    ui.emit(
+        run_select(
+            grid_file,
+            out,
+            force=force,
+            table=table,
+            curves=curves,
+            overrides=overrides,
+            includes=includes,
+            docs=docs,
+            block=block,
+        )  # fmt: skip
+    )
 
 
 # ------------------------------------------------------------------------------------------------ grid

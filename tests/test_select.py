@@ -142,6 +142,32 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     assert unchecked == [tmp_path / "eval-None.h5"]
 
 
+def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
+    """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
+    obstacle (none for a policy), and * where its curve still rises."""
+    from cdrb_cli.stages.select import summary_text
+
+    def point(variant, order, steps, successes, method, crossing=0.0):
+        mean = sum(successes) / len(successes)
+        c = _cand(variant, order, steps, success=mean, crossing=crossing, method=method)
+        c.models = [{"seed": i, "success": v} for i, v in enumerate(successes)]
+        c.success_std = (sum((v - mean) ** 2 for v in successes) / (len(successes) - 1)) ** 0.5
+        return c
+
+    cands = [
+        point("k2", 0, 1000, [20.0, 30.0, 16.0], "cdrb", crossing=40.0),
+        point("k2", 0, 2500, [90.0, 95.0, 97.0], "cdrb", crossing=3.2),  # gained 70, 65, 81: still rising
+        point("base", 0, 1000, [50.0, 50.0, 52.0], "mlp", crossing=80.0),
+        point("base", 0, 2500, [40.0, 44.0, 42.0], "mlp", crossing=85.0),  # the shorter run wins: no rise
+        point("policy", 0, 10000, [30.0, 31.0, 35.0], "diffusion-bc", crossing=None),
+    ]
+    text = summary_text(cands, choose(cands))
+    head, rule, row = text.splitlines()[:3]
+    assert head == "| Task | mlp | cdrb | diffusion-bc |" and rule == "|---|---:|---:|---:|"
+    assert row == "| Maze | 50.7 ± 1.2 @1k (80%) | 94.0 ± 3.6 @2.5k* (3%) | 32.0 ± 2.6 @10k |"
+    assert "*: the curve still rises" in text
+
+
 def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp_path):
     """The documented chain on the shipped files (copied, so the tuned files written are the copies'), narrowed to
     Maze Tight x {MLP, CDRB} with tiny nets: each `cdrb select` writes the settings the next file includes, and the
@@ -180,6 +206,15 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     copy = tmp_path / "runs" / "sweep-copy"
     shutil.copytree(tmp_path / "runs" / "mazes-sweep", copy)
     again = ["select", exp / "tune" / "mazes-sweep.toml", *sweep_args, "--set", f"out={copy}"]
+    # --docs writes the choices' summary into the marked block; a file without the block is refused before the
+    # settings file is written
+    doc = tmp_path / "doc.md"
+    doc.write_text("# tuning\n\n<!-- tuning:begin -->\n<!-- tuning:end -->\n")
+    _cdrb(*again, "--out", tmp_path / "d.toml", "--docs", doc, "--block", "tuning", cwd=tmp_path)
+    written = doc.read_text()
+    assert "| Task | mlp | cdrb |" in written and "\n| Maze Tight | " in written and written.startswith("# tuning")
+    r = _cdrb(*again, "--out", tmp_path / "e.toml", "--docs", doc, "--block", "other", cwd=tmp_path, check=False)
+    assert r.returncode == 2 and "no <!-- other:begin -->" in r.stderr and not (tmp_path / "e.toml").exists()
     r = _cdrb(*again, "--set", "eval_episodes=3", "--out", tmp_path / "x.toml", cwd=tmp_path, check=False)
     assert r.returncode == 2 and "not this grid's eval" in r.stderr and "--episodes 2 there, 3 in the grid" in r.stderr
     quick = copy / "maze-tight" / "quick"

@@ -330,6 +330,46 @@ def table_text(rows: list[dict], fmt: str) -> str:
     return plain_table(rows, lambda v: "–" if v is None else "**yes**" if v is True else "" if v is False else str(v))
 
 
+def _steps(n: int | None) -> str:
+    """A training length as the README writes it: 1000 -> 1k, 2500 -> 2.5k (none for an eval-only knob)."""
+    return "" if n is None else f" @{n / 1000:g}k" if n >= 1000 else f" @{n}"
+
+
+def summary_text(cands: list[Candidate], best: dict[tuple[str, str], Candidate]) -> str:
+    """What was chosen, one markdown line per environment and a column per method: the chosen candidate's tuning
+    success ± sample std over training seeds at its training length, its plans through an obstacle in brackets
+    (a policy makes none), and * where the method's curve still rises at its longest length (:data:`RISING`)."""
+    from cdrb_cli.envs.registry import family_of, make_spec
+    from cdrb_cli.stages.report import _order
+
+    rising = still_rising(cands)
+    envs = list(dict.fromkeys(env for env, _ in best))
+    methods = _order(dict.fromkeys(method for _, method in best))
+    lines = ["| Task | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
+    for env in envs:
+        cells = []
+        for method in methods:
+            c = best.get((env, method))
+            if c is None:
+                cells.append("–")
+                continue
+            spread = "n/a" if c.success_std is None else f"{c.success_std:.1f}"
+            through = "" if c.crossing is None else f" ({c.crossing:.0f}%)"
+            cells.append(
+                f"{c.success:.1f} ± {spread}{_steps(c.steps)}{'*' if (env, method) in rising else ''}{through}"
+            )
+        try:
+            name = family_of(make_spec(env)).display_name(env)
+        except BadInput:  # an environment of a plugin that is not installed here: its id
+            name = env
+        lines.append(f"| {ui.plain(name)} | " + " | ".join(cells) + " |")
+    note = (
+        "Each cell: the chosen setting's tuning success (%) ± sample std over training seeds, @ its training length, "
+        "in brackets its plans through an obstacle; *: the curve still rises at its longest length."
+    )
+    return "\n".join(lines) + "\n\n" + note + "\n"
+
+
 def select(
     grid_file: Path,
     out: Path,
@@ -338,8 +378,11 @@ def select(
     curves: Path | None = None,
     overrides: list[str] = (),
     includes: list[Path] = (),
+    docs: Path | None = None,
+    block: str | None = None,
 ) -> Path:
-    """Score the tuning grid's evals, choose by :data:`RULE`, write the settings file (and the candidates' table)."""
+    """Score the tuning grid's evals, choose by :data:`RULE`, write the settings file (and the candidates' table,
+    and with ``docs`` the choices' summary into that markdown file's ``block``)."""
     from cdrb_cli.artifacts.outputs import distinct_outputs
     from cdrb_cli.stages.grid import load_grid
 
@@ -358,6 +401,11 @@ def select(
     if not cands:
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
     best = choose(cands)
+    if docs is not None:
+        from cdrb_cli.stages.report import check_docs_block
+
+        summary = summary_text(cands, best)
+        check_docs_block(docs, block, summary, inputs)
     for (env, method), (c, gain, se) in still_rising(cands).items():
         ui.warn(
             f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: +{gain:.1f} ± {se:.1f} points "
@@ -381,4 +429,8 @@ def select(
 
         with artifacts.claim_output(curves, force, "--curves", inputs), artifacts.atomic_path(curves) as tmp:
             tmp.write_text(render(curve_rows(cands), "csv"))
+    if docs is not None:
+        from cdrb_cli.stages.report import write_docs_block
+
+        write_docs_block(docs, block, summary, inputs)
     return out
