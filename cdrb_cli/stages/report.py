@@ -401,7 +401,9 @@ def _describe(p) -> str:
     return f"{p[0]} episodes per seed, protocol {p[1]}, episodes of {p[3]}{extra} steps, {p[4]} pairs"
 
 
-def _order(methods):
+def method_order(methods) -> list[str]:
+    """``methods`` (labels, a preset or variant after the name) in the method registry's order: the columns of
+    every table and the bars of every chart."""
     return sorted(methods, key=_rank)
 
 
@@ -417,7 +419,7 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
         return buf.getvalue()
     rows = [_markdown_safe(r) for r in rows]
     envs = list(dict.fromkeys(r["env"] for r in rows))
-    methods = _order(dict.fromkeys(r["method"] for r in rows))
+    methods = method_order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     name = {r["env"]: r["env_name"] for r in rows}
     lines = ["| Success rate (%) | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
@@ -494,8 +496,8 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     rows, preset_note = _preset_columns([_markdown_safe(r) for r in rows])
     envs = list(dict.fromkeys(r["env"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
-    floors = [m for m in _order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
-    methods = [m for m in _order(dict.fromkeys(r["method"] for r in rows)) if m not in floors]
+    floors = [m for m in method_order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
+    methods = [m for m in method_order(dict.fromkeys(r["method"] for r in rows)) if m not in floors]
     floor_heads = [f"{m.replace('straight', 'straight line', 1)} (floor)" for m in floors] or ["straight line (floor)"]
     head = ["Table 1 row", "seeds x pairs", *floor_heads, *methods]
     paper_methods = [m for m in dict.fromkeys(m for env in envs for m in figures.get(env, {}))]
@@ -628,7 +630,7 @@ def plot_bars(rows: list[dict], path) -> Path:
     plt = pyplot()
     rows, _ = _preset_columns(rows)  # one bar colour per method across rows trained at different presets
     envs = list(dict.fromkeys(r["env"] for r in rows))
-    methods = _order(dict.fromkeys(r["method"] for r in rows))
+    methods = method_order(dict.fromkeys(r["method"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     name = {r["env"]: r["env_name"] for r in rows}
     many = len(envs) > 3  # long row names side by side: slant them and widen the figure

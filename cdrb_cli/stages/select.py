@@ -340,11 +340,11 @@ def summary_text(cands: list[Candidate], best: dict[tuple[str, str], Candidate])
     success ± sample std over training seeds at its training length, its plans through an obstacle in brackets
     (a policy makes none), and * where the method's curve still rises at its longest length (:data:`RISING`)."""
     from cdrb_cli.envs.registry import family_of, make_spec
-    from cdrb_cli.stages.report import _order
+    from cdrb_cli.stages.report import method_order
 
     rising = still_rising(cands)
     envs = list(dict.fromkeys(env for env, _ in best))
-    methods = _order(dict.fromkeys(method for _, method in best))
+    methods = method_order(dict.fromkeys(method for _, method in best))
     lines = ["| Task | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
     for env in envs:
         cells = []
