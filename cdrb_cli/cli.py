@@ -1445,19 +1445,8 @@ def select(
 
     if (docs is None) != (block is None):
         raise BadInput("--docs and --block go together", hint="e.g. --docs README.md --block tuning-fetch")
-    ui.emit(
-        run_select(
-            grid_file,
-            out,
-            force=force,
-            table=table,
-            curves=curves,
-            overrides=overrides,
-            includes=includes,
-            docs=docs,
-            block=block,
-        )  # fmt: skip
-    )
+    options = dict(force=force, table=table, curves=curves, overrides=overrides, includes=includes)
+    ui.emit(run_select(grid_file, out, docs=docs, block=block, **options))
 
 
 # ------------------------------------------------------------------------------------------------ grid
