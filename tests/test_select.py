@@ -145,7 +145,7 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
     obstacle (none for a policy), and * where its curve still rises."""
-    from cdrb_cli.stages.select import summary_text
+    from cdrb_cli.stages.select import still_rising, summary_text
 
     def point(variant, order, steps, successes, method, crossing=0.0):
         mean = sum(successes) / len(successes)
@@ -161,7 +161,7 @@ def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
         point("base", 0, 2500, [40.0, 44.0, 42.0], "mlp", crossing=85.0),  # the shorter run wins: no rise
         point("policy", 0, 10000, [30.0, 31.0, 35.0], "diffusion-bc", crossing=None),
     ]
-    text = summary_text(cands, choose(cands))
+    text = summary_text(cands, choose(cands), still_rising(cands))
     head, rule, row = text.splitlines()[:3]
     assert head == "| Task | mlp | cdrb | diffusion-bc |" and rule == "|---|---:|---:|---:|"
     assert row == "| Maze | 50.7 ± 1.2 @1k (80%) | 94.0 ± 3.6 @2.5k* (3%) | 32.0 ± 2.6 @10k |"

@@ -335,14 +335,14 @@ def _steps(n: int | None) -> str:
     return "" if n is None else f" @{n / 1000:g}k" if n >= 1000 else f" @{n}"
 
 
-def summary_text(cands: list[Candidate], best: dict[tuple[str, str], Candidate]) -> str:
+def summary_text(cands: list[Candidate], best: dict[tuple[str, str], Candidate], rising: dict) -> str:
     """What was chosen, one markdown line per environment and a column per method: the chosen candidate's tuning
     success ± sample std over training seeds at its training length, its plans through an obstacle in brackets
-    (a policy makes none), and * where the method's curve still rises at its longest length (:data:`RISING`)."""
+    (a policy makes none), and * where the method's curve still rises at its longest length (``rising``, from
+    :func:`still_rising`)."""
     from cdrb_cli.envs.registry import family_of, make_spec
     from cdrb_cli.stages.report import method_order
 
-    rising = still_rising(cands)
     envs = list(dict.fromkeys(env for env, _ in best))
     methods = method_order(dict.fromkeys(method for _, method in best))
     lines = ["| Task | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
@@ -355,9 +355,8 @@ def summary_text(cands: list[Candidate], best: dict[tuple[str, str], Candidate])
                 continue
             spread = "n/a" if c.success_std is None else f"{c.success_std:.1f}"
             through = "" if c.crossing is None else f" ({c.crossing:.0f}%)"
-            cells.append(
-                f"{c.success:.1f} ± {spread}{_steps(c.steps)}{'*' if (env, method) in rising else ''}{through}"
-            )
+            mark = "*" if (env, method) in rising else ""
+            cells.append(f"{c.success:.1f} ± {spread}{_steps(c.steps)}{mark}{through}")
         try:
             name = family_of(make_spec(env)).display_name(env)
         except BadInput:  # an environment of a plugin that is not installed here: its id
@@ -400,13 +399,13 @@ def select(
     cands = candidates(spec, tasks)
     if not cands:
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
-    best = choose(cands)
+    best, rising = choose(cands), still_rising(cands)
     if docs is not None:
         from cdrb_cli.stages.report import check_docs_block
 
-        summary = summary_text(cands, best)
+        summary = summary_text(cands, best, rising)
         check_docs_block(docs, block, summary, inputs)
-    for (env, method), (c, gain, se) in still_rising(cands).items():
+    for (env, method), (c, gain, se) in rising.items():
         ui.warn(
             f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: +{gain:.1f} ± {se:.1f} points "
             f"over the previous length): extend it before choosing from it, unless a common cap stops it there "
