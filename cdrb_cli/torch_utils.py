@@ -3,22 +3,88 @@
 from __future__ import annotations
 
 import os
+import time
 
 from cdrb_cli.errors import BadInput
+
+#: seconds of CPU accounting sampled to judge how many cores other work keeps busy right now
+BUSY_SAMPLE_SECONDS = 0.2
+#: most torch threads a run takes on its own (more rarely pays for networks of this size)
+MAX_THREADS = 8
+
+
+def usable_cores() -> list[int] | None:
+    """The CPU ids this process may run on (its affinity mask), or None where the platform does not say."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
+
+
+def _cpu_ticks(cores: list[int] | None) -> tuple[int, int] | None:
+    """(idle, total) jiffies summed over ``cores`` (all CPUs when None) from /proc/stat; None where unreadable."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            return parse_cpu_ticks(fh.read(), cores)
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def parse_cpu_ticks(text: str, cores: list[int] | None) -> tuple[int, int] | None:
+    """(idle, total) jiffies of the per-CPU lines of a /proc/stat text, summed over ``cores`` (every CPU when
+    None): idle counts idle and iowait; total counts user, nice, system, idle, iowait, irq, softirq and steal (guest
+    time is already inside user). None when no line of those CPUs can be read."""
+    wanted = None if cores is None else {f"cpu{c}" for c in cores}
+    idle = total = 0
+    seen = False
+    for line in text.splitlines():
+        name, _, rest = line.partition(" ")
+        if not name.startswith("cpu") or name == "cpu" or (wanted is not None and name not in wanted):
+            continue
+        try:
+            v = [int(x) for x in rest.split()]
+        except ValueError:
+            return None
+        if len(v) < 4:
+            return None
+        idle += v[3] + (v[4] if len(v) > 4 else 0)
+        total += sum(v[:8])
+        seen = True
+    return (idle, total) if seen else None
+
+
+def busy_cores(cores: list[int] | None = None, seconds: float = BUSY_SAMPLE_SECONDS) -> float | None:
+    """How many of ``cores`` other work keeps busy now: 1 - idle share of their CPU time over ``seconds`` of
+    /proc/stat, times their number (this process sleeps meanwhile, so it counts nothing). None where the platform
+    has no /proc/stat (then the load average stands in)."""
+    first = _cpu_ticks(cores)
+    if first is None:
+        return None
+    time.sleep(seconds)
+    second = _cpu_ticks(cores)
+    if second is None or second[1] <= first[1]:
+        return None
+    n = len(cores) if cores is not None else max(1, os.cpu_count() or 1)
+    return n * (1.0 - (second[0] - first[0]) / (second[1] - first[1]))
 
 
 def cpu_threads() -> int:
     """Torch CPU threads: ``OMP_NUM_THREADS`` when set (the standard knob: give each of several runs sharing a
-    machine its share), else the cores the machine's load leaves free, at least 1 and at most 8. Threads beyond the
-    free cores spin against the other work and slow the run by far more than their share (docs/cli.md)."""
+    machine its share), else the cores that other work leaves free right now, at least 1 and at most
+    :data:`MAX_THREADS`. "Now" is a short sample of the CPU accounting, not the 1-minute load average, so an idle
+    machine trains with every core whatever ran a minute ago; threads beyond the free cores would spin against the
+    other work and slow the run by far more than their share (docs/cli.md)."""
     env = os.environ.get("OMP_NUM_THREADS", "").strip()
     if env.isdigit() and int(env) > 0:
         return min(int(env), 256)
-    cores = max(1, min(os.cpu_count() or 1, 8))
-    try:
-        busy = os.getloadavg()[0]  # runnable processes, 1-minute average (before this run adds its own)
-    except (OSError, AttributeError):  # no load average on this platform
-        busy = 0.0
+    allowed = usable_cores()
+    cores = max(1, min(len(allowed) if allowed else (os.cpu_count() or 1), MAX_THREADS))
+    busy = busy_cores(allowed)
+    if busy is None:
+        try:
+            busy = os.getloadavg()[0]  # runnable processes, 1-minute average (before this run adds its own)
+        except (OSError, AttributeError):  # no load average on this platform
+            busy = 0.0
     return max(1, min(cores, int(cores - busy + 0.5)))
 
 
@@ -34,3 +100,4 @@ def setup_torch(device: str = "auto", threads: int | None = None):
     if device not in ("cpu",) and not device.startswith("cuda"):
         raise BadInput(f"--device {device!r}: unknown device", hint="use auto, cpu or cuda")
     return torch.device(device)
+

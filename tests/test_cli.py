@@ -190,19 +190,62 @@ def test_progress_prints_plain_lines_while_it_runs_when_stderr_is_not_a_terminal
     assert "\x1b[" not in r.stderr
 
 
+def _stat(*cpus):
+    """A /proc/stat text with one line per CPU: (busy, idle) jiffies each."""
+    lines = ["cpu  0 0 0 0 0 0 0 0 0 0"]
+    lines += [f"cpu{i} {busy} 0 0 {idle} 0 0 0 0 0 0" for i, (busy, idle) in enumerate(cpus)]
+    return "\n".join(lines + ["intr 1 2 3", "ctxt 4"]) + "\n"
+
+
+@pytest.mark.parametrize(
+    "busy_now, expected",
+    [((0, 0, 0, 0), 4), ((100, 0, 0, 0), 3), ((100, 100, 60, 0), 1), ((100, 100, 100, 100), 1), ((40, 0, 0, 0), 4)],
+)
+def test_default_threads_take_the_cores_free_now(monkeypatch, busy_now, expected):
+    """Without OMP_NUM_THREADS a run takes the cores other work leaves free *now* (a short sample of the CPU
+    accounting, at least one thread), whatever the 1-minute load average says; with it, that."""
+    import os
+
+    from cdrb_cli import torch_utils
+
+    before = _stat(*[(0, 0)] * 4)
+    after = _stat(*[(b, 100 - b) for b in busy_now])  # each CPU's share of the sample spent busy, in percent
+    reads = iter([before, after])
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(torch_utils, "usable_cores", lambda: [0, 1, 2, 3])
+    monkeypatch.setattr(torch_utils, "_cpu_ticks", lambda cores: torch_utils.parse_cpu_ticks(next(reads), cores))
+    monkeypatch.setattr(torch_utils.time, "sleep", lambda s: None)
+    monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))  # a busy minute that is over: not counted
+    assert torch_utils.cpu_threads() == expected
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert torch_utils.cpu_threads() == 3
+
+
+def test_busy_cores_count_only_the_cores_this_process_may_use():
+    """The sample sums the CPUs of the affinity mask alone: a busy CPU outside it is not this run's concern."""
+    from cdrb_cli import torch_utils
+
+    text = _stat((90, 10), (0, 100), (100, 0))
+    assert torch_utils.parse_cpu_ticks(text, [1]) == (100, 100)
+    assert torch_utils.parse_cpu_ticks(text, [0, 1]) == (110, 200)
+    assert torch_utils.parse_cpu_ticks(text, None) == (110, 300)
+    assert torch_utils.parse_cpu_ticks(text, [7]) is None
+    assert torch_utils.parse_cpu_ticks("cpu0 1 2\n", None) is None
+
+
 @pytest.mark.parametrize("load, expected", [(0.05, 4), (1.2, 3), (2.6, 1), (9.0, 1)])
-def test_default_threads_leave_the_busy_cores_alone(monkeypatch, load, expected):
-    """Without OMP_NUM_THREADS a run takes the cores the load average leaves free (at least one); with it, that."""
+def test_default_threads_fall_back_on_the_load_average(monkeypatch, load, expected):
+    """Where the platform has no CPU accounting to sample (no /proc/stat), the 1-minute load average stands in."""
     import os
 
     from cdrb_cli import torch_utils
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(torch_utils, "usable_cores", lambda: None)
     monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(torch_utils, "_cpu_ticks", lambda cores: None)
     monkeypatch.setattr(os, "getloadavg", lambda: (load, load, load))
     assert torch_utils.cpu_threads() == expected
-    monkeypatch.setenv("OMP_NUM_THREADS", "3")
-    assert torch_utils.cpu_threads() == 3
 
 
 def _documented_commands():
