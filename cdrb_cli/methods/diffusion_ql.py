@@ -35,6 +35,7 @@ from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import NonFiniteLoss, Policy
 from cdrb_cli.methods.registry import METHODS, MethodEntry, MethodParams
 from cdrb_cli.seeding import torch_generator
+from cdrb_cli.torch_utils import adam
 
 
 class DiffusionQLParams(MethodParams):
@@ -110,8 +111,8 @@ class DiffusionQL(Policy):
     def make_optimizers(self):
         lr = self.config.lr
         return {
-            "actor": torch.optim.Adam(self.actor.parameters(), lr=lr),
-            "critic": torch.optim.Adam(self.critic.parameters(), lr=lr),
+            "actor": adam(self.actor.parameters(), lr=lr),
+            "critic": adam(self.critic.parameters(), lr=lr),
         }
 
     # -------------------------------------------------------------- pieces
