@@ -178,3 +178,28 @@ def test_video_folders_are_checked_before_the_run_and_reported_truthfully(tiny_m
     assert r.returncode == 0 and "1 GIF(s) in" in r.stderr, r.stderr[-500:]
     r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", tmp_path / "gifs2", "--out", ev)
     assert r.returncode == 0 and "no GIFs written" in r.stderr and "up to date" in r.stderr, r.stderr[-500:]
+
+
+@pytest.mark.parametrize("method", ["cdrb", "diffuser"])
+def test_sampling_through_the_traced_network_gives_the_same_bits(tiny_models, method):
+    """Sampling runs a trace of the U-Net (no Python per module call); it must plan exactly what the module itself
+    plans, at batch 1 and at another batch size than the one it was traced at, and follow the module's weights."""
+    import torch
+
+    from cdrb_cli.methods.checkpoint import load_method
+    from cdrb_cli.stages.plan import sample_plans
+
+    planner = load_method(tiny_models[method])
+    starts, goals = np.array([[0.0, 0.0, 0.0, 0.0]] * 3), np.array([[6.0, 6.0, 0.0, 0.0]] * 3)
+
+    def plans(trace: bool, n: int):
+        planner.trace_sampling = trace
+        return sample_plans(planner, starts[:n], goals[:n], 1, seed=3, batch_size=n).plans
+
+    for n in (1, 3):
+        np.testing.assert_array_equal(plans(True, n), plans(False, n))
+    assert planner.__dict__.get("_traces"), "the traced network was not used"
+    with torch.no_grad():
+        for p in planner.net.parameters():
+            p.mul_(0.5)  # new weights, as after loading others: the trace must follow them
+    np.testing.assert_array_equal(plans(True, 3), plans(False, 3))

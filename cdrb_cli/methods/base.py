@@ -25,6 +25,7 @@ from cdrb_cli.configs import TrainConfig
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.lazy import torch
 from cdrb_cli.nets import build_net
+from cdrb_cli.torch_utils import adam
 
 
 class NonFiniteLoss(Exception):
@@ -90,7 +91,7 @@ class Method:
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """Every optimizer the checkpoint keeps, by name."""
-        return {"net": torch.optim.Adam(self.net.parameters(), lr=self.config.lr)}
+        return {"net": adam(self.net.parameters(), lr=self.config.lr)}
 
     def loss(self, batch: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
         """The training loss of a batch (also the validation loss)."""
@@ -117,6 +118,28 @@ class Method:
         for m in self.modules().values():
             m.eval()
         return self
+
+    #: whether :meth:`sample_net` may run a trace of the network (off: the module itself; benchmarks compare both)
+    trace_sampling: ClassVar[bool] = True
+
+    def sample_net(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, a trace of
+        it (``torch.jit.trace``, made on first use per device and dtype) runs instead: the same operations on the
+        same parameters, so the same bits (tests/test_plan.py), without Python's cost per module call, which is
+        most of a small network's time at batch 1 on a CPU. Networks that declare ``traceable`` are traced."""
+        net = self.net
+        if net.training or torch.is_grad_enabled() or not self.trace_sampling or not getattr(net, "traceable", False):
+            return net(x, k)
+        cache = self.__dict__.setdefault("_traces", {})
+        key = (id(net), x.device, x.dtype)
+        traced = cache.get(key)
+        if traced is None:
+            import warnings
+
+            with warnings.catch_warnings():  # GroupNorm's check of its input size is a Python test on shapes that
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # holds for any batch: nothing to warn of
+                traced = cache[key] = torch.jit.trace(net, (x, k), check_trace=False)
+        return traced(x, k)
 
     # -------------------------------------------------------------- pinning
     def pin(self, x: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:

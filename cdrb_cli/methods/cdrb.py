@@ -130,7 +130,7 @@ class CDRB(Planner):
             if i in keep:
                 kept.append((int(k), x.clone()))
             kk = torch.full((P,), int(k), device=start.device, dtype=torch.long)
-            x0 = self.pin(self.net(x, kk), start, goal)
+            x0 = self.pin(self.sample_net(x, kk), start, goal)
             if sampler == "paper":
                 x = self._degrade(x0, int(k_next), rng)
             else:

@@ -103,7 +103,7 @@ class Diffuser(Planner):
             if i in keep:
                 kept.append((int(t), x.clone()))
             tt = torch.full((P,), int(t), device=start.device, dtype=torch.long)
-            out = self.net(x, tt)
+            out = self.sample_net(x, tt)
             if self.config.method.predict == "x0":
                 out = self.pin(out, start, goal)
             kwargs = {"eta": 0.0} if sampler == "ddim" else {}

@@ -34,6 +34,9 @@ class ResidualTemporalBlock(nn.Module):
 
 
 class TemporalUNet(nn.Module):
+    #: forward has no Python control flow on values or shapes: a trace of it holds for every batch size
+    traceable = True
+
     def __init__(self, feature_dim: int, config: UNetConfig):
         super().__init__()
         dim, k, g = config.dim, config.kernel_size, config.groups
