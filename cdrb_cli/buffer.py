@@ -185,6 +185,21 @@ class BallSampler:
         ref = self.points if self.K <= 16384 else self.points[prng.choice(self.K, size=16384, replace=False)]
         d2 = (probe * probe).sum(1)[:, None] - 2 * probe @ ref.T + (ref * ref).sum(1)[None]
         self._probe_d2 = np.sort(d2.ravel())
+        # per diffusion step k: how the sampler treats its balls (degrade at one k, as sampling does, looks them up)
+        self._level_big, self._level_first = self._strategy(self.eps**2)
+
+    def _strategy(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For balls of squared radii ``r2``: whether to try rejection first (balls expected to hold at least
+        ~sqrt(K) points; smaller ones are enumerated directly), and the first round's candidates, enough for ~95%
+        of the queries to hit at the ball's estimated share p of the buffer (a handful for the large balls, up to
+        ``first_tries`` for the small ones). Both depend on the radius alone, never on what is drawn, so the law
+        stays exact."""
+        share = self.ball_fraction(np.sqrt(r2))
+        big = share * np.sqrt(self.K) >= 1.0
+        with np.errstate(divide="ignore"):
+            need = np.ceil(np.log(0.05) / np.log1p(-np.minimum(share, 1 - 1e-9)))
+        first = 2 ** np.ceil(np.log2(np.clip(need, 2, self.first_tries))).astype(np.int64)
+        return big, first
 
     def ball_fraction(self, radius):
         """Mean fraction of the buffer inside a ball of ``radius`` around a buffer point (estimated from 256
@@ -209,25 +224,41 @@ class BallSampler:
                 out[todo] = self._enumerate_brute(x[todo], r2[todo], rng)
             return out
         if self.strategy == "auto":
-            # balls expected to hold fewer than ~sqrt(K) points are enumerated directly; the rest try rejection first
             levels, inverse = np.unique(r2[todo], return_inverse=True)
-            level_big = self.ball_fraction(np.sqrt(levels)) * np.sqrt(self.K) >= 1.0
-            big = level_big[inverse.reshape(-1)]
-            small, todo = todo[~big], todo[big]
-            if small.size:
-                out[small] = self._enumerate_tree(x[small], r2[small], rng)
-            tries, used = self.first_tries, 0
-            while todo.size and used < self.max_tries:
-                tries = min(tries, self.max_tries - used)
-                hit_idx = self._rejection_round(x[todo], r2[todo], tries, rng)
-                got = hit_idx >= 0
-                out[todo[got]] = hit_idx[got]
-                todo = todo[~got]
-                used += tries
-                tries *= 4
+            level_big, level_first = self._strategy(levels)
+            inverse = inverse.reshape(-1)
+            return self._auto(x, r2, todo, level_big[inverse], level_first[inverse], out, rng)
         if todo.size:
             out[todo] = self._enumerate_tree(x[todo], r2[todo], rng)
         return out
+
+    def _auto(self, x, r2, todo, big, first, out, rng) -> np.ndarray:
+        """The ``auto`` strategy for the queries ``todo``, told for each whether its ball tries rejection first
+        (``big``) and with how many candidates (``first``); fills and returns ``out``."""
+        small, rest = todo[~big], []
+        if small.size:
+            out[small] = self._enumerate_tree(x[small], r2[small], rng)
+        if big.any():
+            for tries in np.unique(first[big]):
+                rest.append(self._reject(x, r2, todo[big & (first == tries)], int(tries), out, rng))
+            todo = np.concatenate(rest)
+            if todo.size:
+                out[todo] = self._enumerate_tree(x[todo], r2[todo], rng)
+        return out
+
+    def _reject(self, x, r2, todo: np.ndarray, tries: int, out: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Rejection rounds for the queries ``todo`` (``tries`` candidates each, then 4x more per round, at most
+        ``max_tries`` in all); the hits are written into ``out``. Returns the queries still without one."""
+        used = 0
+        while todo.size and used < self.max_tries:
+            tries = min(tries, self.max_tries - used)
+            hit_idx = self._rejection_round(x[todo], r2[todo], tries, rng)
+            got = hit_idx >= 0
+            out[todo[got]] = hit_idx[got]
+            todo = todo[~got]
+            used += tries
+            tries *= 4
+        return todo
 
     def _rejection_round(self, x: np.ndarray, r2: np.ndarray, tries: int, rng: np.random.Generator) -> np.ndarray:
         """``tries`` uniform candidates per query; the first inside the ball, or -1."""
@@ -306,17 +337,31 @@ class BallSampler:
     def degrade(self, traj: np.ndarray, k, rng: np.random.Generator, pinned=(0, -1)) -> np.ndarray:
         """D(traj, k): ``traj`` (B, H, D) normalized, ``k`` an int or (B,) ints. Positions in ``pinned`` are left
         unchanged (start and goal); a state whose ball is empty is kept."""
-        traj = np.asarray(traj, dtype=np.float64)
-        B, H, D = traj.shape
-        k = np.broadcast_to(np.asarray(k, dtype=np.int64), (B,))
-        free = np.ones(H, dtype=bool)
-        free[list(pinned)] = False
-        x = traj[:, free, :].reshape(-1, D)
-        radius = np.repeat(self.eps[k], int(free.sum()))
-        idx = self.sample(x, radius, rng)
-        y = np.where((idx >= 0)[:, None], self.points[np.maximum(idx, 0)], x)
-        out = traj.copy()
-        out[:, free, :] = y.reshape(B, -1, D)
+        out = np.array(traj, dtype=np.float64)  # a copy: the pinned states stay as they are
+        B, H, D = out.shape
+        if tuple(pinned) == (0, -1) and H >= 2:
+            free = slice(1, H - 1)  # the usual case: a view, no mask
+            n_free = H - 2
+        else:
+            free = np.ones(H, dtype=bool)
+            free[list(pinned)] = False
+            n_free = int(free.sum())
+        x = out[:, free, :].reshape(-1, D)
+        if np.ndim(k) == 0 and self.strategy == "auto":  # one step for every plan (sampling): its strategy is known
+            kk = int(k)
+            r2 = np.full(len(x), self.eps[kk] ** 2)
+            n = len(x)
+            idx = np.full(n, -1, dtype=np.int64)
+            if self.eps[kk] > 0 and n:
+                every = np.arange(n)
+                big = np.full(n, bool(self._level_big[kk]))
+                self._auto(x, r2, every, big, np.full(n, self._level_first[kk]), idx, rng)
+        else:
+            k = np.broadcast_to(np.asarray(k, dtype=np.int64), (B,))
+            idx = self.sample(x, np.repeat(self.eps[k], n_free), rng)
+        hit = idx >= 0
+        x[hit] = self.points[idx[hit]]
+        out[:, free, :] = x.reshape(B, n_free, D)
         return out
 
     def random_states(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:

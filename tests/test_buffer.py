@@ -79,9 +79,28 @@ def test_mixed_queries_each_uniform(impl):
     rs = np.array([0.25, 0.8])
     n = 20_000
     q = np.repeat(xs, n, 0)
-    idx = SAMPLERS[impl](points, np.array([0.0, 1.0])).sample(q, np.repeat(rs, n), np.random.default_rng(6))
+    s = SAMPLERS[impl](points, np.array([0.0, 1.0]))
+    draws = [s.sample(q, np.repeat(rs, n), np.random.default_rng(seed)).reshape(2, n) for seed in (6, 7, 8)]
+    idx = np.concatenate(draws, axis=1)  # 60,000 draws per ball, from three independent streams
     for i in range(2):
-        _check_uniform(idx[i * n : (i + 1) * n], points, xs[i], rs[i])
+        _check_uniform(idx[i], points, xs[i], rs[i])
+
+
+@pytest.mark.parametrize("k", [1, 3, 7])
+def test_degrade_at_one_step_is_uniform(k):
+    """Degrading every plan at the same step (how sampling calls it) takes its own path through the sampler: its
+    draws too are uniform over ball ∩ buffer, for a small ball (enumerated) and larger ones (rejection first)."""
+    rng = np.random.default_rng(9)
+    points = rng.uniform(-1, 1, size=(800, 2))
+    eps = radii("linear", 1.0, 8)
+    s = BallSampler(points, eps)
+    assert not s._level_big[1] and s._level_big[3] and s._level_big[7]  # the test covers both branches
+    x = np.array([0.2, -0.1])
+    traj = np.repeat(x[None, None], 40_002, axis=1)  # one plan of 40,000 free states, all at x
+    out = s.degrade(traj, k, np.random.default_rng(10))[0, 1:-1]
+    lookup = {tuple(p): j for j, p in enumerate(points)}
+    idx = np.array([lookup.get(tuple(row), -1) for row in out])
+    _check_uniform(idx, points, x, eps[k])
 
 
 @pytest.mark.parametrize("impl", SAMPLERS)
