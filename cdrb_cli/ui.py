@@ -24,11 +24,18 @@ from rich.text import Text
 err = Console(stderr=True, highlight=False, soft_wrap=True)
 
 _quiet = False
+_forward = None  # in a worker process (cdrb_cli.workers): the queue its progress and log lines go to
 
 
 def set_quiet(value: bool) -> None:
     global _quiet
     _quiet = value
+
+
+def forward_to(queue) -> None:
+    """Send this process's progress and log lines to ``queue`` (a worker's; its parent draws them)."""
+    global _forward
+    _forward = queue
 
 
 def plain(text: Any, limit: int | None = None) -> str:
@@ -42,11 +49,16 @@ def plain(text: Any, limit: int | None = None) -> str:
 
 def log(message: str) -> None:
     """A log line on stderr, printed as plain text (no markup is interpreted, control characters neutralized)."""
-    if not _quiet:
+    if _forward is not None:
+        _forward.put(("log", str(message)))
+    elif not _quiet:
         err.print(Text(plain(message)))
 
 
 def warn(message: str) -> None:
+    if _forward is not None:
+        _forward.put(("warn", str(message)))
+        return
     err.print(Text("warning: ", style="yellow") + Text(plain(message)))
 
 
@@ -108,10 +120,33 @@ class LineProgress(Progress):
         err.print(Text(plain(line)))
 
 
+class ForwardedProgress:
+    """The progress interface of a worker process: every call goes to its parent's display as a message."""
+
+    def __init__(self, queue):
+        self.queue = queue
+        self.count = 0
+
+    def add_task(self, description: str, total=None, completed=0, **fields):
+        key = (os.getpid(), self.count)
+        self.count += 1
+        self.queue.put(("task", key, str(description), total, completed, {"info": "", **fields}))
+        return key
+
+    def update(self, task_id, **kwargs) -> None:
+        self.queue.put(("update", task_id, kwargs))
+
+    def advance(self, task_id, advance: float = 1) -> None:
+        self.queue.put(("advance", task_id, advance))
+
+
 @contextmanager
 def progress(transient: bool = False):
     """A rich progress display on stderr (plain lines every ``CDRB_PROGRESS_SECONDS`` when stderr is not a terminal).
-    Tasks may carry a ``info`` field shown after the bar."""
+    Tasks may carry a ``info`` field shown after the bar. In a worker process, the parent's display."""
+    if _forward is not None:
+        yield ForwardedProgress(_forward)
+        return
     columns = [
         SpinnerColumn(),
         TextColumn("{task.description}", markup=False, style="bold"),

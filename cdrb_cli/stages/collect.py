@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import sys
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -20,6 +19,7 @@ from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import STREAM_COLLECT
 from cdrb_cli.settings import Setting, apply, validate
+from cdrb_cli.workers import die_with_parent
 
 
 def rollout(env: Env, expert: Expert, spec: EnvSpec, episode: Episode, limit: int):
@@ -134,20 +134,10 @@ def _env_and_expert(spec: EnvSpec, config: CollectConfig) -> tuple[Env, Expert]:
 
 
 def _worker_init(parent: int | None = None) -> None:
-    """A rollout worker's start: one torch thread (the pool is the parallelism), and on Linux the kernel's promise
-    to SIGTERM it when its parent dies (a collect killed with -9 leaves no worker, and so no resource tracker,
-    running)."""
+    """A rollout worker's start: one torch thread (the pool is the parallelism), and the kernel's promise to end
+    it when its parent dies (:func:`cdrb_cli.workers.die_with_parent`)."""
     os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported there
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        try:
-            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            return
-        if parent is not None and os.getppid() != parent:  # the parent died before the promise was made
-            os._exit(1)
+    die_with_parent(parent)
 
 
 def collect_workers(episodes: int, workers: int | None) -> int:

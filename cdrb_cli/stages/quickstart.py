@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cdrb_cli import artifacts, ui
+from cdrb_cli import artifacts, ui, workers
 from cdrb_cli.configs import ClusterConfig
 
 #: the methods quickstart compares when none are given
@@ -54,6 +54,44 @@ def _reuse(path: Path, kind: str, config, parents=(), env=None):
     return art
 
 
+def _side_by_side(jobs: list, processes: int, threads: int) -> str:
+    """How the stage's jobs will run, for its log line."""
+    if not jobs:
+        return ": up to date"
+    return f", {processes} at a time, {threads} thread{'s' if threads > 1 else ''} each" if processes > 1 else ""
+
+
+def _train(job: dict) -> str:
+    """One method's training (in a worker process, or here): what was done (``trained``, ``resumed``...)."""
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.methods.registry import METHODS
+    from cdrb_cli.stages.train import train_or_resume
+
+    demos = artifacts.load(Path(job["demos"]), "demos")
+    buffer = artifacts.load(Path(job["buffer"]), "buffer") if METHODS.get(job["method"]).needs_buffer else None
+    steps = job["steps"]
+    cfg = train_config(demos, buffer, job["method"], {"steps": steps} if steps else {}, seed=job["seed"])
+    _, done = train_or_resume(demos, buffer, cfg, Path(job["out"]), device=_device(job), auto=True)
+    return done
+
+
+def _evaluate(job: dict) -> str:
+    """One model's evaluation (in a worker process, or here); returns the path written."""
+    from cdrb_cli.stages.evaluate import eval_config, evaluate
+
+    model = artifacts.load(Path(job["model"]), "model")
+    ecfg = eval_config(model, job["episodes"], job["seeds"], seed=job["seed"])
+    video_dir = Path(job["folder"]) / "videos" if job["videos"] else None
+    evaluate(model, ecfg, Path(job["out"]), device=_device(job), video_dir=video_dir, videos=job["videos"])
+    return job["out"]
+
+
+def _device(job: dict):
+    from cdrb_cli.torch_utils import setup_torch
+
+    return setup_torch(job["device"])
+
+
 def quickstart(
     folder: Path,
     env: str = DEFAULT_ENV,
@@ -73,16 +111,15 @@ def quickstart(
     from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.stages.cluster import cluster
     from cdrb_cli.stages.collect import collect, collect_config
-    from cdrb_cli.stages.evaluate import eval_config, evaluate
+    from cdrb_cli.stages.evaluate import eval_config
     from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
-    from cdrb_cli.stages.train import train_or_resume
 
     t0 = time.time()
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     # one quickstart per folder at a time (the lock of its report covers the whole run)
     with artifacts.claim_output(folder / "report.md", force=True):
-        total = 3 + 2 * len(methods)
+        total = 5
         step = 0
         spec = make_spec(env)
         paths: dict[str, Path] = {}
@@ -99,28 +136,38 @@ def quickstart(
         buffer_path = paths["buffer"] = folder / "buffer.h5"
         buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
 
-        models = {}
+        # the trainings, then the evaluations, run side by side when the machine has the cores for them
+        jobs, models = [], {}
         for method in methods:
-            step += 1
-            _stage(step, total, f"train {method} (quick preset)")
+            out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
             b = buffer if METHODS.get(method).needs_buffer else None
             cfg = train_config(demos, b, method, {"steps": steps} if steps else {}, seed=seed)
-            out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
-            models[method], done = train_or_resume(demos, b, cfg, out, device=device, auto=True)
+            models[method] = artifacts.find_up_to_date(out, "model", cfg, [demos] + ([b] if b is not None else []))
+            if models[method] is None:
+                jobs.append(dict(demos=str(demos.path), buffer=str(buffer.path), method=method, steps=steps, seed=seed,
+                                 out=str(out), device=str(device)))  # fmt: skip
+        step += 1
+        share = workers.plan(len(jobs), str(device))
+        _stage(step, total, f"train {', '.join(methods)} (quick preset){_side_by_side(jobs, *share)}")
+        for job, done in zip(jobs, workers.run(_train, jobs, *share)):
             if done != "trained":
-                ui.log(f"  {done}")
+                ui.log(f"  {job['method']}: {done}")
+        models = {m: models[m] or artifacts.load(paths[f"model-{m}"], "model") for m in methods}
 
-        evals = []
+        evals, jobs = [], []
         for method in methods:
-            step += 1
-            _stage(step, total, f"evaluate {method}: {len(seeds)} seeds x {eval_episodes} episodes")
             ecfg = eval_config(models[method], eval_episodes, seeds, seed=seed)
             out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
-            ev = _reuse(out, "eval", ecfg, [models[method]])
-            if ev is None:
-                video_dir = folder / "videos" if videos else None
-                ev = evaluate(models[method], ecfg, out, device=device, video_dir=video_dir, videos=videos)
-            evals.append(ev)
+            evals.append(artifacts.find_up_to_date(out, "eval", ecfg, [models[method]]))
+            if evals[-1] is None:
+                jobs.append(dict(model=str(models[method].path), episodes=eval_episodes, seeds=list(seeds), seed=seed,
+                                 out=str(out), device=str(device), videos=videos, folder=str(folder)))  # fmt: skip
+        step += 1
+        what = f"evaluate {', '.join(methods)}: {len(seeds)} seeds x {eval_episodes} episodes"
+        share = workers.plan(len(jobs), str(device))
+        _stage(step, total, what + _side_by_side(jobs, *share))
+        made = iter(workers.run(_evaluate, jobs, *share))
+        evals = [ev if ev is not None else artifacts.load(Path(next(made)), "eval") for ev in evals]
 
         step += 1
         _stage(step, total, "report")

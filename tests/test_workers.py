@@ -1,0 +1,59 @@
+"""Independent jobs side by side in worker processes: results in order, progress and logs drawn by the parent,
+a user's error re-raised as its one line, and the cores shared out."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from cdrb_cli import ui, workers
+from cdrb_cli.errors import BadInput, RunFailed
+
+
+def _job(payload):
+    """A worker's job: report progress and a log line, then answer (or fail as the payload says)."""
+    with ui.progress() as bar:
+        task = bar.add_task(f"job {payload['n']}", total=3, info="")
+        for i in range(3):
+            bar.update(task, completed=i + 1)
+    ui.log(f"job {payload['n']} ran with {os.environ.get('OMP_NUM_THREADS')} thread(s) in {os.getpid()}")
+    if payload.get("bad"):
+        raise BadInput(f"job {payload['n']}: bad input", hint="fix it")
+    if payload.get("failed"):
+        raise RunFailed(f"job {payload['n']}: it failed")
+    return payload["n"] * 10
+
+
+def test_jobs_run_side_by_side_and_their_progress_comes_back(capfd, monkeypatch):
+    monkeypatch.setenv("CDRB_PROGRESS_SECONDS", "0")
+    assert workers.run(_job, [{"n": i} for i in range(3)], processes=2, threads=1) == [0, 10, 20]
+    err = capfd.readouterr().err
+    for i in range(3):
+        assert f"job {i}: 3/3 (100%)" in err
+        assert f"job {i} ran with 1 thread(s)" in err
+    pids = {line.rsplit(" ", 1)[1] for line in err.splitlines() if " thread(s) in " in line}
+    assert len(pids) == 2 and str(os.getpid()) not in pids  # two worker processes, not this one
+
+
+@pytest.mark.parametrize("flag, error", [("bad", BadInput), ("failed", RunFailed)])
+def test_a_workers_error_comes_back_as_its_one_line(flag, error):
+    with pytest.raises(error) as exc:
+        workers.run(_job, [{"n": 0}, {"n": 1, flag: True}], processes=2, threads=1)
+    assert exc.value.message.startswith("job 1:")
+
+
+def test_one_process_runs_the_jobs_here_in_order():
+    assert workers.run(_job, [{"n": 2}, {"n": 1}], processes=1, threads=2) == [20, 10]
+
+
+@pytest.mark.parametrize(
+    "cores, jobs, device, expected",
+    [(2, 2, "cpu", (2, 1)), (2, 3, "cpu", (2, 1)), (8, 2, "cpu", (2, 4)), (1, 2, "cpu", (1, 1)), (2, 1, "cpu", (1, 2)),
+     (8, 2, "cuda", (1, 8))],
+)  # fmt: skip
+def test_the_free_cores_are_shared_out(monkeypatch, cores, jobs, device, expected):
+    from cdrb_cli import torch_utils
+
+    monkeypatch.setattr(torch_utils, "cpu_threads", lambda: cores)
+    assert workers.plan(jobs, device) == expected
