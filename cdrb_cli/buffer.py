@@ -488,6 +488,28 @@ class TorchBallSampler:
         out[:, free, :] = y.reshape(B, -1, D)
         return out.to(traj.device)
 
+    def degrade_given(self, traj, radius: float, u, free: slice):
+        """D(traj, k) at one radius with its randomness given, for a CUDA graph: static shapes, no host
+        synchronisation. ``traj`` (B, H, D); ``free``: the positions degraded; ``u`` (B, n_free) uniforms in
+        [0, 1): each state takes the point of rank floor(u * n) among the n buffer points strictly inside its ball
+        (in index order), so the draw is uniform over them; an empty ball keeps the state. One pass over all
+        (query, point) pairs in float64: for the batch sizes a graph serves."""
+        import torch
+
+        B, H, D = traj.shape
+        q = traj[:, free, :].reshape(-1, D).to(torch.float64)
+        d2 = torch.zeros((q.shape[0], self.K), dtype=torch.float64, device=self.device)
+        for d in range(D):  # squared differences, summed dimension by dimension (no cancellation near the sphere)
+            d2.add_((q[:, d, None] - self.points[None, :, d]).square_())
+        inside = d2 < float(radius) ** 2
+        count = inside.sum(dim=1)
+        rank = torch.minimum((u.reshape(-1).to(torch.float64) * count).long(), (count - 1).clamp(min=0))
+        first = (inside.cumsum(dim=1, dtype=torch.int32) > rank[:, None].to(torch.int32)).to(torch.uint8).argmax(dim=1)
+        y = torch.where((count > 0)[:, None], self.points[first], q).to(traj.dtype)
+        out = traj.clone()
+        out[:, free, :] = y.reshape(B, -1, D)
+        return out
+
     def random_states(self, shape: tuple[int, ...], gen):
         """Buffer states drawn uniformly (the sampling prior): a float64 tensor of ``shape + (D,)``."""
         import torch

@@ -214,3 +214,26 @@ def test_torch_sampler_keeps_dtype_and_pins_for_float32_batches():
     kept = (new == old).all(1)
     assert bool((is_point | kept).all()) and int(is_point.sum()) > len(new) // 2  # a buffer point, or an empty ball
     assert s.random_states((2, 5), s.generator(rng)).shape == (2, 5, 3)
+
+
+@pytest.mark.parametrize("k", [1, 3, 7])
+def test_degradation_with_given_uniforms_is_uniform_and_keeps_empty_balls(k):
+    """The degradation a CUDA graph holds (static shapes, its uniforms given): the rank floor(u * n) among the n
+    points inside each ball is a uniform draw over ball ∩ buffer; an empty ball keeps the state; ends untouched."""
+    import torch
+
+    rng = np.random.default_rng(11)
+    points = rng.uniform(-1, 1, size=(800, 2))
+    eps = radii("linear", 1.0, 8)
+    s = TorchBallSampler(points, eps)
+    x = np.array([0.2, -0.1])
+    n = 40_000
+    traj = torch.as_tensor(np.repeat(x[None, None], n + 2, axis=1))
+    traj[0, 0] = traj[0, -1] = 9.0  # far from every point: would be kept anyway, and must not be drawn for
+    u = torch.as_tensor(np.random.default_rng(12).random((1, n)))
+    out = s.degrade_given(traj, eps[k], u, slice(1, n + 1)).numpy()[0]
+    assert (out[0] == 9.0).all() and (out[-1] == 9.0).all()
+    lookup = {tuple(p): j for j, p in enumerate(points)}
+    _check_uniform(np.array([lookup.get(tuple(row), -1) for row in out[1:-1]]), points, x, eps[k])
+    far = torch.full((1, 4, 2), -5.0, dtype=torch.float64)
+    np.testing.assert_array_equal(s.degrade_given(far, eps[k], torch.rand(1, 2, dtype=torch.float64), slice(1, 3)), far)

@@ -203,3 +203,26 @@ def test_sampling_through_the_traced_network_gives_the_same_bits(tiny_models, me
         for p in planner.net.parameters():
             p.mul_(0.5)  # new weights, as after loading others: the trace must follow them
     np.testing.assert_array_equal(plans(True, 3), plans(False, 3))
+
+
+def test_the_graphable_loop_degrades_through_buffer_states_with_the_ends_pinned(tiny_models, monkeypatch):
+    """The loop a CUDA graph holds, run on the CPU with a network that restores nothing: each plan is then its
+    degradations' own, so every state between the pinned ends is a replay-buffer state."""
+    import torch
+
+    from cdrb_cli.methods.checkpoint import load_method
+
+    method = load_method(tiny_models["cdrb"])
+    monkeypatch.setattr(method, "sample_net", lambda x, k: x)
+    gen = torch.Generator().manual_seed(0)
+    points = torch.as_tensor(method.ball.points, dtype=torch.float32)
+    P, H, obs = 4, method.horizon, method.obs_dim
+    start, goal = points[:P, :obs] + 0.01, points[P : 2 * P, :obs] - 0.01  # not buffer states themselves
+    x = method.pin(points[torch.randint(0, len(points), (P, H), generator=gen)], start, goal)
+    ks = method._schedule(method.T - 1, None)
+    u = torch.rand((len(ks), P, H - 2), generator=gen, dtype=torch.float64)
+    out = method.graph_loop(x, start, goal, u, ks)
+    torch.testing.assert_close(out[:, 0, :obs], start, rtol=0, atol=0)
+    torch.testing.assert_close(out[:, -1, :obs], goal, rtol=0, atol=0)
+    inner = out[:, 1:-1].reshape(-1, points.shape[1])
+    assert (torch.cdist(inner.double(), points.double()).min(dim=1).values < 1e-6).all()

@@ -145,9 +145,21 @@ class Method:
     def pin(self, x: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
         """Overwrite the pinned dimensions of the first and last planned states (a new tensor; exact copies)."""
         x = x.clone()
-        x[:, 0, self.pinned] = start[:, self.pinned]
-        x[:, -1, self.pinned_end] = goal[:, self.pinned_end]
+        first, last = self._index(self.pinned, x.device), self._index(self.pinned_end, x.device)
+        x[:, 0, first] = start[:, first]
+        x[:, -1, last] = goal[:, last]
         return x
+
+    def _index(self, dims, device):
+        """``dims`` as an index: a slice as it is, a list as a tensor kept on ``device`` (indexing with a Python list
+        would copy it to the device at every call, which a CUDA graph cannot hold)."""
+        if isinstance(dims, slice):
+            return dims
+        cache = self.__dict__.setdefault("_indices", {})
+        key = (tuple(dims), str(device))
+        if key not in cache:
+            cache[key] = torch.as_tensor(list(dims), dtype=torch.long, device=device)
+        return cache[key]
 
     def pinned_only(self, start: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Start and goal with every dimension that is not pinned zeroed: what a method may condition on (at

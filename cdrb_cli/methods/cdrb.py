@@ -179,7 +179,79 @@ class CDRB(Planner):
         z[:, 1:-1] = inner.reshape(P, H - 2, F)
         return torch.from_numpy(z.astype(np.float32)).to(x0.device)
 
+    #: whether sampling on a GPU may replay a CUDA graph of the whole loop (off: kernel by kernel; benchmarks
+    #: compare both)
+    cuda_graphs: bool = True
+    #: the most (query, buffer point) pairs one degradation of a graphed loop may hold: its degradation looks at
+    #: every pair (float64), so very large batches go the usual way
+    GRAPH_PAIRS = 2**27
+
+    def _graphable(self, start, sampler: str, keep_iterates: int) -> bool:
+        free = self.horizon - len(self.kept)
+        return (
+            self.cuda_graphs
+            and start.device.type == "cuda"
+            and sampler == "paper"
+            and not keep_iterates
+            and self._collides is None
+            and start.shape[0] * free * len(self.ball.points) <= self.GRAPH_PAIRS
+        )
+
+    def _free(self) -> slice:
+        return slice(1, self.horizon - 1) if self.kept else slice(0, self.horizon)
+
+    def graph_loop(self, x, start, goal, u, ks) -> torch.Tensor:
+        """The paper sampler from the pinned random plans ``x`` through the steps ``ks`` with its randomness given
+        (``u`` (len(ks), P, free states): the uniforms of every degradation, :meth:`TorchBallSampler.degrade_given`):
+        the same law as :meth:`_restore`, as pure tensor work with static shapes, which a CUDA graph can hold.
+        Returns the last restoration."""
+        ball = self._device_ball(start.device)
+        if ball is None:  # on the CPU (tests): the same tensor work, without a graph
+            ball = self.__dict__.get("_cpu_dense_ball") or TorchBallSampler(self.ball.points, self.eps, device="cpu")
+            self._cpu_dense_ball = ball
+        P, free = start.shape[0], self._free()
+        x0 = x
+        for i, (k, k_next) in enumerate(zip(ks, np.append(ks[1:], 0))):
+            kk = torch.full((P,), int(k), device=start.device, dtype=torch.long)
+            x0 = self.pin(self.sample_net(x, kk), start, goal)
+            x = self.pin(ball.degrade_given(x0, self.eps[k_next], u[i], free), start, goal) if k_next else x0
+        return x0
+
+    def _graphed(self, start, goal, rng, steps) -> SampleResult:
+        """Plans from one replay of a CUDA graph of :meth:`graph_loop` (captured once per batch size and schedule,
+        then reused): one launch instead of hundreds of kernels each step. The randomness is drawn first from
+        ``rng``, so plans are deterministic given the seed (another random stream than the kernel-by-kernel path,
+        the same law)."""
+        P, dev = start.shape[0], start.device
+        ks = self._schedule(self.T - 1, steps)
+        ball = self._device_ball(dev)
+        gen = ball.generator(rng)
+        x = self.pin(ball.random_states((P, self.horizon), gen).to(start.dtype), start, goal)
+        n_free = len(range(*self._free().indices(self.horizon)))
+        u = torch.rand((len(ks), P, n_free), generator=gen, device=dev, dtype=torch.float64)
+        graphs = self.__dict__.setdefault("_graphs", {})
+        key = (P, tuple(int(k) for k in ks), str(dev), start.dtype)
+        if key not in graphs:
+            inputs = [x.clone(), start.clone(), goal.clone(), u.clone()]
+            side = torch.cuda.Stream(dev)
+            side.wait_stream(torch.cuda.current_stream(dev))
+            with torch.cuda.stream(side):  # warm-up (the trace, cuDNN's choices) off the capture
+                for _ in range(2):
+                    self.graph_loop(*inputs, ks)
+            torch.cuda.current_stream(dev).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                out = self.graph_loop(*inputs, ks)
+            graphs[key] = (graph, inputs, out)
+        graph, inputs, out = graphs[key]
+        for slot, value in zip(inputs, (x, start, goal, u)):
+            slot.copy_(value)
+        graph.replay()
+        return SampleResult(plans=out.clone())
+
     def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:
+        if self._graphable(start, sampler, keep_iterates):
+            return self._graphed(start, goal, rng, steps)
         P = start.shape[0]
         ball = self._device_ball(start.device)
         if ball is not None:
