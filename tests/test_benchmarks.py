@@ -12,21 +12,24 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_planning_script(tmp_path, small_data):
+def test_latency_script_times_each_tree_and_its_fast_paths_beside_plan_safety(tmp_path, small_data):
     from cdrb_cli.methods.config import train_config
     from cdrb_cli.stages.train import train
     from tests.test_train import tiny
 
     demos, buffer = small_data
     model = train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=10)), tmp_path / "m.h5")
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "planning.py"), str(model.path), "--pairs", "4"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "latency.py"), str(model.path), "--pairs", "4", "--plans", "2",
+           "--batches", "1,3", "--rounds", "1", "--threads", "1", "--variants", "--markdown",
+           "--tree", f"now={ROOT}"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "| cdrb (quick) | paper (8) |" in proc.stdout
+    rows = [line.split(" | ") for line in proc.stdout.splitlines() if line.startswith("| now")]
+    assert [r[0] for r in rows] == ["| now", "| now, fast paths off"]
+    for r in rows:
+        ms1, ms3, in_obstacle, through = (float(v.strip(" |")) for v in r[3:7])
+        assert ms1 > 0 and ms3 > 0 and 0 <= in_obstacle <= 100 and 0 <= through <= 100
+    assert rows[0][5:] == rows[1][5:]  # the fast paths plan the same plans: the same safety figures
 
 
 def test_policy_actions_draws_held_out_expert_transitions_and_scores_agreement(small_data):
