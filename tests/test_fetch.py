@@ -171,6 +171,31 @@ def test_each_env_resets_steps_and_has_real_walls(env_id):
         env.close()
 
 
+@pytest.mark.parametrize("env_id", ["fetch-reach-obstacle", "fetch-pick-place-obstacle"])
+def test_robot_joints_read_by_address_are_the_stock_observation(env_id):
+    """The env reads the robot joints by their addresses, looked up once: the same arrays as gymnasium-robotics'
+    own lookup by name, step after step."""
+    import gymnasium_robotics.utils.mujoco_utils as stock
+
+    spec = make_spec(env_id)
+    fam = family_of(spec)
+    env = fam.make_env(spec)
+    try:
+        u = env.env
+        assert u._utils is not stock and u._utils.get_site_xpos is stock.get_site_xpos
+        env.reset(fam.draw_episodes(spec, 1, 0, STREAM_COLLECT)[0])
+        rng = np.random.default_rng(1)
+        for _ in range(20):
+            env.step(rng.uniform(-1, 1, 4))
+            ours = u._utils.robot_get_obs(u.model, u.data, u._model_names.joint_names)
+            theirs = stock.robot_get_obs(u.model, u.data, u._model_names.joint_names)
+            for a, b in zip(ours, theirs):
+                assert a.shape == b.shape and a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
+    finally:
+        env.close()
+
+
 def test_walls_stop_the_gripper():
     """Driving the gripper into a wall at full speed: the wall holds (a post-hoc check would let it through)."""
     spec = make_spec("fetch-reach-obstacle")

@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdrb_cli.envs.geometry import box_arrays, largest_jump, path_crosses_boxes, segment_box_distance
+from cdrb_cli.envs.geometry import (
+    box_arrays,
+    largest_jump,
+    path_crosses_boxes,
+    segment_box_distance,
+    segment_hits_boxes,
+)
 from cdrb_cli.envs.pointmaze import OFFICIAL_SUCCESS_RADIUS
 from cdrb_cli.envs.pointmaze.env import PointMaze
 from cdrb_cli.envs.pointmaze.expert import MazeExpert
@@ -53,6 +59,28 @@ def test_segment_distance_matches_dense_sampling():
     ob = spec.obstacles
     crossing = path_crosses_boxes(np.stack([a, b], axis=1), ob.model_copy(update={"dims": [0, 1]}))
     assert crossing.any() and not crossing.all()
+
+
+def test_the_slab_test_says_whether_a_segment_meets_a_box_as_the_distance_does():
+    """The Fetch experts ask "does this leg meet a wall?" of the slab test: it must answer as the segment's distance
+    does, for oblique, axis-parallel and zero-length segments, and for one that runs along a face."""
+    rng = np.random.default_rng(1)
+    for trial in range(3000):
+        n = int(rng.integers(1, 4))
+        centers, halves = rng.uniform(-1, 1, (n, 3)), rng.uniform(0.05, 0.4, (n, 3))
+        a = rng.uniform(-1.5, 1.5, 3)
+        b = a + rng.normal(0, 0.6, 3)
+        if trial % 5 == 0:
+            b = a.copy()
+        elif trial % 5 == 1:
+            b = a.copy()
+            b[trial % 3] += rng.normal(0, 1)
+        elif trial % 5 == 2:  # along the face x = high of the first box, inside its y-z extent
+            a = centers[0] + halves[0] * np.array([1.0, 0.3, -0.2])
+            b = a + np.array([0.0, 0.2, 0.1])
+        want = segment_box_distance(a[None], b[None], centers, halves)[0] < 1e-9
+        assert segment_hits_boxes(a, b, centers, halves, 1e-9) == want, (a, b, centers, halves)
+    assert not segment_hits_boxes(np.zeros(3), np.ones(3), np.zeros((0, 3)), np.zeros((0, 3)), 1e-9)
 
 
 def test_largest_jump_against_the_dynamics():

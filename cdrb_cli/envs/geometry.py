@@ -127,6 +127,24 @@ def segment_box_distance(
     return out.reshape(shape)
 
 
+def segment_hits_boxes(a: np.ndarray, b: np.ndarray, centers: np.ndarray, half_sizes: np.ndarray, tol: float) -> bool:
+    """Whether the one segment [a, b] (d,) meets any box grown by ``tol`` on every side: the slab test, exact and
+    closed-form (the segment's parameter interval inside each grown box is the intersection of its intervals between
+    each pair of faces). The boxes grown by ``tol`` per axis contain those grown by ``tol`` in Euclidean distance,
+    so this answers ``segment_box_distance(a, b) < tol`` except within ``tol * sqrt(d)`` of an edge."""
+    if len(centers) == 0:
+        return False
+    a, d = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)
+    low, high = centers - half_sizes - tol - a, centers + half_sizes + tol - a  # the faces, relative to a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = low / d, high / d
+    still = d == 0  # parallel to that pair of faces: inside the slab for every t, or never
+    inside = (low <= 0) & (high >= 0)
+    enter = np.where(still, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=-1)
+    leave = np.where(still, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=-1)
+    return bool(np.any((enter <= leave) & (enter <= 1.0) & (leave >= 0.0)))
+
+
 def path_crosses_boxes(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarray:
     """Boolean over paths (..., T, D): True where any state is in collision (:func:`in_boxes`) or any straight
     segment between consecutive states passes within ``obstacles.inflate`` of a box (a jump through a wall)."""

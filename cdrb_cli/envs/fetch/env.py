@@ -40,6 +40,36 @@ def _stock_class(task: str):
     return cls
 
 
+class _JointAddresses:
+    """gymnasium-robotics' ``mujoco_utils`` for one env, with ``robot_get_obs`` reading the robot joints' qpos and
+    qvel addresses once instead of looking each joint up by name at every step (a fifth of a Fetch step's time);
+    the same arrays. Everything else is the module's own."""
+
+    def __init__(self, utils):
+        self._utils = utils
+        self._index: dict = {}
+
+    def __getattr__(self, name):
+        return getattr(self._utils, name)
+
+    def robot_get_obs(self, model, data, joint_names):
+        if data.qpos is None or not joint_names:
+            return self._utils.robot_get_obs(model, data, joint_names)
+        key = (id(model), tuple(joint_names))
+        if key not in self._index:
+            import mujoco
+
+            ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in joint_names if n.startswith("robot")]
+            scalar = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+            ok = all(i >= 0 and model.jnt_type[i] in scalar for i in ids)  # one value per joint: plain gathers
+            qpos, qvel = np.array([model.jnt_qposadr[i] for i in ids]), np.array([model.jnt_dofadr[i] for i in ids])
+            self._index[key] = (qpos, qvel) if ok else None
+        index = self._index[key]
+        if index is None:
+            return self._utils.robot_get_obs(model, data, joint_names)
+        return np.squeeze(data.qpos[index[0]][:, None]), np.squeeze(data.qvel[index[1]][:, None])
+
+
 def fetch_class(scene: FetchScene):
     """The stock Fetch env class of ``scene.task`` with the scene's walls, home and start/goal draws."""
     import mujoco
@@ -50,6 +80,8 @@ def fetch_class(scene: FetchScene):
         cdrb_scene = scene
 
         def _initialize_simulation(self):
+            if not isinstance(self._utils, _JointAddresses):
+                self._utils = _JointAddresses(self._utils)
             spec = mujoco.MjSpec.from_file(self.fullpath)
             n_walls = len(scene.walls)
             for i, wall in enumerate(scene.solid):  # the task's walls, then the boxes put down after training

@@ -32,7 +32,7 @@ from pydantic import Field, field_validator
 from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
 from cdrb_cli.envs.fetch.geometry import MAX_OPENING, Box, block_obstacles, gripper_obstacles
 from cdrb_cli.envs.fetch.tasks import side
-from cdrb_cli.envs.geometry import box_arrays, segment_box_distance
+from cdrb_cli.envs.geometry import box_arrays, segment_hits_boxes
 from cdrb_cli.envs.registry import EXPERTS
 from cdrb_cli.envs.spec import BoxObstacles, EnvSpec
 
@@ -104,9 +104,7 @@ class Router:
 
     def _hits(self, boxes, a: np.ndarray, b: np.ndarray) -> bool:
         centers, halves = boxes
-        if len(centers) == 0:
-            return False
-        return bool(segment_box_distance(a[None], b[None], centers, halves)[0] < 1e-9)
+        return segment_hits_boxes(a, b, centers, halves, 1e-9)
 
     def blocked(self, a: np.ndarray, b: np.ndarray, end_legs: bool = False) -> bool:
         """Does the segment pass a wall (within the clearance; only the walls themselves for a leg at an end)?"""
