@@ -110,9 +110,10 @@ def main() -> None:
     figures: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
     for r in range(args.rounds):
         for name, path, mode in runs:
-            cmd = [sys.executable, str(Path(__file__).resolve()), args.model, "--worker", mode, "--device",
-                   args.device, "--threads", str(args.threads), "--pairs", str(args.pairs), "--plans",
-                   str(args.plans), "--batches", args.batches, "--seed", str(args.seed)]  # fmt: skip
+            model = str(Path(args.model).resolve())
+            cmd = [sys.executable, str(Path(__file__).resolve()), model, "--worker", mode, "--device", args.device,
+                   "--threads", str(args.threads), "--pairs", str(args.pairs), "--plans", str(args.plans),
+                   "--batches", args.batches, "--seed", str(args.seed)]  # fmt: skip
             paths = [str(Path(path).resolve()), *filter(None, [os.environ.get("PYTHONPATH")])]
             env = dict(os.environ, PYTHONPATH=os.pathsep.join(paths), OMP_NUM_THREADS=str(args.threads))
             done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=path)
