@@ -163,15 +163,27 @@ class BallSampler:
 
     ``points`` (K, D) are buffer states in normalized space; ``eps`` (T,) the radius of each diffusion step.
     ``strategy``: ``auto`` (rejection rounds, then KD-tree enumeration of the small balls that remain) or
-    ``brute`` (chunked exact enumeration of every query: slower, the reference for tests)."""
+    ``brute`` (chunked exact enumeration of every query: slower, the reference for tests). ``candidates``: the first
+    rejection round's size, ``adaptive`` (from the ball's radius, :meth:`_strategy`) or ``fixed`` (32 for every
+    ball, the draws of models before schema 2.8)."""
 
-    def __init__(self, points: np.ndarray, eps: np.ndarray, strategy: str = "auto", chunk_elems: int = 2_000_000):
+    def __init__(
+        self,
+        points: np.ndarray,
+        eps: np.ndarray,
+        strategy: str = "auto",
+        chunk_elems: int = 2_000_000,
+        candidates: str = "adaptive",
+    ):
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.sq = (self.points * self.points).sum(1)
         self.eps = np.asarray(eps, dtype=np.float64)
         if strategy not in ("auto", "brute"):
             raise ValueError(strategy)
         self.strategy = strategy
+        if candidates not in ("adaptive", "fixed"):
+            raise ValueError(candidates)
+        self.candidates = candidates
         # Rejection costs ~1/p tries for a ball holding a fraction p of the buffer; enumeration costs ~p K. They
         # balance near p ~ 1/sqrt(K): try up to ~4 sqrt(K) candidates, then enumerate what is left (small balls).
         self.first_tries = 32
@@ -199,6 +211,8 @@ class BallSampler:
         with np.errstate(divide="ignore"):
             need = np.ceil(np.log(0.05) / np.log1p(-np.minimum(share, 1 - 1e-9)))
         first = 2 ** np.ceil(np.log2(np.clip(need, 2, self.first_tries))).astype(np.int64)
+        if self.candidates == "fixed":
+            first = np.full_like(first, self.first_tries)
         return big, first
 
     def ball_fraction(self, radius):

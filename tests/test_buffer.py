@@ -86,14 +86,15 @@ def test_mixed_queries_each_uniform(impl):
         _check_uniform(idx[i], points, xs[i], rs[i])
 
 
+@pytest.mark.parametrize("candidates", ["adaptive", "fixed"])
 @pytest.mark.parametrize("k", [1, 3, 7])
-def test_degrade_at_one_step_is_uniform(k):
+def test_degrade_at_one_step_is_uniform(k, candidates):
     """Degrading every plan at the same step (how sampling calls it) takes its own path through the sampler: its
     draws too are uniform over ball ∩ buffer, for a small ball (enumerated) and larger ones (rejection first)."""
     rng = np.random.default_rng(9)
     points = rng.uniform(-1, 1, size=(800, 2))
     eps = radii("linear", 1.0, 8)
-    s = BallSampler(points, eps)
+    s = BallSampler(points, eps, candidates=candidates)
     assert not s._level_big[1] and s._level_big[3] and s._level_big[7]  # the test covers both branches
     x = np.array([0.2, -0.1])
     traj = np.repeat(x[None, None], 40_002, axis=1)  # one plan of 40,000 free states, all at x

@@ -98,6 +98,7 @@ def test_retraining_the_v1_config_gives_the_v1_weights(tmp_path):
     old = artifacts.load(V1 / "model.h5")
     settings = {"steps": 4, "checkpoint_every": 2, "net.dim": 8, "net.dim_mults": [1], "horizon": 16, "stride": 10}
     old_cdrb = {"method.diffusion_steps": 4, "method.end_actions": "kept", "checkpoint_seconds": 0.0}  # as migrated
+    old_cdrb["method.ball_candidates"] = "fixed"
     cfg = train_config(demos, buffer, "cdrb", {**settings, **old_cdrb, "batch_size": 4})
     assert cfg == old.manifest.config
     new = train(demos, buffer, cfg, tmp_path / "m.h5")

@@ -12,7 +12,8 @@ Schema 2 (cdrb 0.2, the families/registry redesign) changed, for every kind:
 Minor versions that renamed values are migrated too (:func:`migrate_minor`): schema 2.2 renamed CDRB's radius
 schedule ``log`` (log-spaced, convex) to ``geometric`` (``log`` is now the official code's concave schedule) and
 the CDRB samplers ``alg1``/``alg2`` to ``paper``/``cold-improved``, and records for older CDRB models that the
-action part of their end states was kept (``method.end_actions = "kept"``; only state-action models differ).
+action part of their end states was kept (``method.end_actions = "kept"``; only state-action models differ);
+CDRB models before 2.8 drew 32 rejection candidates for every ball (``method.ball_candidates = "fixed"``).
 """
 
 from __future__ import annotations
@@ -130,12 +131,24 @@ def _checkpoint_seconds_2_5(kind: str, m: Manifest) -> Manifest:
     return {**m, "config": {**cfg, "checkpoint_seconds": 0.0}}
 
 
+def _ball_candidates_2_8(kind: str, m: Manifest) -> Manifest:
+    """CDRB models written before the ball sampler sized its first rejection round by the ball's radius drew 32
+    candidates for every ball: ``method.ball_candidates`` is ``fixed`` for them, so they sample (and resume
+    training) with the very draws they made then (model 2.8)."""
+    cfg = m.get("config")
+    method = cfg.get("method") if isinstance(cfg, dict) else None
+    if kind != "model" or not isinstance(method, dict) or method.get("name") != "cdrb":
+        return m
+    return {**m, "config": {**cfg, "method": {"ball_candidates": "fixed", **method}}}
+
+
 #: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
 #: older files did not follow; applied to every older file in order
 MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
     ((2, 2), _renames_2_2),
     ((2, 5), _checkpoint_seconds_2_5),
     ((2, 6), _fetch_draws_2_4),
+    ((2, 8), _ball_candidates_2_8),
 ]
 
 

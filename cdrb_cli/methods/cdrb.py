@@ -55,6 +55,12 @@ class CDRBParams(StartWeightParams):
     loss_weight_power: float = Field(
         0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
     )
+    ball_candidates: Literal["adaptive", "fixed"] = Field(
+        "adaptive",
+        description="the ball sampler's first rejection round: adaptive (as many uniform candidates as a ball of "
+        "that radius needs, 2 to 32) or fixed (32 for every ball; models before schema 2.8). The same law; "
+        "another random stream, so a seed gives other draws",
+    )
 
 
 class CDRB(Planner):
@@ -66,7 +72,7 @@ class CDRB(Planner):
         self.T = p.diffusion_steps
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
-        self.ball = BallSampler(self.points, self.eps)
+        self.ball = BallSampler(self.points, self.eps, candidates=p.ball_candidates)
         self._torch_ball = None  # built on first use on a non-CPU device
         self._collides = None  # with a masked buffer: which normalized features collide (re-drawn after restoring)
         self.redrawn = 0  # restored states re-drawn from the masked buffer (counted over every sample call)
@@ -149,7 +155,7 @@ class CDRB(Planner):
         keep = ~np.asarray(collides(self.points), dtype=bool)
         if not keep.any():
             raise ValueError("every buffer state collides in this scene")
-        self.ball = BallSampler(self.points[keep], self.eps)
+        self.ball = BallSampler(self.points[keep], self.eps, candidates=self.config.method.ball_candidates)
         self._torch_ball = None
         self._collides = collides
         from scipy.spatial import cKDTree
