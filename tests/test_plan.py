@@ -161,10 +161,12 @@ def test_plans_that_leave_their_start_or_cross_a_wall_are_warned_about():
     assert "pass through an obstacle" in disconnected_warning(spec, through, stride=2)
 
 
-def test_video_folders_are_checked_before_the_run_and_reported_truthfully(tiny_models, small_data, tmp_path, cdrb):
+def test_video_folders_are_checked_before_the_run_and_reported_truthfully(tiny_models, small_data, tmp_path):
     """--video under a file, or --out inside the --video folder, is one line before any work (the eval, or the
     demos, would otherwise be written and then fail, or be overwritten by a GIF); an up-to-date eval says that it
     wrote no GIFs instead of pointing at an empty folder."""
+    from tests.conftest import run_cdrb as cdrb  # fresh processes: MuJoCo picks its renderer once per process
+
     model = tiny_models["mlp"].path
     (tmp_path / "vfile").write_text("x")
     ev = tmp_path / "e.h5"
@@ -190,6 +192,7 @@ def test_sampling_through_the_traced_network_gives_the_same_bits(tiny_models, me
     from cdrb_cli.stages.plan import sample_plans
 
     planner = load_method(tiny_models[method])
+    planner.TRACE_AFTER = 0  # trace at once (by default only after a few plans, when it pays)
     starts, goals = np.array([[0.0, 0.0, 0.0, 0.0]] * 3), np.array([[6.0, 6.0, 0.0, 0.0]] * 3)
 
     def plans(trace: bool, n: int):
@@ -198,7 +201,7 @@ def test_sampling_through_the_traced_network_gives_the_same_bits(tiny_models, me
 
     for n in (1, 3):
         np.testing.assert_array_equal(plans(True, n), plans(False, n))
-    assert planner.__dict__.get("_traces"), "the traced network was not used"
+    assert any(t is not None for t in planner.__dict__.get("_traces", {}).values()), "no trace was made and used"
     with torch.no_grad():
         for p in planner.net.parameters():
             p.mul_(0.5)  # new weights, as after loading others: the trace must follow them
@@ -226,3 +229,17 @@ def test_the_graphable_loop_degrades_through_buffer_states_with_the_ends_pinned(
     torch.testing.assert_close(out[:, -1, :obs], goal, rtol=0, atol=0)
     inner = out[:, 1:-1].reshape(-1, points.shape[1])
     assert (torch.cdist(inner.double(), points.double()).min(dim=1).values < 1e-6).all()
+
+
+def test_the_network_is_traced_only_once_sampling_has_called_it_enough(tiny_models):
+    """A one-off plan runs the module itself (tracing would cost more than it saves); the trace comes once the
+    network has been called TRACE_AFTER times."""
+    from cdrb_cli.methods.checkpoint import load_method
+    from cdrb_cli.stages.plan import sample_plans
+
+    planner = load_method(tiny_models["cdrb"])
+    planner.TRACE_AFTER = 2 * (planner.T - 1)  # two plans' worth of calls
+    start, goal = np.array([[0.0, 0.0, 0.0, 0.0]]), np.array([[6.0, 6.0, 0.0, 0.0]])
+    for plans in range(1, 4):
+        sample_plans(planner, start, goal, 1, seed=plans, batch_size=1)
+        assert any(t is not None for t in planner.__dict__.get("_traces", {}).values()) == (plans == 3)

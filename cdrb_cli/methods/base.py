@@ -121,25 +121,41 @@ class Method:
 
     #: whether :meth:`sample_net` may run a trace of the network (off: the module itself; benchmarks compare both)
     trace_sampling: ClassVar[bool] = True
+    #: network calls made before :meth:`sample_net` traces it: the first trace in a process costs ~0.5 s of
+    #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
+    TRACE_AFTER: ClassVar[int] = 96
 
     def sample_net(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-        """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, a trace of
-        it (``torch.jit.trace``, made on first use per device and dtype) runs instead: the same operations on the
-        same parameters, so the same bits (tests/test_plan.py), without Python's cost per module call, which is
-        most of a small network's time at batch 1 on a CPU. Networks that declare ``traceable`` are traced."""
+        """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, once it
+        has been called :data:`TRACE_AFTER` times, a trace of it (``torch.jit.trace``, made per device and dtype)
+        runs instead: the same operations on the same parameters, so the same bits (tests/test_plan.py), without
+        Python's cost per module call, which is most of a small network's time at batch 1 on a CPU (a re-planning
+        robot, the Python API, closed-loop evals). Networks that declare ``traceable`` are traced. TorchScript is
+        deprecated from torch 2.13 (FX graphs and torch.export keep the Python calls, so they do not help here):
+        where tracing fails, the module itself runs, the same bits more slowly."""
         net = self.net
         if net.training or torch.is_grad_enabled() or not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
         cache = self.__dict__.setdefault("_traces", {})
         key = (id(net), x.device, x.dtype)
-        traced = cache.get(key)
-        if traced is None:
+        calls = self.__dict__.get("_net_calls", 0)
+        if key not in cache and calls < self.TRACE_AFTER:
+            self._net_calls = calls + 1
+            return net(x, k)
+        if key not in cache:
             import warnings
 
-            with warnings.catch_warnings():  # GroupNorm's check of its input size is a Python test on shapes that
-                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # holds for any batch: nothing to warn of
-                traced = cache[key] = torch.jit.trace(net, (x, k), check_trace=False)
-        return traced(x, k)
+            with warnings.catch_warnings():
+                # GroupNorm's check of its input size is a Python test on shapes that holds for any batch, and the
+                # deprecation is answered above: nothing to warn a user of
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                warnings.simplefilter("ignore", DeprecationWarning)
+                try:
+                    cache[key] = torch.jit.trace(net, (x, k), check_trace=False)
+                except Exception:  # noqa: BLE001 - a torch without TorchScript, or a net it cannot trace
+                    cache[key] = None
+        traced = cache[key]
+        return net(x, k) if traced is None else traced(x, k)
 
     # -------------------------------------------------------------- pinning
     def pin(self, x: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
