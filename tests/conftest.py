@@ -32,9 +32,47 @@ def run_cdrb(*args, cwd=None, env=None, timeout=600):
     )
 
 
+def call_cdrb(*args, cwd=None, env=None, timeout=None):
+    """Run the CLI's entry point (`cdrb_cli.cli.main`) in this process, as `python -m cdrb_cli` would in a fresh
+    one: the same argument parsing, exit codes and output, with stdout and stderr captured, the environment
+    variables ``env`` set and the working folder ``cwd`` for the call, and this process's state (environment,
+    folder, torch threads, quiet flag) restored after it. It saves a fresh interpreter's imports per command
+    (torch alone is ~2 s). Tests of what only a real process shows (signals, kills, import-time settings) start
+    one themselves (``run_cdrb``). ``timeout`` is accepted for the same signature and not enforced."""
+    import contextlib
+    import io
+    import traceback
+
+    import torch
+
+    from cdrb_cli import cli, ui
+
+    out, err = io.StringIO(), io.StringIO()
+    saved_env, saved_cwd, threads, quiet = dict(os.environ), os.getcwd(), torch.get_num_threads(), ui._quiet
+    try:
+        os.environ.update({k: str(v) for k, v in (env or {}).items()})
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = cli.main([str(a) for a in args])
+            except SystemExit as exc:  # as the interpreter would exit
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+            except BaseException:  # what an uncaught exception does to a process: a traceback and exit 1
+                traceback.print_exc()
+                code = 1
+    finally:
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        torch.set_num_threads(threads)
+        ui.set_quiet(quiet)
+    return subprocess.CompletedProcess(["cdrb", *map(str, args)], code, out.getvalue(), err.getvalue())
+
+
 @pytest.fixture
 def cdrb():
-    return run_cdrb
+    return call_cdrb
 
 
 @pytest.fixture(scope="session")

@@ -320,7 +320,9 @@ def test_the_scripted_expert_succeeds_without_touching_anything(env_id):
         env.close()
 
 
-def test_collect_fetch_end_to_end_with_routes_and_pictures(tmp_path, cdrb):
+def test_collect_fetch_end_to_end_with_routes_and_pictures(tmp_path):
+    from tests.conftest import run_cdrb as cdrb  # a fresh process: MuJoCo picks its renderer once per process
+
     out, pic = tmp_path / "demos.h5", tmp_path / "demos.png"
     gifs = tmp_path / "gifs"
     r = cdrb(

@@ -17,6 +17,7 @@ import pytest
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
 from cdrb_cli.stages.grid import PoolBackend, expand, load_grid, run_grid
+from tests.conftest import call_cdrb
 
 TINY = """
 out = "runs"
@@ -44,10 +45,7 @@ def _grid(tmp_path: Path, text: str = TINY, name: str = "grid.toml") -> Path:
 
 
 def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    return subprocess.run(
-        [sys.executable, "-m", "cdrb_cli", *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=600
-    )
+    return call_cdrb(*args, cwd=cwd, env={"OMP_NUM_THREADS": "1"})
 
 
 # ------------------------------------------------------------------------------------------------ file and graph

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
+from tests.conftest import call_cdrb
 
 minari = pytest.importorskip("minari")
 
@@ -26,10 +27,7 @@ def datasets(tmp_path, monkeypatch):
 
 
 def _cli(*args, cwd=None):
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    return subprocess.run(
-        [sys.executable, "-m", "cdrb_cli", *map(str, args)], capture_output=True, text=True, env=env, cwd=cwd
-    )
+    return call_cdrb(*args, cwd=cwd, env={"OMP_NUM_THREADS": "1"})
 
 
 def _make_dataset(dataset_id: str, gym_id: str, episodes: int = 4, steps: int = 30, seed: int = 0, **kwargs):

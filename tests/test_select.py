@@ -4,10 +4,8 @@ report chain run from the shipped files at a tiny budget."""
 from __future__ import annotations
 
 import csv
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,6 +13,7 @@ import tomllib
 
 from cdrb_cli import artifacts
 from cdrb_cli.stages.select import RULE, Candidate, choose
+from tests.conftest import call_cdrb
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -57,15 +56,7 @@ def test_the_spread_between_training_seeds_needs_two_seeds():
 
 
 def _cdrb(*args, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.run(
-        [sys.executable, "-m", "cdrb_cli", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=env,
-        timeout=900,
-    )
+    proc = call_cdrb(*args, cwd=cwd, env={"OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0 or not check, (args, proc.stderr[-3000:])
     return proc
 

@@ -9,6 +9,7 @@ import pytest
 
 from cdrb_cli.errors import BadInput
 from cdrb_cli.settings import Setting, apply, lookup, parse_set, parse_value, read_config_file
+from tests.conftest import run_cdrb
 
 
 @pytest.mark.parametrize(
@@ -165,10 +166,10 @@ def test_a_second_run_names_the_settings_that_differ(small_data, tmp_path, cdrb)
         ),
     ],
 )
-def test_broken_plugins_are_one_line(tmp_path, cdrb, source, needle):
+def test_broken_plugins_are_one_line(tmp_path, source, needle):
     (tmp_path / "myplugin.py").write_text(source + "\n")
     env = {"CDRB_PLUGINS": "myplugin", "PYTHONPATH": str(tmp_path)}
-    r = cdrb("methods", env=env)
+    r = run_cdrb("methods", env=env)  # a fresh process: plugins load once per process, from its PYTHONPATH
     assert r.returncode == 2 and "plugin 'myplugin'" in r.stderr and needle in r.stderr, r.stderr
     assert r.stderr.count("\n") == 1 and r.stdout == ""
 
