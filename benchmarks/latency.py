@@ -29,7 +29,9 @@ import time
 from pathlib import Path
 
 
-def measure(model_path: str, device: str, pairs: int, plans: int, batches: list[int], seed: int, fast: bool) -> dict:
+def measure(
+    model_path: str, device: str, pairs: int, plans: int, batches: list[int], seed: int, fast: bool, steps=None
+) -> dict:
     """In a worker process: the figures of one tree (imported from PYTHONPATH)."""
     import numpy as np
     import torch
@@ -54,7 +56,8 @@ def measure(model_path: str, device: str, pairs: int, plans: int, batches: list[
         if device.startswith("cuda"):
             torch.cuda.synchronize()
 
-    out, _, _, _, _ = sample_plans(method, starts, goals, 1, seed, batch_size=64, device=device)
+    kw = {"steps": steps, "device": device}
+    out, _, _, _, _ = sample_plans(method, starts, goals, 1, seed, batch_size=64, **kw)
     states = out[..., : spec.obs_dim]
     result = {
         "in_obstacle_pct": 100 * float(np.asarray(family.in_collision(spec, states)).mean()),
@@ -64,13 +67,13 @@ def measure(model_path: str, device: str, pairs: int, plans: int, batches: list[
         n = plans if batch == 1 else max(1, 2 * 64 // batch)  # single plans, or whole batches
         idx = np.arange(n * batch) % pairs
         s, g = starts[idx], goals[idx]
-        sample_plans(method, s[:batch], g[:batch], 1, seed, batch_size=batch, device=device)  # warm-up
+        sample_plans(method, s[:batch], g[:batch], 1, seed, batch_size=batch, **kw)  # warm-up
         times = []
         for i in range(n):
             sl = slice(i * batch, (i + 1) * batch)
             sync()
             t = time.perf_counter()
-            sample_plans(method, s[sl], g[sl], 1, seed + i, batch_size=batch, device=device)
+            sample_plans(method, s[sl], g[sl], 1, seed + i, batch_size=batch, **kw)
             sync()
             times.append((time.perf_counter() - t) / batch)
         result[f"ms_b{batch}"] = 1000 * (statistics.median(times) if batch == 1 else statistics.mean(times))
@@ -91,6 +94,7 @@ def main() -> None:
     ap.add_argument("--batches", default="1,64,1000")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sample-steps", type=int, default=None, help="denoising steps (default: the model's all)")
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -99,7 +103,8 @@ def main() -> None:
         import torch
 
         torch.set_num_threads(args.threads)
-        fig = measure(args.model, args.device, args.pairs, args.plans, batches, args.seed, args.worker == "fast")
+        fast = args.worker == "fast"
+        fig = measure(args.model, args.device, args.pairs, args.plans, batches, args.seed, fast, args.sample_steps)
         print(json.dumps(fig))
         return
     here = Path(__file__).resolve().parent.parent
@@ -114,6 +119,8 @@ def main() -> None:
             cmd = [sys.executable, str(Path(__file__).resolve()), model, "--worker", mode, "--device", args.device,
                    "--threads", str(args.threads), "--pairs", str(args.pairs), "--plans", str(args.plans),
                    "--batches", args.batches, "--seed", str(args.seed)]  # fmt: skip
+            if args.sample_steps:
+                cmd += ["--sample-steps", str(args.sample_steps)]
             paths = [str(Path(path).resolve()), *filter(None, [os.environ.get("PYTHONPATH")])]
             env = dict(os.environ, PYTHONPATH=os.pathsep.join(paths), OMP_NUM_THREADS=str(args.threads))
             done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=path)

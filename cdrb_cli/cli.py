@@ -1366,7 +1366,7 @@ def quickstart(
     seed: int = SeedOpt,
 ) -> None:
     """Run the whole pipeline on Maze Tight: collect -> cluster -> train CDRB and Diffuser (quick) -> eval ->
-    report. About 10 minutes on 2 CPU cores. Re-running skips every stage that is up to date; an interrupted run
+    report. 5-9 minutes on 2 CPU cores. Re-running skips every stage that is up to date; an interrupted run
     resumes where it stopped. Prints the results table and the paths of the pictures."""
     if videos:
         from cdrb_cli.envs.render import choose_gl_backend
