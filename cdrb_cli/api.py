@@ -51,17 +51,21 @@ class Plans:
     seconds: float
 
 
-def _avoid(mask_buffer: bool, best_of: int, route_k: int | None, route_clearance: float, guide_scale: float):
-    """The avoidance settings of :class:`Planner` and :func:`evaluate` (their arguments of the same names)."""
-    from cdrb_cli.configs import AvoidConfig
+def _settings(settings: dict | None, **fields) -> list:
+    """The plan/eval settings of an API call: ``settings`` (dotted keys, as ``--set`` takes them: ``{"avoid.best_of":
+    8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None)."""
+    from cdrb_cli.settings import Setting, from_mapping, lookup
 
-    return AvoidConfig(
-        mask_buffer=mask_buffer,
-        best_of=best_of,
-        route_k=route_k,
-        route_clearance=route_clearance,
-        guide_scale=guide_scale,
-    )
+    given = [
+        Setting(s.path, s.value, f"{'.'.join(s.path)}={s.value!r}")
+        for s in from_mapping({k: v for k, v in fields.items() if v is not None})
+    ]
+    extra = from_mapping(dict(settings or {}), "settings")
+    for s in extra:
+        clash = lookup(given, s.path)
+        if clash is not None:
+            raise BadInput(f"{clash.source} and {s.source}", hint="give it once")
+    return given + extra
 
 
 class Planner:
@@ -73,26 +77,44 @@ class Planner:
         device: str = "cpu",
         ema: bool = True,
         scene: str | Path | None = None,
-        mask_buffer: bool = False,
-        best_of: int = 1,
+        mask_buffer: bool | None = None,
+        best_of: int | None = None,
         route_k: int | None = None,
-        guide_scale: float = 0.0,
-        route_clearance: float = 0.0,
+        guide_scale: float | None = None,
+        route_clearance: float | None = None,
+        settings: dict | None = None,
     ):
         """``scene``: plan among obstacles the data never saw (`cdrb plan --scene`: a maze map with walls added, a
-        Fetch TOML file of boxes put down); ``mask_buffer``,
-        ``best_of``, ``route_k``, ``route_clearance``, ``guide_scale``: keep plans out of obstacles as the CLI flags
-        of those names do."""
-        from cdrb_cli.stages.plan import check_avoid, load_planner, prepare_planner, scene_spec
+        Fetch TOML file of boxes put down), avoiding them as `cdrb plan` does by default (``settings={"avoid":
+        "plain"}``: as the model is); ``mask_buffer``, ``best_of``, ``route_k``, ``route_clearance``,
+        ``guide_scale``: the ``avoid.*`` settings of those names; ``settings``: any plan setting by its dotted key
+        (`cdrb config plan`)."""
+        from cdrb_cli.stages.configure import plan_config, route_buffer_path
+        from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
         from cdrb_cli.torch_utils import setup_torch
 
+        given = _settings(
+            settings,
+            **{"use_ema": None if ema else False},
+            **{
+                f"avoid.{k}": v
+                for k, v in dict(
+                    mask_buffer=mask_buffer,
+                    best_of=best_of,
+                    route_k=route_k,
+                    guide_scale=guide_scale,
+                    route_clearance=route_clearance,
+                ).items()
+            },
+        )
         self.model = artifacts.load(Path(model), "model")
+        self._spec = scene_spec(self.model, None if scene is None else Path(scene))
+        #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
+        self.config = plan_config(self.model, given, scene_file=None if scene is None else Path(scene))
         self.device = setup_torch(device)
-        self.method = load_planner(self.model, device=self.device, ema=ema)
-        avoid = _avoid(mask_buffer, best_of, route_k, route_clearance, guide_scale)
-        check_avoid(self.method.name, avoid)
-        self._spec = scene_spec(self.model, scene)
-        self.avoidance = prepare_planner(self.method, self._spec, avoid)
+        self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
+        route = load_route_buffer(route_buffer_path(given))
+        self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, route)
 
     @property
     def spec(self) -> EnvSpec:
@@ -121,7 +143,8 @@ class Planner:
 
         if n < 1:
             raise BadInput(f"n = {n}: plan at least once", hint="n >= 1")
-        sampler = METHODS.get(self.method.name).check_sampler(sampler or self.model.manifest.config.method.sampler)
+        sampler = METHODS.get(self.method.name).check_sampler(sampler or self.config.sampler, "sampler")
+        steps = self.config.sample_steps if steps is None else steps
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
         out = sample_plans(self.method, s, g, n, seed, sampler, steps, device=self.device, avoid=self.avoidance)
         fam = family_of(self.spec)
@@ -147,39 +170,53 @@ def evaluate(
     device: str = "cpu",
     force: bool = False,
     scene: str | Path | None = None,
-    mask_buffer: bool = False,
-    best_of: int = 1,
+    mask_buffer: bool | None = None,
+    best_of: int | None = None,
     route_k: int | None = None,
-    guide_scale: float = 0.0,
-    route_clearance: float = 0.0,
+    guide_scale: float | None = None,
+    route_clearance: float | None = None,
+    replan: str | None = None,
+    settings: dict | None = None,
+    seed: int = 0,
 ) -> EvalSummary:
-    """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary
-    (``scene`` and the avoidance settings as in :class:`Planner`; ``protocol="detour"`` with a scene)."""
+    """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary. The
+    arguments are the eval settings of those names (``controller``: ``controller.name``; the avoidance ones
+    ``avoid.*``, as in :class:`Planner`; ``replan``: ``never``, ``every:N`` or ``deviation:D``), checked as the
+    CLI checks them; ``settings``: any other by its dotted key (`cdrb config eval`); ``scene`` with
+    ``protocol="detour"`` for the pairs new obstacles lengthen."""
     from cdrb_cli.artifacts.outputs import claim_output
-    from cdrb_cli.stages.evaluate import eval_config
+    from cdrb_cli.stages.configure import eval_config, route_buffer_path
     from cdrb_cli.stages.evaluate import evaluate as run_eval
-    from cdrb_cli.stages.plan import scene_spec
+    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
-    if stream not in ("test", "tune"):
-        raise BadInput(f"stream = {stream!r}", hint="'test' (reported tables) or 'tune' (choosing settings)")
+    given = _settings(
+        settings,
+        episodes=episodes,
+        seeds=list(seeds),
+        stream=stream,
+        protocol=protocol,
+        replan=replan,
+        **{"controller.name": controller},
+        **{
+            f"avoid.{k}": v
+            for k, v in dict(
+                mask_buffer=mask_buffer,
+                best_of=best_of,
+                route_k=route_k,
+                guide_scale=guide_scale,
+                route_clearance=route_clearance,
+            ).items()
+        },
+    )
     m = artifacts.load(Path(model), "model")
-    avoid = _avoid(mask_buffer, best_of, route_k, route_clearance, guide_scale)
     map_path = None if scene is None else Path(scene)
     where = scene_spec(m, map_path)
-    config = eval_config(
-        m,
-        episodes,
-        list(seeds),
-        controller=controller,
-        protocol=protocol,
-        stream=stream,
-        avoid=avoid,
-        maze_map=map_path,
-        scene=where,
-    )
+    config = eval_config(m, given, seed=seed, scene_file=map_path, scene=where)
     spec = family_of(m.manifest.env).protocol_spec(where, config.protocol)
+    route = load_route_buffer(route_buffer_path(given))
     dev = setup_torch(device)
-    with claim_output(Path(out), force, "out", inputs=[m.path]) as path:
-        result = run_eval(m, config, path, device=dev, spec=spec)
+    inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
+    with claim_output(Path(out), force, "out", inputs=inputs) as path:
+        result = run_eval(m, config, path, device=dev, spec=spec, route_buffer=route)
     return result.manifest.summary

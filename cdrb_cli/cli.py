@@ -137,12 +137,6 @@ def _controllers():
     return CONTROLLERS
 
 
-def _samplers() -> list[str]:
-    from cdrb_cli.configs import SamplerName
-
-    return SamplerName.__metadata__[0].allowed()
-
-
 def _nets() -> list[str]:
     from cdrb_cli.configs import net_kinds
 
@@ -297,77 +291,71 @@ SceneMapOpt = typer.Option(
     "--maze-map",
     metavar="FILE",
     help="Plan among obstacles the data never saw, the model not retrained: for a maze, a map file (the training "
-    "map with walls added, same size and cell size); for Fetch, a TOML file of [[boxes]] (center, half) put down.",
-)
-MaskOpt = typer.Option(
-    False,
-    "--mask-buffer",
-    help="CDRB: remove the buffer states that collide in the map planned in before sampling, and re-draw restored "
-    "states that collide from the states left.",
-)
-BestOfOpt = typer.Option(
-    1,
-    "--best-of",
-    min=1,
-    max=64,
-    help="Sample N plans per pair in one batch and keep the first with no step through an obstacle (else the one "
-    "with the fewest).",
-)
-GuideOpt = typer.Option(
-    0.0,
-    "--guide-scale",
-    min=0.0,
-    max=1e6,
-    help="Diffuser: follow the gradient of the plan's collision cost (depth inside obstacles) with this step after "
-    "every denoising step (0: off). Tune it on --stream tune.",
+    "map with walls added, same size and cell size); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. "
+    "Plans then avoid them with the settings chosen for new obstacles (`--set avoid=plain`: as the model is).",
 )
 
+#: flags of plan and eval that now live in the configs: flag -> (config key, how a value is shown); they keep
+#: working, hidden from --help, with a one-line note naming the key
+MOVED_FLAGS = {
+    "--mask-buffer": ("avoid.mask_buffer", None),
+    "--best-of": ("avoid.best_of", None),
+    "--guide-scale": ("avoid.guide_scale", None),
+    "--route-k": ("avoid.route_k", None),
+    "--route-clearance": ("avoid.route_clearance", None),
+    "--route-buffer": ("avoid.route_buffer", None),
+    "--sampler": ("sampler", None),
+    "--sample-steps": ("sample_steps", None),
+    "--raw-weights": ("use_ema", False),
+    "--show-steps": ("keep_iterates", None),
+    "--controller": ("controller.name", None),
+    "--max-lag": ("controller.max_lag", None),
+    "--repair-k": ("replan.repair_k", None),
+    "--repair-steps": ("replan.repair_steps", None),
+}
 
-RouteClearanceOpt = typer.Option(
-    0.0,
-    "--route-clearance",
-    min=0.0,
-    max=1000.0,
-    metavar="C",
-    help="With --route-k: routes keep this distance from obstacles where the buffer allows (buffer states within "
-    "C of one, along an obstacle dimension, cost 5x per step; metres).",
+
+def _moved(flag: str, default=None, **kw):
+    return typer.Option(default, flag, hidden=True, help=f"Moved: --set {MOVED_FLAGS[flag][0]}=VALUE.", **kw)
+
+
+RunSetOpt = typer.Option(
+    [],
+    "--set",
+    metavar="KEY=VALUE",
+    help="Set any config field, e.g. --set avoid.best_of=8 --set controller.look_ahead=2 (repeatable; `cdrb config "
+    "plan|eval` lists them with their defaults).",
 )
-RouteOpt = typer.Option(
-    None,
-    "--route-k",
-    min=1,
-    metavar="K",
-    help="CDRB: start from the shortest route through the buffer's states joined by collision-free steps, "
-    "degraded to step K and restored, instead of from random buffer states (plans around new obstacles).",
+RunConfigOpt = typer.Option(
+    None, "--config", help="A TOML or JSON file of settings (`cdrb config plan|eval --format toml` writes a template)."
 )
 
 
-RouteBufferOpt = typer.Option(
-    None,
-    "--route-buffer",
-    help="With --route-k, for a planner that carries no buffer (Diffuser): the buffer artifact whose states the "
-    "routes go through (`cdrb cluster` of the model's demos).",
-)
+def _run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[str, str, object]], moved: dict):
+    """The settings of a plan or an eval in priority order: the ``--config`` file, the flags, then ``--set``
+    (a field given both by a flag and by ``--set`` is refused). ``flags``: (source text, key, value) of the
+    everyday flags given; ``moved``: moved flag -> value given (None: not given), each noted once."""
+    from cdrb_cli.settings import Setting, lookup, parse_set, read_config_file
 
-
-def _avoid(
-    mask_buffer: bool,
-    best_of: int,
-    guide_scale: float,
-    route_k: int | None,
-    route_buffer: Path | None,
-    route_clearance: float = 0.0,
-):
-    from cdrb_cli.configs import AvoidConfig
-
-    return AvoidConfig(
-        mask_buffer=mask_buffer,
-        best_of=best_of,
-        guide_scale=guide_scale,
-        route_k=route_k,
-        route_clearance=route_clearance,
-        route_buffer=None if route_buffer is None else route_buffer.name,
-    )
+    items = read_config_file(config_file) if config_file is not None else []
+    given = [Setting(tuple(key.split(".")), value, source) for source, key, value in flags]
+    for flag, value in moved.items():
+        if value is None or value is False:
+            continue
+        key, fixed = MOVED_FLAGS[flag]
+        value = fixed if fixed is not None else value
+        value = str(value) if isinstance(value, Path) else value
+        if flag == "--max-lag" and value == 0:
+            value = None  # 0 meant: follow the plan on the environment's clock
+        shown = "null" if value is None else str(value).lower() if isinstance(value, bool) else value
+        ui.warn(f"{flag} is deprecated: write --set {key}={shown} (or put it in a --config file)")
+        given.append(Setting(tuple(key.split(".")), value, flag if isinstance(value, bool) else f"{flag} {value}"))
+    sets_ = parse_set(sets)
+    for s in sets_:
+        clash = lookup(given, s.path)
+        if clash is not None:
+            raise BadInput(f"{clash.source} with {s.source}", hint="give it once")
+    return items + given + sets_
 
 
 def _spec(env: str | None, maze_map: Path | None):
@@ -838,8 +826,8 @@ def train(
 def config_cmd(
     stage: str = typer.Argument(
         "train",
-        parser=_choice(lambda: ["train", "eval", "collect"], "stage"),
-        metavar="train|eval|collect",
+        parser=_choice(lambda: ["train", "plan", "eval", "collect"], "stage"),
+        metavar="train|plan|eval|collect",
         help="Which config.",
     ),
     method: str | None = MethodOpt,
@@ -859,20 +847,18 @@ def config_cmd(
     """List every setting of a stage's config with its type, default and description.
 
     [cyan]cdrb config train --method cdrb --preset paper[/cyan] shows what [cyan]--set KEY=VALUE[/cyan] can change
-    for that method and preset; [cyan]--format toml[/cyan] writes a template for [cyan]cdrb train --config
-    FILE[/cyan]. Defaults that depend on the data (horizon, stride, features, CDRB's d_max) are filled in by
-    `cdrb train`. [cyan]cdrb config eval[/cyan] lists the controllers' settings (`cdrb eval --set`), [cyan]cdrb
-    config collect[/cyan] the experts' (`cdrb collect --set`)."""
+    for that method and preset; [cyan]--format toml[/cyan] writes a template for [cyan]--config FILE[/cyan].
+    Defaults that depend on the data (horizon, stride, features, CDRB's d_max) are filled in by `cdrb train`.
+    [cyan]cdrb config plan[/cyan] and [cyan]cdrb config eval[/cyan] list every plan and eval knob (the sampler,
+    avoidance, re-planning, the controllers' settings), [cyan]cdrb config collect[/cyan] the experts'."""
     from cdrb_cli.stages.show_config import config_template, render_template
 
     if stage != "train" and (method or net or preset):
         raise BadInput("--method/--net/--preset describe train settings", hint="use `cdrb config train ...`")
     if stage != "eval" and controller:
         raise BadInput("--controller describes eval settings", hint="use `cdrb config eval --controller ...`")
-    if stage != "train" and fmt != "table":
-        raise BadInput(
-            f"--format {fmt}: only train reads a --config file", hint=f"{stage} settings are --set keys: omit --format"
-        )
+    if stage == "collect" and fmt != "table":
+        raise BadInput(f"--format {fmt}: collect reads no --config file", hint="collect settings are --set keys")
     template = config_template(stage, method=method, net=net, preset=preset, controller=controller)
     sys.stdout.write(render_template(template, fmt))
 
@@ -894,15 +880,6 @@ def _trained_model(path: Path, allow_partial: bool):
     return m
 
 
-SamplerOpt = typer.Option(
-    None,
-    "--sampler",
-    parser=_choice(_samplers, "sampler"),
-    metavar="SAMPLER",
-    help="Override the model's sampler (its method's samplers: `cdrb methods`).",
-)
-
-
 @app.command()
 def plan(
     model: Path = typer.Argument(..., help="Model artifact from `cdrb train`."),
@@ -913,53 +890,70 @@ def plan(
     pairs: int = typer.Option(
         0, "--pairs", min=0, max=100_000, help="Instead: N start/goal pairs drawn by the eval protocol."
     ),
-    n: int = typer.Option(1, "--num-plans", "-n", min=1, max=10_000, help="Plans per start/goal pair."),
-    sampler: str | None = SamplerOpt,
-    sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
-    raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with the raw weights instead of the EMA."),
+    n: int | None = typer.Option(None, "--num-plans", "-n", min=1, max=10_000, help="Plans per start/goal pair."),
+    maze_map: Path | None = SceneMapOpt,
+    plot: Path | None = typer.Option(None, "--plot", help="Draw the scene and the plans to this PNG."),
+    sets: list[str] = RunSetOpt,
+    config_file: Path | None = RunConfigOpt,
     allow_partial: bool = PartialOpt,
-    show_steps: int = typer.Option(0, "--show-steps", min=0, help="Keep N intermediate iterates (drawn by --plot)."),
-    batch_size: int = typer.Option(256, "--batch-size", min=1, help="Plans sampled together."),
     device: str = DeviceOpt,
     out: Path = typer.Option(Path("plans.h5"), "--out", "-o", help="Plans artifact to write."),
-    plot: Path | None = typer.Option(None, "--plot", help="Draw the scene and the plans to this PNG."),
-    maze_map: Path | None = SceneMapOpt,
-    mask_buffer: bool = MaskOpt,
-    best_of: int = BestOfOpt,
-    route_k: int | None = RouteOpt,
-    route_clearance: float = RouteClearanceOpt,
-    route_buffer: Path | None = RouteBufferOpt,
-    guide_scale: float = GuideOpt,
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
+    batch_size: int = typer.Option(256, "--batch-size", min=1, hidden=True, help="Plans sampled together."),
+    sampler: str | None = _moved("--sampler"),
+    sample_steps: int | None = _moved("--sample-steps"),
+    raw_weights: bool = _moved("--raw-weights", False),
+    show_steps: int | None = _moved("--show-steps", min=0),
+    mask_buffer: bool = _moved("--mask-buffer", False),
+    best_of: int | None = _moved("--best-of", min=1, max=64),
+    route_k: int | None = _moved("--route-k", min=1),
+    route_clearance: float | None = _moved("--route-clearance", min=0.0, max=1000.0),
+    route_buffer: Path | None = _moved("--route-buffer"),
+    guide_scale: float | None = _moved("--guide-scale", min=0.0, max=1e6),
 ) -> None:
     """Plan from start to goal and write a [bold]plans[/bold] artifact (start and goal held exactly).
 
     CDRB (the paper's sampling algorithm): start from random buffer states, then repeatedly restore and
     re-degrade with shrinking balls.
-    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 -n 8 --plot plans.png --show-steps 4[/cyan]
+    Example: [cyan]cdrb plan model.h5 --start 0,0 --goal 6,6 -n 8 --plot plans.png --set keep_iterates=4[/cyan]
 
-    New obstacles, no retraining: [cyan]--maze-map closed.txt --mask-buffer --best-of 8[/cyan] plans in the
-    training map with walls added, from the buffer states outside them, keeping the best of 8 plans."""
+    Every other knob is a setting ([cyan]cdrb config plan[/cyan] lists them): the sampler and its steps, the raw
+    weights, kept iterates, and how plans keep out of obstacles ([cyan]avoid.*[/cyan]). New obstacles, no
+    retraining: [cyan]--scene closed.txt[/cyan] plans in the training map with walls added, avoiding them with
+    the settings chosen for new obstacles (CDRB: masked buffer, a buffer route repaired from k = 8, best of 4);
+    [cyan]--set avoid=plain[/cyan] plans as the model is. Also: [cyan]--batch-size N[/cyan] (plans sampled
+    together, default 256)."""
     from cdrb_cli.artifacts import produce
-    from cdrb_cli.configs import PlanConfig
     from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.seeding import STREAM_PLAN
-    from cdrb_cli.stages.plan import check_avoid, load_route_buffer, make_plans, scene_spec
+    from cdrb_cli.stages.configure import plan_config, route_buffer_path
+    from cdrb_cli.stages.plan import load_route_buffer, make_plans, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
-    _check_positive("--sample-steps", sample_steps)
-    _check_outputs(force, [model], out=out, plot=plot)
+    flags = [] if n is None else [(f"--num-plans {n}", "n", n)]
+    moved = {
+        "--sampler": sampler,
+        "--sample-steps": sample_steps,
+        "--raw-weights": raw_weights,
+        "--show-steps": show_steps,
+        "--mask-buffer": mask_buffer,
+        "--best-of": best_of,
+        "--route-k": route_k,
+        "--route-clearance": route_clearance,
+        "--route-buffer": route_buffer,
+        "--guide-scale": guide_scale,
+    }
+    settings = _run_settings(config_file, sets, flags, moved)
+    rb_path = route_buffer_path(settings)
+    read = [model, *(p for p in (config_file, maze_map, rb_path) if p is not None)]
+    _check_outputs(force, read, out=out, plot=plot)
     m = _trained_model(model, allow_partial)
-    avoid = _avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer, route_clearance)
-    check_avoid(m.manifest.config.method.name, avoid)
-    route_art = load_route_buffer(route_buffer)
     spec = scene_spec(m, maze_map)
+    config = plan_config(m, settings, seed=seed, scene_file=maze_map)
+    route_art = load_route_buffer(rb_path)
     family = family_of(spec)
-    entry = METHODS.get(m.manifest.config.method.name)
-    chosen = entry.check_sampler(sampler or m.manifest.config.method.sampler)
     if pairs:
         if start or goal:
             raise BadInput("--pairs with --start/--goal", hint="give either explicit points or --pairs N")
@@ -974,16 +968,6 @@ def plan(
             raise BadInput(f"{len(start)} --start but {len(goal)} --goal", hint="give one goal per start, or one")
         s_arr = np.array([family.parse_point(spec, t, "--start") for t in start])
         g_arr = np.array([family.parse_point(spec, t, "--goal") for t in goal])
-    config = PlanConfig(
-        sampler=chosen,
-        n=n,
-        sample_steps=sample_steps,
-        use_ema=not raw_weights,
-        keep_iterates=show_steps,
-        avoid=avoid,
-        scene=None if maze_map is None else maze_map.name,
-        seed=seed,
-    )
     result = produce(
         out,
         "plans",
@@ -1003,6 +987,8 @@ def plan(
         parents=[m] if route_art is None else [m, route_art],
         env=spec,
     )
+    if config.avoid.label() != "plain":
+        ui.log(f"avoiding obstacles: {config.avoid.label()}")
     sm = result.manifest.summary
     ui.log(
         f"{sm.plans} plans for {sm.pairs} pairs: {sm.in_wall_fraction:.2%} of planned states inside obstacles "
@@ -1017,7 +1003,7 @@ def plan(
             ui.warn(sm.masked.warning())
     from cdrb_cli.stages.plan import disconnected_warning
 
-    warning = disconnected_warning(spec, result.arrays["plans"], m.manifest.config.stride)
+    warning = disconnected_warning(spec, result.arrays["plans"], m.manifest.config.stride, config.avoid)
     if warning:
         ui.warn(warning)
     if plot is not None:
@@ -1043,46 +1029,27 @@ def plan(
 @app.command("eval")
 def eval_cmd(
     model: Path = typer.Argument(..., help="Model artifact from `cdrb train`."),
-    episodes: int = typer.Option(100, "--episodes", "-n", min=1, max=100_000, help="Episodes per evaluation seed."),
-    seeds: str = typer.Option("0,1,2,3,4", "--seeds", help="Evaluation seeds (each draws its own start/goal pairs)."),
-    controller: str | None = typer.Option(
+    episodes: int | None = typer.Option(
+        None, "--episodes", "-n", min=1, max=100_000, help="Episodes per evaluation seed (default 100)."
+    ),
+    seeds: str | None = typer.Option(
+        None, "--seeds", help="Evaluation seeds, each drawing its own start/goal pairs (default 0,1,2,3,4)."
+    ),
+    stream: str | None = typer.Option(
         None,
-        "--controller",
-        parser=_registered(_controllers, "controller"),
-        metavar="NAME",
-        help="The controller that executes plans (default: the protocol's; mazes: pd, inverse-dynamics or "
-        "waypoint; Fetch: fetch-track, or fetch-push-path on Push).",
-    ),
-    max_lag: float | None = typer.Option(
-        None,
-        "--max-lag",
-        min=0.0,
-        show_default=False,
-        help="Shortcut for --set controller.max_lag: pause the plan's clock while the agent lags more than this "
-        "behind it (default: the controller's, see `cdrb config eval`); 0: follow the plan on the environment's "
-        "clock.",
-    ),
-    sets: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Set an eval config field, e.g. --set controller.kp=20 (`cdrb config eval`).",
-    ),
-    stream: str = typer.Option(
-        "test",
         "--stream",
         parser=_choice(lambda: ["test", "tune"], "stream"),
         metavar="test|tune",
         help="Which start/goal pairs: 'tune' to choose settings on, 'test' (never used for choosing) for reported "
-        "tables.",
+        "tables (default test).",
     ),
     protocol: str | None = typer.Option(
         None,
         "--protocol",
         metavar="NAME",
-        help="The evaluation protocol (default: the environment's). 'official-code' evaluates as the official CDRB "
-        "code: mazes with goals at cell centres, success within 0.55 m and its executor; Fetch with its executor "
-        "(fetch-official: a step budget per planned state, a 1 cm gate) and the gripper pinned to the goal.",
+        help="The evaluation protocol (default: the environment's; `cdrb envs` lists them). 'official-code' "
+        "evaluates as the official CDRB code; 'detour' (with --scene) keeps the pairs the new obstacles lengthen; "
+        "'anywhere' starts anywhere.",
     ),
     replan: str | None = typer.Option(
         None,
@@ -1090,21 +1057,7 @@ def eval_cmd(
         metavar="never|every:N|deviation:D",
         help="Planners, closed loop: plan again from the current state every N env steps, or when the state is "
         "farther than D (metres, in the obstacle dimensions) from where the plan has it now (default: never, one "
-        "plan per episode as in the paper).",
-    ),
-    repair_k: int | None = typer.Option(
-        None,
-        "--repair-k",
-        metavar="K",
-        help="With --replan: repair instead of planning from scratch: the previous plan's remainder is degraded to "
-        "step K and restored from there (CDRB: the ball sampler; Diffuser: re-noised to timestep K; MLP: "
-        "re-predicts).",
-    ),
-    repair_steps: int | None = typer.Option(
-        None, "--repair-steps", metavar="N", help="Denoising steps of a repair (default: every step from K)."
-    ),
-    replan_plot: Path | None = typer.Option(
-        None, "--replan-plot", help="With --replan: the first episode's successive plans over its path (PNG)."
+        "plan per episode as in the paper). Repairs: --set replan.repair_k=K.",
     ),
     maze_map: Path | None = typer.Option(
         None,
@@ -1112,32 +1065,38 @@ def eval_cmd(
         "--maze-map",
         metavar="FILE",
         help="Evaluate among obstacles the data never saw, the model not retrained: for a maze, a map file (the "
-        "training map with walls added); for Fetch, a TOML file of [[boxes]] (center, half) put down. `--protocol "
-        "detour` keeps the pairs whose way the new obstacles block.",
+        "training map with walls added); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. Plans avoid "
+        "them with the settings chosen for new obstacles (`--set avoid=plain`: as the model is).",
     ),
-    mask_buffer: bool = MaskOpt,
-    best_of: int = BestOfOpt,
-    route_k: int | None = RouteOpt,
-    route_clearance: float = RouteClearanceOpt,
-    route_buffer: Path | None = RouteBufferOpt,
-    guide_scale: float = GuideOpt,
-    sampler: str | None = SamplerOpt,
-    sample_steps: int | None = typer.Option(None, "--sample-steps", help="Fewer denoising steps (default: all)."),
-    raw_weights: bool = typer.Option(False, "--raw-weights", help="Plan with raw instead of EMA weights."),
-    allow_partial: bool = PartialOpt,
+    sets: list[str] = RunSetOpt,
+    config_file: Path | None = RunConfigOpt,
     video: Path | None = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder."),
-    videos: int = typer.Option(3, "--videos", min=1, help="How many rollout GIFs with --video."),
-    keep_plans: bool = typer.Option(
-        True,
-        "--plans/--no-plans",
-        help="Keep each episode's (first) plan in the eval artifact, for the report's first-step column, new-obstacle "
-        "crossings and `cdrb report --plans-plot`; --no-plans writes a file a fraction of the size.",
-    ),
     device: str = DeviceOpt,
     out: Path = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write."),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
+    videos: int = typer.Option(3, "--videos", min=1, hidden=True, help="How many rollout GIFs with --video."),
+    keep_plans: bool = typer.Option(
+        True, "--plans/--no-plans", hidden=True, help="Keep each episode's (first) plan in the eval artifact."
+    ),
+    replan_plot: Path | None = typer.Option(
+        None, "--replan-plot", hidden=True, help="With --replan: the first episode's successive plans (PNG)."
+    ),
+    allow_partial: bool = typer.Option(False, "--allow-partial", hidden=True, help="Accept an unfinished model."),
+    controller: str | None = _moved("--controller"),
+    max_lag: float | None = _moved("--max-lag", min=0.0, show_default=False),
+    repair_k: int | None = _moved("--repair-k"),
+    repair_steps: int | None = _moved("--repair-steps"),
+    mask_buffer: bool = _moved("--mask-buffer", False),
+    best_of: int | None = _moved("--best-of", min=1, max=64),
+    route_k: int | None = _moved("--route-k", min=1),
+    route_clearance: float | None = _moved("--route-clearance", min=0.0, max=1000.0),
+    route_buffer: Path | None = _moved("--route-buffer"),
+    guide_scale: float | None = _moved("--guide-scale", min=0.0, max=1e6),
+    sampler: str | None = _moved("--sampler"),
+    sample_steps: int | None = _moved("--sample-steps"),
+    raw_weights: bool = _moved("--raw-weights", False),
 ) -> None:
     """Plan once per episode, execute the plan with a controller in the simulator, write an [bold]eval[/bold]
     artifact.
@@ -1147,63 +1106,71 @@ def eval_cmd(
     steps, final distance, planned states inside obstacles, executed collisions, path length relative to the
     expert, planning time. Example: [cyan]cdrb eval model.h5 --seeds 0,1,2,3,4 --episodes 100 --video gifs/[/cyan]
 
-    Closed loop (planners): [cyan]--replan every:20[/cyan] plans again every 20 steps from the current state,
-    [cyan]--replan deviation:0.5 --repair-k 4[/cyan] repairs the plan when the agent is 0.5 m off it; the eval then
-    records re-plans and the planning time of whole episodes (`--replan-plot` draws one episode's plans).
-
-    New obstacles, no retraining: [cyan]--maze-map closed.txt --protocol detour --mask-buffer --best-of 8[/cyan]
-    evaluates in the training map with walls added, on the pairs they lengthen."""
+    Every other knob is a setting ([cyan]cdrb config eval[/cyan] lists them; [cyan]--set KEY=VALUE[/cyan] or
+    [cyan]--config FILE[/cyan]): the controller and its gains ([cyan]controller.*[/cyan]), re-planning and repairs
+    ([cyan]replan.*[/cyan]), avoidance ([cyan]avoid.*[/cyan]), the sampler and its steps. Closed loop (planners):
+    [cyan]--replan every:20[/cyan] plans again every 20 steps from the current state; [cyan]--replan
+    deviation:0.5 --set replan.repair_k=4[/cyan] repairs the plan when the agent is 0.5 m off it. New obstacles,
+    no retraining: [cyan]--scene closed.txt --protocol detour[/cyan] evaluates on the pairs the new walls lengthen,
+    avoiding them with the settings chosen for new obstacles. Also: [cyan]--videos N[/cyan] (GIFs with --video,
+    default 3), [cyan]--no-plans[/cyan] (a smaller file without the plans), [cyan]--replan-plot PNG[/cyan] (one
+    closed-loop episode's plans), [cyan]--allow-partial[/cyan] (an unfinished model)."""
     if video is not None:
         from cdrb_cli.envs.render import choose_gl_backend
 
         choose_gl_backend()  # before MuJoCo is imported
     from cdrb_cli.artifacts import produce
-    from cdrb_cli.settings import Setting, parse_set
-    from cdrb_cli.stages.evaluate import eval_config, evaluate
+    from cdrb_cli.stages.configure import eval_config, route_buffer_path
+    from cdrb_cli.stages.evaluate import evaluate
     from cdrb_cli.stages.report import failure_text
     from cdrb_cli.torch_utils import setup_torch
 
-    _check_positive("--sample-steps", sample_steps)
-    _check_positive("--repair-k", repair_k)
-    _check_positive("--repair-steps", repair_steps)
-    seed_list = _int_list(seeds, "--seeds")
+    flags = [
+        (f"{flag} {value}", key, parse(value))
+        for flag, key, value, parse in (
+            ("--episodes", "episodes", episodes, int),
+            ("--seeds", "seeds", seeds, lambda text: _int_list(text, "--seeds")),
+            ("--stream", "stream", stream, str),
+            ("--protocol", "protocol", protocol, str),
+            ("--replan", "replan", replan, str),
+        )
+        if value is not None
+    ]
+    moved = {
+        "--controller": controller,
+        "--max-lag": max_lag,
+        "--repair-k": repair_k,
+        "--repair-steps": repair_steps,
+        "--mask-buffer": mask_buffer,
+        "--best-of": best_of,
+        "--route-k": route_k,
+        "--route-clearance": route_clearance,
+        "--route-buffer": route_buffer,
+        "--guide-scale": guide_scale,
+        "--sampler": sampler,
+        "--sample-steps": sample_steps,
+        "--raw-weights": raw_weights,
+    }
+    settings = _run_settings(config_file, sets, flags, moved)
     if video is not None:
         _check_video_folder(video, out)
-    if replan_plot is not None and replan in (None, "never"):
-        raise BadInput("--replan-plot draws the plans of a closed-loop episode", hint="add --replan every:N")
-    _check_outputs(force, [model], out=out, replan_plot=replan_plot)
-    settings = parse_set(sets)
-    if max_lag is not None:
-        if any(s.path == ("controller", "max_lag") for s in settings):
-            raise BadInput("--max-lag with --set controller.max_lag", hint="give it once")
-        settings.append(Setting(("controller", "max_lag"), max_lag or None, f"--max-lag {max_lag:g}"))
+    route_buffer = route_buffer_path(settings)
+    read = [model, *(p for p in (config_file, maze_map, route_buffer) if p is not None)]
+    _check_outputs(force, read, out=out, replan_plot=replan_plot)
     m = _trained_model(model, allow_partial)
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
 
     scene = scene_spec(m, maze_map)
-    config = eval_config(
-        m,
-        episodes,
-        seed_list,
-        controller,
-        settings,
-        sampler,
-        sample_steps,
-        use_ema=not raw_weights,
-        seed=seed,
-        protocol=protocol,
-        stream=stream,
-        replan=replan,
-        repair_k=repair_k,
-        repair_steps=repair_steps,
-        avoid=_avoid(mask_buffer, best_of, guide_scale, route_k, route_buffer, route_clearance),
-        maze_map=maze_map,
-        scene=scene,
-    )
+    config = eval_config(m, settings, seed=seed, scene_file=maze_map, scene=scene)
+    if replan_plot is not None and config.replan.mode == "never":
+        raise BadInput("--replan-plot draws the plans of a closed-loop episode", hint="add --replan every:N")
+    stream, seed_list, episodes = config.stream, config.seeds, config.episodes
     eval_spec = family_of(m.manifest.env).protocol_spec(scene, config.protocol)
     route_art = load_route_buffer(route_buffer)
     n_videos = videos if video is not None else 0
+    if config.avoid.label() != "plain":
+        ui.log(f"avoiding obstacles: {config.avoid.label()}")
     started = time.time()
     ev = produce(
         out,

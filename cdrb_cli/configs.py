@@ -6,7 +6,7 @@ from __future__ import annotations
 import typing
 from typing import Annotated, ClassVar, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from cdrb_cli.envs.family import ControllerConfig, ExpertConfig
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS
@@ -175,6 +175,14 @@ class AvoidConfig(Record):
         "of its collision cost (depth inside obstacles, in raw units) by this scale; 0: no guidance",
     )
 
+    @model_validator(mode="after")
+    def _check(self) -> AvoidConfig:
+        if self.route_clearance > 0 and self.route_k is None:
+            raise ValueError("route_clearance keeps routes clear of obstacles: set route_k too (or drop it)")
+        if self.route_buffer is not None and self.route_k is None:
+            raise ValueError("route_buffer is what routes go through: set route_k too (or drop it)")
+        return self
+
     def label(self) -> str:
         """A short description, e.g. 'masked buffer, best of 8'."""
         parts = ["masked buffer"] if self.mask_buffer else []
@@ -210,8 +218,8 @@ class PlanConfig(Record):
     sampler: SamplerName
     n: int = Field(gt=0, le=10_000, description="plans per start/goal pair")
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
-    use_ema: bool = True
-    keep_iterates: int = Field(0, ge=0)
+    use_ema: bool = Field(True, description="plan with the EMA weights (false: the raw weights)")
+    keep_iterates: int = Field(0, ge=0, description="intermediate iterates kept per plan (`--plot` draws them)")
     avoid: AvoidConfig = Field(default_factory=AvoidConfig, description="keeping plans out of obstacles")
     scene: str | None = Field(
         None, description="the name of the map file planned in instead of the model's (its content is the env)"
@@ -284,10 +292,13 @@ class ReplanConfig(Record):
         mode, _, value = text.strip().partition(":")
         if mode == "never" and not value:
             return {"mode": "never"}
-        if mode == "every" and value:
-            return {"mode": "every", "every": int(value)}
-        if mode == "deviation" and value:
-            return {"mode": "deviation", "deviation": float(value)}
+        try:
+            if mode == "every" and value:
+                return {"mode": "every", "every": int(value)}
+            if mode == "deviation" and value:
+                return {"mode": "deviation", "deviation": float(value)}
+        except ValueError:
+            pass
         raise ValueError("expected never, every:N or deviation:D")
 
     def label(self) -> str:
@@ -304,7 +315,7 @@ class EvalConfig(Record):
     )
     sampler: SamplerName
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
-    use_ema: bool = True
+    use_ema: bool = Field(True, description="plan with the EMA weights (false: the raw weights)")
     extra_steps: int = Field(
         0, ge=0, le=1_000_000, description="env steps executed beyond the plan, holding its last state"
     )
@@ -320,6 +331,13 @@ class EvalConfig(Record):
         None, description="the name of the map file evaluated in instead of the model's (its content is the env)"
     )
     seed: Seed
+
+    @field_validator("seeds")
+    @classmethod
+    def _distinct(cls, seeds: list[int]) -> list[int]:
+        if len(set(seeds)) != len(seeds):
+            raise ValueError(f"{seeds}: repeated seeds (each seed's pairs would count twice): list each once")
+        return seeds
 
 
 class SeedResult(Record):

@@ -257,6 +257,8 @@ def _tag(model: type[BaseModel]) -> str | None:
 # ------------------------------------------------------------------------------------------------ listing
 def type_name(tp: Any) -> str:
     origin = typing.get_origin(tp)
+    if origin is typing.Annotated:
+        return type_name(typing.get_args(tp)[0])
     if origin is typing.Literal:
         return " | ".join(str(a) for a in typing.get_args(tp))
     if origin in (typing.Union, types.UnionType):

@@ -16,7 +16,8 @@ from cdrb_cli.envs.registry import CONTROLLERS, family_of, make_spec
 from cdrb_cli.methods.config import train_config
 from cdrb_cli.seeding import STREAM_EVAL
 from cdrb_cli.stages.collect import rollout
-from cdrb_cli.stages.evaluate import eval_config, evaluate, run_episode
+from cdrb_cli.stages.configure import eval_config
+from cdrb_cli.stages.evaluate import evaluate, run_episode
 from cdrb_cli.stages.train import train
 from tests.test_train import tiny
 
@@ -136,7 +137,7 @@ def evals(small_data, tmp_path_factory):
             train_config(demos, b, method, tiny(method, steps=20, checkpoint_every=20, stride=10)),
             root / f"m-{method}.h5",
         )
-        cfg = eval_config(model, 4, [0, 1])
+        cfg = eval_config(model, episodes=4, seeds=[0, 1])
         assert cfg.sampler == model.manifest.config.method.sampler and cfg.controller.max_lag == DEFAULT_MAX_LAG
         out[method] = evaluate(model, cfg, root / f"e-{method}.h5")
     return out
@@ -195,10 +196,10 @@ def test_tuning_pairs_and_the_official_protocol(evals, tmp_path, cdrb):
     off = artifacts.load(tmp_path / "o.h5", "eval")
     assert off.manifest.config.protocol == "official-code" and off.manifest.config.controller.name == "waypoint"
     assert off.manifest.env.success_radius == 0.55 and not off.manifest.env.scene.goal_noise
-    r = cdrb("eval", model, "--protocol", "official-code", "--controller", "pd", "--out", tmp_path / "x.h5")
+    r = cdrb("eval", model, "--protocol", "official-code", "--set", "controller=pd", "--out", tmp_path / "x.h5")
     assert r.returncode == 2 and "waypoint controller" in r.stderr
     r = cdrb("eval", model, "--protocol", "nope", "--out", tmp_path / "x.h5")
-    assert r.returncode == 2 and "--protocol 'nope'" in r.stderr and "official-code" in r.stderr
+    assert r.returncode == 2 and "--protocol nope: not a protocol" in r.stderr and "official-code" in r.stderr
     r = cdrb("eval", model, "--stream", "train", "--out", tmp_path / "x.h5")
     assert r.returncode == 2 and "--stream" in r.stderr
 
@@ -323,12 +324,12 @@ def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):
     for args, needle in [
         (["--seeds", "a,b"], "--seeds"),
         (["--seeds", "1,1"], "repeated"),
-        (["--controller", "magic"], "--controller"),
-        (["--sampler", "ddpm"], "--sampler ddpm: cdrb models use paper, cold-improved"),
-        (["--sampler", "magic"], "not a known sampler"),
-        (["--controller", "inverse-dynamics", "--set", "controller.kp=3"], "unknown setting 'controller.kp'"),
+        (["--set", "controller=magic"], "--set controller=magic: not a controller"),
+        (["--set", "sampler=ddpm"], "--set sampler=ddpm: cdrb models use paper, cold-improved"),
+        (["--set", "sampler.kind=magic"], "--set sampler.kind=magic"),
+        (["--set", "controller=inverse-dynamics", "--set", "controller.kp=3"], "unknown setting 'controller.kp'"),
         (["--episodes", "0"], "--episodes"),
-        (["--sample-steps", "999"], "--sample-steps 999: the model has T = 8 diffusion steps, so at most 8"),
+        (["--set", "sample_steps=999"], "--set sample_steps=999: the model has T = 8 diffusion steps, so at most 8"),
     ]:
         r = cdrb("eval", model, *args, "--out", tmp_path / "e.h5")
         assert r.returncode == 2 and needle in r.stderr, (args, r.stderr)

@@ -529,7 +529,7 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
         assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
         assert not (tmp_path / "bad.h5").exists()
     ev = tmp_path / "e.h5"
-    r = cdrb("eval", model, "--episodes", "2", "--seeds", "0", "--controller", "fetch-push-path", "--out", ev)
+    r = cdrb("eval", model, "--episodes", "2", "--seeds", "0", "--set", "controller=fetch-push-path", "--out", ev)
     assert r.returncode == 0, r.stderr
     e = artifacts.load(ev, "eval")
     assert e.manifest.config.controller.name == "fetch-push-path" and len(e.arrays["episodes/success"]) == 2
@@ -543,7 +543,8 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
         "2",
         "--scene",
         box,
-        "--mask-buffer",
+        "--set",
+        "avoid.mask_buffer=true",
         "--out",
         tmp_path / "pb.h5",
         "--plot",
@@ -552,7 +553,21 @@ def test_plan_and_eval_on_fetch_from_the_cli(tmp_path, cdrb):
     assert r.returncode == 0, r.stderr
     p = artifacts.load(tmp_path / "pb.h5", "plans")
     assert p.manifest.env.id == "fetch-push-obstacle+post" and p.manifest.config.scene == "box.toml"
-    r = cdrb("eval", model, "--episodes", "2", "--seeds", "0", "--scene", box, "--best-of", "2", "--out", ev, "--force")
+    r = cdrb(
+        "eval",
+        model,
+        "--episodes",
+        "2",
+        "--seeds",
+        "0",
+        "--scene",
+        box,
+        "--set",
+        "avoid.best_of=2",
+        "--out",
+        ev,
+        "--force",
+    )
     assert r.returncode == 0, r.stderr
     e = artifacts.load(ev, "eval")
     assert e.manifest.env.scene.extra_boxes[0].center == (1.15, 0.95, 0.45) and e.manifest.config.avoid.best_of == 2

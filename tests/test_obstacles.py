@@ -190,16 +190,27 @@ def test_replans_in_a_new_map_keep_the_masked_buffer_and_the_best_of(tiny_models
 
 def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_path):
     out = tmp_path / "e.h5"
+
+    def refused(model, *args):
+        r = cdrb("eval", tiny_models[model].path, "-n", "2", "--seeds", "0", "--out", out, *args)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        return r.stderr
+
+    assert "--set avoid.mask_buffer=true: diffuser samples from no replay buffer" in refused(
+        "diffuser", "--set", "avoid.mask_buffer=true"
+    )
+    assert "--set avoid.guide_scale=0.1: cdrb has no guided sampling" in refused(
+        "cdrb", "--set", "avoid.guide_scale=0.1"
+    )
+    assert "--set avoid.route_k=2: mlp cannot restore" in refused("mlp", "--set", "avoid.route_k=2")
+    assert "add avoid.route_buffer=" in refused("diffuser", "--set", "avoid.route_k=2")
+    assert "route_clearance keeps routes clear of obstacles: set route_k too" in refused(
+        "cdrb", "--set", "avoid.route_clearance=0.1"
+    )
+    # the moved flags still work, with a note naming the setting
     r = cdrb("eval", tiny_models["diffuser"].path, "--mask-buffer", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "--mask-buffer: diffuser samples from no replay buffer" in r.stderr
-    r = cdrb("eval", tiny_models["cdrb"].path, "--guide-scale", "0.1", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "--guide-scale: cdrb has no guided sampling" in r.stderr
-    r = cdrb("eval", tiny_models["mlp"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "--route-k: mlp cannot restore" in r.stderr
-    r = cdrb("eval", tiny_models["diffuser"].path, "--route-k", "2", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "add --route-buffer" in r.stderr
-    r = cdrb("eval", tiny_models["cdrb"].path, "--route-clearance", "0.1", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "--route-clearance without --route-k" in r.stderr
+    assert r.returncode == 2 and "--mask-buffer is deprecated: write --set avoid.mask_buffer=true" in r.stderr
+    assert "--mask-buffer: diffuser samples from no replay buffer" in r.stderr
     r = cdrb("eval", tiny_models["cdrb"].path, "--protocol", "detour", "-n", "2", "--seeds", "0", "--out", out)
     assert r.returncode == 2 and "add --maze-map" in r.stderr
     assert not out.exists() and len(r.stderr.strip().splitlines()) == 1

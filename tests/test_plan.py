@@ -29,8 +29,8 @@ def test_start_and_goal_held_exactly(tiny_models, tmp_path, cdrb, method):
         "3",
         "--out",
         out,
-        "--show-steps",
-        "2",
+        "--set",
+        "keep_iterates=2",
     )
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == str(out)
@@ -47,7 +47,7 @@ def test_start_and_goal_held_exactly(tiny_models, tmp_path, cdrb, method):
 
 def test_protocol_pairs_and_plot(tiny_models, tmp_path, cdrb):
     out, png = tmp_path / "p.h5", tmp_path / "p.png"
-    r = cdrb("plan", tiny_models["cdrb"].path, "--pairs", "5", "--out", out, "--plot", png, "--show-steps", "3")
+    r = cdrb("plan", tiny_models["cdrb"].path, "--pairs", "5", "--out", out, "--plot", png, "--set", "keep_iterates=3")
     assert r.returncode == 0, r.stderr
     p = artifacts.load(out)
     s = p.manifest.summary
@@ -75,7 +75,7 @@ def test_protocol_pairs_and_plot(tiny_models, tmp_path, cdrb):
         (["--start", "0,0", "--goal", "6,6", "--num-plans", "2000000"], "--num-plans"),
         (["--start", "a,b", "--goal", "6,6"], "not a list of numbers"),
         (["--start", "0,0"], "no start/goal"),
-        (["--start", "0,0", "--goal", "6,6", "--sampler", "ddpm"], "--sampler"),
+        (["--start", "0,0", "--goal", "6,6", "--set", "sampler=ddpm"], "--set sampler=ddpm"),
     ],
 )
 def test_bad_points(tiny_models, tmp_path, cdrb, args, needle):

@@ -9,7 +9,8 @@ from cdrb_cli.envs.registry import CONTROLLERS, family_of
 from cdrb_cli.methods.checkpoint import load_method
 from cdrb_cli.methods.config import train_config
 from cdrb_cli.seeding import STREAM_EVAL
-from cdrb_cli.stages.evaluate import eval_config, evaluate
+from cdrb_cli.stages.configure import eval_config
+from cdrb_cli.stages.evaluate import evaluate
 from cdrb_cli.stages.plan import sample_plans
 from cdrb_cli.stages.replan import deviation, plan_at, remainder, run_closed_loop
 from cdrb_cli.stages.train import train
@@ -46,8 +47,10 @@ def test_remainder_and_plan_time():
 @pytest.mark.parametrize("method", PLANNERS)
 def test_a_replanning_interval_beyond_the_episode_is_open_loop_exactly(models, tmp_path, method):
     model = models[method]
-    never = evaluate(model, eval_config(model, 3, [0, 1]), tmp_path / "never.h5")
-    closed = evaluate(model, eval_config(model, 3, [0, 1], replan="every:100000"), tmp_path / "closed.h5")
+    never = evaluate(model, eval_config(model, episodes=3, seeds=[0, 1]), tmp_path / "never.h5")
+    closed = evaluate(
+        model, eval_config(model, episodes=3, seeds=[0, 1], replan="every:100000"), tmp_path / "closed.h5"
+    )
     a, b = never.arrays, closed.arrays
     assert (b["episodes/replans"] == 0).all()
     for name in ("success", "steps", "final_distance", "path_length", "executed_collision", "start", "goal"):
@@ -67,7 +70,7 @@ def _closed_loop(model, replan, n=4, seed=0):
     starts, goals = family.reset_states(spec, episodes)
     plans = sample_plans(method, starts, family.goal_state(spec, goals), 1, seed, batch_size=n)[0]
     entry = CONTROLLERS.get("pd")
-    cfg = eval_config(model, n, [seed], **replan).replan
+    cfg = eval_config(model, episodes=n, seeds=[seed], **replan).replan
     runs = run_closed_loop(
         family,
         spec,
@@ -85,7 +88,7 @@ def _closed_loop(model, replan, n=4, seed=0):
 @pytest.mark.parametrize("method", PLANNERS)
 @pytest.mark.parametrize("repair", [None, 2])
 def test_every_n_steps_plans_from_the_current_state_to_the_same_goal(models, method, repair):
-    spec, family, runs = _closed_loop(models[method], dict(replan="every:45", repair_k=repair))
+    spec, family, runs = _closed_loop(models[method], {"replan": "every:45", "replan.repair_k": repair})
     goal_states = family.goal_state(spec, np.stack([r.goal for r in runs]))
     for run, goal in zip(runs, goal_states):
         hits = np.flatnonzero(family.success(spec, run.states, run.goal))
@@ -203,7 +206,8 @@ def test_eval_cli_closed_loop(models, tmp_path, cdrb):
     model = models["cdrb"].path
     out, pic = tmp_path / "e.h5", tmp_path / "replans.png"
     r = cdrb(
-        "eval", model, "-n", "2", "--seeds", "0", "--replan", "every:60", "--repair-k", "2", "--replan-plot", pic,
+        "eval", model, "-n", "2", "--seeds", "0", "--replan", "every:60", "--set", "replan.repair_k=2",
+        "--replan-plot", pic,
         "--out", out,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
@@ -223,18 +227,24 @@ def test_eval_cli_closed_loop(models, tmp_path, cdrb):
 @pytest.mark.parametrize(
     "args, needle",
     [
-        (["--replan", "sometimes:3"], "--replan 'sometimes:3'"),
+        (["--replan", "sometimes:3"], "--replan sometimes:3: expected never, every:N or deviation:D"),
         (["--replan", "every:0"], "--replan every:0"),
-        (["--replan", "every:x"], "--replan 'every:x'"),
+        (["--replan", "every:x"], "--replan every:x: expected never"),
         (["--replan", "deviation:-1"], "--replan deviation:-1"),
-        (["--repair-k", "2"], "--repair-k 2"),
-        (["--replan", "every:10", "--repair-k", "999"], "--repair-k 999: the model has T = "),
-        (["--replan", "every:10", "--repair-steps", "3"], "--repair-steps 3"),
+        (["--set", "replan.repair_k=2"], "set a replan mode too"),
+        (["--replan", "every:10", "--set", "replan.repair_k=999"], "--set replan.repair_k=999: the model has T = "),
+        (["--replan", "every:10", "--set", "replan.repair_steps=3"], "repair_steps needs repair_k"),
         (["--replan-plot", "x.png"], "--replan-plot"),
         (["--set", "replan.every=5"], "replan"),
-        (["--replan", "every:10", "--repair-k", "2", "--repair-steps", "50"], "repair_steps 50 > repair_k 2"),
+        (
+            ["--replan", "every:10", "--set", "replan.repair_k=2", "--set", "replan.repair_steps=50"],
+            "repair_steps 50 > repair_k 2",
+        ),
         # a check across two settings names both, not only the last one given
-        (["--replan", "deviation:0.05", "--set", "replan.every=3"], "--set replan.every=3 with --replan"),
+        (
+            ["--replan", "deviation:0.05", "--set", "replan.every=3"],
+            "--replan deviation:0.05 with --set replan.every=3",
+        ),
     ],
 )
 def test_eval_cli_closed_loop_bad_inputs(models, tmp_path, cdrb, args, needle):
@@ -250,7 +260,7 @@ def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, t
     from cdrb_cli.stages.evaluate import episode_results
 
     model = models["mlp"]
-    config = eval_config(model, 2, [0])
+    config = eval_config(model, episodes=2, seeds=[0])
     ev = evaluate(model, config, tmp_path / "e.h5")
     from cdrb_cli.artifacts.migrations import backfill_arrays
 

@@ -121,14 +121,16 @@ def test_eval_settings_name_the_flag(small_data, tmp_path, cdrb):
     model = train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2)), tmp_path / "m.h5")
     r = cdrb("eval", model.path, "--set", "controller.kp=fast", "--out", tmp_path / "e.h5")
     assert r.returncode == 2 and "--set controller.kp=fast" in r.stderr and r.stderr.count("\n") == 1
-    r = cdrb("eval", model.path, "--max-lag", "-1", "--out", tmp_path / "e.h5")
-    assert r.returncode == 2 and "--max-lag" in r.stderr
-    r = cdrb("eval", model.path, "--max-lag", "0.5", "--set", "controller.max_lag=0.7", "--out", tmp_path / "e.h5")
+    r = cdrb("eval", model.path, "--set", "controller.max_lag=-1", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "--set controller.max_lag=-1" in r.stderr
+    r = cdrb("eval", model.path, "--episodes", "5", "--set", "episodes=7", "--out", tmp_path / "e.h5")
     assert r.returncode == 2 and "give it once" in r.stderr
     r = cdrb("eval", model.path, "--seeds", str(2**40), "--out", tmp_path / "e.h5")
     assert r.returncode == 2 and "32-bit" in r.stderr
-    r = cdrb("eval", model.path, "--set", "episodes=3", "--out", tmp_path / "e.h5")
-    assert r.returncode == 2 and "controller.<field>, replan.<field> and extra_steps" in r.stderr
+    r = cdrb("eval", model.path, "--set", "scene=x.txt", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "scene is not a setting" in r.stderr and "--scene FILE" in r.stderr
+    r = cdrb("eval", model.path, "--set", "episodes=0", "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "--set episodes=0" in r.stderr
     assert not (tmp_path / "e.h5").exists()
 
 
@@ -177,8 +179,8 @@ def test_broken_plugins_are_one_line(tmp_path, source, needle):
 def test_options_of_the_other_stage_are_refused(cdrb):
     assert cdrb("config", "eval", "--method", "mlp").returncode == 2
     assert cdrb("config", "train", "--controller", "pd").returncode == 2
-    r = cdrb("config", "eval", "--format", "toml")
-    assert r.returncode == 2 and "only train reads a --config file" in r.stderr
+    r = cdrb("config", "collect", "--format", "toml")
+    assert r.returncode == 2 and "collect reads no --config file" in r.stderr
 
 
 @pytest.mark.parametrize(

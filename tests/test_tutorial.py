@@ -16,7 +16,7 @@ TINY = {
     r"--steps 3000": "--steps 10 --set horizon=16 --set stride=10 --set net.dim=8 --set net.dim_mults=1,2 "
     "--set method.diffusion_steps=8",
     r"--seeds 0,1 --episodes 50": "--seeds 0 --episodes 2",
-    r"-n 8 --show-steps 4": "-n 2 --show-steps 2",
+    r"-n 8 --set keep_iterates=4": "-n 2 --set keep_iterates=2",
 }
 
 

@@ -168,6 +168,10 @@ class EnvFamily(ABC):
     scene_protocols: ClassVar[tuple[str, ...]] = ()
     #: how a --start/--goal point is written, for help and errors
     point_format: ClassVar[str] = "comma-separated numbers"
+    #: method name -> the avoidance settings (AvoidConfig fields) plan and eval use by default in a scene with
+    #: obstacles the data never saw: each the choice of the family's tuning grid for new obstacles, restricted to
+    #: what needs no extra input file (a method not named plans as it is)
+    scene_avoid: ClassVar[dict[str, dict[str, Any]]] = {}
 
     # -------------------------------------------------------------- environments
     @abstractmethod

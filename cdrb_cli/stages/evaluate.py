@@ -15,7 +15,6 @@ import time
 import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -38,7 +37,6 @@ from cdrb_cli.stages.metrics import (
     sum_failures,
 )
 from cdrb_cli.stages.plan import (
-    check_sample_steps,
     load_planner,
     mask_counts,
     prepare_planner,
@@ -576,130 +574,3 @@ def summarize(
         per_seed=list(per_seed),
         wall_time_s=wall_time_s,
     )
-
-
-def eval_config(
-    model,
-    episodes: int,
-    seeds: Sequence[int],
-    controller: str | None = None,
-    settings: Sequence = (),
-    sampler: str | None = None,
-    sample_steps: int | None = None,
-    use_ema: bool = True,
-    seed: int = 0,
-    protocol: str | None = None,
-    stream: str = "test",
-    replan: str | None = None,
-    repair_k: int | None = None,
-    repair_steps: int | None = None,
-    avoid=None,
-    maze_map: Path | None = None,
-    scene: EnvSpec | None = None,
-) -> EvalConfig:
-    """The EvalConfig of ``cdrb eval`` for a model: the family's controller (``controller``, else
-    ``--set controller.name=...``, else the family's first) with ``settings`` on its fields (``--set
-    controller.kp=20``, ``--max-lag``) and ``extra_steps``; the method's sampler (default: the model's); closed-loop
-    planning from ``replan`` (``never``, ``every:N`` or ``deviation:D``), ``repair_k`` and ``repair_steps`` (or
-    ``--set replan.<field>``). ``maze_map``: the scene file the eval runs in (recorded by name), ``scene`` its
-    spec when the caller built it already (:func:`~cdrb_cli.stages.plan.scene_spec`), else it is built here."""
-    from cdrb_cli.configs import ReplanConfig
-    from cdrb_cli.settings import Setting, apply, lookup, validate
-
-    for s in settings:
-        if s.path[0] == "scene":  # obstacles put down after training come as a file the eval records and hashes
-            raise BadInput(
-                f"{s.source}: the scene is not a setting",
-                hint="pass --scene FILE (a maze map with walls added, or a Fetch TOML file of [[boxes]]; docs/cli.md)",
-            )
-        if s.path in (("controller",), ("replan",)) or (
-            s.path[0] not in ("controller", "replan") and s.path != ("extra_steps",)
-        ):
-            raise BadInput(
-                f"{s.source}: `cdrb eval --set` sets controller.<field>, replan.<field> and extra_steps",
-                hint="episodes, seeds, sampler and the seed have their own flags (`cdrb eval --help`)",
-            )
-    spec = model.manifest.env
-    family = family_of(spec)
-    entry = METHODS.get(model.manifest.config.method.name)
-    closed = replan not in (None, "never") or repair_k is not None or repair_steps is not None
-    if entry.kind == "policy" and (closed or any(s.path[0] == "replan" for s in settings)):
-        raise BadInput(
-            f"--replan/--repair-k: {entry.name} is a policy: it acts every step and has no plan to re-plan",
-            hint="drop the replan flags (`cdrb eval --help`)",
-        )
-    if entry.kind == "policy" and (controller is not None or any(s.path[0] == "controller" for s in settings)):
-        sources = [s.source for s in settings if s.path[0] == "controller"]
-        given = f"--controller {controller}" if controller is not None else sources[0]
-        raise BadInput(
-            f"{given}: {entry.name} is a policy that acts closed loop; it executes no plan with a controller",
-            hint="drop the controller flags (`cdrb eval --help`)",
-        )
-    if entry.kind == "policy" and avoid is not None and avoid != type(avoid)():
-        raise BadInput(
-            f"--mask-buffer/--best-of/--guide-scale: {entry.name} is a policy: it makes no plans to choose or guide",
-            hint="drop those flags (`cdrb eval --help`)",
-        )
-    if avoid is not None:
-        from cdrb_cli.stages.plan import check_avoid
-
-        check_avoid(entry.name, avoid)
-    protocol = protocol or family.protocol
-    if protocol not in family.protocols():
-        raise BadInput(
-            f"--protocol {protocol!r}: not a protocol of the {family.name} environments",
-            hint=f"use {' or '.join(family.protocols())}",
-        )
-    s_name = lookup(settings, ("controller", "name"))
-    if controller is not None and s_name is not None and s_name.value != controller:
-        raise BadInput(f"--controller {controller} and {s_name.source}", hint="name the controller once")
-    prescribed = family.protocol_controller(protocol)
-    name = controller or (s_name.value if s_name is not None else prescribed or family.controllers[0])
-    if prescribed is not None and name != prescribed:
-        raise BadInput(
-            f"--protocol {protocol} executes plans with the {prescribed} controller, not {name}",
-            hint="drop --controller (its settings may still be changed with --set controller.<field>)",
-        )
-    if name not in family.controllers:
-        where = f"--controller {name!r}" if s_name is None or controller else s_name.source
-        raise BadInput(
-            f"{where}: not a controller of the {family.name} environments",
-            hint=f"use {' or '.join(family.controllers)}",
-        )
-    base = {
-        "episodes": episodes,
-        "seeds": list(seeds),
-        "controller": {"name": name},
-        "sampler": entry.check_sampler(sampler or model.manifest.config.method.sampler),
-        "sample_steps": sample_steps,
-        "use_ema": use_ema,
-        "protocol": protocol,
-        "stream": stream,
-        "seed": seed,
-        "scene": None if maze_map is None else Path(maze_map).name,
-    }
-    if avoid is not None:
-        base["avoid"] = avoid.model_dump()
-    if replan is not None:
-        try:
-            fields = ReplanConfig.parse(replan)
-        except ValueError as exc:
-            hint = "e.g. --replan every:20 or --replan deviation:0.5"
-            raise BadInput(f"--replan {replan!r}: {exc}", hint=hint) from None
-        settings = [*settings, *(Setting(("replan", key), v, f"--replan {replan}") for key, v in fields.items())]
-    for flag, key, value in (("--repair-k", "repair_k", repair_k), ("--repair-steps", "repair_steps", repair_steps)):
-        if value is not None:
-            settings = [*settings, Setting(("replan", key), value, f"{flag} {value}")]
-    config = validate(EvalConfig, apply(base, settings), settings, "eval")
-    if maze_map is not None or protocol in family.extra_protocols:  # a protocol that cannot draw fails here, at once
-        where = spec if maze_map is None else scene or family.with_map(spec, Path(maze_map))
-        family.draw_protocol_episodes(where, 1, config.seeds[0], EVAL_STREAMS[config.stream], protocol)
-    k = config.replan.repair_k
-    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
-    check_sample_steps(model, config.sample_steps)
-    if k is not None and steps is not None and k > steps - 1:
-        raise BadInput(
-            f"--repair-k {k}: the model has T = {steps} diffusion steps, so a repair restores from k = 1..{steps - 1}",
-            hint=f"use --repair-k {max(1, min(steps - 1, steps // 8))} (a small k keeps more of the previous plan)",
-        )
-    return config

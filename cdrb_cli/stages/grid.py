@@ -1201,10 +1201,24 @@ def memo_path(spec: GridSpec, task: Task) -> Path:
     return spec.out / ".grid" / f"{_slug(task.id)}.json"
 
 
+#: the scene flags of plan and eval
+_SCENE_FLAGS = ("--scene", "--maze-map")
+
+
+def _meaning(task: Task) -> dict:
+    """What a command means beyond its words, where a release changed it: a plan or an eval in a scene avoids the
+    new obstacles by default (the family's tuned avoidance), so a memo written when it meant the plain model is out
+    of date."""
+    if task.kind in ("plan", "eval") and any(a in _SCENE_FLAGS or a.split("=")[0] in _SCENE_FLAGS for a in task.argv):
+        return {"scene_avoid": "tuned by default"}
+    return {}
+
+
 def _fingerprint(task: Task, cache: dict) -> dict:
     return {
         "argv": task.argv,
         "cdrb": __version__,
+        **_meaning(task),
         "inputs": {str(p): _sha(p, cache) for p in task.inputs},
         "outputs": {str(p): _sha(p, cache) for p in task.outputs},
     }

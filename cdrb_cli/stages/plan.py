@@ -49,37 +49,6 @@ def scene_spec(model, maze_map: Path | None, flag: str | None = None) -> EnvSpec
     return new
 
 
-def check_avoid(method_name: str, avoid: AvoidConfig) -> None:
-    """Refuse an avoidance setting the method cannot apply (one line naming the flag)."""
-    entry = METHODS.get(method_name)
-    if entry.kind != "planner":
-        return
-    cls = entry.method
-    if avoid.mask_buffer and not cls.masks:
-        raise BadInput(
-            f"--mask-buffer: {method_name} samples from no replay buffer it could mask",
-            hint="drop --mask-buffer (use --best-of N, or --guide-scale for Diffuser)",
-        )
-    if avoid.route_k is not None and not cls.repairs:
-        raise BadInput(
-            f"--route-k: {method_name} cannot restore a plan from a part-way step (it has no repair)",
-            hint="drop --route-k (CDRB and Diffuser repair)",
-        )
-    if avoid.route_k is not None and not entry.needs_buffer and avoid.route_buffer is None:
-        raise BadInput(
-            f"--route-k: {method_name} carries no replay buffer to route through",
-            hint="add --route-buffer BUFFER.h5 (from `cdrb cluster` on the model's demos)",
-        )
-    if avoid.route_clearance > 0 and avoid.route_k is None:
-        raise BadInput("--route-clearance without --route-k", hint="add --route-k K, or drop --route-clearance")
-    if avoid.route_buffer is not None and avoid.route_k is None:
-        raise BadInput("--route-buffer without --route-k", hint="add --route-k K, or drop --route-buffer")
-    if avoid.guide_scale > 0 and not cls.guides:
-        raise BadInput(
-            f"--guide-scale: {method_name} has no guided sampling", hint="drop --guide-scale (Diffuser has it)"
-        )
-
-
 #: points per planned step that the guidance cost also checks (between consecutive states), so a guided plan is
 #: pushed off a jump through a wall and not only off states inside one
 GUIDE_SUBSTEPS = 4
@@ -139,13 +108,13 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
         try:
             out.masked = method.mask(collides)
         except ValueError as exc:
-            raise BadInput(f"--mask-buffer: {exc}", hint="the new obstacles cover the whole buffer") from None
+            raise BadInput(f"avoid.mask_buffer: {exc}", hint="the new obstacles cover the whole buffer") from None
     if avoid.route_k is not None:
         top = method.repair_steps()
         if top is None or avoid.route_k > top:
             raise BadInput(
-                f"--route-k {avoid.route_k}: {method.name} repairs from steps 1..{top}",
-                hint=f"use --route-k {max(1, (top or 8) // 8)}",
+                f"avoid.route_k = {avoid.route_k}: {method.name} repairs from steps 1..{top}",
+                hint=f"use avoid.route_k={max(1, (top or 8) // 8)}",
             )
         if avoid.route_buffer is not None and route_buffer is None:
             raise ValueError("config.avoid.route_buffer is set: pass its buffer artifact")
@@ -167,13 +136,13 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
 
 
 def load_route_buffer(path: Path | None):
-    """The buffer artifact of ``--route-buffer`` (None without it); a one-line error naming the flag."""
+    """The buffer artifact of ``avoid.route_buffer`` (None without it); a one-line error naming the setting."""
     if path is None:
         return None
     try:
         return artifacts.load(path, "buffer")
     except BadInput as exc:
-        raise BadInput(f"--route-buffer: {exc.message}", hint=exc.hint) from None
+        raise BadInput(f"avoid.route_buffer: {exc.message}", hint=exc.hint) from None
 
 
 def route_states(method: Planner, spec: EnvSpec, route_buffer=None) -> np.ndarray:
@@ -427,10 +396,11 @@ def make_plans(
 FIRST_STEP_TOLERANCE = 1.5
 
 
-def disconnected_warning(spec, plans: np.ndarray, stride: int) -> str | None:
+def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfig | None = None) -> str | None:
     """One line when plans do not start where the robot is (a median first step over ``FIRST_STEP_TOLERANCE`` times
     what the dynamics allow in one plan step) or pass through an obstacle (a state in one, or a straight step
-    between two states through one); None when neither. Longer steps later in a plan are normal (plans are paths
+    between two states through one); None when neither. ``avoid``: the avoidance the plans were made with, for the
+    advice in a changed scene. Longer steps later in a plan are normal (plans are paths
     the controller follows at its own pace) and not warned about."""
     family = family_of(spec)
     states = np.asarray(plans)[..., : spec.obs_dim].reshape(-1, plans.shape[-2], spec.obs_dim)
@@ -451,9 +421,12 @@ def disconnected_warning(spec, plans: np.ndarray, stride: int) -> str | None:
     if not problems:
         return None
     if family.scene_changed(spec):
+        if avoid is None or avoid.label() == "plain":
+            advice = "`--set avoid=tuned` avoids the new obstacles with the settings chosen for them"
+        else:
+            advice = f"avoiding with {avoid.label()}; more: a larger avoid.best_of, or avoid.route_k"
         return "; ".join(problems) + (
-            " in a map the model was not trained in (try --mask-buffer, --route-k K, --best-of N: docs/design.md "
-            "'New obstacles without retraining')"
+            f" in a map the model was not trained in ({advice}; docs/design.md 'New obstacles without retraining')"
         )
     return (
         "; ".join(problems) + ": the start may lie where the training data never starts "

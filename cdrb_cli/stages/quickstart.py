@@ -77,10 +77,11 @@ def _train(job: dict) -> str:
 
 def _evaluate(job: dict) -> str:
     """One model's evaluation (in a worker process, or here); returns the path written."""
-    from cdrb_cli.stages.evaluate import eval_config, evaluate
+    from cdrb_cli.stages.configure import eval_config
+    from cdrb_cli.stages.evaluate import evaluate
 
     model = artifacts.load(Path(job["model"]), "model")
-    ecfg = eval_config(model, job["episodes"], job["seeds"], seed=job["seed"])
+    ecfg = eval_config(model, episodes=job["episodes"], seeds=job["seeds"], seed=job["seed"])
     video_dir = Path(job["folder"]) / "videos" if job["videos"] else None
     evaluate(model, ecfg, Path(job["out"]), device=_device(job), video_dir=video_dir, videos=job["videos"])
     return job["out"]
@@ -111,7 +112,7 @@ def quickstart(
     from cdrb_cli.methods.registry import METHODS
     from cdrb_cli.stages.cluster import cluster
     from cdrb_cli.stages.collect import collect, collect_config
-    from cdrb_cli.stages.evaluate import eval_config
+    from cdrb_cli.stages.configure import eval_config
     from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
 
     t0 = time.time()
@@ -156,7 +157,7 @@ def quickstart(
 
         evals, jobs = [], []
         for method in methods:
-            ecfg = eval_config(models[method], eval_episodes, seeds, seed=seed)
+            ecfg = eval_config(models[method], episodes=eval_episodes, seeds=list(seeds), seed=seed)
             out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
             evals.append(artifacts.find_up_to_date(out, "eval", ecfg, [models[method]]))
             if evals[-1] is None:

@@ -30,6 +30,9 @@ def _rows(model: type[BaseModel], values: dict, prefix: str = "", skip=(), place
         if name in skip:
             continue
         key = prefix + name
+        if isinstance(f.annotation, type) and issubclass(f.annotation, BaseModel) and name not in values:
+            rows += _rows(f.annotation, {}, f"{key}.", placeholders=placeholders)  # a nested record: its fields
+            continue
         if name in values:
             default = values[name]
         elif key in placeholders:
@@ -70,14 +73,38 @@ def _train_rows(method: str | None, net: str | None, preset: str | None) -> list
 def _eval_rows(controller: str | None) -> list[Row]:
     from cdrb_cli.configs import EvalConfig
     from cdrb_cli.envs.registry import CONTROLLERS
+    from cdrb_cli.stages.configure import EVAL_DEFAULTS
 
-    placeholders = {"seed": "(--seed)", "episodes": "(--episodes)", "seeds": "(--seeds)"}
-    rows = _rows(EvalConfig, {}, skip=("controller", "sampler", "protocol"), placeholders=placeholders)
-    rows.append(Row("sampler", "str", "(the model's)", "a sampler of the model's method (`cdrb methods`)"))
+    placeholders = {"seed": "(--seed)", "scene": "(--scene)"}
+    rows = _rows(EvalConfig, EVAL_DEFAULTS, skip=("controller", "sampler", "protocol"), placeholders=placeholders)
+    rows += [
+        Row("sampler", "str", "(the model's)", "a sampler of the model's method (`cdrb methods`)"),
+        Row("protocol", "str", "(the env's)", "the start/goal protocol (`cdrb envs` lists each family's)"),
+        Row("replan", "str", "(shortcut)", "shortcut for replan.mode and its value: never, every:N or deviation:D"),
+        Row("avoid", "str", "(shortcut)", _AVOID_HELP),
+    ]
     entries = [CONTROLLERS.get(controller, "--controller")] if controller else CONTROLLERS.entries()
     for entry in entries:
-        rows.append(Row("controller.name", "str", entry.name, entry.description or "the controller; --controller"))
+        about = entry.description or "the controller (the first is the default)"
+        rows.append(Row("controller.name", "str", entry.name, about))
         rows += _rows(entry.config, {}, "controller.", skip=("name",))
+    return rows
+
+
+_AVOID_HELP = (
+    "shortcut: plain (no avoidance) or tuned (the settings chosen for new obstacles, the default with --scene), "
+    "applied before the avoid.<field> settings"
+)
+
+
+def _plan_rows() -> list[Row]:
+    from cdrb_cli.configs import PlanConfig
+
+    rows = _rows(PlanConfig, {"n": 1}, skip=("sampler",), placeholders={"seed": "(--seed)", "scene": "(--scene)"})
+    rows += [
+        Row("sampler", "str", "(the model's)", "a sampler of the model's method (`cdrb methods`)"),
+        Row("avoid", "str", "(shortcut)", _AVOID_HELP),
+    ]
     return rows
 
 
@@ -95,9 +122,11 @@ def _collect_rows() -> list[Row]:
 def config_template(
     stage: str, method: str | None = None, net: str | None = None, preset: str | None = None, controller=None
 ) -> list[Row]:
-    """The settings of ``stage`` (train, eval or collect) with their defaults for these choices."""
+    """The settings of ``stage`` (train, plan, eval or collect) with their defaults for these choices."""
     if stage == "collect":
         return _collect_rows()
+    if stage == "plan":
+        return _plan_rows()
     return _train_rows(method, net, preset) if stage == "train" else _eval_rows(controller)
 
 

@@ -128,6 +128,9 @@ class FetchFamily(EnvFamily):
     }
     start_protocols = (ANYWHERE,)
     scene_protocols = (DETOUR,)
+    # chosen by experiments/tune/obstacles-fetch-reach-obstacle.toml (Diffuser's choice routes through a buffer
+    # file it does not carry: its best candidate without one)
+    scene_avoid = {"cdrb": {"mask_buffer": True, "route_k": 2, "best_of": 4}, "diffuser": {"best_of": 4}}
     point_format = "--goal x,y,z; --start the block's x,y (gripper at home) or, for Reach, the gripper's x,y,z"
 
     # -------------------------------------------------------------- environments

@@ -121,6 +121,9 @@ class PointMazeFamily(EnvFamily):
     start_protocols = (ANYWHERE,)
     scene_protocols = (DETOUR,)
     point_format = "x,y (at rest) or x,y,vx,vy, e.g. 0,0"
+    # chosen by experiments/tune/obstacles-maze-tight.toml (Diffuser's choice routes through a buffer file it does
+    # not carry: its best candidate without one)
+    scene_avoid = {"cdrb": {"mask_buffer": True, "route_k": 8, "best_of": 4}, "diffuser": {"best_of": 4}}
 
     # -------------------------------------------------------------- environments
     def env_ids(self) -> dict[str, str]:

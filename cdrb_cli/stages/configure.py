@@ -1,0 +1,265 @@
+"""Plan and eval configs from settings: the one place a plan or an evaluation is configured, for the CLI, the
+Python API, the quickstart and the grid alike.
+
+A caller hands over a list of :class:`~cdrb_cli.settings.Setting` (``--config`` file keys, ``--set`` pairs, the
+everyday flags, or keyword arguments of the API), each keeping how the user gave it; :func:`plan_config` and
+:func:`eval_config` fill in what depends on the model (its sampler, its family's protocol and controller, the
+avoidance its family chose for new obstacles) and validate the result against :class:`PlanConfig` /
+:class:`EvalConfig`. Every error names the setting as the user gave it (``--set avoid.route_k=8``, ``--config
+run.toml: avoid.route_k``) or, for a default, the field and its value.
+
+Shortcuts a setting may use: ``replan = "every:50"`` (``never``, ``every:N``, ``deviation:D``) for the
+``replan.mode`` fields, ``controller = "waypoint"`` for ``controller.name``, and ``avoid = "plain"`` (no avoidance)
+or ``avoid = "tuned"`` (the family's choice for new obstacles; the default in a scene, see
+:attr:`~cdrb_cli.envs.family.EnvFamily.scene_avoid`), applied before the ``avoid.<field>`` settings.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from cdrb_cli.configs import AvoidConfig, EvalConfig, PlanConfig, ReplanConfig
+from cdrb_cli.envs.registry import family_of
+from cdrb_cli.errors import BadInput
+from cdrb_cli.methods.registry import METHODS
+from cdrb_cli.settings import Setting, apply, from_mapping, lookup, validate
+
+#: ``avoid = ...`` values
+AVOID_MODES = ("plain", "tuned")
+#: the eval defaults a setting may change (the CLI's flags have these defaults too)
+EVAL_DEFAULTS: dict[str, Any] = {"episodes": 100, "seeds": [0, 1, 2, 3, 4], "stream": "test"}
+#: fields given by their own argument (a file the stage reads and hashes; the seed of every command)
+_NOT_SETTINGS = {
+    "scene": "pass --scene FILE, the scene file itself (a maze map with walls added, or a Fetch TOML file of boxes)",
+    "seed": "pass --seed N",
+}
+
+
+def named(settings: Sequence[Setting], path: tuple[str, ...], value: Any) -> str:
+    """How the user gave the field at ``path`` (the setting's source), or the field and its default value."""
+    s = lookup(settings, path)
+    if s is not None:
+        return s.source
+    shown = str(value).lower() if isinstance(value, bool) else value
+    return f"{'.'.join(path)} = {shown} (the default)"
+
+
+def expand(settings: Sequence[Setting]) -> list[Setting]:
+    """``settings`` with the shortcuts written out (``replan``, ``controller``; ``avoid`` is kept for
+    :func:`avoid_base`), and the fields that are not settings refused."""
+    out: list[Setting] = []
+    for s in settings:
+        if s.path[0] in _NOT_SETTINGS:
+            raise BadInput(f"{s.source}: {s.path[0]} is not a setting", hint=_NOT_SETTINGS[s.path[0]])
+        if s.path == ("replan",) and isinstance(s.value, str):
+            try:
+                fields = ReplanConfig.parse(s.value)
+            except ValueError as exc:
+                raise BadInput(f"{s.source}: {exc}", hint="e.g. replan=every:20 or replan=deviation:0.5") from None
+            out += [Setting(("replan", k), v, s.source) for k, v in fields.items()]
+        elif s.path == ("controller",) and isinstance(s.value, str):
+            out.append(Setting(("controller", "name"), s.value, s.source))
+        else:
+            out.append(s)
+    return out
+
+
+def avoid_base(model, settings: Sequence[Setting], in_scene: bool) -> dict:
+    """The avoidance fields before the ``avoid.<field>`` settings: the family's choice for new obstacles with this
+    method when planning in a scene (or with ``avoid = "tuned"``), none with ``avoid = "plain"`` or outside a
+    scene."""
+    mode = lookup(settings, ("avoid",))
+    if mode is not None and mode.value not in AVOID_MODES:
+        raise BadInput(
+            f"{mode.source}: avoid is {' or '.join(AVOID_MODES)}",
+            hint="or set its fields, e.g. avoid.best_of=4 (`cdrb config plan` lists them)",
+        )
+    chosen = mode.value if mode is not None else ("tuned" if in_scene else "plain")
+    if chosen == "plain":
+        return {}
+    out = dict(family_of(model.manifest.env).scene_avoid.get(model.manifest.config.method.name, {}))
+    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
+    if out.get("route_k") is not None and steps is not None:  # a model with fewer steps repairs from its last
+        out["route_k"] = max(1, min(out["route_k"], steps - 1))
+    return out
+
+
+def route_buffer_path(settings: Sequence[Setting]) -> Path | None:
+    """The buffer file of ``avoid.route_buffer`` as given (the config records its name)."""
+    s = lookup(settings, ("avoid", "route_buffer"))
+    return None if s is None or s.value is None else Path(str(s.value))
+
+
+def _method(model):
+    return METHODS.get(model.manifest.config.method.name)
+
+
+def _sampler(model, settings: Sequence[Setting]) -> str:
+    entry = _method(model)
+    s = lookup(settings, ("sampler",))
+    if s is None:
+        return model.manifest.config.method.sampler
+    if not isinstance(s.value, str) or s.value not in entry.samplers:
+        raise BadInput(f"{s.source}: {entry.name} models use {', '.join(entry.samplers)}")
+    return s.value
+
+
+def _avoid_record(config):
+    """``config`` with ``avoid.route_buffer`` cut to the file's name (its content is a hashed parent)."""
+    rb = config.avoid.route_buffer
+    if rb is None or Path(rb).name == rb:
+        return config
+    return config.model_copy(update={"avoid": config.avoid.model_copy(update={"route_buffer": Path(rb).name})})
+
+
+def check_avoid(model, avoid: AvoidConfig, settings: Sequence[Setting] = ()) -> None:
+    """Refuse an avoidance setting the model's method cannot apply (one line naming the setting as given)."""
+    entry = _method(model)
+    name = entry.name
+
+    def where(field: str) -> str:
+        return named(settings, ("avoid", field), getattr(avoid, field))
+
+    if entry.kind != "planner":
+        if avoid != AvoidConfig():
+            given = next((s.source for s in settings if s.path[0] == "avoid"), "avoid")
+            raise BadInput(f"{given}: {name} is a policy: it makes no plans to choose or guide", hint="drop it")
+        return
+    cls = entry.method
+    if avoid.mask_buffer and not cls.masks:
+        raise BadInput(
+            f"{where('mask_buffer')}: {name} samples from no replay buffer it could mask",
+            hint="drop it (avoid.best_of, or avoid.guide_scale for Diffuser, keep plans out of obstacles)",
+        )
+    if avoid.route_k is not None and not cls.repairs:
+        raise BadInput(
+            f"{where('route_k')}: {name} cannot restore a plan from a part-way step (it has no repair)",
+            hint="drop it (CDRB and Diffuser repair)",
+        )
+    if avoid.route_k is not None and not entry.needs_buffer and avoid.route_buffer is None:
+        raise BadInput(
+            f"{where('route_k')}: {name} carries no replay buffer to route through",
+            hint="add avoid.route_buffer=BUFFER.h5 (from `cdrb cluster` on the model's demos)",
+        )
+    if avoid.guide_scale > 0 and not cls.guides:
+        raise BadInput(f"{where('guide_scale')}: {name} has no guided sampling", hint="drop it (Diffuser has it)")
+
+
+def _check_steps(model, settings: Sequence[Setting], sample_steps: int | None, repair_k: int | None = None) -> None:
+    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
+    if steps is None:
+        return
+    if sample_steps is not None and sample_steps > steps:
+        raise BadInput(
+            f"{named(settings, ('sample_steps',), sample_steps)}: the model has T = {steps} diffusion steps, so at "
+            f"most {steps}",
+            hint=f"use sample_steps={steps} (all of them) or fewer",
+        )
+    if repair_k is not None and repair_k > steps - 1:
+        raise BadInput(
+            f"{named(settings, ('replan', 'repair_k'), repair_k)}: the model has T = {steps} diffusion steps, so a "
+            f"repair restores from k = 1..{steps - 1}",
+            hint=f"use replan.repair_k={max(1, min(steps - 1, steps // 8))} (a small k keeps more of the plan)",
+        )
+
+
+# ------------------------------------------------------------------------------------------------ plan
+def plan_config(
+    model, settings: Sequence[Setting] = (), *, seed: int = 0, scene_file: Path | None = None, **fields: Any
+) -> PlanConfig:
+    """The :class:`PlanConfig` of ``settings`` (then ``fields``, keyword settings such as ``n=8``) for ``model``,
+    planning in ``scene_file`` when given."""
+    settings = expand([*settings, *keyword_settings(fields)])
+    base = {
+        "sampler": _sampler(model, settings),
+        "n": 1,
+        "avoid": avoid_base(model, settings, scene_file is not None),
+        "scene": None if scene_file is None else Path(scene_file).name,
+        "seed": seed,
+    }
+    given = [s for s in settings if s.path not in (("avoid",), ("sampler",))]
+    config = _avoid_record(validate(PlanConfig, apply(base, given), settings, "plan"))
+    check_avoid(model, config.avoid, settings)
+    _check_steps(model, settings, config.sample_steps)
+    return config
+
+
+# ------------------------------------------------------------------------------------------------ eval
+def _controller_name(model, family, protocol: str, settings: Sequence[Setting]) -> str:
+    s_name = lookup(settings, ("controller", "name"))
+    prescribed = family.protocol_controller(protocol)
+    name = s_name.value if s_name is not None else prescribed or family.controllers[0]
+    if prescribed is not None and name != prescribed:
+        raise BadInput(
+            f"{s_name.source}: protocol {protocol} executes plans with the {prescribed} controller, not {name}",
+            hint="drop it (the controller's settings may still be changed with controller.<field>)",
+        )
+    if name not in family.controllers:
+        raise BadInput(
+            f"{s_name.source}: not a controller of the {family.name} environments",
+            hint=f"use {' or '.join(family.controllers)}",
+        )
+    return name
+
+
+def eval_config(
+    model,
+    settings: Sequence[Setting] = (),
+    *,
+    seed: int = 0,
+    scene_file: Path | None = None,
+    scene=None,
+    **fields: Any,
+) -> EvalConfig:
+    """The :class:`EvalConfig` of ``settings`` (then ``fields``, keyword settings such as ``episodes=20`` or
+    ``replan="every:50"``) for ``model``: the family's protocol and its controller (or the family's first), the
+    model's sampler, the family's avoidance in a scene; ``scene_file`` the scene evaluated in (recorded by name),
+    ``scene`` its spec when the caller built it already."""
+    settings = expand([*settings, *keyword_settings(fields)])
+    spec = model.manifest.env
+    family = family_of(spec)
+    entry = _method(model)
+    if entry.kind == "policy":
+        for s in settings:
+            if s.path[0] in ("replan", "controller", "avoid"):
+                what = {"replan": "has no plan to re-plan", "controller": "executes no plan with a controller"}
+                raise BadInput(
+                    f"{s.source}: {entry.name} is a policy that acts every step; it "
+                    + what.get(s.path[0], "makes no plans to choose or guide"),
+                    hint="drop it (`cdrb config eval` lists the settings)",
+                )
+    s_protocol = lookup(settings, ("protocol",))
+    protocol = family.protocol if s_protocol is None else s_protocol.value
+    if protocol not in family.protocols():
+        raise BadInput(
+            f"{s_protocol.source}: not a protocol of the {family.name} environments",
+            hint=f"use {' or '.join(family.protocols())}",
+        )
+    base = {
+        **EVAL_DEFAULTS,
+        "controller": {"name": _controller_name(model, family, protocol, settings)},
+        "sampler": _sampler(model, settings),
+        "protocol": protocol,
+        "seed": seed,
+        "scene": None if scene_file is None else Path(scene_file).name,
+        "avoid": {} if entry.kind == "policy" else avoid_base(model, settings, scene_file is not None),
+    }
+    given = [s for s in settings if s.path not in (("avoid",), ("sampler",), ("protocol",))]
+    config = _avoid_record(validate(EvalConfig, apply(base, given), settings, "eval"))
+    check_avoid(model, config.avoid, settings)
+    if scene_file is not None or protocol in family.extra_protocols:  # a protocol that cannot draw fails here
+        where = spec if scene_file is None else scene or family.with_map(spec, Path(scene_file))
+        from cdrb_cli.seeding import EVAL_STREAMS
+
+        family.draw_protocol_episodes(where, 1, config.seeds[0], EVAL_STREAMS[config.stream], protocol)
+    _check_steps(model, settings, config.sample_steps, config.replan.repair_k)
+    return config
+
+
+def keyword_settings(values: dict[str, Any], source: str = "") -> list[Setting]:
+    """Settings from Python keyword arguments (``{"episodes": 20, "avoid.best_of": 4}``), skipping None values;
+    each is named ``key=value`` in errors."""
+    given = {k: v for k, v in values.items() if v is not None}
+    return [Setting(s.path, s.value, f"{source}{'.'.join(s.path)}={s.value!r}") for s in from_mapping(given)]

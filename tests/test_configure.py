@@ -1,0 +1,127 @@
+"""Plan and eval configs as the one declaration of their knobs: every field reachable by --set, --config and the
+Python API, the same config from every spelling, the family's avoidance by default in a scene, and --help short."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from cdrb_cli.configs import AvoidConfig, EvalConfig, PlanConfig
+from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import parse_set
+from cdrb_cli.stages.configure import eval_config, plan_config
+
+NORTH = Path(__file__).resolve().parents[1] / "experiments" / "maps" / "maze-tight-closed-north.txt"
+
+
+def _leaf_keys(model, prefix=""):
+    """Every settable leaf of a config record (nested records by their fields)."""
+    from pydantic import BaseModel
+
+    keys = []
+    for name, f in model.model_fields.items():
+        if isinstance(f.annotation, type) and issubclass(f.annotation, BaseModel):
+            keys += _leaf_keys(f.annotation, f"{prefix}{name}.")
+        else:
+            keys.append(prefix + name)
+    return keys
+
+
+@pytest.mark.parametrize("stage, record", [("plan", PlanConfig), ("eval", EvalConfig)])
+def test_config_lists_every_field(cdrb, stage, record):
+    r = cdrb("config", stage)
+    assert r.returncode == 0, r.stderr
+    listed = {line.split()[0] for line in r.stdout.splitlines()[1:] if line.strip() and not line.startswith(" " * 8)}
+    for key in _leaf_keys(record):
+        if key != "controller":
+            assert key in listed, key
+    if stage == "eval":
+        assert {"controller.name", "controller.look_ahead", "replan.repair_k", "avoid.best_of"} <= listed
+
+
+@pytest.mark.parametrize("command", ["plan", "eval"])
+def test_help_is_short(cdrb, command):
+    r = cdrb(command, "--help")
+    options = set(re.findall(r"^│ (?:\*\s+)?(--[a-z][a-z-]*)", r.stdout, flags=re.M)) - {"--help"}
+    assert 6 <= len(options) <= 14, sorted(options)
+    assert "--set" in options and "--config" in options and "--best-of" not in options
+
+
+def test_every_spelling_gives_one_config(tiny_models, tmp_path):
+    """A --set pair, a --config file, a keyword of the API and the same value by default are one config."""
+    model = tiny_models["cdrb"]
+    by_set = eval_config(model, parse_set(["avoid.best_of=3", "controller.look_ahead=2", "replan=every:40"]))
+    toml = tmp_path / "run.toml"
+    toml.write_text('replan = "every:40"\n[avoid]\nbest_of = 3\n[controller]\nlook_ahead = 2\n')
+    from cdrb_cli.settings import read_config_file
+
+    by_file = eval_config(model, read_config_file(toml))
+    by_keyword = eval_config(model, replan="every:40", **{"avoid.best_of": 3, "controller.look_ahead": 2})
+    assert by_set == by_file == by_keyword
+    assert by_set.replan.mode == "every" and by_set.replan.every == 40 and by_set.avoid.best_of == 3
+    assert eval_config(model).episodes == 100 and eval_config(model).seeds == [0, 1, 2, 3, 4]
+
+
+def test_a_scene_is_avoided_by_default(tiny_models):
+    from cdrb_cli.envs.pointmaze import PointMazeFamily
+
+    cdrb = tiny_models["cdrb"]
+    tuned = AvoidConfig(**{**PointMazeFamily.scene_avoid["cdrb"], "route_k": 7})  # the tiny model's T - 1
+    assert tuned != AvoidConfig()
+    assert plan_config(cdrb).avoid == AvoidConfig()  # no scene: as the paper plans
+    assert plan_config(cdrb, scene_file=NORTH).avoid == tuned
+    assert plan_config(cdrb, parse_set(["avoid=plain"]), scene_file=NORTH).avoid == AvoidConfig()
+    one = plan_config(cdrb, parse_set(["avoid.best_of=8"]), scene_file=NORTH).avoid
+    assert one == tuned.model_copy(update={"best_of": 8})  # a field on top of the default
+    assert plan_config(cdrb, parse_set(["avoid=tuned"])).avoid == tuned
+    # a method with nothing chosen for it plans as it is; an eval in the scene gets the same default
+    assert plan_config(tiny_models["mlp"], scene_file=NORTH).avoid == AvoidConfig()
+    assert eval_config(cdrb, scene_file=NORTH, protocol="detour").avoid == tuned
+    with pytest.raises(BadInput, match="avoid is plain or tuned"):
+        plan_config(cdrb, parse_set(["avoid=maybe"]))
+
+
+def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):
+    r = cdrb("plan", tiny_models["cdrb"].path, "--pairs", "2", "--scene", NORTH, "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr
+    from cdrb_cli import artifacts
+
+    plans = artifacts.load(tmp_path / "p.h5", "plans")
+    # the family's k = 8, cut to the tiny model's last repair step (T = 8)
+    assert plans.manifest.config.avoid.route_k == 7 and plans.manifest.config.avoid.mask_buffer
+    assert "avoiding obstacles: masked buffer" in r.stderr
+
+
+def test_moved_flags_still_work_with_a_note(tiny_models, tmp_path, cdrb):
+    model = tiny_models["cdrb"].path
+    base = ("eval", model, "-n", "2", "--seeds", "0", "--json")
+    old = cdrb(*base, "--best-of", "2", "--max-lag", "0", "--out", tmp_path / "old.h5")
+    assert old.returncode == 0, old.stderr
+    assert "--best-of is deprecated: write --set avoid.best_of=2" in old.stderr
+    assert "--max-lag is deprecated: write --set controller.max_lag=null" in old.stderr
+    new = cdrb(*base, "--set", "avoid.best_of=2", "--set", "controller.max_lag=null", "--out", tmp_path / "new.h5")
+    assert new.returncode == 0 and "deprecated" not in new.stderr, new.stderr
+    from cdrb_cli import artifacts
+
+    a, b = (artifacts.load(tmp_path / f"{n}.h5", "eval").manifest for n in ("old", "new"))
+    assert a.config == b.config
+    assert json.loads(old.stdout)["summary"]["success_mean"] == json.loads(new.stdout)["summary"]["success_mean"]
+
+
+def test_api_builds_the_same_configs(tiny_models, tmp_path):
+    from cdrb_cli import api
+
+    model = tiny_models["cdrb"].path
+    planner = api.Planner(model, scene=NORTH, settings={"avoid.best_of": 2})
+    assert planner.config.avoid.best_of == 2 and planner.config.avoid.route_k == 7
+    assert api.Planner(model, best_of=3).config.avoid == AvoidConfig(best_of=3)
+    with pytest.raises(BadInput, match="repeated seeds"):
+        api.evaluate(model, tmp_path / "e.h5", episodes=1, seeds=[0, 0])
+    with pytest.raises(BadInput, match="best_of=2 and settings"):
+        api.evaluate(model, tmp_path / "e.h5", episodes=1, best_of=2, settings={"avoid.best_of": 3})
+    with pytest.raises(BadInput, match="diffuser samples from no replay buffer"):
+        api.Planner(tiny_models["diffuser"].path, mask_buffer=True)
+    assert not (tmp_path / "e.h5").exists()
