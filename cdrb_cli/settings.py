@@ -134,7 +134,7 @@ def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
 
 def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
     """Settings from a TOML (``.toml``) or JSON file."""
-    from cdrb_cli.artifacts.core import read_input_text
+    from cdrb_cli.files import read_input_text
 
     path = Path(path)
     source = f"{flag} {path}"

@@ -50,7 +50,7 @@ def load_scene_change(path: str | Path, flag: str = "--scene") -> SceneChange:
     except ImportError:  # Python 3.10
         import tomli as tomllib
 
-    from cdrb_cli.artifacts.core import read_input_text
+    from cdrb_cli.files import read_input_text
 
     path = Path(path)
     source = f"{flag} {path}"

@@ -113,7 +113,7 @@ MAX_MAP_BYTES = 1 << 20
 def load_map_file(path: str | Path, flag: str = "--maze-map") -> MazeLayout:
     """A map file, read through the guarded reader (a regular text file of at most 1 MiB, no link out of its
     folder) and parsed; every problem is one line naming ``flag`` or the line."""
-    from cdrb_cli.artifacts.core import read_input_text
+    from cdrb_cli.files import read_input_text
 
     path = Path(path)
     text = read_input_text(path, flag, MAX_MAP_BYTES, "map file", "pass a text file of rows of # . S G")

@@ -1,0 +1,136 @@
+"""Files on the lowest floor: atomic writes (temp file, fsync, rename) and the guarded reads every input file
+passes (a regular file, within a size limit, no link out of its folder, read from the descriptor that was checked).
+Artifacts, settings files, maps, scenes and pictures all use these."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from cdrb_cli.errors import BadInput
+
+
+def sha256_file(path: str | Path, chunk: int = 2**20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success fsync it and rename it over ``path`` atomically.
+
+    On any exception (or a crash) the previous content of ``path`` is untouched and the temporary file is removed
+    (after a hard crash a ``.NAME.tmp-*`` file may remain; it is never mistaken for an artifact)."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        raise BadInput(f"{path}: folder {folder} does not exist", hint="create it first or choose another --out")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=folder)
+    os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a written file honours the umask like any other
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        _before_rename_hook(tmp, path)
+        os.replace(tmp, path)
+        _fsync_dir(folder)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _before_rename_hook(tmp: Path, final: Path) -> None:
+    """Test hook: ``CDRB_CRASH_BEFORE_RENAME=1`` simulates a crash between writing and renaming."""
+    if os.environ.get("CDRB_CRASH_BEFORE_RENAME") == "1":
+        os._exit(86)
+
+
+def guarded_fd(path: Path, flag: str, max_bytes: int, what: str, hint: str) -> int:
+    """An open read-only descriptor of ``path`` after the checks every input file passes (see
+    :func:`check_input_file`); the caller closes it."""
+    import stat
+
+    path = Path(path)
+    source = f"{flag} {path}" if flag else str(path)
+    if not os.path.lexists(path):
+        raise BadInput(f"{source}: no such {what}", hint=hint)
+    target = path
+    if path.is_symlink():  # a link is followed only to a file in its own folder
+        target = path.resolve()
+        if target.parent != path.parent.resolve():
+            raise BadInput(f"{source}: a link to a file outside its folder ({target})", hint=f"pass the {what} itself")
+    try:
+        fd = os.open(target, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        raise BadInput(f"{source}: cannot open it ({exc.strerror or type(exc).__name__})", hint=hint) from None
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):  # a FIFO would block the read, a device never end, a folder is not a file
+        os.close(fd)
+        raise BadInput(f"{source}: not a regular file", hint=f"pass the {what} itself")
+    if st.st_size > max_bytes:
+        os.close(fd)
+        raise BadInput(f"{source}: larger than {_size_text(max_bytes)}", hint=f"is this the {what}?")
+    return fd
+
+
+def _size_text(n: int) -> str:
+    return f"{n >> 20:,} MiB" if n >= 1 << 20 else f"{n >> 10:,} KiB"
+
+
+def check_input_file(path: str | Path, flag: str, max_bytes: int, what: str = "file", hint: str = "check the path"):
+    """The one check every non-artifact input file passes before it is opened: it exists, is a regular file (a
+    FIFO would block the read, a device never end, a folder is not a file), is at most ``max_bytes``, and is not a
+    link to a file outside its folder; each failure is one line naming ``flag``. Returns the path."""
+    os.close(guarded_fd(Path(path), flag, max_bytes, what, hint))
+    return Path(path)
+
+
+def read_input_text(
+    path: str | Path, flag: str, max_bytes: int, what: str = "file", hint: str = "check the path"
+) -> str:
+    """The text (UTF-8) of an input file that passed :func:`check_input_file`'s checks, read from the descriptor
+    that was checked (no race with a swapped file), never more than ``max_bytes``."""
+    fd = guarded_fd(Path(path), flag, max_bytes, what, hint)
+    try:
+        with os.fdopen(fd, "rb", closefd=False) as fh:
+            data = fh.read(max_bytes + 1)
+    finally:
+        os.close(fd)
+    source = f"{flag} {path}" if flag else str(path)
+    if len(data) > max_bytes:
+        raise BadInput(f"{source}: larger than {_size_text(max_bytes)}", hint=f"is this the {what}?")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise BadInput(f"{source}: not a text file (not UTF-8)", hint=f"pass the {what} itself") from None
