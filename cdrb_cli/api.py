@@ -184,9 +184,9 @@ def evaluate(
     ``avoid.*``, as in :class:`Planner`; ``replan``: ``never``, ``every:N`` or ``deviation:D``), checked as the
     CLI checks them; ``settings``: any other by its dotted key (`cdrb config eval`); ``scene`` with
     ``protocol="detour"`` for the pairs new obstacles lengthen."""
-    from cdrb_cli.artifacts.outputs import claim_output
+    from cdrb_cli.artifacts import check_output
     from cdrb_cli.stages.configure import eval_config, route_buffer_path
-    from cdrb_cli.stages.evaluate import evaluate as run_eval
+    from cdrb_cli.stages.evaluate import eval_artifact
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
@@ -213,10 +213,8 @@ def evaluate(
     map_path = None if scene is None else Path(scene)
     where = scene_spec(m, map_path)
     config = eval_config(m, given, seed=seed, scene_file=map_path, scene=where)
-    spec = family_of(m.manifest.env).protocol_spec(where, config.protocol)
     route = load_route_buffer(route_buffer_path(given))
-    dev = setup_torch(device)
     inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
-    with claim_output(Path(out), force, "out", inputs=inputs) as path:
-        result = run_eval(m, config, path, device=dev, spec=spec, route_buffer=route)
+    check_output(Path(out), True, "out", inputs)  # an existing file: up to date, or refused without force below
+    result = eval_artifact(m, config, out, force=force, device=setup_torch(device), scene=where, route_buffer=route)
     return result.manifest.summary

@@ -37,5 +37,11 @@ def test_evaluate_writes_the_eval_artifact_and_returns_its_summary(model, tmp_pa
     ev = artifacts.load(tmp_path / "e.h5", "eval")
     assert summary == ev.manifest.summary and summary.per_seed[0].episodes == 2
     assert summary.weighted_success_mean is not None
-    with pytest.raises(BadInput):  # never over an existing file without force
-        api.evaluate(model.path, tmp_path / "e.h5", episodes=2, seeds=[0], stream="tune")
+    # the CLI's rule: the same eval again is up to date (not redone); another one never over it without force
+    before = (tmp_path / "e.h5").stat().st_mtime_ns
+    again = api.evaluate(model.path, tmp_path / "e.h5", episodes=2, seeds=[0], stream="tune")
+    assert again == summary and (tmp_path / "e.h5").stat().st_mtime_ns == before
+    with pytest.raises(BadInput, match="not made by this exact command"):
+        api.evaluate(model.path, tmp_path / "e.h5", episodes=3, seeds=[0], stream="tune")
+    redone = api.evaluate(model.path, tmp_path / "e.h5", episodes=3, seeds=[0], stream="tune", force=True)
+    assert redone.per_seed[0].episodes == 3

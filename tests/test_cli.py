@@ -169,7 +169,7 @@ def test_help_labels_fall_back_to_typers_own_on_another_typer_layout(monkeypatch
 
     monkeypatch.delattr(core, "_TyperParameter")
     before = core.TyperArgument._usage_display_name
-    cli._readable_help()  # raises AttributeError without the fallback
+    cli.readable_help()  # raises AttributeError without the fallback
     assert core.TyperArgument._usage_display_name is before
 
 

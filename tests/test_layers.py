@@ -71,8 +71,9 @@ def test_the_cli_names_no_method_sampler_expert_controller_or_environment():
 
     names = set(METHODS.names()) | {s for e in METHODS.entries() for s in e.samplers}
     names |= set(EXPERTS.names()) | set(CONTROLLERS.names()) | set(FAMILIES.names()) | {r["id"] for r in list_envs()}
-    found = _strings(PKG / "cli.py") & names
-    assert not found, f"cli.py spells registry names: {sorted(found)}"
+    for path in _files(PKG / "cli"):
+        found = _strings(path) & names
+        assert not found, f"{path.relative_to(ROOT)} spells registry names: {sorted(found)}"
 
 
 def test_stages_name_no_environment_family_or_its_geometry():

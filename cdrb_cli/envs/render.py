@@ -31,7 +31,7 @@ def pyplot():
 
 def save_figure(fig, path: str | Path) -> Path:
     """Write a figure atomically (format from the suffix, PNG by default) and close it."""
-    from cdrb_cli.artifacts import atomic_path
+    from cdrb_cli.files import atomic_path
 
     path = Path(path)
     fig.tight_layout()
@@ -277,7 +277,7 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
     carries a caption (label, episode, environment step, outcome); frames play at :data:`GIF_FRAME_MS` and the last
     one stays :data:`GIF_HOLD_MS`. A progress bar counts the episodes drawn."""
     from cdrb_cli import ui
-    from cdrb_cli.artifacts import atomic_path
+    from cdrb_cli.files import atomic_path
 
     fam = family_of(spec)
     folder = Path(folder)
@@ -349,3 +349,13 @@ def plot_replans(spec: EnvSpec, plans, plan_steps, states, goal, path, label: st
     ax.legend(loc="upper center", fontsize=7, ncol=3, frameon=False)
     set_title(ax, f"{label}: {len(plans)} plans ({replan.label()}; purple first, yellow last)", fontsize=9)
     return save_figure(fig, path)
+
+
+def demo_gifs(demos, folder: Path, count: int) -> None:
+    """GIFs of the first ``count`` demonstrations of a demos artifact, in ``folder``."""
+    shown = []
+    for e in range(min(count, demos.n_episodes)):
+        states, _ = demos.episode(e)
+        goal = demos.desired_goals[int(demos.episode_start[e])]
+        shown.append((states, states, goal, bool(demos.episode_success[e])))
+    rollout_gifs(demos.manifest.env, shown, folder, label="demo", every=2)

@@ -241,3 +241,16 @@ def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions
     }
     artifacts.save(out, "demos", manifest, arrays)
     return artifacts.load(out, "demos")
+
+
+def check_workers(workers: int | None) -> None:
+    """Refuse more collection workers than twice the machine's cores (each holds an environment, ~120 MB)."""
+    import os
+
+    cores = os.cpu_count() or 1
+    if workers is not None and workers > 2 * cores:
+        raise BadInput(
+            f"--workers {workers}: more than twice this machine's {cores} cores (each worker holds an environment "
+            "and about 120 MB)",
+            hint=f"use at most {2 * cores}, or leave --workers out (one per core)",
+        )

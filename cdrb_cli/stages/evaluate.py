@@ -574,3 +574,49 @@ def summarize(
         per_seed=list(per_seed),
         wall_time_s=wall_time_s,
     )
+
+
+def summary_line(s: EvalSummary, config: EvalConfig, env_id: str) -> str:
+    """One line of what an eval measured, for logs: success over seeds and episodes, planned and executed
+    collisions, planning time (per episode when re-planning), failures by cause."""
+    from cdrb_cli.stages.report import failure_text
+
+    crossing = "" if s.plan_crossing_mean is None else f"; plans through obstacles {100 * s.plan_crossing_mean:.1f}%"
+    planner = s.in_wall_mean is not None
+    text = (
+        f"{s.method} on {ui.plain(env_id)} ({config.stream} pairs): success {100 * s.success_mean:.1f} ± "
+        f"{100 * s.success_std:.1f}% over {len(config.seeds)} seeds x {config.episodes} episodes; "
+    )
+    if planner:
+        text += f"planned states in obstacles {100 * s.in_wall_mean:.2f}%{crossing}; "
+    else:
+        text += "closed loop (no plans); "
+    text += f"executed collisions {100 * s.executed_collision_mean:.1f}%; "
+    if planner:
+        text += f"plan {1000 * s.plan_seconds_mean:.1f} ms"
+    else:
+        text += f"{1000 * s.plan_seconds_mean:.2f} ms per episode step"
+    if config.replan.mode != "never" and s.replans_mean is not None:
+        text += (
+            f" ({s.replans_mean:.1f} re-plans, {1000 * s.planning_seconds_mean:.0f} ms planning per episode: "
+            f"{config.replan.label()})"
+        )
+    if s.failures and any(s.failures.values()):
+        text += f"; failed episodes by cause: {failure_text(s.failures)}"
+    return text
+
+
+def eval_artifact(model, config: EvalConfig, out, *, force: bool, device, scene: EnvSpec, route_buffer=None, **kw):
+    """The eval artifact of ``config`` at ``out``, evaluated in ``scene`` under the config's protocol, unless the
+    file there is already up to date (same config and parents); ``kw``: :func:`evaluate`'s outputs (plans, videos,
+    the re-planning picture). What `cdrb eval` and the Python API both run."""
+    spec = family_of(model.manifest.env).protocol_spec(scene, config.protocol)
+    return artifacts.produce(
+        out,
+        "eval",
+        force,
+        config,
+        lambda: evaluate(model, config, out, device=device, spec=spec, route_buffer=route_buffer, **kw),
+        parents=[model] if route_buffer is None else [model, route_buffer],
+        env=spec,
+    )

@@ -432,3 +432,44 @@ def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfi
         "; ".join(problems) + ": the start may lie where the training data never starts "
         "(`cdrb collect --starts anywhere`, docs/design.md 'Plans from anywhere')"
     )
+
+
+def plan_points(spec: EnvSpec, start: list[str], goal: list[str], pairs: int, seed: int):
+    """The (starts, goals) full states of `cdrb plan`: ``pairs`` drawn by the protocol (stream plan), or the
+    ``--start``/``--goal`` points as typed (one goal for every start, or one per start)."""
+    from cdrb_cli.seeding import STREAM_PLAN
+
+    family = family_of(spec)
+    if pairs:
+        if start or goal:
+            raise BadInput("--pairs with --start/--goal", hint="give either explicit points or --pairs N")
+        starts, goals = family.reset_states(spec, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
+        return starts, family.goal_state(spec, goals)
+    if not start or not goal:
+        raise BadInput("no start/goal given", hint=f"pass --start and --goal ({family.point_format}), or --pairs N")
+    if len(goal) == 1 and len(start) > 1:
+        goal = goal * len(start)
+    if len(goal) != len(start):
+        raise BadInput(f"{len(start)} --start but {len(goal)} --goal", hint="give one goal per start, or one")
+    return (
+        np.array([family.parse_point(spec, t, "--start") for t in start]),
+        np.array([family.parse_point(spec, t, "--goal") for t in goal]),
+    )
+
+
+def draw_plans(result, spec: EnvSpec, path) -> None:
+    """A plans artifact's plans over the scene (with the iterates it kept), to a picture at ``path``."""
+    from cdrb_cli.envs.render import plot_plans
+
+    a, sm = result.arrays, result.manifest.summary
+    plot_plans(
+        spec,
+        a["plans"],
+        path,
+        starts=a["starts"],
+        goals=a["goals"],
+        in_wall=a["in_wall"],
+        title=f"{result.manifest.method}: {sm.plans} plans, {sm.in_wall_fraction:.1%} states in obstacles",
+        iterates=a.get("iterates"),
+        iterate_steps=a.get("iterate_steps"),
+    )

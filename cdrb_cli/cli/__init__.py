@@ -1,0 +1,156 @@
+"""The ``cdrb`` command line: one thin command per stage (parse -> validate -> stage function -> artifact).
+
+Conventions shared by every command: ``--seed`` for determinism, ``--out`` for the artifact written, ``--force`` to
+overwrite it, ``--json`` for a machine-readable result. stdout carries only the result (the path written, or
+JSON); progress and logs go to stderr. Exit codes: 0 ok, 1 the run failed, 2 bad input. Errors are one line;
+``cdrb --debug ...`` shows tracebacks.
+
+Names of environments, methods, samplers, experts and controllers are never spelled here: they come from the
+registries (:mod:`cdrb_cli.envs.registry`, :mod:`cdrb_cli.methods.registry`), looked up when a command runs, so a
+registered plugin is a valid choice too. Training hyper-parameters come from the config's own fields
+(``--set KEY=VALUE``, ``--config FILE``; ``cdrb config train`` lists them).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+
+import typer
+
+from cdrb_cli import PROG, interrupts, provenance, ui
+from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError
+
+try:  # typer >= 0.20 vendors click; older versions use the click package
+    from typer._click import exceptions as click_exc
+except ImportError:  # pragma: no cover
+    from click import exceptions as click_exc
+
+from cdrb_cli.cli.common import app, readable_help  # noqa: F401  (app: the typer app; readable_help: tested)
+
+# the command groups, imported for their registration on `app` (the order --help lists them in)
+from cdrb_cli.cli import info, data, train, plan, evaluate, studies  # noqa: E402, F401  isort: skip
+
+
+# ------------------------------------------------------------------------------------------------ entry point
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split()).replace("Value error, ", "")
+
+
+def _error(text: str) -> None:
+    sys.stderr.write(f"error: {ui.plain(_one_line(text))}\n")
+    sys.stderr.flush()
+
+
+def _moved_flag(exc) -> str:
+    """For an unknown option of `cdrb train` that names a config field: how to set it now."""
+    name = getattr(exc, "option_name", "") or ""
+    if not name.startswith("--") or exc.ctx is None or exc.ctx.command.name != "train":
+        return ""
+    key = name[2:].replace("-", "_")
+    from cdrb_cli.stages.show_config import settable_keys
+
+    for full in settable_keys():
+        if full == key or full.endswith("." + key):
+            return f"; it is a config field now: --set {full}=VALUE"
+    return ""
+
+
+def reflow(doc: str | None) -> str | None:
+    """A docstring as help text: each paragraph one line (the terminal wraps it at its own width, 80 or 200
+    columns alike), bullet and numbered items kept on lines of their own, blank lines between paragraphs kept."""
+    import inspect as _inspect
+    import re
+
+    if not doc:
+        return doc
+    paragraphs = []
+    for para in _inspect.cleandoc(doc).split("\n\n"):
+        lines: list[str] = []
+        for line in (ln.strip() for ln in para.splitlines()):
+            if lines and not re.match(r"^([*\-]|\d+[.)])\s", line):
+                lines[-1] += " " + line
+            else:
+                lines.append(line)
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs)
+
+
+def _reflow_commands(typer_app: typer.Typer) -> None:
+    """Every command's help from its docstring, reflowed (hard-wrapped docstrings render with ragged breaks)."""
+    for command in typer_app.registered_commands:
+        command.help = reflow(command.help or (command.callback.__doc__ if command.callback else None))
+    for group in typer_app.registered_groups:
+        _reflow_commands(group.typer_instance)
+
+
+_reflow_commands(app)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns the exit code (0 ok, 1 failed run, 2 bad input)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in args
+    command = typer.main.get_command(app)
+    restore_signals = interrupts.install()
+    try:
+        with provenance.running([PROG, *args]) if argv is not None else contextlib.nullcontext():
+            code = command.main(args=args, prog_name=PROG, standalone_mode=False)
+        if code == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into a returned exit code 130
+            _interrupted(args)
+        return code if isinstance(code, int) else 0
+    except typer.Exit as exc:
+        return exc.exit_code
+    except click_exc.UsageError as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError":  # the help text was the answer
+            if exc.ctx is not None:
+                sys.stdout.write(exc.ctx.get_help() + "\n")
+            return EXIT_BAD_INPUT
+        where = exc.ctx.command_path if exc.ctx else PROG
+        _error(f"{exc.format_message()}{_moved_flag(exc)} (see `{where} --help`)")
+        return EXIT_BAD_INPUT
+    except click_exc.ClickException as exc:
+        _error(exc.format_message())
+        return EXIT_BAD_INPUT
+    except typer.Abort:
+        _error("aborted")
+        return EXIT_INTERRUPTED
+    except CdrbError as exc:
+        if debug:
+            raise
+        _error(exc.line())
+        return exc.exit_code
+    except KeyboardInterrupt:
+        _interrupted(args)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # a bug or an environment failure: still one line unless --debug
+        if debug:
+            raise
+        _error(f"{type(exc).__name__}: {_one_line(str(exc))[:300]} (re-run with `cdrb --debug ...` for a traceback)")
+        return EXIT_FAILED
+    finally:
+        restore_signals()
+
+
+def _interrupted(args: list[str]) -> None:
+    _error(f"interrupted; artifacts already written are intact{_how_to_continue(args)}")
+
+
+def _how_to_continue(args: list[str]) -> str:
+    """What to run after an interrupt: ``--resume`` only where a training left a checkpoint to continue."""
+    if "quickstart" in args:
+        return "; run the same command again to continue where it stopped"
+    if "train" not in args:
+        return ""
+    out = Path("model.h5")
+    for i, a in enumerate(args):
+        if a in ("--out", "-o") and i + 1 < len(args):
+            out = Path(args[i + 1])
+        elif a.startswith("--out="):
+            out = Path(a.split("=", 1)[1])
+    from cdrb_cli.artifacts import unfinished_model
+
+    if unfinished_model(out):
+        return "; continue the training with --resume"
+    return f"; no checkpoint of {out} was written yet: run the same command again to start over"

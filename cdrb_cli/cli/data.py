@@ -1,0 +1,274 @@
+"""Commands that make data: collect demonstrations, import and export Minari datasets, train an RL expert,
+cluster the replay buffer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from cdrb_cli import ui
+from cdrb_cli.cli.common import (
+    ForceOpt,
+    JsonOpt,
+    SeedOpt,
+    app,
+    check_outputs,
+    check_video_folder,
+    choice,
+    expert_registry,
+    literal_values,
+    load_artifact,
+    registered,
+)
+from cdrb_cli.cli.options import EnvArg, MapOpt, env_spec
+
+
+# ------------------------------------------------------------------------------------------------ collect
+@app.command()
+def collect(
+    env: str | None = EnvArg,
+    episodes: int = typer.Option(1000, "--episodes", "-n", min=1, max=1_000_000, help="Number of demonstrations."),
+    expert: str | None = typer.Option(
+        None,
+        "--expert",
+        parser=registered(expert_registry, "expert"),
+        metavar="EXPERT",
+        help="The demonstrator (default: the environment's scripted expert; `sac` needs --policy).",
+    ),
+    policy: Path | None = typer.Option(None, "--policy", help="A policy file for experts that need one (SB3 SAC zip)."),
+    valid_fraction: float | None = typer.Option(
+        None, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation (default 0.1)."
+    ),
+    starts: str = typer.Option(
+        "protocol",
+        "--starts",
+        metavar="WHERE",
+        help="Where demonstrations start: protocol (the environment's start region) or anywhere (mazes: any free "
+        "cell; Fetch: the gripper anywhere in the workspace), so plans can start wherever the robot is; "
+        "protocol+anywhere alternates between the two.",
+    ),
+    maze_map: Path | None = MapOpt,
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Also draw a sample of demos on the scene to this PNG (Fetch: top and side views)."
+    ),
+    video: Path | None = typer.Option(None, "--video", help="Write GIFs of the first demos to this folder."),
+    videos: int = typer.Option(3, "--videos", min=1, max=100, help="How many demo GIFs with --video."),
+    workers: int | None = typer.Option(
+        None,
+        "--workers",
+        min=1,
+        max=256,
+        help="Processes rolling out episodes (default: one per core, at least 100 episodes each). The demos are the "
+        "same array for array whatever the number.",
+    ),
+    sets: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="Set a field of the expert's config, e.g. --set 'expert.routes=[\"over\"]' (repeatable; recorded in "
+        "the artifact).",
+    ),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+    as_json: bool = JsonOpt,
+) -> None:
+    """Roll out an expert and write a [bold]demos[/bold] artifact (train/valid split, per-episode seeds, success).
+
+    The scripted maze expert takes a random shortest grid route (both gaps next to a goal get used), smooths it
+    and comes to rest at the goal; the scripted Fetch experts go over or around the walls, at random where both
+    work (`--set 'expert.routes=["over"]'` keeps one kind where it exists; `--set expert.clearance=0.05`,
+    `expert.gain`, `expert.reach_tolerance` are the other fields). `summary.routes` counts the routes. Examples:
+    [cyan]cdrb collect maze-tight -n 1000 --plot demos.png[/cyan],
+    [cyan]cdrb collect fetch-push-obstacle -n 1000 --plot push.png --video gifs/[/cyan] (GIFs are MuJoCo frames
+    where an offscreen GL context can be made, matplotlib drawings otherwise; the command says which)."""
+    from cdrb_cli.artifacts import produce
+    from cdrb_cli.stages.collect import check_workers, collect_config, route_shares
+    from cdrb_cli.stages.collect import collect as run_collect
+
+    if video is not None:
+        from cdrb_cli.envs.render import choose_gl_backend
+
+        choose_gl_backend()  # before MuJoCo is imported
+        check_video_folder(video, out)
+    check_outputs(force, out=out, plot=plot)
+    check_workers(workers)
+    spec = env_spec(env, maze_map)
+    from cdrb_cli.settings import parse_set
+
+    config = collect_config(
+        spec,
+        episodes,
+        seed=seed,
+        expert=expert,
+        policy=policy,
+        valid_fraction=valid_fraction,
+        settings=parse_set(sets),
+        starts=starts,
+    )
+    demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out, workers=workers), env=spec)
+    s = demos.manifest.summary
+    ui.log(
+        f"{spec.id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "
+        f"success {s.success_rate:.1%}, mean length {s.mean_length:.0f} steps (max {s.max_length}), "
+        f"states inside obstacles: {s.states_in_walls}, {s.wall_time_s:.1f}s"
+    )
+    if s.routes:
+        ui.log(f"routes: {route_shares(s.routes)}")
+    if s.success_rate < 0.99:
+        ui.warn(f"expert success {s.success_rate:.1%} is below 99%")
+    if plot is not None:
+        from cdrb_cli.envs.render import plot_demos
+
+        plot_demos(demos, plot, seed=seed)
+        ui.log(f"picture: {plot}")
+    if video is not None:
+        from cdrb_cli.envs.render import demo_gifs
+
+        demo_gifs(demos, video, videos)
+        ui.log(f"demo GIFs: {video}/")
+    ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
+# ------------------------------------------------------------------------------------------------ minari
+import_app = typer.Typer(help="Bring outside datasets in as cdrb artifacts.", no_args_is_help=True)
+app.add_typer(import_app, name="import")
+
+
+@import_app.command("minari")
+def import_minari(
+    dataset: str = typer.Argument(
+        ..., help="A Minari dataset id found in MINARI_DATASETS_PATH (default ~/.minari/datasets), or its folder."
+    ),
+    env: str | None = typer.Option(
+        None, "--env", help="The cdrb environment (default: from the dataset's env_spec; `cdrb envs`)."
+    ),
+    valid_fraction: float = typer.Option(
+        0.1, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation."
+    ),
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+    as_json: bool = JsonOpt,
+) -> None:
+    """Import a Minari dataset (already on disk: cdrb never downloads) as a [bold]demos[/bold] artifact.
+
+    PointMaze datasets map to the maze family (a stock maze when the walls match, else the dataset's own map),
+    Fetch Reach/Push/PickAndPlace to the Fetch tasks. The artifact records the dataset id, the Minari version and
+    the sha256 of its files; success is cdrb's own test on the states. Example: [cyan]cdrb import minari
+    D4RL/pointmaze/umaze-v2 --out umaze.h5[/cyan], then cluster and train as usual."""
+    from cdrb_cli.stages.minari_io import import_minari as run_import
+
+    check_outputs(force, out=out)
+    demos = run_import(dataset, out, env=env, valid_fraction=valid_fraction, seed=seed)
+    s = demos.manifest.summary
+    ui.log(
+        f"{demos.manifest.env.id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "
+        f"{s.steps} steps, success {s.success_rate:.1%}, states inside obstacles: {s.states_in_walls}"
+    )
+    ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
+@app.command("export")
+def export_cmd(
+    demos: Path = typer.Argument(..., help="A demos artifact."),
+    minari: str = typer.Option(
+        ..., "--minari", help="Dataset name, [namespace/]name[-vN] (-v0 is added), e.g. cdrb/maze-tight-expert."
+    ),
+    root: Path | None = typer.Option(
+        None, "--root", help="Datasets folder (default: MINARI_DATASETS_PATH, else ~/.minari/datasets)."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name."),
+) -> None:
+    """Export a [bold]demos[/bold] artifact as a Minari dataset that `minari.load_dataset(NAME)` opens.
+
+    Observations are goal dicts (observation, achieved_goal, desired_goal), the reward is cdrb's success test (as
+    a sparse reward) and infos["success"] has it per step; the env_spec is the gymnasium equivalent of the
+    environment where one exists (PointMaze with this map, Fetch without walls). Prints the dataset's folder."""
+    from cdrb_cli.stages.minari_io import dataset_id_for, export_minari
+
+    art = load_artifact(demos, "demos")
+    folder = export_minari(art, minari, root=root, force=force)
+    ui.log(f"{art.n_episodes} episodes written as Minari dataset {dataset_id_for(minari)}")
+    ui.emit(folder)
+
+
+# ------------------------------------------------------------------------------------------------ expert
+expert_app = typer.Typer(
+    help="Train stable-baselines3 experts (SAC + HER) for `cdrb collect --expert sac`.", no_args_is_help=True
+)
+app.add_typer(expert_app, name="expert")
+
+
+@expert_app.command("train")
+def expert_train(
+    env: str | None = EnvArg,
+    steps: int = typer.Option(
+        100_000, "--steps", min=1, help="Environment steps (the paper used 1M: hours on 2 cores)."
+    ),
+    her: bool = typer.Option(True, "--her/--no-her", help="Hindsight experience replay (future strategy, 4 goals)."),
+    maze_map: Path | None = MapOpt,
+    out: Path = typer.Option(Path("expert.zip"), "--out", "-o", help="SB3 zip to write."),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+) -> None:
+    """Train a goal-conditioned SAC(+HER) expert. About 11-15 ms per step on 2 CPU cores: 1M steps take 3-4 hours."""
+    from cdrb_cli.artifacts import claim_output
+    from cdrb_cli.experts.sac import train_sac
+
+    spec = env_spec(env, maze_map)
+    with claim_output(out, force):
+        train_sac(spec, steps, seed, out, her=her)
+    ui.emit(out)
+
+
+# ------------------------------------------------------------------------------------------------ cluster
+@app.command()
+def cluster(
+    demos: Path = typer.Argument(..., help="Demos artifact from `cdrb collect`."),
+    k: int | None = typer.Option(None, "--k", min=0, help="k-means clusters (default 1000); 0 keeps the full buffer."),
+    features: str = typer.Option(
+        "state",
+        "--features",
+        parser=choice(literal_values("ClusterConfig", "features"), "feature space"),
+        metavar="state|state-action",
+        help="state, or state-action (actions joined to states).",
+    ),
+    split: str = typer.Option(
+        "train",
+        "--split",
+        parser=choice(literal_values("ClusterConfig", "split"), "split"),
+        metavar="train|all",
+        help="Episodes whose states form the buffer: train or all.",
+    ),
+    out: Path = typer.Option(Path("buffer.h5"), "--out", "-o", help="Buffer artifact to write."),
+    plot: Path | None = typer.Option(None, "--plot", help="Also draw the buffer states on the scene to this PNG."),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+    as_json: bool = JsonOpt,
+) -> None:
+    """Build the [bold]replay buffer[/bold] CDRB diffuses through (writes a buffer artifact).
+
+    Features are normalized to [-1, 1] per dimension (min/max over the training demos); k-means (scikit-learn)
+    picks K representatives and each centroid is snapped to its nearest real demo state, so every buffer state
+    is a known good state. Example: [cyan]cdrb cluster demos.h5 --k 1000 --plot buffer.png[/cyan]"""
+    from cdrb_cli.artifacts import produce
+    from cdrb_cli.configs import ClusterConfig
+    from cdrb_cli.stages.cluster import cluster as run_cluster
+
+    check_outputs(force, [demos], out=out, plot=plot)
+    d = load_artifact(demos, "demos")
+    config = ClusterConfig(features=features, split=split, seed=seed, **({"k": k} if k is not None else {}))
+    buf = produce(out, "buffer", force, config, lambda: run_cluster(d, config, out), parents=[d])
+    sm = buf.manifest.summary
+    ui.log(
+        f"buffer: {sm.points} states from {sm.source_states} ({features}), diameter {sm.diameter:.3f}, "
+        f"{sm.wall_time_s:.1f}s"
+    )
+    if plot is not None:
+        from cdrb_cli.envs.render import plot_buffer
+
+        plot_buffer(buf, plot)
+        ui.log(f"picture: {plot}")
+    ui.emit({"path": str(out), "summary": sm.model_dump()} if as_json else out, as_json=as_json)

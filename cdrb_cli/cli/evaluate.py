@@ -1,0 +1,154 @@
+"""`cdrb eval`: plans executed in the simulator, to an eval artifact."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from cdrb_cli import ui
+from cdrb_cli.cli.common import (
+    DeviceOpt,
+    ForceOpt,
+    JsonOpt,
+    SeedOpt,
+    app,
+    check_outputs,
+    check_video_folder,
+    choice,
+    parse_seeds,
+    report_gifs,
+    trained_model,
+)
+from cdrb_cli.cli.options import EVAL_MOVED, RunConfigOpt, RunSetOpt, moved_flags, run_settings
+from cdrb_cli.errors import BadInput
+
+
+# ------------------------------------------------------------------------------------------------ eval
+@app.command("eval")
+@moved_flags(*EVAL_MOVED)
+def eval_cmd(
+    model: Path = typer.Argument(..., help="Model artifact from `cdrb train`."),
+    episodes: int | None = typer.Option(
+        None, "--episodes", "-n", min=1, max=100_000, help="Episodes per evaluation seed (default 100)."
+    ),
+    seeds: str | None = typer.Option(
+        None, "--seeds", help="Evaluation seeds, each drawing its own start/goal pairs (default 0,1,2,3,4)."
+    ),
+    stream: str | None = typer.Option(
+        None,
+        "--stream",
+        parser=choice(lambda: ["test", "tune"], "stream"),
+        metavar="test|tune",
+        help="Which start/goal pairs: 'tune' to choose settings on, 'test' (never used for choosing) for reported "
+        "tables (default test).",
+    ),
+    protocol: str | None = typer.Option(
+        None,
+        "--protocol",
+        metavar="NAME",
+        help="The evaluation protocol (default: the environment's; `cdrb envs` lists them). 'official-code' "
+        "evaluates as the official CDRB code; 'detour' (with --scene) keeps the pairs the new obstacles lengthen; "
+        "'anywhere' starts anywhere.",
+    ),
+    replan: str | None = typer.Option(
+        None,
+        "--replan",
+        metavar="never|every:N|deviation:D",
+        help="Planners, closed loop: plan again from the current state every N env steps, or when the state is "
+        "farther than D (metres, in the obstacle dimensions) from where the plan has it now (default: never, one "
+        "plan per episode as in the paper). Repairs: --set replan.repair_k=K.",
+    ),
+    maze_map: Path | None = typer.Option(
+        None,
+        "--scene",
+        "--maze-map",
+        metavar="FILE",
+        help="Evaluate among obstacles the data never saw, the model not retrained: for a maze, a map file (the "
+        "training map with walls added); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. Plans avoid "
+        "them with the settings chosen for new obstacles (`--set avoid=plain`: as the model is).",
+    ),
+    sets: list[str] = RunSetOpt,
+    config_file: Path | None = RunConfigOpt,
+    video: Path | None = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder."),
+    device: str = DeviceOpt,
+    out: Path = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write."),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+    as_json: bool = JsonOpt,
+    videos: int = typer.Option(3, "--videos", min=1, hidden=True, help="How many rollout GIFs with --video."),
+    keep_plans: bool = typer.Option(
+        True, "--plans/--no-plans", hidden=True, help="Keep each episode's (first) plan in the eval artifact."
+    ),
+    replan_plot: Path | None = typer.Option(
+        None, "--replan-plot", hidden=True, help="With --replan: the first episode's successive plans (PNG)."
+    ),
+    allow_partial: bool = typer.Option(False, "--allow-partial", hidden=True, help="Accept an unfinished model."),
+    moved: dict | None = None,
+) -> None:
+    """Plan once per episode, execute the plan with a controller in the simulator, write an [bold]eval[/bold]
+    artifact.
+
+    Start/goal pairs follow the environment's protocol (for the paper's mazes: centre starts, corner goals, the
+    stock reset noise) and are identical across methods for the same seeds. Per episode: success at any step,
+    steps, final distance, planned states inside obstacles, executed collisions, path length relative to the
+    expert, planning time. Example: [cyan]cdrb eval model.h5 --seeds 0,1,2,3,4 --episodes 100 --video gifs/[/cyan]
+
+    Every other knob is a setting ([cyan]cdrb config eval[/cyan] lists them; [cyan]--set KEY=VALUE[/cyan] or
+    [cyan]--config FILE[/cyan]): the controller and its gains ([cyan]controller.*[/cyan]), re-planning and repairs
+    ([cyan]replan.*[/cyan]), avoidance ([cyan]avoid.*[/cyan]), the sampler and its steps. Closed loop (planners):
+    [cyan]--replan every:20[/cyan] plans again every 20 steps from the current state; [cyan]--replan
+    deviation:0.5 --set replan.repair_k=4[/cyan] repairs the plan when the agent is 0.5 m off it. New obstacles,
+    no retraining: [cyan]--scene closed.txt --protocol detour[/cyan] evaluates on the pairs the new walls lengthen,
+    avoiding them with the settings chosen for new obstacles. Also: [cyan]--videos N[/cyan] (GIFs with --video,
+    default 3), [cyan]--no-plans[/cyan] (a smaller file without the plans), [cyan]--replan-plot PNG[/cyan] (one
+    closed-loop episode's plans), [cyan]--allow-partial[/cyan] (an unfinished model)."""
+    if video is not None:
+        from cdrb_cli.envs.render import choose_gl_backend
+
+        choose_gl_backend()  # before MuJoCo is imported
+    from cdrb_cli.stages.configure import eval_config, route_buffer_path
+    from cdrb_cli.stages.evaluate import eval_artifact, summary_line
+    from cdrb_cli.torch_utils import setup_torch
+
+    flags = [
+        (f"{flag} {value}", key, parse(value))
+        for flag, key, value, parse in (
+            ("--episodes", "episodes", episodes, int),
+            ("--seeds", "seeds", seeds, lambda text: parse_seeds(text, "--seeds")),
+            ("--stream", "stream", stream, str),
+            ("--protocol", "protocol", protocol, str),
+            ("--replan", "replan", replan, str),
+        )
+        if value is not None
+    ]
+    settings = run_settings(config_file, sets, flags, moved)
+    if video is not None:
+        check_video_folder(video, out)
+    route_buffer = route_buffer_path(settings)
+    read = [model, *(p for p in (config_file, maze_map, route_buffer) if p is not None)]
+    check_outputs(force, read, out=out, replan_plot=replan_plot)
+    m = trained_model(model, allow_partial)
+    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
+
+    scene = scene_spec(m, maze_map)
+    config = eval_config(m, settings, seed=seed, scene_file=maze_map, scene=scene)
+    if replan_plot is not None and config.replan.mode == "never":
+        raise BadInput("--replan-plot draws the plans of a closed-loop episode", hint="add --replan every:N")
+    route_art = load_route_buffer(route_buffer)
+    if config.avoid.label() != "plain":
+        ui.log(f"avoiding obstacles: {config.avoid.label()}")
+    started = time.time()
+    outputs = dict(keep_plans=keep_plans, video_dir=video, videos=videos if video else 0, replan_plot=replan_plot)
+    ev = eval_artifact(m, config, out, force=force, device=setup_torch(device), scene=scene, route_buffer=route_art,
+                       **outputs)  # fmt: skip
+    s = ev.manifest.summary
+    if s.masked is not None and s.masked.warning():
+        ui.warn(s.masked.warning())
+    ui.log(summary_line(s, config, ev.manifest.env.id))
+    if video is not None:
+        report_gifs(video, started, out)
+    if replan_plot is not None and replan_plot.exists():
+        ui.log(f"picture: {replan_plot}")
+    ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)

@@ -1,0 +1,292 @@
+"""Commands over many artifacts: report a comparison, the quickstart pipeline, choose settings on the tuning
+stream, run a grid of commands."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from cdrb_cli import ui
+from cdrb_cli.cli.common import (
+    DeviceOpt,
+    ForceOpt,
+    GridIncludeOpt,
+    GridSetOpt,
+    JsonOpt,
+    SeedOpt,
+    app,
+    check_outputs,
+    check_positive,
+    choice,
+    load_artifact,
+    parse_seeds,
+)
+from cdrb_cli.errors import BadInput
+
+
+# ------------------------------------------------------------------------------------------------ report
+@app.command()
+def report(
+    evals: list[Path] = typer.Argument(
+        ..., help="Eval artifacts (any number; rows = environments, columns = methods)."
+    ),
+    fmt: str = typer.Option(
+        "table",
+        "--format",
+        parser=choice(lambda: ["table", "markdown", "summary", "csv", "json"], "format"),
+        metavar="table|markdown|summary|csv|json",
+        help="table, markdown, summary (markdown, a line per environment: the straight line's success as the floor, "
+        "each method's success and weighted success, marked where it does not beat the floor), csv or json.",
+    ),
+    paper: bool = typer.Option(False, "--paper", help="Add the paper's Table 1 figures under ours."),
+    paper_figures: Path | None = typer.Option(
+        None, "--paper-figures", metavar="FILE", help="With --paper: read the figures from FILE (TOML) instead."
+    ),
+    per_seed: bool = typer.Option(
+        False, "--per-seed", help="One row per eval file and evaluation seed instead of one per environment x method."
+    ),
+    docs: Path | None = typer.Option(
+        None,
+        "--docs",
+        metavar="FILE",
+        help="Write the markdown report into FILE between <!-- BLOCK:begin --> and <!-- BLOCK:end --> (with --block).",
+    ),
+    block: str | None = typer.Option(None, "--block", metavar="NAME", help="The marked block of --docs to replace."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Write the report to this file (else stdout)."),
+    plot: Path | None = typer.Option(None, "--plot", help="Bar chart of success and planned-in-obstacle rates (PNG)."),
+    plans_plot: Path | None = typer.Option(None, "--plans-plot", help="Every method's plans for the same pairs (PNG)."),
+    force: bool = ForceOpt,
+) -> None:
+    """Compare eval artifacts in a Table-1-style report (success mean ± std over seeds, plus planned states in
+    obstacles, executed collisions, path length and planning time), with optional pictures.
+
+    Evals of one environment must share a protocol (seeds, episodes, controller); mixing is an error."""
+    from cdrb_cli.stages import report as rep
+
+    if (docs is None) != (block is None):
+        raise BadInput("--docs and --block go together", hint="e.g. --docs docs/benchmarks.md --block table1-mazes")
+    if docs is not None and fmt not in ("markdown", "table", "summary"):
+        raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
+    if paper_figures is not None and not paper:
+        raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
+    check_outputs(force, evals, docs=docs, out=out, plot=plot, plans_plot=plans_plot)
+    if out is not None:
+        from cdrb_cli.artifacts import check_output
+
+        check_output(out, force, "--out", evals)
+    figures = rep.paper_figures(paper_figures) if paper else False
+    arts = [load_artifact(p, "eval") for p in evals]
+    # per-seed rows list every file as it is; the grouped rows (and their bar chart) need one protocol per env
+    rows = rep.collect_rows(arts) if not per_seed or plot is not None else []
+    if per_seed:
+        if fmt == "summary":
+            raise BadInput("--per-seed has no summary format", hint="use --format table, markdown, csv or json")
+        text = rep.render_seed_rows(rep.seed_rows(arts), fmt)
+    elif fmt == "summary":
+        text = rep.render_summary(rows, paper=figures)
+    else:
+        text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
+    # every check before the first file is written: a bad --docs block or evals without plans leave nothing behind
+    if plans_plot is not None:
+        rep.with_plans(arts)
+    if docs is not None:
+        rep.check_docs_block(docs, block, text, evals)
+    if plot is not None:
+        rep.plot_bars(rows, plot)
+        ui.log(f"picture: {plot}")
+    if plans_plot is not None:
+        rep.plot_side_by_side(arts, plans_plot)
+        ui.log(f"picture: {plans_plot}")
+    if docs is not None:
+        rep.write_docs_block(docs, block, text, evals)
+    if out is not None:
+        from cdrb_cli.artifacts import atomic_path, claim_output
+
+        with claim_output(out, force, "--out", evals), atomic_path(out) as tmp:
+            tmp.write_text(text)
+        ui.emit(out)
+    elif docs is not None:
+        ui.emit(docs)
+    else:
+        sys.stdout.write(text)
+
+
+# ------------------------------------------------------------------------------------------------ quickstart
+@app.command()
+def quickstart(
+    out: Path = typer.Option(Path("runs/quickstart"), "--out", "-o", help="Folder for every artifact and picture."),
+    env: str | None = typer.Option(None, "--env", help="Environment id (default: Maze Tight; `cdrb envs`)."),
+    episodes: int = typer.Option(1000, "--episodes", min=2, help="Demonstrations to collect."),
+    k: int | None = typer.Option(None, "--k", min=0, help="Buffer size after k-means (default 1000; 0 = full)."),
+    methods: str | None = typer.Option(
+        None, "--methods", help="Methods to train and compare, comma-separated (default: CDRB and Diffuser)."
+    ),
+    seeds: str = typer.Option(
+        "5,6,7",
+        "--seeds",
+        help="Evaluation seeds of the test stream (default 5,6,7: pairs no setting was chosen on; Table 1 uses 0-4).",
+    ),
+    eval_episodes: int = typer.Option(50, "--eval-episodes", min=1, help="Episodes per evaluation seed."),
+    steps: int | None = typer.Option(None, "--steps", help="Training steps per method (quick preset: 3000)."),
+    videos: int = typer.Option(0, "--videos", min=0, help="Rollout GIFs per method (0: none)."),
+    device: str = DeviceOpt,
+    seed: int = SeedOpt,
+) -> None:
+    """Run the whole pipeline on Maze Tight: collect -> cluster -> train CDRB and Diffuser (quick) -> eval ->
+    report. 5-9 minutes on 2 CPU cores. Re-running skips every stage that is up to date; an interrupted run
+    resumes where it stopped. Prints the results table and the paths of the pictures."""
+    if videos:
+        from cdrb_cli.envs.render import choose_gl_backend
+
+        choose_gl_backend()
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.stages.quickstart import DEFAULT_ENV, DEFAULT_METHODS, check_methods
+    from cdrb_cli.stages.quickstart import quickstart as run_quickstart
+    from cdrb_cli.torch_utils import setup_torch
+
+    method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else DEFAULT_METHODS
+    check_methods(method_list, "--methods")
+    make_spec(env or DEFAULT_ENV)
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out}: exists and is not a folder", hint="pass a folder path")
+    check_positive("--steps", steps)
+    res = run_quickstart(
+        out,
+        env=env or DEFAULT_ENV,
+        episodes=episodes,
+        k=k,
+        methods=method_list,
+        seeds=tuple(parse_seeds(seeds, "--seeds")),
+        eval_episodes=eval_episodes,
+        steps=steps,
+        seed=seed,
+        device=setup_torch(device),
+        videos=videos,
+    )
+    ui.log(f"done in {res.seconds / 60:.1f} min; artifacts in {res.folder}/")
+    sys.stdout.write(res.report)
+    sys.stdout.write("\n" + "\n".join(str(p) for p in res.pictures) + "\n")
+
+
+# ------------------------------------------------------------------------------------------------ select
+@app.command()
+def select(
+    grid_file: Path = typer.Argument(..., help="A tuning grid (TOML) whose evals `cdrb grid` has run."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", metavar="FILE", help="The settings file to write (TOML), for test grids to include."
+    ),
+    table: Path | None = typer.Option(
+        None,
+        "--table",
+        metavar="FILE",
+        help="Also write every candidate's scores: CSV (.csv) or a markdown table (other names).",
+    ),
+    curves: Path | None = typer.Option(
+        None,
+        "--curves",
+        metavar="FILE",
+        help="Also write the learning curves as CSV: one row per candidate, training length and training seed "
+        "(success, weighted success, success without collision, plans through an obstacle, collisions; per cent).",
+    ),
+    docs: Path | None = typer.Option(
+        None,
+        "--docs",
+        metavar="FILE",
+        help="Also write what was chosen (one line per environment, a column per method: tuning success ± std, "
+        "training length, plans through an obstacle) into FILE between <!-- BLOCK:begin --> and "
+        "<!-- BLOCK:end --> (with --block).",
+    ),
+    block: str | None = typer.Option(None, "--block", metavar="NAME", help="The marked block of --docs to replace."),
+    overrides: list[str] = GridSetOpt,
+    includes: list[Path] = GridIncludeOpt,
+    force: bool = ForceOpt,
+) -> None:
+    """Choose each method's settings on the tuning stream from a tuning grid's evals, and write them as a settings
+    file that test grids `include`.
+
+    Candidates are the grid's variants (training settings, or eval-only knobs on one model) at each training length
+    of its learning curves (`snapshot_at`). The rule, per environment x method: highest tuning success, then fewest
+    plans through an obstacle, then fewest executed collisions, then the grid's variant order, then fewest training
+    steps. Prints the path of the settings file."""
+    from cdrb_cli.stages.select import select as run_select
+
+    if (docs is None) != (block is None):
+        raise BadInput("--docs and --block go together", hint="e.g. --docs README.md --block tuning-fetch")
+    options = dict(force=force, table=table, curves=curves, overrides=overrides, includes=includes)
+    ui.emit(run_select(grid_file, out, docs=docs, block=block, **options))
+
+
+# ------------------------------------------------------------------------------------------------ grid
+@app.command()
+def grid(
+    grid_file: Path = typer.Argument(..., help="Grid file (TOML): envs x methods x seeds (x variants)."),
+    backend: str = typer.Option(
+        "auto",
+        "--backend",
+        parser=choice(lambda: ["auto", "ray", "pool"], "backend"),
+        help='Where tasks run: ray (needs `pip install "cdrb-cli\\[ray]"`), pool (local processes), auto (Ray '
+        "when installed).",
+    ),
+    workers: int | None = typer.Option(
+        None, "--workers", "-j", min=1, help="Local pool: parallel tasks; local Ray: CPUs it may use (default: all)."
+    ),
+    address: str | None = typer.Option(
+        None, "--address", help="A running Ray cluster, e.g. ray://head:10001 (default: start Ray on this machine)."
+    ),
+    retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
+    dry_run: bool = typer.Option(
+        False, "--dry-run", help="Print the tasks' commands (one per line; with --json a list of tasks) and stop."
+    ),
+    overrides: list[str] = GridSetOpt,
+    includes: list[Path] = GridIncludeOpt,
+    as_json: bool = JsonOpt,
+) -> None:
+    """Run a grid of experiments: collect -> cluster -> train -> eval -> report for every environment, method,
+    seed and variant of GRID_FILE, in parallel on Ray or a local pool.
+
+    Tasks whose artifacts are up to date are not run again, so a grid stopped half-way continues where it
+    stopped; a failed task is retried (a training resumes from its checkpoint) and then reported, while the
+    others go on. Prints the path of the summary (OUT/grid.json). Format and examples: docs/cli.md.
+    """
+    from cdrb_cli.stages.grid import grid as run_grid_file
+
+    res = run_grid_file(
+        grid_file,
+        backend=backend,
+        workers=workers,
+        address=address,
+        retries=retries,
+        dry_run=dry_run,
+        overrides=overrides,
+        includes=includes,
+    )
+    if dry_run:
+        import shlex
+
+        if as_json:  # one object per task: what it is, its command, what it writes, the tasks it waits for
+            rows = [
+                {
+                    "id": t.id,
+                    "kind": t.kind,
+                    "argv": t.argv,
+                    "outputs": [str(p) for p in t.outputs],
+                    "deps": t.deps,
+                }
+                for t in res
+            ]
+            ui.emit(rows, as_json=True)
+            return
+        for task in res:
+            sys.stdout.write("cdrb " + shlex.join(task.argv) + "\n")
+        return
+    ui.log(
+        f"grid finished in {res.seconds / 60:.1f} min: {res.count('done')} run, {res.count('up to date')} up to date"
+    )
+    if as_json:
+        import json
+
+        ui.emit(json.loads(res.summary.read_text()), as_json=True)
+    else:
+        ui.emit(res.summary)
