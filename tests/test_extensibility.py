@@ -87,20 +87,21 @@ class DetourExpert:
 
 class FollowConfig(ControllerConfig):
     name: Literal["toy-follow"] = "toy-follow"
+    gain: float = Field(1.0, gt=0, le=10, description="how hard it steps toward the planned state (a plugin's knob)")
 
 
 class Follow(Controller):
     """Steps toward the planned state of the current time."""
 
-    def __init__(self, stride: int):
-        self.stride, self.plan = stride, np.zeros((1, 2))
+    def __init__(self, stride: int, gain: float = 1.0):
+        self.stride, self.gain, self.plan = stride, gain, np.zeros((1, 2))
 
     def reset(self, plan):
         self.plan = np.asarray(plan)
 
     def act(self, state, t):
         target = self.plan[min(t // self.stride + 1, len(self.plan) - 1), :2]
-        return np.clip((target - state) / 0.1, -1, 1)
+        return np.clip(self.gain * (target - state) / 0.1, -1, 1)
 
 
 class WallFamily(EnvFamily):
@@ -149,7 +150,7 @@ def toy_family():
     with (
         FAMILIES.added(WallFamily()),
         EXPERTS.added(ExpertEntry(DetourConfig, DetourExpert, lambda policy: DetourConfig())),
-        CONTROLLERS.added(ControllerEntry(FollowConfig, lambda spec, env, cfg, stride: Follow(stride))),
+        CONTROLLERS.added(ControllerEntry(FollowConfig, lambda spec, env, cfg, stride: Follow(stride, cfg.gain))),
     ):
         yield
 
@@ -404,3 +405,38 @@ def test_two_networks_two_optimizers_resume_bit_for_bit(twin, small_data, tmp_pa
     w = full.tensors("weights/critic")
     np.testing.assert_array_equal(method.critic[0].weight.detach().numpy(), w["0.weight"])
     np.testing.assert_array_equal(method.net.net[0].weight.detach().numpy(), full.tensors("ema/actor")["net.0.weight"])
+
+
+def test_a_plugins_eval_knob_is_one_config_field(toy_family, toy_method, tmp_path, cdrb_in_process):
+    """The toy controller's ``gain`` is declared once, as a field of its config: --set, a grid variant's table,
+    `cdrb select`'s output and the Python API reach it, with no CLI or grid code naming it."""
+    from cdrb_cli import api
+    from cdrb_cli.stages.grid import load_grid, run_grid
+    from cdrb_cli.stages.select import select
+
+    tune = tmp_path / "tune.toml"
+    tune.write_text(
+        'out = "tune"\nenvs = ["toy-wall"]\nmethods = ["toy-straight"]\nseeds = [0]\ndemos = 40\nsteps = 100\n'
+        'eval_episodes = 3\neval_stream = "tune"\nreport = false\n'
+        '[[settings]]\ntrain = ["--set", "net.hidden=32,32"]\n'
+        '[[variants]]\nname = "soft"\neval = { controller = { gain = 0.05 } }\n'
+        '[[variants]]\nname = "firm"\neval = { controller = { gain = 2.0 } }\n'
+    )
+    run = run_grid(load_grid(tune), InProcess())
+    assert {r.status for r in run.results} == {"done"}
+    evals = {r.id: Path(r.outputs[0]) for r in run.results if r.kind == "eval"}
+    gains = {i: artifacts.load(p, "eval").manifest.config.controller.gain for i, p in evals.items()}
+    assert sorted(gains.values()) == [0.05, 2.0]
+    text = select(tune, tmp_path / "tuned.toml").read_text()
+    assert "controller.gain=" in text  # the chosen variant's knob, written as a setting
+
+    model = next(Path(r.outputs[0]) for r in run.results if r.kind == "train")
+    code, _ = cdrb_in_process(
+        "eval", model, "--seeds", "0", "--episodes", "2", "--set", "controller.gain=0.5", "--out", tmp_path / "e.h5"
+    )
+    assert code == 0 and artifacts.load(tmp_path / "e.h5", "eval").manifest.config.controller.gain == 0.5
+    summary = api.evaluate(model, tmp_path / "a.h5", episodes=2, settings={"controller.gain": 0.25})
+    assert artifacts.load(tmp_path / "a.h5", "eval").manifest.config.controller.gain == 0.25
+    assert summary.per_seed[0].episodes == 2
+    code, _ = cdrb_in_process("eval", model, "--set", "controller.gain=99", "--out", tmp_path / "bad.h5")
+    assert code == 2 and not (tmp_path / "bad.h5").exists()

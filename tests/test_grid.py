@@ -931,3 +931,26 @@ def test_a_finished_curve_is_extended_by_resuming_its_runs(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert artifacts.sha256_file(model.with_name("mlp-s0.step50.h5")) == short
     assert artifacts.load(model, "model").manifest.state.step == 100
+
+
+def test_a_variant_may_give_its_settings_as_a_table(tmp_path):
+    """A table of settings is the same command as its --set flags (so the same memo key), keys in the table's order;
+    a setting the grid sets itself is refused when the file is read."""
+    table = (
+        TINY
+        + '\n[[variants]]\nname = "tab"\nmethods = ["cdrb"]\n'
+        + 'eval = { replan = "every:40", avoid = { best_of = 4 }, controller = { max_lag = 0.3 } }\n'
+    )
+    flags = (
+        TINY
+        + '\n[[variants]]\nname = "tab"\nmethods = ["cdrb"]\n'
+        + 'eval = ["--set", "replan=\\"every:40\\"", "--set", "avoid.best_of=4", "--set", "controller.max_lag=0.3"]\n'
+    )
+    by_table = {t.id: t.argv for t in expand(load_grid(_grid(tmp_path, table, "a.toml")))}
+    by_flags = {t.id: t.argv for t in expand(load_grid(_grid(tmp_path, flags, "b.toml")))}
+    assert by_table == by_flags
+    argv = by_table["eval maze-tight/tab/cdrb-s0"]
+    assert argv[argv.index("--set") : argv.index("--set") + 2] == ["--set", 'replan="every:40"']
+    clash = TINY + '\n[[variants]]\nname = "n"\neval = { episodes = 5 }\n'
+    with pytest.raises(BadInput, match="the grid sets episodes of `cdrb eval` itself"):
+        load_grid(_grid(tmp_path, clash, "c.toml"))

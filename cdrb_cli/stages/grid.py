@@ -36,7 +36,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, Strict, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    Strict,
+    ValidationError,
+    field_validator,
+)
 
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.configs import MAX_SEED
@@ -52,6 +61,29 @@ Steps = Annotated[int, Strict(), Field(gt=0, le=10_000_000)]
 STDERR_LINES = 15
 
 
+def table_flags(value):
+    """A command's extra flags as a grid file gives them: a list of flags as typed (``["--scene", "x.txt"]``), or a
+    table of settings (``{ avoid = { best_of = 4 }, replan = "every:40" }``), which becomes ``--set KEY=VALUE``
+    flags (dotted keys in the table's order, values as JSON): the same command, so the same memo key."""
+    if not isinstance(value, dict):
+        return value
+    flags: list[str] = []
+
+    def walk(node: dict, prefix: str) -> None:
+        for key, item in node.items():
+            if isinstance(item, dict):
+                walk(item, f"{prefix}{key}.")
+            else:
+                flags.extend(["--set", f"{prefix}{key}={json.dumps(item)}"])
+
+    walk(value, "")
+    return flags
+
+
+#: extra flags of one command: a list of flags, or a table of settings (see :func:`table_flags`)
+Flags = Annotated[list[str], BeforeValidator(table_flags)]
+
+
 # ------------------------------------------------------------------------------------------------ the grid file
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -65,16 +97,21 @@ class Settings(_Strict):
 
     env: str | None = None
     method: str | None = None
-    collect: list[str] = Field(
+    collect: Flags = Field(
         default_factory=list, description="extra `cdrb collect` flags, e.g. ['--set', 'expert.routes=[\"over\"]']"
     )
-    cluster: list[str] = Field(
+    cluster: Flags = Field(
         default_factory=list,
         description="extra `cdrb cluster` flags of the buffer the matching runs train with, e.g. "
         "['--features', 'state-action'] (runs with the same flags share one buffer)",
     )
-    train: list[str] = Field(default_factory=list, description="extra `cdrb train` flags, e.g. ['--steps', '4000']")
-    eval: list[str] = Field(default_factory=list, description="extra `cdrb eval` flags, e.g. ['--max-lag', '0.6']")
+    train: Flags = Field(
+        default_factory=list, description="extra `cdrb train` flags or settings, e.g. ['--steps', '4000']"
+    )
+    eval: Flags = Field(
+        default_factory=list,
+        description="extra `cdrb eval` flags, or a table of settings, e.g. { controller = { max_lag = 0.6 } }",
+    )
     chosen: str | None = Field(None, description="what `cdrb select` chose (candidate and steps); not a flag")
 
 
@@ -104,11 +141,13 @@ class Variant(_Scoped):
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.=-]*$", description="folder name of the variant's runs")
     methods: list[str] | None = Field(None, description="the methods this variant applies to (default: all)")
     envs: list[str] | None = Field(None, description="the environments this variant applies to (default: all)")
-    cluster: list[str] = Field(
+    cluster: Flags = Field(
         default_factory=list, description="`cdrb cluster` flags of the variant's own buffer, e.g. ['--k', '100']"
     )
-    train: list[str] = Field(default_factory=list)
-    eval: list[str] = Field(default_factory=list)
+    train: Flags = Field(default_factory=list, description="`cdrb train` flags or a table of settings")
+    eval: Flags = Field(
+        default_factory=list, description="`cdrb eval` flags or a table of settings, e.g. { avoid = { best_of = 4 } }"
+    )
     stream: Literal["tune", "test"] | None = Field(
         None, description="start/goal pairs of its evals (default: eval_stream)"
     )
@@ -316,6 +355,8 @@ GRID_OPTIONS = {
     "train": {"method", "preset", "seed", "buffer", "snapshot_at", "out", "device"},
     "eval": {"seeds", "stream", "episodes", "out", "device"},
 }
+#: the settings (``--set KEY``) behind those options
+GRID_SETTINGS = {"train": {"method", "method.name", "preset", "seed"}, "eval": {"episodes", "seeds", "stream", "seed"}}
 #: files a grid's flags name that no grid writes: missing, every task that reads one would fail
 INPUT_FILE_FLAGS = ("--maze-map", "--scene", "--policy", "--config", "--paper-figures")
 
@@ -349,6 +390,13 @@ def _check_flag_list(flags: list[str], command: str, where: str) -> None:
             )
         if not takes_value:
             continue
+        key = (inline or "").partition("=")[0].strip().replace("-", "_")
+        if pname == "sets" and key in GRID_SETTINGS.get(command, ()):
+            raise BadInput(
+                f"{where}: --set {clip(inline, 60)}: the grid sets {key} of `cdrb {command}` itself",
+                hint="use the grid's own key (seeds, eval_seeds, eval_stream, eval_episodes, preset, or a variant's "
+                "stream)",
+            )
         if inline is None or ("=" not in token and inline.startswith("-") and inline in table):
             raise BadInput(f"{where}: {clip(repr(token), 60)} has no value",
                            hint=f"give it one: [{json.dumps(token)}, VALUE]")  # fmt: skip
