@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Training and sampling costs on a CUDA machine: the figures docs/benchmarks.md quotes for "on a GPU".
+# Training and sampling costs on a CUDA machine: the figures docs/benchmarks.md §1 quotes for one H200
+# (their tables: docs/notebook/2026-11-26-sampler-throughput.md, docs/notebook/2026-11-26-gpu-training-cost.md).
 #
 # What it measures (each run alone, one after the other, so timings do not share the GPU):
 #   * the ball sampler on CUDA against the dense reference (benchmarks/sampler_throughput.py --device cuda);

@@ -12,7 +12,7 @@ error, the median cosine between policy and expert action, the share of actions 
 0.9) and the ratio of mean action norms. Each model is measured with every sampler its config allows (the ones
 benchmarks/comparison.py tunes), its own first: for Diffusion-QL the plain DDPM sample (``--sampler ddpm``: no
 Q-based pick) separates the actor's imitation from the critic's choice.
-docs/benchmarks.md §4.7 uses these to explain Diffusion-QL's rows.
+docs/notebook/2026-11-25-maze-policies.md uses these to explain Diffusion-QL's maze rows.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Small networks use two CPU cores poorly inside one run: a quick-preset U-Net trains only ~1.3x faster on two
 threads than on one, while two runs of one thread each go nearly twice as fast as one run alone
-(docs/benchmarks.md). So a command with several independent trainings or evaluations (``cdrb quickstart``) runs
+(docs/benchmarks.md §11). So a command with several independent trainings or evaluations (``cdrb quickstart``) runs
 them at once. Workers are spawned processes that start with one job each and a fixed thread count; their progress
 bars and log lines come back through a queue and are drawn by this process's own display, and an error a user
 caused comes back as its one-line message, re-raised here with the same type.

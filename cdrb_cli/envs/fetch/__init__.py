@@ -61,7 +61,7 @@ TASKS: dict[str, tuple[str, bool, bool, int, int, str]] = {
 #: env steps per planned state where 1 is too short for the expert's path: the scripted pusher takes up to 90 steps
 #: around the short wall (p90 66 > 56), reaching out of the corridor up to 48 (> 28 planned states), and from the
 #: official start a carry over or around the tall wall reaches its goal within 56 steps in 67% of episodes only;
-#: the expert's cut-plan ceilings are in docs/benchmarks.md
+#: the expert's cut-plan ceilings are in docs/benchmarks.md §6.1
 STRIDES = {
     "fetch-push-obstacle": 2,
     "fetch-push-obstacle-mixed": 2,

@@ -7,7 +7,7 @@ planned width reacts to the jitter of open fingers). With ``follow_block`` (Push
 within 8 cm of the planned block, the target moves by how far the real block is from the planned one, so the
 gripper keeps pushing the block it has rather than the one it planned (on by default for Push only). After the
 plan's last state the controller holds it. ``fetch-push-path`` (Push): the scripted pusher pushes the block along
-the planned block path. Ceilings on the experts' own plans: docs/benchmarks.md section 6.
+the planned block path. Ceilings on the experts' own plans: docs/benchmarks.md §6.1.
 """
 
 from __future__ import annotations
@@ -87,7 +87,8 @@ class FetchPushPathController(Controller):
     """``fetch-push-path``: the plan's block positions become the waypoints of the scripted pusher (get behind the
     block, push, re-approach when it drifts), ending at the plan's last block position (the pinned goal). The
     plan's gripper states are not used: on Push the block's path is what a plan decides, and tracking the
-    gripper alone sends a block that drifted a centimetre along another path (docs/benchmarks.md)."""
+    gripper alone sends a block that drifted a centimetre along another path
+    (docs/notebook/2026-11-24-fetch-controllers-old-tasks.md)."""
 
     name = "fetch-push-path"
 
