@@ -285,8 +285,8 @@ class InProcess:
 def test_a_new_family_and_method_go_through_tune_select_test_and_report(toy_family, toy_method, tmp_path):
     """A study of the new family and method is data only: a tuning grid, `cdrb select`, a test grid that includes
     the selection, and `cdrb report`; no experiment code names either."""
-    from cdrb_cli.stages.grid import load_grid, run_grid
-    from cdrb_cli.stages.select import select
+    from cdrb_cli.orchestration.grid import load_grid, run_grid
+    from cdrb_cli.orchestration.select import select
 
     common = (
         'envs = ["toy-wall"]\nmethods = ["toy-straight", "cdrb"]\ndemos = 40\nk = 30\neval_episodes = 3\n'
@@ -411,8 +411,8 @@ def test_a_plugins_eval_knob_is_one_config_field(toy_family, toy_method, tmp_pat
     """The toy controller's ``gain`` is declared once, as a field of its config: --set, a grid variant's table,
     `cdrb select`'s output and the Python API reach it, with no CLI or grid code naming it."""
     from cdrb_cli import api
-    from cdrb_cli.stages.grid import load_grid, run_grid
-    from cdrb_cli.stages.select import select
+    from cdrb_cli.orchestration.grid import load_grid, run_grid
+    from cdrb_cli.orchestration.select import select
 
     tune = tmp_path / "tune.toml"
     tune.write_text(

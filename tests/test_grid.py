@@ -16,7 +16,7 @@ import pytest
 
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.grid import PoolBackend, expand, load_grid, run_grid
+from cdrb_cli.orchestration.grid import PoolBackend, expand, load_grid, run_grid
 from tests.conftest import call_cdrb
 
 TINY = """
@@ -404,9 +404,9 @@ def test_the_shipped_experiment_files_load_and_expand():
             assert f" {n} {word}" in head, (path, kind)
     # the included settings files of the test grids hold exactly one entry per env x method they choose for
     for path in sorted((root / "tuned").glob("*.toml")):
-        from cdrb_cli.stages.grid import SettingsFile, _read_toml
+        from cdrb_cli.orchestration.grid import SettingsFile, read_toml
 
-        sfile = SettingsFile.model_validate(_read_toml(path, "settings file"))
+        sfile = SettingsFile.model_validate(read_toml(path, "settings file"))
         keys = [(s.env, s.method) for s in sfile.settings]
         assert keys and len(keys) == len(set(keys)) and all(s.chosen for s in sfile.settings), path
 
@@ -456,7 +456,7 @@ def test_a_setting_stated_by_two_included_files_is_passed_once_and_an_override_s
 
 
 def test_without_repeated_sets_keeps_every_flag_that_changes_the_command():
-    from cdrb_cli.stages.grid import without_repeated_sets
+    from cdrb_cli.orchestration.grid import without_repeated_sets
 
     flags = ["--set", "a=1", "--steps", "5", "--set", "a=1", "--set", "b=2"]
     assert without_repeated_sets(flags) == ["--set", "a=1", "--steps", "5", "--set", "b=2"]
@@ -653,7 +653,7 @@ def test_load_errors_name_the_set_that_gave_the_value_and_reuse_must_be_folders(
 
 
 def test_a_grid_never_writes_over_its_own_files_or_a_users_summary(tmp_path):
-    from cdrb_cli.stages.grid import grid
+    from cdrb_cli.orchestration.grid import grid
 
     own = _grid(tmp_path, TINY.replace('out = "runs"', 'out = "."'), name="grid.json")  # a TOML file named grid.json
     before = own.read_text()
@@ -684,7 +684,7 @@ def test_grid_tasks_do_not_import_modules_from_the_current_folder(tmp_path):
 
 
 def test_hostile_grid_files_and_memos_are_refused_or_redone_without_hanging(tmp_path):
-    from cdrb_cli.stages.grid import MAX_TASKS, is_done, memo_path
+    from cdrb_cli.orchestration.grid import MAX_TASKS, is_done, memo_path
 
     fifo = tmp_path / "fifo.toml"
     os.mkfifo(fifo)
@@ -894,7 +894,7 @@ def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path)
     moved = chosen.replace('"--set"', '"--set", "net.dim=8", "--set"', 1)
     spec = load_grid(_grid(tmp_path, table.replace(chosen, moved), "o.toml"))
     assert "train maze-tight/cdrb-s0" not in {t.id for t in expand(spec)}
-    from cdrb_cli.stages.grid import parse_command
+    from cdrb_cli.orchestration.grid import parse_command
 
     inner, outer = ["--set", "controller.gain=2"], ["--set", "controller={kp = 1}"]
     assert parse_command(["eval", "m.h5", *inner, *outer])[2] != parse_command(["eval", "m.h5", *outer, *inner])[2]
@@ -902,7 +902,7 @@ def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path)
     # fails; expanded again, it is not reused: the test grid trains that model itself
     with open(curve_dir / "cdrb-s0.step50.h5", "ab") as fh:
         fh.write(b"\0")
-    from cdrb_cli.stages.grid import make_backend, run_grid
+    from cdrb_cli.orchestration.grid import make_backend, run_grid
 
     backend = make_backend("pool", 1, None)
     try:

@@ -12,7 +12,7 @@ import pytest
 import tomllib
 
 from cdrb_cli import artifacts
-from cdrb_cli.stages.select import RULE, Candidate, choose
+from cdrb_cli.orchestration.select import RULE, Candidate, choose
 from tests.conftest import call_cdrb
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -48,7 +48,7 @@ def test_the_rule_ranks_success_then_crossings_then_collisions_then_order_then_s
 
 
 def test_the_spread_between_training_seeds_needs_two_seeds():
-    from cdrb_cli.stages.select import seed_spread
+    from cdrb_cli.orchestration.select import seed_spread
 
     assert seed_spread([{"success": 40.0}]) is None and seed_spread([]) is None
     assert seed_spread([{"success": 40.0}, {"success": 60.0}]) == pytest.approx(14.1421, abs=1e-3)
@@ -64,7 +64,7 @@ def _cdrb(*args, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
 @pytest.mark.slow
 def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standard_error():
     """The points of a curve are snapshots of the same runs: the gain is judged per training seed (paired)."""
-    from cdrb_cli.stages.select import still_rising
+    from cdrb_cli.orchestration.select import still_rising
 
     def point(variant, order, steps, successes, method="cdrb"):
         c = _cand(variant, order, steps, success=sum(successes) / len(successes), method=method)
@@ -104,8 +104,8 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     its model elsewhere) has the very command of the longer run's eval, and only the training length it records
     tells the two apart."""
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.stages.grid import expand, load_grid
-    from cdrb_cli.stages.select import _checked_eval
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.select import _checked_eval
     from tests import factories
 
     grid = tmp_path / "tune.toml"
@@ -136,7 +136,7 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
     obstacle (none for a policy), and * where its curve still rises."""
-    from cdrb_cli.stages.select import still_rising, summary_text
+    from cdrb_cli.orchestration.select import still_rising, summary_text
 
     def point(variant, order, steps, successes, method, crossing=0.0):
         mean = sum(successes) / len(successes)
@@ -327,8 +327,8 @@ def test_names_from_an_artifact_cannot_break_a_markdown_table_or_its_block():
 def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp_path):
     """A variant that trains on its own buffer (cluster flags, e.g. state-action features): the settings file
     carries those flags, so the test grid that includes it clusters the same buffer for that method."""
-    from cdrb_cli.stages.grid import expand, load_grid
-    from cdrb_cli.stages.select import Candidate, settings_text
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.select import Candidate, settings_text
 
     tune = tmp_path / "tune.toml"
     tune.write_text(
@@ -360,7 +360,7 @@ def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp
 
 
 def test_selected_file_flags_are_relative_to_the_settings_file(tmp_path):
-    from cdrb_cli.stages.select import relative_files
+    from cdrb_cli.orchestration.select import relative_files
 
     folder = tmp_path / "experiments" / "tuned"
     maps = tmp_path / "experiments" / "maps" / "closed.txt"
@@ -378,8 +378,8 @@ def test_select_never_writes_over_a_file_the_grid_reads_or_writes(tmp_path, monk
     """--force overwrites an earlier output, never an input: the settings file the grid includes, or any artifact
     under its `out` (here an eval the selection would read)."""
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.stages.grid import expand, load_grid
-    from cdrb_cli.stages.select import select
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.select import select
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "data.toml").write_text('[[settings]]\ntrain = ["--steps", "20"]\n')

@@ -142,8 +142,8 @@ def quickstart(
 
         choose_gl_backend()
     from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.stages.quickstart import DEFAULT_ENV, DEFAULT_METHODS, check_methods
-    from cdrb_cli.stages.quickstart import quickstart as run_quickstart
+    from cdrb_cli.orchestration.quickstart import DEFAULT_ENV, DEFAULT_METHODS, check_methods
+    from cdrb_cli.orchestration.quickstart import quickstart as run_quickstart
     from cdrb_cli.torch_utils import setup_torch
 
     method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else DEFAULT_METHODS
@@ -210,7 +210,7 @@ def select(
     of its learning curves (`snapshot_at`). The rule, per environment x method: highest tuning success, then fewest
     plans through an obstacle, then fewest executed collisions, then the grid's variant order, then fewest training
     steps. Prints the path of the settings file."""
-    from cdrb_cli.stages.select import select as run_select
+    from cdrb_cli.orchestration.select import select as run_select
 
     if (docs is None) != (block is None):
         raise BadInput("--docs and --block go together", hint="e.g. --docs README.md --block tuning-fetch")
@@ -250,7 +250,7 @@ def grid(
     stopped; a failed task is retried (a training resumes from its checkpoint) and then reported, while the
     others go on. Prints the path of the summary (OUT/grid.json). Format and examples: docs/cli.md.
     """
-    from cdrb_cli.stages.grid import grid as run_grid_file
+    from cdrb_cli.orchestration.grid import grid as run_grid_file
 
     res = run_grid_file(
         grid_file,

@@ -16,8 +16,8 @@ from pathlib import Path
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
 from cdrb_cli.settings import toml_string
-from cdrb_cli.stages.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
 from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
 RULE = (
@@ -115,7 +115,7 @@ def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None
     keeps its name when a curve is extended), and, where the model it evaluated is here, that same model (the same
     bytes or, as every stage judges an input, the same data). An eval that records no training length, of a model
     that is not here, is appended to ``unchecked``."""
-    from cdrb_cli.stages.grid import file_sha, measure_difference
+    from cdrb_cli.orchestration.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
     made = list(ev.manifest.argv[1:])
@@ -255,7 +255,7 @@ def relative_files(flags: list[str], folder: Path) -> list[str]:
     ``folder``, the settings file's own: a grid that includes the file then finds the same files from anywhere."""
     import os
 
-    from cdrb_cli.stages.grid import PATH_FLAGS
+    from cdrb_cli.orchestration.grid import PATH_FLAGS
 
     out = list(flags)
     for i, f in enumerate(out):
@@ -383,7 +383,7 @@ def select(
     """Score the tuning grid's evals, choose by :data:`RULE`, write the settings file (and the candidates' table,
     and with ``docs`` the choices' summary into that markdown file's ``block``)."""
     from cdrb_cli.artifacts.outputs import distinct_outputs
-    from cdrb_cli.stages.grid import load_grid
+    from cdrb_cli.orchestration.grid import load_grid
 
     distinct_outputs(out=out, table=table, curves=curves)
     spec = load_grid(grid_file, overrides, includes)

@@ -1,0 +1,328 @@
+"""`load_grid`: a grid file and the settings files it includes, validated into a :class:`GridSpec`."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import (
+    ValidationError,
+)
+
+from cdrb_cli import ui
+from cdrb_cli.configs import MAX_SEED
+from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid.expand import cluster_flags_for, collect_flags_for, flags_for, model_variants
+from cdrb_cli.orchestration.grid.flags import check_flags, parse_command
+from cdrb_cli.orchestration.grid.spec import (
+    MAX_TASKS,
+    GridSpec,
+    Scoped,
+    Settings,
+    SettingsFile,
+    Variant,
+    anchor_all,
+    read_toml,
+    validated,
+)
+from cdrb_cli.settings import clip
+
+
+def _included_settings(
+    paths: list[Path], base: Path, chain: tuple[Path, ...], read: list[Path] | None = None
+) -> list[Settings]:
+    """The settings of ``paths`` (relative to ``base``) in order, each file's own includes first; every file read
+    is appended to ``read``."""
+    out: list[Settings] = []
+    for rel in paths:
+        given = Path(os.path.normpath(base / rel))
+        path = given.resolve()
+        if path in chain:
+            raise BadInput(f"{chain[-1]}: include {rel}: includes itself (through {path.name})", hint="remove the loop")
+        sfile = validated(SettingsFile, read_toml(given, "settings file"), path)
+        if read is not None:
+            read.append(path)
+        out += _included_settings(sfile.include, path.parent, (*chain, path), read)
+        out += anchor_all(sfile.settings, path.parent)
+    return out
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` from `cdrb grid --set`: VALUE as a TOML value (``seeds=[0]``, ``demos=40``), else a string."""
+    import tomllib
+
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise BadInput(f"--set {clip(text)}: expected KEY=VALUE", hint="e.g. --set demos=40 or --set 'seeds=[0]'")
+    try:
+        return key.strip(), tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        return key.strip(), value
+
+
+def _origin(path: Path, overrides: list[str], *keys) -> str:
+    """Where a top-level key's value came from: the ``--set`` of the first of ``keys`` that was set (each key's
+    last ``--set``), else the grid file."""
+    given = {parse_override(t)[0]: t for t in overrides}
+    for key in keys:
+        if key in given:
+            return f"--set {clip(given[key])}"
+    return str(path)
+
+
+def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] = ()) -> GridSpec:
+    """Read and check a grid file: unknown keys, environments and methods are one-line errors naming the file.
+
+    ``include`` files' settings come first (in order), then the grid's own; ``extra_includes`` (`cdrb grid
+    --include`, relative to the current folder) come last, so they override both. ``overrides`` (`cdrb grid --set
+    KEY=VALUE`) replace top-level keys of the file; an ``out`` given so is relative to the current folder."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.registry import METHODS
+
+    raw = read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
+    path = Path(path).resolve()
+    cwd_out, set_keys = None, set()
+    for text in overrides:
+        key, value = parse_override(text)
+        set_keys.add(key)
+        if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
+            raise BadInput(
+                f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
+                hint="one of "
+                + ", ".join(
+                    k for k in GridSpec.model_fields if k not in ("settings", "variants", "include", "resources")
+                ),
+            )
+        raw[key] = value
+        if key == "out":
+            cwd_out = Path(str(value)).resolve()
+    try:
+        spec = GridSpec.model_validate(raw)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
+        raise BadInput(f"{_origin(path, overrides, *err['loc'][:1])}: {where}: {err['msg']}",
+                       hint="see docs/cli.md, `cdrb grid`") from None  # fmt: skip
+    read = [path]
+    spec.settings = (
+        _included_settings(spec.include, path.parent, (path,), read)
+        + anchor_all(spec.settings, path.parent)
+        + _included_settings(list(extra_includes), Path.cwd(), (path,), read)
+    )
+    spec.variants = anchor_all(spec.variants, path.parent)
+    check_flags(spec, path)
+    spec._sources = read
+    spec.out = cwd_out or (path.parent / spec.out).resolve()
+    _check_out(spec.out, _origin(path, overrides, "out"))
+    spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
+    if spec.out in spec.reuse:
+        raise BadInput(f"{_origin(path, overrides, 'reuse', 'out')}: reuse: names the grid's own `out` folder",
+                       hint="list other grids' `out` folders")  # fmt: skip
+    for folder in spec.reuse:
+        if folder.exists() and not folder.is_dir():
+            raise BadInput(
+                f"{_origin(path, overrides, 'reuse')}: reuse: {folder} is a file, not a grid's `out` folder",
+                hint="list the `out` folders of other grids",
+            )
+        if not folder.exists():  # a grid may name the folder of one not run yet (Table 1 before its curves)
+            ui.warn(f"reuse: {folder}: no such folder yet, so nothing is reused from it (a typo?)")
+    for env in spec.envs:
+        try:
+            make_spec(env)
+        except BadInput as exc:
+            raise BadInput(f"{_origin(path, overrides, 'envs')}: envs: {exc.message}",
+                           hint="`cdrb envs` lists them") from None  # fmt: skip
+    for m in spec.methods:
+        METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
+    _check_train_configs(spec, path)
+    # settings may name envs and methods the grid does not run (one settings table for several grids), but every
+    # name must exist: a typo would silently apply nothing
+    for i, s in enumerate(spec.settings):
+        if s.env is not None:
+            try:
+                make_spec(s.env)
+            except BadInput as exc:
+                raise BadInput(f"{path}: settings[{i}].env: {exc.message}", hint="`cdrb envs` lists them") from None
+        if s.method is not None:
+            METHODS.get(s.method, f"{path}: settings[{i}].method")
+            if s.collect:
+                raise BadInput(
+                    f"{path}: settings[{i}]: collect flags apply to an environment's demos, which every method shares",
+                    hint="put them in an entry without `method`",
+                )
+    names = [v.name for v in spec.variants]
+    if len({n.lower() for n in names}) != len(names):  # folders: one on a case-insensitive file system
+        raise BadInput(f"{path}: variants: names must differ, also in case (got {', '.join(names)})",
+                       hint="rename one")  # fmt: skip
+    for v in spec.variants:
+        if v.name.lower().endswith(".h5"):
+            raise BadInput(f"{path}: variant {v.name}: a variant's folder lies beside the environment's artifacts, "
+                           "so its name cannot end in .h5", hint="rename it")  # fmt: skip
+    # a variant may name methods and envs the grid does not run (a grid narrowed with --set), but each must exist
+    for i, v in enumerate(spec.variants):
+        _check_names(f"{path}: variant {v.name}", v.methods, v.envs)
+        _check_scope(f"{path}: variants[{i}] ({v.name})", v, spec, bool({"envs", "methods"} & set_keys))
+    if any(len(set(v)) != len(v) for v in (spec.seeds, spec.envs, spec.methods)):
+        raise BadInput(f"{_origin(path, overrides, 'envs', 'methods', 'seeds')}: envs, methods and seeds must each "
+                       "be listed once", hint="remove the repeats")  # fmt: skip
+    if spec.snapshot_at:
+        if spec.steps is None or any(s <= 0 or s >= spec.steps for s in spec.snapshot_at):
+            raise BadInput(
+                f"{_origin(path, overrides, 'snapshot_at', 'steps')}: snapshot_at: every snapshot must lie between 0 "
+                "and `steps` (the final model)",
+                hint="set steps to the curve's last point and list the earlier ones in snapshot_at",
+            )
+        if len(set(spec.snapshot_at)) != len(spec.snapshot_at):
+            raise BadInput(f"{_origin(path, overrides, 'snapshot_at')}: snapshot_at: list each step once",
+                           hint="remove the repeats")  # fmt: skip
+        _check_snapshot_steps(spec, _origin(path, overrides, "snapshot_at"))
+    for i, ext in enumerate(spec.extend):
+        where = f"{_origin(path, overrides, 'extend', 'steps')}: extend[{i}]"
+        if spec.steps is None or ext.steps <= spec.steps:
+            raise BadInput(
+                f"{where}: steps {ext.steps} does not extend the curve (the grid's steps: {spec.steps})",
+                hint="set the grid's `steps` and give the extension more",
+            )
+        _check_names(where, ext.methods, ext.envs)
+        _check_scope(where, ext, spec, bool({"envs", "methods"} & set_keys))
+    if spec.extend:
+        _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
+    if spec.eval_seeds is not None and "eval_seed_offset" in spec.model_fields_set:
+        raise BadInput(
+            f"{_origin(path, overrides, 'eval_seed_offset', 'eval_seeds')}: eval_seeds and eval_seed_offset: the "
+            "offset applies only without eval_seeds",
+            hint="keep one of the two",
+        )
+    if spec.eval_seeds is None and max(spec.seeds) + spec.eval_seed_offset > MAX_SEED:
+        where = _origin(path, overrides, "eval_seed_offset", "seeds")
+        raise BadInput(
+            f"{where}: eval_seed_offset {spec.eval_seed_offset}: training seed {max(spec.seeds)} plus it is past "
+            f"the largest seed ({MAX_SEED})",
+            hint="use smaller seeds or a smaller offset",
+        )
+    runs = len(spec.envs) * len(spec.methods) * len(spec.seeds) * max(1, len(spec.variants))
+    per_run = 2 + len(spec.snapshot_at) + bool(spec.extend)
+    if runs * per_run > MAX_TASKS:
+        raise BadInput(
+            f"{path}: the grid expands to about {runs * per_run:,} tasks (at most {MAX_TASKS:,})",
+            hint="split it into several grid files",
+        )
+    if spec.report and spec.eval_seeds is not None and len(spec.seeds) > 1:
+        raise BadInput(
+            f"{_origin(path, overrides, 'eval_seeds', 'seeds', 'report')}: eval_seeds with several training seeds: "
+            "a report would pool the same evaluation seeds twice",
+            hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
+        )
+    return spec
+
+
+def _check_scope(where: str, item: Scoped, spec: GridSpec, narrowed: bool) -> None:
+    """An empty ``methods``/``envs`` list is an error (it applies to nothing; leaving the key out means all), and an
+    entry that applies to none of the grid's runs is said, unless the grid was ``narrowed`` with --set (which may
+    leave entries idle on purpose)."""
+    for key in ("methods", "envs"):
+        if getattr(item, key) == []:
+            raise BadInput(f"{where}: {key} = []: applies to nothing", hint=f"leave {key} out to mean all")
+    if not narrowed and not any(item.applies(e, m) for e in spec.envs for m in spec.methods):
+        ui.warn(f"{where}: applies to none of the grid's environments and methods, so it does nothing here")
+
+
+def _check_out(out: Path, where: str) -> None:
+    """The grid's ``out`` is a folder or can become one (no file on its path), and its name has no control
+    characters (every task's command line names files under it, one line per task)."""
+    if any(ord(c) < 32 or ord(c) == 127 for c in str(out)):
+        raise BadInput(f"{where}: out {clip(repr(str(out)), 80)}: has a control character", hint="rename the folder")
+    for folder in (out, *out.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise BadInput(f"{where}: out = {out}: {folder} is a file, not a folder",
+                               hint="choose a folder for the grid's artifacts")  # fmt: skip
+            break
+
+
+def _check_names(where: str, methods: list[str] | None, envs: list[str] | None) -> None:
+    """Every method and environment a variant or an extension names exists (it may name ones the grid does not
+    run: a grid narrowed with --set)."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.registry import METHODS
+
+    for m in methods or []:
+        METHODS.get(m, f"{where}: methods")
+    for e in envs or []:
+        try:
+            make_spec(e)
+        except BadInput as exc:
+            raise BadInput(f"{where}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
+
+
+def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> int | None:
+    """Where ``method``'s training in ``variant`` records its model (:func:`train.snapshot_step` of its
+    checkpoint_every: the preset's, the method's own, or its train flags' last ``--set checkpoint_every=N``); None
+    when a ``--config`` file may set it or the value is not a positive integer (`cdrb train` then says so)."""
+    from cdrb_cli.methods.config import preset_training
+    from cdrb_cli.methods.registry import METHODS
+    from cdrb_cli.presets import PRESETS
+    from cdrb_cli.stages.train import snapshot_step
+
+    _, options, sets = parse_command(["train", *flags_for(spec, env, method, variant)[0]])
+    if options.get("config_file") is not None:
+        return None
+    preset = str(options.get("preset") or spec.preset)
+    if preset not in PRESETS:
+        return None
+    every = str(dict(sets).get("checkpoint_every", preset_training(METHODS.get(method), preset)["checkpoint_every"]))
+    return snapshot_step(int(every)) if every.isascii() and every.isdigit() and int(every) > 0 else None
+
+
+def _check_train_configs(spec: GridSpec, path: Path) -> None:
+    """Every training's settings resolve as `cdrb train` resolves them: on the environment's spec (of its
+    ``--maze-map`` where the collect flags name one) and a buffer of the features its cluster flags ask for. An
+    unknown ``--set`` key, a value of the wrong type or a net the method cannot use is then one line when the grid
+    is read, not a failure of every training hours later. Settings in a ``--config`` file are left to the command."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.config import resolve_train_config, user_settings
+    from cdrb_cli.methods.registry import METHODS, BufferInfo
+
+    for env in spec.envs:
+        collect = collect_flags_for(spec, env)
+        maze_map = parse_command(["collect", env, *collect])[1].get("maze_map")
+        try:
+            env_spec = make_spec(None if maze_map else env, maze_map)
+        except BadInput:
+            continue  # the collection says what is wrong with its map
+        for method in spec.methods:
+            entry = METHODS.get(method)
+            for v in model_variants(spec, env, method):
+                _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]])
+                if options.get("config_file") is not None:
+                    continue
+                steps = None if options.get("steps") is None else int(options["steps"])
+                preset = options.get("preset") or spec.preset
+                items = user_settings(method, options.get("net"), preset, steps, sets=[f"{k}={x}" for k, x in sets])
+                buffer = None
+                if entry.needs_buffer:
+                    cluster = parse_command(["cluster", "demos.h5", *cluster_flags_for(spec, env, method, v)])[1]
+                    buffer = BufferInfo(features=str(cluster.get("features") or "state"), diameter=1.0)
+                try:
+                    resolve_train_config(env_spec, buffer, items)
+                except BadInput as exc:
+                    where = f"{path}: {method} on {env}" + (f" in variant {v.name}" if v.name else "")
+                    raise BadInput(f"{where}: train flags: {exc.message}", hint=exc.hint) from None
+
+
+def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:
+    """Every snapshot step on each training's loss curve (the rule of `cdrb train --snapshot-at`), so a grid that
+    would fail in every training fails when it is read; ``origin`` names where snapshot_at came from."""
+    for env in spec.envs:
+        for method in spec.methods:
+            snaps = spec.curve(env, method)[1]
+            for v in model_variants(spec, env, method):
+                step = _snapshot_step(spec, env, method, v)
+                bad = [s for s in snaps if step and s % step]
+                if bad:
+                    where = f"{method}'s training" + (f" in variant {v.name}" if v.name else "")
+                    raise BadInput(
+                        f"{origin}: snapshot_at: {bad[0]} is not a multiple of {step}, where {where} records its "
+                        f"model (every gcd(50, checkpoint_every) steps)",
+                        hint=f"use multiples of {step}, or set checkpoint_every in {method}'s train flags",
+                    )

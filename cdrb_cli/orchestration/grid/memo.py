@@ -1,0 +1,112 @@
+"""Memos: what each task wrote (its command, the cdrb version, the sha256 of every input and output), so a rerun
+does no work for a task whose files still match."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+from cdrb_cli import __version__, artifacts
+from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
+
+
+# ------------------------------------------------------------------------------------------------ memo
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", text).strip("_")
+
+
+def cached_sha(path: Path, cache: dict) -> str | None:
+    if not path.exists():
+        return None
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in cache:
+        cache[key] = artifacts.sha256_file(path)
+    return cache[key]
+
+
+def memo_path(spec: GridSpec, task: Task) -> Path:
+    return spec.out / ".grid" / f"{_slug(task.id)}.json"
+
+
+#: the scene flags of plan and eval
+_SCENE_FLAGS = ("--scene", "--maze-map")
+
+
+def _meaning(task: Task) -> dict:
+    """What a command means beyond its words, where a release changed it: a plan or an eval in a scene avoids the
+    new obstacles by default (the family's tuned avoidance), so a memo written when it meant the plain model is out
+    of date."""
+    if task.kind in ("plan", "eval") and any(a in _SCENE_FLAGS or a.split("=")[0] in _SCENE_FLAGS for a in task.argv):
+        return {"scene_avoid": "tuned by default"}
+    return {}
+
+
+def _fingerprint(task: Task, cache: dict) -> dict:
+    return {
+        "argv": task.argv,
+        "cdrb": __version__,
+        **_meaning(task),
+        "inputs": {str(p): cached_sha(p, cache) for p in task.inputs},
+        "outputs": {str(p): cached_sha(p, cache) for p in task.outputs},
+    }
+
+
+def _memo(spec: GridSpec, task: Task) -> dict | None:
+    """The task's memo, or None (a memo that is not a small regular file of JSON is stale: the task is redone)."""
+    text = read_small(memo_path(spec, task))
+    try:
+        memo = json.loads(text) if text is not None else None
+    except (ValueError, RecursionError):
+        return None
+    return memo if isinstance(memo, dict) else None
+
+
+def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
+    """The task's memo matches its command, the cdrb version and every input and output file."""
+    memo = _memo(spec, task)
+    if memo is None:
+        return False
+    now = _fingerprint(task, cache)
+    return memo == now and all(now["outputs"].values())
+
+
+def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:
+    """Whether every output of ``task`` is the file this grid's memo says the task wrote: the grid's own artifact,
+    which it may replace when the task is out of date (a file the memo does not vouch for is never overwritten)."""
+    memo = _memo(spec, task)
+    recorded = memo.get("outputs") if memo is not None else None
+    now = {str(p): cached_sha(p, cache) for p in task.outputs}
+    return isinstance(recorded, dict) and recorded == now and all(now.values())
+
+
+def write_memo(spec: GridSpec, task: Task, cache: dict) -> None:
+    path = memo_path(spec, task)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with artifacts.atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(_fingerprint(task, cache), indent=1))
+
+
+def check_outputs(spec: GridSpec, tasks: list[Task]) -> None:
+    """Before any work: no task and no summary may write over the grid file or a settings file it read, and
+    OUT/grid.json, which every run rewrites, must be a grid summary if it exists (not a file of the user's)."""
+    if spec.out.exists() and not spec.out.is_dir():
+        raise BadInput(f"out = {spec.out}: is a file, not a folder", hint="choose a folder for the grid's artifacts")
+    sources = {p.resolve() for p in spec._sources}
+    summary = spec.out / "grid.json"
+    for out in [summary] + [p for t in tasks for p in t.outputs]:
+        if out.resolve() in sources:
+            raise BadInput(f"{out}: the grid would write over its own input file", hint="choose another `out` folder")
+    if summary.exists():
+        text = read_small(summary, 1 << 26)
+        try:
+            body = json.loads(text) if text is not None else None
+        except (ValueError, RecursionError):
+            body = None
+        if not isinstance(body, dict) or not {"tasks", "counts"} <= body.keys():
+            raise BadInput(
+                f"{summary}: exists and is not a grid summary; a grid run writes its summary there",
+                hint="move the file or choose another `out` folder",
+            )

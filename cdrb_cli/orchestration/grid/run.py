@@ -1,0 +1,397 @@
+"""Running a grid: tasks as `python -m cdrb_cli` processes on a local pool or on Ray, retried once, with
+progress, a summary and the report."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from cdrb_cli import artifacts, ui
+from cdrb_cli.errors import BadInput, RunFailed
+from cdrb_cli.orchestration.grid.expand import expand
+from cdrb_cli.orchestration.grid.load import load_grid
+from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, write_memo, written_here
+from cdrb_cli.orchestration.grid.reuse import REUSABLE, regular_sha
+from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task
+
+
+# ------------------------------------------------------------------------------------------------ execution
+def execute(payload: dict) -> dict:
+    """Run one task's `cdrb` command in a fresh process (on this machine or a Ray worker). A training whose model
+    file is there is continued with ``--resume``: a checkpoint an earlier attempt left unfinished, or a finished
+    shorter run of the same settings that the grid now trains longer (a curve extended to more steps); the command
+    itself refuses a file of other settings."""
+    argv = list(payload["argv"])
+    if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file():
+        argv.append("--resume")
+    for out in payload["outputs"]:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+    # PYTHONSAFEPATH: the task's `python -m` must not import modules from the current folder (a `typer.py` beside
+    # the grid would run in every task); cdrb is imported from where it is installed
+    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1")
+    t = time.time()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdrb_cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=_die_with_parent(),
+    )
+    with _RUNNING_LOCK:
+        _RUNNING.add(proc)
+    try:
+        _, stderr = proc.communicate()
+    finally:
+        with _RUNNING_LOCK:
+            _RUNNING.discard(proc)
+    tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
+    return {"rc": proc.returncode, "seconds": time.time() - t, "stderr": tail}
+
+
+#: the task processes this process started and that still run (the pool's threads start them)
+_RUNNING: set[subprocess.Popen] = set()
+_RUNNING_LOCK = threading.Lock()
+
+
+def _die_with_parent():
+    """What a task's process runs before it starts (Linux): ask the kernel to send it SIGTERM when the thread that
+    started it dies, so a grid killed with -9 leaves no training running and holding its output's lock. The
+    function is looked up here, in the parent: the child only calls it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return lambda: prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def stop_running(grace: float = 5.0) -> None:
+    """SIGTERM every running task process (a training keeps its last checkpoint and exits), SIGKILL what is left
+    after ``grace`` seconds."""
+    with _RUNNING_LOCK:
+        procs = list(_RUNNING)
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    deadline = time.time() + grace
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.0, deadline - time.time()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+@dataclass
+class TaskResult:
+    id: str
+    kind: str
+    status: Literal["done", "up to date", "failed", "skipped"] = "skipped"
+    attempts: int = 0
+    seconds: float = 0.0
+    stderr: list[str] = field(default_factory=list)
+    outputs: list[str] = field(default_factory=list)
+
+
+class PoolBackend:
+    """N local workers, each running one task's process at a time."""
+
+    name = "local pool"
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        #: tasks handed over at once: the grid keeps the rest and picks them in its own order (see run_grid)
+        self.capacity = workers
+        self.pool = cf.ThreadPoolExecutor(max_workers=workers)
+
+    def check(self, spec: GridSpec) -> None:
+        pass
+
+    def submit(self, payload: dict) -> cf.Future:
+        return self.pool.submit(execute, payload)
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class RayBackend:
+    """Tasks as Ray tasks with the CPUs/GPUs of their kind; ``address`` None starts Ray on this machine."""
+
+    name = "ray"
+
+    def __init__(self, address: str | None, workers: int | None):
+        import ray
+
+        kwargs = {"include_dashboard": False, "log_to_driver": False, "ignore_reinit_error": True}
+        if address is None and workers:
+            kwargs["num_cpus"] = workers
+        ray.init(address=address, **kwargs)
+        self.ray = ray
+        self.remote = ray.remote(max_retries=0)(execute)
+        total = ray.cluster_resources()
+        self.workers, self.gpus = int(total.get("CPU", 0)), float(total.get("GPU", 0))
+
+    def check(self, spec: GridSpec) -> None:
+        """A task asking for GPUs the cluster lacks would wait forever: refuse the grid instead."""
+        for kind, res in spec.resources.items():
+            if res.gpus > self.gpus:
+                raise BadInput(
+                    f"resources.{kind}.gpus = {res.gpus:g}, but the Ray cluster has {self.gpus:g} GPUs",
+                    hint="lower it in the grid file or add GPU workers",
+                )
+
+    def submit(self, payload: dict) -> cf.Future:
+        # a task may not ask for more CPUs than the whole cluster has (it would never be scheduled)
+        cpus = min(payload["cpus"], self.workers) if self.workers else payload["cpus"]
+        fn = self.remote.options(num_cpus=cpus, num_gpus=payload["gpus"])
+        return fn.remote(payload).future()
+
+    def close(self) -> None:
+        self.ray.shutdown()
+
+
+#: seconds `cdrb grid --address` waits for the cluster to answer before saying it does not
+ADDRESS_TIMEOUT = 5.0
+
+
+def _probe(address: str) -> None:
+    """A TCP connection to ``address`` (HOST:PORT or ray://HOST:PORT) within :data:`ADDRESS_TIMEOUT` seconds, so an
+    address nobody listens on is one line instead of Ray retrying for minutes."""
+    import socket
+
+    hostport = address.removeprefix("ray://")
+    host, _, port = hostport.rpartition(":")
+    host = host.strip("[]")
+    try:
+        socket.create_connection((host, int(port)), timeout=ADDRESS_TIMEOUT).close()
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or type(exc).__name__
+        raise BadInput(
+            f"--address {address}: no Ray cluster answers there within {ADDRESS_TIMEOUT:g} s ({reason})",
+            hint="start the head node (`ray start --head`) or check the host and port",
+        ) from None
+
+
+def make_backend(backend: str, workers: int | None, address: str | None):
+    """``auto``: Ray when it is installed, else the local pool."""
+    if address is not None and not re.fullmatch(r"(ray://)?[A-Za-z0-9_.\-\[\]:]+:[0-9]{1,5}|auto", address):
+        raise BadInput(
+            f"--address {address[:100]!r}: not a Ray address",
+            hint="use HOST:PORT (a head node's GCS port) or ray://HOST:PORT (Ray Client), or auto",
+        )
+    if backend in ("auto", "ray"):
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            if backend == "ray" or address:
+                raise BadInput(
+                    "--backend ray: Ray is not installed", hint='pip install "cdrb-cli[ray]", or use --backend pool'
+                ) from None
+            ui.log("Ray is not installed: running on a local pool")
+            backend = "pool"
+        else:
+            if address not in (None, "auto"):
+                _probe(address)
+            return RayBackend(address, workers)
+    if address:
+        raise BadInput("--address needs the Ray backend", hint="drop --address or use --backend ray")
+    return PoolBackend(workers or max(1, os.cpu_count() or 1))
+
+
+@dataclass
+class GridRun:
+    results: list[TaskResult]
+    summary: Path
+    seconds: float
+    backend: str
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.results)
+
+
+def run_grid(
+    spec: GridSpec,
+    backend,
+    retries: int = 1,
+    on_event: Callable[[str, TaskResult], None] | None = None,
+    tasks: list[Task] | None = None,
+) -> GridRun:
+    """Execute the grid's tasks (``tasks``, default: the expanded grid) on ``backend``: each when its inputs are
+    ready, skipped when its memo is current, retried ``retries`` times on failure; dependants of a failed task are
+    skipped. A task reading another grid's file (``reuse``) fails if that file changed since the grid was expanded.
+    A backend with a ``capacity`` (the local pool) is handed at most that many tasks at once, the ready task first
+    in the grid's order (environment by environment, each model's evals right after it): one environment's rows
+    are finished before the next one's trainings start, so a grid stopped part-way leaves whole rows. Writes
+    OUT/grid.json."""
+    t0 = time.time()
+    tasks = expand(spec) if tasks is None else tasks
+    order = {t.id: i for i, t in enumerate(tasks)}
+    capacity = getattr(backend, "capacity", None)
+    queued: list[Task] = []  # ready to run, waiting for a free slot of the backend
+    results = {t.id: TaskResult(t.id, t.kind, outputs=[str(p) for p in t.outputs]) for t in tasks}
+    state = {t.id: "pending" for t in tasks}
+    cache = spec._shas
+    running: dict[cf.Future, Task] = {}
+    emit = on_event or (lambda *_: None)
+
+    def submit(task: Task) -> None:
+        changed = [p for p, sha in task.meta.get("expect", {}).items() if regular_sha(p, cache) != sha]
+        if changed:  # another grid rewrote a file this one took from it (e.g. a curve trained on): never read it
+            state[task.id], results[task.id].status = "failed", "failed"
+            results[task.id].stderr = [f"{changed[0]}: changed since this grid took it from a finished run; run again"]
+            emit("failed", results[task.id])
+            return
+        res = spec.resources[task.kind]
+        argv = task.argv
+        if task.kind in ("collect", "cluster", "eval") and written_here(spec, task, cache):
+            argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
+        payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
+        payload |= {"cpus": res.cpus, "gpus": res.gpus}
+        results[task.id].attempts += 1
+        state[task.id] = "running"
+        running[backend.submit(payload)] = task
+
+    while True:
+        progressed = True
+        while progressed:  # settle everything that needs no run: up-to-date tasks, dependants of failures
+            progressed = False
+            for task in tasks:
+                if state[task.id] != "pending":
+                    continue
+                deps = [state[d] for d in task.deps]
+                if any(s in ("failed", "skipped") for s in deps):
+                    state[task.id] = "skipped"
+                    results[task.id].stderr = [f"not run: {next(d for d in task.deps if state[d] != 'done')} failed"]
+                    emit("skipped", results[task.id])
+                    progressed = True
+                elif all(s == "done" for s in deps):
+                    if is_done(spec, task, cache):
+                        state[task.id] = "done"
+                        results[task.id].status = "up to date"
+                        emit("up to date", results[task.id])
+                        progressed = True
+                    else:
+                        state[task.id] = "queued"
+                        queued.append(task)
+            queued.sort(key=lambda t: order[t.id])
+            while queued and (capacity is None or len(running) < capacity):
+                task = queued.pop(0)
+                submit(task)
+                progressed = progressed or state[task.id] == "failed"  # settle its dependants next pass
+        if not running:
+            break
+        finished, _ = cf.wait(list(running), return_when=cf.FIRST_COMPLETED)
+        for fut in finished:
+            task = running.pop(fut)
+            res = results[task.id]
+            try:
+                out = fut.result()
+            except Exception as exc:  # the worker itself died (Ray) or could not start the process
+                out = {
+                    "rc": -1,
+                    "seconds": 0.0,
+                    "stderr": [f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"],
+                }
+            res.seconds += out["seconds"]
+            if out["rc"] == 0:  # (the hash cache is keyed by size and mtime: rewritten files are hashed afresh)
+                write_memo(spec, task, cache)
+                state[task.id], res.status, res.stderr = "done", "done", []
+                emit("done", res)
+            elif res.attempts <= retries:
+                res.stderr = out["stderr"]
+                emit("retry", res)
+                submit(task)
+            else:
+                state[task.id], res.status, res.stderr = "failed", "failed", out["stderr"]
+                emit("failed", res)
+    summary = spec.out / "grid.json"
+    spec.out.mkdir(parents=True, exist_ok=True)
+    ordered = [results[t.id] for t in tasks]
+    body = {
+        "seconds": time.time() - t0,
+        "backend": backend.name,
+        "tasks": [r.__dict__ for r in ordered],
+        "counts": {s: sum(r.status == s for r in ordered) for s in ("done", "up to date", "failed", "skipped")},
+        "reused": spec._reused,
+    }
+    with artifacts.atomic_path(summary) as tmp:
+        tmp.write_text(json.dumps(body, indent=1, default=str))
+    return GridRun(ordered, summary, time.time() - t0, backend.name)
+
+
+def grid(
+    path: Path,
+    backend: str = "auto",
+    workers: int | None = None,
+    address: str | None = None,
+    retries: int = 1,
+    dry_run: bool = False,
+    overrides: list[str] = (),
+    includes: list[Path] = (),
+) -> GridRun | list[Task]:
+    """Load, expand and run a grid file with a progress bar and one line per finished task (stderr)."""
+    spec = load_grid(path, overrides, includes)
+    tasks = expand(spec)
+    if spec._reused:
+        kinds = [t.split(" ", 1)[0] for t in spec._reused]
+        ui.log(
+            "taken from finished runs of "
+            + ", ".join(str(f) for f in spec.reuse)
+            + ": "
+            + ", ".join(f"{kinds.count(k)} {k}" for k in REUSABLE if k in kinds)
+            + " (not run here)"
+        )
+    check_outputs(spec, tasks)  # a dry run lists what a real one would do, so it is refused the same way
+    if dry_run:
+        return tasks
+    spec.out.mkdir(parents=True, exist_ok=True)
+    with artifacts.claim_output(spec.out / "grid.json", force=True, flag=f"{path}: out ="):
+        runner = make_backend(backend, workers, address)
+        try:
+            runner.check(spec)
+        except BadInput:
+            runner.close()
+            raise
+        ui.log(f"{len(tasks)} tasks on {runner.name} ({runner.workers} workers/CPUs), artifacts in {spec.out}")
+        try:
+            with ui.progress() as bar:
+                job = bar.add_task("grid", total=len(tasks), info="")
+
+                def on_event(event: str, res: TaskResult) -> None:
+                    if event == "retry":
+                        why = res.stderr[-1] if res.stderr else "no stderr"
+                        ui.log(f"retry   {res.id} (attempt {res.attempts} failed: {why})")
+                        return
+                    secs = f"{res.seconds:7.1f}s" if event == "done" else " " * 8
+                    ui.log(f"{event:10s} {secs}  {res.id}")
+                    bar.advance(job)
+
+                run = run_grid(spec, runner, retries=retries, on_event=on_event, tasks=tasks)
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the running tasks stop too, instead of being waited for
+            stop_running()
+            raise
+        finally:
+            runner.close()
+    failed = [r for r in run.results if r.status == "failed"]
+    for r in failed:
+        ui.warn(f"{r.id} failed after {r.attempts} attempts:\n  " + "\n  ".join(r.stderr or ["(no stderr)"]))
+    if failed:
+        raise RunFailed(
+            f"{len(failed)} of {len(run.results)} grid tasks failed ({', '.join(r.id for r in failed[:3])}"
+            f"{', ...' if len(failed) > 3 else ''}); {run.count('skipped')} skipped; details in {run.summary}"
+        )
+    return run

@@ -1,0 +1,337 @@
+"""The grid file: its records (settings, variants, extensions, resources, the grid itself), reading them from
+TOML with one-line errors, and file paths in flag lists anchored at the file that names them."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    Strict,
+    ValidationError,
+    field_validator,
+)
+
+from cdrb_cli.configs import MAX_SEED
+from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import clip
+
+KINDS = ("collect", "cluster", "train", "eval", "report")
+#: integers and flags of a grid file are strict: `steps = true` or `seeds = [1.5]` is an error, not 1
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+SeedValue = Annotated[int, Strict(), Field(ge=0, le=MAX_SEED)]
+Steps = Annotated[int, Strict(), Field(gt=0, le=10_000_000)]
+STDERR_LINES = 15
+
+
+def table_flags(value):
+    """A command's extra flags as a grid file gives them: a list of flags as typed (``["--scene", "x.txt"]``), or a
+    table of settings (``{ avoid = { best_of = 4 }, replan = "every:40" }``), which becomes ``--set KEY=VALUE``
+    flags (dotted keys in the table's order, values as JSON): the same command, so the same memo key."""
+    if not isinstance(value, dict):
+        return value
+    flags: list[str] = []
+
+    def walk(node: dict, prefix: str) -> None:
+        for key, item in node.items():
+            if isinstance(item, dict):
+                walk(item, f"{prefix}{key}.")
+            else:
+                flags.extend(["--set", f"{prefix}{key}={json.dumps(item)}"])
+
+    walk(value, "")
+    return flags
+
+
+#: extra flags of one command: a list of flags, or a table of settings (see :func:`table_flags`)
+Flags = Annotated[list[str], BeforeValidator(table_flags)]
+
+
+# ------------------------------------------------------------------------------------------------ the grid file
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Settings(_Strict):
+    """Extra `cdrb train` / `cdrb eval` flags for the runs of one environment and/or method (both optional:
+    omitted means every one), and extra `cdrb collect` flags for an environment's demonstrations (an entry with
+    ``collect`` names no method: the demos are shared by every method). Entries apply in order, so a later one can
+    override an earlier one's flag."""
+
+    env: str | None = None
+    method: str | None = None
+    collect: Flags = Field(
+        default_factory=list, description="extra `cdrb collect` flags, e.g. ['--set', 'expert.routes=[\"over\"]']"
+    )
+    cluster: Flags = Field(
+        default_factory=list,
+        description="extra `cdrb cluster` flags of the buffer the matching runs train with, e.g. "
+        "['--features', 'state-action'] (runs with the same flags share one buffer)",
+    )
+    train: Flags = Field(
+        default_factory=list, description="extra `cdrb train` flags or settings, e.g. ['--steps', '4000']"
+    )
+    eval: Flags = Field(
+        default_factory=list,
+        description="extra `cdrb eval` flags, or a table of settings, e.g. { controller = { max_lag = 0.6 } }",
+    )
+    chosen: str | None = Field(None, description="what `cdrb select` chose (candidate and steps); not a flag")
+
+
+class SettingsFile(_Strict):
+    """A settings file that grids (and other settings files) ``include``: shared data choices, or the settings
+    `cdrb select` chose on the tuning stream. ``meta`` is free provenance (the rule, the tuning grid)."""
+
+    include: list[Path] = Field(default_factory=list, description="more settings files, before this one's")
+    settings: list[Settings] = Field(default_factory=list)
+    meta: dict[str, str] = Field(default_factory=dict, description="provenance: not read by the grid")
+
+
+class Scoped(_Strict):
+    """An entry that applies to some environments and methods (``envs``/``methods`` None: all)."""
+
+    def applies(self, env: str, method: str) -> bool:
+        return (self.methods is None or method in self.methods) and (self.envs is None or env in self.envs)
+
+
+class Variant(Scoped):
+    """One more axis of the grid: a named set of extra flags; its evals go to OUT/ENV/NAME/ and get their own report.
+
+    A variant with ``train`` flags trains its own models (in OUT/ENV/NAME/); one without is *eval-only*: it evaluates
+    the grid's base models (OUT/ENV/METHOD-sSEED.h5, trained once with no variant flags), e.g. a controller, a plan
+    clock, a sampler, denoising steps or a re-planning trigger tried on one trained model."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.=-]*$", description="folder name of the variant's runs")
+    methods: list[str] | None = Field(None, description="the methods this variant applies to (default: all)")
+    envs: list[str] | None = Field(None, description="the environments this variant applies to (default: all)")
+    cluster: Flags = Field(
+        default_factory=list, description="`cdrb cluster` flags of the variant's own buffer, e.g. ['--k', '100']"
+    )
+    train: Flags = Field(default_factory=list, description="`cdrb train` flags or a table of settings")
+    eval: Flags = Field(
+        default_factory=list, description="`cdrb eval` flags or a table of settings, e.g. { avoid = { best_of = 4 } }"
+    )
+    stream: Literal["tune", "test"] | None = Field(
+        None, description="start/goal pairs of its evals (default: eval_stream)"
+    )
+    eval_settings: Bool = Field(
+        True,
+        description="false: the settings' eval flags do not apply to this variant (e.g. a protocol with its own "
+        "executor, where a method's tuned controller flags do not belong)",
+    )
+
+    @property
+    def own_model(self) -> bool:
+        """Whether the variant trains models of its own (train or cluster flags); else it is eval-only and evaluates
+        the grid's base models."""
+        return bool(self.train or self.cluster)
+
+
+class Extension(Scoped):
+    """A learning curve run past the grid's ``steps`` for some environments and methods (where `cdrb select` finds
+    it still rising): the same runs, resumed to ``steps``, with the grid's own ``steps`` one more snapshot. It is
+    written in the grid file, so the curve's length is part of the study it belongs to."""
+
+    envs: list[str] | None = Field(None, description="the environments whose curves run further (default: all)")
+    methods: list[str] | None = Field(None, description="the methods whose curves run further (default: all)")
+    steps: Steps = Field(description="the curve's new last point (more than the grid's `steps`)")
+
+
+class Resources(_Strict):
+    cpus: float = Field(1.0, gt=0, description="CPU cores a task of this kind asks Ray for (and its torch threads)")
+    gpus: float = Field(0.0, ge=0, description="GPUs a task of this kind asks Ray for (fractions share one GPU)")
+
+
+def _default_resources() -> dict[str, Resources]:
+    return {"collect": Resources(cpus=2)} | {k: Resources() for k in KINDS if k != "collect"}
+
+
+class GridSpec(_Strict):
+    """A grid file (TOML). Paths are relative to the file's folder."""
+
+    include: list[Path] = Field(
+        default_factory=list, description="settings files whose [[settings]] apply before this file's own"
+    )
+    out: Path = Field(description="folder for every artifact of the grid (shared storage on a cluster)")
+    envs: list[str] = Field(min_length=1, description="environment ids (`cdrb envs`)")
+    methods: list[str] = Field(min_length=1, description="methods (`cdrb methods`)")
+    seeds: list[SeedValue] = Field(
+        min_length=1, max_length=1000, description="training seeds; each model is evaluated on the same seed"
+    )
+    preset: Literal["quick", "paper"] = Field("quick", description="training preset of every method")
+    device: str = Field(
+        "cpu",
+        pattern=r"^(cpu|auto|cuda(:[0-9]{1,2})?)$",
+        description="training and evaluation device (cpu, cuda, auto)",
+    )
+    demos: Int = Field(1000, ge=2, le=1_000_000, description="demonstrations collected per environment")
+    data_seed: SeedValue = Field(0, description="seed of `cdrb collect` and `cdrb cluster`")
+    k: Int = Field(
+        1000, ge=0, le=10_000_000, description="replay-buffer clusters (`cdrb cluster --k`; 0 keeps the full buffer)"
+    )
+    steps: Steps | None = Field(None, description="training steps of every run (default: the preset's)")
+    eval_episodes: Int = Field(100, ge=1, le=100_000, description="evaluation episodes per model and seed")
+    eval_stream: Literal["tune", "test"] = Field("test", description="start/goal pairs: tune or test stream")
+    eval_seeds: list[SeedValue] | None = Field(
+        None, min_length=1, description="evaluation seeds of every model (default: the model's own training seed)"
+    )
+    eval_seed_offset: SeedValue = Field(
+        0,
+        le=1_000_000,
+        description="without eval_seeds: each model is evaluated on its training seed plus this (fresh pairs of the "
+        "same stream, for a row re-measured after a choice made on seeing its test figures)",
+    )
+    snapshot_at: list[Steps] = Field(
+        default_factory=list,
+        description="learning curves: every training also writes its model at these steps (below `steps`), and each "
+        "snapshot is evaluated like the final model",
+    )
+    extend: list[Extension] = Field(
+        default_factory=list,
+        max_length=1000,
+        description="learning curves run further for some envs/methods: [[extend]] entries (the last that applies "
+        "wins); each such run trains to the entry's steps and `steps` becomes one more snapshot",
+    )
+    report: Bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
+    reuse: list[Path] = Field(
+        default_factory=list,
+        max_length=16,
+        description="`out` folders of other grids whose finished collections, clusterings and trainings this grid "
+        "reads instead of running its own: a task is taken from there when a finished task there ran the same "
+        "command up to its output path and device (a training also when it wrote a model at exactly this one's "
+        "steps, as a snapshot or as its final model)",
+    )
+    settings: list[Settings] = Field(default_factory=list, description="per env/method extra flags")
+    variants: list[Variant] = Field(default_factory=list, description="named flag sets: one more grid axis")
+    resources: dict[str, Resources] = Field(default_factory=_default_resources)
+    #: the grid file and every settings file it read: inputs a run must never write over
+    _sources: list[Path] = PrivateAttr(default_factory=list)
+    #: the tasks taken from the grids of ``reuse`` (task id -> the file read instead), set by :func:`expand`
+    _reused: dict[str, str] = PrivateAttr(default_factory=dict)
+    #: sha256 of the files read, by (path, size, mtime): shared by reuse at expansion and the run's memo checks
+    _shas: dict = PrivateAttr(default_factory=dict)
+
+    def curve(self, env: str, method: str) -> tuple[int | None, list[int]]:
+        """The training length and the snapshot steps (sorted) of ``method``'s runs on ``env``: the grid's, or those
+        of the last :class:`Extension` that applies (its steps, with the grid's steps one more snapshot)."""
+        ext = next((e for e in reversed(self.extend) if e.applies(env, method)), None)
+        if ext is None:
+            return self.steps, sorted(self.snapshot_at)
+        return ext.steps, sorted([*self.snapshot_at, self.steps])
+
+    @field_validator("eval_seeds")
+    @classmethod
+    def _once(cls, value: list[int] | None) -> list[int] | None:
+        if value is not None and len(set(value)) != len(value):
+            raise ValueError("list each evaluation seed once")
+        return value
+
+    @field_validator("resources")
+    @classmethod
+    def _kinds(cls, value: dict[str, Resources]) -> dict[str, Resources]:
+        unknown = sorted(set(value) - set(KINDS))
+        if unknown:
+            raise ValueError(f"resources.{unknown[0]}: not a task kind (use {', '.join(KINDS)})")
+        return _default_resources() | value
+
+
+#: the largest grid or settings file read, and the most tasks a grid may expand to
+MAX_FILE_BYTES = 1 << 20
+MAX_TASKS = 100_000
+
+
+def read_small(path: Path, limit: int = MAX_FILE_BYTES) -> str | None:
+    """The text of ``path`` through the guarded reader (a regular file of at most ``limit`` bytes, no link out of
+    its folder, never blocking on a FIFO); None when it is not one."""
+    from cdrb_cli.artifacts.core import read_input_text
+
+    try:
+        return read_input_text(path, "", limit)
+    except BadInput:
+        return None
+
+
+def read_toml(path: Path, what: str) -> dict:
+    import tomllib
+
+    if not os.path.lexists(path):
+        raise BadInput(f"{path}: no such {what}", hint="see docs/cli.md, `cdrb grid`, for the format")
+    text = read_small(path)
+    if text is None:
+        raise BadInput(
+            f"{path}: not a {what} (a regular text file of at most {MAX_FILE_BYTES >> 20} MiB, no link out of its "
+            "folder)",
+            hint="name the TOML file itself",
+        )
+    try:
+        return tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise BadInput(f"{path}: not valid TOML ({str(exc)[:200]})", hint="fix the file") from None
+
+
+def validated(model: type[BaseModel], raw: dict, path: Path):
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
+        raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
+
+
+#: flags whose value is a file: a relative one in a grid or settings file means relative to that file's folder
+PATH_FLAGS = ("--maze-map", "--scene", "--policy", "--config", "--paper-figures", "--route-buffer")
+
+
+def _anchored(flags: list[str], base: Path) -> list[str]:
+    """``flags`` with every relative file value of :data:`PATH_FLAGS` made absolute against ``base`` (the folder of
+    the file that declares them), as `out` is: a grid means the same files from whatever folder it is run."""
+    out, i = [], 0
+    while i < len(flags):
+        f = flags[i]
+        name, eq, value = f.partition("=")
+        if name in PATH_FLAGS and eq and not Path(value).is_absolute():
+            out.append(f"{name}={base / value}")
+        elif f in PATH_FLAGS and i + 1 < len(flags) and not Path(flags[i + 1]).is_absolute():
+            out += [f, str(base / flags[i + 1])]
+            i += 1
+        else:
+            out.append(f)
+        i += 1
+    return out
+
+
+def anchor_all(items: list, base: Path) -> list:
+    """Settings or variants with their flag lists anchored at ``base``."""
+    fields = ("collect", "cluster", "train", "eval")
+    return [
+        item.model_copy(update={k: _anchored(getattr(item, k), base) for k in fields if hasattr(item, k)})
+        for item in items
+    ]
+
+
+#: the options the grid sets itself from its own keys (data_seed, demos, preset, seeds, eval_stream, eval_episodes,
+#: device, out...) and that settings and variants therefore may not pass: a repeated option's last value wins, so
+#: ``train = ["--method", "diffuser"]`` would file a Diffuser under the grid's MLP name
+
+
+@dataclass
+class Task:
+    """One `cdrb` command of the grid. ``meta`` names what an eval measured (env, method, variant, seed, steps,
+    stream), for `cdrb select`."""
+
+    id: str
+    kind: str
+    argv: list[str]
+    outputs: list[Path]
+    deps: list[str] = field(default_factory=list)
+    inputs: list[Path] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
