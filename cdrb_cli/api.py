@@ -29,6 +29,7 @@ from cdrb_cli.configs import EvalSummary
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import clip
 
 __all__ = ["Plans", "Planner", "evaluate"]
 
@@ -110,7 +111,8 @@ class Planner:
         self.model = artifacts.load(Path(model), "model")
         self._spec = scene_spec(self.model, None if scene is None else Path(scene))
         #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
-        self.config = plan_config(self.model, given, scene_file=None if scene is None else Path(scene))
+        self._given, self._scene_file = given, None if scene is None else Path(scene)
+        self.config = plan_config(self.model, given, scene_file=self._scene_file)
         self.device = setup_torch(device)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
         route = load_route_buffer(route_buffer_path(given))
@@ -125,7 +127,13 @@ class Planner:
         """A full state from a point written as ``cdrb plan`` takes it (``flag``: ``--start`` or ``--goal``): goal
         coordinates at rest, a full state, or the family's own start form (Fetch: the block's x,y); checked to be
         free, with the CLI's one-line errors."""
-        values = np.asarray(point, dtype=np.float64).reshape(-1)
+        name = flag.lstrip("-")
+        try:
+            values = np.asarray(point, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise BadInput(f"{name} = {clip(repr(point), 60)}: not a list of numbers", hint="e.g. [0.0, 0.0]") from None
+        if values.ndim != 1 or not len(values):
+            raise BadInput(f"{name}: a flat list of numbers, not shape {values.shape}", hint="e.g. [0.0, 0.0]")
         return family_of(self.spec).parse_point(self.spec, ",".join(repr(float(v)) for v in values), flag)
 
     def plan(
@@ -138,15 +146,17 @@ class Planner:
         steps: int | None = None,
     ) -> Plans:
         """``n`` plans from ``start`` to ``goal`` (``sampler`` and denoising ``steps``: the model's by default)."""
-        from cdrb_cli.methods.registry import METHODS
+        from cdrb_cli.stages.configure import plan_config
         from cdrb_cli.stages.plan import sample_plans
 
-        if n < 1:
-            raise BadInput(f"n = {n}: plan at least once", hint="n >= 1")
-        sampler = METHODS.get(self.method.name).check_sampler(sampler or self.config.sampler, "sampler")
-        steps = self.config.sample_steps if steps is None else steps
+        # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
+        given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
+        config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
-        out = sample_plans(self.method, s, g, n, seed, sampler, steps, device=self.device, avoid=self.avoidance)
+        out = sample_plans(
+            self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, device=self.device,
+            avoid=self.avoidance,
+        )  # fmt: skip
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]
         return Plans(

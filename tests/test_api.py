@@ -45,3 +45,27 @@ def test_evaluate_writes_the_eval_artifact_and_returns_its_summary(model, tmp_pa
         api.evaluate(model.path, tmp_path / "e.h5", episodes=3, seeds=[0], stream="tune")
     redone = api.evaluate(model.path, tmp_path / "e.h5", episodes=3, seeds=[0], stream="tune", force=True)
     assert redone.per_seed[0].episodes == 3
+
+
+@pytest.mark.parametrize(
+    "kw, needle",
+    [
+        (dict(start="abc"), "not a list of numbers"),
+        (dict(start=[[0.0, 0.0]]), "a flat list of numbers"),
+        (dict(steps=-3), "sample_steps=-3"),
+        (dict(steps=0), "sample_steps=0"),
+        (dict(n=2.5), "n=2.5"),
+        (dict(n=True), "n=True"),
+        (dict(n=10**6), "n=1000000"),
+        (dict(seed=-1), "seed"),
+        (dict(seed=2**70), "seed"),
+        (dict(sampler="nope"), "sampler='nope'"),
+    ],
+)
+def test_plan_arguments_are_checked_as_the_cli_checks_them(model, kw, needle):
+    """One typed, one-line error per bad argument (never numpy's, never a silent wrap or truncation)."""
+    planner = api.Planner(model.path)
+    args = dict(start=[0.0, 0.0], goal=[6.0, 6.0]) | kw
+    with pytest.raises(BadInput) as err:
+        planner.plan(**args)
+    assert needle in err.value.line() and "\n" not in err.value.line()

@@ -366,11 +366,17 @@ def test_a_failing_task_is_reported_and_the_others_go_on(tmp_path):
 
 
 def test_ray_runs_the_same_grid(tmp_path):
+    """... and its workers import nothing from the folder the grid was started in (a planted `numpy.py`)."""
     pytest.importorskip("ray")
     text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]')
     grid = _grid(tmp_path, text)
-    proc = _cli("grid", str(grid), "--backend", "ray", "-j", "2")
+    start = tmp_path / "start"
+    start.mkdir()
+    marker = tmp_path / "hijacked"
+    (start / "numpy.py").write_text(f"open({str(marker)!r}, 'w').close()\nraise ImportError('planted')\n")
+    proc = _cli("grid", str(grid), "--backend", "ray", "-j", "2", cwd=start)
     assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not marker.exists()
     summary_path = Path(proc.stdout.strip())
     assert summary_path == (tmp_path / "runs" / "grid.json").resolve()
     summary = json.loads(summary_path.read_text())
@@ -954,3 +960,23 @@ def test_a_variant_may_give_its_settings_as_a_table(tmp_path):
     clash = TINY + '\n[[variants]]\nname = "n"\neval = { episodes = 5 }\n'
     with pytest.raises(BadInput, match="the grid sets episodes of `cdrb eval` itself"):
         load_grid(_grid(tmp_path, clash, "c.toml"))
+
+
+def test_include_fan_out_and_depth_are_bounded(tmp_path):
+    """Four levels of a file that includes the next 40 times would expand to 2.56 M reads: each file is read once,
+    the expansion is capped, and the error names the file that fans out; a 40-deep chain is refused too."""
+    for level in range(4):
+        nxt = f"l{level + 1}.toml"
+        body = "[[settings]]\ntrain = []\n" if level == 3 else f"include = {[nxt] * 40!r}\n".replace("'", '"')
+        (tmp_path / f"l{level}.toml").write_text(body)
+    (tmp_path / "l4.toml").write_text("")
+    grid = _grid(tmp_path, 'include = ["l0.toml"]\n' + TINY)
+    started = time.time()
+    with pytest.raises(BadInput, match=r"l\d.toml: its includes expand to more than 1000 settings files"):
+        load_grid(grid)
+    assert time.time() - started < 10
+    for i in range(40):
+        (tmp_path / f"c{i}.toml").write_text(f'include = ["c{i + 1}.toml"]\n')
+    (tmp_path / "c40.toml").write_text("")
+    with pytest.raises(BadInput, match="includes nest more than 32 files deep"):
+        load_grid(_grid(tmp_path, 'include = ["c0.toml"]\n' + TINY, "deep.toml"))

@@ -266,8 +266,9 @@ def test_export_never_deletes_or_races_another_dataset(tmp_path, datasets):
     (nested / "metadata.json").write_text("{}")
     r = _cli("export", tmp_path / "d.h5", "--minari", "outer", "--force")
     assert r.returncode == 2 and "holds other datasets" in r.stderr and (nested / "metadata.json").exists()
-    r = _cli("export", tmp_path / "d.h5", "--minari", "n" * 300)
-    assert r.returncode == 2 and "not a dataset name" in r.stderr and r.stderr.count("\n") == 1
+    for bad in ("n" * 300, "cdrb/.", "cdrb/..", "./x", "cdrb/..-v1"):
+        r = _cli("export", tmp_path / "d.h5", "--minari", bad)
+        assert r.returncode == 2 and "not a dataset name" in r.stderr and r.stderr.count("\n") == 1, (bad, r.stderr)
     (tmp_path / "afile").write_text("x")
     r = _cli("export", tmp_path / "d.h5", "--minari", "ok", "--root", tmp_path / "afile")
     assert r.returncode == 2 and "--root" in r.stderr and (tmp_path / "afile").read_text() == "x"

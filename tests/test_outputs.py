@@ -9,10 +9,12 @@ import shutil
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from cdrb_cli import artifacts
+from cdrb_cli.errors import BadInput
 from tests.factories import write
 
 
@@ -107,7 +109,7 @@ def test_two_runs_on_one_output_the_second_stops(small_data, tmp_path, cdrb):
         first.kill()
         first.wait()
     # a killed writer's temp files are removed by the next writer of the same output
-    stale = tmp_path / ".m.h5.tmp-stale"
+    stale = tmp_path / ".m.h5.tmp-stale123"  # the 8 random characters mkstemp gives
     stale.write_bytes(b"x" * 100)
     r = cdrb(*[a if a != "100000" else "3" for a in args], "--force")
     assert r.returncode == 0, r.stderr
@@ -147,3 +149,77 @@ def test_report_docs_block_is_an_output_like_out(tmp_path, cdrb):
         doc.write_text(bad)
         r = cdrb("report", ev, "--docs", doc, "--block", "t")
         assert r.returncode == 2 and "ambiguous" in r.stderr and doc.read_text() == bad, r.stderr
+
+
+def test_a_lock_file_that_is_a_hard_link_is_refused_and_its_target_kept(tmp_path):
+    """A planted hard link as the lock file would have the writer's pid written into (and truncate) its target."""
+    from cdrb_cli.artifacts.outputs import claim_output
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    os.link(victim, tmp_path / ".o1.h5.lock")
+    with pytest.raises(BadInput, match="is a hard link to another file"):
+        with claim_output(tmp_path / "o1.h5", force=False):
+            pass
+    assert victim.read_text() == "precious\n" and not (tmp_path / "o1.h5").exists()
+
+
+@pytest.mark.parametrize("name", ["model[1].h5", "*.h5", "m?.h5"])
+def test_stale_temps_are_matched_literally(tmp_path, name):
+    """Clean-up removes only the output's own temp files (its name taken literally, the random part mkstemp gives):
+    another output's live temp file is never touched, whatever characters the name holds."""
+    from cdrb_cli.artifacts.outputs import claim_output
+
+    others = [tmp_path / n for n in (".model1.h5.tmp-abcd1234", ".x.h5.tmp-abcd1234", ".m1.h5.tmp-abcd1234")]
+    longer = tmp_path / f".{name}.tmp-x.h5.tmp-abcd1234"  # a temp of an output whose name extends this one's
+    own = tmp_path / f".{name}.tmp-abcd1234"
+    for p in [*others, longer, own]:
+        p.write_bytes(b"x")
+    with claim_output(tmp_path / name, force=False):
+        pass
+    assert all(p.exists() for p in [*others, longer]) and not own.exists()
+
+
+def test_select_docs_may_not_be_another_output(tmp_path, cdrb):
+    notes = tmp_path / "notes.md"
+    notes.write_text("my notes\n")
+    for other in ("--out", "--table", "--curves"):
+        args = ["--out", tmp_path / "s.toml"] if other != "--out" else []
+        r = cdrb("select", tmp_path / "tune.toml", *args, other, notes, "--docs", notes, "--block", "x", "--force")
+        assert r.returncode == 2 and "the same file as" in r.stderr, r.stderr
+    assert notes.read_text() == "my notes\n"
+
+
+def test_an_output_may_not_overwrite_a_text_input(tiny_models, tmp_path, cdrb):
+    """Every file a command reads is an input, whatever its kind: a scene, a settings file, a map, paper figures
+    (pictures are refused by their suffix already)."""
+    scene = tmp_path / "closed.txt"
+    shutil.copy(Path(__file__).resolve().parents[1] / "experiments" / "maps" / "maze-tight-closed-north.txt", scene)
+    before = scene.read_bytes()
+    model = tiny_models["cdrb"].path
+    attacks = [
+        ("plan", model, "--start", "0,0", "--goal", "6,6", "--scene", scene, "--out", scene),
+        ("eval", model, "-n", "1", "--seeds", "0", "--scene", scene, "--out", scene),
+        ("collect", "--maze-map", scene, "-n", "2", "--out", scene),
+    ]
+    for args in attacks:
+        r = cdrb(*args, "--force")
+        assert r.returncode == 2 and "is an input of this command" in r.stderr, (args, r.stderr)
+        assert scene.read_bytes() == before
+    settings = tmp_path / "run.toml"
+    settings.write_text("steps = 2\n")
+    demos = tiny_models["cdrb"].manifest.parents[0].path
+    r = cdrb("train", demos, "--method", "mlp", "--config", settings, "--out", settings, "--force")
+    assert r.returncode == 2 and "is an input of this command" in r.stderr and settings.read_text() == "steps = 2\n"
+    ev = write(tmp_path / "e.h5", "eval")
+    figures = tmp_path / "figures.toml"
+    figures.write_text("[maze]\n")
+    for out in (["--out", figures], ["--docs", figures, "--block", "t"]):
+        r = cdrb("report", ev, "--paper", "--paper-figures", figures, *out, "--force")
+        assert r.returncode == 2 and "is an input of this command" in r.stderr, r.stderr
+    assert figures.read_text() == "[maze]\n"
+    from cdrb_cli import api
+
+    with pytest.raises(BadInput, match="is an input"):
+        api.evaluate(model, scene, episodes=1, scene=scene, force=True)
+    assert scene.read_bytes() == before

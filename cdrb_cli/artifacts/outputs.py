@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -125,10 +126,12 @@ def _locked(path: Path, flag: str) -> Iterator[None]:
                 f"{flag} {path}: its lock file {lock} is not a regular file ({exc.strerror.lower()})",
                 hint=f"remove {lock} (cdrb creates it while writing {path.name})",
             ) from None
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:  # a hard link: the pid would overwrite another file
             os.close(fd)
+            what = "not a regular file" if not stat.S_ISREG(st.st_mode) else "a hard link to another file"
             raise BadInput(
-                f"{flag} {path}: its lock file {lock} is not a regular file",
+                f"{flag} {path}: its lock file {lock} is {what}",
                 hint=f"remove {lock} (cdrb creates it while writing {path.name})",
             )
         try:
@@ -157,8 +160,17 @@ def _locked(path: Path, flag: str) -> Iterator[None]:
         os.close(fd)
 
 
+#: the random part of a temp file's name (tempfile.mkstemp: 8 characters of this alphabet)
+_TEMP_SUFFIX = re.compile(r"[a-z0-9_]{8}")
+
+
 def _remove_stale_temps(path: Path) -> None:
-    """Temp files of ``path`` left by a writer that was killed (we hold the lock: no other writer exists)."""
-    for tmp in path.parent.glob(f".{path.name}.tmp-*"):
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+    """Temp files of ``path`` left by a writer that was killed (we hold the lock: no other writer of ``path``
+    exists): the names `atomic_path` gives, ``.NAME.tmp-`` and 8 random characters, matched literally (a name
+    holding ``*`` or ``[`` is not a pattern, and another output's temp file is never one of them)."""
+    prefix = f".{path.name}.tmp-"
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(path.parent):
+            if entry.name.startswith(prefix) and _TEMP_SUFFIX.fullmatch(entry.name[len(prefix) :]):
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)

@@ -195,10 +195,17 @@ def check_outputs(force: bool, inputs=(), **outputs: Path | None) -> None:
     from cdrb_cli.artifacts.outputs import distinct_outputs
 
     distinct_outputs(**outputs)
+    inputs = [p for p in inputs if p is not None]
     for name, path in outputs.items():
-        # --out is checked (and locked) by the stage that writes it; --docs is rewritten in place, not created
-        if path is not None and name not in ("out", "docs"):
-            check_output(Path(path), force, "--" + name.replace("_", "-"), inputs, suffixes=PICTURES)
+        if path is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        if name == "docs":  # rewritten in place: the stage checks it (an existing text file, its markers)
+            continue
+        if name == "out":  # written and locked by the stage; here only: never one of the inputs
+            check_output(Path(path), True, flag, inputs)
+        else:
+            check_output(Path(path), force, flag, inputs, suffixes=PICTURES)
 
 
 def check_positive(flag: str, value) -> None:

@@ -92,7 +92,7 @@ def collect(
 
         choose_gl_backend()  # before MuJoCo is imported
         check_video_folder(video, out)
-    check_outputs(force, out=out, plot=plot)
+    check_outputs(force, [maze_map, policy], out=out, plot=plot)
     check_workers(workers)
     spec = env_spec(env, maze_map)
     from cdrb_cli.settings import parse_set

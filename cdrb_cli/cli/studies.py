@@ -71,11 +71,12 @@ def report(
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
     if paper_figures is not None and not paper:
         raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
-    check_outputs(force, evals, docs=docs, out=out, plot=plot, plans_plot=plans_plot)
+    read = [*evals, *([] if paper_figures is None else [paper_figures])]
+    check_outputs(force, read, docs=docs, out=out, plot=plot, plans_plot=plans_plot)
     if out is not None:
         from cdrb_cli.artifacts import check_output
 
-        check_output(out, force, "--out", evals)
+        check_output(out, force, "--out", read)
     figures = rep.paper_figures(paper_figures) if paper else False
     arts = [load_artifact(p, "eval") for p in evals]
     # per-seed rows list every file as it is; the grouped rows (and their bar chart) need one protocol per env
@@ -92,7 +93,7 @@ def report(
     if plans_plot is not None:
         rep.with_plans(arts)
     if docs is not None:
-        rep.check_docs_block(docs, block, text, evals)
+        rep.check_docs_block(docs, block, text, read)
     if plot is not None:
         rep.plot_bars(rows, plot)
         ui.log(f"picture: {plot}")
@@ -100,11 +101,11 @@ def report(
         rep.plot_side_by_side(arts, plans_plot)
         ui.log(f"picture: {plans_plot}")
     if docs is not None:
-        rep.write_docs_block(docs, block, text, evals)
+        rep.write_docs_block(docs, block, text, read)
     if out is not None:
         from cdrb_cli.artifacts import atomic_path, claim_output
 
-        with claim_output(out, force, "--out", evals), atomic_path(out) as tmp:
+        with claim_output(out, force, "--out", read), atomic_path(out) as tmp:
             tmp.write_text(text)
         ui.emit(out)
     elif docs is not None:

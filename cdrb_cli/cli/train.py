@@ -7,7 +7,17 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import ui
-from cdrb_cli.cli.common import DeviceOpt, ForceOpt, JsonOpt, SeedOpt, app, check_positive, int_values, load_artifact
+from cdrb_cli.cli.common import (
+    DeviceOpt,
+    ForceOpt,
+    JsonOpt,
+    SeedOpt,
+    app,
+    check_outputs,
+    check_positive,
+    int_values,
+    load_artifact,
+)
 from cdrb_cli.cli.options import ConfigOpt, MethodOpt, NetOpt, PresetOpt, SetOpt
 
 
@@ -55,6 +65,7 @@ def train(
 
     check_positive("--steps", steps)
     settings = user_settings(method, net, preset, steps, config_file, sets)
+    check_outputs(force, [demos, buffer, config_file], out=out)
     d = load_artifact(demos, "demos")
     b = load_artifact(buffer, "buffer") if buffer is not None else None
     config = resolve_train_config(d.manifest.env, buffer_info(b), settings, seed=seed)

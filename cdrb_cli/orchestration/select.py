@@ -385,7 +385,7 @@ def select(
     from cdrb_cli.artifacts.outputs import distinct_outputs
     from cdrb_cli.orchestration.grid import load_grid
 
-    distinct_outputs(out=out, table=table, curves=curves)
+    distinct_outputs(out=out, table=table, curves=curves, docs=docs)
     spec = load_grid(grid_file, overrides, includes)
     # every file the grid reads or writes is an input here: its settings files (included ones too) and the
     # artifacts under its `out` (demos, models, evals), none of which an output may replace

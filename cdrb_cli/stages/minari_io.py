@@ -253,7 +253,8 @@ def dataset_id_for(name: str) -> str:
     """``name`` as a Minari dataset id (``[namespace/]name-vN``; ``-v0`` is added when no version is given)."""
     full = name if re.search(r"-v\d+$", name) else f"{name}-v0"
     parts = full.split("/")
-    if not DATASET_ID.match(full) or ".." in parts or "." in parts or len(full) > 200 or len(parts) > 8:
+    dots = any(not part[:1].isalnum() for part in parts)  # ".", "..", ".-v0", "..-v0": not names Minari takes
+    if not DATASET_ID.match(full) or dots or len(full) > 200 or len(parts) > 8:
         raise BadInput(
             f"--minari {ui.plain(repr(name), 80)}: not a dataset name (letters, digits, . _ -, optional namespace/, "
             "optional -vN; at most 200 characters)",

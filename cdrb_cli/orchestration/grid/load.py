@@ -27,22 +27,43 @@ from cdrb_cli.orchestration.grid.spec import (
 )
 from cdrb_cli.settings import clip
 
+#: the most settings files one grid's includes may expand to (a file included twice counts twice), and the deepest
+#: chain of includes: each file is read once, but fan-out (a file including the next 40 times, four levels down)
+#: would otherwise expand to millions
+MAX_INCLUDES = 1_000
+MAX_INCLUDE_DEPTH = 32
+
 
 def _included_settings(
-    paths: list[Path], base: Path, chain: tuple[Path, ...], read: list[Path] | None = None
+    paths: list[Path], base: Path, chain: tuple[Path, ...], read: list[Path] | None = None, seen: dict | None = None
 ) -> list[Settings]:
     """The settings of ``paths`` (relative to ``base``) in order, each file's own includes first; every file read
-    is appended to ``read``."""
+    is appended to ``read``. ``seen``: the files already read (each is read once) and the includes expanded so far,
+    shared by the whole grid."""
+    seen = {"files": {}, "count": 0} if seen is None else seen
     out: list[Settings] = []
+    if len(chain) > MAX_INCLUDE_DEPTH:
+        raise BadInput(
+            f"{chain[-1]}: includes nest more than {MAX_INCLUDE_DEPTH} files deep", hint="flatten the includes"
+        )
     for rel in paths:
         given = Path(os.path.normpath(base / rel))
         path = given.resolve()
         if path in chain:
             raise BadInput(f"{chain[-1]}: include {rel}: includes itself (through {path.name})", hint="remove the loop")
-        sfile = validated(SettingsFile, read_toml(given, "settings file"), path)
-        if read is not None:
-            read.append(path)
-        out += _included_settings(sfile.include, path.parent, (*chain, path), read)
+        seen["count"] += 1
+        if seen["count"] > MAX_INCLUDES:
+            raise BadInput(
+                f"{chain[-1]}: its includes expand to more than {MAX_INCLUDES} settings files (it includes "
+                f"{len(paths)} files, and they include more)",
+                hint="include each settings file once",
+            )
+        if path not in seen["files"]:
+            seen["files"][path] = validated(SettingsFile, read_toml(given, "settings file"), path)
+            if read is not None:
+                read.append(path)
+        sfile = seen["files"][path]
+        out += _included_settings(sfile.include, path.parent, (*chain, path), read, seen)
         out += anchor_all(sfile.settings, path.parent)
     return out
 
@@ -104,10 +125,11 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         raise BadInput(f"{_origin(path, overrides, *err['loc'][:1])}: {where}: {err['msg']}",
                        hint="see docs/cli.md, `cdrb grid`") from None  # fmt: skip
     read = [path]
+    seen = {"files": {}, "count": 0}
     spec.settings = (
-        _included_settings(spec.include, path.parent, (path,), read)
+        _included_settings(spec.include, path.parent, (path,), read, seen)
         + anchor_all(spec.settings, path.parent)
-        + _included_settings(list(extra_includes), Path.cwd(), (path,), read)
+        + _included_settings(list(extra_includes), Path.cwd(), (path,), read, seen)
     )
     spec.variants = anchor_all(spec.variants, path.parent)
     check_flags(spec, path)

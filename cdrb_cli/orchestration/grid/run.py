@@ -7,9 +7,11 @@ import concurrent.futures as cf
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -139,7 +141,18 @@ class RayBackend:
         kwargs = {"include_dashboard": False, "log_to_driver": False, "ignore_reinit_error": True}
         if address is None and workers:
             kwargs["num_cpus"] = workers
-        ray.init(address=address, **kwargs)
+        # Ray puts the driver's current folder first on its workers' sys.path (a `numpy.py` beside the grid would
+        # run in every worker): it starts from an empty folder of its own (the tasks' paths are absolute)
+        self.home = tempfile.mkdtemp(prefix="cdrb-ray-")
+        here = os.getcwd()
+        os.chdir(self.home)
+        try:
+            ray.init(address=address, **kwargs)
+        except BaseException:
+            shutil.rmtree(self.home, ignore_errors=True)
+            raise
+        finally:
+            os.chdir(here)
         self.ray = ray
         self.remote = ray.remote(max_retries=0)(execute)
         total = ray.cluster_resources()
@@ -162,6 +175,7 @@ class RayBackend:
 
     def close(self) -> None:
         self.ray.shutdown()
+        shutil.rmtree(self.home, ignore_errors=True)
 
 
 #: seconds `cdrb grid --address` waits for the cluster to answer before saying it does not
