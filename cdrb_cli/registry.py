@@ -186,6 +186,10 @@ class Dispatch:
             cls = self._safe_type(name)
             if cls is None:
                 raise ValueError(f"unknown {self.registry.what} {name!r} (known: {', '.join(self.registry.names())})")
+            if (info.context or {}).get("strict"):  # settings typed by a user: no coercion inside the record either
+                import json
+
+                return cls.model_validate_json(json.dumps(value), strict=True, context=info.context)
             return cls.model_validate(value, context=info.context)
 
         return core_schema.with_info_plain_validator_function(

@@ -202,7 +202,7 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
         hint = "values are numbers, booleans, strings or lists of them"
         raise BadInput(f"{what} settings: {exc}", hint=hint) from None
     try:
-        return model.model_validate_json(text, strict=True)
+        return model.model_validate_json(text, strict=True, context={"strict": True})
     except ValidationError as exc:
         err = exc.errors()[0]
         # tagged unions add the tag to the location (("net", "unet", "dim")): drop it

@@ -231,3 +231,19 @@ def test_a_very_deep_or_very_long_key_is_one_short_line(small_data, tmp_path, cd
     long_key = "k" * 4500
     r = cdrb("train", demos.path, "--buffer", buffer.path, "--set", f"{long_key}=1", "--dry-run")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and len(r.stderr) < 400, r.stderr[-500:]
+
+
+def test_a_setting_is_strict_inside_registry_records_and_given_once(small_data, tmp_path, cdrb):
+    """`true` is not a number inside a controller's record either, and a field given by a flag and by --set is
+    refused rather than one silently winning."""
+    demos, buffer = small_data
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--steps", "10", "--set", "steps=true", "--dry-run")
+    assert r.returncode == 2 and "give it once" in r.stderr, r.stderr
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import tiny
+
+    model = train(demos, buffer, train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2)), tmp_path / "m.h5")
+    for setting in ("controller.look_ahead=true", "controller.kp=true", 'controller.kp="3"'):
+        r = cdrb("eval", model.path, "--set", setting, "-n", "1", "--out", tmp_path / "e.h5")
+        assert r.returncode == 2 and f"--set {setting}" in r.stderr and not (tmp_path / "e.h5").exists(), r.stderr

@@ -89,7 +89,8 @@ def user_settings(method=None, net=None, preset=None, steps=None, config_file=No
     """What `cdrb train` was asked for, in priority order: the ``--config`` file, the ``--set`` pairs, then the
     dedicated flags (``--method``, ``--net``, ``--preset``, ``--steps``; None: not given)."""
     items = read_config_file(config_file) if config_file is not None else []
-    items += parse_set(sets)
+    sets_ = parse_set(sets)
+    items += sets_
     for path, value, flag in (
         (("method", "name"), method, "--method"),
         (("net", "kind"), net, "--net"),
@@ -97,6 +98,9 @@ def user_settings(method=None, net=None, preset=None, steps=None, config_file=No
         (("steps",), steps, "--steps"),
     ):
         if value is not None:
+            clash = lookup(sets_, path)
+            if clash is not None:  # which one would win is not what either says: refuse
+                raise BadInput(f"{flag} {value} with {clash.source}", hint="give it once")
             items.append(Setting(path, value, f"{flag} {value}"))
     return items
 
