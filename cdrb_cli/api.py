@@ -54,19 +54,19 @@ class Plans:
 
 def _settings(settings: dict | None, **fields) -> list:
     """The plan/eval settings of an API call: ``settings`` (dotted keys, as ``--set`` takes them: ``{"avoid.best_of":
-    8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None)."""
-    from cdrb_cli.settings import Setting, from_mapping, lookup
+    8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None); a field both give is
+    refused."""
+    from cdrb_cli.settings import from_mapping, given_once
+    from cdrb_cli.stages.configure import keyword_settings
 
-    given = [
-        Setting(s.path, s.value, f"{'.'.join(s.path)}={s.value!r}")
-        for s in from_mapping({k: v for k, v in fields.items() if v is not None})
-    ]
-    extra = from_mapping(dict(settings or {}), "settings")
-    for s in extra:
-        clash = lookup(given, s.path)
-        if clash is not None:
-            raise BadInput(f"{clash.source} and {s.source}", hint="give it once")
+    given, extra = keyword_settings(fields), from_mapping(dict(settings or {}), "settings")
+    given_once(given, extra, sep=" and ")
     return given + extra
+
+
+def _avoid(**fields) -> dict:
+    """The avoidance keyword arguments of :class:`Planner` and :func:`evaluate` as ``avoid.*`` settings."""
+    return {f"avoid.{k}": v for k, v in fields.items()}
 
 
 class Planner:
@@ -97,16 +97,13 @@ class Planner:
         given = _settings(
             settings,
             **{"use_ema": None if ema else False},
-            **{
-                f"avoid.{k}": v
-                for k, v in dict(
-                    mask_buffer=mask_buffer,
-                    best_of=best_of,
-                    route_k=route_k,
-                    guide_scale=guide_scale,
-                    route_clearance=route_clearance,
-                ).items()
-            },
+            **_avoid(
+                mask_buffer=mask_buffer,
+                best_of=best_of,
+                route_k=route_k,
+                guide_scale=guide_scale,
+                route_clearance=route_clearance,
+            ),
         )
         self.model = artifacts.load(Path(model), "model")
         self._spec = scene_spec(self.model, None if scene is None else Path(scene))
@@ -208,16 +205,13 @@ def evaluate(
         protocol=protocol,
         replan=replan,
         **{"controller.name": controller},
-        **{
-            f"avoid.{k}": v
-            for k, v in dict(
-                mask_buffer=mask_buffer,
-                best_of=best_of,
-                route_k=route_k,
-                guide_scale=guide_scale,
-                route_clearance=route_clearance,
-            ).items()
-        },
+        **_avoid(
+            mask_buffer=mask_buffer,
+            best_of=best_of,
+            route_k=route_k,
+            guide_scale=guide_scale,
+            route_clearance=route_clearance,
+        ),
     )
     m = artifacts.load(Path(model), "model")
     map_path = None if scene is None else Path(scene)

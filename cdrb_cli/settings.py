@@ -168,6 +168,15 @@ def lookup(settings: Sequence[Setting], path: Path_) -> Setting | None:
     return found
 
 
+def given_once(first: Sequence[Setting], then: Sequence[Setting], sep: str = " with ") -> None:
+    """Refuse a field that both ``first`` (a flag, a keyword argument) and ``then`` (``--set``, a settings dict) set:
+    which would win is not what either says."""
+    for s in then:
+        clash = lookup(first, s.path)
+        if clash is not None:
+            raise BadInput(f"{clash.source}{sep}{s.source}", hint="give it once")
+
+
 def apply(base: dict, settings: Iterable[Setting]) -> dict:
     """A deep copy of ``base`` with every setting written in (later ones win)."""
     out = json.loads(json.dumps(base))

@@ -13,7 +13,6 @@ import typer
 
 from cdrb_cli import ui
 from cdrb_cli.cli.common import choice, method_registry, net_names, preset_names, registered
-from cdrb_cli.errors import BadInput
 
 # ------------------------------------------------------------------------------------------------ envs, methods
 EnvArg = typer.Argument(None, help="Environment id (see `cdrb envs`); omit it with --maze-map.")
@@ -110,7 +109,7 @@ def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[st
     """The settings of a plan or an eval in priority order: the ``--config`` file, the flags, then ``--set``
     (a field given both by a flag and by ``--set`` is refused). ``flags``: (source text, key, value) of the
     everyday flags given; ``moved``: moved flag -> value given (None: not given), each noted once."""
-    from cdrb_cli.settings import Setting, lookup, parse_set, read_config_file
+    from cdrb_cli.settings import Setting, given_once, parse_set, read_config_file
 
     items = read_config_file(config_file) if config_file is not None else []
     given = [Setting(tuple(key.split(".")), value, source) for source, key, value in flags]
@@ -126,10 +125,7 @@ def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[st
         ui.warn(f"{flag} is deprecated: write --set {key}={shown} (or put it in a --config file)")
         given.append(Setting(tuple(key.split(".")), value, flag if isinstance(value, bool) else f"{flag} {value}"))
     sets_ = parse_set(sets)
-    for s in sets_:
-        clash = lookup(given, s.path)
-        if clash is not None:
-            raise BadInput(f"{clash.source} with {s.source}", hint="give it once")
+    given_once(given, sets_)
     return items + given + sets_
 
 

@@ -16,7 +16,16 @@ from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import DEFAULT_METHOD, METHODS, BufferInfo, MethodEntry
 from cdrb_cli.nets import horizon_multiple
 from cdrb_cli.presets import DEFAULT_PRESET, NETS, PRESETS, TRAIN
-from cdrb_cli.settings import Setting, apply, from_mapping, lookup, parse_set, read_config_file, validate
+from cdrb_cli.settings import (
+    Setting,
+    apply,
+    from_mapping,
+    given_once,
+    lookup,
+    parse_set,
+    read_config_file,
+    validate,
+)
 
 
 def _source(setting: Setting | None, fallback: str) -> str:
@@ -90,19 +99,18 @@ def user_settings(method=None, net=None, preset=None, steps=None, config_file=No
     dedicated flags (``--method``, ``--net``, ``--preset``, ``--steps``; None: not given)."""
     items = read_config_file(config_file) if config_file is not None else []
     sets_ = parse_set(sets)
-    items += sets_
-    for path, value, flag in (
-        (("method", "name"), method, "--method"),
-        (("net", "kind"), net, "--net"),
-        (("preset",), preset, "--preset"),
-        (("steps",), steps, "--steps"),
-    ):
-        if value is not None:
-            clash = lookup(sets_, path)
-            if clash is not None:  # which one would win is not what either says: refuse
-                raise BadInput(f"{flag} {value} with {clash.source}", hint="give it once")
-            items.append(Setting(path, value, f"{flag} {value}"))
-    return items
+    flags = [
+        Setting(path, value, f"{flag} {value}")
+        for path, value, flag in (
+            (("method", "name"), method, "--method"),
+            (("net", "kind"), net, "--net"),
+            (("preset",), preset, "--preset"),
+            (("steps",), steps, "--steps"),
+        )
+        if value is not None
+    ]
+    given_once(flags, sets_)
+    return items + sets_ + flags
 
 
 def resolve_train_config(

@@ -148,16 +148,11 @@ def check_avoid(model, avoid: AvoidConfig, settings: Sequence[Setting] = ()) -> 
 
 
 def _check_steps(model, settings: Sequence[Setting], sample_steps: int | None, repair_k: int | None = None) -> None:
+    from cdrb_cli.stages.plan import check_sample_steps
+
+    check_sample_steps(model, sample_steps, named(settings, ("sample_steps",), sample_steps))
     steps = getattr(model.manifest.config.method, "diffusion_steps", None)
-    if steps is None:
-        return
-    if sample_steps is not None and sample_steps > steps:
-        raise BadInput(
-            f"{named(settings, ('sample_steps',), sample_steps)}: the model has T = {steps} diffusion steps, so at "
-            f"most {steps}",
-            hint=f"use sample_steps={steps} (all of them) or fewer",
-        )
-    if repair_k is not None and repair_k > steps - 1:
+    if repair_k is not None and steps is not None and repair_k > steps - 1:
         raise BadInput(
             f"{named(settings, ('replan', 'repair_k'), repair_k)}: the model has T = {steps} diffusion steps, so a "
             f"repair restores from k = 1..{steps - 1}",

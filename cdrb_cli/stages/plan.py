@@ -314,13 +314,15 @@ def load_planner(model, device="cpu", ema: bool = True) -> Planner:
     return load_method(model, device=device, ema=ema)
 
 
-def check_sample_steps(model, sample_steps: int | None) -> None:
-    """Refuse more denoising steps than the model's T (fewer than all is what ``--sample-steps`` is for)."""
+def check_sample_steps(model, sample_steps: int | None, where: str | None = None) -> None:
+    """Refuse more denoising steps than the model's T (fewer than all is what ``sample_steps`` is for); ``where``:
+    how the user gave the value, for the error."""
     steps = getattr(model.manifest.config.method, "diffusion_steps", None)
     if sample_steps is not None and steps is not None and sample_steps > steps:
         raise BadInput(
-            f"--sample-steps {sample_steps}: the model has T = {steps} diffusion steps, so at most {steps}",
-            hint=f"use --sample-steps {steps} (all of them) or fewer",
+            f"{where or f'sample_steps = {sample_steps}'}: the model has T = {steps} diffusion steps, so at most "
+            f"{steps}",
+            hint=f"use sample_steps={steps} (all of them) or fewer",
         )
 
 
