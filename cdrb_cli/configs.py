@@ -10,7 +10,7 @@ from pydantic import Field, field_validator, model_validator
 
 from cdrb_cli.envs.family import ControllerConfig, ExpertConfig
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS
-from cdrb_cli.methods.registry import METHODS, MethodParams
+from cdrb_cli.method_registry import METHODS, MethodParams
 from cdrb_cli.nets.config import MLPConfig, NetConfig, SieveConfig, TransformerConfig, UNetConfig  # noqa: F401
 from cdrb_cli.registry import Dispatch, RegisteredName
 from cdrb_cli.schema_base import Record

@@ -106,7 +106,7 @@ class Registry(Generic[E]):
                 if previous is None:
                     self.unregister(name)
                 else:
-                    self._entries[name] = previous
+                    self.register(previous, replace=True)
 
     # -------------------------------------------------------------- looking up
     def _import(self, name: str) -> None:
@@ -158,14 +158,16 @@ class Registry(Generic[E]):
 # ------------------------------------------------------------------------------------------------ pydantic
 class Dispatch:
     """``Annotated[Base, Dispatch(REGISTRY, key="name", attr="params")]``: a field holding a record whose class is
-    ``getattr(REGISTRY.get(value[key]), attr)``. Validation accepts an instance of a registered class or a dict;
-    serialization writes the record's own fields; the JSON Schema is the union of the built-in classes."""
+    ``getattr(REGISTRY.get(value[key]), attr)`` (the entry itself without ``attr``). Validation accepts an instance
+    of a registered class or a dict; serialization writes the record's own fields; the JSON Schema is the union of
+    the built-in classes."""
 
-    def __init__(self, registry: Registry, key: str, attr: str):
+    def __init__(self, registry: Registry, key: str, attr: str | None = None):
         self.registry, self.key, self.attr = registry, key, attr
 
     def record_type(self, name: str) -> type:
-        return getattr(self.registry.get(name), self.attr)
+        entry = self.registry.get(name)
+        return entry if self.attr is None else getattr(entry, self.attr)
 
     def __get_pydantic_core_schema__(self, source: Any, handler: Any) -> Any:
         from pydantic import BaseModel
@@ -208,7 +210,7 @@ class Dispatch:
     def __get_pydantic_json_schema__(self, schema: Any, handler: Any) -> Any:
         from pydantic_core import core_schema
 
-        classes = [getattr(e, self.attr) for e in self.registry.builtin_entries()]
+        classes = [e if self.attr is None else getattr(e, self.attr) for e in self.registry.builtin_entries()]
         union = core_schema.union_schema([c.__pydantic_core_schema__ for c in classes])
         return handler(union)
 

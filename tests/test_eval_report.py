@@ -439,7 +439,7 @@ def test_weighted_success_and_success_without_collision_follow_their_definitions
     collision: success with no executed collision. Checked on every combination of the three flags."""
     import itertools
 
-    from cdrb_cli.stages.evaluate import EpisodeResult, seed_result
+    from cdrb_cli.stages.results import EpisodeResult, seed_result
 
     results = []
     for i, (ok, wall, hit) in enumerate(itertools.product([True, False], [0.0, 0.25], [False, True])):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a grid composes)
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
 from cdrb_cli.orchestration.grid import PoolBackend, expand, load_grid, run_grid

@@ -41,6 +41,16 @@ def test_low_layers_import_neither_stages_nor_the_cli(path):
     assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
+@pytest.mark.parametrize(
+    "path", _files(PKG / "orchestration", PKG / "stages", PKG / "api.py"), ids=lambda p: str(p.relative_to(ROOT))
+)
+def test_orchestration_stages_and_the_api_import_neither_the_cli_nor_typer(path):
+    """The grid reads the commands it composes as data the CLI installs (orchestration/grid/commands.py), so the
+    command line stays the top floor."""
+    bad = [m for m, _ in _imports(path) if m.startswith(("cdrb_cli.cli", "typer", "click"))]
+    assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
 @pytest.mark.parametrize("path", _files(PKG, ROOT / "benchmarks"), ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_module_imports_another_modules_private_names(path):
     bad = [

@@ -257,7 +257,7 @@ def test_eval_cli_closed_loop_bad_inputs(models, tmp_path, cdrb, args, needle):
 
 def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, tmp_path):
     from cdrb_cli import artifacts
-    from cdrb_cli.stages.evaluate import episode_results
+    from cdrb_cli.stages.results import episode_results
 
     model = models["mlp"]
     config = eval_config(model, episodes=2, seeds=[0])

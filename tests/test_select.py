@@ -291,7 +291,8 @@ def test_select_refuses_two_outputs_on_one_file_before_reading_anything(tmp_path
 
 def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_path):
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.stages.report import paper_figures, replace_block
+    from cdrb_cli.stages.docs_blocks import replace_block
+    from cdrb_cli.stages.report import paper_figures
 
     figures = paper_figures()
     assert len(figures) == 8 and figures["maze-tight"]["cdrb"] == (98.0, 0.0)
@@ -366,7 +367,7 @@ def test_selected_file_flags_are_relative_to_the_settings_file(tmp_path):
     maps = tmp_path / "experiments" / "maps" / "closed.txt"
     flags = ["--max-lag", "0.6", "--maze-map", str(tmp_path / "experiments" / "tune" / ".." / "maps" / "closed.txt")]
     flags += [f"--route-buffer={tmp_path / 'runs' / 'b.h5'}", "--protocol", "detour"]
-    out = relative_files(flags, folder)
+    out = relative_files(flags, "eval", folder)
     assert out == ["--max-lag", "0.6", "--maze-map", "../maps/closed.txt", "--route-buffer=../../runs/b.h5"] + [
         "--protocol",
         "detour",

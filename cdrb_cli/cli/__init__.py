@@ -31,6 +31,11 @@ from cdrb_cli.cli.common import app, readable_help  # noqa: F401  (app: the type
 
 # the command groups, imported for their registration on `app` (the order --help lists them in)
 from cdrb_cli.cli import info, data, train, plan, evaluate, studies  # noqa: E402, F401  isort: skip
+from cdrb_cli.cli.catalogue import describe  # noqa: E402
+from cdrb_cli.orchestration.grid import commands as _grid_commands  # noqa: E402
+
+# the grid reads the commands it composes from their description, made when it first needs it
+_grid_commands.install(lambda: describe(app))
 
 
 # ------------------------------------------------------------------------------------------------ entry point

@@ -84,7 +84,7 @@ def collect(
     [cyan]cdrb collect fetch-push-obstacle -n 1000 --plot push.png --video gifs/[/cyan] (GIFs are MuJoCo frames
     where an offscreen GL context can be made, matplotlib drawings otherwise; the command says which)."""
     from cdrb_cli.artifacts import produce
-    from cdrb_cli.stages.collect import check_workers, collect_config, route_shares
+    from cdrb_cli.stages.collect import check_workers, collect_config
     from cdrb_cli.stages.collect import collect as run_collect
 
     if video is not None:
@@ -109,15 +109,7 @@ def collect(
     )
     demos = produce(out, "demos", force, config, lambda: run_collect(spec, config, out, workers=workers), env=spec)
     s = demos.manifest.summary
-    ui.log(
-        f"{spec.id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "
-        f"success {s.success_rate:.1%}, mean length {s.mean_length:.0f} steps (max {s.max_length}), "
-        f"states inside obstacles: {s.states_in_walls}, {s.wall_time_s:.1f}s"
-    )
-    if s.routes:
-        ui.log(f"routes: {route_shares(s.routes)}")
-    if s.success_rate < 0.99:
-        ui.warn(f"expert success {s.success_rate:.1%} is below 99%")
+    _log_demos(spec.id, s)
     if plot is not None:
         from cdrb_cli.envs.render import plot_demos
 
@@ -129,6 +121,22 @@ def collect(
         demo_gifs(demos, video, videos)
         ui.log(f"demo GIFs: {video}/")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
+def _log_demos(env_id: str, s) -> None:
+    """What a collection made, for the log: episodes, expert success and lengths, routes; a warning for an expert
+    that failed more than 1% of its episodes."""
+    from cdrb_cli.stages.collect import route_shares
+
+    ui.log(
+        f"{env_id}: {s.episodes} episodes ({s.train_episodes} train / {s.valid_episodes} valid), "
+        f"success {s.success_rate:.1%}, mean length {s.mean_length:.0f} steps (max {s.max_length}), "
+        f"states inside obstacles: {s.states_in_walls}, {s.wall_time_s:.1f}s"
+    )
+    if s.routes:
+        ui.log(f"routes: {route_shares(s.routes)}")
+    if s.success_rate < 0.99:
+        ui.warn(f"expert success {s.success_rate:.1%} is below 99%")
 
 
 # ------------------------------------------------------------------------------------------------ minari

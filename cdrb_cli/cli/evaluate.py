@@ -24,67 +24,81 @@ from cdrb_cli.cli.common import (
 from cdrb_cli.cli.options import EVAL_MOVED, RunConfigOpt, RunSetOpt, moved_flags, run_settings
 from cdrb_cli.errors import BadInput
 
-
 # ------------------------------------------------------------------------------------------------ eval
+EpisodesOpt = typer.Option(
+    None, "--episodes", "-n", min=1, max=100_000, help="Episodes per evaluation seed (default 100)."
+)
+SeedsOpt = typer.Option(
+    None, "--seeds", help="Evaluation seeds, each drawing its own start/goal pairs (default 0,1,2,3,4)."
+)
+StreamOpt = typer.Option(
+    None,
+    "--stream",
+    parser=choice(lambda: ["test", "tune"], "stream"),
+    metavar="test|tune",
+    help="Which start/goal pairs: 'tune' to choose settings on, 'test' (never used for choosing) for reported "
+    "tables (default test).",
+)
+ProtocolOpt = typer.Option(
+    None,
+    "--protocol",
+    metavar="NAME",
+    help="The evaluation protocol (default: the environment's; `cdrb envs` lists them). 'official-code' "
+    "evaluates as the official CDRB code; 'detour' (with --scene) keeps the pairs the new obstacles lengthen; "
+    "'anywhere' starts anywhere.",
+)
+ReplanOpt = typer.Option(
+    None,
+    "--replan",
+    metavar="never|every:N|deviation:D",
+    help="Planners, closed loop: plan again from the current state every N env steps, or when the state is "
+    "farther than D (metres, in the obstacle dimensions) from where the plan has it now (default: never, one "
+    "plan per episode as in the paper), with the settings chosen for re-planning. Repairs: --set "
+    "replan.repair_k=K.",
+)
+SceneOpt = typer.Option(
+    None,
+    "--scene",
+    "--maze-map",
+    metavar="FILE",
+    help="Evaluate among obstacles the data never saw, the model not retrained: for a maze, a map file (the "
+    "training map with walls added); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. Plans avoid "
+    "them with the settings chosen for new obstacles (`--set avoid=plain`: as the model is).",
+)
+VideoOpt = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder.")
+EvalOutOpt = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write.")
+VideosOpt = typer.Option(3, "--videos", min=1, hidden=True, help="How many rollout GIFs with --video.")
+KeepPlansOpt = typer.Option(
+    True, "--plans/--no-plans", hidden=True, help="Keep each episode's (first) plan in the eval artifact."
+)
+ReplanPlotOpt = typer.Option(
+    None, "--replan-plot", hidden=True, help="With --replan: the first episode's successive plans (PNG)."
+)
+AllowPartialOpt = typer.Option(False, "--allow-partial", hidden=True, help="Accept an unfinished model.")
+
+
 @app.command("eval")
 @moved_flags(*EVAL_MOVED)
 def eval_cmd(
     model: Path = typer.Argument(..., help="Model artifact from `cdrb train`."),
-    episodes: int | None = typer.Option(
-        None, "--episodes", "-n", min=1, max=100_000, help="Episodes per evaluation seed (default 100)."
-    ),
-    seeds: str | None = typer.Option(
-        None, "--seeds", help="Evaluation seeds, each drawing its own start/goal pairs (default 0,1,2,3,4)."
-    ),
-    stream: str | None = typer.Option(
-        None,
-        "--stream",
-        parser=choice(lambda: ["test", "tune"], "stream"),
-        metavar="test|tune",
-        help="Which start/goal pairs: 'tune' to choose settings on, 'test' (never used for choosing) for reported "
-        "tables (default test).",
-    ),
-    protocol: str | None = typer.Option(
-        None,
-        "--protocol",
-        metavar="NAME",
-        help="The evaluation protocol (default: the environment's; `cdrb envs` lists them). 'official-code' "
-        "evaluates as the official CDRB code; 'detour' (with --scene) keeps the pairs the new obstacles lengthen; "
-        "'anywhere' starts anywhere.",
-    ),
-    replan: str | None = typer.Option(
-        None,
-        "--replan",
-        metavar="never|every:N|deviation:D",
-        help="Planners, closed loop: plan again from the current state every N env steps, or when the state is "
-        "farther than D (metres, in the obstacle dimensions) from where the plan has it now (default: never, one "
-        "plan per episode as in the paper). Repairs: --set replan.repair_k=K.",
-    ),
-    maze_map: Path | None = typer.Option(
-        None,
-        "--scene",
-        "--maze-map",
-        metavar="FILE",
-        help="Evaluate among obstacles the data never saw, the model not retrained: for a maze, a map file (the "
-        "training map with walls added); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. Plans avoid "
-        "them with the settings chosen for new obstacles (`--set avoid=plain`: as the model is).",
-    ),
+    episodes: int | None = EpisodesOpt,
+    seeds: str | None = SeedsOpt,
+    stream: str | None = StreamOpt,
+    protocol: str | None = ProtocolOpt,
+    replan: str | None = ReplanOpt,
+    maze_map: Path | None = SceneOpt,
     sets: list[str] = RunSetOpt,
     config_file: Path | None = RunConfigOpt,
-    video: Path | None = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder."),
+    video: Path | None = VideoOpt,
     device: str = DeviceOpt,
-    out: Path = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write."),
+    out: Path = EvalOutOpt,
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
-    videos: int = typer.Option(3, "--videos", min=1, hidden=True, help="How many rollout GIFs with --video."),
-    keep_plans: bool = typer.Option(
-        True, "--plans/--no-plans", hidden=True, help="Keep each episode's (first) plan in the eval artifact."
-    ),
-    replan_plot: Path | None = typer.Option(
-        None, "--replan-plot", hidden=True, help="With --replan: the first episode's successive plans (PNG)."
-    ),
-    allow_partial: bool = typer.Option(False, "--allow-partial", hidden=True, help="Accept an unfinished model."),
+    videos: int = VideosOpt,
+    keep_plans: bool = KeepPlansOpt,
+    replan_plot: Path | None = ReplanPlotOpt,
+    allow_partial: bool = AllowPartialOpt,
     moved: dict | None = None,
 ) -> None:
     """Plan once per episode, execute the plan with a controller in the simulator, write an [bold]eval[/bold]
@@ -112,18 +126,8 @@ def eval_cmd(
     from cdrb_cli.stages.evaluate import eval_artifact, summary_line
     from cdrb_cli.torch_utils import setup_torch
 
-    flags = [
-        (f"{flag} {value}", key, parse(value))
-        for flag, key, value, parse in (
-            ("--episodes", "episodes", episodes, int),
-            ("--seeds", "seeds", seeds, lambda text: parse_seeds(text, "--seeds")),
-            ("--stream", "stream", stream, str),
-            ("--protocol", "protocol", protocol, str),
-            ("--replan", "replan", replan, str),
-        )
-        if value is not None
-    ]
-    settings = run_settings(config_file, sets, flags, moved)
+    everyday = dict(episodes=episodes, seeds=seeds, stream=stream, protocol=protocol, replan=replan)
+    settings = run_settings(config_file, sets, _everyday_flags(everyday), moved)
     if video is not None:
         check_video_folder(video, out)
     route_buffer = route_buffer_path(settings)
@@ -152,3 +156,9 @@ def eval_cmd(
     if replan_plot is not None and replan_plot.exists():
         ui.log(f"picture: {replan_plot}")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
+def _everyday_flags(values: dict) -> list[tuple[str, str, object]]:
+    """The everyday flags given, as (how the user typed it, settings key, value) for :func:`run_settings`."""
+    parse = {"episodes": int, "seeds": lambda text: parse_seeds(text, "--seeds")}
+    return [(f"--{key} {value}", key, parse.get(key, str)(value)) for key, value in values.items() if value is not None]

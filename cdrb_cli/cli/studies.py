@@ -63,6 +63,7 @@ def report(
     obstacles, executed collisions, path length and planning time), with optional pictures.
 
     Evals of one environment must share a protocol (seeds, episodes, controller); mixing is an error."""
+    from cdrb_cli.stages import docs_blocks, report_figures
     from cdrb_cli.stages import report as rep
 
     if (docs is None) != (block is None):
@@ -91,17 +92,17 @@ def report(
         text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
     # every check before the first file is written: a bad --docs block or evals without plans leave nothing behind
     if plans_plot is not None:
-        rep.with_plans(arts)
+        report_figures.with_plans(arts)
     if docs is not None:
-        rep.check_docs_block(docs, block, text, read)
+        docs_blocks.check_docs_block(docs, block, text, read)
     if plot is not None:
-        rep.plot_bars(rows, plot)
+        report_figures.plot_bars(rows, plot)
         ui.log(f"picture: {plot}")
     if plans_plot is not None:
-        rep.plot_side_by_side(arts, plans_plot)
+        report_figures.plot_side_by_side(arts, plans_plot)
         ui.log(f"picture: {plans_plot}")
     if docs is not None:
-        rep.write_docs_block(docs, block, text, read)
+        docs_blocks.write_docs_block(docs, block, text, read)
     if out is not None:
         from cdrb_cli.artifacts import atomic_path, claim_output
 

@@ -17,17 +17,14 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
+from cdrb_cli.envs.spec import EnvSpec, Scene
 from cdrb_cli.errors import BadInput
 from cdrb_cli.schema_base import Record
 from cdrb_cli.settings import clip
-
-if TYPE_CHECKING:
-    from cdrb_cli.envs.spec import EnvSpec
-
 
 #: why a failed evaluation episode failed, in the order they are tested: a plan that went through an obstacle; the
 #: object never moved (never grasped or pushed); the executed path hit an obstacle the plan avoided; the rest (the
@@ -138,12 +135,6 @@ class ControllerEntry:
     @property
     def name(self) -> str:
         return self.config.model_fields["name"].default
-
-
-class Scene(Record):
-    """Base of a family's own part of the EnvSpec (``spec.scene``); subclasses fix ``family``."""
-
-    family: str
 
 
 class EnvFamily(ABC):

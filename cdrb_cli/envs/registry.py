@@ -11,18 +11,29 @@ family whose ``spec_from_file`` reads it. :func:`make_spec` and :func:`list_envs
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from cdrb_cli.envs.family import ControllerEntry, EnvFamily, ExpertEntry
+from cdrb_cli.envs.spec import FAMILY_MODULES, SCENES, EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.registry import Registry
 
-if TYPE_CHECKING:
-    from cdrb_cli.envs.spec import EnvSpec
 
-FAMILIES: Registry[EnvFamily] = Registry(
-    "environment family", {"pointmaze": "cdrb_cli.envs.pointmaze", "fetch": "cdrb_cli.envs.fetch"}, EnvFamily
-)
+class FamilyRegistry(Registry[EnvFamily]):
+    """The families; registering one also registers its scene type (:data:`~cdrb_cli.envs.spec.SCENES`), by
+    which an EnvSpec reads its family's part."""
+
+    def register(self, entry: EnvFamily, replace: bool = False) -> EnvFamily:
+        super().register(entry, replace)
+        SCENES.register(entry.scene_type, replace=True)
+        return entry
+
+    def unregister(self, name: str) -> None:
+        super().unregister(name)
+        SCENES.unregister(name)
+
+
+FAMILIES = FamilyRegistry("environment family", FAMILY_MODULES, EnvFamily)
 EXPERTS: Registry[ExpertEntry] = Registry(
     "expert",
     {

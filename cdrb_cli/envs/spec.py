@@ -12,16 +12,29 @@ from typing import Annotated
 
 from pydantic import Field, model_validator
 
-from cdrb_cli.envs.family import Scene
 from cdrb_cli.envs.geometry import BoxObstacles  # noqa: F401  (part of the spec's public names)
-from cdrb_cli.envs.registry import FAMILIES
-from cdrb_cli.registry import Dispatch
+from cdrb_cli.registry import Dispatch, Registry
 from cdrb_cli.schema_base import Record
+
+#: the built-in families' modules: importing one registers the family (envs.registry.FAMILIES) and its scene type
+FAMILY_MODULES = {"pointmaze": "cdrb_cli.envs.pointmaze", "fetch": "cdrb_cli.envs.fetch"}
+
+
+class Scene(Record):
+    """Base of a family's own part of the EnvSpec (``spec.scene``); subclasses fix ``family``."""
+
+    family: str
+
+
+#: family name -> the type of its part of the spec, registered with the family itself (envs.registry.FAMILIES)
+SCENES: Registry[type[Scene]] = Registry(
+    "environment family", FAMILY_MODULES, key=lambda scene: scene.model_fields["family"].default
+)
 
 
 class EnvSpec(Record):
     id: str = Field(max_length=200, description="environment id, e.g. 'maze-tight', or 'map:<name>' for a map file")
-    scene: Annotated[Scene, Dispatch(FAMILIES, key="family", attr="scene_type")] = Field(
+    scene: Annotated[Scene, Dispatch(SCENES, key="family")] = Field(
         description="the family's own part of the spec; scene.family names the family"
     )
     obs_dim: int = Field(gt=0, le=1024)

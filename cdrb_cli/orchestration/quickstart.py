@@ -113,7 +113,8 @@ def quickstart(
     from cdrb_cli.stages.cluster import cluster
     from cdrb_cli.stages.collect import collect, collect_config
     from cdrb_cli.stages.configure import eval_config
-    from cdrb_cli.stages.report import collect_rows, plot_bars, plot_side_by_side, render
+    from cdrb_cli.stages.report import collect_rows, render
+    from cdrb_cli.stages.report_figures import plot_bars, plot_side_by_side
 
     t0 = time.time()
     folder = Path(folder)

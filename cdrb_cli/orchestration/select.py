@@ -59,7 +59,7 @@ class Candidate:
 def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
     """Every (env, method, variant, training length) of the grid with its tuning scores, in the grid's order
     (``tasks``: the grid's expanded tasks, when the caller has them)."""
-    from cdrb_cli.stages.report import per_seed
+    from cdrb_cli.stages.results import per_seed
 
     order = {v.name: i for i, v in enumerate(spec.variants or [BASE])}
     found: dict[tuple, Candidate] = {}
@@ -250,21 +250,17 @@ def _toml_list(items: list[str]) -> str:
     return "[" + ", ".join(toml_string(x) for x in items) + "]"
 
 
-def relative_files(flags: list[str], folder: Path) -> list[str]:
-    """``flags`` with every file value of the grid's path flags (absolute once a grid is read) written relative to
+def relative_files(flags: list[str], command: str, folder: Path) -> list[str]:
+    """``flags`` of ``command`` with every file it reads (absolute once a grid is read) written relative to
     ``folder``, the settings file's own: a grid that includes the file then finds the same files from anywhere."""
     import os
 
-    from cdrb_cli.orchestration.grid import PATH_FLAGS
+    from cdrb_cli.orchestration.grid.commands import map_input_files
 
-    out = list(flags)
-    for i, f in enumerate(out):
-        name, eq, value = f.partition("=")
-        if name in PATH_FLAGS and eq and os.path.isabs(value):
-            out[i] = f"{name}={os.path.relpath(os.path.normpath(value), folder)}"
-        elif f in PATH_FLAGS and i + 1 < len(out) and os.path.isabs(out[i + 1]):
-            out[i + 1] = os.path.relpath(os.path.normpath(out[i + 1]), folder)
-    return out
+    def relative(value: str) -> str:
+        return os.path.relpath(os.path.normpath(value), folder) if os.path.isabs(value) else value
+
+    return map_input_files(flags, command, relative)
 
 
 def settings_text(
@@ -286,7 +282,9 @@ def settings_text(
     for (env, method), cand in best.items():
         cluster, train, evaluate = chosen_flags(spec, cand)
         if folder is not None:
-            cluster, train, evaluate = (relative_files(f, folder) for f in (cluster, train, evaluate))
+            cluster, train, evaluate = (
+                relative_files(f, c, folder) for f, c in ((cluster, "cluster"), (train, "train"), (evaluate, "eval"))
+            )
         lines += [
             "[[settings]]",
             f"env = {toml_string(env)}",
@@ -401,7 +399,7 @@ def select(
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
     best, rising = choose(cands), still_rising(cands)
     if docs is not None:
-        from cdrb_cli.stages.report import check_docs_block
+        from cdrb_cli.stages.docs_blocks import check_docs_block
 
         summary = summary_text(cands, best, rising)
         check_docs_block(docs, block, summary, inputs)
@@ -429,7 +427,7 @@ def select(
         with artifacts.claim_output(curves, force, "--curves", inputs), artifacts.atomic_path(curves) as tmp:
             tmp.write_text(render(curve_rows(cands), "csv"))
     if docs is not None:
-        from cdrb_cli.stages.report import write_docs_block
+        from cdrb_cli.stages.docs_blocks import write_docs_block
 
         write_docs_block(docs, block, summary, inputs)
     return out

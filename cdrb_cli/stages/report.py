@@ -20,6 +20,7 @@ from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.settings import clip
 from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, std_or_none, sum_failures
+from cdrb_cli.stages.results import failure_text, is_policy_eval, per_seed
 
 PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
 
@@ -81,7 +82,7 @@ def _env_name(spec) -> str:
     return family_of(spec).display_name(spec.id)
 
 
-def _rank(method: str) -> tuple[int, str]:
+def method_rank(method: str) -> tuple[int, str]:
     """Report columns follow the method registry's order (the paper's Table 1 order for the built-ins)."""
     from cdrb_cli.methods.registry import METHODS
 
@@ -101,11 +102,6 @@ def _planning(ev) -> tuple:
     """How one method planned: these must agree across the seeds pooled into one row."""
     c = ev.manifest.config
     return (controller_name(ev), c.sampler, c.sample_steps, c.use_ema)
-
-
-def is_policy_eval(ev) -> bool:
-    """Whether ``ev`` is a closed-loop policy's eval: no plans, so no plan measures and no controller."""
-    return "episodes/plan_in_wall_fraction" not in ev.arrays
 
 
 def controller_name(ev) -> str:
@@ -129,23 +125,6 @@ def method_label(ev) -> str:
     if avoid is not None and avoid.label() != "plain":
         how.append(avoid.label())
     return f"{label} [{'; '.join(how)}]" if how else label
-
-
-def per_seed(ev) -> list:
-    """The per-seed results of an eval artifact, recomputed from its per-episode datasets (never taken from the
-    manifest's summary, which a file may claim anything in)."""
-    from cdrb_cli.stages.evaluate import episode_results, measured, seed_result
-
-    results = episode_results(ev.arrays)
-    seeds = list(dict.fromkeys(r.seed for r in results))
-    policy = is_policy_eval(ev)
-    per = [seed_result(s, [r for r in results if r.seed == s], policy=policy) for s in seeds]
-    if policy:
-        return per
-    if not measured(ev.arrays):  # an eval written before schema 2.2: crossings and jumps were not measured
-        unknown = {"plan_crossing_rate": None, "jump_ratio": None, "impossible_jump_rate": None}
-        per = [p.model_copy(update=unknown) for p in per]
-    return per
 
 
 def first_step_ratio(evals) -> float | None:
@@ -320,64 +299,6 @@ def render_seed_rows(rows: list[dict], fmt: str) -> str:
     return plain_table(rows, lambda v: "–" if v is None else f"{v:.1f}" if isinstance(v, float) else str(v), ("path",))
 
 
-def replace_block(text: str, name: str, block: str, where: str) -> str:
-    """``text`` with the part between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` replaced by ``block``."""
-    import re
-
-    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
-    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
-    if not pattern.search(text):
-        raise BadInput(
-            f"--docs {where}: no {begin} ... {end} block", hint="add the two marker lines where the table goes"
-        )
-    if text.count(begin) != 1 or text.count(end) != 1:
-        raise BadInput(
-            f"--docs {where}: {begin} appears {text.count(begin)} times and {end} {text.count(end)}: which block "
-            "to replace is ambiguous",
-            hint="keep one pair of markers per block name (give the others their own --block names)",
-        )
-    if begin in block or end in block:
-        raise BadInput(f"--docs {where}: the report itself holds a {name} marker", hint="check the evals' names")
-    return pattern.sub(lambda _: f"{begin}\n{block.rstrip()}\n{end}", text, count=1)
-
-
-def check_docs_block(docs: Path, block: str, text: str, inputs) -> None:
-    """Refuse, before anything is written, a ``--docs`` FILE that is missing, not a file, one of ``inputs``,
-    read-only, or without exactly one pair of ``block`` markers."""
-    import stat
-
-    from cdrb_cli.artifacts import check_output
-    from cdrb_cli.artifacts.core import read_input_text
-
-    if not docs.is_file():
-        why = "no such file" if not docs.exists() else "not a regular file (a folder, device or FIFO)"
-        raise BadInput(f"--docs {docs}: {why}", hint="name an existing markdown file with the marked block")
-    check_output(docs, True, "--docs", inputs)  # rewritten in place, never one of the inputs
-    if not docs.stat().st_mode & stat.S_IWUSR:
-        raise BadInput(f"--docs {docs}: is read-only", hint=f"make it writable (chmod u+w {docs}) first")
-    replace_block(read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file"),
-                  block, text, str(docs))  # fmt: skip
-
-
-def write_docs_block(docs: Path, block: str, text: str, inputs) -> None:
-    """Replace ``block`` of the markdown file ``docs`` by ``text``: an output like ``--out`` (never one of
-    ``inputs``, locked, written atomically), rewritten in place by design, keeping the file's permissions."""
-    import stat
-
-    from cdrb_cli.artifacts import atomic_path, claim_output
-    from cdrb_cli.artifacts.core import read_input_text
-
-    try:
-        with claim_output(docs, True, "--docs", inputs), atomic_path(docs) as tmp:
-            old = read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file")
-            tmp.write_text(replace_block(old, block, text, str(docs)))
-            tmp.chmod(stat.S_IMODE(docs.stat().st_mode))  # the file keeps who may read it
-    except PermissionError as exc:  # an immutable file, a folder that refuses the rename
-        raise BadInput(f"--docs {docs}: cannot be replaced ({exc.strerror})",
-                       hint="check the file's and its folder's permissions and attributes") from None  # fmt: skip
-    ui.log(f"block {block} of {docs} rewritten")
-
-
 def _markdown_safe(row: dict) -> dict:
     """``row`` with every text value fit for one table cell: names come from artifacts, which anyone can write, and
     a line break, a ``|`` or a ``<!-- ... -->`` marker in one would break the table or the docs block it lands in."""
@@ -385,11 +306,6 @@ def _markdown_safe(row: dict) -> dict:
         k: " ".join(v.split()).replace("|", "\\|").replace("<", "&lt;") if isinstance(v, str) else v
         for k, v in row.items()
     }
-
-
-def failure_text(counts: dict[str, int] | None) -> str | None:
-    """``plan 2, grasp 0, collision 5, tracking 11``: failed episodes per cause (None: not classified)."""
-    return None if counts is None else ", ".join(f"{cause} {n}" for cause, n in counts.items())
 
 
 def _ms(seconds: float | None) -> float | None:
@@ -404,7 +320,7 @@ def _describe(p) -> str:
 def method_order(methods) -> list[str]:
     """``methods`` (labels, a preset or variant after the name) in the method registry's order: the columns of
     every table and the bars of every chart."""
-    return sorted(methods, key=_rank)
+    return sorted(methods, key=method_rank)
 
 
 def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
@@ -493,7 +409,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     (``≤ floor``: not above its mean; ``≈ floor``: above it by no more than seed noise, :func:`_above`), and
     with ``paper`` the paper's figures. A row without a straight-line eval says so instead of a floor."""
     figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
-    rows, preset_note = _preset_columns([_markdown_safe(r) for r in rows])
+    rows, preset_note = preset_columns([_markdown_safe(r) for r in rows])
     envs = list(dict.fromkeys(r["env"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     floors = [m for m in method_order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
@@ -577,7 +493,7 @@ def _above(r: dict, floor: dict) -> bool:
     return bool(test.pvalue < FLOOR_ALPHA)
 
 
-def _preset_columns(rows: list[dict]) -> tuple[list[dict], str]:
+def preset_columns(rows: list[dict]) -> tuple[list[dict], str]:
     """``rows`` with each method's preset taken out of its column name (``mlp (paper)`` -> ``mlp``), so one
     method is one column across rows whose models were trained at different presets (each row's settings are its
     own), and a note naming the rows of each preset other than the quick one. Where two of one row's methods would
@@ -624,57 +540,6 @@ COLUMN_NOTES = (
 )
 
 
-def plot_bars(rows: list[dict], path) -> Path:
-    from cdrb_cli.envs.render import label, pyplot, save_figure
-
-    plt = pyplot()
-    rows, _ = _preset_columns(rows)  # one bar colour per method across rows trained at different presets
-    envs = list(dict.fromkeys(r["env"] for r in rows))
-    methods = method_order(dict.fromkeys(r["method"] for r in rows))
-    cell = {(r["env"], r["method"]): r for r in rows}
-    name = {r["env"]: r["env_name"] for r in rows}
-    many = len(envs) > 3  # long row names side by side: slant them and widen the figure
-    fig, axes = plt.subplots(1, 2, figsize=(max(11.0, 2.2 * len(envs)), 4.6 if many else 4))
-    width = 0.8 / max(len(methods), 1)
-    x = np.arange(len(envs))
-    for i, m in enumerate(methods):
-        for ax, key, std in ((axes[0], "success_mean", "success_std"), (axes[1], "in_wall_mean", "in_wall_std")):
-            vals = np.array([_num(cell[(e, m)][key]) if (e, m) in cell else np.nan for e in envs])
-            errs = np.array([_num(cell[(e, m)][std], 0.0) if (e, m) in cell else 0 for e in envs])
-            # a rate lies in [0, 100]: the bar's std whisker stops there instead of reaching below zero
-            whisker = [np.minimum(errs, np.nan_to_num(vals)), np.minimum(errs, 100 - np.nan_to_num(vals))]
-            ax.bar(x + (i - (len(methods) - 1) / 2) * width, vals, width, yerr=whisker, capsize=3, label=label(m))
-    panels = ((axes[0], "success rate", "success (%)"), (axes[1], "planned states inside obstacles", "states (%)"))
-    for ax, title, ylabel in panels:
-        ax.set_xticks(x)
-        ax.set_xticklabels([label(name[e]) for e in envs], rotation=25 if many else 0, ha="right" if many else "center")
-        ax.set_title(title, fontsize=10)
-        ax.set_ylabel(ylabel)
-        ax.set_ylim(bottom=0)
-        ax.grid(axis="y", alpha=0.3)
-    if many:  # a legend row above the bars, which reach 100 in every group
-        axes[0].set_ylim(0, 118)
-        axes[0].set_yticks(range(0, 101, 20))
-        axes[0].legend(fontsize=8, ncol=len(methods), loc="upper center")
-    else:
-        axes[0].set_ylim(0, 105)
-        axes[0].legend(fontsize=8)
-    seeds = sorted({int(r.get("seeds", 0) or 0) for r in rows})
-    fig.text(
-        0.5,
-        0.0,
-        f"mean over evaluation seeds ({', '.join(map(str, seeds))} per bar); whiskers: sample std, cut at 0 and 100",
-        ha="center",
-        va="top",
-        fontsize=8,
-    )
-    return save_figure(fig, path)
-
-
-def _num(v, missing=np.nan) -> float:
-    return missing if v is None else v
-
-
 def _success_cell(r: dict) -> str:
     """``mean ± std [± 95% CI]`` over seeds; with one seed there is no spread to show (n/a, not a zero)."""
     if r["seeds"] < 2:
@@ -687,39 +552,3 @@ def _pm(mean, std, seeds: int = 2) -> str:
     if mean is None:
         return "n/a"
     return f"{mean:.2f} ± {std:.2f}" if seeds > 1 else f"{mean:.2f} ± n/a"
-
-
-def with_plans(evals) -> list:
-    """The evals that :func:`plot_side_by_side` draws (those holding plans, of one environment), or why not."""
-    evals = [ev for ev in evals if "plans" in ev.arrays]
-    if not evals:
-        raise BadInput("--plans-plot: none of the eval files holds plans", hint="run `cdrb eval` without --no-plans")
-    envs = list(dict.fromkeys(ev.manifest.env.id for ev in evals))
-    if len(envs) > 1:
-        raise BadInput("--plans-plot needs evals of a single environment", hint=f"got {', '.join(envs)}")
-    return evals
-
-
-def plot_side_by_side(evals, path, n: int = 12) -> Path:
-    """The plans of every method for the same start/goal pairs (the first ``n`` episodes of the first seed)."""
-    from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.envs.render import draw_ends, draw_plans, draw_scene, plan_legend, pyplot, save_figure, set_title
-
-    evals = sorted(with_plans(evals), key=lambda ev: _rank(method_label(ev)))
-    plt = pyplot()
-    fig, axes = plt.subplots(1, len(evals), figsize=(4.6 * len(evals), 4.8), squeeze=False)
-    for ax, ev in zip(axes[0], evals):
-        spec = ev.manifest.env
-        plans = ev.arrays["plans"][:n]
-        draw_scene(ax, spec)
-        draw_plans(ax, spec, plans, family_of(spec).in_collision(spec, plans[..., : spec.obs_dim]), markers=False)
-        draw_ends(ax, spec, plans[:, 0, : spec.obs_dim], plans[:, -1, : spec.obs_dim])
-        s = ev.manifest.summary  # the eval's own figures, to the report table's precision
-        set_title(
-            ax,
-            f"{method_label(ev)}: success {100 * s.success_mean:.1f}%, "
-            f"planned states in walls {100 * s.in_wall_mean:.2f}% (eval); {len(plans)} of its plans",
-            8,
-        )
-    plan_legend(fig, loc="upper center", ncol=4, bbox_to_anchor=(0.5, 0.02))
-    return save_figure(fig, path)

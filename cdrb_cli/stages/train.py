@@ -161,7 +161,6 @@ def train(
     n_params = sum(p.numel() for m in modules.values() for p in m.parameters())
     log_every = log_interval(config)
     step, curve, wall = 0, [], 0.0
-
     if resume is True:
         found = artifacts.existing(out, "model", config, parents)
         if found.status not in ("resumable", "up-to-date"):
@@ -169,14 +168,7 @@ def train(
         resume = found.artifact
     if resume:
         step, curve, wall = restore(resume, method, ema, optimizers, device)
-        ui.log(f"resuming {out} from step {step}")
-        if step in snapshots and resume.manifest.state.finished and not snapshot_path(out, step).exists():
-            # a finished run of `step` steps is the snapshot a longer run writes at `step`: keep it as that
-            with artifacts.atomic_path(snapshot_path(out, step)) as tmp:
-                shutil.copyfile(resume.path, tmp)
-        lost = [s for s in snapshots if s <= step and not snapshot_path(out, s).exists()]
-        if lost:
-            ui.log(f"warning: --snapshot-at {','.join(map(str, lost))}: already past, not written by this run")
+        _resumed_snapshots(resume, out, step, snapshots)
 
     def save(finished: bool, loss_value, valid_value, path=out, cfg=config, points=None) -> None:
         state = TrainState(
@@ -210,14 +202,7 @@ def train(
             interrupts.check()
             rng = step_rng(config.seed, STREAM_TRAIN, step)
             batch = torch.from_numpy(windows.sample(config.batch_size, rng)).to(device)
-            try:
-                loss = method.update(batch, rng, optimizers)
-            except NonFiniteLoss as exc:
-                raise RunFailed(
-                    f"training diverged at step {step + 1}: the loss is {exc.value}; "
-                    f"{out} keeps the last good checkpoint (step {_saved_step(out)})",
-                    hint="lower the learning rate (--set lr=...), then `--resume` or `--force`",
-                ) from None
+            loss = _update(method, batch, rng, optimizers, step, out)
             step += 1
             update_ema(step)
             running += loss
@@ -241,6 +226,30 @@ def train(
                     save(step == config.steps, last_loss, curve[-1][2])
                     last_save = time.time()
     return artifacts.load(out, "model")
+
+
+def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
+    """One gradient step's loss; a loss that is not finite stops the run, naming the checkpoint ``out`` keeps."""
+    try:
+        return method.update(batch, rng, optimizers)
+    except NonFiniteLoss as exc:
+        raise RunFailed(
+            f"training diverged at step {step + 1}: the loss is {exc.value}; "
+            f"{out} keeps the last good checkpoint (step {_saved_step(out)})",
+            hint="lower the learning rate (--set lr=...), then `--resume` or `--force`",
+        ) from None
+
+
+def _resumed_snapshots(resume, out: Path, step: int, snapshots: Sequence[int]) -> None:
+    """On resuming ``out`` at ``step``: a finished run of ``step`` steps is kept as the snapshot a longer run writes
+    there; snapshots already past and never written are warned of."""
+    ui.log(f"resuming {out} from step {step}")
+    if step in snapshots and resume.manifest.state.finished and not snapshot_path(out, step).exists():
+        with artifacts.atomic_path(snapshot_path(out, step)) as tmp:
+            shutil.copyfile(resume.path, tmp)
+    lost = [s for s in snapshots if s <= step and not snapshot_path(out, s).exists()]
+    if lost:
+        ui.log(f"warning: --snapshot-at {','.join(map(str, lost))}: already past, not written by this run")
 
 
 def _ema_updater(ema: dict, modules: dict, config: TrainConfig):

@@ -44,7 +44,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from cdrb_cli.envs.family import Scene
 from cdrb_cli.envs.fetch.geometry import (
     BLOCK_HALF,
     GRIP_ABOVE_TABLE,
@@ -56,6 +55,7 @@ from cdrb_cli.envs.fetch.geometry import (
     gripper_obstacles,
 )
 from cdrb_cli.envs.geometry import in_boxes
+from cdrb_cli.envs.spec import Scene
 
 TaskName = Literal["reach", "push", "pick-place"]
 

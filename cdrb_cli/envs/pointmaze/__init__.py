@@ -15,7 +15,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from cdrb_cli.envs.family import EnvFamily, Episode, Scene
+from cdrb_cli.envs.family import EnvFamily, Episode
 from cdrb_cli.envs.pointmaze.maze import (
     STOCK_LAYOUTS,
     MazeGeometry,
@@ -25,7 +25,7 @@ from cdrb_cli.envs.pointmaze.maze import (
     stock_layout,
 )
 from cdrb_cli.envs.registry import FAMILIES
-from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.envs.spec import EnvSpec, Scene
 from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import episode_seeds
 

@@ -45,7 +45,6 @@ from cdrb_cli.orchestration.grid.run import (
 from cdrb_cli.orchestration.grid.spec import (
     KINDS,
     MAX_TASKS,
-    PATH_FLAGS,
     GridSpec,
     Settings,
     SettingsFile,
@@ -61,7 +60,6 @@ __all__ = [
     "GridSpec",
     "KINDS",
     "MAX_TASKS",
-    "PATH_FLAGS",
     "PoolBackend",
     "RayBackend",
     "Settings",

@@ -6,9 +6,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from cdrb_cli.orchestration.grid.commands import input_files
 from cdrb_cli.orchestration.grid.flags import nested
 from cdrb_cli.orchestration.grid.reuse import buffer_task, reuse_finished, train_snapshot
-from cdrb_cli.orchestration.grid.spec import PATH_FLAGS, GridSpec, Task, Variant
+from cdrb_cli.orchestration.grid.spec import GridSpec, Task, Variant
 
 # ------------------------------------------------------------------------------------------------ the stage graph
 
@@ -170,15 +171,8 @@ def expand(spec: GridSpec) -> list[Task]:
 
 
 def flag_files(argv: list[str]) -> list[Path]:
-    """The files named by :data:`PATH_FLAGS` in a command line (``--flag FILE`` or ``--flag=FILE``)."""
-    out = []
-    for i, a in enumerate(argv):
-        name, eq, value = a.partition("=")
-        if name in PATH_FLAGS and eq:
-            out.append(Path(value))
-        elif a in PATH_FLAGS and i + 1 < len(argv):
-            out.append(Path(argv[i + 1]))
-    return out
+    """The files a command line's options name for the command to read (``--flag FILE`` or ``--flag=FILE``)."""
+    return input_files(argv[1:], argv[0])
 
 
 def _link_flag_files(tasks: list[Task]) -> None:

@@ -97,26 +97,9 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     ``include`` files' settings come first (in order), then the grid's own; ``extra_includes`` (`cdrb grid
     --include`, relative to the current folder) come last, so they override both. ``overrides`` (`cdrb grid --set
     KEY=VALUE`) replace top-level keys of the file; an ``out`` given so is relative to the current folder."""
-    from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.methods.registry import METHODS
-
     raw = read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
     path = Path(path).resolve()
-    cwd_out, set_keys = None, set()
-    for text in overrides:
-        key, value = parse_override(text)
-        set_keys.add(key)
-        if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
-            raise BadInput(
-                f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
-                hint="one of "
-                + ", ".join(
-                    k for k in GridSpec.model_fields if k not in ("settings", "variants", "include", "resources")
-                ),
-            )
-        raw[key] = value
-        if key == "out":
-            cwd_out = Path(str(value)).resolve()
+    cwd_out, set_keys = _apply_overrides(raw, overrides)
     try:
         spec = GridSpec.model_validate(raw)
     except ValidationError as exc:
@@ -132,10 +115,39 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         + _included_settings(list(extra_includes), Path.cwd(), (path,), read, seen)
     )
     spec.variants = anchor_all(spec.variants, path.parent)
-    check_flags(spec, path)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
+    check_flags(spec, path)
     _check_out(spec.out, _origin(path, overrides, "out"))
+    _check_reuse(spec, path, overrides, set_keys)
+    _check_names_given(spec, path, overrides, set_keys)
+    _check_lengths_and_seeds(spec, path, overrides, set_keys)
+    return spec
+
+
+def _apply_overrides(raw: dict, overrides: list[str]) -> tuple[Path | None, set[str]]:
+    """`cdrb grid --set KEY=VALUE` applied to the file's top-level keys: the ``out`` given so (relative to the
+    current folder), and the keys set."""
+    cwd_out, set_keys = None, set()
+    for text in overrides:
+        key, value = parse_override(text)
+        set_keys.add(key)
+        if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
+            raise BadInput(
+                f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
+                hint="one of "
+                + ", ".join(
+                    k for k in GridSpec.model_fields if k not in ("settings", "variants", "include", "resources")
+                ),
+            )
+        raw[key] = value
+        if key == "out":
+            cwd_out = Path(str(value)).resolve()
+    return cwd_out, set_keys
+
+
+def _check_reuse(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
+    """The ``reuse`` folders, made absolute: never the grid's own `out`, never a file; a missing one warned of."""
     spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
     if spec.out in spec.reuse:
         raise BadInput(f"{_origin(path, overrides, 'reuse', 'out')}: reuse: names the grid's own `out` folder",
@@ -148,6 +160,14 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             )
         if not folder.exists():  # a grid may name the folder of one not run yet (Table 1 before its curves)
             ui.warn(f"reuse: {folder}: no such folder yet, so nothing is reused from it (a typo?)")
+
+
+def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
+    """Every environment and method the grid, its settings and its variants name exists; variant names are
+    distinct folders."""
+    from cdrb_cli.envs.registry import make_spec
+    from cdrb_cli.methods.registry import METHODS
+
     for env in spec.envs:
         try:
             make_spec(env)
@@ -184,6 +204,11 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     for i, v in enumerate(spec.variants):
         _check_names(f"{path}: variant {v.name}", v.methods, v.envs)
         _check_scope(f"{path}: variants[{i}] ({v.name})", v, spec, bool({"envs", "methods"} & set_keys))
+
+
+def _check_lengths_and_seeds(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
+    """Seeds, snapshots and extensions are consistent, evaluation seeds stay in range and pool no seed twice, and
+    the grid is not too large."""
     if any(len(set(v)) != len(v) for v in (spec.seeds, spec.envs, spec.methods)):
         raise BadInput(f"{_origin(path, overrides, 'envs', 'methods', 'seeds')}: envs, methods and seeds must each "
                        "be listed once", hint="remove the repeats")  # fmt: skip
@@ -235,7 +260,6 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
             "a report would pool the same evaluation seeds twice",
             hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
         )
-    return spec
 
 
 def _check_scope(where: str, item: Scoped, spec: GridSpec, narrowed: bool) -> None:

@@ -11,18 +11,22 @@ from pathlib import Path
 
 from cdrb_cli import __version__
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid.flags import option_table, parse_command
+from cdrb_cli.orchestration.grid.commands import options
+from cdrb_cli.orchestration.grid.flags import parse_command
 from cdrb_cli.orchestration.grid.memo import cached_sha
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
 from cdrb_cli.settings import clip
 
 # ------------------------------------------------------------------------------------------------ reuse
-#: what says where a task writes, on what hardware and how verbosely, and how long a training runs: not part of
-#: what it makes (a training's length is matched apart: a snapshot at S steps is the model a run of S steps writes)
-_UNKEYED = ("out", "device", "steps", "snapshot_at", "force", "resume", "as_json", "plot", "video", "videos", "workers")
+#: how long a training runs: matched apart (a snapshot at S steps is the model a run of S steps writes)
+_LENGTH = ("steps", "snapshot_at")
 REUSABLE = ("collect", "cluster", "train")
-#: what says where an eval writes, on what hardware, and what more it keeps: not part of what it measures
-_UNMEASURED = ("out", "device", "force", "as_json", "keep_plans", "video", "videos", "replan_plot", "plot")
+
+
+def _keyed(command: str) -> set[str]:
+    """The parameters of ``command`` that change what it makes or measures (not where it writes, on what hardware,
+    how it reports, or what more it keeps)."""
+    return {info.param for info in options(command).values() if info.keyed}
 
 
 def _real(path: str | Path) -> str:
@@ -46,8 +50,8 @@ def file_sha(path: str | Path, cache: dict) -> str | None:
 def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tuple[str, str | None, list[str]]:
     """What a collect/cluster/train command makes, independent of where and of how its flags are spelled
     (:func:`parse_command`, every file written by a task replaced by the key of the command that wrote it and every
-    other file by its sha256, without the :data:`_UNKEYED` options); its ``--steps``; its ``--snapshot-at``
-    steps."""
+    other file by its sha256, with only the options that change what it makes, its length apart); its ``--steps``;
+    its ``--snapshot-at`` steps."""
 
     def file_key(value: str) -> str:
         real = _real(value)
@@ -56,10 +60,11 @@ def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tu
         sha = regular_sha(real, cache)
         return f"sha256:{sha}" if sha else value
 
-    positional, options, sets = parse_command(argv, file_key)
-    steps = options.get("steps")
-    snaps = [v.strip() for v in str(options.get("snapshot_at", "")).split(",") if v.strip()]
-    kept = {k: v for k, v in options.items() if k not in _UNKEYED}
+    positional, given, sets = parse_command(argv, file_key)
+    steps = given.get("steps")
+    snaps = [v.strip() for v in str(given.get("snapshot_at", "")).split(",") if v.strip()]
+    keyed = _keyed(argv[0])
+    kept = {k: v for k, v in given.items() if k in keyed and k not in _LENGTH}
     key = json.dumps([argv[0], positional, sorted(kept.items()), sets], default=str)
     return key, None if steps is None else str(steps), snaps
 
@@ -73,9 +78,10 @@ def measure_difference(made: list[str], wanted: list[str]) -> str | None:
         what = f"`cdrb {clip(made[0], 40)}`" if made else "no cdrb command"
         return f"it records {what}, not `cdrb {wanted[0]}`"
     spelled = {}  # parameter name -> the option as the help spells it
-    for option, (pname, _, _) in reversed(list(option_table(wanted[0]).items())):
+    for option, info in reversed(list(options(wanted[0]).items())):
         if option.startswith("--"):
-            spelled[pname] = option
+            spelled[info.param] = option
+    keyed = _keyed(wanted[0])
     (pos_a, opt_a, sets_a), (pos_b, opt_b, sets_b) = (
         parse_command(argv, lambda v: Path(v).name if os.sep in v else v) for argv in (made, wanted)
     )
@@ -83,7 +89,7 @@ def measure_difference(made: list[str], wanted: list[str]) -> str | None:
         return f"it reads {clip(' '.join(pos_a) or '(nothing)', 80)}, the grid's task {' '.join(pos_b)}"
     for name in sorted(set(opt_a) | set(opt_b)):
         a, b = opt_a.get(name), opt_b.get(name)
-        if name not in _UNMEASURED and a != b:
+        if name in keyed and a != b:
             shown = ["(not given)" if v is None else clip(str(v), 40) for v in (a, b)]
             return f"{spelled.get(name, name)} {shown[0]} there, {shown[1]} in the grid"
     for key in sorted({k for k, _ in sets_a} | {k for k, _ in sets_b}):

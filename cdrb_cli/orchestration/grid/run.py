@@ -312,14 +312,7 @@ def run_grid(
         for fut in finished:
             task = running.pop(fut)
             res = results[task.id]
-            try:
-                out = fut.result()
-            except Exception as exc:  # the worker itself died (Ray) or could not start the process
-                out = {
-                    "rc": -1,
-                    "seconds": 0.0,
-                    "stderr": [f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"],
-                }
+            out = _outcome(fut)
             res.seconds += out["seconds"]
             if out["rc"] == 0:  # (the hash cache is keyed by size and mtime: rewritten files are hashed afresh)
                 write_memo(spec, task, cache)
@@ -332,19 +325,33 @@ def run_grid(
             else:
                 state[task.id], res.status, res.stderr = "failed", "failed", out["stderr"]
                 emit("failed", res)
+    ordered = [results[t.id] for t in tasks]
+    return GridRun(ordered, _write_summary(spec, backend.name, ordered, t0), time.time() - t0, backend.name)
+
+
+def _outcome(fut: cf.Future) -> dict:
+    """A finished task's result: the worker's, or a failure naming why the worker itself died (Ray) or could not
+    start the process."""
+    try:
+        return fut.result()
+    except Exception as exc:
+        return {"rc": -1, "seconds": 0.0, "stderr": [f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"]}
+
+
+def _write_summary(spec: GridSpec, backend: str, ordered: list[TaskResult], t0: float) -> Path:
+    """OUT/grid.json: every task's result and the counts by status."""
     summary = spec.out / "grid.json"
     spec.out.mkdir(parents=True, exist_ok=True)
-    ordered = [results[t.id] for t in tasks]
     body = {
         "seconds": time.time() - t0,
-        "backend": backend.name,
+        "backend": backend,
         "tasks": [r.__dict__ for r in ordered],
         "counts": {s: sum(r.status == s for r in ordered) for s in ("done", "up to date", "failed", "skipped")},
         "reused": spec._reused,
     }
     with artifacts.atomic_path(summary) as tmp:
         tmp.write_text(json.dumps(body, indent=1, default=str))
-    return GridRun(ordered, summary, time.time() - t0, backend.name)
+    return summary
 
 
 def grid(

@@ -22,6 +22,7 @@ from pydantic import (
 
 from cdrb_cli.configs import MAX_SEED
 from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid.commands import map_input_files
 from cdrb_cli.settings import clip
 
 KINDS = ("collect", "cluster", "train", "eval", "report")
@@ -287,40 +288,19 @@ def validated(model: type[BaseModel], raw: dict, path: Path):
         raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
 
 
-#: flags whose value is a file: a relative one in a grid or settings file means relative to that file's folder
-PATH_FLAGS = ("--maze-map", "--scene", "--policy", "--config", "--paper-figures", "--route-buffer")
-
-
-def _anchored(flags: list[str], base: Path) -> list[str]:
-    """``flags`` with every relative file value of :data:`PATH_FLAGS` made absolute against ``base`` (the folder of
-    the file that declares them), as `out` is: a grid means the same files from whatever folder it is run."""
-    out, i = [], 0
-    while i < len(flags):
-        f = flags[i]
-        name, eq, value = f.partition("=")
-        if name in PATH_FLAGS and eq and not Path(value).is_absolute():
-            out.append(f"{name}={base / value}")
-        elif f in PATH_FLAGS and i + 1 < len(flags) and not Path(flags[i + 1]).is_absolute():
-            out += [f, str(base / flags[i + 1])]
-            i += 1
-        else:
-            out.append(f)
-        i += 1
-    return out
+def _anchored(flags: list[str], command: str, base: Path) -> list[str]:
+    """``flags`` of ``command`` with every relative file it reads made absolute against ``base`` (the folder of the
+    file that declares them), as `out` is: a grid means the same files from whatever folder it is run."""
+    return map_input_files(flags, command, lambda v: v if Path(v).is_absolute() else str(base / v))
 
 
 def anchor_all(items: list, base: Path) -> list:
     """Settings or variants with their flag lists anchored at ``base``."""
     fields = ("collect", "cluster", "train", "eval")
     return [
-        item.model_copy(update={k: _anchored(getattr(item, k), base) for k in fields if hasattr(item, k)})
+        item.model_copy(update={k: _anchored(getattr(item, k), k, base) for k in fields if hasattr(item, k)})
         for item in items
     ]
-
-
-#: the options the grid sets itself from its own keys (data_seed, demos, preset, seeds, eval_stream, eval_episodes,
-#: device, out...) and that settings and variants therefore may not pass: a repeated option's last value wins, so
-#: ``train = ["--method", "diffuser"]`` would file a Diffuser under the grid's MLP name
 
 
 @dataclass
