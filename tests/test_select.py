@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import tomllib
 
+import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a grid composes)
 from cdrb_cli import artifacts
 from cdrb_cli.orchestration.select import RULE, Candidate, choose
 from tests.conftest import call_cdrb
@@ -97,6 +98,70 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     # of it still rises
     assert not still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 100.0])])
     assert still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 99.0])])
+
+
+def test_a_planner_is_never_chosen_with_a_controller_that_reads_the_map():
+    from cdrb_cli.errors import BadInput
+
+    aware = _cand("push-path", 0, success=90.0)
+    aware.map_aware = True
+    assert choose([aware, _cand("track", 1, success=70.0)])[("maze", "cdrb")].variant == "track"
+    with pytest.raises(BadInput, match="every candidate is executed by a controller that reads the map"):
+        choose([aware])
+    from cdrb_cli.envs.registry import CONTROLLERS
+
+    assert CONTROLLERS.get("fetch-push-path").knows_map and not CONTROLLERS.get("fetch-track").knows_map
+
+
+def test_a_shared_budget_trains_every_planner_of_an_environment_to_one_length():
+    """Chosen alone, CDRB stops at 5k and Diffuser runs to 10k; with a shared budget both are chosen at 10k (CDRB by
+    the rule among its 10k candidates), the policy and the untrained straight line keep their own."""
+
+    def cands():
+        return [
+            _cand("k2", 0, 5000, success=80.0),
+            _cand("k2", 0, 10000, success=78.0, crossing=5.0),
+            _cand("s8", 1, 10000, success=79.0, crossing=9.0),
+            _cand("k2", 0, 5000, success=60.0, method="diffuser"),
+            _cand("k2", 0, 10000, success=70.0, method="diffuser"),
+            _cand("policy", 0, 2500, success=50.0, crossing=None, method="diffusion-bc"),
+            _cand("policy", 0, 10000, success=40.0, crossing=None, method="diffusion-bc"),
+            _cand("base", 0, None, success=10.0, method="straight"),
+        ]
+
+    alone = choose(cands())
+    assert alone[("maze", "cdrb")].steps == 5000 and alone[("maze", "diffuser")].steps == 10000
+    listed = cands()
+    for c in listed:
+        c.planner = c.method != "diffusion-bc"
+    shared = choose(listed, shared_budget=True)
+    assert shared[("maze", "cdrb")].steps == 10000 and shared[("maze", "cdrb")].variant == "s8"
+    assert shared[("maze", "diffuser")].steps == 10000
+    assert shared[("maze", "diffusion-bc")].steps == 2500 and shared[("maze", "straight")].steps is None
+
+
+def test_a_curve_whose_plans_through_obstacles_still_fall_is_extended_with_its_environment():
+    from cdrb_cli.orchestration.select import still_rising
+
+    def point(steps, successes, crossings, method="cdrb"):
+        c = _cand("k2", 0, steps, success=sum(successes) / 3, crossing=sum(crossings) / 3, method=method)
+        c.models = [
+            {"seed": i, "success": s, "plans_through_obstacle": x} for i, (s, x) in enumerate(zip(successes, crossings))
+        ]
+        return c
+
+    cands = [
+        # CDRB: success flat within noise, its plans through the obstacle falling 81 -> 27 on every seed
+        point(2500, [70.0, 75.0, 72.0], [81.0, 85.0, 80.0]),
+        point(5000, [72.0, 70.0, 74.0], [30.0, 25.0, 27.0]),
+        point(2500, [60.0, 62.0, 61.0], [50.0, 52.0, 51.0], "diffuser"),
+        point(5000, [61.0, 60.0, 62.0], [51.0, 50.0, 52.0], "diffuser"),
+    ]
+    assert set(still_rising(cands)) == {("maze", "cdrb")}
+    assert set(still_rising(cands, shared_budget=True)) == {("maze", "cdrb"), ("maze", "diffuser")}
+    # no plan left through an obstacle: nothing left to fall
+    done = [point(2500, [70.0, 75.0, 72.0], [9.0, 8.0, 7.0]), point(5000, [72.0, 70.0, 74.0], [0.0, 0.0, 0.0])]
+    assert not still_rising(done)
 
 
 def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path):

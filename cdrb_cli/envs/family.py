@@ -131,6 +131,9 @@ class ControllerEntry:
     config: type[ControllerConfig]
     build: Callable[[EnvSpec, Env, Any, int], Controller]
     description: str = ""
+    #: it reads the scene's obstacles to steer (a detour around a wall the plan did not avoid), so what it executes
+    #: is not the plan alone: a planner's row with it is "planner + map-aware controller", never a planner's own
+    knows_map: bool = False
 
     @property
     def name(self) -> str:

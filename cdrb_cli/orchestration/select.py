@@ -16,13 +16,20 @@ from pathlib import Path
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
+from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.orchestration.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
 from cdrb_cli.settings import toml_string
 from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
 RULE = (
     "highest tuning success, then fewest plans through an obstacle, then fewest executed collisions, "
-    "then the grid's variant order, then fewest training steps"
+    "then the grid's variant order, then fewest training steps; never a planner executed by a controller that "
+    "reads the map"
+)
+#: with the grid's ``shared_budget``: how the planners of one environment share a training length
+SHARED_BUDGET = (
+    "the planners of one environment train to one length, the longest any of them is chosen at by the rule; each is "
+    "then chosen by the rule among its candidates at that length"
 )
 
 
@@ -45,6 +52,8 @@ class Candidate:
     collision: float = 0.0
     seeds: int = 0
     episodes: int = 0
+    planner: bool = True  #: a planner (executed by a controller), not a policy
+    map_aware: bool = False  #: executed by a controller that reads the map (never chosen: :data:`RULE`)
 
     @property
     def name(self) -> str:
@@ -95,12 +104,21 @@ def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
         crossing = mean_or_none(r.plan_crossing_rate for r in per)  # None: a policy makes no plans
         cand.crossing = None if crossing is None else 100 * crossing
         cand.collision = 100 * mean_or_none(r.executed_collision_rate for r in per)
+        cand.planner = METHODS.get(cand.method).kind == "planner"
+        cand.map_aware = cand.planner and any(_knows_map(ev) for ev in evals)
     if unchecked:
         ui.warn(
             f"{len(unchecked)} evals record no training length and their models are not here (e.g. {unchecked[0]}): "
             "each is taken to measure its model at the length the grid's task names"
         )
     return list(found.values())
+
+
+def _knows_map(ev) -> bool:
+    """Whether the eval's plans were executed by a controller that reads the map."""
+    from cdrb_cli.envs.registry import CONTROLLERS
+
+    return CONTROLLERS.get(ev.manifest.config.controller.name).knows_map
 
 
 def seed_spread(models: list[dict]) -> float | None:
@@ -177,13 +195,36 @@ def curve_rows(cands: list[Candidate]) -> list[dict]:
     ]
 
 
-def choose(cands: list[Candidate]) -> dict[tuple[str, str], Candidate]:
-    """Per (env, method), the candidate :data:`RULE` ranks first."""
+def choose(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], Candidate]:
+    """Per (env, method), the candidate :data:`RULE` ranks first; with ``shared_budget``, the planners of one
+    environment at one training length (:data:`SHARED_BUDGET`)."""
     best: dict[tuple[str, str], Candidate] = {}
     for c in cands:
         key = (c.env, c.method)
+        if c.map_aware:
+            continue
         if key not in best or c.rank() < best[key].rank():
             best[key] = c
+    missing = {(c.env, c.method) for c in cands} - set(best)
+    if missing:
+        env, method = sorted(missing)[0]
+        raise BadInput(
+            f"{env} / {method}: every candidate is executed by a controller that reads the map",
+            hint="add a variant with a controller that executes the plan alone (`cdrb controllers`)",
+        )
+    if not shared_budget:
+        return best
+    for env in dict.fromkeys(env for env, _ in best):
+        trained = [k for k, c in best.items() if k[0] == env and c.planner and c.steps is not None]
+        length = max((best[k].steps for k in trained), default=None)
+        for key in trained:
+            at = [c for c in cands if (c.env, c.method) == key and c.steps == length and not c.map_aware]
+            if not at:
+                raise BadInput(
+                    f"{env} / {key[1]}: no candidate at {length} steps, the length its environment's planners share",
+                    hint="extend its curve to that length (an [[extend]] entry naming every planner)",
+                )
+            best[key] = min(at, key=Candidate.rank)
     return best
 
 
@@ -192,11 +233,25 @@ RISING = (
     "at the longest training length, the method's best candidate (by the rule) succeeds more often than the same "
     "candidate one length shorter, by more than the standard error of the mean gain (the gains of each training "
     "seed's run between the two lengths: the points are snapshots of the same runs), unless every training seed "
-    "succeeds in every episode there (a curve at its ceiling has nothing left to gain)"
+    "succeeds in every episode there (a curve at its ceiling has nothing left to gain); or its plans through an "
+    "obstacle fall by more than the standard error of their mean fall, unless none is left; with the grid's "
+    "shared_budget, a planner's curve that rises extends every planner of its environment"
 )
 
 
-def still_rising(cands: list[Candidate]) -> dict[tuple[str, str], tuple[Candidate, float, float]]:
+def _paired_change(prev: Candidate, last: Candidate, field: str) -> tuple[float, float, list] | None:
+    """The mean change of ``field`` (per cent) from ``prev`` to ``last`` over the training seeds both have (the
+    points are snapshots of the same runs), its standard error, and the values at ``last``; None without two
+    seeds measured at both."""
+    before = {m["seed"]: m.get(field) for m in prev.models}
+    pairs = [(m.get(field), before[m["seed"]]) for m in last.models if m["seed"] in before]
+    if len(pairs) < 2 or any(a is None or b is None for a, b in pairs):
+        return None
+    changes = [a - b for a, b in pairs]
+    return sum(changes) / len(changes), std_or_none(changes) / len(changes) ** 0.5, [a for a, _ in pairs]
+
+
+def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], tuple]:
     """Per (env, method) whose curve still rises by :data:`RISING`: (its best candidate at the longest length, the
     gain in success points over the previous length, the standard error of that gain). A method with one length or
     one training seed has no curve to judge."""
@@ -210,16 +265,21 @@ def still_rising(cands: list[Candidate]) -> dict[tuple[str, str], tuple[Candidat
         prev = next((c for c in mine if c.steps == lengths[-2] and c.variant == last.variant), None)
         if prev is None:
             continue
-        before = {m["seed"]: m["success"] for m in prev.models}
-        pairs = [(m["success"], before[m["seed"]]) for m in last.models if m["seed"] in before]
-        if len(pairs) < 2 or any(a is None or b is None for a, b in pairs):
-            continue
-        if all(a >= 100.0 for a, _ in pairs):  # at the ceiling: longer training cannot raise it
-            continue
-        gains = [a - b for a, b in pairs]
-        gain, se = sum(gains) / len(gains), std_or_none(gains) / len(gains) ** 0.5
-        if gain > se:
-            out[key] = (last, gain, se)
+        success = _paired_change(prev, last, "success")
+        crossing = _paired_change(prev, last, "plans_through_obstacle")
+        gains = success is not None and success[0] > success[1] and not all(v >= 100.0 for v in success[2])
+        falls = crossing is not None and -crossing[0] > crossing[1] and not all(v <= 0.0 for v in crossing[2])
+        if gains or falls:
+            out[key] = (last, *(success[:2] if success is not None else (0.0, 0.0)))
+    if shared_budget:  # one planner that rises extends its environment's others with it
+        for env in {env for env, method in out if METHODS.get(method).kind == "planner"}:
+            trained = [c for c in cands if c.env == env and c.planner and c.steps is not None]
+            longest = max(c.steps for c in trained)
+            for method in dict.fromkeys(c.method for c in trained if (env, c.method) not in out):
+                last = min((c for c in trained if c.method == method and c.steps == longest), key=Candidate.rank,
+                           default=None)  # fmt: skip
+                if last is not None:
+                    out[(env, method)] = (last, 0.0, 0.0)
     return out
 
 
@@ -397,17 +457,18 @@ def select(
     cands = candidates(spec, tasks)
     if not cands:
         raise BadInput(f"{grid_file}: the grid has no evals to choose from", hint="add envs, methods and variants")
-    best, rising = choose(cands), still_rising(cands)
+    best, rising = choose(cands, spec.shared_budget), still_rising(cands, spec.shared_budget)
     if docs is not None:
         from cdrb_cli.stages.docs_blocks import check_docs_block
 
         summary = summary_text(cands, best, rising)
         check_docs_block(docs, block, summary, inputs)
     for (env, method), (c, gain, se) in rising.items():
+        why = f"+{gain:.1f} ± {se:.1f} points of success" if gain or se else "shared budget: another planner's rises"
         ui.warn(
-            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: +{gain:.1f} ± {se:.1f} points "
-            f"over the previous length): extend it before choosing from it, unless a common cap stops it there "
-            f"(the same runs, resumed: an [[extend]] entry in the grid file with envs = [{toml_string(env)}], "
+            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why} over the previous length, "
+            f"or fewer plans through an obstacle): extend it before choosing from it, unless a common cap stops it "
+            f"there (the same runs, resumed: an [[extend]] entry in the grid file with envs = [{toml_string(env)}], "
             f"methods = [{toml_string(method)}], steps = {2 * c.steps})"
         )
     for (env, method), c in best.items():

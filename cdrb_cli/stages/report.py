@@ -115,8 +115,8 @@ def controller_name(ev) -> str:
 
 def method_label(ev) -> str:
     """The method, its preset when not the quick one, how it was executed when closed loop and how it kept its plans
-    out of obstacles (e.g. ``cdrb [every 20, repair k=4]``, ``cdrb [masked buffer, best of 4]``): each is its own
-    row."""
+    out of obstacles (e.g. ``cdrb [every 20, repair k=4]``, ``cdrb [masked buffer, best of 4]``), and whether its
+    controller reads the map: each is its own row."""
     s = ev.manifest.summary
     label = s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
     config = ev.manifest.config
@@ -124,7 +124,16 @@ def method_label(ev) -> str:
     avoid = getattr(config, "avoid", None)
     if avoid is not None and avoid.label() != "plain":
         how.append(avoid.label())
+    if not is_policy_eval(ev) and _knows_map(config.controller.name):
+        how.append("planner + map-aware controller")
     return f"{label} [{'; '.join(how)}]" if how else label
+
+
+def _knows_map(controller: str) -> bool:
+    """Whether the controller reads the map to steer (its rows are not the planner's own)."""
+    from cdrb_cli.envs.registry import CONTROLLERS
+
+    return controller in CONTROLLERS and CONTROLLERS.get(controller).knows_map
 
 
 def first_step_ratio(evals) -> float | None:

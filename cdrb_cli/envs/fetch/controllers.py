@@ -168,5 +168,10 @@ def _push_path(spec, env, config: FetchPushPathConfig, stride: int) -> FetchPush
 
 
 CONTROLLERS.register(
-    ControllerEntry(FetchPushPathConfig, _push_path, "push the block along the planned block path (Fetch Push)")
+    ControllerEntry(
+        FetchPushPathConfig,
+        _push_path,
+        "push the block along the planned block path (Fetch Push); its unstick detours route around the walls",
+        knows_map=True,
+    )
 )

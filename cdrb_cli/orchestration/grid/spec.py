@@ -202,6 +202,11 @@ class GridSpec(_Strict):
         description="learning curves run further for some envs/methods: [[extend]] entries (the last that applies "
         "wins); each such run trains to the entry's steps and `steps` becomes one more snapshot",
     )
+    shared_budget: Bool = Field(
+        False,
+        description="tuning grids: the planners of one environment train to one length (`cdrb select` picks each at "
+        "the longest length any of them is chosen at), and a curve that still rises extends them all",
+    )
     report: Bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
     reuse: list[Path] = Field(
         default_factory=list,
