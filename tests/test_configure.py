@@ -84,6 +84,32 @@ def test_a_scene_is_avoided_by_default(tiny_models):
         plan_config(cdrb, parse_set(["avoid=maybe"]))
 
 
+def test_replanning_uses_the_settings_chosen_for_it_by_default(tiny_models):
+    from cdrb_cli.envs.pointmaze import PointMazeFamily
+
+    cdrb, diffuser = tiny_models["cdrb"], tiny_models["diffuser"]
+    chosen = PointMazeFamily.replan_tuned
+    once = eval_config(cdrb)
+    assert once.controller.look_ahead == 0 and once.avoid == AvoidConfig()  # one plan per episode: the paper's
+    every = eval_config(cdrb, replan="every:50")
+    assert every.controller.look_ahead == chosen["cdrb"]["controller.look_ahead"] == 2
+    assert every.avoid.best_of == chosen["cdrb"]["avoid.best_of"] == 8
+    assert eval_config(diffuser, replan="deviation:0.5").controller.look_ahead == 4
+    # what the user sets wins, field by field; avoid=plain drops the avoidance part; a repair keeps its own
+    mine = eval_config(cdrb, parse_set(["replan=every:50", "controller.look_ahead=0"]))
+    assert mine.controller.look_ahead == 0 and mine.avoid.best_of == 8
+    plain = eval_config(cdrb, parse_set(["replan=every:50", "avoid=plain"]))
+    assert plain.avoid == AvoidConfig() and plain.controller.look_ahead == 2
+    repair = eval_config(cdrb, parse_set(["replan=every:50", "replan.repair_k=2"]))
+    assert repair.controller.look_ahead == 0 and repair.avoid == AvoidConfig()
+    # the official executor has no plan clock to move: only the avoidance part applies
+    official = eval_config(cdrb, protocol="official-code", replan="every:50")
+    assert official.controller.name == "waypoint" and official.avoid.best_of == 8
+    # an error in a default names it as one
+    with pytest.raises(BadInput, match=r"look_ahead = 2 \(the default when re-planning\)"):
+        eval_config(cdrb, parse_set(["replan=every:50", "controller.max_lag=null"]))
+
+
 def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):
     r = cdrb("plan", tiny_models["cdrb"].path, "--pairs", "2", "--scene", NORTH, "--out", tmp_path / "p.h5")
     assert r.returncode == 0, r.stderr

@@ -376,6 +376,10 @@ def test_miniature_quickstart_end_to_end_and_rerun(tmp_path, cdrb):
         "demos.png",
     ):
         assert (out / name).exists(), name
+    # demonstrations from the protocol's starts and from anywhere; the planners weigh the states after the start
+    assert artifacts.load(out / "demos.h5", "demos").manifest.config.starts == "protocol+anywhere"
+    for method in ("cdrb", "diffuser"):
+        assert artifacts.load(out / f"model-{method}.h5", "model").manifest.config.method.start_weight == 10
     before = {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5")}
     again = cdrb(*args)
     assert again.returncode == 0 and again.stderr.count("up to date") == 4  # collect, cluster, train, evaluate

@@ -166,6 +166,11 @@ class EnvFamily(ABC):
     #: obstacles the data never saw: each the choice of the family's tuning grid for new obstacles, restricted to
     #: what needs no extra input file (a method not named plans as it is)
     scene_avoid: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: method name -> the eval settings (dotted ``controller.`` / ``avoid.`` keys) an eval uses by default when it
+    #: re-plans: each the choice of the family's tuning grid for re-planning (a re-plan starts where the robot is,
+    #: moving, so the plan clock may need to jump ahead and a plan to be chosen among several); a controller field
+    #: applies where the controller has it, and ``avoid = "plain"`` drops the ``avoid.`` ones
+    replan_tuned: ClassVar[dict[str, dict[str, Any]]] = {}
 
     # -------------------------------------------------------------- environments
     @abstractmethod

@@ -19,6 +19,12 @@ from cdrb_cli.configs import ClusterConfig
 #: the methods quickstart compares when none are given
 DEFAULT_METHODS = ("cdrb", "diffuser")
 DEFAULT_ENV = "maze-tight"
+#: where the demonstrations start: half at the protocol's starts, half anywhere in free space (where the family
+#: draws such starts), so the models also plan from where a re-plan finds the robot
+STARTS = "protocol+anywhere"
+#: training settings of the planners that have them: the states right after the start weigh 10x in the loss, so a
+#: plan leaves from the start it is given rather than jumping to the data's usual path
+PLANNER_SETTINGS = {"method.start_weight": 10.0}
 
 
 def check_methods(methods: Sequence[str], flag: str = "methods") -> None:
@@ -69,10 +75,27 @@ def _train(job: dict) -> str:
 
     demos = artifacts.load(Path(job["demos"]), "demos")
     buffer = artifacts.load(Path(job["buffer"]), "buffer") if METHODS.get(job["method"]).needs_buffer else None
-    steps = job["steps"]
-    cfg = train_config(demos, buffer, job["method"], {"steps": steps} if steps else {}, seed=job["seed"])
+    cfg = train_config(demos, buffer, job["method"], _train_settings(job["method"], job["steps"]), seed=job["seed"])
     _, done = train_or_resume(demos, buffer, cfg, Path(job["out"]), device=_device(job), auto=True)
     return done
+
+
+def _train_settings(method: str, steps: int | None) -> dict:
+    """The quickstart's training settings of ``method``: :data:`PLANNER_SETTINGS` its config has, and ``steps``."""
+    from cdrb_cli.methods.registry import METHODS
+
+    fields = METHODS.get(method).params.model_fields
+    out = {k: v for k, v in PLANNER_SETTINGS.items() if k.split(".")[1] in fields}
+    return {**out, **({"steps": steps} if steps else {})}
+
+
+def _starts(spec, starts: str | None) -> str:
+    """Where the demonstrations start: ``starts`` as given, else :data:`STARTS` where the family draws other starts."""
+    from cdrb_cli.envs.registry import family_of
+
+    if starts is not None:
+        return starts
+    return STARTS if family_of(spec).start_protocols else "protocol"
 
 
 def _evaluate(job: dict) -> str:
@@ -96,7 +119,8 @@ def _device(job: dict):
 def quickstart(
     folder: Path,
     env: str = DEFAULT_ENV,
-    episodes: int = 1000,
+    episodes: int = 2000,
+    starts: str | None = None,
     k: int | None = None,
     methods: Sequence[str] = DEFAULT_METHODS,
     seeds: Sequence[int] = (5, 6, 7),
@@ -127,9 +151,10 @@ def quickstart(
         paths: dict[str, Path] = {}
 
         step += 1
-        _stage(step, total, f"collect {episodes} expert demos on {env}")
+        where = _starts(spec, starts)
+        _stage(step, total, f"collect {episodes} expert demos on {env} (starts: {where})")
         demos_path = paths["demos"] = folder / "demos.h5"
-        ccfg = collect_config(spec, episodes, seed=seed)
+        ccfg = collect_config(spec, episodes, seed=seed, starts=where)
         demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path, workers=None)
 
         step += 1
@@ -143,7 +168,7 @@ def quickstart(
         for method in methods:
             out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
             b = buffer if METHODS.get(method).needs_buffer else None
-            cfg = train_config(demos, b, method, {"steps": steps} if steps else {}, seed=seed)
+            cfg = train_config(demos, b, method, _train_settings(method, steps), seed=seed)
             models[method] = artifacts.find_up_to_date(out, "model", cfg, [demos] + ([b] if b is not None else []))
             if models[method] is None:
                 jobs.append(dict(demos=str(demos.path), buffer=str(buffer.path), method=method, steps=steps, seed=seed,

@@ -11,7 +11,9 @@ run.toml: avoid.route_k``) or, for a default, the field and its value.
 Shortcuts a setting may use: ``replan = "every:50"`` (``never``, ``every:N``, ``deviation:D``) for the
 ``replan.mode`` fields, ``controller = "waypoint"`` for ``controller.name``, and ``avoid = "plain"`` (no avoidance)
 or ``avoid = "tuned"`` (the family's choice for new obstacles; the default in a scene, see
-:attr:`~cdrb_cli.envs.family.EnvFamily.scene_avoid`), applied before the ``avoid.<field>`` settings.
+:attr:`~cdrb_cli.envs.family.EnvFamily.scene_avoid`), applied before the ``avoid.<field>`` settings. An eval that
+re-plans uses the family's choice for re-planning (:attr:`~cdrb_cli.envs.family.EnvFamily.replan_tuned`) where the
+settings leave those fields alone.
 """
 
 from __future__ import annotations
@@ -83,6 +85,29 @@ def avoid_base(model, settings: Sequence[Setting], in_scene: bool) -> dict:
     steps = getattr(model.manifest.config.method, "diffusion_steps", None)
     if out.get("route_k") is not None and steps is not None:  # a model with fewer steps repairs from its last
         out["route_k"] = max(1, min(out["route_k"], steps - 1))
+    return out
+
+
+def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Setting]:
+    """The settings an eval that re-plans from scratch uses unless ``settings`` give them: the family's choice for
+    re-planning with this method (:attr:`~cdrb_cli.envs.family.EnvFamily.replan_tuned`), each controller field where
+    ``controller`` has it, the ``avoid.`` ones unless ``avoid = "plain"``; none for one plan per episode or a
+    repair."""
+    from cdrb_cli.envs.registry import CONTROLLERS
+
+    mode = lookup(settings, ("replan", "mode"))
+    if mode is None or mode.value == "never" or lookup(settings, ("replan", "repair_k")) is not None:
+        return []
+    plain = getattr(lookup(settings, ("avoid",)), "value", None) == "plain"
+    fields = CONTROLLERS.get(controller).config.model_fields
+    out = []
+    for key, value in family_of(model.manifest.env).replan_tuned.get(model.manifest.config.method.name, {}).items():
+        path = tuple(key.split("."))
+        if lookup(settings, path) is not None or (path[0] == "avoid" and plain):
+            continue
+        if path[0] == "controller" and path[1] not in fields:
+            continue
+        out.append(Setting(path, value, f"{key} = {value} (the default when re-planning)"))
     return out
 
 
@@ -241,6 +266,7 @@ def eval_config(
         "scene": None if scene_file is None else Path(scene_file).name,
         "avoid": {} if entry.kind == "policy" else avoid_base(model, settings, scene_file is not None),
     }
+    settings = [*replan_base(model, base["controller"]["name"], settings), *settings]
     given = [s for s in settings if s.path not in (("avoid",), ("sampler",), ("protocol",))]
     config = _avoid_record(validate(EvalConfig, apply(base, given), settings, "eval"))
     check_avoid(model, config.avoid, settings)

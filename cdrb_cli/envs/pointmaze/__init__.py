@@ -124,6 +124,12 @@ class PointMazeFamily(EnvFamily):
     # chosen by experiments/tune/obstacles-maze-tight.toml (Diffuser's choice routes through a buffer file it does
     # not carry: its best candidate without one)
     scene_avoid = {"cdrb": {"mask_buffer": True, "route_k": 8, "best_of": 4}, "diffuser": {"best_of": 4}}
+    # chosen by experiments/tune/anywhere-maze-tight-look-ahead.toml (experiments/tuned/anywhere-maze-tight-replan.toml)
+    replan_tuned = {
+        "cdrb": {"controller.look_ahead": 2, "avoid.best_of": 8},
+        "diffuser": {"controller.look_ahead": 4, "avoid.best_of": 8},
+        "mlp": {"controller.look_ahead": 4},
+    }
 
     # -------------------------------------------------------------- environments
     def env_ids(self) -> dict[str, str]:

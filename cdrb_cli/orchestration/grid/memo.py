@@ -9,6 +9,7 @@ from pathlib import Path
 
 from cdrb_cli import __version__, artifacts
 from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid.flags import parse_command
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
 
 
@@ -31,17 +32,21 @@ def memo_path(spec: GridSpec, task: Task) -> Path:
     return spec.out / ".grid" / f"{_slug(task.id)}.json"
 
 
-#: the scene flags of plan and eval
-_SCENE_FLAGS = ("--scene", "--maze-map")
-
-
 def _meaning(task: Task) -> dict:
-    """What a command means beyond its words, where a release changed it: a plan or an eval in a scene avoids the
-    new obstacles by default (the family's tuned avoidance), so a memo written when it meant the plain model is out
-    of date."""
-    if task.kind in ("plan", "eval") and any(a in _SCENE_FLAGS or a.split("=")[0] in _SCENE_FLAGS for a in task.argv):
-        return {"scene_avoid": "tuned by default"}
-    return {}
+    """What a command means beyond its words, where a release changed it, so a memo written when it meant something
+    else is out of date: a plan or an eval in a scene avoids the new obstacles by default (the family's tuned
+    avoidance), and an eval that re-plans uses the family's choice for re-planning."""
+    if task.kind not in ("plan", "eval"):
+        return {}
+    _, given, sets = parse_command(task.argv)
+    out = {}
+    if given.get("maze_map") is not None:
+        out["scene_avoid"] = "tuned by default"
+    replans = [str(given["replan"])] if given.get("replan") is not None else []
+    replans += [v for k, v in sets if k in ("replan", "replan.mode")]
+    if any(v.strip("\"'") != "never" for v in replans):
+        out["replan_tuned"] = "by default"
+    return out
 
 
 def _fingerprint(task: Task, cache: dict) -> dict:
