@@ -121,6 +121,34 @@ def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):
     assert "avoiding obstacles: masked buffer" in r.stderr
 
 
+def test_a_selection_file_applies_its_choice_to_one_eval(tiny_models, tmp_path, cdrb):
+    """`--config experiments/tuned/X.toml`: the eval flags `cdrb select` chose for the model's env and method, read
+    as `cdrb eval` reads them, under what the command line itself sets."""
+    model = tiny_models["cdrb"]
+    env = model.manifest.env.id
+    chosen = tmp_path / "tuned.toml"
+    chosen.write_text(
+        '[meta]\nrule = "r"\n\n[[settings]]\nmethod = "cdrb"\neval = ["--sample-steps", "4"]\n\n'
+        f'[[settings]]\nenv = "{env}"\nmethod = "cdrb"\nchosen = "x"\n'
+        'eval = ["--replan", "every:40", "--best-of", "3", "--set", "controller.look_ahead=1"]\n'
+        f'\n[[settings]]\nenv = "{env}"\nmethod = "diffuser"\nchosen = "y"\neval = ["--best-of", "5"]\n'
+    )
+    base = ("eval", model.path, "-n", "1", "--seeds", "0", "--config", chosen, "--json")
+    r = cdrb(*base, "--set", "controller.look_ahead=0", "--out", tmp_path / "e.h5")
+    assert r.returncode == 0, r.stderr
+    assert "deprecated" not in r.stderr
+    from cdrb_cli import artifacts
+
+    config = artifacts.load(tmp_path / "e.h5", "eval").manifest.config
+    assert config.replan.every == 40 and config.avoid.best_of == 3 and config.sample_steps == 4
+    assert config.controller.look_ahead == 0  # the command line wins
+    other = tmp_path / "other.toml"
+    other.write_text('[meta]\nrule = "r"\n\n[[settings]]\nenv = "fetch-push"\nmethod = "cdrb"\neval = []\n')
+    r = cdrb(*base[:-3], "--config", other, "--out", tmp_path / "f.h5")
+    assert r.returncode == 2 and "chooses nothing for cdrb on" in r.stderr and "cdrb on fetch-push" in r.stderr
+    assert not (tmp_path / "f.h5").exists()
+
+
 def test_moved_flags_still_work_with_a_note(tiny_models, tmp_path, cdrb):
     model = tiny_models["cdrb"].path
     base = ("eval", model, "-n", "2", "--seeds", "0", "--json")

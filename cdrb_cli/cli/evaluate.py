@@ -22,6 +22,7 @@ from cdrb_cli.cli.common import (
     trained_model,
 )
 from cdrb_cli.cli.options import EVAL_MOVED, RunConfigOpt, RunSetOpt, moved_flags, run_settings
+from cdrb_cli.cli.tuned import is_selection, selection_settings
 from cdrb_cli.errors import BadInput
 
 # ------------------------------------------------------------------------------------------------ eval
@@ -127,13 +128,17 @@ def eval_cmd(
     from cdrb_cli.torch_utils import setup_torch
 
     everyday = dict(episodes=episodes, seeds=seeds, stream=stream, protocol=protocol, replan=replan)
-    settings = run_settings(config_file, sets, _everyday_flags(everyday), moved)
+    selection = is_selection(config_file)
+    settings = run_settings(None if selection else config_file, sets, everyday_flags(everyday), moved)
     if video is not None:
         check_video_folder(video, out)
     route_buffer = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, route_buffer) if p is not None)]
     check_outputs(force, read, out=out, replan_plot=replan_plot)
     m = trained_model(model, allow_partial)
+    if selection:  # the choice of `cdrb select` for this model, under what this command line sets
+        settings = selection_settings(config_file, m) + settings
+        route_buffer = route_buffer_path(settings)
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
 
     scene = scene_spec(m, maze_map)
@@ -158,7 +163,7 @@ def eval_cmd(
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 
 
-def _everyday_flags(values: dict) -> list[tuple[str, str, object]]:
+def everyday_flags(values: dict) -> list[tuple[str, str, object]]:
     """The everyday flags given, as (how the user typed it, settings key, value) for :func:`run_settings`."""
     parse = {"episodes": int, "seeds": lambda text: parse_seeds(text, "--seeds")}
     return [(f"--{key} {value}", key, parse.get(key, str)(value)) for key, value in values.items() if value is not None]

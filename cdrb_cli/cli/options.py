@@ -113,6 +113,18 @@ def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[st
 
     items = read_config_file(config_file) if config_file is not None else []
     given = [Setting(tuple(key.split(".")), value, source) for source, key, value in flags]
+    given += moved_settings(moved)
+    sets_ = parse_set(sets)
+    given_once(given, sets_)
+    return items + given + sets_
+
+
+def moved_settings(moved: dict, warn: bool = True) -> list:
+    """The settings of the moved flags given (flag -> value; None or False: not given), each noted once as
+    deprecated when ``warn``."""
+    from cdrb_cli.settings import Setting
+
+    out = []
     for flag, value in moved.items():
         if value is None or value is False:
             continue
@@ -122,11 +134,10 @@ def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[st
         if flag == "--max-lag" and value == 0:
             value = None  # 0 meant: follow the plan on the environment's clock
         shown = "null" if value is None else str(value).lower() if isinstance(value, bool) else value
-        ui.warn(f"{flag} is deprecated: write --set {key}={shown} (or put it in a --config file)")
-        given.append(Setting(tuple(key.split(".")), value, flag if isinstance(value, bool) else f"{flag} {value}"))
-    sets_ = parse_set(sets)
-    given_once(given, sets_)
-    return items + given + sets_
+        if warn:
+            ui.warn(f"{flag} is deprecated: write --set {key}={shown} (or put it in a --config file)")
+        out.append(Setting(tuple(key.split(".")), value, flag if isinstance(value, bool) else f"{flag} {value}"))
+    return out
 
 
 def env_spec(env: str | None, maze_map: Path | None):
