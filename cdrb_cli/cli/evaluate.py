@@ -22,7 +22,7 @@ from cdrb_cli.cli.common import (
     trained_model,
 )
 from cdrb_cli.cli.options import EVAL_MOVED, RunConfigOpt, RunSetOpt, moved_flags, run_settings
-from cdrb_cli.cli.tuned import is_selection, selection_settings
+from cdrb_cli.cli.tuned import read_selection, selection_settings
 from cdrb_cli.errors import BadInput
 
 # ------------------------------------------------------------------------------------------------ eval
@@ -128,17 +128,16 @@ def eval_cmd(
     from cdrb_cli.torch_utils import setup_torch
 
     everyday = dict(episodes=episodes, seeds=seeds, stream=stream, protocol=protocol, replan=replan)
-    selection = is_selection(config_file)
+    selection = read_selection(config_file)
     settings = run_settings(None if selection else config_file, sets, everyday_flags(everyday), moved)
     if video is not None:
         check_video_folder(video, out)
+    m = trained_model(model, allow_partial)
+    if selection is not None:  # the choice of `cdrb select` for this model, under what this command line sets
+        settings = selection_settings(selection, config_file, m) + settings
     route_buffer = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, route_buffer) if p is not None)]
     check_outputs(force, read, out=out, replan_plot=replan_plot)
-    m = trained_model(model, allow_partial)
-    if selection:  # the choice of `cdrb select` for this model, under what this command line sets
-        settings = selection_settings(config_file, m) + settings
-        route_buffer = route_buffer_path(settings)
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
 
     scene = scene_spec(m, maze_map)
@@ -161,6 +160,10 @@ def eval_cmd(
     if replan_plot is not None and replan_plot.exists():
         ui.log(f"picture: {replan_plot}")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
+#: the settings `cdrb eval` keeps an everyday flag for
+EVERYDAY = ("episodes", "seeds", "stream", "protocol", "replan")
 
 
 def everyday_flags(values: dict) -> list[tuple[str, str, object]]:

@@ -57,7 +57,7 @@ EVAL_MOVED = ("--controller", "--max-lag", "--repair-k", "--repair-steps", *AVOI
               "--raw-weights")  # fmt: skip
 
 
-def _moved_name(flag: str) -> str:
+def moved_name(flag: str) -> str:
     """The parameter a moved flag fills (its own name, as when it was a declared option: grid memo keys use it)."""
     return flag[2:].replace("-", "_")
 
@@ -75,14 +75,14 @@ def moved_flags(*flags: str) -> Callable:
                 False if kind is bool else None, flag, hidden=True, help=f"Moved: --set {key}=VALUE.", **bounds
             )
             annotation = bool if kind is bool else typing.Optional[kind]  # noqa: UP045  (typer reads Optional)
-            extra.append(inspect.Parameter(_moved_name(flag), inspect.Parameter.KEYWORD_ONLY, default=option,
+            extra.append(inspect.Parameter(moved_name(flag), inspect.Parameter.KEYWORD_ONLY, default=option,
                                            annotation=annotation))  # fmt: skip
         kept = [p for p in sig.parameters.values() if p.name != "moved"]
         hints = typing.get_type_hints(fn)
 
         @functools.wraps(fn)
         def command(**kwargs):
-            moved = {flag: kwargs.pop(_moved_name(flag)) for flag in flags}
+            moved = {flag: kwargs.pop(moved_name(flag)) for flag in flags}
             return fn(**kwargs, moved=moved)
 
         params = [p.replace(annotation=hints.get(p.name, p.annotation)) for p in kept] + extra
