@@ -116,9 +116,16 @@ def from_mapping(values: dict[str, Any], source: str = "settings") -> list[Setti
     return [Setting(_key(str(k), f"{source} {k}"), v, f"{source} {k}={v}") for k, v in values.items()]
 
 
+#: the key under which a TOML table lists its settings that are null (TOML has no null): ``null = ["max_lag"]``
+NULL_KEY = "null"
+
+
 def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
     out = []
     for k, v in data.items():
+        if k == NULL_KEY and isinstance(v, list) and all(isinstance(x, str) for x in v):
+            out += [Setting(prefix + _key(x, source), None, f"{source}: {'.'.join(prefix + (x,))}=null") for x in v]
+            continue
         path = prefix + _key(str(k), source)
         if len(path) > MAX_KEY_PARTS:
             raise BadInput(
@@ -299,3 +306,24 @@ def toml_string(text: str) -> str:
         else:
             out.append(ch)
     return '"' + "".join(out) + '"'
+
+
+def toml_value(value: Any) -> str:
+    """A settings value as TOML: a bool, a number, text, a list, or a table (inline, keys in its order). None has
+    no TOML form: a file names its null settings in a ``null`` list (:data:`NULL_KEY`)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + " }" if value else "{}"
+    if value is None:
+        raise ValueError("TOML has no null: list the key under `null`")
+    return toml_string(str(value))
+
+
+def toml_key(key: str) -> str:
+    """A key as TOML writes it: bare where it can be, else quoted."""
+    return key if key and all(c.isascii() and (c.isalnum() or c in "_-") for c in key) else toml_string(key)

@@ -11,6 +11,7 @@ from typing import Literal
 
 import numpy as np
 import pytest
+import tomllib
 from pydantic import Field
 
 from cdrb_cli import artifacts
@@ -304,7 +305,8 @@ def test_a_new_family_and_method_go_through_tune_select_test_and_report(toy_fami
     assert {r.status for r in run.results} == {"done"}
     tuned = select(tune, tmp_path / "tuned.toml")
     text = tuned.read_text()
-    assert 'method = "toy-straight"' in text and 'method = "cdrb"' in text and '"--steps"' in text
+    assert 'method = "toy-straight"' in text and 'method = "cdrb"' in text
+    assert all("steps" in s["train"] for s in tomllib.loads(text)["settings"])  # each at its chosen length
 
     test = tmp_path / "test.toml"
     test.write_text('include = ["tuned.toml"]\nout = "test"\nseeds = [0, 1]\n' + common)
@@ -428,7 +430,8 @@ def test_a_plugins_eval_knob_is_one_config_field(toy_family, toy_method, tmp_pat
     gains = {i: artifacts.load(p, "eval").manifest.config.controller.gain for i, p in evals.items()}
     assert sorted(gains.values()) == [0.05, 2.0]
     text = select(tune, tmp_path / "tuned.toml").read_text()
-    assert "controller.gain=" in text  # the chosen variant's knob, written as a setting
+    (chosen,) = tomllib.loads(text)["settings"]
+    assert chosen["eval"]["controller"]["gain"] in (0.05, 2.0)  # the chosen variant's knob, a table of settings
 
     model = next(Path(r.outputs[0]) for r in run.results if r.kind == "train")
     code, _ = cdrb_in_process(

@@ -963,6 +963,44 @@ def test_a_variant_may_give_its_settings_as_a_table(tmp_path):
         load_grid(_grid(tmp_path, clash, "c.toml"))
 
 
+def test_a_memo_keys_what_a_command_asks_for_not_how_its_flags_are_spelled(tmp_path):
+    """A finished task is up to date under any spelling of the same settings (a moved flag, its --set, a table; a
+    value written another way) and under a memo written before memos had keys; a changed value is not."""
+    from cdrb_cli.orchestration.grid.memo import is_done, memo_path
+
+    base = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
+    variant = '\n[[variants]]\nname = "v"\neval = {}\n'
+    path = _grid(tmp_path, base + variant.replace("{}", '["--max-lag", "0.3", "--set", "controller.kp=5"]'))
+    backend = PoolBackend(1)
+    try:
+        run = run_grid(load_grid(path), backend)
+    finally:
+        backend.close()
+    assert {r.status for r in run.results} == {"done"}
+
+    def done(text: str) -> dict[str, bool]:
+        path.write_text(base + variant.replace("{}", text))
+        spec = load_grid(path)
+        return {t.id: is_done(spec, t, {}) for t in expand(spec) if t.kind != "report"}
+
+    spellings = [
+        '["--set", "controller.max_lag=0.30", "--set", "controller.kp= 5"]',
+        "{ controller = { kp = 5, max_lag = 0.3 } }",
+        '["--set", "controller.kp=5", "--max-lag=0.3", "--max-lag", "0.3"]',
+    ]
+    for text in spellings:
+        assert all(done(text).values()), text
+    spec = load_grid(path)
+    for task in expand(spec):  # memos as they were written before they had keys
+        memo = memo_path(spec, task)
+        if memo.exists():
+            body = json.loads(memo.read_text())
+            memo.write_text(json.dumps({k: v for k, v in body.items() if k not in ("key", "asked")}))
+    assert all(done(spellings[1]).values())
+    changed = done("{ controller = { kp = 5, max_lag = 0.4 } }")
+    assert [i for i, ok in changed.items() if not ok] == ["eval maze-tight/v/mlp-s0"]
+
+
 def test_include_fan_out_and_depth_are_bounded(tmp_path):
     """Four levels of a file that includes the next 40 times would expand to 2.56 M reads: each file is read once,
     the expansion is capped, and the error names the file that fans out; a 40-deep chain is refused too."""

@@ -272,7 +272,8 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     r = _cdrb(*again, "--out", tmp_path / "e.toml", "--docs", doc, "--block", "other", cwd=tmp_path, check=False)
     assert r.returncode == 2 and "no <!-- other:begin -->" in r.stderr and not (tmp_path / "e.toml").exists()
     r = _cdrb(*again, "--set", "eval_episodes=3", "--out", tmp_path / "x.toml", cwd=tmp_path, check=False)
-    assert r.returncode == 2 and "not this grid's eval" in r.stderr and "--episodes 2 there, 3 in the grid" in r.stderr
+    assert r.returncode == 2 and "not this grid's eval" in r.stderr
+    assert "setting episodes: 2 there, 3 in the grid" in r.stderr
     quick = copy / "maze-tight" / "quick"
     shutil.copy(quick / "eval-mlp-s0.h5", quick / "eval-cdrb-s0.h5")
     r = _cdrb(*again, "--out", tmp_path / "x.toml", cwd=tmp_path, check=False)
@@ -311,7 +312,7 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     out = tmp_path / "runs" / "table1"
     _cdrb("grid", exp / "table1" / "mazes.toml", *small, "--set", f"out={out}", "--set", "seeds=[0, 1]", cwd=tmp_path)
     for s in final:
-        steps = int(s["train"][s["train"].index("--steps") + 1])
+        steps = s["train"]["steps"]  # a table of settings
         for seed in (0, 1):
             model = artifacts.load(out / "maze-tight" / f"{s['method']}-s{seed}.h5", "model")
             assert model.manifest.config.steps == steps  # trained as selected on the tuning stream
@@ -393,7 +394,7 @@ def test_names_from_an_artifact_cannot_break_a_markdown_table_or_its_block():
 def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp_path):
     """A variant that trains on its own buffer (cluster flags, e.g. state-action features): the settings file
     carries those flags, so the test grid that includes it clusters the same buffer for that method."""
-    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.grid import expand, load_grid, parse_command
     from cdrb_cli.orchestration.select import Candidate, settings_text
 
     tune = tmp_path / "tune.toml"
@@ -418,11 +419,11 @@ def test_a_chosen_candidate_keeps_its_buffer_flags_in_the_settings_it_writes(tmp
     (cluster,) = [t for t in tasks.values() if t.kind == "cluster"]
     assert cluster.argv[cluster.argv.index("--features") + 1] == "state-action"
     train = tasks["train maze-tight/cdrb-s0"].argv
-    assert str(cluster.outputs[0]) in train and "features=state-action" in train
-    assert train[train.index("--steps") + 1] == "20"
+    settings = dict(parse_command(train)[2])  # the chosen training, written as a table of settings
+    assert str(cluster.outputs[0]) in train and settings["features"] == '"state-action"' and settings["steps"] == "20"
     mlp = tasks["train maze-tight/mlp-s0"].argv  # an eval-only pick: the base model's flags, and its eval knob
-    assert "features=state-action" not in mlp and "--buffer" not in mlp
-    assert tasks["eval maze-tight/mlp-s0"].argv[-6:-4] == ["--max-lag", "0"]
+    assert "features" not in dict(parse_command(mlp)[2]) and "--buffer" not in mlp
+    assert dict(parse_command(tasks["eval maze-tight/mlp-s0"].argv)[2])["controller.max_lag"] == "null"
 
 
 def test_selected_file_flags_are_relative_to_the_settings_file(tmp_path):

@@ -247,3 +247,30 @@ def test_a_setting_is_strict_inside_registry_records_and_given_once(small_data, 
     for setting in ("controller.look_ahead=true", "controller.kp=true", 'controller.kp="3"'):
         r = cdrb("eval", model.path, "--set", setting, "-n", "1", "--out", tmp_path / "e.h5")
         assert r.returncode == 2 and f"--set {setting}" in r.stderr and not (tmp_path / "e.h5").exists(), r.stderr
+
+
+def test_a_toml_table_lists_its_null_settings_and_tables_round_trip(tmp_path):
+    """TOML has no null: a table names its null settings in a ``null`` list (a config file, a grid's table); the
+    tables a settings file writes read back as the same settings, as flags and as a --config file alike."""
+    import tomllib
+
+    import cdrb_cli.cli  # noqa: F401  (installs the description of the commands)
+    from cdrb_cli.orchestration.grid import as_table, parse_command, table_flags
+    from cdrb_cli.settings import toml_value
+
+    path = tmp_path / "c.toml"
+    path.write_text('episodes = 3\nnull = ["sample_steps"]\n[controller]\nkp = 2.0\nnull = ["max_lag"]\n')
+    got = {s.key: s.value for s in read_config_file(path)}
+    assert got == {"episodes": 3, "sample_steps": None, "controller.kp": 2.0, "controller.max_lag": None}
+    flags = ["--max-lag", "0", "--set", "controller.max_wait=10", "--best-of", "4", "--seeds", "0,1"]
+    table = as_table(flags, "eval")
+    assert table == {"avoid": {"best_of": 4}, "controller": {"max_wait": 10}, "seeds": [0, 1],
+                     "null": ["controller.max_lag"]}  # fmt: skip
+    back = table_flags(tomllib.loads("x = " + toml_value(table))["x"])
+    assert parse_command(["eval", "m.h5", *back]) == parse_command(["eval", "m.h5", *flags])
+    path.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in table.items()))  # the table as a --config file
+    assert {s.key: s.value for s in read_config_file(path)} == {
+        "avoid.best_of": 4, "controller.max_wait": 10, "seeds": [0, 1], "controller.max_lag": None}  # fmt: skip
+    # flags that are more than settings (a file, a scene) stay flags
+    assert as_table(["--scene", "x.txt", "--best-of", "4"], "eval") is None
+    assert as_table(["--route-buffer", "b.h5"], "eval") is None

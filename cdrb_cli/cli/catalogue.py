@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 import typing
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
 
 from cdrb_cli.orchestration.grid.commands import Catalogue, OptionInfo
+from cdrb_cli.settings import Setting
 
 #: the commands a grid runs or whose command lines it reads back (an eval's manifest records its command)
 GRID_COMMANDS = ("collect", "cluster", "train", "eval", "plan", "report")
@@ -26,10 +28,43 @@ def _value_type(hint):
     return next((t for t in typing.get_args(hint) if t is not type(None)), hint)
 
 
+def _one(settings: list[Setting]) -> tuple[str, object] | None:
+    return (settings[0].key, settings[0].value) if settings else None
+
+
+def setting_options() -> dict[str, dict[str, Callable[[object], tuple[str, object] | None]]]:
+    """For each command, its options that fill a setting (parameter -> the value as typed -> (key, value)), read as
+    the command reads them: the everyday flags of eval and train and the flags that moved into the configs. A grid
+    then keys ``--max-lag 0.6`` and ``--set controller.max_lag=0.6`` as the one setting they are."""
+    from cdrb_cli.cli.evaluate import EVERYDAY, everyday_flags
+    from cdrb_cli.cli.options import EVAL_MOVED, MOVED_FLAGS, PLAN_MOVED, moved_name, moved_settings
+    from cdrb_cli.methods.config import user_settings
+
+    def everyday(name: str):
+        return lambda text: next(((k, v) for _, k, v in everyday_flags({name: text})), None)
+
+    def moved(flag: str):
+        kind = MOVED_FLAGS[flag][1]
+        return lambda value: _one(moved_settings({flag: True if kind is bool else kind(value)}, warn=False))
+
+    def train_flag(name: str):
+        return lambda text: _one(user_settings(**{name: int(text) if name == "steps" else text}))
+
+    def moved_table(flags) -> dict:
+        return {moved_name(f): moved(f) for f in flags}
+
+    return {
+        "eval": {name: everyday(name) for name in EVERYDAY} | moved_table(EVAL_MOVED),
+        "plan": moved_table(PLAN_MOVED),
+        "train": {name: train_flag(name) for name in ("method", "net", "preset", "steps")},
+    }
+
+
 def describe(app: typer.Typer) -> Catalogue:
     """The options of :data:`GRID_COMMANDS` in ``app``, as the grid reads them."""
     group = typer.main.get_command(app)
     catalogue: Catalogue = {}
+    settings = setting_options()
     for name in GRID_COMMANDS:
         command = group.commands[name]
         hints = typing.get_type_hints(command.callback)
@@ -44,6 +79,7 @@ def describe(app: typer.Typer) -> Catalogue:
                 kind=kind,
                 reads_file=kind is Path and p.name not in OUTPUTS,
                 keyed=p.name not in OUTPUTS | BOOKKEEPING,
+                to_setting=settings.get(name, {}).get(p.name),
             )
             table.update(dict.fromkeys(p.opts, info))
             table.update(dict.fromkeys(p.secondary_opts, dataclasses.replace(info, flag_value=False)))

@@ -17,8 +17,16 @@ from pathlib import Path
 from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.orchestration.grid import BASE, GridSpec, cluster_flags_for, expand, flags_for
-from cdrb_cli.settings import toml_string
+from cdrb_cli.orchestration.grid import (
+    BASE,
+    GridSpec,
+    as_table,
+    cluster_flags_for,
+    expand,
+    flags_for,
+    without_setting,
+)
+from cdrb_cli.settings import toml_string, toml_value
 from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
 RULE = (
@@ -283,16 +291,6 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
     return out
 
 
-def _without_steps(flags: list[str]) -> list[str]:
-    out, skip = [], False
-    for f in flags:
-        if skip or f == "--steps":
-            skip = not skip
-            continue
-        out.append(f)
-    return out
-
-
 def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str], list[str]]:
     """The `cdrb cluster`, `cdrb train` and `cdrb eval` flags that reproduce ``cand``: what applied to it in the
     tuning grid (an eval-only variant's model is the base model), with its training length when the grid set one."""
@@ -302,12 +300,19 @@ def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str],
     train = flags_for(spec, cand.env, cand.method, model_variant)[0]
     evaluate = flags_for(spec, cand.env, cand.method, variant)[1]
     if cand.steps is not None:
-        train = [*_without_steps(train), "--steps", str(cand.steps)]
+        train = [*without_setting(train, "train", "steps"), "--steps", str(cand.steps)]
     return cluster, train, evaluate
 
 
 def _toml_list(items: list[str]) -> str:
     return "[" + ", ".join(toml_string(x) for x in items) + "]"
+
+
+def _toml_flags(flags: list[str], command: str) -> str:
+    """A command's chosen flags as a settings file writes them: the table of the settings they set, or the list
+    of flags where they hold more than settings (:func:`as_table`)."""
+    table = as_table(flags, command) if flags else None
+    return toml_value(table) if table is not None else _toml_list(flags)
 
 
 def relative_files(flags: list[str], command: str, folder: Path) -> list[str]:
@@ -351,8 +356,8 @@ def settings_text(
             f"method = {toml_string(method)}",
             f"chosen = {toml_string(cand.name)}",
             *([f"cluster = {_toml_list(cluster)}"] if cluster else []),
-            f"train = {_toml_list(train)}",
-            f"eval = {_toml_list(evaluate)}",
+            f"train = {_toml_flags(train, 'train')}",
+            f"eval = {_toml_flags(evaluate, 'eval')}",
             "",
         ]
     return "\n".join(lines)

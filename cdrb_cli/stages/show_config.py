@@ -9,7 +9,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cdrb_cli.settings import Setting, toml_string, type_name
+from cdrb_cli.settings import Setting, toml_value, type_name
 
 #: shown for defaults `cdrb train` fills in from its inputs
 FROM_DATA = "(from the data)"
@@ -159,16 +159,6 @@ def _nested(rows: list[Row]) -> dict:
     return out
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return toml_string(str(v))
-
-
 def _toml(rows: list[Row]) -> str:
     """A TOML template: top-level keys first, then one table per section; defaults that depend on the data, and
     null defaults (TOML has no null), are commented out."""
@@ -182,7 +172,7 @@ def _toml(rows: list[Row]) -> str:
             lines += ["", f"[{section}]"]
         for r in sections.get(section, []):
             leaf = r.key.split(".")[-1]
-            text = f"{leaf} = {_toml_value(r.default)}"
+            text = f"{leaf} = {toml_value(r.default)}"
             if r.default is None or _placeholder(r.default):
                 text = f"# {leaf} = ...  {r.default if r.default is not None else 'null'}"
             lines.append(f"{text:<40} # {r.description}" if r.description else text)

@@ -27,7 +27,7 @@ from cdrb_cli.orchestration.grid.expand import (
     flags_for,
     without_repeated_sets,
 )
-from cdrb_cli.orchestration.grid.flags import parse_command, walk_options
+from cdrb_cli.orchestration.grid.flags import as_table, parse_command, walk_options, without_setting
 from cdrb_cli.orchestration.grid.load import load_grid, parse_override
 from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, memo_path, written_here
 from cdrb_cli.orchestration.grid.reuse import file_sha, measure_difference, reuse_finished
@@ -67,6 +67,7 @@ __all__ = [
     "Task",
     "TaskResult",
     "Variant",
+    "as_table",
     "check_outputs",
     "cluster_flags_for",
     "collect_flags_for",
@@ -89,5 +90,6 @@ __all__ = [
     "table_flags",
     "walk_options",
     "without_repeated_sets",
+    "without_setting",
     "written_here",
 ]

@@ -1,6 +1,6 @@
 """The `cdrb` commands a grid composes, as the grid reads them: for each option, its parameter, whether it takes a
-value, the type of that value, whether it names a file the command reads, and whether it changes what the command
-makes or measures (``--out``, ``--device``, ``--force`` do not).
+value, the type of that value, whether it names a file the command reads, whether it changes what the command
+makes or measures (``--out``, ``--device``, ``--force`` do not), and which setting it fills where it is one.
 
 The command line describes its own commands and hands the description over (:func:`install`, done by
 :mod:`cdrb_cli.cli` when it is imported); the grid reads only this data, never the command line's code, so the
@@ -10,7 +10,7 @@ grid sits below the command line that runs it and a new option needs no entry he
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cdrb_cli.errors import RunFailed
@@ -26,6 +26,9 @@ class OptionInfo:
     kind: type | None = None  #: the value's type (int, float, str, Path), where the command declares one
     reads_file: bool = False  #: the value names a file the command reads
     keyed: bool = True  #: it changes what the command makes or measures
+    #: for an option that fills a setting (``--max-lag`` is ``controller.max_lag``): its value as typed (the text,
+    #: or the flag's value) -> (the settings key, the value), as the command itself reads it; None for the others
+    to_setting: Callable[[object], tuple[str, object]] | None = field(default=None, compare=False)
 
 
 #: command name -> option string -> its record

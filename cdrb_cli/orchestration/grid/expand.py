@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from cdrb_cli.orchestration.grid.commands import input_files
-from cdrb_cli.orchestration.grid.flags import nested
+from cdrb_cli.orchestration.grid.flags import nested, without_setting
 from cdrb_cli.orchestration.grid.reuse import buffer_task, reuse_finished, train_snapshot
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, Variant
 
@@ -126,7 +126,7 @@ def expand(spec: GridSpec) -> list[Task]:
                         trains.add(train_id)
                         argv = ["train", str(demos), "--method", method, "--preset", spec.preset, "--seed", str(seed)]
                         argv += ["--buffer", str(vbuffer)] if needs_buffer else []
-                        argv += train_extra
+                        argv += without_setting(train_extra, "train", "steps") if length else train_extra
                         argv += ["--steps", str(length)] if length else []
                         if snaps:
                             argv += ["--snapshot-at", ",".join(map(str, snaps))]

@@ -118,11 +118,19 @@ def walk_options(tokens: list[str], table: dict[str, OptionInfo]):
             i += 1
 
 
-def parse_command(argv: list[str], file_key=str) -> tuple[list[str], dict[str, object], list[tuple[str, str]]]:
-    """A command line as what it asks for, independent of how its flags are spelled: (its arguments, its options by
-    parameter name with the last value winning as on the command line, its ``--set``s with each one overridden later
-    by the same key dropped, sorted unless one key lies inside another). Every argument and option value goes
-    through ``file_key`` (a file's stand-in: its sha256, the task that wrote it, its name)."""
+def parse_command(
+    argv: list[str], file_key=str, fold: bool = True
+) -> tuple[list[str], dict[str, object], list[tuple[str, str]]]:
+    """A command line as what it asks for, independent of how its flags are spelled: (its arguments, its options
+    that are not settings by parameter name with the last value winning as on the command line, its settings as
+    (key, value as JSON) pairs). An option that fills a setting counts as that setting (``--max-lag 0.6`` is
+    ``--set controller.max_lag=0.6``, ``--steps 4000`` is ``--set steps=4000``) and a ``--set`` value counts as
+    what it parses to (``0.60`` is ``0.6``); a setting given again later replaces all the earlier one set, and the
+    pairs are sorted unless one key lies inside another. Every argument and file value goes through ``file_key``
+    (a file's stand-in: its sha256, the task that wrote it, its name). ``fold=False`` keeps each option and each
+    ``--set`` value as typed (for messages that quote the user)."""
+    from cdrb_cli.settings import parse_value
+
     positional, given, sets = [], {}, []
     for token, entry, value in walk_options(argv[1:], options(argv[0])):
         if entry is None:
@@ -130,19 +138,96 @@ def parse_command(argv: list[str], file_key=str) -> tuple[list[str], dict[str, o
             continue
         pname = entry.param
         value = ("" if value is None else value) if entry.takes_value else entry.flag_value
+        if entry.reads_file and isinstance(value, str):
+            value = file_key(value)
         if pname == "sets":
             k, _, v = str(value).partition("=")
-            sets.append((k.strip(), v.strip()))
-        else:
-            given[pname] = file_key(value) if isinstance(value, str) else value
-    # a later --set of the same key replaces all an earlier one set, whatever came between: the earlier is moot;
-    # the order of the rest matters only where one key lies inside another (net= then net.dim=)
+            sets.append((k.strip(), _canonical(lambda v=v: parse_value(v.strip()), v.strip()) if fold else v.strip()))
+            continue
+        setting = _as_setting(entry, value) if fold else None
+        if setting is not None:
+            sets.append(setting)
+        elif entry.to_setting is None or not fold:
+            given[pname] = file_key(value) if isinstance(value, str) and not entry.reads_file else value
+    # a later setting of the same key replaces all an earlier one set, whatever came between: the earlier is moot;
+    # the order of the rest matters only where one key lies inside another (net= then net.dim=): sorted, a key
+    # comes before the keys inside it, so the sorted order is the same command unless one came after them
     sets = [kv for j, kv in enumerate(sets) if all(kv[0] != later[0] for later in sets[j + 1 :])]
-    if not any(nested(a, b) for j, (a, _) in enumerate(sets) for b, _ in sets[j + 1 :]):
+    if not any(b.startswith(a + ".") for j, (b, _) in enumerate(sets) for a, _ in sets[j + 1 :]):
         sets.sort()
     return positional, given, sets
+
+
+def _canonical(value_of, text: str) -> str:
+    """A setting's value as JSON (keys sorted), or its text where it does not parse (the command then says why)."""
+    try:
+        return json.dumps(value_of(), sort_keys=True)
+    except Exception:  # a value the command refuses: keyed by its text
+        return text
+
+
+def _as_setting(entry: OptionInfo, value) -> tuple[str, str] | None:
+    """The (key, value as JSON) of an option that fills a setting, as the command reads it; None for another
+    option, or one given as not set (a moved flag's default)."""
+    if entry.to_setting is None:
+        return None
+    try:
+        pair = entry.to_setting(value)
+    except Exception:  # a value the command refuses: keyed by its text under the option's own name
+        return (f"--{entry.param}", str(value))
+    return None if pair is None else (pair[0], _canonical(lambda: pair[1], str(pair[1])))
 
 
 def nested(a: str, b: str) -> bool:
     """Whether one dotted settings key lies inside the other (``net`` and ``net.dim``)."""
     return a.startswith(b + ".") or b.startswith(a + ".")
+
+
+def as_table(flags: list[str], command: str) -> dict | None:
+    """``flags`` of ``command`` as the table of settings they set (as a grid file or a settings file writes them;
+    null settings listed under ``null``), or None where they hold more than settings: an argument, an option that
+    is not a setting (``--scene FILE``), a file (anchored at the file that names it only as a flag), or one key
+    inside another (whose order matters)."""
+    from cdrb_cli.settings import NULL_KEY
+
+    table = options(command)
+    if any(entry is None or entry.reads_file for _, entry, _ in walk_options(flags, table)):
+        return None
+    positional, given, sets = parse_command([command, *flags])
+    if positional or given or any(nested(a, b) for j, (a, _) in enumerate(sets) for b, _ in sets[j + 1 :]):
+        return None
+    out: dict = {}
+    nulls = []
+    for key, text in sets:
+        try:
+            value = json.loads(text)
+        except ValueError:
+            return None
+        if value is None:
+            nulls.append(key)
+            continue
+        *parents, leaf = key.split(".")
+        node = out
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    if nulls:
+        out[NULL_KEY] = nulls
+    return out
+
+
+def without_setting(flags: list[str], command: str, key: str) -> list[str]:
+    """``flags`` without what sets ``key``: its option (``--steps N``) and its ``--set key=...`` (the caller sets
+    it itself, and `cdrb train` refuses a setting given both ways)."""
+    out: list[str] = []
+    table = options(command)
+    for token, entry, value in walk_options(flags, table):
+        if entry is None:
+            out.append(token)
+            continue
+        if entry.param == "sets" and str(value).partition("=")[0].strip().replace("-", "_") == key:
+            continue
+        if (_as_setting(entry, value) or ("",))[0] == key:
+            continue
+        out += [token] if "=" in token or not entry.takes_value else [token, "" if value is None else value]
+    return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -301,6 +302,14 @@ def _check_names(where: str, methods: list[str] | None, envs: list[str] | None) 
             raise BadInput(f"{where}: envs: {exc.message}", hint="`cdrb envs` lists them") from None
 
 
+def _text(value: str) -> str:
+    """A setting's value as :func:`parse_command` keys it (JSON, or the text that did not parse), as text."""
+    try:
+        return str(json.loads(value))
+    except ValueError:
+        return value
+
+
 def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> int | None:
     """Where ``method``'s training in ``variant`` records its model (:func:`train.snapshot_step` of its
     checkpoint_every: the preset's, the method's own, or its train flags' last ``--set checkpoint_every=N``); None
@@ -313,7 +322,7 @@ def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> i
     _, options, sets = parse_command(["train", *flags_for(spec, env, method, variant)[0]])
     if options.get("config_file") is not None:
         return None
-    preset = str(options.get("preset") or spec.preset)
+    preset = _text(dict(sets).get("preset", json.dumps(spec.preset)))
     if preset not in PRESETS:
         return None
     every = str(dict(sets).get("checkpoint_every", preset_training(METHODS.get(method), preset)["checkpoint_every"]))
@@ -339,7 +348,7 @@ def _check_train_configs(spec: GridSpec, path: Path) -> None:
         for method in spec.methods:
             entry = METHODS.get(method)
             for v in model_variants(spec, env, method):
-                _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]])
+                _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]], fold=False)
                 if options.get("config_file") is not None:
                     continue
                 steps = None if options.get("steps") is None else int(options["steps"])

@@ -1,14 +1,16 @@
-"""Memos: what each task wrote (its command, the cdrb version, the sha256 of every input and output), so a rerun
-does no work for a task whose files still match."""
+"""Memos: what each task wrote (the key of what its command asks for, the cdrb version, the sha256 of every input
+and output), so a rerun does no work for a task whose files still match, however its flags are spelled."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from pathlib import Path
 
 from cdrb_cli import __version__, artifacts
 from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid.commands import options
 from cdrb_cli.orchestration.grid.flags import parse_command
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
 
@@ -42,21 +44,53 @@ def _meaning(task: Task) -> dict:
     out = {}
     if given.get("maze_map") is not None:
         out["scene_avoid"] = "tuned by default"
-    replans = [str(given["replan"])] if given.get("replan") is not None else []
-    replans += [v for k, v in sets if k in ("replan", "replan.mode")]
+    replans = [v for k, v in sets if k in ("replan", "replan.mode")]
     if any(v.strip("\"'") != "never" for v in replans):
         out["replan_tuned"] = "by default"
     return out
 
 
+def command_key(argv: list[str]) -> tuple[dict, str]:
+    """What a task's command asks for, however its flags are spelled (:func:`parse_command`: its arguments, the
+    options that change what it makes or measures, and its settings resolved to one value each), and the sha256 of
+    that: the memo's key. The command resolves its full config from these settings, its input files (hashed beside
+    the key) and the cdrb version (recorded beside it), so the same key with the same inputs is the same config."""
+    positional, given, sets = parse_command(argv)
+    keyed = {info.param for info in options(argv[0]).values() if info.keyed}
+    asked = {
+        "command": argv[0],
+        "args": positional,
+        "options": {k: given[k] for k in sorted(given) if k in keyed},
+        "settings": [list(kv) for kv in sets],
+    }
+    return asked, hashlib.sha256(json.dumps(asked, sort_keys=True, default=str).encode()).hexdigest()
+
+
 def _fingerprint(task: Task, cache: dict) -> dict:
+    asked, key = command_key(task.argv)
     return {
         "argv": task.argv,
+        "key": key,
+        "asked": asked,
         "cdrb": __version__,
         **_meaning(task),
         "inputs": {str(p): cached_sha(p, cache) for p in task.inputs},
         "outputs": {str(p): cached_sha(p, cache) for p in task.outputs},
     }
+
+
+def _matches(memo: dict, now: dict) -> bool:
+    """Whether a memo records what ``now`` would: the same key, version, meaning and files; the command line as
+    spelled (``argv``, kept for the record) need not match. A memo written before memos had keys is judged by the
+    key of the command line it records."""
+    memo = dict(memo)
+    argv = memo.get("argv")
+    if "key" not in memo and isinstance(argv, list) and argv and all(isinstance(a, str) for a in argv):
+        try:
+            memo["asked"], memo["key"] = command_key(argv)
+        except Exception:  # a command line this version cannot read: out of date
+            return False
+    return {k: v for k, v in memo.items() if k != "argv"} == {k: v for k, v in now.items() if k != "argv"}
 
 
 def _memo(spec: GridSpec, task: Task) -> dict | None:
@@ -75,7 +109,7 @@ def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
     if memo is None:
         return False
     now = _fingerprint(task, cache)
-    return memo == now and all(now["outputs"].values())
+    return _matches(memo, now) and all(now["outputs"].values())
 
 
 def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:

@@ -61,7 +61,8 @@ def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tu
         return f"sha256:{sha}" if sha else value
 
     positional, given, sets = parse_command(argv, file_key)
-    steps = given.get("steps")
+    steps = dict(sets).get("steps")
+    sets = [(k, v) for k, v in sets if k != "steps"]
     snaps = [v.strip() for v in str(given.get("snapshot_at", "")).split(",") if v.strip()]
     keyed = _keyed(argv[0])
     kept = {k: v for k, v in given.items() if k in keyed and k not in _LENGTH}
@@ -95,8 +96,8 @@ def measure_difference(made: list[str], wanted: list[str]) -> str | None:
     for key in sorted({k for k, _ in sets_a} | {k for k, _ in sets_b}):
         a, b = dict(sets_a).get(key), dict(sets_b).get(key)
         if a != b:
-            shown = ["(not set)" if v is None else f"{key}={clip(v, 40)}" for v in (a, b)]
-            return f"--set {clip(shown[0], 60)} there, {shown[1]} in the grid"
+            shown = ["(not set)" if v is None else clip(v, 40) for v in (a, b)]
+            return f"setting {clip(key, 60)}: {shown[0]} there, {shown[1]} in the grid"
     if sets_a != sets_b:
         return "its --set values come in another order"
     return None

@@ -23,7 +23,7 @@ from pydantic import (
 from cdrb_cli.configs import MAX_SEED
 from cdrb_cli.errors import BadInput
 from cdrb_cli.orchestration.grid.commands import map_input_files
-from cdrb_cli.settings import clip
+from cdrb_cli.settings import NULL_KEY, clip
 
 KINDS = ("collect", "cluster", "train", "eval", "report")
 #: integers and flags of a grid file are strict: `steps = true` or `seeds = [1.5]` is an error, not 1
@@ -37,14 +37,17 @@ STDERR_LINES = 15
 def table_flags(value):
     """A command's extra flags as a grid file gives them: a list of flags as typed (``["--scene", "x.txt"]``), or a
     table of settings (``{ avoid = { best_of = 4 }, replan = "every:40" }``), which becomes ``--set KEY=VALUE``
-    flags (dotted keys in the table's order, values as JSON): the same command, so the same memo key."""
+    flags (dotted keys in the table's order, values as JSON; the keys of a ``null`` list set to null, which TOML
+    cannot write): the same command, so the same memo key."""
     if not isinstance(value, dict):
         return value
     flags: list[str] = []
 
     def walk(node: dict, prefix: str) -> None:
         for key, item in node.items():
-            if isinstance(item, dict):
+            if key == NULL_KEY and isinstance(item, list) and all(isinstance(x, str) for x in item):
+                flags.extend(x for name in item for x in ("--set", f"{prefix}{name}=null"))
+            elif isinstance(item, dict):
                 walk(item, f"{prefix}{key}.")
             else:
                 flags.extend(["--set", f"{prefix}{key}={json.dumps(item)}"])
