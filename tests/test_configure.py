@@ -122,15 +122,16 @@ def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):
 
 
 def test_a_selection_file_applies_its_choice_to_one_eval(tiny_models, tmp_path, cdrb):
-    """`--config experiments/tuned/X.toml`: the eval flags `cdrb select` chose for the model's env and method, read
-    as `cdrb eval` reads them, under what the command line itself sets."""
+    """`--config experiments/tuned/X.toml`: the eval settings `cdrb select` chose for the model's env and method (a
+    table, or flags), read as `cdrb eval` reads them, under what the command line itself sets; `cdrb plan` takes
+    those that are plan settings."""
     model = tiny_models["cdrb"]
     env = model.manifest.env.id
     chosen = tmp_path / "tuned.toml"
     chosen.write_text(
         '[meta]\nrule = "r"\n\n[[settings]]\nmethod = "cdrb"\neval = ["--sample-steps", "4"]\n\n'
         f'[[settings]]\nenv = "{env}"\nmethod = "cdrb"\nchosen = "x"\n'
-        'eval = ["--replan", "every:40", "--best-of", "3", "--set", "controller.look_ahead=1"]\n'
+        'eval = { replan = "every:40", avoid = { best_of = 3 }, controller = { look_ahead = 1 } }\n'
         f'\n[[settings]]\nenv = "{env}"\nmethod = "diffuser"\nchosen = "y"\neval = ["--best-of", "5"]\n'
     )
     base = ("eval", model.path, "-n", "1", "--seeds", "0", "--config", chosen, "--json")
@@ -142,6 +143,10 @@ def test_a_selection_file_applies_its_choice_to_one_eval(tiny_models, tmp_path, 
     config = artifacts.load(tmp_path / "e.h5", "eval").manifest.config
     assert config.replan.every == 40 and config.avoid.best_of == 3 and config.sample_steps == 4
     assert config.controller.look_ahead == 0  # the command line wins
+    r = cdrb("plan", model.path, "--pairs", "2", "-n", "1", "--config", chosen, "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr
+    plan = artifacts.load(tmp_path / "p.h5", "plans").manifest.config
+    assert plan.avoid.best_of == 3 and plan.sample_steps == 4
     other = tmp_path / "other.toml"
     other.write_text('[meta]\nrule = "r"\n\n[[settings]]\nenv = "fetch-push"\nmethod = "cdrb"\neval = []\n')
     r = cdrb(*base[:-3], "--config", other, "--out", tmp_path / "f.h5")

@@ -101,7 +101,10 @@ RunSetOpt = typer.Option(
     "plan|eval` lists them with their defaults).",
 )
 RunConfigOpt = typer.Option(
-    None, "--config", help="A TOML or JSON file of settings (`cdrb config plan|eval --format toml` writes a template)."
+    None,
+    "--config",
+    help="A TOML or JSON file of settings (`cdrb config plan|eval --format toml` writes a template), or a file "
+    "`cdrb select` wrote (experiments/tuned/*.toml): the settings it chose for the model's environment and method.",
 )
 
 

@@ -9,6 +9,7 @@ import typer
 from cdrb_cli import ui
 from cdrb_cli.cli.common import DeviceOpt, ForceOpt, JsonOpt, PartialOpt, SeedOpt, app, check_outputs, trained_model
 from cdrb_cli.cli.options import PLAN_MOVED, RunConfigOpt, RunSetOpt, SceneMapOpt, moved_flags, run_settings
+from cdrb_cli.cli.tuned import plan_part, read_selection, selection_settings
 
 
 @app.command()
@@ -61,11 +62,14 @@ def plan(
     from cdrb_cli.torch_utils import setup_torch
 
     flags = [] if n is None else [(f"--num-plans {n}", "n", n)]
-    settings = run_settings(config_file, sets, flags, moved)
+    selection = read_selection(config_file)
+    settings = run_settings(None if selection else config_file, sets, flags, moved)
+    m = trained_model(model, allow_partial)
+    if selection is not None:  # the choice of `cdrb select` for this model, under what this command line sets
+        settings = plan_part(selection_settings(selection, config_file, m)) + settings
     rb_path = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, rb_path) if p is not None)]
     check_outputs(force, read, out=out, plot=plot)
-    m = trained_model(model, allow_partial)
     spec = scene_spec(m, maze_map)
     config = plan_config(m, settings, seed=seed, scene_file=maze_map)
     route_art = load_route_buffer(rb_path)

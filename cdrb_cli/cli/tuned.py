@@ -1,7 +1,8 @@
-"""`cdrb eval MODEL --config experiments/tuned/FILE.toml`: the eval settings that `cdrb select` chose on the tuning
-stream for the model's environment and method, applied to one eval without a grid. A selection file stores each
-choice as the `cdrb eval` flags the grid ran it with; they are read here by the command itself, as on its own
-command line."""
+"""`cdrb eval|plan MODEL --config experiments/tuned/FILE.toml`: the eval settings that `cdrb select` chose on the
+tuning stream for the model's environment and method, applied to one eval or one plan without a grid (a plan takes
+those that are plan settings: the sampler, its steps, the weights, avoidance). A selection file stores each choice as
+a table of settings or as the `cdrb eval` flags the grid ran it with; they are read here by the command itself, as
+on its own command line."""
 
 from __future__ import annotations
 
@@ -53,3 +54,11 @@ def selection_settings(sfile, path: Path, model) -> list[Setting]:
     items += moved_settings({flag: ctx.params[moved_name(flag)] for flag in EVAL_MOVED}, warn=False)
     items += parse_set(ctx.params.get("sets") or [])
     return [Setting(s.path, s.value, f"--config {path}: {s.source}") for s in items]
+
+
+def plan_part(settings: list[Setting]) -> list[Setting]:
+    """The settings of an eval that are settings of a plan (the rest, such as the controller, re-planning or the
+    episodes, are an eval's alone)."""
+    from cdrb_cli.configs import PlanConfig
+
+    return [s for s in settings if s.path[0] in PlanConfig.model_fields or s.path == ("avoid",)]
