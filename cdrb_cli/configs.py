@@ -114,6 +114,19 @@ class TrainConfig(Record):
     seed: Seed = Field(description="network initialization and every training draw (`--seed`)")
 
 
+class SettingsProfile(Record):
+    """The choice of `cdrb select` a model was trained with (``cdrb train --config experiments/tuned/X.toml``):
+    plan and eval start from the eval settings chosen with it, under what their own command line sets."""
+
+    file: str = Field(description="the selection file's name")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="the selection file's sha256 when the model was trained")
+    chosen: str | None = Field(None, description="what was chosen (candidate and training length)")
+    eval: dict[str, typing.Any] = Field(
+        default_factory=dict,
+        description="the eval settings chosen with it (dotted key -> value): plan and eval's defaults for the model",
+    )
+
+
 class TrainState(Record):
     step: int = 0
     finished: bool = False

@@ -184,3 +184,48 @@ def test_api_builds_the_same_configs(tiny_models, tmp_path):
     with pytest.raises(BadInput, match="diffuser samples from no replay buffer"):
         api.Planner(tiny_models["diffuser"].path, mask_buffer=True)
     assert not (tmp_path / "e.h5").exists()
+
+
+def test_a_model_trained_with_a_selection_records_it_and_starts_from_its_eval_settings(small_data, tmp_path, cdrb):
+    """`cdrb train --config SELECTION`: the training chosen for the env and method, and the model records the choice;
+    its plans and evals then start from the eval settings chosen with it (not those of one run: episodes, the
+    re-planning trigger), the command line and a protocol's own executor still winning."""
+    from cdrb_cli import artifacts
+
+    demos, _ = small_data
+    chosen = tmp_path / "tuned.toml"
+    chosen.write_text(
+        '[meta]\nrule = "r"\n\n[[settings]]\nenv = "maze-tight"\nmethod = "mlp"\nchosen = "base @ 20 steps"\n'
+        "train = { steps = 20, net = { hidden = [16, 16] }, horizon = 16 }\n"
+        "eval = { controller = { max_lag = 0.3, look_ahead = 1 }, avoid = { best_of = 2 }, episodes = 3, "
+        'replan = "every:40" }\n'
+    )
+    model = tmp_path / "m.h5"
+    r = cdrb("train", demos.path, "--method", "mlp", "--config", chosen, "--set", "stride=10", "--out", model)
+    assert r.returncode == 0, r.stderr
+    m = artifacts.load(model, "model").manifest
+    assert m.config.steps == 20 and m.config.net.hidden == [16, 16] and m.config.stride == 10
+    assert m.profile.file == "tuned.toml" and m.profile.chosen == "base @ 20 steps"
+    assert m.profile.eval == {"controller.max_lag": 0.3, "controller.look_ahead": 1, "avoid.best_of": 2}
+
+    def run(*args):
+        out = tmp_path / f"e{len(list(tmp_path.glob('e*.h5')))}.h5"
+        r = cdrb("eval", model, "-n", "1", "--seeds", "0", *args, "--out", out)
+        assert r.returncode == 0, r.stderr
+        return artifacts.load(out, "eval").manifest.config
+
+    plain = run()
+    assert (plain.controller.max_lag, plain.controller.look_ahead, plain.avoid.best_of) == (0.3, 1, 2)
+    assert plain.replan.mode == "never" and plain.episodes == 1
+    assert run("--set", "controller.max_lag=0.5").controller.look_ahead == 1  # the command line wins where it speaks
+    assert run("--set", "controller.max_lag=0.5").controller.max_lag == 0.5
+    official = run("--protocol", "official-code")  # its own executor: none of the profile's controller settings
+    assert official.controller.name == "waypoint" and official.avoid.best_of == 2
+    r = cdrb("plan", model, "--pairs", "1", "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr
+    assert artifacts.load(tmp_path / "p.h5", "plans").manifest.config.avoid.best_of == 2
+    other = tmp_path / "other.toml"
+    other.write_text('[meta]\nrule = "r"\n\n[[settings]]\nenv = "maze"\nmethod = "mlp"\ntrain = { steps = 5 }\n')
+    r = cdrb("train", demos.path, "--method", "mlp", "--config", other, "--out", tmp_path / "x.h5")
+    assert r.returncode == 2 and "chooses nothing for mlp on maze-tight" in r.stderr
+    assert not (tmp_path / "x.h5").exists()

@@ -17,6 +17,7 @@ from cdrb_cli.configs import (
     EvalSummary,
     PlanConfig,
     PlanSummary,
+    SettingsProfile,
     TrainConfig,
     TrainState,
 )
@@ -28,7 +29,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.6", "model": "2.8", "plans": "2.6", "eval": "2.10"}
+SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.6", "model": "2.9", "plans": "2.6", "eval": "2.10"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -77,6 +78,11 @@ class ModelManifest(ManifestBase):
     kind: Literal["model"] = "model"
     config: TrainConfig
     state: TrainState
+    profile: SettingsProfile | None = Field(
+        None,
+        description="the choice of `cdrb select` the model was trained with, whose eval settings plan and eval "
+        "start from (None: the defaults)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> ModelManifest:

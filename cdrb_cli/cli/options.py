@@ -157,7 +157,13 @@ SetOpt = typer.Option(
     help="Set any config field, e.g. --set net.dim=32 --set method.schedule=log (repeatable; `cdrb config` lists "
     "them).",
 )
-ConfigOpt = typer.Option(None, "--config", help="A TOML or JSON file of settings (`cdrb config --format toml`).")
+ConfigOpt = typer.Option(
+    None,
+    "--config",
+    help="A TOML or JSON file of settings (`cdrb config --format toml`), or a file `cdrb select` wrote "
+    "(experiments/tuned/*.toml): what it chose for the demos' environment and the method, recorded in the model so "
+    "that its plans and evals start from the eval settings chosen with it.",
+)
 MethodOpt = typer.Option(
     None,
     "--method",

@@ -19,6 +19,7 @@ from cdrb_cli.cli.common import (
     load_artifact,
 )
 from cdrb_cli.cli.options import ConfigOpt, MethodOpt, NetOpt, PresetOpt, SetOpt
+from cdrb_cli.cli.tuned import read_selection, selection_train
 
 
 @app.command()
@@ -64,9 +65,14 @@ def train(
     from cdrb_cli.torch_utils import setup_torch
 
     check_positive("--steps", steps)
-    settings = user_settings(method, net, preset, steps, config_file, sets)
+    selection = read_selection(config_file)
+    settings = user_settings(method, net, preset, steps, None if selection else config_file, sets)
     check_outputs(force, [demos, buffer, config_file], out=out)
     d = load_artifact(demos, "demos")
+    profile = None
+    if selection is not None:  # the choice of `cdrb select` for this env and method, under this command line's
+        chosen, profile = selection_train(selection, config_file, d.manifest.env.id, method)
+        settings = chosen + settings
     b = load_artifact(buffer, "buffer") if buffer is not None else None
     config = resolve_train_config(d.manifest.env, buffer_info(b), settings, seed=seed)
     from cdrb_cli.stages.train import TRAIN_BYTES_PER_PARAMETER, check_size
@@ -78,7 +84,7 @@ def train(
         return
     snapshots = int_values(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []
     model, done = train_or_resume(
-        d, b, config, out, force=force, resume=resume, device=setup_torch(device), snapshots=snapshots
+        d, b, config, out, force=force, resume=resume, device=setup_torch(device), snapshots=snapshots, profile=profile
     )
     if done == "up to date":
         ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")

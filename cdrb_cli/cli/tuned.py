@@ -1,8 +1,9 @@
 """`cdrb eval|plan MODEL --config experiments/tuned/FILE.toml`: the eval settings that `cdrb select` chose on the
 tuning stream for the model's environment and method, applied to one eval or one plan without a grid (a plan takes
-those that are plan settings: the sampler, its steps, the weights, avoidance). A selection file stores each choice as
-a table of settings or as the `cdrb eval` flags the grid ran it with; they are read here by the command itself, as
-on its own command line."""
+those that are plan settings: the sampler, its steps, the weights, avoidance). `cdrb train DEMOS --config FILE`
+trains what it chose and records the choice in the model, whose plans and evals then start from its eval settings.
+A selection file stores each choice as a table of settings or as the flags the grid ran it with; they are read here
+by the command itself, as on its own command line."""
 
 from __future__ import annotations
 
@@ -25,40 +26,89 @@ def read_selection(path: Path | None):
     return SettingsFile.model_validate(raw)
 
 
-def selection_settings(sfile, path: Path, model) -> list[Setting]:
-    """The eval settings that the selection ``sfile`` (read from ``path``) chose for ``model``'s environment and
-    method (every entry that applies, in order), each named ``--config FILE: FLAG``; a file that chose nothing for
-    them is a one-line error naming what it has."""
-    import typer
-
-    from cdrb_cli.cli.common import app
-    from cdrb_cli.cli.evaluate import EVERYDAY, everyday_flags
-    from cdrb_cli.cli.options import EVAL_MOVED, moved_name, moved_settings
-    from cdrb_cli.settings import parse_set
-
-    env, method = model.manifest.env.id, model.manifest.config.method.name
+def _entries(sfile, path: Path, env: str, method: str, what: str = "the model's") -> list:
+    """The entries of the selection ``sfile`` that apply to ``method`` on ``env`` (in order); a file that chose
+    nothing for them is a one-line error naming what it has."""
     if not any(s.env == env and s.method == method for s in sfile.settings):
         chosen = ", ".join(f"{s.method} on {s.env}" for s in sfile.settings if s.env and s.method) or "nothing"
         raise BadInput(
             f"--config {path}: chooses nothing for {method} on {env} (it chooses for {clip(chosen, 200)})",
-            hint="pass the selection file of the model's environment, or a file of settings",
+            hint=f"pass the selection file of {what} environment, or a file of settings",
         )
-    flags = [f for s in sfile.settings if s.env in (None, env) and s.method in (None, method) for f in s.eval]
-    command = typer.main.get_command(app).commands["eval"]
+    return [s for s in sfile.settings if s.env in (None, env) and s.method in (None, method)]
+
+
+def _context(command: str, argv: list[str], path: Path, flags: list[str]):
+    """``cdrb command argv`` parsed as the command itself parses it (click's context)."""
+    import typer
+
+    from cdrb_cli.cli.common import app
+
     try:
-        ctx = command.make_context("eval", [str(model.path), *flags])
-    except Exception as exc:  # click's own usage errors: the flags are not a valid `cdrb eval` line
-        raise BadInput(f"--config {path}: eval flags {clip(' '.join(flags), 200)}: {exc}",
+        return typer.main.get_command(app).commands[command].make_context(command, argv)
+    except Exception as exc:  # click's own usage errors: the flags are not a valid command line
+        raise BadInput(f"--config {path}: {command} flags {clip(' '.join(flags), 200)}: {exc}",
                        hint="re-run `cdrb select` to rewrite the file") from None  # fmt: skip
+
+
+def _eval_settings(entries: list, path: Path) -> tuple[list[Setting], dict]:
+    """The eval settings of ``entries`` (each named ``--config FILE: FLAG``) and the other options they give."""
+    from cdrb_cli.cli.evaluate import EVERYDAY, everyday_flags
+    from cdrb_cli.cli.options import EVAL_MOVED, moved_name, moved_settings
+    from cdrb_cli.settings import parse_set
+
+    flags = [f for s in entries for f in s.eval]
+    ctx = _context("eval", ["model.h5", *flags], path, flags)
     items = [Setting(tuple(k.split(".")), v, s) for s, k, v in everyday_flags({k: ctx.params[k] for k in EVERYDAY})]
     items += moved_settings({flag: ctx.params[moved_name(flag)] for flag in EVAL_MOVED}, warn=False)
     items += parse_set(ctx.params.get("sets") or [])
-    return [Setting(s.path, s.value, f"--config {path}: {s.source}") for s in items]
+    return [Setting(s.path, s.value, f"--config {path}: {s.source}") for s in items], ctx.params
+
+
+def selection_settings(sfile, path: Path, model) -> list[Setting]:
+    """The eval settings that the selection ``sfile`` (read from ``path``) chose for ``model``'s environment and
+    method (every entry that applies, in order), each named ``--config FILE: FLAG``."""
+    env, method = model.manifest.env.id, model.manifest.config.method.name
+    return _eval_settings(_entries(sfile, path, env, method), path)[0]
+
+
+def selection_train(sfile, path: Path, env: str, method: str | None):
+    """What `cdrb train --config SELECTION` trains: the train settings the selection chose for ``method`` (None:
+    the default method) on ``env`` (each named ``--config FILE: FLAG``), and the
+    :class:`~cdrb_cli.configs.SettingsProfile` the model records: the eval settings chosen with it, less those of
+    one run (episodes, seeds, stream, protocol, the re-planning trigger), and none where the choice was made in a
+    scene of its own."""
+    from cdrb_cli.artifacts import sha256_file
+    from cdrb_cli.configs import SettingsProfile
+    from cdrb_cli.methods.config import DEFAULT_METHOD, user_settings
+
+    entries = _entries(sfile, path, env, method or DEFAULT_METHOD, "the demos'")
+    flags = [f for s in entries for f in s.train]
+    ctx = _context("train", ["demos.h5", *flags], path, flags)
+    p = ctx.params
+    items = user_settings(p["method"], p["net"], p["preset"], p["steps"], None, p.get("sets") or [])
+    train = [Setting(s.path, s.value, f"--config {path}: {s.source}") for s in items]
+    evaluate, options = _eval_settings(entries, path)
+    own_scene = options.get("maze_map") is not None
+    kept = {} if own_scene else {s.key: s.value for s in evaluate if not _of_one_run(s)}
+    chosen = next((s.chosen for s in reversed(entries) if s.chosen), None)
+    return train, SettingsProfile(file=path.name, sha256=sha256_file(path), chosen=chosen, eval=kept)
+
+
+#: eval settings that say which run (how many episodes, on which pairs, whether closed loop), not how the model is
+#: used: a profile leaves them to each command
+RUN_KEYS = ("episodes", "seeds", "stream", "protocol", "scene", "seed")
+REPLAN_TRIGGER = (("replan",), ("replan", "mode"), ("replan", "every"), ("replan", "deviation"))
+
+
+def _of_one_run(s: Setting) -> bool:
+    return s.path[0] in RUN_KEYS or s.path in REPLAN_TRIGGER
 
 
 def plan_part(settings: list[Setting]) -> list[Setting]:
     """The settings of an eval that are settings of a plan (the rest, such as the controller, re-planning or the
     episodes, are an eval's alone)."""
-    from cdrb_cli.configs import PlanConfig
+    from cdrb_cli.stages.configure import plan_keys
 
-    return [s for s in settings if s.path[0] in PlanConfig.model_fields or s.path == ("avoid",)]
+    keys = plan_keys()
+    return [s for s in settings if s.path[0] in keys]

@@ -18,7 +18,7 @@ settings leave those fields alone.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -191,7 +191,7 @@ def plan_config(
 ) -> PlanConfig:
     """The :class:`PlanConfig` of ``settings`` (then ``fields``, keyword settings such as ``n=8``) for ``model``,
     planning in ``scene_file`` when given."""
-    settings = expand([*settings, *keyword_settings(fields)])
+    settings = [*profile_settings(model, plan_keys()), *expand([*settings, *keyword_settings(fields)])]
     base = {
         "sampler": _sampler(model, settings),
         "n": 1,
@@ -257,6 +257,7 @@ def eval_config(
             f"{s_protocol.source}: not a protocol of the {family.name} environments",
             hint=f"use {' or '.join(family.protocols())}",
         )
+    settings = [*_eval_profile(model, family, protocol, entry.kind == "policy", settings), *settings]
     base = {
         **EVAL_DEFAULTS,
         "controller": {"name": _controller_name(model, family, protocol, settings)},
@@ -277,6 +278,38 @@ def eval_config(
         family.draw_protocol_episodes(where, 1, config.seeds[0], EVAL_STREAMS[config.stream], protocol)
     _check_steps(model, settings, config.sample_steps, config.replan.repair_k)
     return config
+
+
+def profile_settings(model, keys: Collection[str] | None = None) -> list[Setting]:
+    """The eval settings of the :class:`~cdrb_cli.configs.SettingsProfile` the model was trained with (those whose
+    first part is in ``keys``; None: all), named after its file: what a plan or an eval of the model starts from."""
+    profile = getattr(model.manifest, "profile", None)
+    if profile is None:
+        return []
+    out = []
+    for key, value in profile.eval.items():
+        path = tuple(key.split("."))
+        if keys is None or path[0] in keys:
+            out.append(Setting(path, value, f"the model's settings profile ({profile.file}): {key}={value!r}"))
+    return expand(out)
+
+
+def plan_keys() -> set[str]:
+    """The first parts of the keys that are plan settings (the rest of an eval's, such as the controller or
+    re-planning, are an eval's alone)."""
+    return set(PlanConfig.model_fields) | {"avoid"}
+
+
+def _eval_profile(model, family, protocol: str, policy: bool, settings: Sequence[Setting]) -> list[Setting]:
+    """The profile settings an eval starts from: a policy takes none of the plan's; the controller's only where the
+    eval executes plans with the controller the profile was chosen with (a protocol may prescribe its own, and a
+    controller named on the command line replaces it with its defaults)."""
+    out = profile_settings(model)
+    if policy:
+        out = [s for s in out if s.path[0] not in ("replan", "controller", "avoid")]
+    if family.protocol_controller(protocol) is not None or lookup(settings, ("controller", "name")) is not None:
+        out = [s for s in out if s.path[0] != "controller"]
+    return out
 
 
 def keyword_settings(values: dict[str, Any], source: str = "") -> list[Setting]:

@@ -99,11 +99,13 @@ def train_or_resume(
     device="cpu",
     auto=False,
     snapshots: Sequence[int] = (),
+    profile=None,
 ) -> tuple[artifacts.Model, str]:
     """Train into ``out`` according to what it holds (:func:`cdrb_cli.artifacts.existing`): reuse it when up to
     date, continue it with ``resume`` (or ``auto``) when it is a checkpoint of this run, start over with ``force``
     (or ``auto``, for a file of another run); refuse anything else. Returns the model and what was done:
-    ``up to date``, ``resumed`` or ``trained``."""
+    ``up to date``, ``resumed`` or ``trained``. ``profile``: the :class:`~cdrb_cli.configs.SettingsProfile` the
+    model records (the selection its settings came from)."""
     if resume and force:
         raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
     parents = [demos] + ([buffer] if buffer is not None else [])
@@ -115,15 +117,16 @@ def train_or_resume(
         for s in snapshots:
             path = snapshot_path(out, s)
             stack.enter_context(artifacts.claim_output(path, replace_snapshots, "--snapshot-at", inputs))
-        return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, device, auto, snapshots)
+        run = dict(device=device, snapshots=snapshots, profile=profile)
+        return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
 
 
-def _train_or_resume(demos, buffer, config, out, parents, force, resume, device, auto, snapshots=()):
+def _train_or_resume(demos, buffer, config, out, parents, force, resume, auto, run: dict):
     found = artifacts.existing(out, "model", config, parents) if not force else artifacts.Existing("missing")
     if found.up_to_date:
         return found.artifact, "up to date"
     if found.status == "resumable" and (resume or auto):
-        return train(demos, buffer, config, out, resume=found.artifact, device=device, snapshots=snapshots), "resumed"
+        return train(demos, buffer, config, out, resume=found.artifact, **run), "resumed"
     if resume:
         missing = found.status == "missing"
         hint = "run without --resume to start training" if missing else "use the same inputs and settings, or --force"
@@ -131,11 +134,18 @@ def _train_or_resume(demos, buffer, config, out, parents, force, resume, device,
     if found.status != "missing" and not auto:
         hint = "pass --resume to continue it" if found.status == "resumable" else "pass --force to overwrite it"
         raise BadInput(f"--out {out}: file exists ({found.reason})", hint=hint)
-    return train(demos, buffer, config, out, device=device, snapshots=snapshots), "trained"
+    return train(demos, buffer, config, out, **run), "trained"
 
 
 def train(
-    demos, buffer, config: TrainConfig, out: Path, resume=False, device="cpu", snapshots: Sequence[int] = ()
+    demos,
+    buffer,
+    config: TrainConfig,
+    out: Path,
+    resume=False,
+    device="cpu",
+    snapshots: Sequence[int] = (),
+    profile=None,
 ) -> artifacts.Model:
     """Train ``config`` on the demos (and buffer), checkpointing into ``out``. ``resume``: True continues the
     checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact.
@@ -179,7 +189,9 @@ def train(
             valid_loss=valid_value,
             parameters=n_params,
         )
-        manifest = artifacts.make_manifest("model", env=spec, config=cfg, seed=cfg.seed, parents=parents, state=state)
+        manifest = artifacts.make_manifest(
+            "model", env=spec, config=cfg, seed=cfg.seed, parents=parents, state=state, profile=profile
+        )
         artifacts.save(path, "model", manifest, checkpoint_arrays(method, ema, optimizers, points or curve))
 
     def valid_loss() -> float | None:
