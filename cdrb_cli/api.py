@@ -70,7 +70,8 @@ def _avoid(**fields) -> dict:
 
 
 class Planner:
-    """A planner loaded from a model artifact (``cdrb train``), ready to plan on its environment."""
+    """A planner loaded from a model artifact (``cdrb train``) or a model folder (``cdrb export --dir``), ready to
+    plan on its environment."""
 
     def __init__(
         self,
@@ -92,6 +93,7 @@ class Planner:
         (`cdrb config plan`)."""
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
         from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
+        from cdrb_cli.stages.share import load_model
         from cdrb_cli.torch_utils import setup_torch
 
         given = _settings(
@@ -105,7 +107,7 @@ class Planner:
                 route_clearance=route_clearance,
             ),
         )
-        self.model = artifacts.load(Path(model), "model")
+        self.model = load_model(Path(model))
         self._spec = scene_spec(self.model, None if scene is None else Path(scene))
         #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
         self._given, self._scene_file = given, None if scene is None else Path(scene)

@@ -140,7 +140,7 @@ def _log_demos(env_id: str, s) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ minari
-import_app = typer.Typer(help="Bring outside datasets in as cdrb artifacts.", no_args_is_help=True)
+import_app = typer.Typer(help="Bring outside datasets and model folders in as cdrb artifacts.", no_args_is_help=True)
 app.add_typer(import_app, name="import")
 
 
@@ -176,30 +176,6 @@ def import_minari(
         f"{s.steps} steps, success {s.success_rate:.1%}, states inside obstacles: {s.states_in_walls}"
     )
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
-
-
-@app.command("export")
-def export_cmd(
-    demos: Path = typer.Argument(..., help="A demos artifact."),
-    minari: str = typer.Option(
-        ..., "--minari", help="Dataset name, [namespace/]name[-vN] (-v0 is added), e.g. cdrb/maze-tight-expert."
-    ),
-    root: Path | None = typer.Option(
-        None, "--root", help="Datasets folder (default: MINARI_DATASETS_PATH, else ~/.minari/datasets)."
-    ),
-    force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name."),
-) -> None:
-    """Export a [bold]demos[/bold] artifact as a Minari dataset that `minari.load_dataset(NAME)` opens.
-
-    Observations are goal dicts (observation, achieved_goal, desired_goal), the reward is cdrb's success test (as
-    a sparse reward) and infos["success"] has it per step; the env_spec is the gymnasium equivalent of the
-    environment where one exists (PointMaze with this map, Fetch without walls). Prints the dataset's folder."""
-    from cdrb_cli.stages.minari_io import dataset_id_for, export_minari
-
-    art = load_artifact(demos, "demos")
-    folder = export_minari(art, minari, root=root, force=force)
-    ui.log(f"{art.n_episodes} episodes written as Minari dataset {dataset_id_for(minari)}")
-    ui.emit(folder)
 
 
 # ------------------------------------------------------------------------------------------------ expert

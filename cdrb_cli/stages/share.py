@@ -1,0 +1,195 @@
+"""A model as a folder anyone can load without cdrb's HDF5 reader: ``model.safetensors`` (every array of the model
+artifact: the raw and EMA weights, the normaliser, CDRB's buffer states, the loss curve and the optimiser state a
+resumed training needs), ``config.json`` (the model's manifest: the resolved config, the environment spec, the
+provenance and any settings profile), a ``README.md`` model card and ``SHA256SUMS``; and the folder back, refused
+unless every file is the one SHA256SUMS names. Nothing is pickled: safetensors holds raw tensors and a JSON
+header."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from cdrb_cli import artifacts
+from cdrb_cli.errors import BadInput
+from cdrb_cli.files import read_input_text, sha256_file
+from cdrb_cli.settings import clip
+
+WEIGHTS, CONFIG, CARD, SUMS = "model.safetensors", "config.json", "README.md", "SHA256SUMS"
+#: the files a model folder holds besides SHA256SUMS, each listed there
+FILES = (WEIGHTS, CONFIG, CARD)
+FORMAT = "cdrb-model"
+MAX_CONFIG_BYTES = 16 << 20
+MAX_SUMS_BYTES = 1 << 16
+
+
+# ------------------------------------------------------------------------------------------------ export
+def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False) -> Path:
+    """Write ``model`` (a model artifact) as the folder ``folder``, whole or not at all (written beside it, then
+    renamed); ``evals``: eval artifacts of this model whose figures the model card lists."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise BadInput(f"--dir {folder}: is a file", hint="name a folder to write the model into")
+    if folder.is_dir() and any(folder.iterdir()) and not force:
+        raise BadInput(f"--dir {folder}: exists and is not empty", hint="pass --force to replace it, or another --dir")
+    for ev in evals:
+        if not any(p.kind == "model" and p.data_sha256 == model.data_sha256 for p in ev.manifest.parents):
+            raise BadInput(f"--eval {ev.path}: evaluates another model", hint="pass the evals of this model")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        manifest = model.manifest.model_copy(update={"schema_version": artifacts.SCHEMA_VERSIONS["model"]})
+        from safetensors.numpy import save_file
+
+        arrays = {name: np.ascontiguousarray(a) for name, a in sorted(model.arrays.items())}
+        meta = {"format": FORMAT, "schema_version": manifest.schema_version}
+        save_file(arrays, str(tmp / WEIGHTS), metadata=meta)
+        (tmp / CONFIG).write_text(json.dumps(manifest.model_dump(mode="json"), indent=1, sort_keys=True) + "\n")
+        (tmp / CARD).write_text(model_card(model, evals))
+        (tmp / SUMS).write_text("".join(f"{sha256_file(tmp / name)}  {name}\n" for name in FILES))
+        for name in (*FILES, SUMS):
+            with open(tmp / name, "rb") as fh:
+                os.fsync(fh.fileno())
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def model_card(model, evals: Sequence = ()) -> str:
+    """The folder's README: what the model is, what it was trained on and for how long, and what was measured."""
+    m = model.manifest
+    cfg, st = m.config, m.state
+    demos = next((p for p in m.parents if p.kind == "demos"), None)
+    lines = [
+        f"# {cfg.method.name} on {m.env.id}",
+        "",
+        f"A cdrb model: `{cfg.method.name}` planning on `{m.env.id}` ({m.env.obs_dim}-dimensional states, plans of "
+        f"{cfg.horizon} states every {cfg.stride} env steps), trained with cdrb {m.cdrb_version}.",
+        "",
+        "| what | value |",
+        "|---|---|",
+        f"| network | {cfg.net.kind}, {st.parameters:,} parameters |",
+        f"| training | {st.step:,} of {cfg.steps:,} steps ({'finished' if st.finished else 'unfinished'}), preset "
+        f"{cfg.preset}, seed {cfg.seed}, {st.wall_time_s:,.0f} s |",
+        f"| loss | {st.loss:.4g}" + (f", validation {st.valid_loss:.4g}" if st.valid_loss is not None else "") + " |",
+        f"| data | {Path(demos.path).name if demos else '(none recorded)'}"
+        + (f" (data sha256 {demos.data_sha256 or demos.sha256})" if demos else "")
+        + " |",
+    ]
+    if m.profile is not None:
+        lines.append(f"| settings profile | {m.profile.file} ({m.profile.chosen or 'chosen'}) |")
+    lines += ["", "## Measured", ""]
+    if evals:
+        lines += ["| protocol | pairs | success (%) | plans through an obstacle (%) |", "|---|---|---:|---:|"]
+        for ev in evals:
+            c, s = ev.manifest.config, ev.manifest.summary
+            through = "" if s.plan_crossing_mean is None else f"{100 * s.plan_crossing_mean:.1f}"
+            lines.append(
+                f"| {c.protocol} | {c.stream}, seeds {','.join(map(str, c.seeds))} x {c.episodes} | "
+                f"{100 * s.success_mean:.1f} ± {100 * s.success_std:.1f} | {through} |"
+            )
+    else:
+        lines.append("No evaluation was exported with it (`cdrb export MODEL --dir DIR --eval EVAL.h5`).")
+    lines += [
+        "",
+        "## Use",
+        "",
+        "```bash",
+        "cdrb import model THIS_FOLDER --out model.h5     # the model artifact, bit for bit the same arrays",
+        "cdrb plan model.h5 --pairs 4 --plot plans.png",
+        "```",
+        "",
+        'or in Python, `cdrb_cli.api.Planner("THIS_FOLDER")`. `model.safetensors` holds every array by its '
+        "artifact name (`ema/net/...` the weights plans use, `weights/net/...` the raw ones, `normalizer/low` and "
+        "`high`, `buffer/points` for CDRB's buffer); `config.json` is the model's manifest; `SHA256SUMS` the files' "
+        "sha256.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------ import
+def _checked_files(folder: Path) -> None:
+    """Every file of the folder is the one SHA256SUMS names (a changed, missing or extra listing is refused)."""
+    if not folder.is_dir():
+        raise BadInput(f"{folder}: not a folder", hint="pass the folder `cdrb export MODEL --dir DIR` wrote")
+    text = read_input_text(folder / SUMS, "model folder", MAX_SUMS_BYTES, "checksum list", "export the model again")
+    listed = {}
+    for line in text.splitlines():
+        sha, _, name = line.partition("  ")
+        if len(sha) != 64 or name not in FILES or name in listed:
+            raise BadInput(f"{folder / SUMS}: {clip(repr(line), 80)} is not a line it writes",
+                           hint="export the model again")  # fmt: skip
+        listed[name] = sha
+    missing = [n for n in FILES if n not in listed]
+    if missing:
+        raise BadInput(f"{folder / SUMS}: does not list {missing[0]}", hint="export the model again")
+    for name, sha in listed.items():
+        path = folder / name
+        if not path.is_file():
+            raise BadInput(f"{path}: missing", hint="copy the whole folder `cdrb export` wrote")
+        if sha256_file(path) != sha:
+            raise BadInput(f"{path}: its sha256 is not the one {SUMS} lists: changed since it was exported",
+                           hint="export the model again")  # fmt: skip
+
+
+def read_folder(folder: Path):
+    """The manifest and arrays of a model folder, checked against SHA256SUMS and the model schema."""
+    from pydantic import ValidationError
+
+    folder = Path(folder)
+    _checked_files(folder)
+    text = read_input_text(folder / CONFIG, "model folder", MAX_CONFIG_BYTES, "config", "export the model again")
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError):
+        raise BadInput(f"{folder / CONFIG}: not JSON", hint="export the model again") from None
+    if not isinstance(data, dict) or data.get("kind") != "model":
+        raise BadInput(f"{folder / CONFIG}: not a model's manifest", hint="export the model again")
+    try:
+        manifest = artifacts.KINDS["model"].manifest_cls.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise BadInput(f"{folder / CONFIG}: {where}: {first['msg']}", hint="export the model again") from None
+    from safetensors import SafetensorError
+    from safetensors.numpy import load_file
+
+    try:
+        arrays = load_file(str(folder / WEIGHTS))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise BadInput(f"{folder / WEIGHTS}: not a safetensors file ({clip(str(exc), 80)})",
+                       hint="export the model again") from None  # fmt: skip
+    return manifest, arrays
+
+
+def import_folder(folder: Path, out: Path, force: bool = False):
+    """The model folder written as the model artifact ``out`` (checked as every artifact read is: its arrays'
+    shapes and their agreement with the manifest), whole or not at all."""
+    manifest, arrays = read_folder(folder)
+    with artifacts.atomic_path(out) as tmp:
+        artifacts.save(tmp, "model", manifest, arrays)
+        artifacts.load(tmp, "model")
+    return artifacts.load(out, "model")
+
+
+def load_model(path: Path):
+    """The model artifact at ``path``: a model file, or a folder of `cdrb export --dir` (read through a checked
+    temporary artifact)."""
+    path = Path(path)
+    if not path.is_dir():
+        return artifacts.load(path, "model")
+    with tempfile.TemporaryDirectory(prefix="cdrb-model-") as tmp:
+        model = import_folder(path, Path(tmp) / "model.h5")
+    model.path = path
+    return model

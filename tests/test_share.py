@@ -1,0 +1,135 @@
+"""Model folders (`cdrb export MODEL --dir`, `cdrb import model`, `api.Planner(DIR)`): the round trip gives the same
+model and the same plans, the folder loads with safetensors and json alone, and a tampered folder is refused."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cdrb_cli import artifacts
+
+
+@pytest.fixture(scope="module")
+def folder(tiny_models, tmp_path_factory):
+    """The tiny CDRB model exported, with one eval of it in the model card."""
+    from cdrb_cli import api
+    from cdrb_cli.stages.share import export_folder
+
+    root = tmp_path_factory.mktemp("share")
+    model = tiny_models["cdrb"]
+    api.evaluate(model.path, root / "eval.h5", episodes=2, seeds=[0])
+    return export_folder(model, root / "cdrb-folder", [artifacts.load(root / "eval.h5", "eval")])
+
+
+def test_export_import_and_the_api_give_the_same_model_and_plans(tiny_models, folder, tmp_path, cdrb):
+    from safetensors.numpy import load_file
+
+    from cdrb_cli import api
+
+    model = tiny_models["cdrb"]
+    assert sorted(p.name for p in folder.iterdir()) == ["README.md", "SHA256SUMS", "config.json", "model.safetensors"]
+    # the folder without cdrb: every array by its artifact name, the manifest as JSON
+    arrays = load_file(str(folder / "model.safetensors"))
+    assert arrays.keys() == model.arrays.keys()
+    for k, a in arrays.items():  # the same values (NaN where the curve has none) and types
+        np.testing.assert_array_equal(a, model.arrays[k], err_msg=k)
+        assert a.dtype == model.arrays[k].dtype, k
+    config = json.loads((folder / "config.json").read_text())
+    assert config["config"]["method"]["name"] == "cdrb" and config["env"]["id"] == model.manifest.env.id
+    card = (folder / "README.md").read_text()
+    assert "# cdrb on maze-tight" in card and "| centre-start/corner-goal | test, seeds 0 x 2 |" in card
+
+    r = cdrb("import", "model", folder, "--out", tmp_path / "back.h5")
+    assert r.returncode == 0, r.stderr
+    back = artifacts.load(tmp_path / "back.h5", "model")
+    assert back.data_sha256 == model.data_sha256 and back.manifest == model.manifest
+    plans = {}
+    for name, path in (("original", model.path), ("imported", tmp_path / "back.h5")):
+        r = cdrb("plan", path, "--pairs", "3", "-n", "2", "--seed", "4", "--out", tmp_path / f"{name}.h5")
+        assert r.returncode == 0, r.stderr
+        plans[name] = artifacts.load(tmp_path / f"{name}.h5", "plans").arrays["plans"]
+    np.testing.assert_array_equal(plans["original"], plans["imported"])
+    a = api.Planner(model.path).plan([0.0, 0.0], [1.0, 1.0], n=3, seed=2)
+    b = api.Planner(folder).plan([0.0, 0.0], [1.0, 1.0], n=3, seed=2)
+    np.testing.assert_array_equal(a.features, b.features)
+
+
+def _copy(folder, tmp_path):
+    import shutil
+
+    return shutil.copytree(folder, tmp_path / "copy")
+
+
+def _resum(path):
+    from cdrb_cli.files import sha256_file
+
+    names = ("model.safetensors", "config.json", "README.md")
+    (path / "SHA256SUMS").write_text("".join(f"{sha256_file(path / n)}  {n}\n" for n in names))
+
+
+def _flip_byte(path, offset):
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize(
+    "damage, needle",
+    [
+        (lambda p: _flip_byte(p / "model.safetensors", -3), "its sha256 is not the one SHA256SUMS lists"),
+        (lambda p: (p / "README.md").unlink(), "README.md: missing"),
+        (lambda p: (p / "SHA256SUMS").write_text("0" * 64 + "  ../etc/passwd\n"), "is not a line it writes"),
+        (lambda p: (p / "SHA256SUMS").unlink(), "SHA256SUMS"),
+        # consistent checksums over damaged content: the schema and the artifact's own checks refuse it
+        (lambda p: (_flip_byte(p / "model.safetensors", 2), _resum(p)), "not a safetensors file"),
+        (
+            lambda p: (
+                (p / "config.json").write_text(
+                    json.dumps({**json.loads((p / "config.json").read_text()), "kind": "eval"})
+                ),
+                _resum(p),
+            ),
+            "not a model's manifest",
+        ),
+        (
+            lambda p: (
+                (p / "config.json").write_text((p / "config.json").read_text().replace('"horizon": ', '"horizon": -')),
+                _resum(p),
+            ),
+            ".horizon: Input should be greater than",
+        ),
+    ],
+)
+def test_a_damaged_folder_is_refused_in_one_line_and_nothing_is_written(folder, tmp_path, cdrb, damage, needle):
+    copy = _copy(folder, tmp_path)
+    damage(copy)
+    r = cdrb("import", "model", copy, "--out", tmp_path / "m.h5")
+    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) <= 2 and not (tmp_path / "m.h5").exists()
+
+
+def test_arrays_that_disagree_with_the_manifest_are_refused(folder, tmp_path, cdrb):
+    from safetensors.numpy import load_file, save_file
+
+    copy = _copy(folder, tmp_path)
+    arrays = load_file(str(copy / "model.safetensors"))
+    arrays["buffer/points"] = arrays["buffer/points"][:, :1].copy()  # states of another dimension
+    save_file(arrays, str(copy / "model.safetensors"))
+    _resum(copy)
+    r = cdrb("import", "model", copy, "--out", tmp_path / "m.h5")
+    assert r.returncode == 2 and "buffer/points" in r.stderr and not (tmp_path / "m.h5").exists(), r.stderr
+
+
+def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models, folder, tmp_path, cdrb):
+    model = tiny_models["cdrb"].path
+    r = cdrb("export", model)
+    assert r.returncode == 2 and "give one of --minari NAME" in r.stderr
+    r = cdrb("export", model, "--dir", folder)
+    assert r.returncode == 2 and "exists and is not empty" in r.stderr
+    r = cdrb("export", tiny_models["mlp"].path, "--dir", tmp_path / "m", "--eval", folder.parent / "eval.h5")
+    assert r.returncode == 2 and "evaluates another model" in r.stderr and not (tmp_path / "m").exists()
+    r = cdrb("export", model, "--dir", tmp_path / "m")
+    assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "m")
+    assert "No evaluation was exported" in (tmp_path / "m" / "README.md").read_text()
