@@ -17,7 +17,7 @@ from cdrb_cli.settings import Setting
 #: the commands a grid runs or whose command lines it reads back (an eval's manifest records its command)
 GRID_COMMANDS = ("collect", "cluster", "train", "eval", "plan", "report")
 #: parameters that name a file the command writes
-OUTPUTS = frozenset({"out", "plot", "plans_plot", "replan_plot", "video", "docs"})
+OUTPUTS = frozenset({"out", "plot", "plans_plot", "replan_plot", "video", "docs", "log_dir"})
 #: parameters that say on what hardware a command runs, how it reports, whether it may overwrite or resume, and
 #: what more it keeps: never part of what it makes or measures
 BOOKKEEPING = frozenset({"device", "force", "resume", "as_json", "workers", "videos", "keep_plans", "dry_run"})

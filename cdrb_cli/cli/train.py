@@ -40,6 +40,12 @@ def train(
     device: str = DeviceOpt,
     out: Path = typer.Option(Path("model.h5"), "--out", "-o", help="Model artifact to write (also the checkpoint)."),
     resume: bool = typer.Option(False, "--resume", help="Continue the checkpoint in --out (same settings and inputs)."),
+    log_dir: Path | None = typer.Option(
+        None,
+        "--log-dir",
+        help="Also write the loss, validation loss, learning rate and steps/s as TensorBoard event files here, as "
+        "training runs (`tensorboard --logdir DIR`; the tensorboard extra).",
+    ),
     snapshot_at: str | None = typer.Option(
         None,
         "--snapshot-at",
@@ -65,6 +71,10 @@ def train(
     from cdrb_cli.torch_utils import setup_torch
 
     check_positive("--steps", steps)
+    if log_dir is not None:
+        from cdrb_cli.stages.train_log import summary_writer
+
+        summary_writer()  # before any work: a missing extra is one line now, not after the data are read
     selection = read_selection(config_file)
     settings = user_settings(method, net, preset, steps, None if selection else config_file, sets)
     check_outputs(force, [demos, buffer, config_file], out=out)
@@ -84,7 +94,16 @@ def train(
         return
     snapshots = int_values(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []
     model, done = train_or_resume(
-        d, b, config, out, force=force, resume=resume, device=setup_torch(device), snapshots=snapshots, profile=profile
+        d,
+        b,
+        config,
+        out,
+        force=force,
+        resume=resume,
+        device=setup_torch(device),
+        snapshots=snapshots,
+        profile=profile,
+        log_dir=log_dir,
     )
     if done == "up to date":
         ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")

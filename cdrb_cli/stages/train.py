@@ -24,6 +24,7 @@ from cdrb_cli.methods.base import NonFiniteLoss, build_method
 from cdrb_cli.methods.checkpoint import checkpoint_arrays, make_ema, restore
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_TRAIN, STREAM_VALID, step_rng
+from cdrb_cli.stages.train_log import TrainLog
 
 
 def check_inputs(demos, buffer, features: str) -> Normalizer:
@@ -100,12 +101,13 @@ def train_or_resume(
     auto=False,
     snapshots: Sequence[int] = (),
     profile=None,
+    log_dir: Path | None = None,
 ) -> tuple[artifacts.Model, str]:
     """Train into ``out`` according to what it holds (:func:`cdrb_cli.artifacts.existing`): reuse it when up to
     date, continue it with ``resume`` (or ``auto``) when it is a checkpoint of this run, start over with ``force``
     (or ``auto``, for a file of another run); refuse anything else. Returns the model and what was done:
     ``up to date``, ``resumed`` or ``trained``. ``profile``: the :class:`~cdrb_cli.configs.SettingsProfile` the
-    model records (the selection its settings came from)."""
+    model records (the selection its settings came from); ``log_dir``: a folder for TensorBoard event files."""
     if resume and force:
         raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
     parents = [demos] + ([buffer] if buffer is not None else [])
@@ -117,7 +119,7 @@ def train_or_resume(
         for s in snapshots:
             path = snapshot_path(out, s)
             stack.enter_context(artifacts.claim_output(path, replace_snapshots, "--snapshot-at", inputs))
-        run = dict(device=device, snapshots=snapshots, profile=profile)
+        run = dict(device=device, snapshots=snapshots, profile=profile, log_dir=log_dir)
         return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
 
 
@@ -146,6 +148,7 @@ def train(
     device="cpu",
     snapshots: Sequence[int] = (),
     profile=None,
+    log_dir: Path | None = None,
 ) -> artifacts.Model:
     """Train ``config`` on the demos (and buffer), checkpointing into ``out``. ``resume``: True continues the
     checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact.
@@ -208,7 +211,8 @@ def train(
     last_loss = curve[-1][1] if curve else None
     for m in modules.values():
         m.train()
-    with ui.progress() as bar, interrupts.polled():
+    log = TrainLog(log_dir, step, config.lr)
+    with ui.progress() as bar, interrupts.polled(), contextlib.closing(log):
         task = bar.add_task(f"train {config.method.name}", total=config.steps, completed=step, info="")
         while step < config.steps:
             interrupts.check()
@@ -228,6 +232,7 @@ def train(
                 snap = step in snapshots
                 valid = valid_loss() if (ckpt or snap) else None
                 curve.append((step, last_loss, valid if ckpt else None))
+                log.point(step, last_loss, valid if ckpt else None)
                 bar.update(task, completed=step, info=f"loss {last_loss:.4f}")
                 if ckpt or snap or timed:
                     wall = time.time() - t0

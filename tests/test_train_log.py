@@ -1,0 +1,60 @@
+"""Training watched live (`cdrb train --log-dir`): TensorBoard event files whose scalars are the model's own loss
+curve, continued (not repeated) by a resumed training, and a one-line error when the extra is missing."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from cdrb_cli.errors import BadInput
+
+pytest.importorskip("tensorboard")
+
+
+def _scalars(folder) -> dict[str, list[tuple[int, float]]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(folder))
+    acc.Reload()
+    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+def test_the_event_files_hold_the_models_loss_curve_and_a_resume_continues_them(small_data, tmp_path):
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train_or_resume
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    logs, out = tmp_path / "tb", tmp_path / "m.h5"
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=40, checkpoint_every=20))
+    model, _ = train_or_resume(demos, buffer, cfg, out, log_dir=logs)
+    got = _scalars(logs)
+    curve = list(zip(model.arrays["curve/step"].tolist(), model.arrays["curve/loss"].tolist(), strict=True))
+    assert [s for s, _ in got["loss/train"]] == [s for s, _ in curve] == [10, 20, 30, 40]  # every gcd(50, 20) steps
+    assert [v for _, v in got["loss/train"]] == pytest.approx([v for _, v in curve], rel=1e-6)
+    valid = list(zip(model.arrays["curve/valid_step"].tolist(), model.arrays["curve/valid_loss"].tolist(), strict=True))
+    assert [s for s, _ in got["loss/valid"]] == [s for s, _ in valid]
+    assert [v for _, v in got["loss/valid"]] == pytest.approx([v for _, v in valid], rel=1e-6)
+    assert all(v == pytest.approx(cfg.lr) for _, v in got["train/lr"])
+    assert all(v > 0 for _, v in got["train/steps_per_s"])
+
+    longer = cfg.model_copy(update={"steps": 60})  # the same run trained further: its curve goes on
+    train_or_resume(demos, buffer, longer, out, resume=True, log_dir=logs)
+    assert [s for s, _ in _scalars(logs)["loss/train"]] == [10, 20, 30, 40, 50, 60]
+
+
+def test_a_missing_tensorboard_is_one_line(monkeypatch, small_data, tmp_path, capsys):
+    from cdrb_cli.cli import main
+    from cdrb_cli.stages.train_log import summary_writer
+
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)  # as if the extra were not installed
+    with pytest.raises(BadInput, match="tensorboard package is not installed"):
+        summary_writer()
+    demos, _ = small_data
+    capsys.readouterr()
+    code = main(["train", str(demos.path), "--method", "mlp", "--log-dir", str(tmp_path / "tb"),
+                 "--out", str(tmp_path / "m.h5")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "pip install 'cdrb-cli[tensorboard]'" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "m.h5").exists() and not (tmp_path / "tb").exists()
