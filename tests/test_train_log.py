@@ -58,3 +58,25 @@ def test_a_missing_tensorboard_is_one_line(monkeypatch, small_data, tmp_path, ca
     err = capsys.readouterr().err
     assert code == 2 and "pip install 'cdrb-cli[tensorboard]'" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "m.h5").exists() and not (tmp_path / "tb").exists()
+
+
+def test_a_grid_with_tensorboard_gives_each_training_its_folder_and_keeps_its_memo_keys(tmp_path):
+    import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a grid composes)
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.grid.memo import command_key
+
+    text = 'out = "runs"\nenvs = ["maze-tight"]\nmethods = ["mlp", "cdrb"]\nseeds = [0, 1]\n'
+    (tmp_path / "a.toml").write_text(text)
+    (tmp_path / "b.toml").write_text(text + "tensorboard = true\n")
+    plain, watched = (expand(load_grid(tmp_path / f"{n}.toml")) for n in "ab")
+    folders = []
+    for a, b in zip(plain, watched, strict=True):
+        assert command_key(a.argv)[1] == command_key(b.argv)[1]  # the same runs: their memos still hold
+        if b.kind == "train":
+            folders.append(b.argv[b.argv.index("--log-dir") + 1])
+    assert sorted(folders) == sorted(
+        str(tmp_path / "runs" / "tensorboard" / "maze-tight" / f"{m}-s{s}") for m in ("mlp", "cdrb") for s in (0, 1)
+    )
+    (tmp_path / "c.toml").write_text(text + '[[settings]]\ntrain = ["--log-dir", "x"]\n')
+    with pytest.raises(BadInput, match="the grid sets this `cdrb train` option itself"):
+        load_grid(tmp_path / "c.toml")

@@ -130,6 +130,8 @@ def expand(spec: GridSpec) -> list[Task]:
                         argv += ["--steps", str(length)] if length else []
                         if snaps:
                             argv += ["--snapshot-at", ",".join(map(str, snaps))]
+                        if spec.tensorboard:
+                            argv += ["--log-dir", str(spec.out / "tensorboard" / env / f"{vtag}{method}-s{seed}")]
                         argv += ["--out", str(model), "--device", spec.device]
                         outputs = [model] + [train_snapshot(model, s) for s in snaps]
                         tasks.append(Task(train_id, "train", argv, outputs, deps, inputs))

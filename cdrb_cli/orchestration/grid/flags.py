@@ -17,7 +17,7 @@ from cdrb_cli.settings import clip
 GRID_OPTIONS = {
     "collect": {"episodes", "seed", "out"},
     "cluster": {"out"},
-    "train": {"method", "preset", "seed", "buffer", "snapshot_at", "out", "device"},
+    "train": {"method", "preset", "seed", "buffer", "snapshot_at", "out", "device", "log_dir"},
     "eval": {"seeds", "stream", "episodes", "out", "device"},
 }
 #: the settings (``--set KEY``) behind those options
@@ -47,7 +47,7 @@ def _check_flag_list(flags: list[str], command: str, where: str, out: Path) -> N
             raise BadInput(
                 f"{where}: {clip(repr(token), 60)}: the grid sets this `cdrb {command}` option itself",
                 hint="use the grid's own key (seeds, eval_seeds, eval_stream, eval_episodes, demos, data_seed, preset, "
-                "device, out, or a variant's stream)",
+                "device, out, tensorboard, or a variant's stream)",
             )
         if not entry.takes_value:
             continue

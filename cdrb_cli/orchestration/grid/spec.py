@@ -211,6 +211,11 @@ class GridSpec(_Strict):
         "the longest length any of them is chosen at), and a curve that still rises extends them all",
     )
     report: Bool = Field(True, description="write OUT/report[-VARIANT].md (tuning grids are read by `cdrb select`)")
+    tensorboard: Bool = Field(
+        False,
+        description="every training also writes TensorBoard event files to OUT/tensorboard/ENV/[VARIANT/]METHOD-sSEED "
+        "as it runs (`tensorboard --logdir OUT/tensorboard`; the tensorboard extra)",
+    )
     reuse: list[Path] = Field(
         default_factory=list,
         max_length=16,
