@@ -80,3 +80,34 @@ def test_a_grid_with_tensorboard_gives_each_training_its_folder_and_keeps_its_me
     (tmp_path / "c.toml").write_text(text + '[[settings]]\ntrain = ["--log-dir", "x"]\n')
     with pytest.raises(BadInput, match="the grid sets this `cdrb train` option itself"):
         load_grid(tmp_path / "c.toml")
+
+
+def test_a_grid_logs_each_snapshots_eval_beside_its_training(tmp_path, monkeypatch):
+    """``tensorboard = true`` on a learning curve: the training's event files hold its loss and, at each snapshot
+    and at its end, the success its eval measured (the eval artifact's own figure)."""
+    import cdrb_cli.cli  # noqa: F401
+    from cdrb_cli import artifacts
+    from cdrb_cli.orchestration.grid import PoolBackend, load_grid, run_grid
+
+    grid = tmp_path / "g.toml"
+    grid.write_text(
+        'out = "runs"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\ndemos = 20\nsteps = 40\n'
+        "snapshot_at = [20]\neval_episodes = 2\ntensorboard = true\nreport = false\n"
+        "[[settings]]\ntrain = { horizon = 16, stride = 10, batch_size = 8, checkpoint_every = 20, "
+        "net = { hidden = [16, 16] } }\n"
+    )
+    backend = PoolBackend(1)
+    try:
+        run = run_grid(load_grid(grid), backend)
+    finally:
+        backend.close()
+    assert {r.status for r in run.results} == {"done"}
+    got = _scalars(tmp_path / "runs" / "tensorboard" / "maze-tight" / "mlp-s0")
+    assert [s for s, _ in got["loss/train"]][-1] == 40
+    evals = {20: "eval-mlp-s0.step20.h5", 40: "eval-mlp-s0.h5"}
+    want = {s: 100 * artifacts.load(tmp_path / "runs" / "maze-tight" / f, "eval").manifest.summary.success_mean
+            for s, f in evals.items()}  # fmt: skip
+    assert dict(got["eval/base/success"]) == pytest.approx(want)
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)
+    with pytest.raises(BadInput, match="tensorboard = true: --log-dir writes TensorBoard event files"):
+        load_grid(grid)

@@ -1,6 +1,7 @@
 """Training that can be watched while it runs: the loss, the validation loss, the learning rate and the steps per
-second as TensorBoard event files (``tensorboard --logdir DIR``). The model file's loss curve stays the record;
-these are a view of it as it grows, written only when asked for (`cdrb train --log-dir`)."""
+second as TensorBoard event files (``tensorboard --logdir DIR``), and in a grid the figures of each snapshot's
+eval beside them. The model file's loss curve and the eval artifacts stay the record; these are a view of them as
+they grow, written only when asked for (`cdrb train --log-dir`, a grid's ``tensorboard = true``)."""
 
 from __future__ import annotations
 
@@ -54,3 +55,15 @@ class TrainLog:
         if self.writer is not None:
             self.writer.close()
             self.writer = None
+
+
+def log_eval(log_dir: Path, name: str, step: int, summary) -> None:
+    """An eval's figures beside its model's training curves, at the model's training length: success and, for a
+    planner, plans through an obstacle (per cent), under ``eval/NAME/`` (NAME: the variant evaluated, or base)."""
+    writer = summary_writer()(str(log_dir))
+    try:
+        writer.add_scalar(f"eval/{name}/success", 100 * summary.success_mean, step)
+        if summary.plan_crossing_mean is not None:
+            writer.add_scalar(f"eval/{name}/plans_through_obstacle", 100 * summary.plan_crossing_mean, step)
+    finally:
+        writer.close()

@@ -146,6 +146,8 @@ def expand(spec: GridSpec) -> list[Task]:
                         argv += ["--episodes", str(spec.eval_episodes), *eval_extra]
                         argv += ["--out", str(ev), "--device", spec.device]
                         meta = {"env": env, "method": method, "variant": v.name, "seed": seed, "steps": steps}
+                        if spec.tensorboard:  # the eval's figures join its model's training curves
+                            meta["log_dir"] = str(spec.out / "tensorboard" / env / f"{vtag}{method}-s{seed}")
                         tasks.append(
                             Task(f"eval {tag}", "eval", argv, [ev], [train_id], [m], meta | {"stream": stream})
                         )

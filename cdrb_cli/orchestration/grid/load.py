@@ -123,6 +123,14 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     _check_reuse(spec, path, overrides, set_keys)
     _check_names_given(spec, path, overrides, set_keys)
     _check_lengths_and_seeds(spec, path, overrides, set_keys)
+    if spec.tensorboard:  # every training would fail on a missing extra: one line now
+        from cdrb_cli.stages.train_log import summary_writer
+
+        try:
+            summary_writer()
+        except BadInput as exc:
+            raise BadInput(f"{_origin(path, overrides, 'tensorboard')}: tensorboard = true: {exc.message}",
+                           hint=exc.hint) from None  # fmt: skip
     return spec
 
 

@@ -26,6 +26,7 @@ from cdrb_cli.orchestration.grid.load import load_grid
 from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, write_memo, written_here
 from cdrb_cli.orchestration.grid.reuse import REUSABLE, regular_sha
 from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task
+from cdrb_cli.settings import clip
 
 
 # ------------------------------------------------------------------------------------------------ execution
@@ -317,6 +318,7 @@ def run_grid(
             if out["rc"] == 0:  # (the hash cache is keyed by size and mtime: rewritten files are hashed afresh)
                 write_memo(spec, task, cache)
                 state[task.id], res.status, res.stderr = "done", "done", []
+                _log_eval(task)
                 emit("done", res)
             elif res.attempts <= retries:
                 res.stderr = out["stderr"]
@@ -327,6 +329,20 @@ def run_grid(
                 emit("failed", res)
     ordered = [results[t.id] for t in tasks]
     return GridRun(ordered, _write_summary(spec, backend.name, ordered, t0), time.time() - t0, backend.name)
+
+
+def _log_eval(task) -> None:
+    """With ``tensorboard = true``: a finished eval's figures join its model's training curves (a log that cannot
+    be written is said on stderr; the eval artifact is the record)."""
+    if task.kind != "eval" or "log_dir" not in task.meta:
+        return
+    from cdrb_cli.stages.train_log import log_eval
+
+    try:
+        ev = artifacts.load(task.outputs[0], "eval")
+        log_eval(Path(task.meta["log_dir"]), task.meta["variant"] or "base", task.meta["steps"], ev.manifest.summary)
+    except Exception as exc:  # a view of the record, never a reason to fail the grid
+        ui.warn(f"{task.id}: its figures were not logged to {task.meta['log_dir']} ({clip(str(exc), 120)})")
 
 
 def _outcome(fut: cf.Future) -> dict:
