@@ -36,8 +36,15 @@ def setting_options() -> dict[str, dict[str, Callable[[object], tuple[str, objec
     """For each command, its options that fill a setting (parameter -> the value as typed -> (key, value)), read as
     the command reads them: the everyday flags of eval and train and the flags that moved into the configs. A grid
     then keys ``--max-lag 0.6`` and ``--set controller.max_lag=0.6`` as the one setting they are."""
-    from cdrb_cli.cli.evaluate import EVERYDAY, everyday_flags
-    from cdrb_cli.cli.options import EVAL_MOVED, MOVED_FLAGS, PLAN_MOVED, moved_name, moved_settings
+    from cdrb_cli.cli.options import (
+        EVAL_MOVED,
+        EVERYDAY,
+        MOVED_FLAGS,
+        PLAN_MOVED,
+        everyday_flags,
+        moved_name,
+        moved_settings,
+    )
     from cdrb_cli.methods.config import user_settings
 
     def everyday(name: str):

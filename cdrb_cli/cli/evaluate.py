@@ -17,11 +17,17 @@ from cdrb_cli.cli.common import (
     check_outputs,
     check_video_folder,
     choice,
-    parse_seeds,
     report_gifs,
     trained_model,
 )
-from cdrb_cli.cli.options import EVAL_MOVED, RunConfigOpt, RunSetOpt, moved_flags, run_settings
+from cdrb_cli.cli.options import (
+    EVAL_MOVED,
+    RunConfigOpt,
+    RunSetOpt,
+    everyday_flags,
+    moved_flags,
+    run_settings,
+)
 from cdrb_cli.cli.tuned import read_selection, selection_settings
 from cdrb_cli.errors import BadInput
 
@@ -160,13 +166,3 @@ def eval_cmd(
     if replan_plot is not None and replan_plot.exists():
         ui.log(f"picture: {replan_plot}")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
-
-
-#: the settings `cdrb eval` keeps an everyday flag for
-EVERYDAY = ("episodes", "seeds", "stream", "protocol", "replan")
-
-
-def everyday_flags(values: dict) -> list[tuple[str, str, object]]:
-    """The everyday flags given, as (how the user typed it, settings key, value) for :func:`run_settings`."""
-    parse = {"episodes": int, "seeds": lambda text: parse_seeds(text, "--seeds")}
-    return [(f"--{key} {value}", key, parse.get(key, str)(value)) for key, value in values.items() if value is not None]

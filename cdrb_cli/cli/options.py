@@ -12,7 +12,7 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import ui
-from cdrb_cli.cli.common import choice, method_registry, net_names, preset_names, registered
+from cdrb_cli.cli.common import choice, method_registry, net_names, parse_seeds, preset_names, registered
 
 # ------------------------------------------------------------------------------------------------ envs, methods
 EnvArg = typer.Argument(None, help="Environment id (see `cdrb envs`); omit it with --maze-map.")
@@ -141,6 +141,16 @@ def moved_settings(moved: dict, warn: bool = True) -> list:
             ui.warn(f"{flag} is deprecated: write --set {key}={shown} (or put it in a --config file)")
         out.append(Setting(tuple(key.split(".")), value, flag if isinstance(value, bool) else f"{flag} {value}"))
     return out
+
+
+#: the settings `cdrb eval` keeps an everyday flag for
+EVERYDAY = ("episodes", "seeds", "stream", "protocol", "replan")
+
+
+def everyday_flags(values: dict) -> list[tuple[str, str, object]]:
+    """The everyday flags given, as (how the user typed it, settings key, value) for :func:`run_settings`."""
+    parse = {"episodes": int, "seeds": lambda text: parse_seeds(text, "--seeds")}
+    return [(f"--{key} {value}", key, parse.get(key, str)(value)) for key, value in values.items() if value is not None]
 
 
 def env_spec(env: str | None, maze_map: Path | None):

@@ -53,8 +53,7 @@ def _context(command: str, argv: list[str], path: Path, flags: list[str]):
 
 def _eval_settings(entries: list, path: Path) -> tuple[list[Setting], dict]:
     """The eval settings of ``entries`` (each named ``--config FILE: FLAG``) and the other options they give."""
-    from cdrb_cli.cli.evaluate import EVERYDAY, everyday_flags
-    from cdrb_cli.cli.options import EVAL_MOVED, moved_name, moved_settings
+    from cdrb_cli.cli.options import EVAL_MOVED, EVERYDAY, everyday_flags, moved_name, moved_settings
     from cdrb_cli.settings import parse_set
 
     flags = [f for s in entries for f in s.eval]

@@ -153,8 +153,8 @@ def train(
     """Train ``config`` on the demos (and buffer), checkpointing into ``out``. ``resume``: True continues the
     checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact.
     ``snapshots``: steps at which the model is also written, finished, to :func:`snapshot_path` exactly as a run of
-    that many steps writes it (the learning rate is constant, so nothing else depends on ``steps``); the
-    learning-curve benchmark evaluates them."""
+    that many steps writes it (the learning rate is constant, so nothing else depends on ``steps``); ``profile``:
+    the settings profile the model records; ``log_dir``: a folder for TensorBoard event files (:class:`TrainLog`)."""
     import torch
 
     spec = demos.manifest.env
@@ -164,9 +164,7 @@ def train(
     torch.manual_seed(config.seed)  # network initialization
     method = build_method(config, spec, normalizer, points, device=device)
     windows = method.data(demos, normalizer, config.split)
-    valid_batch = None
-    if config.split == "train" and len(demos.episode_ids("valid")):
-        valid_batch = torch.from_numpy(method.data(demos, normalizer, "valid").validation_batch()).to(device)
+    valid_batch = _validation_batch(method, demos, normalizer, config, device)
     ema = make_ema(method)
     optimizers = method.make_optimizers()
     parents = [demos] + ([buffer] if buffer is not None else [])
@@ -174,11 +172,7 @@ def train(
     n_params = sum(p.numel() for m in modules.values() for p in m.parameters())
     log_every = log_interval(config)
     step, curve, wall = 0, [], 0.0
-    if resume is True:
-        found = artifacts.existing(out, "model", config, parents)
-        if found.status not in ("resumable", "up-to-date"):
-            raise BadInput(f"--resume: {out}: {found.reason}", hint="use the same inputs and settings, or --force")
-        resume = found.artifact
+    resume = _checkpoint(out, config, parents) if resume is True else resume
     if resume:
         step, curve, wall = restore(resume, method, ema, optimizers, device)
         _resumed_snapshots(resume, out, step, snapshots)
@@ -243,6 +237,23 @@ def train(
                     save(step == config.steps, last_loss, curve[-1][2])
                     last_save = time.time()
     return artifacts.load(out, "model")
+
+
+def _checkpoint(out: Path, config: TrainConfig, parents):
+    """The checkpoint in ``out`` that ``--resume`` continues: of the same inputs and settings, else a one-line error."""
+    found = artifacts.existing(out, "model", config, parents)
+    if found.status not in ("resumable", "up-to-date"):
+        raise BadInput(f"--resume: {out}: {found.reason}", hint="use the same inputs and settings, or --force")
+    return found.artifact
+
+
+def _validation_batch(method, demos, normalizer, config: TrainConfig, device):
+    """The held-out windows the validation loss is measured on (None without validation episodes)."""
+    import torch
+
+    if config.split != "train" or not len(demos.episode_ids("valid")):
+        return None
+    return torch.from_numpy(method.data(demos, normalizer, "valid").validation_batch()).to(device)
 
 
 def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
