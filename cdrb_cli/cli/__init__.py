@@ -30,7 +30,7 @@ except ImportError:  # pragma: no cover
 from cdrb_cli.cli.common import app, readable_help  # noqa: F401  (app: the typer app; readable_help: tested)
 
 # the command groups, imported for their registration on `app` (the order --help lists them in)
-from cdrb_cli.cli import info, data, share, train, plan, evaluate, studies  # noqa: E402, F401  isort: skip
+from cdrb_cli.cli import info, data, share, train, plan, evaluate, studies, grids  # noqa: E402, F401  isort: skip
 from cdrb_cli.cli.catalogue import describe  # noqa: E402
 from cdrb_cli.orchestration.grid import commands as _grid_commands  # noqa: E402
 
