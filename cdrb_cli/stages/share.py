@@ -179,8 +179,9 @@ def import_folder(folder: Path, out: Path, force: bool = False):
     manifest, arrays = read_folder(folder)
     with artifacts.atomic_path(out) as tmp:
         artifacts.save(tmp, "model", manifest, arrays)
-        artifacts.load(tmp, "model")
-    return artifacts.load(out, "model")
+        model = artifacts.load(tmp, "model")
+    model.path = Path(out)  # the same bytes, renamed into place
+    return model
 
 
 def load_model(path: Path):

@@ -59,6 +59,12 @@ def options(command: str) -> dict[str, OptionInfo]:
     return _catalogue[command]
 
 
+def keyed_params(command: str) -> set[str]:
+    """The parameters of ``command`` that change what it makes or measures (not where it writes, on what hardware,
+    how it reports, or what more it keeps)."""
+    return {info.param for info in options(command).values() if info.keyed}
+
+
 def _file_spans(flags: list[str], command: str):
     """(index, inline) for each value in ``flags`` that names a file the command reads: ``inline`` for
     ``--flag=FILE`` (the value after ``=`` at ``index``), else the value is the token at ``index``."""

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from cdrb_cli import __version__, artifacts
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid.commands import options
+from cdrb_cli.orchestration.grid.commands import keyed_params
 from cdrb_cli.orchestration.grid.flags import parse_command
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
 
@@ -56,7 +56,7 @@ def command_key(argv: list[str]) -> tuple[dict, str]:
     that: the memo's key. The command resolves its full config from these settings, its input files (hashed beside
     the key) and the cdrb version (recorded beside it), so the same key with the same inputs is the same config."""
     positional, given, sets = parse_command(argv)
-    keyed = {info.param for info in options(argv[0]).values() if info.keyed}
+    keyed = keyed_params(argv[0])
     asked = {
         "command": argv[0],
         "args": positional,

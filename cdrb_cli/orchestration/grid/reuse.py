@@ -11,7 +11,7 @@ from pathlib import Path
 
 from cdrb_cli import __version__
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid.commands import options
+from cdrb_cli.orchestration.grid.commands import keyed_params, options
 from cdrb_cli.orchestration.grid.flags import parse_command
 from cdrb_cli.orchestration.grid.memo import cached_sha
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
@@ -21,12 +21,6 @@ from cdrb_cli.settings import clip
 #: how long a training runs: matched apart (a snapshot at S steps is the model a run of S steps writes)
 _LENGTH = ("steps", "snapshot_at")
 REUSABLE = ("collect", "cluster", "train")
-
-
-def _keyed(command: str) -> set[str]:
-    """The parameters of ``command`` that change what it makes or measures (not where it writes, on what hardware,
-    how it reports, or what more it keeps)."""
-    return {info.param for info in options(command).values() if info.keyed}
 
 
 def _real(path: str | Path) -> str:
@@ -64,7 +58,7 @@ def _command_key(argv: list[str], written_by: dict[str, str], cache: dict) -> tu
     steps = dict(sets).get("steps")
     sets = [(k, v) for k, v in sets if k != "steps"]
     snaps = [v.strip() for v in str(given.get("snapshot_at", "")).split(",") if v.strip()]
-    keyed = _keyed(argv[0])
+    keyed = keyed_params(argv[0])
     kept = {k: v for k, v in given.items() if k in keyed and k not in _LENGTH}
     key = json.dumps([argv[0], positional, sorted(kept.items()), sets], default=str)
     return key, None if steps is None else str(steps), snaps
@@ -82,7 +76,7 @@ def measure_difference(made: list[str], wanted: list[str]) -> str | None:
     for option, info in reversed(list(options(wanted[0]).items())):
         if option.startswith("--"):
             spelled[info.param] = option
-    keyed = _keyed(wanted[0])
+    keyed = keyed_params(wanted[0])
     (pos_a, opt_a, sets_a), (pos_b, opt_b, sets_b) = (
         parse_command(argv, lambda v: Path(v).name if os.sep in v else v) for argv in (made, wanted)
     )
