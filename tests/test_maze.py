@@ -117,3 +117,22 @@ def test_bfs_and_stock_envs():
 def test_unknown_env():
     with pytest.raises(BadInput, match="unknown environment"):
         make_spec("moon")
+
+
+def test_making_a_maze_env_leaves_no_file_in_the_temp_folder(tmp_path, monkeypatch):
+    """gymnasium-robotics writes each maze's MuJoCo XML to the temp folder and keeps it; cdrb removes it once the
+    model is compiled, so thousands of evals leave nothing behind (and the env still steps)."""
+    import tempfile
+
+    from cdrb_cli.envs.family import Episode
+    from cdrb_cli.envs.pointmaze.env import PointMaze, training_env
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # read TMPDIR again
+    spec = make_spec("maze-tight")
+    env = PointMaze(spec)
+    env.reset(Episode(0, (1, 1), (3, 3)))
+    env.step(np.zeros(2))
+    env.close()
+    training_env(spec, seed=0).close()
+    assert list(tmp_path.iterdir()) == []

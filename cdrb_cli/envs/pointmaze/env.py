@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 
 import numpy as np
 
@@ -34,6 +35,18 @@ def maze_map(spec: EnvSpec) -> list[list]:
     return [[CELL_CODES[c] for c in row] for row in spec.scene.maze.rows]
 
 
+def make_maze_env(gym, **kwargs):
+    """``gym.make`` of gymnasium-robotics' PointMaze on a map. It writes the maze's MuJoCo XML to a file in the
+    system temp folder and never removes it (one file per env made: thousands after a few evals); the model is
+    compiled by then, so the file is removed here."""
+    env = gym.make("PointMaze_UMaze-v3", **kwargs)
+    xml = getattr(env.unwrapped, "tmp_xml_file_path", None)
+    if xml:
+        with contextlib.suppress(OSError):
+            os.unlink(xml)
+    return env
+
+
 class PointMaze:
     """One PointMaze instance: ``reset(episode)`` then ``step(action)`` repeatedly."""
 
@@ -46,7 +59,7 @@ class PointMaze:
         )
         if render_mode:
             kwargs["render_mode"] = render_mode
-        self._wrapped = gym.make("PointMaze_UMaze-v3", **kwargs)
+        self._wrapped = make_maze_env(gym, **kwargs)
         self.env = self._wrapped.unwrapped
         self.env.position_noise_range = spec.scene.position_noise
         self.goal = np.zeros(2)
@@ -90,8 +103,8 @@ class PointMaze:
 def training_env(spec: EnvSpec, seed: int):
     """The goal-conditioned gymnasium env RL experts train on: sparse reward, terminating on success."""
     gym = import_gymnasium_robotics()
-    env = gym.make(
-        "PointMaze_UMaze-v3",
+    env = make_maze_env(
+        gym,
         maze_map=maze_map(spec),
         continuing_task=False,
         reward_type="sparse",
