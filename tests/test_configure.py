@@ -105,9 +105,9 @@ def test_replanning_uses_the_settings_chosen_for_it_by_default(tiny_models):
     # the official executor has no plan clock to move: only the avoidance part applies
     official = eval_config(cdrb, protocol="official-code", replan="every:50")
     assert official.controller.name == "waypoint" and official.avoid.best_of == 8
-    # an error in a default names it as one
-    with pytest.raises(BadInput, match=r"look_ahead = 2 \(the default when re-planning\)"):
-        eval_config(cdrb, parse_set(["replan=every:50", "controller.max_lag=null"]))
+    # the time-indexed clock (max_lag null) has no gate for a look-ahead to move: that default is left out
+    timed = eval_config(cdrb, parse_set(["replan=every:50", "controller.max_lag=null"]))
+    assert timed.controller.look_ahead == 0 and timed.controller.max_lag is None and timed.avoid.best_of == 8
 
 
 def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -18,7 +19,7 @@ import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a g
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
 from cdrb_cli.orchestration.grid import PoolBackend, expand, load_grid, run_grid
-from tests.conftest import call_cdrb
+from tests.conftest import ROOT, call_cdrb
 
 TINY = """
 out = "runs"
@@ -451,7 +452,7 @@ def test_a_setting_stated_by_two_included_files_is_passed_once_and_an_override_s
     (tmp_path / "tuned.toml").write_text(
         '[meta]\nrule = "x"\n[[settings]]\nenv = "maze-tight"\nmethod = "cdrb"\nchosen = "c"\n'
         'train = ["--set", "horizon=16", "--steps", "30"]\n'
-        'eval = ["--set=controller.gain=2", "--set=controller.gain=2"]\n'
+        'eval = ["--set=controller.kp=2", "--set=controller.kp=2"]\n'
     )
     grid = _grid(tmp_path, 'include = ["data.toml", "tuned.toml"]\n' + TINY.replace('"horizon=16", ', '"horizon=12", '))
     tasks = {t.id: t.argv for t in expand(load_grid(grid))}
@@ -459,7 +460,7 @@ def test_a_setting_stated_by_two_included_files_is_passed_once_and_an_override_s
     # data's 16, tuned's 16 (dropped: the same value), the grid's own 12: the last one still wins
     assert [a for a in train if a.startswith("horizon=")] == ["horizon=16", "horizon=12"]
     evaluate = next(argv for tid, argv in tasks.items() if tid.startswith("eval maze-tight") and "cdrb-s0" in tid)
-    assert evaluate.count("--set=controller.gain=2") == 1
+    assert evaluate.count("--set=controller.kp=2") == 1
 
 
 def test_without_repeated_sets_keeps_every_flag_that_changes_the_command():
@@ -821,20 +822,20 @@ name = "plain"
 
 [[variants]]
 name = "routed"
-methods = ["mlp"]
-eval = ["--maze-map", "maps/closed.txt", "--route-buffer", "runs/maze-tight/buffer-k50.h5"]
+methods = ["cdrb"]
+eval = ["--maze-map", "maps/closed.txt", "--route-buffer", "runs/maze-tight/buffer-k50.h5", "--set", "avoid.route_k=2"]
 """
     )
     (tmp_path / "maps").mkdir()
-    (tmp_path / "maps" / "closed.txt").write_text("")
+    shutil.copy(ROOT / "experiments" / "maps" / "maze-tight-closed-north.txt", tmp_path / "maps" / "closed.txt")
     tasks = {t.id: t for t in expand(load_grid(_grid(tmp_path, text)))}
-    ev = tasks["eval maze-tight/routed/mlp-s0"]
+    ev = tasks["eval maze-tight/routed/cdrb-s0"]
     buffer = (tmp_path / "runs" / "maze-tight" / "buffer-k50.h5").resolve()
     inputs = {p.resolve() for p in ev.inputs}
     assert (tmp_path / "maps" / "closed.txt").resolve() in inputs and buffer in inputs
     writer = next(t.id for t in tasks.values() if buffer in [p.resolve() for p in t.outputs])
     assert writer.startswith("cluster") and writer in ev.deps
-    assert "train maze-tight/mlp-s0" in ev.deps
+    assert "train maze-tight/cdrb-s0" in ev.deps
 
 
 # ------------------------------------------------------------------------------------------------ reuse
@@ -1019,3 +1020,39 @@ def test_include_fan_out_and_depth_are_bounded(tmp_path):
     (tmp_path / "c40.toml").write_text("")
     with pytest.raises(BadInput, match="includes nest more than 32 files deep"):
         load_grid(_grid(tmp_path, 'include = ["c0.toml"]\n' + TINY, "deep.toml"))
+
+
+@pytest.mark.parametrize(
+    "methods, scoped, eval_, words",
+    [
+        ('["mlp"]', "", "{ controller = { look_ahead = -1 } }", "look_ahead"),
+        ('["mlp"]', "", "{ controller = { look_ahead = true } }", "look_ahead"),
+        ('["cdrb"]', "", "{ avoid = { best_of = 65 } }", "best_of"),
+        ('["cdrb"]', "", '["--set", "avoid.guide_scale=nan"]', "guide_scale"),
+        ('["cdrb"]', "", '{ protocol = "nosuch" }', "not a protocol"),
+        ('["cdrb"]', "", '{ protocol = "detour" }', "detour"),
+        ('["mlp", "diffuser"]', 'methods = ["diffuser"]', "{ avoid = { mask_buffer = true } }", "no replay buffer"),
+        ('["mlp", "diffuser"]', 'methods = ["diffuser"]', "{ avoid = { route_k = 2 } }", "route"),
+        ('["cdrb"]', "", '["--scene", "fifo.txt"]', "not a regular file"),
+    ],
+)
+def test_a_variant_whose_evals_would_all_fail_is_refused_when_the_grid_is_read(tmp_path, methods, scoped, eval_, words):
+    """Each variant's eval settings resolve as `cdrb eval` resolves them on the model its training will write, so a
+    setting the eval refuses is one line at load (`--dry-run` too), naming the file, method and variant."""
+    if "fifo" in eval_:
+        os.mkfifo(tmp_path / "fifo.txt")
+    text = TINY.replace('methods = ["mlp", "cdrb"]', f"methods = {methods}")
+    text += f'\n[[variants]]\nname = "bad"\n{scoped}\neval = {eval_}\n'
+    proc = _cli("grid", str(_grid(tmp_path, text)), "--dry-run")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "in variant bad: eval flags" in lines[0], proc.stderr
+    assert words in lines[0] and "grid.toml" in lines[0], lines[0]
+
+
+def test_the_replanning_defaults_leave_a_time_indexed_clock_alone(tmp_path):
+    """Re-planning adds the tuned look-ahead of the gated clock unless the eval asks for the time-indexed clock
+    (controller.max_lag null), where a look-ahead means nothing: the grid and the eval accept the pair."""
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]')
+    text += '\n[[variants]]\nname = "r"\neval = { replan = "every:20", null = ["controller.max_lag"] }\n'
+    tasks = expand(load_grid(_grid(tmp_path, text)))
+    assert any(t.kind == "eval" and "every:20" in " ".join(t.argv) for t in tasks)

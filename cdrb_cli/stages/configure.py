@@ -91,8 +91,8 @@ def avoid_base(model, settings: Sequence[Setting], in_scene: bool) -> dict:
 def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Setting]:
     """The settings an eval that re-plans from scratch uses unless ``settings`` give them: the family's choice for
     re-planning with this method (:attr:`~cdrb_cli.envs.family.EnvFamily.replan_tuned`), each controller field where
-    ``controller`` has it, the ``avoid.`` ones unless ``avoid = "plain"``; none for one plan per episode or a
-    repair."""
+    ``controller`` has it (a look-ahead only on the gated clock: none where ``controller.max_lag`` is null), the
+    ``avoid.`` ones unless ``avoid = "plain"``; none for one plan per episode or a repair."""
     from cdrb_cli.envs.registry import CONTROLLERS
 
     mode = lookup(settings, ("replan", "mode"))
@@ -100,12 +100,14 @@ def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Set
         return []
     plain = getattr(lookup(settings, ("avoid",)), "value", None) == "plain"
     fields = CONTROLLERS.get(controller).config.model_fields
+    lag = lookup(settings, ("controller", "max_lag"))
+    time_indexed = lag is not None and lag.value is None  # no gated clock for a look-ahead to move
     out = []
     for key, value in family_of(model.manifest.env).replan_tuned.get(model.manifest.config.method.name, {}).items():
         path = tuple(key.split("."))
         if lookup(settings, path) is not None or (path[0] == "avoid" and plain):
             continue
-        if path[0] == "controller" and path[1] not in fields:
+        if path[0] == "controller" and (path[1] not in fields or (path[1] == "look_ahead" and time_indexed)):
             continue
         out.append(Setting(path, value, f"{key} = {value} (the default when re-planning)"))
     return out

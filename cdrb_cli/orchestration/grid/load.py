@@ -13,7 +13,8 @@ from pydantic import (
 from cdrb_cli import ui
 from cdrb_cli.configs import MAX_SEED
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid.expand import cluster_flags_for, collect_flags_for, flags_for, model_variants
+from cdrb_cli.orchestration.grid.checks import check_commands
+from cdrb_cli.orchestration.grid.expand import flags_for, model_variants
 from cdrb_cli.orchestration.grid.flags import check_flags, parse_command
 from cdrb_cli.orchestration.grid.spec import (
     MAX_TASKS,
@@ -80,6 +81,11 @@ def parse_override(text: str) -> tuple[str, object]:
         return key.strip(), tomllib.loads(f"v = {value}")["v"]
     except tomllib.TOMLDecodeError:
         return key.strip(), value
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise BadInput(
+            f"--set {clip(text)}: the value nests arrays or tables too deep to read",
+            hint="e.g. --set 'seeds=[0, 1]'",
+        ) from None
 
 
 def _origin(path: Path, overrides: list[str], *keys) -> str:
@@ -185,7 +191,7 @@ def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_key
                            hint="`cdrb envs` lists them") from None  # fmt: skip
     for m in spec.methods:
         METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
-    _check_train_configs(spec, path)
+    check_commands(spec, path)
     # settings may name envs and methods the grid does not run (one settings table for several grids), but every
     # name must exist: a typo would silently apply nothing
     for i, s in enumerate(spec.settings):
@@ -335,42 +341,6 @@ def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> i
         return None
     every = str(dict(sets).get("checkpoint_every", preset_training(METHODS.get(method), preset)["checkpoint_every"]))
     return snapshot_step(int(every)) if every.isascii() and every.isdigit() and int(every) > 0 else None
-
-
-def _check_train_configs(spec: GridSpec, path: Path) -> None:
-    """Every training's settings resolve as `cdrb train` resolves them: on the environment's spec (of its
-    ``--maze-map`` where the collect flags name one) and a buffer of the features its cluster flags ask for. An
-    unknown ``--set`` key, a value of the wrong type or a net the method cannot use is then one line when the grid
-    is read, not a failure of every training hours later. Settings in a ``--config`` file are left to the command."""
-    from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.methods.config import resolve_train_config, user_settings
-    from cdrb_cli.methods.registry import METHODS, BufferInfo
-
-    for env in spec.envs:
-        collect = collect_flags_for(spec, env)
-        maze_map = parse_command(["collect", env, *collect])[1].get("maze_map")
-        try:
-            env_spec = make_spec(None if maze_map else env, maze_map)
-        except BadInput:
-            continue  # the collection says what is wrong with its map
-        for method in spec.methods:
-            entry = METHODS.get(method)
-            for v in model_variants(spec, env, method):
-                _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]], fold=False)
-                if options.get("config_file") is not None:
-                    continue
-                steps = None if options.get("steps") is None else int(options["steps"])
-                preset = options.get("preset") or spec.preset
-                items = user_settings(method, options.get("net"), preset, steps, sets=[f"{k}={x}" for k, x in sets])
-                buffer = None
-                if entry.needs_buffer:
-                    cluster = parse_command(["cluster", "demos.h5", *cluster_flags_for(spec, env, method, v)])[1]
-                    buffer = BufferInfo(features=str(cluster.get("features") or "state"), diameter=1.0)
-                try:
-                    resolve_train_config(env_spec, buffer, items)
-                except BadInput as exc:
-                    where = f"{path}: {method} on {env}" + (f" in variant {v.name}" if v.name else "")
-                    raise BadInput(f"{where}: train flags: {exc.message}", hint=exc.hint) from None
 
 
 def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:

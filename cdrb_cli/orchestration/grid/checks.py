@@ -1,0 +1,100 @@
+"""A grid's commands resolved when the grid is read: every training's settings as `cdrb train` resolves them, and
+every eval's as `cdrb eval` resolves them on the model that training will write. A setting a command would refuse
+(an unknown key, a value out of range, a knob the method lacks, a scene that cannot be read) is then one line
+naming the grid file, the method, the environment and the variant, before any task runs, `--dry-run` included,
+instead of a failure of every eval hours later. Settings in a ``--config`` file are left to the command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid.expand import (
+    BASE,
+    cluster_flags_for,
+    collect_flags_for,
+    flags_for,
+    model_variants,
+)
+from cdrb_cli.orchestration.grid.flags import parse_command
+from cdrb_cli.orchestration.grid.spec import GridSpec, Variant
+
+
+def check_commands(spec: GridSpec, path: Path) -> None:
+    """Every training's and every eval's settings resolve (see the module docstring)."""
+    from cdrb_cli.envs.registry import make_spec
+
+    for env in spec.envs:
+        maze_map = parse_command(["collect", env, *collect_flags_for(spec, env)])[1].get("maze_map")
+        try:
+            env_spec = make_spec(None if maze_map else env, maze_map)
+        except BadInput:
+            continue  # the collection says what is wrong with its map
+        for method in spec.methods:
+            configs = {}
+            for v in model_variants(spec, env, method):
+                configs[v.name] = _train_config(spec, env_spec, env, method, v, path)
+            for v in spec.variants or [BASE]:  # the base model is evaluated on its own where no variant is given
+                if not v.applies(env, method):
+                    continue
+                config = configs.get(v.name if v.own_model else BASE.name)
+                if config is not None:
+                    _check_eval(spec, env_spec, env, method, v, config, path)
+
+
+def _where(path: Path, env: str, method: str, v: Variant) -> str:
+    return f"{path}: {method} on {env}" + (f" in variant {v.name}" if v.name else "")
+
+
+def _train_config(spec: GridSpec, env_spec, env: str, method: str, v: Variant, path: Path):
+    """The TrainConfig `cdrb train` resolves for ``method`` on ``env`` in ``v`` (None: a ``--config`` file holds
+    some of it)."""
+    from cdrb_cli.methods.config import resolve_train_config, user_settings
+    from cdrb_cli.methods.registry import METHODS, BufferInfo
+
+    _, options, sets = parse_command(["train", *flags_for(spec, env, method, v)[0]], fold=False)
+    if options.get("config_file") is not None:
+        return None
+    steps = None if options.get("steps") is None else int(options["steps"])
+    preset = options.get("preset") or spec.preset
+    items = user_settings(method, options.get("net"), preset, steps, sets=[f"{k}={x}" for k, x in sets])
+    buffer = None
+    if METHODS.get(method).needs_buffer:
+        cluster = parse_command(["cluster", "demos.h5", *cluster_flags_for(spec, env, method, v)])[1]
+        buffer = BufferInfo(features=str(cluster.get("features") or "state"), diameter=1.0)
+    try:
+        return resolve_train_config(env_spec, buffer, items)
+    except BadInput as exc:
+        raise BadInput(f"{_where(path, env, method, v)}: train flags: {exc.message}", hint=exc.hint) from None
+
+
+def _check_eval(spec: GridSpec, env_spec, env: str, method: str, v: Variant, config, path: Path) -> None:
+    """``v``'s eval flags for ``method`` on ``env`` resolve as `cdrb eval` resolves them on a model trained with
+    ``config`` (a stand-in with the model's environment and settings: no model exists yet)."""
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.settings import Setting
+    from cdrb_cli.stages.configure import eval_config
+
+    flags = flags_for(spec, env, method, v)[1]
+    _, options, sets = parse_command(["eval", "MODEL", *flags])
+    if options.get("config_file") is not None:
+        return
+    where = f"{_where(path, env, method, v)}: eval flags"
+    settings = []
+    for key, text in sets:
+        if key.startswith("--"):  # an option's value the command refuses (check_flags names most of them)
+            raise BadInput(f"{where}: {key} {text}: not a value it takes", hint=f"`cdrb eval --help` ({key})")
+        try:
+            value = json.loads(text)
+        except ValueError:
+            raise BadInput(f"{where}: --set {key}={text}: not a value", hint="e.g. --set avoid.best_of=4") from None
+        settings.append(Setting(tuple(key.split(".")), value, f"--set {key}={text}"))
+    model = SimpleNamespace(manifest=SimpleNamespace(env=env_spec, config=config, profile=None))
+    scene_file = options.get("maze_map")
+    try:
+        scene = None if scene_file is None else family_of(env_spec).with_map(env_spec, Path(scene_file), "--scene")
+        eval_config(model, settings, scene_file=None if scene_file is None else Path(scene_file), scene=scene)
+    except BadInput as exc:
+        raise BadInput(f"{where}: {exc.message}", hint=exc.hint) from None
