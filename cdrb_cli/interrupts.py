@@ -16,6 +16,8 @@ from contextlib import contextmanager
 _requested = False
 _polling = 0
 _delivered = 0
+#: the signals :func:`install` routes through the handler (while installed)
+_routed: tuple[int, ...] = ()
 
 
 def delivered() -> int:
@@ -35,17 +37,33 @@ def _handler(signum, frame) -> None:
 def install():
     """Route SIGTERM, and SIGINT unless the process was started with it ignored (a background job), through the
     handler; returns a function that restores the previous handlers."""
-    global _requested
+    global _requested, _routed
     _requested = False
     previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, _handler)}
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         previous[signal.SIGINT] = signal.signal(signal.SIGINT, _handler)
+    outer, _routed = _routed, tuple(previous)
 
     def restore() -> None:
+        global _routed
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        _routed = outer
 
     return restore
+
+
+def reinstall() -> None:
+    """Route the signals :func:`install` routes through the handler again, after a library replaced the handler
+    (``ray.init`` sets its own SIGTERM handler, which exits with code 15 and a C++ stack dump instead of the
+    interrupt's clean stop). Nothing when :func:`install` is not in force (cdrb used as a library), or off the main
+    thread (where no handler can be set)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in _routed:
+        signal.signal(sig, _handler)
 
 
 @contextmanager

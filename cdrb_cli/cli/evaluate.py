@@ -22,11 +22,13 @@ from cdrb_cli.cli.common import (
 )
 from cdrb_cli.cli.options import (
     EVAL_MOVED,
+    SCENE_FLAGS,
     RunConfigOpt,
     RunSetOpt,
     everyday_flags,
     moved_flags,
     run_settings,
+    typed_flag,
 )
 from cdrb_cli.cli.tuned import read_selection, selection_settings
 from cdrb_cli.errors import BadInput
@@ -65,8 +67,7 @@ ReplanOpt = typer.Option(
 )
 SceneOpt = typer.Option(
     None,
-    "--scene",
-    "--maze-map",
+    *SCENE_FLAGS,
     metavar="FILE",
     help="Evaluate among obstacles the data never saw, the model not retrained: for a maze, a map file (the "
     "training map with walls added); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. Plans avoid "
@@ -144,9 +145,9 @@ def eval_cmd(
     route_buffer = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, route_buffer) if p is not None)]
     check_outputs(force, read, out=out, replan_plot=replan_plot)
-    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
+    from cdrb_cli.stages.plan import load_route_buffer, off_scene_warning, scene_spec
 
-    scene = scene_spec(m, maze_map)
+    scene = scene_spec(m, maze_map, typed_flag(SCENE_FLAGS))
     config = eval_config(m, settings, seed=seed, scene_file=maze_map, scene=scene)
     if replan_plot is not None and config.replan.mode == "never":
         raise BadInput("--replan-plot draws the plans of a closed-loop episode", hint="add --replan every:N")
@@ -160,6 +161,12 @@ def eval_cmd(
     s = ev.manifest.summary
     if s.masked is not None and s.masked.warning():
         ui.warn(s.masked.warning())
+    jumps = ev.arrays.get("episodes/plan_max_jump")  # each episode's largest planned step, every plan it made
+    warning = (
+        None if jumps is None else off_scene_warning(ev.manifest.env, jumps, m.manifest.config.stride, config.avoid)
+    )
+    if warning:
+        ui.warn(warning)
     ui.log(summary_line(s, config, ev.manifest.env.id))
     if video is not None:
         report_gifs(video, started, out)

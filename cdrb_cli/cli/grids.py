@@ -63,6 +63,10 @@ def select(
 
     if (docs is None) != (block is None):
         raise BadInput("--docs and --block go together", hint="e.g. --docs README.md --block tuning-fetch")
+    if block is not None:
+        from cdrb_cli.stages.docs_blocks import check_block_name
+
+        check_block_name(block)
     options = dict(force=force, table=table, curves=curves, overrides=overrides, includes=includes)
     ui.emit(run_select(grid_file, out, docs=docs, block=block, **options))
 

@@ -19,10 +19,24 @@ EnvArg = typer.Argument(None, help="Environment id (see `cdrb envs`); omit it wi
 MapOpt = typer.Option(None, "--maze-map", help="A maze map text file: rows of # wall, . free, S start, G goal, C both.")
 
 
+#: the names of the scene option of plan and eval (:data:`SceneMapOpt`, ``evaluate.SceneOpt``), the first the one
+#: their help shows
+SCENE_FLAGS = ("--scene", "--maze-map")
+
+
+def typed_flag(names: tuple[str, ...]) -> str:
+    """Which of an option's ``names`` the command line used (its last use, the one that counts), so that an error
+    names the flag as the user typed it; the first name when none of them is there."""
+    from cdrb_cli.provenance import command_line
+
+    typed = [a.split("=", 1)[0] for a in command_line()[1:]]
+    used = [a for a in typed if a in names]
+    return used[-1] if used else names[0]
+
+
 SceneMapOpt = typer.Option(
     None,
-    "--scene",
-    "--maze-map",
+    *SCENE_FLAGS,
     metavar="FILE",
     help="Plan among obstacles the data never saw, the model not retrained: for a maze, a map file (the training "
     "map with walls added, same size and cell size); for Fetch, a TOML file of \\[\\[boxes]] (center, half) put down. "

@@ -8,7 +8,16 @@ import typer
 
 from cdrb_cli import ui
 from cdrb_cli.cli.common import DeviceOpt, ForceOpt, JsonOpt, PartialOpt, SeedOpt, app, check_outputs, trained_model
-from cdrb_cli.cli.options import PLAN_MOVED, RunConfigOpt, RunSetOpt, SceneMapOpt, moved_flags, run_settings
+from cdrb_cli.cli.options import (
+    PLAN_MOVED,
+    SCENE_FLAGS,
+    RunConfigOpt,
+    RunSetOpt,
+    SceneMapOpt,
+    moved_flags,
+    run_settings,
+    typed_flag,
+)
 from cdrb_cli.cli.tuned import plan_part, read_selection, selection_settings
 
 
@@ -50,12 +59,14 @@ def plan(
     [cyan]--set avoid=plain[/cyan] plans as the model is. Also: [cyan]--batch-size N[/cyan] (plans sampled
     together, default 256)."""
     from cdrb_cli.artifacts import produce
+    from cdrb_cli.envs.geometry import largest_jump
     from cdrb_cli.stages.configure import plan_config, route_buffer_path
     from cdrb_cli.stages.plan import (
         disconnected_warning,
         draw_plans,
         load_route_buffer,
         make_plans,
+        off_scene_warning,
         plan_points,
         scene_spec,
     )
@@ -70,7 +81,7 @@ def plan(
     rb_path = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, rb_path) if p is not None)]
     check_outputs(force, read, out=out, plot=plot)
-    spec = scene_spec(m, maze_map)
+    spec = scene_spec(m, maze_map, typed_flag(SCENE_FLAGS))
     config = plan_config(m, settings, seed=seed, scene_file=maze_map)
     route_art = load_route_buffer(rb_path)
     s_arr, g_arr = plan_points(spec, start, goal, pairs, seed)
@@ -107,7 +118,12 @@ def plan(
         )
         if sm.masked.warning():
             ui.warn(sm.masked.warning())
-    warning = disconnected_warning(spec, result.arrays["plans"], m.manifest.config.stride, config.avoid)
+    plans = result.arrays["plans"]
+    jumps = largest_jump(plans[..., : spec.obs_dim], spec.obstacles.dims)
+    # a plan out of the scene is the one thing to say: its first step is then off too
+    warning = off_scene_warning(spec, jumps, m.manifest.config.stride, config.avoid) or disconnected_warning(
+        spec, plans, m.manifest.config.stride, config.avoid
+    )
     if warning:
         ui.warn(warning)
     if plot is not None:

@@ -64,6 +64,8 @@ def report(
 
     if (docs is None) != (block is None):
         raise BadInput("--docs and --block go together", hint="e.g. --docs docs/benchmarks.md --block table1-mazes")
+    if block is not None:
+        docs_blocks.check_block_name(block)
     if docs is not None and fmt not in ("markdown", "table", "summary"):
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
     if paper_figures is not None and not paper:

@@ -3,16 +3,39 @@ table: how `cdrb report --docs` and `cdrb select --docs` keep a results page cur
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import clip
+
+#: a block name: letters, digits, ``.``, ``_`` and ``-``, starting with a letter or digit, no ``--`` (which would
+#: end or break the HTML comment of its markers)
+BLOCK_NAME = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9._]|-(?!-)){0,63}")
+
+
+def check_block_name(name: str) -> None:
+    """Refuse a ``--block`` name that cannot be put in a marker line: empty, blank, or with a character outside
+    :data:`BLOCK_NAME` (a space, ``>``, ``--``, a line break would break the markers or match other text)."""
+    if not BLOCK_NAME.fullmatch(name):
+        raise BadInput(
+            f"--block {clip(name, 80)!r}: not a block name (letters, digits, '.', '_' and '-', at most 64, starting "
+            "with a letter or digit, no '--')",
+            hint="e.g. --block table1-mazes, the NAME of the <!-- NAME:begin --> marker",
+        )
+
+
+def newline_of(text: str) -> str:
+    """The line ending a text mostly uses: CRLF when more of its lines end so than with a bare LF."""
+    crlf = text.count("\r\n")
+    return "\r\n" if crlf > text.count("\n") - crlf else "\n"
 
 
 def replace_block(text: str, name: str, block: str, where: str) -> str:
-    """``text`` with the part between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` replaced by ``block``."""
-    import re
-
+    """``text`` with the part between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` replaced by ``block``,
+    every line ending the one ``text`` mostly uses (a CRLF file stays CRLF throughout, the new block too)."""
+    check_block_name(name)
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
     if not pattern.search(text):
@@ -27,7 +50,8 @@ def replace_block(text: str, name: str, block: str, where: str) -> str:
         )
     if begin in block or end in block:
         raise BadInput(f"--docs {where}: the report itself holds a {name} marker", hint="check the evals' names")
-    return pattern.sub(lambda _: f"{begin}\n{block.rstrip()}\n{end}", text, count=1)
+    out = pattern.sub(lambda _: f"{begin}\n{block.rstrip()}\n{end}", text, count=1)
+    return out.replace("\r\n", "\n").replace("\n", newline_of(text))
 
 
 def check_docs_block(docs: Path, block: str, text: str, inputs) -> None:
@@ -59,7 +83,7 @@ def write_docs_block(docs: Path, block: str, text: str, inputs) -> None:
     try:
         with claim_output(docs, True, "--docs", inputs), atomic_path(docs) as tmp:
             old = read_input_text(docs, "--docs", 1 << 24, "markdown file", "name the markdown file")
-            tmp.write_text(replace_block(old, block, text, str(docs)))
+            tmp.write_text(replace_block(old, block, text, str(docs)), encoding="utf-8", newline="")
             tmp.chmod(stat.S_IMODE(docs.stat().st_mode))  # the file keeps who may read it
     except PermissionError as exc:  # an immutable file, a folder that refuses the rename
         raise BadInput(f"--docs {docs}: cannot be replaced ({exc.strerror})",

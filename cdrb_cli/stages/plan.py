@@ -436,6 +436,34 @@ def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfi
     )
 
 
+def off_scene_warning(spec: EnvSpec, jumps, stride: int, avoid: AvoidConfig | None = None) -> str | None:
+    """One line when a plan steps, between two consecutive planned states, farther than the whole scene is across
+    (the diagonal of its workspace, :attr:`BoxObstacles.low` to ``high``): no robot follows such a plan, whatever
+    success and the in-obstacle figures say (guidance at a large ``avoid.guide_scale`` throws plans kilometres
+    away). ``jumps``: each plan's largest step (:func:`~cdrb_cli.envs.geometry.largest_jump`); None when no plan
+    jumps that far. Steps longer than the dynamics allow yet inside the scene are normal (plans are paths the
+    controller follows at its own pace) and not warned about."""
+    jumps = np.asarray(jumps, dtype=np.float64).ravel()
+    ob = spec.obstacles
+    across = float(np.linalg.norm(np.asarray(ob.high, dtype=np.float64) - np.asarray(ob.low, dtype=np.float64)))
+    far = np.isfinite(jumps) & (jumps > across)
+    if not far.any():
+        return None
+    largest = float(jumps[far].max())
+    max_step = family_of(spec).max_step(spec)
+    allowed = max_step * stride if max_step else None
+    ratio = f", {largest / allowed:.3g}x the {allowed:.2f} m the dynamics allow in one plan step" if allowed else ""
+    if avoid is not None and avoid.guide_scale > 0:
+        advice = f"avoid.guide_scale={avoid.guide_scale:g} pushes plans out of the scene: lower it"
+    else:
+        advice = "the model's plans leave the scene: check the model and its settings"
+    return (
+        f"{int(far.sum())} of {len(jumps)} plans jump farther in one planned step than the scene is across "
+        f"(up to {largest:.3g} m{ratio}; the scene is {across:.3g} m across): no robot can follow them, whatever "
+        f"the success figures say ({advice})"
+    )
+
+
 def plan_points(spec: EnvSpec, start: list[str], goal: list[str], pairs: int, seed: int):
     """The (starts, goals) full states of `cdrb plan`: ``pairs`` drawn by the protocol (stream plan), or the
     ``--start``/``--goal`` points as typed (one goal for every start, or one per start)."""

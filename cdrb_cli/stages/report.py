@@ -43,6 +43,11 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
         raw = tomllib.loads(text)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise BadInput(f"--paper-figures {where}: cannot read it ({exc})", hint="give a TOML file") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise BadInput(
+            f"--paper-figures {where}: arrays or tables nested too deep to read",
+            hint="see cdrb_cli/paper_table1.toml for the shape",
+        ) from None
     import math
 
     from cdrb_cli.envs.registry import make_spec

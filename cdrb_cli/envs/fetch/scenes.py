@@ -43,6 +43,20 @@ class SceneChange(Record):
     boxes: list[Box] = Field(min_length=1, max_length=16)
 
 
+def default_name(path: Path, source: str) -> str:
+    """The name of a scene file that does not set one: its file name without the extension, each character a name
+    may not hold made a ``-``, without the leading characters a name may not start with (a dot, a dash, an
+    underscore), at most 64 characters; one line naming the file when nothing is left."""
+    name = re.sub(r"[^A-Za-z0-9._-]", "-", path.stem).lstrip("._-")[:64]
+    if not name:
+        raise BadInput(
+            f"{source}: the scene is named after its file, and {clip(path.name, 80)!r} has no letter or digit to "
+            "name it",
+            hint='rename the file (e.g. closed-x.toml), or set name = "..." in it',
+        )
+    return name
+
+
 def load_scene_change(path: str | Path, flag: str = "--scene") -> SceneChange:
     """A scene file, read through the guarded reader and checked; every problem is one line naming ``flag``."""
     try:
@@ -60,7 +74,8 @@ def load_scene_change(path: str | Path, flag: str = "--scene") -> SceneChange:
     except (tomllib.TOMLDecodeError, RecursionError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BadInput(f"{source}: not valid TOML ({clip(first, 120)})", hint=HINT) from None
-    data.setdefault("name", re.sub(r"[^A-Za-z0-9._-]", "-", path.stem)[:64] or "scene")
+    if "name" not in data:
+        data["name"] = default_name(path, source)
     for i, box in enumerate(data.get("boxes", []) if isinstance(data.get("boxes"), list) else []):
         for key in ("center", "half"):
             value = box.get(key) if isinstance(box, dict) else None

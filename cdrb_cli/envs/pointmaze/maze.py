@@ -23,12 +23,14 @@ STOCK_LAYOUTS = ("maze", "maze-tight", "umaze", "medium", "large")
 MAP_CHARS = {"#": "wall", ".": "free", "S": "start", "G": "goal", "C": "start and goal"}
 MAX_MAP_SIDE = 100
 MAX_CELLS = MAX_MAP_SIDE * MAX_MAP_SIDE
+#: the longest map name (a map file's name without its extension)
+MAX_MAP_NAME = 200
 
 
 class MazeLayout(Record):
     """A grid maze: ``rows`` of ``#`` wall, ``.`` free, ``S`` start cell, ``G`` goal cell, ``C`` start+goal cell."""
 
-    name: str = Field(max_length=200)
+    name: str = Field(max_length=MAX_MAP_NAME)
     rows: list[str] = Field(min_length=3, max_length=MAX_MAP_SIDE)
     cell_size: float = Field(1.0, gt=0, le=100)
 
@@ -36,8 +38,10 @@ class MazeLayout(Record):
     @classmethod
     def _check_rows(cls, rows: list[str]) -> list[str]:
         width = len(rows[0])
-        if not 3 <= width <= MAX_MAP_SIDE or any(len(r) != width for r in rows):
-            raise ValueError(f"rows must all have the same length, 3..{MAX_MAP_SIDE}")
+        if not 3 <= width <= MAX_MAP_SIDE:
+            raise ValueError(f"rows must have 3..{MAX_MAP_SIDE} cells (a map too narrow or too wide)")
+        if any(len(r) != width for r in rows):
+            raise ValueError("rows must all have the same length")
         if any(ch not in MAP_CHARS for r in rows for ch in r):
             raise ValueError(f"rows may only contain {''.join(MAP_CHARS)}")
         return rows
@@ -78,6 +82,23 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
                     f"{source}:{lineno}:{col}: unknown map character {ch!r}",
                     hint="use # wall, . free, S start, G goal, C start+goal",
                 )
+    # the layout's own bounds, checked here so that a map beyond them is one line naming the file, not a
+    # validation error of the record
+    if len(rows) > MAX_MAP_SIDE:
+        raise BadInput(
+            f"{source}: map is too tall: {len(rows)} rows, more than {MAX_MAP_SIDE}",
+            hint=f"use at most {MAX_MAP_SIDE} rows",
+        )
+    if width > MAX_MAP_SIDE:
+        raise BadInput(
+            f"{source}: map is too wide: {width} cells per row, more than {MAX_MAP_SIDE}",
+            hint=f"use at most {MAX_MAP_SIDE} cells per row",
+        )
+    if len(name) > MAX_MAP_NAME:
+        raise BadInput(
+            f"{source}: the map's name has {len(name)} characters, more than {MAX_MAP_NAME}",
+            hint=f"a map is named after its file: rename the file to at most {MAX_MAP_NAME} characters",
+        )
     if len(rows) * width > MAX_CELLS:
         raise BadInput(f"{source}: map has {len(rows) * width} cells, more than {MAX_CELLS}", hint="use a smaller map")
     if len(rows) < 3 or width < 3:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from cdrb_cli import artifacts, ui
+from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.errors import BadInput, RunFailed
 from cdrb_cli.orchestration.grid.expand import expand
 from cdrb_cli.orchestration.grid.load import load_grid
@@ -142,18 +142,22 @@ class RayBackend:
         kwargs = {"include_dashboard": False, "log_to_driver": False, "ignore_reinit_error": True}
         if address is None and workers:
             kwargs["num_cpus"] = workers
+        # "local": a Ray of its own, whatever RAY_ADDRESS or the last `ray start` on this machine say (joining a
+        # cluster is what --address is for)
         # Ray puts the driver's current folder first on its workers' sys.path (a `numpy.py` beside the grid would
         # run in every worker): it starts from an empty folder of its own (the tasks' paths are absolute)
         self.home = tempfile.mkdtemp(prefix="cdrb-ray-")
         here = os.getcwd()
         os.chdir(self.home)
         try:
-            ray.init(address=address, **kwargs)
+            ray.init(address="local" if address is None else address, **kwargs)
         except BaseException:
             shutil.rmtree(self.home, ignore_errors=True)
             raise
         finally:
             os.chdir(here)
+            # ray.init sets its own SIGTERM handler: Ctrl-C and SIGTERM stop the grid cleanly (exit 130) again
+            interrupts.reinstall()
         self.ray = ray
         self.remote = ray.remote(max_retries=0)(execute)
         total = ray.cluster_resources()
