@@ -302,18 +302,18 @@ def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):
     assert max(in_flight) == 1
 
 
-def _kill_when_running(pattern: str, after: float, killed: list, stop: threading.Event) -> None:
-    """SIGKILL the first process whose command line contains ``pattern`` once it has run ``after`` seconds."""
+def _kill_when_running(held: Path, after: float, killed: list, stop: threading.Event) -> None:
+    """SIGKILL the first process that holds the file ``held`` open (a task's output lock: a fresh process or a fork
+    of the warm server alike) once it has held it ``after`` seconds."""
     seen: dict[int, float] = {}
     while not stop.is_set() and not killed:
-        for pid in os.listdir("/proc"):
-            if not pid.isdigit():
-                continue
+        for pid in filter(str.isdigit, os.listdir("/proc")):
             try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+                fds = os.listdir(f"/proc/{pid}/fd")
+                holds = any(os.readlink(f"/proc/{pid}/fd/{fd}") == str(held) for fd in fds)
             except OSError:
                 continue
-            if "cdrb_cli" in cmd and pattern in cmd:
+            if holds:
                 first = seen.setdefault(int(pid), time.time())
                 if time.time() - first >= after:
                     os.kill(int(pid), signal.SIGKILL)
@@ -329,7 +329,7 @@ def test_a_worker_killed_mid_task_is_retried_and_the_grid_finishes(tmp_path):
     killed: list[int] = []
     stop = threading.Event()
     watcher = threading.Thread(
-        target=_kill_when_running, args=(f"{spec.out}/maze-tight/mlp-s0.h5 --device", 4.0, killed, stop)
+        target=_kill_when_running, args=(spec.out / "maze-tight" / ".mlp-s0.h5.lock", 4.0, killed, stop)
     )
     watcher.start()
     backend = PoolBackend(1)
@@ -729,6 +729,7 @@ def test_hostile_grid_files_and_memos_are_refused_or_redone_without_hanging(tmp_
 
 
 def _train_pids(grid_out: Path) -> list[int]:
+    """Trainings of ``grid_out`` running as fresh `python -m cdrb_cli train` processes (a Ray worker's tasks)."""
     pids = []
     for pid in os.listdir("/proc"):
         try:
@@ -740,30 +741,97 @@ def _train_pids(grid_out: Path) -> list[int]:
     return pids
 
 
+def _tree(root: int) -> set[int]:
+    """``root`` and every process below it (from /proc's parent ids)."""
+    parents = {}
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            parents[int(pid)] = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+    tree, grew = {root}, True
+    while grew:
+        below = {p for p, parent in parents.items() if parent in tree} - tree
+        tree |= below
+        grew = bool(below)
+    return tree
+
+
+def _alive(pids: set[int]) -> set[int]:
+    """Those of ``pids`` still running (a zombie has stopped)."""
+    out = set()
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if state != "Z":
+            out.add(pid)
+    return out
+
+
+@pytest.mark.parametrize("warm", ["1", "0"])
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
-def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig):
+def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig, warm):
     """SIGTERM: the grid stops its running tasks and exits 130 at once (a training keeps its checkpoint); SIGKILL:
-    the tasks die with it. Either way nothing outlives it by more than a few seconds."""
+    the tasks die with it. Either way no process the grid started (a task, the warm server and its forks, or a
+    fresh process per task) outlives it by more than a few seconds."""
     text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
     grid = _grid(tmp_path, text.replace("steps = 20", "steps = 100000"))
     proc = subprocess.Popen(
         [sys.executable, "-m", "cdrb_cli", "grid", str(grid), "--backend", "pool", "-j", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ, OMP_NUM_THREADS="1"),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=dict(os.environ, OMP_NUM_THREADS="1", CDRB_GRID_WARM=warm),
     )  # fmt: skip
-    out = tmp_path / "runs"
+    lock = tmp_path / "runs" / "maze-tight" / ".mlp-s0.h5.lock"  # held by the training while it runs
     deadline = time.time() + 300
-    while not _train_pids(out) and time.time() < deadline:
+    while not lock.exists() and time.time() < deadline:
         time.sleep(0.2)
-    assert _train_pids(out), "the training never started"
+    assert lock.exists(), "the training never started"
     time.sleep(3)
+    started = _tree(proc.pid) - {proc.pid}
+    assert started, "the grid runs its training in a process of its own"
     proc.send_signal(sig)
     t = time.time()
     rc = proc.wait(timeout=30)
     assert rc == (130 if sig == signal.SIGTERM else -9)
     assert time.time() - t < 15
-    while _train_pids(out) and time.time() - t < 10:
+    while _alive(started) and time.time() - t < 10:
         time.sleep(0.2)
-    assert not _train_pids(out)
+    assert not _alive(started)
+
+
+def test_warm_tasks_write_what_fresh_processes_write(tmp_path):
+    """The pool's warm server forks each task from a process that imported cdrb once; the artifacts are those of a
+    fresh `python -m cdrb_cli` per task, bit for bit (timings aside), and a task's failure reads the same."""
+    import h5py
+    import numpy as np
+
+    text = TINY.replace("seeds = [0, 1]", "seeds = [0]") + '\n[[variants]]\nname = "v"\n'
+    text += '\n[[variants]]\nname = "bad"\nmethods = ["mlp"]\ntrain = ["--set", "lr=1e30"]\n'  # diverges
+    arrays, failures = {}, {}
+    for warm in (False, True):
+        spec = load_grid(_grid(tmp_path, text.replace('out = "runs"', f'out = "runs-{warm}"'), f"g{warm}.toml"))
+        backend = PoolBackend(2, warm=warm)
+        try:
+            run = run_grid(spec, backend)
+        finally:
+            backend.close()
+        failures[warm] = {r.id: r.stderr[-1].replace(str(spec.out), "OUT") for r in run.results if r.status == "failed"}
+        found = {}
+        for path in sorted(spec.out.rglob("*.h5")):
+            with h5py.File(path) as f:
+                names = []
+                f.visit(names.append)
+                for name in names:
+                    obj = f[name]
+                    if isinstance(obj, h5py.Dataset) and "seconds" not in name and obj.dtype.kind in "fiub":
+                        found[(str(path.relative_to(spec.out)), name)] = obj[()]
+        arrays[warm] = found
+    assert failures[True] == failures[False] and len(failures[True]) == 1, failures
+    assert arrays[True].keys() == arrays[False].keys() and len(arrays[True]) > 20
+    for key, value in arrays[False].items():
+        assert np.array_equal(value, arrays[True][key]), key
 
 
 def test_file_flags_in_a_grid_are_relative_to_the_file_that_declares_them(tmp_path):

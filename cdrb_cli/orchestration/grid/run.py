@@ -1,5 +1,5 @@
-"""Running a grid: tasks as `python -m cdrb_cli` processes on a local pool or on Ray, retried once, with
-progress, a summary and the report."""
+"""Running a grid: tasks as processes of their own on a local pool (forks of a warm server) or on Ray (`python -m
+cdrb_cli` processes), retried once, with progress, a summary and the report."""
 
 from __future__ import annotations
 
@@ -30,11 +30,14 @@ from cdrb_cli.settings import clip
 
 
 # ------------------------------------------------------------------------------------------------ execution
-def execute(payload: dict) -> dict:
-    """Run one task's `cdrb` command in a fresh process (on this machine or a Ray worker). A training whose model
-    file is there is continued with ``--resume``: a checkpoint an earlier attempt left unfinished, or a finished
-    shorter run of the same settings that the grid now trains longer (a curve extended to more steps); the command
-    itself refuses a file of other settings."""
+def execute(payload: dict, server=None) -> dict:
+    """Run one task's `cdrb` command in a process of its own (on this machine or a Ray worker): forked by the local
+    pool's warm ``server`` (:mod:`~cdrb_cli.orchestration.grid.warm`) where there is one, else a fresh `python -m
+    cdrb_cli`. A training whose model file is there is continued with ``--resume``: a checkpoint an earlier attempt
+    left unfinished, or a finished shorter run of the same settings that the grid now trains longer (a curve
+    extended to more steps); the command itself refuses a file of other settings."""
+    from cdrb_cli.orchestration.grid.warm import cold_only, run_task
+
     argv = list(payload["argv"])
     if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file():
         argv.append("--resume")
@@ -43,28 +46,41 @@ def execute(payload: dict) -> dict:
     # PYTHONSAFEPATH: the task's `python -m` must not import modules from the current folder (a `typer.py` beside
     # the grid would run in every task); cdrb is imported from where it is installed
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1")
-    t = time.time()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cdrb_cli", *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        preexec_fn=_die_with_parent(),
-    )
+    if server is not None and not cold_only(argv):
+        rc, stderr, seconds = run_task(server, argv, env, _register, _unregister)
+    else:
+        t = time.time()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cdrb_cli", *argv],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            preexec_fn=_die_with_parent(),
+        )
+        _register(proc)
+        try:
+            _, stderr = proc.communicate()
+        finally:
+            _unregister(proc)
+        rc, seconds = proc.returncode, time.time() - t
+    tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
+    return {"rc": rc, "seconds": seconds, "stderr": tail}
+
+
+def _register(proc) -> None:
     with _RUNNING_LOCK:
         _RUNNING.add(proc)
-    try:
-        _, stderr = proc.communicate()
-    finally:
-        with _RUNNING_LOCK:
-            _RUNNING.discard(proc)
-    tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
-    return {"rc": proc.returncode, "seconds": time.time() - t, "stderr": tail}
 
 
-#: the task processes this process started and that still run (the pool's threads start them)
-_RUNNING: set[subprocess.Popen] = set()
+def _unregister(proc) -> None:
+    with _RUNNING_LOCK:
+        _RUNNING.discard(proc)
+
+
+#: the task processes this process started and that still run (the pool's threads start them): subprocesses, or
+#: the warm server's forks (:class:`~cdrb_cli.orchestration.grid.warm.WarmTask`, the same four methods)
+_RUNNING: set = set()
 _RUNNING_LOCK = threading.Lock()
 
 
@@ -111,24 +127,42 @@ class TaskResult:
 
 
 class PoolBackend:
-    """N local workers, each running one task's process at a time."""
+    """N local workers, each running one task's process at a time: forked by a warm server that has imported cdrb
+    once (:mod:`~cdrb_cli.orchestration.grid.warm`; ``CDRB_GRID_WARM=0``: a fresh process per task)."""
 
     name = "local pool"
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, warm: bool | None = None):
         self.workers = workers
         #: tasks handed over at once: the grid keeps the rest and picks them in its own order (see run_grid)
         self.capacity = workers
         self.pool = cf.ThreadPoolExecutor(max_workers=workers)
+        self.warm = os.environ.get("CDRB_GRID_WARM", "1") != "0" if warm is None else warm
+        self._server = None
+        self._server_lock = threading.Lock()
 
     def check(self, spec: GridSpec) -> None:
         pass
 
+    def _execute(self, payload: dict) -> dict:
+        server = None
+        if self.warm and sys.platform.startswith("linux"):
+            with self._server_lock:
+                if self._server is None:
+                    from cdrb_cli.orchestration.grid.warm import WarmServer
+
+                    self._server = WarmServer()
+                server = self._server
+        return execute(payload, server)
+
     def submit(self, payload: dict) -> cf.Future:
-        return self.pool.submit(execute, payload)
+        return self.pool.submit(self._execute, payload)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
+        if self._server is not None:
+            self._server.close()
+            self._server = None
 
 
 class RayBackend:
