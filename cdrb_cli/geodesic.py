@@ -1,0 +1,132 @@
+"""Replay-buffer balls measured along the demonstrations: the buffer's transition graph and exact uniform sampling
+from geodesic balls.
+
+CDRB's ball D(s, eps) is Euclidean in the normalised features, so near a thin wall it holds buffer states from both
+sides, and a degradation may swap a state across the wall. The demonstrations say which buffer states are
+neighbours in free space: consecutive states of one demonstration. So:
+
+* :func:`transition_graph`: each demonstration state is mapped to its buffer state (the nearest buffer point, the
+  cluster it belongs to); consecutive distinct buffer states of one demonstration are joined by an undirected edge
+  weighted by their Euclidean distance in the normalised features. No map is read: the data alone say what is free.
+* :class:`GeodesicBalls`: a query state is attached to the graph at its nearest buffer state ``a`` (the step costs
+  the Euclidean distance to it), and its ball of radius eps holds the buffer states ``j`` with
+  ``|x - p_a| + g(a, j) < eps``, ``g`` the shortest-path distance along the graph. A draw is uniform over that set,
+  exactly: every node's shortest-path distances to all others are computed once and sorted, so a ball is a prefix
+  of its anchor's sorted list and a uniform rank in it is one binary search. States of another connected component
+  are never in a ball (their distance is infinite); a query farther from its anchor than eps has an empty ball (the
+  state is kept, as for an empty Euclidean ball).
+
+Memory is K^2 (a float32 distance and an int32 index per pair: 8 MB at K = 1,000, 800 MB at K = 10,000).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: the largest buffer the all-pairs tables are built for (8 bytes a pair: about 1.2 GB at this size)
+MAX_NODES = 12_000
+
+
+def nearest_point(points: np.ndarray, states: np.ndarray) -> np.ndarray:
+    """Index of the nearest of ``points`` (K, D) to each of ``states`` (N, D) (ties: the lowest index)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(points, dtype=np.float64)).query(np.asarray(states, dtype=np.float64))[1].astype(np.int64)
+
+
+def transition_graph(points: np.ndarray, states: np.ndarray, episode: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The buffer's transition graph: ``states`` (N, D) are the demonstrations' states in the buffer's normalised
+    features, in order, ``episode`` (N,) the demonstration each belongs to (consecutive rows of one demonstration
+    are consecutive states). Returns (edges (E, 2) int64 with i < j, each pair once, sorted; weights (E,) float64,
+    the Euclidean distance between the two buffer points). Deterministic: no randomness enters."""
+    points = np.asarray(points, dtype=np.float64)
+    node = nearest_point(points, states)
+    episode = np.asarray(episode)
+    same = (episode[1:] == episode[:-1]) & (node[1:] != node[:-1])
+    a, b = node[:-1][same], node[1:][same]
+    pairs = np.unique(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1), axis=0)
+    if pairs.size == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.float64)
+    weights = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+    return pairs.astype(np.int64), weights
+
+
+def graph_summary(n_nodes: int, edges: np.ndarray) -> dict:
+    """Size, connected components and degrees of a transition graph (what `cdrb inspect` shows)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_nodes, n_nodes))
+    n_comp, labels = connected_components(adj, directed=False)
+    degree = np.bincount(e.ravel(), minlength=n_nodes)
+    sizes = np.bincount(labels)
+    return {
+        "nodes": int(n_nodes),
+        "edges": int(len(e)),
+        "components": int(n_comp),
+        "largest_component": int(sizes.max()) if sizes.size else 0,
+        "isolated_nodes": int((degree == 0).sum()),
+        "mean_degree": round(float(degree.mean()), 3) if n_nodes else 0.0,
+        "max_degree": int(degree.max()) if n_nodes else 0,
+    }
+
+
+class GeodesicBalls:
+    """Exact uniform sampling from geodesic balls of a buffer's transition graph (see the module docstring); the
+    same ``sample(x, radius, rng)`` as :class:`~cdrb_cli.buffer.BallSampler`."""
+
+    def __init__(self, points: np.ndarray, edges: np.ndarray, weights: np.ndarray):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        k = len(self.points)
+        if k > MAX_NODES:
+            raise ValueError(f"geodesic balls need K <= {MAX_NODES} buffer points (all-pairs tables), got {k}")
+        e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        w = np.asarray(weights, dtype=np.float64)
+        graph = coo_matrix((w, (e[:, 0], e[:, 1])), shape=(k, k)).tocsr()
+        dist = dijkstra(graph, directed=False)  # (K, K), inf between components
+        self.order = np.argsort(dist, axis=1, kind="stable").astype(np.int32)
+        self.sorted = np.take_along_axis(dist, self.order.astype(np.int64), axis=1)
+        self._tree = None
+
+    @property
+    def K(self) -> int:
+        return self.points.shape[0]
+
+    def anchor(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each query's nearest buffer point and its Euclidean distance to it."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        d, a = self._tree.query(np.asarray(x, dtype=np.float64))
+        return np.asarray(a, dtype=np.int64), np.asarray(d, dtype=np.float64)
+
+    def ball_sizes(self, x: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(anchor, number of buffer points in each query's geodesic ball)."""
+        a, d = self.anchor(x)
+        left = np.asarray(radius, dtype=np.float64) - d  # what the graph may still spend
+        n = np.zeros(len(a), dtype=np.int64)
+        rows = max(1, 4_000_000 // max(self.K, 1))
+        for s in range(0, len(a), rows):  # a row of the sorted table below the threshold: strictly inside
+            n[s : s + rows] = (self.sorted[a[s : s + rows]] < left[s : s + rows, None]).sum(axis=1)
+        return a, n
+
+    def members(self, x: np.ndarray, radius: float) -> np.ndarray:
+        """The buffer indices in the geodesic ball of radius ``radius`` around one query ``x`` (for tests)."""
+        a, n = self.ball_sizes(np.asarray(x, dtype=np.float64)[None], np.array([radius]))
+        return np.sort(self.order[a[0], : n[0]].astype(np.int64))
+
+    def sample(self, x: np.ndarray, radius: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """For each query row ``x[q]`` the index of a buffer point drawn uniformly from its geodesic ball of radius
+        ``radius[q]``, or -1 when that ball is empty."""
+        x = np.asarray(x, dtype=np.float64)
+        radius = np.broadcast_to(np.asarray(radius, dtype=np.float64), (len(x),))
+        a, n = self.ball_sizes(x, radius)
+        u = rng.random(len(x))
+        rank = np.minimum((u * n).astype(np.int64), np.maximum(n - 1, 0))
+        out = self.order[a, rank].astype(np.int64)
+        return np.where(n > 0, out, -1)

@@ -1,0 +1,107 @@
+"""Geodesic buffer balls, checked against their definition: the transition graph joins only consecutive states of
+one demonstration; a ball holds the buffer states within eps along the graph (never across a wall the demos did not
+cross, never in another component) and a draw is uniform over it."""
+
+from __future__ import annotations
+
+import heapq
+
+import numpy as np
+import pytest
+from scipy.stats import chisquare
+
+from cdrb_cli.buffer import BallSampler
+from cdrb_cli.geodesic import GeodesicBalls, graph_summary, transition_graph
+
+
+def _u_routes(n: int = 21, gap: float = 0.3):
+    """Two demonstrations on either side of a thin wall along y = gap/2 from x = 0 to 0.9: the first runs along
+    y = 0 to x = 1 and turns up round the wall's end, the second runs back along y = gap. Buffer: every state."""
+    xs = np.linspace(0.0, 1.0, n)
+    a = np.stack([xs, np.zeros(n)], axis=1)
+    turn = np.array([[1.0, gap / 2], [1.0, gap]])
+    b = np.stack([xs[::-1], np.full(n, gap)], axis=1)
+    states = np.concatenate([a, turn, b])
+    episode = np.repeat([0, 1], [n + 2, n])
+    points = np.unique(states, axis=0)
+    return points, states, episode
+
+
+def _reference_ball(points, edges, weights, x, radius):
+    """The geodesic ball by its definition, computed another way: Dijkstra in pure Python from the query's nearest
+    buffer point, the query's step to it counted first."""
+    d_anchor = np.linalg.norm(points - x, axis=1)
+    a = int(np.argmin(d_anchor))
+    adj = {i: [] for i in range(len(points))}
+    for (i, j), w in zip(edges.tolist(), weights.tolist()):
+        adj[i].append((j, w))
+        adj[j].append((i, w))
+    dist = {a: d_anchor[a]}
+    heap = [(d_anchor[a], a)]
+    while heap:
+        d, i = heapq.heappop(heap)
+        if d > dist.get(i, np.inf):
+            continue
+        for j, w in adj[i]:
+            if d + w < dist.get(j, np.inf):
+                dist[j] = d + w
+                heapq.heappush(heap, (d + w, j))
+    return np.array(sorted(j for j, d in dist.items() if d < radius), dtype=np.int64)
+
+
+def test_the_graph_joins_only_consecutive_states_of_one_demonstration_and_is_deterministic():
+    points = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [0.0, 5.0]])
+    # demo 0 visits 0 -> 0 -> 1 -> 2 (a repeat is no edge); demo 1 stays near 3; the step from demo 0's last
+    # state to demo 1's first is no edge
+    states = np.array([[0.1, 0.0], [0.0, 0.1], [0.9, 0.0], [2.1, 0.1], [0.0, 4.9], [0.1, 5.0]])
+    episode = np.array([0, 0, 0, 0, 1, 1])
+    edges, weights = transition_graph(points, states, episode)
+    assert edges.tolist() == [[0, 1], [1, 2]] and np.allclose(weights, [1.0, 1.0])
+    again = transition_graph(points, states, episode)
+    assert np.array_equal(again[0], edges) and np.array_equal(again[1], weights)
+    summary = graph_summary(len(points), edges)
+    assert summary["components"] == 2 and summary["isolated_nodes"] == 1 and summary["max_degree"] == 2
+
+
+def test_a_geodesic_ball_never_reaches_across_a_wall_the_demos_went_round():
+    """Beside the wall's far end the Euclidean ball draws states from the other side of the wall; the geodesic ball
+    of the same radius never does, at any radius shorter than the way round."""
+    points, states, episode = _u_routes()
+    edges, weights = transition_graph(points, states, episode)
+    geo, euc = GeodesicBalls(points, edges, weights), BallSampler(points, np.array([0.0, 0.5]))
+    rng = np.random.default_rng(0)
+    x = np.repeat([[0.1, 0.0]], 4000, axis=0)  # on the first route, 0.3 from the second across the wall
+    # the other route beside the query: the way round to it from x = 0.1 is at least 0.9 + 0.3 + 0.5 = 1.7
+    other_side = lambda idx: (points[idx[idx >= 0], 1] > 0.2) & (points[idx[idx >= 0], 0] < 0.5)  # noqa: E731
+    for radius in (0.35, 0.5, 1.0, 1.6):
+        assert not other_side(geo.sample(x, np.full(len(x), radius), rng)).any(), radius
+        assert other_side(euc.sample(x, np.full(len(x), radius), rng)).any(), radius
+    assert other_side(geo.sample(x, np.full(len(x), 2.5), rng)).any()  # beyond the way round it may
+
+
+@pytest.mark.parametrize("radius", [0.12, 0.45, 1.4, 2.3])
+def test_geodesic_draws_are_uniform_over_the_ball_by_its_definition(radius):
+    points, states, episode = _u_routes(n=15)
+    edges, weights = transition_graph(points, states, episode)
+    geo = GeodesicBalls(points, edges, weights)
+    x = np.array([0.33, 0.04])  # off the buffer: attached through its nearest point
+    ball = _reference_ball(points, edges, weights, x, radius)
+    assert np.array_equal(geo.members(x, radius), ball)
+    draws = geo.sample(np.repeat(x[None], 30_000, axis=0), np.full(30_000, radius), np.random.default_rng(1))
+    assert set(np.unique(draws).tolist()) == set(ball.tolist())
+    counts = np.bincount(draws, minlength=len(points))[ball]
+    assert chisquare(counts).pvalue > 1e-3
+
+
+def test_other_components_and_queries_far_from_the_buffer():
+    """A ball never holds a state of another component, however large; a query farther from its nearest buffer
+    state than the radius has an empty ball (-1: the state is kept, as for an empty Euclidean ball)."""
+    points = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0], [0.3, 0.05], [0.4, 0.05]])
+    states = points.copy()
+    episode = np.array([0, 0, 0, 1, 1])
+    edges, weights = transition_graph(points, states, episode)
+    geo = GeodesicBalls(points, edges, weights)
+    draws = geo.sample(np.repeat([[0.05, 0.0]], 2000, axis=0), np.full(2000, 100.0), np.random.default_rng(2))
+    assert set(draws.tolist()) == {0, 1, 2}
+    far = geo.sample(np.array([[0.0, 1.0], [0.0, 0.5]]), np.array([0.9, 0.6]), np.random.default_rng(3))
+    assert far[0] == -1 and far[1] == 0  # 1.0 from its anchor with radius 0.9: empty; 0.5 < 0.6: the anchor
