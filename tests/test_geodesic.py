@@ -105,3 +105,39 @@ def test_other_components_and_queries_far_from_the_buffer():
     assert set(draws.tolist()) == {0, 1, 2}
     far = geo.sample(np.array([[0.0, 1.0], [0.0, 0.5]]), np.array([0.9, 0.6]), np.random.default_rng(3))
     assert far[0] == -1 and far[1] == 0  # 1.0 from its anchor with radius 0.9: empty; 0.5 < 0.6: the anchor
+
+
+def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_has_none(
+    tmp_path, small_data, cdrb, monkeypatch
+):
+    """`cdrb cluster` stores the transition graph of its demos (the same as built from them again); `cdrb inspect
+    --json` counts it; a buffer written without one reads, and asking it for the graph is one line on how to get
+    one."""
+    import json
+
+    import h5py
+
+    from cdrb_cli import artifacts
+    from cdrb_cli.buffer import Normalizer, demo_features, split_rows
+    from cdrb_cli.errors import BadInput
+
+    demos, buffer = small_data
+    edges, weights = buffer.graph()
+    norm = Normalizer(buffer.low, buffer.high)
+    rows = split_rows(demos, buffer.manifest.config.split)
+    episode = np.concatenate([np.full(n, i) for i, n in enumerate(demos.episode_length)])
+    z = norm.normalize(demo_features(demos, buffer.manifest.config.features)[rows])
+    again = transition_graph(buffer.points, z, episode[rows])
+    assert np.array_equal(edges, again[0]) and np.allclose(weights, again[1]) and len(edges) >= len(buffer.points) - 1
+    info = json.loads(cdrb("inspect", buffer.path, "--json").stdout)
+    assert info["graph"] == graph_summary(len(buffer.points), edges)
+    old = tmp_path / "old.h5"
+    arrays = {k: v for k, v in buffer.arrays.items() if not k.startswith("graph/")}
+    manifest = buffer.manifest.model_copy(update={"schema_version": "2.6"})
+    with monkeypatch.context() as m:  # written as a buffer of before the graph
+        m.setitem(artifacts.SCHEMA_VERSIONS, "buffer", "2.6")
+        artifacts.save(old, "buffer", manifest, arrays)
+    with h5py.File(old) as f:
+        assert "graph" not in f
+    with pytest.raises(BadInput, match="has no transition graph.*cdrb cluster"):
+        artifacts.load(old, "buffer").graph()

@@ -29,7 +29,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.6", "model": "2.9", "plans": "2.6", "eval": "2.10"}
+SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.7", "model": "2.9", "plans": "2.6", "eval": "2.10"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -179,6 +179,8 @@ class Buffer(ArtifactBase):
         DatasetSpec("source_index", "i", ("K",)),
         DatasetSpec("normalizer/low", "f", ("feature_dim",)),
         DatasetSpec("normalizer/high", "f", ("feature_dim",)),
+        DatasetSpec("graph/edges", "i", ("E", 2), required=False),
+        DatasetSpec("graph/weights", "f", ("E",), required=False),
     )
 
     @classmethod
@@ -191,7 +193,30 @@ class Buffer(ArtifactBase):
     def check_data(cls, manifest, arrays):
         if (arrays["source_index"] < 0).any():
             return "source_index holds negative rows"
+        if ("graph/edges" in arrays) != ("graph/weights" in arrays):
+            return "graph/edges and graph/weights come together"
+        edges = arrays.get("graph/edges")
+        if edges is not None and edges.size:
+            k = len(arrays["points"])
+            if edges.min() < 0 or edges.max() >= k or (edges[:, 0] >= edges[:, 1]).any():
+                return f"graph/edges must join two distinct points 0..{k - 1}, the lower index first"
+            w = arrays["graph/weights"]
+            if not np.isfinite(w).all() or (w < 0).any():
+                return "graph/weights must be finite and not negative"
         return None
+
+    def graph(self) -> tuple[np.ndarray, np.ndarray]:
+        """The buffer's transition graph (:func:`~cdrb_cli.geodesic.transition_graph`): (edges, weights). A buffer
+        written before buffers carried one is refused with the way to make one."""
+        if "graph/edges" not in self.arrays:
+            from cdrb_cli.errors import BadInput
+
+            raise BadInput(
+                f"{self.path}: this buffer (schema {self.manifest.schema_version}) has no transition graph, which "
+                "geodesic balls measure along",
+                hint="run `cdrb cluster` on its demos again (buffers carry the graph since schema 2.7)",
+            )
+        return self.arrays["graph/edges"], self.arrays["graph/weights"]
 
     points = property(lambda self: self.arrays["points"])
     source_index = property(lambda self: self.arrays["source_index"])

@@ -11,10 +11,12 @@ from cdrb_cli import artifacts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, diameter, kmeans_buffer, split_rows
 from cdrb_cli.configs import ClusterConfig, ClusterSummary
 from cdrb_cli.errors import BadInput
+from cdrb_cli.geodesic import transition_graph
 
 
 def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
-    """Normalize the demos' features (min-max to [-1, 1]), run k-means, snap centroids to real states."""
+    """Normalize the demos' features (min-max to [-1, 1]), run k-means, snap centroids to real states, and join the
+    buffer states consecutive demonstration states map to (the transition graph)."""
     t0 = time.time()
     feats = demo_features(demos, config.features).astype(np.float64)
     # the normalizer always comes from the training split, so it matches what `cdrb train` computes
@@ -59,11 +61,19 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
     manifest = artifacts.make_manifest(
         "buffer", env=demos.manifest.env, config=config, seed=config.seed, parents=[demos], summary=summary
     )
+    # which buffer states the demonstrations connect (geodesic balls measure along it): each row's episode
+    episode = np.repeat(np.arange(len(demos.episode_start)), demos.episode_length)
+    order = np.concatenate([np.arange(s, s + n) for s, n in zip(demos.episode_start, demos.episode_length)])
+    row_episode = np.empty(len(order), dtype=np.int64)
+    row_episode[order] = episode
+    edges, weights = transition_graph(points, z, row_episode[rows])
     arrays = {
         "points": points,
         "source_index": rows[keep].astype(np.int64),
         "normalizer/low": norm.low,
         "normalizer/high": norm.high,
+        "graph/edges": edges,
+        "graph/weights": weights.astype(np.float32),
     }
     artifacts.save(out, "buffer", manifest, arrays)
     return artifacts.load(out, "buffer")

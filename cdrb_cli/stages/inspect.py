@@ -35,7 +35,18 @@ def describe(path: str | Path) -> dict[str, Any]:
         "config": m.config.model_dump(),
         "source": _source(m),
         "datasets": {k: {"shape": list(v.shape), "dtype": str(v.dtype)} for k, v in sorted(art.arrays.items())},
+        "graph": _graph(art),
     }
+
+
+def _graph(art) -> dict | None:
+    """A buffer's transition graph in numbers (nodes, edges, components, degrees); None for other kinds or a
+    buffer without one."""
+    if art.kind != "buffer" or "graph/edges" not in art.arrays:
+        return None
+    from cdrb_cli.geodesic import graph_summary
+
+    return graph_summary(len(art.arrays["points"]), art.arrays["graph/edges"])
 
 
 def _source(manifest) -> str | None:
@@ -81,6 +92,16 @@ def render(info: dict[str, Any]) -> None:
             if isinstance(v, float):
                 v = f"{v:.4g}"
             out.print(Text("  ") + safe(f"{k}: {v}", 120))
+    if info.get("graph"):
+        g = info["graph"]
+        out.print(Text("transition graph", "bold"))
+        out.print(
+            Text(
+                f"  {g['nodes']} nodes, {g['edges']} edges, {g['components']} component(s) (largest "
+                f"{g['largest_component']}), {g['isolated_nodes']} isolated; degree mean {g['mean_degree']}, "
+                f"max {g['max_degree']}"
+            )
+        )
     table = Table("dataset", "shape", "dtype", box=None, header_style="bold")
     shown = [(k, v) for k, v in info["datasets"].items() if not k.startswith(("weights/", "ema/", "optim/"))]
     for k, v in shown:

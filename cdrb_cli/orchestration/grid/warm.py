@@ -7,11 +7,12 @@ a small buffer, the tests' tiny trainings). A forked child starts with those imp
 the same `cdrb_cli.cli.main` a fresh process would, in the task's own folder, environment and thread count, with
 its output in files; its exit code comes back to the grid.
 
-The server speaks JSON lines on its stdin/stdout (no pickle): a request ``{"id", "argv", "env", "cwd", "stderr"}``
-is answered at once with ``{"id", "pid"}`` (the grid can signal the task itself) and, when the task ends, with
-``{"id", "rc"}``. The server has one thread (it forks: no other thread may hold a lock then), waits for requests
-and for its children in one ``select`` loop, starts with ``PYTHONSAFEPATH`` from an empty folder (no module of the
-grid's folder is ever imported), and dies with the grid (Linux's parent-death signal), as its children die with it.
+The server speaks JSON lines on its stdin/stdout (plain data, nothing that could run code): a request ``{"id",
+"argv", "env", "cwd", "stderr"}`` is answered at once with ``{"id", "pid"}`` (the grid can signal the task itself)
+and, when the task ends, with ``{"id", "rc"}``. The server has one thread (it forks: no other thread may hold a
+lock then), waits for requests and for its children in one ``select`` loop, starts with ``PYTHONSAFEPATH`` from an
+empty folder (no module of the grid's folder is ever imported), and dies with the grid (Linux's parent-death
+signal), as its children die with it.
 """
 
 from __future__ import annotations
