@@ -76,11 +76,13 @@ class GeodesicBalls:
     """Exact uniform sampling from geodesic balls of a buffer's transition graph (see the module docstring); the
     same ``sample(x, radius, rng)`` as :class:`~cdrb_cli.buffer.BallSampler`."""
 
-    def __init__(self, points: np.ndarray, edges: np.ndarray, weights: np.ndarray):
+    def __init__(self, points: np.ndarray, edges: np.ndarray, weights: np.ndarray, eps: np.ndarray | None = None):
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self.eps = None if eps is None else np.asarray(eps, dtype=np.float64)  # the radius of each diffusion step
+        self.edges, self.weights = np.asarray(edges, dtype=np.int64).reshape(-1, 2), np.asarray(weights, np.float64)
         k = len(self.points)
         if k > MAX_NODES:
             raise ValueError(f"geodesic balls need K <= {MAX_NODES} buffer points (all-pairs tables), got {k}")
@@ -130,3 +132,33 @@ class GeodesicBalls:
         rank = np.minimum((u * n).astype(np.int64), np.maximum(n - 1, 0))
         out = self.order[a, rank].astype(np.int64)
         return np.where(n > 0, out, -1)
+
+    def degrade(self, traj: np.ndarray, k, rng: np.random.Generator, pinned=(0, -1)) -> np.ndarray:
+        """D(traj, k) with geodesic balls: ``traj`` (B, H, D) normalized, ``k`` an int or (B,) ints; positions in
+        ``pinned`` are left unchanged; a state whose ball is empty is kept (as
+        :meth:`~cdrb_cli.buffer.BallSampler.degrade`)."""
+        out = np.array(traj, dtype=np.float64)
+        B, H, D = out.shape
+        free = np.ones(H, dtype=bool)
+        free[list(pinned)] = False
+        n_free = int(free.sum())
+        x = out[:, free, :].reshape(-1, D)
+        k = np.broadcast_to(np.asarray(k, dtype=np.int64), (B,))
+        idx = self.sample(x, np.repeat(self.eps[k], n_free), rng)
+        hit = idx >= 0
+        x[hit] = self.points[idx[hit]]
+        out[:, free, :] = x.reshape(B, n_free, D)
+        return out
+
+    def random_states(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+        """Buffer states drawn uniformly (the sampling prior): array of ``shape + (D,)``."""
+        return self.points[rng.integers(0, self.K, size=shape)]
+
+    def subset(self, keep: np.ndarray) -> GeodesicBalls:
+        """The balls of the buffer states ``keep`` (a boolean mask) marks: a removed state takes its edges with it,
+        so a path that led through it is gone (a new obstacle cuts the graph, no map test in the sampler)."""
+        keep = np.asarray(keep, dtype=bool)
+        new = np.full(self.K, -1, dtype=np.int64)
+        new[keep] = np.arange(int(keep.sum()))
+        both = keep[self.edges[:, 0]] & keep[self.edges[:, 1]] if len(self.edges) else np.zeros(0, bool)
+        return GeodesicBalls(self.points[keep], new[self.edges[both]], self.weights[both], self.eps)

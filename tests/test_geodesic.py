@@ -141,3 +141,47 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
         assert "graph" not in f
     with pytest.raises(BadInput, match="has no transition graph.*cdrb cluster"):
         artifacts.load(old, "buffer").graph()
+
+
+def test_cdrb_with_geodesic_balls_trains_plans_and_degrades_only_within_them(tmp_path, small_data, cdrb):
+    """`--set method.ball=geodesic`: the model carries the buffer's graph, every degradation of training and of
+    sampling replaces a state by a member of its geodesic ball, and plans come out; a tampered graph in the model is
+    one line; a buffer without a graph is refused before training."""
+    import torch
+
+    from cdrb_cli import artifacts
+    from cdrb_cli.methods.checkpoint import load_method
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.factories import tampered
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=10, **{"method.ball": "geodesic"}))
+    model = train(demos, buffer, cfg, tmp_path / "geo.h5")
+    assert np.array_equal(model.arrays["buffer/graph/edges"], buffer.graph()[0])
+    method = load_method(model)
+    ball = method.ball
+    assert isinstance(ball, GeodesicBalls)
+    rng = np.random.default_rng(0)
+    x = torch.from_numpy(ball.random_states((6, method.horizon), rng).astype(np.float32))
+    x[:, :, :2] += 0.05  # off the buffer: attached through the nearest point
+    inner = slice(1, -1) if method.kept else slice(None)  # the pinned ends are not degraded
+    for k in (1, 3, method.T - 2):
+        y = method._degrade(x, np.full(6, k), rng).numpy()[:, inner].reshape(-1, x.shape[-1])
+        for q, r in zip(x.numpy()[:, inner].reshape(-1, x.shape[-1]), y):
+            members = ball.members(q.astype(np.float64), method.eps[k])
+            moved = not np.allclose(q, r)
+            assert (not moved and members.size == 0) or any(np.allclose(r, ball.points[j]) for j in members)
+    r = cdrb("plan", model.path, "--pairs", "3", "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr
+    assert artifacts.load(tmp_path / "p.h5", "plans").arrays["plans"].shape[0] == 3
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(model.path.read_bytes())
+    with tampered(bad) as f:  # an edge to a point that does not exist
+        e = f["buffer/graph/edges"][()]
+        e[0, 1] = len(buffer.points) + 5
+        del f["buffer/graph/edges"]
+        f["buffer/graph/edges"] = e
+    r = cdrb("plan", bad, "--pairs", "1", "--out", tmp_path / "q.h5")
+    assert r.returncode == 2 and "buffer/graph/edges must join two distinct points" in r.stderr, r.stderr

@@ -29,7 +29,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.7", "model": "2.9", "plans": "2.6", "eval": "2.10"}
+SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.7", "model": "2.10", "plans": "2.6", "eval": "2.10"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -168,6 +168,21 @@ class Demos(ArtifactBase):
         return np.flatnonzero(mask)
 
 
+def graph_problem(arrays, prefix: str, k: int) -> str | None:
+    """What is wrong with the transition graph stored under ``prefix`` (``edges``, ``weights``) of a buffer of ``k``
+    points, or None (also when there is none)."""
+    if (f"{prefix}edges" in arrays) != (f"{prefix}weights" in arrays):
+        return f"{prefix}edges and {prefix}weights come together"
+    edges = arrays.get(f"{prefix}edges")
+    if edges is not None and edges.size:
+        if edges.min() < 0 or edges.max() >= k or (edges[:, 0] >= edges[:, 1]).any():
+            return f"{prefix}edges must join two distinct points 0..{k - 1}, the lower index first"
+        w = arrays[f"{prefix}weights"]
+        if not np.isfinite(w).all() or (w < 0).any():
+            return f"{prefix}weights must be finite and not negative"
+    return None
+
+
 class Buffer(ArtifactBase):
     """The replay buffer CDRB diffuses through: ``points`` (K, D) in normalized feature space, each a real
     demonstration state (``source_index`` rows of the demos), and the normalizer that defines that space."""
@@ -193,17 +208,7 @@ class Buffer(ArtifactBase):
     def check_data(cls, manifest, arrays):
         if (arrays["source_index"] < 0).any():
             return "source_index holds negative rows"
-        if ("graph/edges" in arrays) != ("graph/weights" in arrays):
-            return "graph/edges and graph/weights come together"
-        edges = arrays.get("graph/edges")
-        if edges is not None and edges.size:
-            k = len(arrays["points"])
-            if edges.min() < 0 or edges.max() >= k or (edges[:, 0] >= edges[:, 1]).any():
-                return f"graph/edges must join two distinct points 0..{k - 1}, the lower index first"
-            w = arrays["graph/weights"]
-            if not np.isfinite(w).all() or (w < 0).any():
-                return "graph/weights must be finite and not negative"
-        return None
+        return graph_problem(arrays, "graph/", len(arrays["points"]))
 
     def graph(self) -> tuple[np.ndarray, np.ndarray]:
         """The buffer's transition graph (:func:`~cdrb_cli.geodesic.transition_graph`): (edges, weights). A buffer
@@ -214,7 +219,7 @@ class Buffer(ArtifactBase):
             raise BadInput(
                 f"{self.path}: this buffer (schema {self.manifest.schema_version}) has no transition graph, which "
                 "geodesic balls measure along",
-                hint="run `cdrb cluster` on its demos again (buffers carry the graph since schema 2.7)",
+                hint="run `cdrb cluster` on its demos again: buffers carry the graph since schema 2.7",
             )
         return self.arrays["graph/edges"], self.arrays["graph/weights"]
 
@@ -239,6 +244,8 @@ class Model(ArtifactBase):
         DatasetSpec("curve/valid_step", "i", ("V",), required=False),
         DatasetSpec("curve/valid_loss", "f", ("V",), required=False),
         DatasetSpec("buffer/points", "f", ("K", "feature_dim"), required=False),
+        DatasetSpec("buffer/graph/edges", "i", ("E", 2), required=False),
+        DatasetSpec("buffer/graph/weights", "f", ("E",), required=False),
     )
     # ema/ may be empty: a method whose averages are its own modules (Diffusion-QL) keeps none; weights/ only for a
     # method with no network (the straight line), whose state says 0 parameters
@@ -256,6 +263,10 @@ class Model(ArtifactBase):
 
     @classmethod
     def check_data(cls, manifest, arrays):
+        if "buffer/graph/edges" in arrays or "buffer/graph/weights" in arrays:
+            problem = graph_problem(arrays, "buffer/graph/", len(arrays.get("buffer/points", ())))
+            if problem:
+                return problem
         steps = arrays["curve/step"]
         if (np.diff(steps) <= 0).any() or (steps > manifest.state.step).any() or (steps < 1).any():
             return "curve/step must increase, from 1 to the model's step"

@@ -49,8 +49,18 @@ class Method:
 
     kind: ClassVar[str] = "method"
 
-    def __init__(self, config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, buffer_points=None, device="cpu"):
+    def __init__(
+        self,
+        config: TrainConfig,
+        spec: EnvSpec,
+        normalizer: Normalizer,
+        buffer_points=None,
+        device="cpu",
+        buffer_graph: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
         self.config = config
+        #: the buffer's transition graph (edges, weights) where the method measures balls along it, else None
+        self.buffer_graph = buffer_graph
         self.spec = spec
         self.normalizer = normalizer
         self.device = torch.device(device)
@@ -275,8 +285,14 @@ def keep_schedule(total: int, keep: int) -> set[int]:
     return {int(round(i)) for i in np.linspace(0, total - 1, min(keep, total))}
 
 
-def build_method(config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, buffer_points=None, device="cpu"):
-    """The method a config names, built from the registry."""
+def build_method(
+    config: TrainConfig, spec: EnvSpec, normalizer: Normalizer, buffer_points=None, device="cpu", buffer_graph=None
+):
+    """The method a config names, built from the registry (``buffer_graph``: the buffer's transition graph, for a
+    method that measures balls along it)."""
     from cdrb_cli.methods.registry import METHODS
 
-    return METHODS.get(config.method.name).method(config, spec, normalizer, buffer_points, device)
+    cls = METHODS.get(config.method.name).method
+    if buffer_graph is None:
+        return cls(config, spec, normalizer, buffer_points, device)
+    return cls(config, spec, normalizer, buffer_points, device, buffer_graph=buffer_graph)

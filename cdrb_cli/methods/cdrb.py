@@ -61,6 +61,12 @@ class CDRBParams(StartWeightParams):
         "that radius needs, 2 to 32) or fixed (32 for every ball; models before schema 2.8). The same law; "
         "another random stream, so a seed gives other draws",
     )
+    ball: Literal["euclidean", "geodesic"] = Field(
+        "euclidean",
+        description="how a ball around a state is measured: euclidean (the paper's: distance in the normalized "
+        "features) or geodesic (along the buffer's transition graph, the paths the demonstrations took: a "
+        "degradation never swaps a state across a wall the demos went round; the buffer must carry its graph)",
+    )
 
 
 class CDRB(Planner):
@@ -72,7 +78,7 @@ class CDRB(Planner):
         self.T = p.diffusion_steps
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
-        self.ball = BallSampler(self.points, self.eps, candidates=p.ball_candidates)
+        self.ball = self._sampler(self.points, self.buffer_graph)
         self._torch_ball = None  # built on first use on a non-CPU device
         self._collides = None  # with a masked buffer: which normalized features collide (re-drawn after restoring)
         self.redrawn = 0  # restored states re-drawn from the masked buffer (counted over every sample call)
@@ -85,13 +91,28 @@ class CDRB(Planner):
         every = isinstance(self.pinned, slice) and isinstance(self.pinned_end, slice)
         self.kept = (0, -1) if every and whole else ()
 
+    def _sampler(self, points, graph):
+        """The degradation's sampler over ``points``: Euclidean balls, or geodesic ones along ``graph``."""
+        p = self.config.method
+        if p.ball == "euclidean":
+            return BallSampler(points, self.eps, candidates=p.ball_candidates)
+        if graph is None:
+            raise ValueError("geodesic balls need the buffer's transition graph")
+        from cdrb_cli.geodesic import GeodesicBalls
+
+        return GeodesicBalls(points, *graph, eps=self.eps)
+
     def extra_arrays(self):
-        return {"buffer/points": self.points}
+        out = {"buffer/points": self.points}
+        if self.config.method.ball == "geodesic":
+            edges, weights = self.buffer_graph
+            out |= {"buffer/graph/edges": np.asarray(edges, np.int64), "buffer/graph/weights": np.asarray(weights)}
+        return out
 
     def _device_ball(self, device) -> TorchBallSampler | None:
         """The ball sampler that stays on ``device`` (same law), or None on the CPU, where the numpy sampler with
-        its KD-tree is the faster one."""
-        if torch.device(device).type == "cpu":
+        its KD-tree is the faster one, and for geodesic balls (numpy tables on the CPU on every device)."""
+        if torch.device(device).type == "cpu" or self.config.method.ball != "euclidean":
             return None
         if self._torch_ball is None or self._torch_ball.device != torch.device(device):
             self._torch_ball = TorchBallSampler(self.ball.points.astype(np.float32), self.eps, device=device)
@@ -155,7 +176,10 @@ class CDRB(Planner):
         keep = ~np.asarray(collides(self.points), dtype=bool)
         if not keep.any():
             raise ValueError("every buffer state collides in this scene")
-        self.ball = BallSampler(self.points[keep], self.eps, candidates=self.config.method.ball_candidates)
+        if self.config.method.ball == "geodesic":  # a removed state takes its edges with it
+            self.ball = self._sampler(self.points, self.buffer_graph).subset(keep)
+        else:
+            self.ball = self._sampler(self.points[keep], None)
         self._torch_ball = None
         self._collides = collides
         from scipy.spatial import cKDTree
@@ -200,6 +224,7 @@ class CDRB(Planner):
             and sampler == "paper"
             and not keep_iterates
             and self._collides is None
+            and self.config.method.ball == "euclidean"
             and start.shape[0] * free * len(self.ball.points) <= self.GRAPH_PAIRS
         )
 

@@ -136,13 +136,13 @@ def normalizer_of(model) -> Normalizer:
     return Normalizer(low=model.arrays["normalizer/low"], high=model.arrays["normalizer/high"])
 
 
-def check_tensors(model, method_cls_args) -> None:
+def check_tensors(model, method_cls_args, buffer_graph=None) -> None:
     """The model's config against its stored tensors, before anything is allocated: the method is built on
     PyTorch's meta device (shapes only, no memory) and every module's state_dict must match ``weights/`` and
     ``ema/`` exactly, so a config whose sizes were tampered with (``net.dim`` 40,000) is refused with the tensor
     it does not fit, instead of allocating gigabytes."""
     with torch.device("meta"):
-        probe = build_method(*method_cls_args, device="meta")
+        probe = build_method(*method_cls_args, device="meta", buffer_graph=buffer_graph)
     expected: dict[str, tuple[int, ...]] = {}
     for m, module in probe.modules().items():
         for name, t in module.state_dict().items():
@@ -173,8 +173,13 @@ def load_method(model, device="cpu", ema: bool = True) -> Method:
     if entry.needs_buffer and points is None:
         raise BadInput(f"{model.path}: {entry.name} model without /buffer/points", hint="re-train it")
     args = (cfg, spec, normalizer_of(model), points)
-    check_tensors(model, args)
-    method = build_method(*args, device=device)
+    graph = None
+    if "buffer/graph/edges" in model.arrays:  # balls measured along the buffer's transition graph
+        graph = (model.arrays["buffer/graph/edges"], model.arrays["buffer/graph/weights"])
+    elif getattr(cfg.method, "ball", "euclidean") == "geodesic":
+        raise BadInput(f"{model.path}: a model with geodesic balls without /buffer/graph", hint="re-train it")
+    check_tensors(model, args, graph)
+    method = build_method(*args, device=device, buffer_graph=graph)
     if ema:
         mods = method.modules()
         load_weights(model, method, "ema", {m: mods[m] for m in method.ema_modules()})

@@ -162,7 +162,7 @@ def train(
     entry = METHODS.get(config.method.name)
     points = buffer.points if (buffer is not None and entry.needs_buffer) else None
     torch.manual_seed(config.seed)  # network initialization
-    method = build_method(config, spec, normalizer, points, device=device)
+    method = build_method(config, spec, normalizer, points, device=device, buffer_graph=_graph(buffer, config))
     windows = method.data(demos, normalizer, config.split)
     valid_batch = _validation_batch(method, demos, normalizer, config, device)
     ema = make_ema(method)
@@ -328,6 +328,14 @@ def _saved_step(out: Path):
 TRAIN_BYTES_PER_PARAMETER = 5 * 4
 
 
+def _graph(buffer, config: TrainConfig):
+    """The buffer's transition graph where the method measures its balls along it (else None); a buffer without one
+    is refused with the way to make one."""
+    if buffer is None or getattr(config.method, "ball", "euclidean") != "geodesic":
+        return None
+    return buffer.graph()
+
+
 def parameter_count(demos, buffer, config: TrainConfig) -> int:
     """The parameters of the network ``config`` builds, counted on torch's meta device (nothing is allocated, so
     a network too large for the machine is measured, not attempted)."""
@@ -337,7 +345,9 @@ def parameter_count(demos, buffer, config: TrainConfig) -> int:
     entry = METHODS.get(config.method.name)
     points = buffer.points if (buffer is not None and entry.needs_buffer) else None
     with torch.device("meta"):
-        method = build_method(config, demos.manifest.env, normalizer, points, device="meta")
+        method = build_method(
+            config, demos.manifest.env, normalizer, points, device="meta", buffer_graph=_graph(buffer, config)
+        )
     return sum(p.numel() for m in method.modules().values() for p in m.parameters())
 
 
