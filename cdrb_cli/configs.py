@@ -68,6 +68,11 @@ class ClusterSummary(Record):
     source_states: int
     feature_dim: int
     diameter: float
+    graph_diameter: float | None = Field(
+        None,
+        description="the largest shortest-path distance between two buffer points along the transition graph (the "
+        "largest geodesic ball that holds a whole component); None: no graph, or too large a buffer to measure",
+    )
     inertia: float | None = None
     wall_time_s: float
 

@@ -72,6 +72,21 @@ def graph_summary(n_nodes: int, edges: np.ndarray) -> dict:
     }
 
 
+def graph_diameter(n_nodes: int, edges: np.ndarray, weights: np.ndarray) -> float | None:
+    """The largest finite shortest-path distance between two of ``n_nodes`` points along the graph: the radius a
+    geodesic ball needs to hold a whole component from anywhere in it (None above :data:`MAX_NODES` points)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    if n_nodes > MAX_NODES:
+        return None
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.asarray(weights, np.float64), (e[:, 0], e[:, 1])), shape=(n_nodes, n_nodes)).tocsr()
+    dist = dijkstra(graph, directed=False)
+    finite = dist[np.isfinite(dist)]
+    return float(finite.max()) if finite.size else 0.0
+
+
 class GeodesicBalls:
     """Exact uniform sampling from geodesic balls of a buffer's transition graph (see the module docstring); the
     same ``sample(x, radius, rng)`` as :class:`~cdrb_cli.buffer.BallSampler`."""

@@ -11,16 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal, get_args, get_origin
+from typing import Any, Literal, get_args, get_origin
 
 from pydantic import Field
 
 from cdrb_cli.errors import BadInput
 from cdrb_cli.registry import Registry
 from cdrb_cli.schema_base import Record
-
-if TYPE_CHECKING:
-    from cdrb_cli.envs.spec import EnvSpec
 
 DEFAULT_METHOD = "cdrb"
 
@@ -66,6 +63,8 @@ class BufferInfo:
 
     features: str
     diameter: float
+    #: the largest shortest-path distance along the buffer's transition graph (None: no graph)
+    graph_diameter: float | None = None
 
 
 @dataclass(frozen=True)
@@ -79,7 +78,8 @@ class MethodEntry:
     * ``needs_buffer``: training and sampling use the replay buffer (``cdrb train --buffer``);
     * ``nets``: the network kinds it accepts, default first;
     * ``presets``: preset name -> values of ``params`` fields;
-    * ``data_defaults(spec, buffer)``: defaults that depend on the data (e.g. CDRB's d_max = buffer diameter);
+    * ``data_defaults(spec, buffer)`` or ``(spec, buffer, settings)``: defaults that depend on the data (e.g. CDRB's
+      d_max = buffer diameter, along the graph for geodesic balls);
     * ``train_defaults``: preset name -> training-config fields this method sets otherwise than the preset (a
       policy: state-action features, one action per chunk, its batch size and steps); the user's settings still win.
     """
@@ -89,7 +89,7 @@ class MethodEntry:
     needs_buffer: bool = False
     nets: tuple[str, ...] = ("unet", "transformer")
     presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    data_defaults: Callable[[EnvSpec, BufferInfo | None], dict[str, Any]] | None = None
+    data_defaults: Callable[..., dict[str, Any]] | None = None
     train_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     description: str = ""
 

@@ -185,3 +185,19 @@ def test_cdrb_with_geodesic_balls_trains_plans_and_degrades_only_within_them(tmp
         f["buffer/graph/edges"] = e
     r = cdrb("plan", bad, "--pairs", "1", "--out", tmp_path / "q.h5")
     assert r.returncode == 2 and "buffer/graph/edges must join two distinct points" in r.stderr, r.stderr
+
+
+def test_the_last_geodesic_ball_holds_the_whole_buffer_by_default(small_data):
+    """d_max defaults to the buffer's diameter in the measure the balls use: along the graph for geodesic balls
+    (its Euclidean diameter would leave far states out of every ball, while sampling starts from all of them)."""
+    from cdrb_cli.geodesic import graph_diameter
+    from cdrb_cli.methods.config import train_config
+
+    demos, buffer = small_data
+    s = buffer.manifest.summary
+    assert s.graph_diameter == pytest.approx(graph_diameter(len(buffer.points), *buffer.graph()), abs=1e-5)
+    assert s.graph_diameter > s.diameter
+    assert train_config(demos, buffer, "cdrb", {"method.ball": "geodesic"}).method.d_max == s.graph_diameter
+    assert train_config(demos, buffer, "cdrb", {}).method.d_max == s.diameter
+    mine = {"method.ball": "geodesic", "method.d_max": 1.5}
+    assert train_config(demos, buffer, "cdrb", mine).method.d_max == 1.5

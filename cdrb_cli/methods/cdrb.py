@@ -39,7 +39,9 @@ class CDRBParams(StartWeightParams):
         "log (the official code's log option, concave), geometric (log-spaced, convex), sqrt, sigmoid",
     )
     d_max: float = Field(
-        gt=0, description="largest ball radius, in normalized feature space (default: the buffer's diameter)"
+        gt=0,
+        description="largest ball radius, in normalized feature space (default: the buffer's diameter; for geodesic "
+        "balls its diameter along the transition graph)",
     )
     diffusion_steps: int = Field(gt=1, le=100_000, description="T, the number of diffusion steps")
     sampler: Literal["paper", "cold-improved"] = Field(
@@ -308,6 +310,20 @@ class CDRB(Planner):
             return self._restore(x, start, goal, ks, rng, sampler or self.config.method.sampler, 0)
 
 
+def _data_defaults(spec, buffer, settings) -> dict:
+    """d_max, the radius at the last diffusion step: the buffer's diameter, so that ball holds the whole buffer and
+    the last degradation is the sampling prior (uniform buffer states); measured along the transition graph for
+    geodesic balls (their Euclidean diameter would leave the far states out of every ball)."""
+    if buffer is None:
+        return {}
+    from cdrb_cli.settings import lookup
+
+    ball = lookup(settings, ("method", "ball"))
+    if ball is not None and ball.value == "geodesic" and buffer.graph_diameter:
+        return {"d_max": buffer.graph_diameter}
+    return {"d_max": buffer.diameter}
+
+
 METHODS.register(
     MethodEntry(
         params=CDRBParams,
@@ -317,7 +333,7 @@ METHODS.register(
             "quick": {"diffusion_steps": 32, "loss_weight_power": 1.0},
             "paper": {"diffusion_steps": 128, "loss_weight_power": 0.0},
         },
-        data_defaults=lambda spec, buffer: {"d_max": buffer.diameter} if buffer is not None else {},
+        data_defaults=_data_defaults,
         description="cold diffusion through the replay buffer (the paper's method)",
     )
 )

@@ -129,7 +129,7 @@ def resolve_train_config(
             f"{s_feat.source}: the buffer was clustered on {buffer.features!r} features",
             hint="omit it, or re-cluster with the same --features",
         )
-    data = entry.data_defaults(spec, buffer) if entry.data_defaults is not None else {}
+    data = _data_defaults(entry, spec, buffer, settings)
     for key, value in data.items():
         if isinstance(value, (int, float)) and value <= 0 and lookup(settings, ("method", key)) is None:
             raise BadInput(
@@ -140,6 +140,19 @@ def resolve_train_config(
     config = validate(TrainConfig, apply(given, settings), settings, "train")
     _check_net(config, settings)
     return config
+
+
+def _data_defaults(entry, spec, buffer, settings) -> dict:
+    """The method's defaults that depend on the data: ``data_defaults(spec, buffer)``, or ``(spec, buffer,
+    settings)`` for one whose data defaults also depend on a setting (CDRB's d_max: the buffer's diameter in the
+    measure its balls use)."""
+    import inspect
+
+    if entry.data_defaults is None:
+        return {}
+    if len(inspect.signature(entry.data_defaults).parameters) >= 3:
+        return entry.data_defaults(spec, buffer, settings)
+    return entry.data_defaults(spec, buffer)
 
 
 def config_problem(config: TrainConfig) -> tuple[tuple[str, ...], str, str] | None:
@@ -183,7 +196,8 @@ def buffer_info(buffer) -> BufferInfo | None:
     """What resolution needs of a buffer artifact (None without one)."""
     if buffer is None:
         return None
-    return BufferInfo(features=buffer.manifest.config.features, diameter=buffer.manifest.summary.diameter)
+    s = buffer.manifest.summary
+    return BufferInfo(features=buffer.manifest.config.features, diameter=s.diameter, graph_diameter=s.graph_diameter)
 
 
 def train_config(demos, buffer=None, method: str | None = None, settings: dict | None = None, seed: int = 0):

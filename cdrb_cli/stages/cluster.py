@@ -11,7 +11,7 @@ from cdrb_cli import artifacts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, diameter, kmeans_buffer, split_rows
 from cdrb_cli.configs import ClusterConfig, ClusterSummary
 from cdrb_cli.errors import BadInput
-from cdrb_cli.geodesic import transition_graph
+from cdrb_cli.geodesic import graph_diameter, transition_graph
 
 
 def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
@@ -50,23 +50,25 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
             f"CDRB's balls grow up to the buffer's diameter",
             hint="use --k 2 or more, on demos that visit more than one state",
         )
-    summary = ClusterSummary(
-        points=int(len(points)),
-        source_states=int(len(rows)),
-        feature_dim=int(points.shape[1]),
-        diameter=round(extent, 6),
-        inertia=inertia,
-        wall_time_s=round(time.time() - t0, 3),
-    )
-    manifest = artifacts.make_manifest(
-        "buffer", env=demos.manifest.env, config=config, seed=config.seed, parents=[demos], summary=summary
-    )
     # which buffer states the demonstrations connect (geodesic balls measure along it): each row's episode
     episode = np.repeat(np.arange(len(demos.episode_start)), demos.episode_length)
     order = np.concatenate([np.arange(s, s + n) for s, n in zip(demos.episode_start, demos.episode_length)])
     row_episode = np.empty(len(order), dtype=np.int64)
     row_episode[order] = episode
     edges, weights = transition_graph(points, z, row_episode[rows])
+    reach = graph_diameter(len(points), edges, weights)
+    summary = ClusterSummary(
+        points=int(len(points)),
+        source_states=int(len(rows)),
+        feature_dim=int(points.shape[1]),
+        diameter=round(extent, 6),
+        graph_diameter=None if reach is None else round(reach, 6),
+        inertia=inertia,
+        wall_time_s=round(time.time() - t0, 3),
+    )
+    manifest = artifacts.make_manifest(
+        "buffer", env=demos.manifest.env, config=config, seed=config.seed, parents=[demos], summary=summary
+    )
     arrays = {
         "points": points,
         "source_index": rows[keep].astype(np.int64),
