@@ -834,6 +834,29 @@ def test_warm_tasks_write_what_fresh_processes_write(tmp_path):
         assert np.array_equal(value, arrays[True][key]), key
 
 
+def test_a_warm_server_of_older_code_is_replaced_and_finishes_its_tasks(tmp_path):
+    """Code edited while a grid runs: the server that imported the old code takes no new task (a fork would mix old
+    modules with new ones it imports later); the next task gets a new server."""
+    import cdrb_cli.errors as module
+
+    backend = PoolBackend(1, warm=True)
+    payload = {"argv": ["envs"], "kind": "report", "outputs": [str(tmp_path / "x")], "cpus": 1}
+    path = Path(module.__file__)
+    before = path.stat()
+    try:
+        assert backend.submit(payload).result()["rc"] == 0
+        first = backend._server
+        assert not first.stale()
+        os.utime(path)  # the package's code is newer than the server
+        assert first.stale()
+        assert backend.submit(payload).result()["rc"] == 0
+        assert backend._server is not first and backend._retired == [first]
+        first.proc.wait(timeout=30)  # it ends by itself, its tasks done
+    finally:
+        os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+        backend.close()
+
+
 def test_file_flags_in_a_grid_are_relative_to_the_file_that_declares_them(tmp_path):
     """`--config tiny.toml` in a grid's settings (or in an included file, or a variant) means the file beside
     that grid or settings file, as `out` does, from whatever folder the grid is run; absolute paths stay."""

@@ -139,6 +139,7 @@ class PoolBackend:
         self.pool = cf.ThreadPoolExecutor(max_workers=workers)
         self.warm = os.environ.get("CDRB_GRID_WARM", "1") != "0" if warm is None else warm
         self._server = None
+        self._retired: list = []  # servers of older code, finishing the tasks they run
         self._server_lock = threading.Lock()
 
     def check(self, spec: GridSpec) -> None:
@@ -148,6 +149,10 @@ class PoolBackend:
         server = None
         if self.warm and sys.platform.startswith("linux"):
             with self._server_lock:
+                if self._server is not None and self._server.stale():  # cdrb's code changed since it started
+                    self._server.retire()
+                    self._retired.append(self._server)
+                    self._server = None
                 if self._server is None:
                     from cdrb_cli.orchestration.grid.warm import WarmServer
 
@@ -160,9 +165,9 @@ class PoolBackend:
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
-        if self._server is not None:
-            self._server.close()
-            self._server = None
+        for server in [*self._retired, *([self._server] if self._server is not None else [])]:
+            server.close()
+        self._server, self._retired = None, []
 
 
 class RayBackend:

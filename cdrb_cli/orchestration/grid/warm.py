@@ -208,6 +208,7 @@ class WarmServer:
     def __init__(self):
         from cdrb_cli.orchestration.grid.run import _die_with_parent
 
+        self.started = time.time()  # the code the server imports is cdrb's as of now (see :meth:`stale`)
         self.home = tempfile.mkdtemp(prefix="cdrb-warm-")
         env = dict(os.environ, PYTHONSAFEPATH="1", CDRB_WARM_PARENT=str(os.getpid()))
         self.log = Path(self.home) / "server.log"
@@ -261,6 +262,21 @@ class WarmServer:
                 done.set()
         started.wait()
         return WarmTask(int(result.get("pid", 0)), done, result)
+
+    def stale(self) -> bool:
+        """Whether cdrb's code changed since the server imported it (a file of the package written since): a fork
+        would run the old modules it holds beside new ones it imports later, so the grid starts a new server."""
+        package = Path(__file__).resolve().parents[2]
+        for path in package.rglob("*.py"):
+            with contextlib.suppress(OSError):
+                if path.stat().st_mtime > self.started - 1:
+                    return True
+        return False
+
+    def retire(self) -> None:
+        """Take no more tasks; the server ends by itself once the tasks it runs have ended."""
+        with contextlib.suppress(OSError, ValueError):
+            self.proc.stdin.close()
 
     def close(self) -> None:
         with contextlib.suppress(OSError, ValueError):
