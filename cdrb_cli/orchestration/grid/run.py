@@ -56,7 +56,7 @@ def execute(payload: dict, server=None) -> dict:
             stderr=subprocess.PIPE,
             text=True,
             env=env,
-            preexec_fn=_die_with_parent(),
+            preexec_fn=parent_death_hook(),
         )
         _register(proc)
         try:
@@ -84,7 +84,7 @@ _RUNNING: set = set()
 _RUNNING_LOCK = threading.Lock()
 
 
-def _die_with_parent():
+def parent_death_hook():
     """What a task's process runs before it starts (Linux): ask the kernel to send it SIGTERM when the thread that
     started it dies, so a grid killed with -9 leaves no training running and holding its output's lock. The
     function is looked up here, in the parent: the child only calls it."""

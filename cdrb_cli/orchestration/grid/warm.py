@@ -1,5 +1,6 @@
-"""Warm task processes for the local pool: a small fork server that imports cdrb and its heavy libraries (torch,
-MuJoCo, Gymnasium-Robotics, h5py, scikit-learn) once, then forks one process per task.
+"""Warm task processes for the local pool: a small fork server (:mod:`cdrb_cli.cli.forkserver`) that imports cdrb and
+its heavy libraries (torch, MuJoCo, Gymnasium-Robotics, h5py, scikit-learn) once, then forks one process per task;
+this module is the grid's end of it.
 
 A task of a grid is one `cdrb` command. Started as a fresh `python -m cdrb_cli` it pays 3-4 s of imports on these
 cores before it does anything, which is most of the time of a small task (an eval of a few episodes, a clustering of
@@ -18,10 +19,8 @@ signal), as its children die with it.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import json
 import os
-import select
 import shutil
 import signal
 import subprocess
@@ -31,141 +30,14 @@ import threading
 import time
 from pathlib import Path
 
-#: what the server imports before it forks: what every kind of task would import first
-PRELOAD = (
-    "numpy",
-    "torch",
-    "h5py",
-    "scipy.spatial",
-    "sklearn.cluster",
-    "threadpoolctl",
-    "cdrb_cli.cli",
-    "cdrb_cli.stages.collect",
-    "cdrb_cli.stages.cluster",
-    "cdrb_cli.stages.train",
-    "cdrb_cli.stages.evaluate",
-    "cdrb_cli.stages.report",
-    "cdrb_cli.methods.cdrb",
-    "cdrb_cli.methods.diffuser",
-    "cdrb_cli.envs.pointmaze.env",
-    "cdrb_cli.envs.fetch.env",
-)
+#: the server's module: on the command line's floor, as the tasks it runs are `cdrb` commands (the grid only names it)
+SERVER = "cdrb_cli.cli.forkserver"
 
 
 def cold_only(argv: list[str]) -> bool:
     """Whether a command must start as a fresh process: one that records videos picks MuJoCo's GL back end before
     MuJoCo is imported, which the server has done already."""
     return any(a == "--video" or a.startswith("--video=") for a in argv)
-
-
-# ------------------------------------------------------------------------------------------------ server side
-def serve() -> None:
-    """The server's loop (``python -m cdrb_cli.orchestration.grid.warm``)."""
-    from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
-    from cdrb_cli.workers import die_with_parent
-
-    die_with_parent(int(os.environ.get("CDRB_WARM_PARENT", "0")) or None)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the grid, which stops the tasks itself
-    for name in PRELOAD:
-        with contextlib.suppress(ImportError):
-            importlib.import_module(name)
-    with contextlib.suppress(ImportError):
-        import_gymnasium_robotics()
-    wake_r, wake_w = os.pipe()
-    os.set_blocking(wake_w, False)
-    signal.set_wakeup_fd(wake_w)
-    signal.signal(signal.SIGCHLD, lambda *_: None)  # a child ended: the wake-up byte ends the select
-    requests = sys.stdin.buffer
-    replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
-    children: dict[int, object] = {}
-    pending = b""
-    open_ = True
-    while open_ or children:
-        readable, _, _ = select.select([requests, wake_r] if open_ else [wake_r], [], [], 1.0)
-        if wake_r in readable:
-            os.read(wake_r, 512)
-        while children:
-            try:
-                pid, status = os.waitpid(-1, os.WNOHANG)
-            except ChildProcessError:
-                break
-            if pid == 0:
-                break
-            rid = children.pop(pid, None)
-            if rid is not None:
-                replies.write(json.dumps({"id": rid, "rc": os.waitstatus_to_exitcode(status)}) + "\n")
-        if open_ and requests in readable:
-            chunk = os.read(requests.fileno(), 1 << 16)
-            if not chunk:  # the grid closed the pipe (finished or gone): no more tasks
-                open_ = False
-                continue
-            pending += chunk
-            while b"\n" in pending:
-                line, pending = pending.split(b"\n", 1)
-                request = json.loads(line)
-                pid = os.fork()
-                if pid == 0:
-                    _child(request, wake_r, wake_w)  # never returns
-                children[pid] = request["id"]
-                replies.write(json.dumps({"id": request["id"], "pid": pid}) + "\n")
-
-
-def _child(request: dict, *fds: int) -> None:
-    """In the forked child: become the task's process, run its command, exit with its code."""
-    code = 1
-    try:
-        signal.set_wakeup_fd(-1)
-        for fd in fds:
-            os.close(fd)
-        for sig in (signal.SIGCHLD, signal.SIGTERM):
-            signal.signal(sig, signal.SIG_DFL)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        from cdrb_cli.workers import die_with_parent
-
-        die_with_parent(os.getppid())
-        _name(f"cdrb-{request['argv'][0] if request['argv'] else 'task'}")
-        null = os.open(os.devnull, os.O_RDWR)
-        err = os.open(request["stderr"], os.O_WRONLY | os.O_APPEND)
-        os.dup2(null, 0)
-        os.dup2(null, 1)
-        os.dup2(err, 2)
-        os.close(null)
-        os.close(err)
-        sys.stdin = open(0, closefd=False)  # new file objects: none of the server's locks come along
-        sys.stdout = open(1, "w", buffering=1, closefd=False)
-        sys.stderr = open(2, "w", buffering=1, closefd=False)
-        os.chdir(request["cwd"])
-        os.environ.clear()
-        os.environ.update(request["env"])
-        threads = os.environ.get("OMP_NUM_THREADS", "").strip()
-        if threads.isdigit() and int(threads) > 0:  # the libraries read it when they were loaded, in the server
-            from threadpoolctl import threadpool_limits
-
-            threadpool_limits(int(threads))
-        from cdrb_cli.cli import main
-
-        code = main(list(request["argv"]))
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    except BaseException:
-        import traceback
-
-        traceback.print_exc()
-        code = 1
-    finally:
-        with contextlib.suppress(Exception):
-            sys.stdout.flush()
-            sys.stderr.flush()
-        os._exit(code)
-
-
-def _name(name: str) -> None:
-    """The process's name as `top` and `ps -o comm` show it (Linux: 15 bytes), so a task is told from the server."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        with contextlib.suppress(OSError, AttributeError):
-            ctypes.CDLL(None, use_errno=True).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
 
 
 # ------------------------------------------------------------------------------------------------ grid side
@@ -206,7 +78,7 @@ class WarmServer:
     """The grid's end of a fork server (started on first use, stopped by :meth:`close`)."""
 
     def __init__(self):
-        from cdrb_cli.orchestration.grid.run import _die_with_parent
+        from cdrb_cli.orchestration.grid.run import parent_death_hook
 
         self.started = time.time()  # the code the server imports is cdrb's as of now (see :meth:`stale`)
         self.home = tempfile.mkdtemp(prefix="cdrb-warm-")
@@ -214,13 +86,13 @@ class WarmServer:
         self.log = Path(self.home) / "server.log"
         with open(self.log, "w") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "cdrb_cli.orchestration.grid.warm"],
+                [sys.executable, "-m", SERVER],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 stderr=log,
                 cwd=self.home,  # an empty folder: nothing of the grid's folder is on its path
                 env=env,
-                preexec_fn=_die_with_parent(),
+                preexec_fn=parent_death_hook(),
             )
         self._lock = threading.Lock()
         self._next = 0
@@ -306,7 +178,3 @@ def run_task(server: WarmServer, argv: list[str], env: dict, register, unregiste
     finally:
         with contextlib.suppress(OSError):
             os.unlink(name)
-
-
-if __name__ == "__main__":
-    serve()
