@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from cdrb_cli.buffer import BallSampler
+
 #: the largest buffer the all-pairs tables are built for (8 bytes a pair: about 1.2 GB at this size)
 MAX_NODES = 12_000
 
@@ -148,26 +150,11 @@ class GeodesicBalls:
         out = self.order[a, rank].astype(np.int64)
         return np.where(n > 0, out, -1)
 
-    def degrade(self, traj: np.ndarray, k, rng: np.random.Generator, pinned=(0, -1)) -> np.ndarray:
-        """D(traj, k) with geodesic balls: ``traj`` (B, H, D) normalized, ``k`` an int or (B,) ints; positions in
-        ``pinned`` are left unchanged; a state whose ball is empty is kept (as
-        :meth:`~cdrb_cli.buffer.BallSampler.degrade`)."""
-        out = np.array(traj, dtype=np.float64)
-        B, H, D = out.shape
-        free = np.ones(H, dtype=bool)
-        free[list(pinned)] = False
-        n_free = int(free.sum())
-        x = out[:, free, :].reshape(-1, D)
-        k = np.broadcast_to(np.asarray(k, dtype=np.int64), (B,))
-        idx = self.sample(x, np.repeat(self.eps[k], n_free), rng)
-        hit = idx >= 0
-        x[hit] = self.points[idx[hit]]
-        out[:, free, :] = x.reshape(B, n_free, D)
-        return out
-
-    def random_states(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
-        """Buffer states drawn uniformly (the sampling prior): array of ``shape + (D,)``."""
-        return self.points[rng.integers(0, self.K, size=shape)]
+    # D(traj, k) and the sampling prior are the Euclidean sampler's own code over this class's ``sample``: the
+    # pinned positions left alone, a state whose ball is empty kept, buffer states drawn uniformly
+    strategy = "geodesic"
+    degrade = BallSampler.degrade
+    random_states = BallSampler.random_states
 
     def subset(self, keep: np.ndarray) -> GeodesicBalls:
         """The balls of the buffer states ``keep`` (a boolean mask) marks: a removed state takes its edges with it,
