@@ -19,7 +19,7 @@ state. Every call is deterministic given ``seed`` (and the torch thread count, s
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -150,11 +150,13 @@ class Planner:
 
         # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
         given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
-        config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
+        config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)
+        # a start away from the data's starts may take a larger best-of (the family's choice for plans from anywhere)
+        avoid = replace(self.avoidance, best_of=config.avoid.best_of)
         out = sample_plans(
             self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, device=self.device,
-            avoid=self.avoidance,
+            avoid=avoid,
         )  # fmt: skip
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]

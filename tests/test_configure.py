@@ -110,6 +110,76 @@ def test_replanning_uses_the_settings_chosen_for_it_by_default(tiny_models):
     assert timed.controller.look_ahead == 0 and timed.controller.max_lag is None and timed.avoid.best_of == 8
 
 
+def _corridor_and_centre(model):
+    """A start in the map's start region and one in the outer corridor (a free cell that is no start cell)."""
+    import numpy as np
+
+    from cdrb_cli.envs.pointmaze.maze import MazeGeometry
+
+    geom = MazeGeometry(model.manifest.env.scene.maze)
+    outer = np.argwhere(geom.free & ~np.isin(geom.grid, ["S", "C"]))[0]
+    centre, corridor = geom.cell_to_xy(geom.start_cells[0]), geom.cell_to_xy(outer)
+    return np.r_[centre, 0.0, 0.0], np.r_[corridor, 0.0, 0.0]
+
+
+def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_models):
+    import numpy as np
+
+    from cdrb_cli.envs.pointmaze import PointMazeFamily
+
+    cdrb = tiny_models["cdrb"]
+    n = PointMazeFamily.start_tuned["cdrb"]["avoid.best_of"]
+    assert n > 1
+    centre, corridor = _corridor_and_centre(cdrb)
+    assert plan_config(cdrb, starts=centre[None]).avoid == AvoidConfig()  # where the data start: the paper's
+    assert plan_config(cdrb, starts=np.stack([centre, corridor])).avoid == AvoidConfig(best_of=n)
+    # what the user sets wins; avoid=plain drops it; a method with nothing chosen plans as it is
+    assert plan_config(cdrb, parse_set(["avoid=plain"]), starts=corridor[None]).avoid == AvoidConfig()
+    assert plan_config(cdrb, parse_set(["avoid.best_of=2"]), starts=corridor[None]).avoid.best_of == 2
+    assert plan_config(tiny_models["mlp"], starts=corridor[None]).avoid == AvoidConfig()
+    # an eval under the protocol of starts anywhere takes it; the stock protocol keeps one plan per pair
+    assert eval_config(cdrb, protocol="anywhere").avoid == AvoidConfig(best_of=n)
+    assert eval_config(cdrb).avoid == AvoidConfig()
+    assert eval_config(tiny_models["diffuser"], protocol="anywhere").avoid.best_of == 8
+    # beside a scene's avoidance, the larger best-of
+    scene = eval_config(cdrb, scene_file=NORTH, protocol="anywhere").avoid
+    assert scene.mask_buffer and scene.best_of == max(n, PointMazeFamily.scene_avoid["cdrb"]["best_of"])
+
+
+def test_the_start_default_is_a_best_of_alone():
+    """The Python API applies the default per call by changing the prepared planner's best-of, so a family's choice
+    for plans from anywhere may hold that one setting."""
+    from cdrb_cli.envs.registry import FAMILIES
+
+    for family in FAMILIES.builtin_entries():
+        for settings in family.start_tuned.values():
+            assert set(settings) == {"avoid.best_of"}, family.name
+            AvoidConfig(best_of=settings["avoid.best_of"])
+
+
+def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_models, tmp_path, cdrb, monkeypatch):
+    from cdrb_cli import api, artifacts
+    from cdrb_cli.envs.pointmaze import PointMazeFamily
+    from cdrb_cli.stages import plan as plan_stage
+
+    model = tiny_models["cdrb"]
+    n = PointMazeFamily.start_tuned["cdrb"]["avoid.best_of"]
+    centre, corridor = _corridor_and_centre(model)
+    point = ",".join(f"{v:g}" for v in corridor[:2])
+    goal = ",".join(f"{v:g}" for v in centre[:2])
+    r = cdrb("plan", model.path, "--start", point, "--goal", goal, "--out", tmp_path / "p.h5")
+    assert r.returncode == 0, r.stderr
+    assert artifacts.load(tmp_path / "p.h5", "plans").manifest.config.avoid.best_of == n
+    assert f"best of {n}" in r.stderr
+    seen = []
+    real = plan_stage.sample_plans
+    monkeypatch.setattr(plan_stage, "sample_plans", lambda *a, **k: seen.append(k["avoid"].best_of) or real(*a, **k))
+    planner = api.Planner(model.path)
+    planner.plan(corridor[:2], centre[:2])
+    planner.plan(centre[:2], corridor[:2])
+    assert seen == [n, 1] and planner.avoidance.best_of == 1
+
+
 def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):
     r = cdrb("plan", tiny_models["cdrb"].path, "--pairs", "2", "--scene", NORTH, "--out", tmp_path / "p.h5")
     assert r.returncode == 0, r.stderr

@@ -1147,3 +1147,26 @@ def test_the_replanning_defaults_leave_a_time_indexed_clock_alone(tmp_path):
     text += '\n[[variants]]\nname = "r"\neval = { replan = "every:20", null = ["controller.max_lag"] }\n'
     tasks = expand(load_grid(_grid(tmp_path, text)))
     assert any(t.kind == "eval" and "every:20" in " ".join(t.argv) for t in tasks)
+
+
+@pytest.mark.parametrize(
+    "flags, meant",
+    [
+        (["--set", 'protocol="anywhere"'], {"start_tuned": "by default"}),
+        (["--protocol", "anywhere"], {"start_tuned": "by default"}),
+        (
+            ["--set", 'protocol="anywhere"', "--set", 'replan="every:40"'],
+            {"start_tuned": "by default", "replan_tuned": "by default"},
+        ),
+        ([], {}),
+        (["--set", 'protocol="official-code"'], {}),
+    ],
+)
+def test_a_memo_records_the_defaults_an_eval_takes_from_its_protocol(flags, meant):
+    """An eval from anywhere takes the family's choice for plans from anywhere: a memo written before that default
+    meant one plan per pair, and is out of date."""
+    from cdrb_cli.orchestration.grid.memo import _meaning
+    from cdrb_cli.orchestration.grid.spec import Task
+
+    task = Task("eval x", "eval", ["eval", "model.h5", *flags, "--out", "e.h5"], [Path("e.h5")])
+    assert _meaning(task) == meant

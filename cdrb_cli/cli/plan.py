@@ -82,9 +82,9 @@ def plan(
     read = [model, *(p for p in (config_file, maze_map, rb_path) if p is not None)]
     check_outputs(force, read, out=out, plot=plot)
     spec = scene_spec(m, maze_map, typed_flag(SCENE_FLAGS))
-    config = plan_config(m, settings, seed=seed, scene_file=maze_map)
-    route_art = load_route_buffer(rb_path)
     s_arr, g_arr = plan_points(spec, start, goal, pairs, seed)
+    config = plan_config(m, settings, seed=seed, scene_file=maze_map, starts=s_arr)
+    route_art = load_route_buffer(rb_path)
     result = produce(
         out,
         "plans",

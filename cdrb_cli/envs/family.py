@@ -171,6 +171,13 @@ class EnvFamily(ABC):
     #: moving, so the plan clock may need to jump ahead and a plan to be chosen among several); a controller field
     #: applies where the controller has it, and ``avoid = "plain"`` drops the ``avoid.`` ones
     replan_tuned: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: method name -> the ``avoid.best_of`` (the one setting it may hold: it needs no preparing of the planner) plan
+    #: and eval use by default for plans that start away from the demonstrations' starts: an eval under one of
+    #: :attr:`start_protocols`, a plan with a start that :meth:`off_protocol_starts` finds outside the protocol's
+    #: starts. Each the choice of the family's tuning grid for plans from anywhere (a diffusion planner that starts
+    #: where the data seldom does crosses walls more often, and a known map lets it keep the best of several plans);
+    #: ``avoid = "plain"`` drops it
+    start_tuned: ClassVar[dict[str, dict[str, Any]]] = {}
 
     # -------------------------------------------------------------- environments
     @abstractmethod
@@ -363,6 +370,11 @@ class EnvFamily(ABC):
         :data:`FAILURE_CAUSES` but "plan". Here "collision" when the path touched an obstacle, else "tracking" (the
         controller did not follow the plan to the goal in time); a family with objects adds "grasp"."""
         return "collision" if collided else "tracking"
+
+    def off_protocol_starts(self, spec: EnvSpec, starts: np.ndarray) -> np.ndarray:
+        """Boolean per raw start state (n, obs_dim): outside the region the default protocol (and so the stock
+        demonstrations) start from. Here none: a family without the notion plans every start alike."""
+        return np.zeros(len(np.asarray(starts)), dtype=bool)
 
     def max_step(self, spec: EnvSpec) -> float | None:
         """The largest distance (over the obstacle dimensions) the dynamics can move the agent in one environment

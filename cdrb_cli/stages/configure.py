@@ -12,8 +12,9 @@ Shortcuts a setting may use: ``replan = "every:50"`` (``never``, ``every:N``, ``
 ``replan.mode`` fields, ``controller = "waypoint"`` for ``controller.name``, and ``avoid = "plain"`` (no avoidance)
 or ``avoid = "tuned"`` (the family's choice for new obstacles; the default in a scene, see
 :attr:`~cdrb_cli.envs.family.EnvFamily.scene_avoid`), applied before the ``avoid.<field>`` settings. An eval that
-re-plans uses the family's choice for re-planning (:attr:`~cdrb_cli.envs.family.EnvFamily.replan_tuned`) where the
-settings leave those fields alone.
+re-plans uses the family's choice for re-planning (:attr:`~cdrb_cli.envs.family.EnvFamily.replan_tuned`), and plans
+that start away from the demonstrations' starts its choice for plans from anywhere
+(:attr:`~cdrb_cli.envs.family.EnvFamily.start_tuned`), where the settings leave those fields alone.
 """
 
 from __future__ import annotations
@@ -113,6 +114,21 @@ def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Set
     return out
 
 
+def start_base(model, settings: Sequence[Setting], avoid: dict) -> list[Setting]:
+    """The settings plans that start away from the demonstrations' starts use unless ``settings`` give them: the
+    family's choice for plans from anywhere with this method (:attr:`~cdrb_cli.envs.family.EnvFamily.start_tuned`),
+    none with ``avoid = "plain"``, and a best-of no smaller than the one ``avoid`` (the avoidance base) has."""
+    if getattr(lookup(settings, ("avoid",)), "value", None) == "plain":
+        return []
+    out = []
+    for key, value in family_of(model.manifest.env).start_tuned.get(model.manifest.config.method.name, {}).items():
+        path = tuple(key.split("."))
+        if lookup(settings, path) is not None or (path == ("avoid", "best_of") and avoid.get("best_of", 1) >= value):
+            continue
+        out.append(Setting(path, value, f"{key} = {value} (the default for plans from anywhere)"))
+    return out
+
+
 def route_buffer_path(settings: Sequence[Setting]) -> Path | None:
     """The buffer file of ``avoid.route_buffer`` as given (the config records its name)."""
     s = lookup(settings, ("avoid", "route_buffer"))
@@ -189,10 +205,17 @@ def _check_steps(model, settings: Sequence[Setting], sample_steps: int | None, r
 
 # ------------------------------------------------------------------------------------------------ plan
 def plan_config(
-    model, settings: Sequence[Setting] = (), *, seed: int = 0, scene_file: Path | None = None, **fields: Any
+    model,
+    settings: Sequence[Setting] = (),
+    *,
+    seed: int = 0,
+    scene_file: Path | None = None,
+    starts=None,
+    **fields: Any,
 ) -> PlanConfig:
     """The :class:`PlanConfig` of ``settings`` (then ``fields``, keyword settings such as ``n=8``) for ``model``,
-    planning in ``scene_file`` when given."""
+    planning in ``scene_file`` when given; ``starts`` (raw start states, when known) away from the protocol's
+    starts take the family's settings for plans from anywhere."""
     settings = [*profile_settings(model, plan_keys()), *expand([*settings, *keyword_settings(fields)])]
     base = {
         "sampler": _sampler(model, settings),
@@ -201,6 +224,8 @@ def plan_config(
         "scene": None if scene_file is None else Path(scene_file).name,
         "seed": seed,
     }
+    if starts is not None and family_of(model.manifest.env).off_protocol_starts(model.manifest.env, starts).any():
+        settings = [*start_base(model, settings, base["avoid"]), *settings]
     given = [s for s in settings if s.path not in (("avoid",), ("sampler",))]
     config = _avoid_record(validate(PlanConfig, apply(base, given), settings, "plan"))
     check_avoid(model, config.avoid, settings)
@@ -270,6 +295,8 @@ def eval_config(
         "avoid": {} if entry.kind == "policy" else avoid_base(model, settings, scene_file is not None),
     }
     settings = [*replan_base(model, base["controller"]["name"], settings), *settings]
+    if protocol in family.start_protocols and entry.kind != "policy":
+        settings = [*start_base(model, settings, base["avoid"]), *settings]
     given = [s for s in settings if s.path not in (("avoid",), ("sampler",), ("protocol",))]
     config = _avoid_record(validate(EvalConfig, apply(base, given), settings, "eval"))
     check_avoid(model, config.avoid, settings)

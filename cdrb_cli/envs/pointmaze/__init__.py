@@ -130,6 +130,8 @@ class PointMazeFamily(EnvFamily):
         "diffuser": {"controller.look_ahead": 4, "avoid.best_of": 8},
         "mlp": {"controller.look_ahead": 4},
     }
+    # chosen by experiments/tune/anywhere-maze-tight-best-of.toml (experiments/tuned/anywhere-maze-tight.toml)
+    start_tuned = {"cdrb": {"avoid.best_of": 8}, "diffuser": {"avoid.best_of": 8}}
 
     # -------------------------------------------------------------- environments
     def env_ids(self) -> dict[str, str]:
@@ -345,6 +347,12 @@ class PointMazeFamily(EnvFamily):
         geom = MazeGeometry(spec.scene.maze)
         cell = geom.xy_to_cell(goal)
         return f"{int(cell[0])},{int(cell[1])}", geom.exit_label(states)
+
+    def off_protocol_starts(self, spec: EnvSpec, starts: np.ndarray) -> np.ndarray:
+        """Starts whose cell is not one of the map's start cells (``S`` or ``C``)."""
+        geom = MazeGeometry(spec.scene.maze)
+        cells = geom.xy_to_cell(np.asarray(starts)[:, :2])
+        return ~(cells[:, None, :] == geom.start_cells[None]).all(-1).any(-1)
 
     def max_step(self, spec: EnvSpec) -> float:
         # the env clips each velocity component at MAX_SPEED *before* a step, then one Euler step with the full

@@ -37,7 +37,10 @@ def memo_path(spec: GridSpec, task: Task) -> Path:
 def _meaning(task: Task) -> dict:
     """What a command means beyond its words, where a release changed it, so a memo written when it meant something
     else is out of date: a plan or an eval in a scene avoids the new obstacles by default (the family's tuned
-    avoidance), and an eval that re-plans uses the family's choice for re-planning."""
+    avoidance), an eval that re-plans uses the family's choice for re-planning, and an eval under a protocol of
+    starts anywhere the family's choice for plans from anywhere."""
+    from cdrb_cli.envs.registry import FAMILIES
+
     if task.kind not in ("plan", "eval"):
         return {}
     _, given, sets = parse_command(task.argv)
@@ -47,6 +50,9 @@ def _meaning(task: Task) -> dict:
     replans = [v for k, v in sets if k in ("replan", "replan.mode")]
     if any(v.strip("\"'") != "never" for v in replans):
         out["replan_tuned"] = "by default"
+    anywhere = {p for f in FAMILIES.builtin_entries() if f.start_tuned for p in f.start_protocols}
+    if any(k == "protocol" and v.strip("\"'") in anywhere for k, v in sets):
+        out["start_tuned"] = "by default"
     return out
 
 
