@@ -56,20 +56,12 @@ def plan(
     weights, kept iterates, and how plans keep out of obstacles ([cyan]avoid.*[/cyan]). New obstacles, no
     retraining: [cyan]--scene closed.txt[/cyan] plans in the training map with walls added, avoiding them with
     the settings chosen for new obstacles (CDRB: masked buffer, a buffer route repaired from k = 8, best of 4);
-    [cyan]--set avoid=plain[/cyan] plans as the model is. Also: [cyan]--batch-size N[/cyan] (plans sampled
-    together, default 256)."""
+    a start away from the demonstrations' starts keeps the best of several plans by the collision test (the
+    setting chosen for plans from anywhere; mazes: 8); [cyan]--set avoid=plain[/cyan] plans as the model is.
+    Also: [cyan]--batch-size N[/cyan] (plans sampled together, default 256)."""
     from cdrb_cli.artifacts import produce
-    from cdrb_cli.envs.geometry import largest_jump
     from cdrb_cli.stages.configure import plan_config, route_buffer_path
-    from cdrb_cli.stages.plan import (
-        disconnected_warning,
-        draw_plans,
-        load_route_buffer,
-        make_plans,
-        off_scene_warning,
-        plan_points,
-        scene_spec,
-    )
+    from cdrb_cli.stages.plan import load_route_buffer, make_plans, plan_points, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
     flags = [] if n is None else [(f"--num-plans {n}", "n", n)]
@@ -104,6 +96,17 @@ def plan(
         parents=[m] if route_art is None else [m, route_art],
         env=spec,
     )
+    _tell(result, spec, m, config, plot)
+    summary = result.manifest.summary.model_dump()
+    ui.emit({"path": str(out), "summary": summary} if as_json else out, as_json=as_json)
+
+
+def _tell(result, spec, model, config, plot: Path | None) -> None:
+    """What `cdrb plan` says on stderr about the plans it wrote (their safety, a masked buffer, a first step or a
+    jump out of the scene), and the picture ``plot``."""
+    from cdrb_cli.envs.geometry import largest_jump
+    from cdrb_cli.stages.plan import disconnected_warning, draw_plans, off_scene_warning
+
     if config.avoid.label() != "plain":
         ui.log(f"avoiding obstacles: {config.avoid.label()}")
     sm = result.manifest.summary
@@ -121,12 +124,11 @@ def plan(
     plans = result.arrays["plans"]
     jumps = largest_jump(plans[..., : spec.obs_dim], spec.obstacles.dims)
     # a plan out of the scene is the one thing to say: its first step is then off too
-    warning = off_scene_warning(spec, jumps, m.manifest.config.stride, config.avoid) or disconnected_warning(
-        spec, plans, m.manifest.config.stride, config.avoid
+    warning = off_scene_warning(spec, jumps, model.manifest.config.stride, config.avoid) or disconnected_warning(
+        spec, plans, model.manifest.config.stride, config.avoid
     )
     if warning:
         ui.warn(warning)
     if plot is not None:
         draw_plans(result, spec, plot)
         ui.log(f"picture: {plot}")
-    ui.emit({"path": str(out), "summary": sm.model_dump()} if as_json else out, as_json=as_json)

@@ -8,7 +8,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -36,7 +35,7 @@ def execute(payload: dict, server=None) -> dict:
     cdrb_cli`. A training whose model file is there is continued with ``--resume``: a checkpoint an earlier attempt
     left unfinished, or a finished shorter run of the same settings that the grid now trains longer (a curve
     extended to more steps); the command itself refuses a file of other settings."""
-    from cdrb_cli.orchestration.grid.warm import cold_only, run_task
+    from cdrb_cli.orchestration.grid.warm import cold_only, parent_death_hook, run_task
 
     argv = list(payload["argv"])
     if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file():
@@ -82,21 +81,6 @@ def _unregister(proc) -> None:
 #: the warm server's forks (:class:`~cdrb_cli.orchestration.grid.warm.WarmTask`, the same four methods)
 _RUNNING: set = set()
 _RUNNING_LOCK = threading.Lock()
-
-
-def parent_death_hook():
-    """What a task's process runs before it starts (Linux): ask the kernel to send it SIGTERM when the thread that
-    started it dies, so a grid killed with -9 leaves no training running and holding its output's lock. The
-    function is looked up here, in the parent: the child only calls it."""
-    if not sys.platform.startswith("linux"):
-        return None
-    import ctypes
-
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-    return lambda: prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
 def stop_running(grace: float = 5.0) -> None:

@@ -34,6 +34,21 @@ from pathlib import Path
 SERVER = "cdrb_cli.cli.forkserver"
 
 
+def parent_death_hook():
+    """What a task's process runs before it starts (Linux): ask the kernel to send it SIGTERM when the thread that
+    started it dies, so a grid killed with -9 leaves no training running and holding its output's lock. The
+    function is looked up here, in the parent: the child only calls it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return lambda: prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 def cold_only(argv: list[str]) -> bool:
     """Whether a command must start as a fresh process: one that records videos picks MuJoCo's GL back end before
     MuJoCo is imported, which the server has done already."""
@@ -78,8 +93,6 @@ class WarmServer:
     """The grid's end of a fork server (started on first use, stopped by :meth:`close`)."""
 
     def __init__(self):
-        from cdrb_cli.orchestration.grid.run import parent_death_hook
-
         self.started = time.time()  # the code the server imports is cdrb's as of now (see :meth:`stale`)
         self.home = tempfile.mkdtemp(prefix="cdrb-warm-")
         env = dict(os.environ, PYTHONSAFEPATH="1", CDRB_WARM_PARENT=str(os.getpid()))
