@@ -201,3 +201,27 @@ def test_the_last_geodesic_ball_holds_the_whole_buffer_by_default(small_data):
     assert train_config(demos, buffer, "cdrb", {}).method.d_max == s.diameter
     mine = {"method.ball": "geodesic", "method.d_max": 1.5}
     assert train_config(demos, buffer, "cdrb", mine).method.d_max == 1.5
+
+
+def test_a_masked_geodesic_buffer_loses_the_removed_states_edges_and_each_mask_starts_whole(tmp_path, small_data):
+    """A new obstacle at plan time removes buffer states: their edges go with them (a path through them is gone),
+    and a second mask (another scene) starts again from the whole buffer, not from the first mask's."""
+    from cdrb_cli.methods.checkpoint import load_method
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2, **{"method.ball": "geodesic"}))
+    method = load_method(train(demos, buffer, cfg, tmp_path / "geo.h5"))
+    whole, points = method.ball, method.points
+    cut = float(np.median(points[:, 0]))
+    removed = points[:, 0] > cut
+    counts = method.mask(lambda f: np.asarray(f)[..., 0] > cut)
+    assert counts == {"buffer_states": len(points), "removed": int(removed.sum())}
+    masked = method.ball
+    assert np.array_equal(masked.points, whole.points[~removed])
+    both = ~removed[whole.edges[:, 0]] & ~removed[whole.edges[:, 1]]
+    assert 0 < len(masked.edges) == int(both.sum()) < len(whole.edges)
+    method.mask(lambda f: np.zeros(np.asarray(f).shape[:-1], dtype=bool))
+    assert len(method.ball.points) == len(points) and len(method.ball.edges) == len(whole.edges)

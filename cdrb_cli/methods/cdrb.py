@@ -81,6 +81,7 @@ class CDRB(Planner):
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = self._sampler(self.points, self.buffer_graph)
+        self._whole_ball = self.ball  # the unmasked sampler, which a mask takes its subset of
         self._torch_ball = None  # built on first use on a non-CPU device
         self._collides = None  # with a masked buffer: which normalized features collide (re-drawn after restoring)
         self.redrawn = 0  # restored states re-drawn from the masked buffer (counted over every sample call)
@@ -179,7 +180,7 @@ class CDRB(Planner):
         if not keep.any():
             raise ValueError("every buffer state collides in this scene")
         if self.config.method.ball == "geodesic":  # a removed state takes its edges with it
-            self.ball = self._sampler(self.points, self.buffer_graph).subset(keep)
+            self.ball = self._whole_ball.subset(keep)
         else:
             self.ball = self._sampler(self.points[keep], None)
         self._torch_ball = None
