@@ -16,7 +16,8 @@ neighbours in free space: consecutive states of one demonstration. So:
   are never in a ball (their distance is infinite); a query farther from its anchor than eps has an empty ball (the
   state is kept, as for an empty Euclidean ball).
 
-Memory is K^2 (a float32 distance and an int32 index per pair: 8 MB at K = 1,000, 800 MB at K = 10,000).
+Memory is K^2 (a float64 distance and an int32 index per pair: 11 MiB at K = 1,000, 1.1 GiB at K = 10,000, whose
+all-pairs shortest paths take about 35 s on one core; `benchmarks/geodesic_balls.py` measures both).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 
 from cdrb_cli.buffer import BallSampler
 
-#: the largest buffer the all-pairs tables are built for (8 bytes a pair: about 1.2 GB at this size)
+#: the largest buffer the all-pairs tables are built for (12 bytes a pair: about 1.6 GiB at this size)
 MAX_NODES = 12_000
 
 
@@ -128,11 +129,16 @@ class GeodesicBalls:
         """(anchor, number of buffer points in each query's geodesic ball)."""
         a, d = self.anchor(x)
         left = np.asarray(radius, dtype=np.float64) - d  # what the graph may still spend
-        n = np.zeros(len(a), dtype=np.int64)
-        rows = max(1, 4_000_000 // max(self.K, 1))
-        for s in range(0, len(a), rows):  # a row of the sorted table below the threshold: strictly inside
-            n[s : s + rows] = (self.sorted[a[s : s + rows]] < left[s : s + rows, None]).sum(axis=1)
-        return a, n
+        # the entries of the anchor's sorted row below ``left`` (strictly inside): one binary search per query, all
+        # queries a step at a time, so a call costs log2(K) gathers instead of reading K distances per query
+        lo, hi = np.zeros(len(a), dtype=np.int64), np.full(len(a), self.K, dtype=np.int64)
+        for _ in range(int(self.K).bit_length()):
+            mid = (lo + hi) // 2
+            below = self.sorted[a, np.minimum(mid, self.K - 1)] < left
+            open_ = lo < hi
+            lo = np.where(open_ & below, mid + 1, lo)
+            hi = np.where(open_ & ~below, mid, hi)
+        return a, lo
 
     def members(self, x: np.ndarray, radius: float) -> np.ndarray:
         """The buffer indices in the geodesic ball of radius ``radius`` around one query ``x`` (for tests)."""
