@@ -141,6 +141,14 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
         assert "graph" not in f
     with pytest.raises(BadInput, match="has no transition graph.*cdrb cluster"):
         artifacts.load(old, "buffer").graph()
+    # the buffer picture draws the graph's edges; a buffer without one draws its states alone
+    from matplotlib.image import imread
+
+    from cdrb_cli.envs.render import plot_buffer
+
+    with_graph = imread(plot_buffer(buffer, tmp_path / "with.png"))
+    without = imread(plot_buffer(artifacts.load(old, "buffer"), tmp_path / "without.png"))
+    assert with_graph.shape == without.shape and not np.array_equal(with_graph, without)
 
 
 def test_cdrb_with_geodesic_balls_trains_plans_and_degrades_only_within_them(tmp_path, small_data, cdrb):

@@ -136,7 +136,8 @@ def plot_demos(demos, path: str | Path, n: int = 60, seed: int = 0) -> Path:
 
 
 def plot_buffer(buffer, path: str | Path) -> Path:
-    """The buffer's states on the scene, coloured by speed where the family gives one."""
+    """The buffer's states on the scene, coloured by speed where the family gives one, and its transition graph
+    (the states consecutive demonstration states join, which geodesic balls measure along) as thin grey lines."""
     plt = pyplot()
     spec = buffer.manifest.env
     low, high = buffer.low, buffer.high
@@ -145,6 +146,11 @@ def plot_buffer(buffer, path: str | Path) -> Path:
     draw_scene(ax, spec)
     fam = family_of(spec)
     xy = fam.xy(spec, raw[:, : spec.obs_dim])
+    edges = buffer.arrays.get("graph/edges")
+    if edges is not None and len(edges):
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(xy[edges], colors="0.55", linewidths=0.4, alpha=0.6, zorder=1))
     speed = fam.speed(spec, raw[:, : spec.obs_dim])
     sc = ax.scatter(xy[:, 0], xy[:, 1], s=4, c=speed, cmap="viridis", zorder=2)
     if speed is not None:
