@@ -401,6 +401,11 @@ class EvalSummary(Record):
         "tells a run's final model apart from the same file before its training was extended; None in evals before "
         "schema 2.10",
     )
+    variant: str | None = Field(
+        None,
+        description="what sets the evaluated model apart from its method as the paper defines it (e.g. 'geodesic "
+        "balls'), shown in its report row; None: as the paper, and in evals before schema 2.11",
+    )
     success_mean: float
     success_std: float
     weighted_success_mean: float | None = Field(None, description="SeedResult.weighted_success_rate, mean over seeds")

@@ -233,3 +233,23 @@ def test_a_masked_geodesic_buffer_loses_the_removed_states_edges_and_each_mask_s
     assert 0 < len(masked.edges) == int(both.sum()) < len(whole.edges)
     method.mask(lambda f: np.zeros(np.asarray(f).shape[:-1], dtype=bool))
     assert len(method.ball.points) == len(points) and len(method.ball.edges) == len(whole.edges)
+
+
+def test_report_keeps_geodesic_and_euclidean_cdrb_apart(tmp_path, small_data, tiny_models, cdrb):
+    """Evals of a CDRB model with geodesic balls record it (summary.variant), so `cdrb report` gives it its own row
+    beside the paper's CDRB on the same pairs instead of refusing two evals of one method and seed."""
+    import json
+
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2, **{"method.ball": "geodesic"}))
+    geo = train(demos, buffer, cfg, tmp_path / "geo.h5")
+    for name, model in (("geo", geo.path), ("euc", tiny_models["cdrb"].path)):
+        r = cdrb("eval", model, "-n", "2", "--seeds", "0", "--out", tmp_path / f"eval-{name}.h5")
+        assert r.returncode == 0, r.stderr
+    r = cdrb("report", tmp_path / "eval-geo.h5", tmp_path / "eval-euc.h5", "--format", "json")
+    assert r.returncode == 0, r.stderr
+    assert sorted(row["method"] for row in json.loads(r.stdout)) == ["cdrb", "cdrb [geodesic balls]"]

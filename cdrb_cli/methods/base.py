@@ -77,6 +77,11 @@ class Method:
         """The method's registered name (its params record's ``name``)."""
         return self.config.method.name
 
+    def variant(self) -> str | None:
+        """What sets this model apart from its method as the paper defines it, in a few words that `cdrb report`
+        adds to its row (e.g. "geodesic balls"); None: as the paper."""
+        return None
+
     def build(self, buffer_points) -> None:
         """Create the networks (the default: one trajectory network ``self.net``)."""
         self.net = build_net(self.config.net, self.feature_dim, self.horizon, cond_dim=self.obs_dim).to(self.device)

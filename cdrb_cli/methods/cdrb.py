@@ -105,6 +105,9 @@ class CDRB(Planner):
 
         return GeodesicBalls(points, *graph, eps=self.eps)
 
+    def variant(self) -> str | None:
+        return "geodesic balls" if self.config.method.ball == "geodesic" else None
+
     def extra_arrays(self):
         out = {"buffer/points": self.points}
         if self.config.method.ball == "geodesic":

@@ -224,7 +224,7 @@ def evaluate(
     summary = summarize(
         method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
     )
-    summary = summary.model_copy(update={"masked": mask_counts(method, avoid)})
+    summary = summary.model_copy(update={"masked": mask_counts(method, avoid), "variant": method.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=parents, summary=summary
@@ -378,7 +378,7 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
     env.close()
     summary = summarize(
         policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
-    )
+    ).model_copy(update={"variant": policy.variant()})
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
     )

@@ -125,7 +125,8 @@ def method_label(ev) -> str:
     s = ev.manifest.summary
     label = s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
     config = ev.manifest.config
-    how = [config.replan.label()] if config.replan.mode != "never" else []
+    how = [s.variant] if getattr(s, "variant", None) else []
+    how += [config.replan.label()] if config.replan.mode != "never" else []
     avoid = getattr(config, "avoid", None)
     if avoid is not None and avoid.label() != "plain":
         how.append(avoid.label())
