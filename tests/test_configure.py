@@ -140,7 +140,10 @@ def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_mo
     # an eval under the protocol of starts anywhere takes it; the stock protocol keeps one plan per pair
     assert eval_config(cdrb, protocol="anywhere").avoid == AvoidConfig(best_of=n)
     assert eval_config(cdrb).avoid == AvoidConfig()
-    assert eval_config(tiny_models["diffuser"], protocol="anywhere").avoid.best_of == 8
+    assert (
+        eval_config(tiny_models["diffuser"], protocol="anywhere").avoid.best_of
+        == PointMazeFamily.start_tuned["diffuser"]["avoid.best_of"]
+    )
     # beside a scene's avoidance, the larger best-of
     scene = eval_config(cdrb, scene_file=NORTH, protocol="anywhere").avoid
     assert scene.mask_buffer and scene.best_of == max(n, PointMazeFamily.scene_avoid["cdrb"]["best_of"])
