@@ -54,7 +54,7 @@ ProtocolOpt = typer.Option(
     metavar="NAME",
     help="The evaluation protocol (default: the environment's; `cdrb envs` lists them). 'official-code' "
     "evaluates as the official CDRB code; 'detour' (with --scene) keeps the pairs the new obstacles lengthen; "
-    "'anywhere' starts anywhere, with the settings chosen for plans from anywhere (mazes: the best of 8 plans).",
+    "'anywhere' starts anywhere, with the settings chosen for plans from anywhere (mazes: the best of 16 plans).",
 )
 ReplanOpt = typer.Option(
     None,

@@ -131,7 +131,7 @@ class PointMazeFamily(EnvFamily):
         "mlp": {"controller.look_ahead": 4},
     }
     # chosen by experiments/tune/anywhere-maze-tight-best-of.toml (experiments/tuned/anywhere-maze-tight.toml)
-    start_tuned = {"cdrb": {"avoid.best_of": 8}, "diffuser": {"avoid.best_of": 8}}
+    start_tuned = {"cdrb": {"avoid.best_of": 16}, "diffuser": {"avoid.best_of": 16}}
 
     # -------------------------------------------------------------- environments
     def env_ids(self) -> dict[str, str]:
