@@ -99,33 +99,38 @@ def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Set
     mode = lookup(settings, ("replan", "mode"))
     if mode is None or mode.value == "never" or lookup(settings, ("replan", "repair_k")) is not None:
         return []
-    plain = getattr(lookup(settings, ("avoid",)), "value", None) == "plain"
     fields = CONTROLLERS.get(controller).config.model_fields
     lag = lookup(settings, ("controller", "max_lag"))
     time_indexed = lag is not None and lag.value is None  # no gated clock for a look-ahead to move
-    out = []
-    for key, value in family_of(model.manifest.env).replan_tuned.get(model.manifest.config.method.name, {}).items():
-        path = tuple(key.split("."))
-        if lookup(settings, path) is not None or (path[0] == "avoid" and plain):
-            continue
-        if path[0] == "controller" and (path[1] not in fields or (path[1] == "look_ahead" and time_indexed)):
-            continue
-        out.append(Setting(path, value, f"{key} = {value} (the default when re-planning)"))
-    return out
+
+    def applies(path: tuple[str, ...], value) -> bool:
+        return path[0] != "controller" or (path[1] in fields and not (path[1] == "look_ahead" and time_indexed))
+
+    return _family_defaults(model, "replan_tuned", settings, "the default when re-planning", applies)
 
 
 def start_base(model, settings: Sequence[Setting], avoid: dict) -> list[Setting]:
     """The settings plans that start away from the demonstrations' starts use unless ``settings`` give them: the
     family's choice for plans from anywhere with this method (:attr:`~cdrb_cli.envs.family.EnvFamily.start_tuned`),
     none with ``avoid = "plain"``, and a best-of no smaller than the one ``avoid`` (the avoidance base) has."""
-    if getattr(lookup(settings, ("avoid",)), "value", None) == "plain":
-        return []
+
+    def applies(path: tuple[str, ...], value) -> bool:
+        return path != ("avoid", "best_of") or avoid.get("best_of", 1) < value
+
+    return _family_defaults(model, "start_tuned", settings, "the default for plans from anywhere", applies)
+
+
+def _family_defaults(model, table: str, settings: Sequence[Setting], why: str, applies) -> list[Setting]:
+    """The settings of the family's ``table`` (:attr:`~cdrb_cli.envs.family.EnvFamily.replan_tuned`, ``start_tuned``)
+    for the model's method, as defaults named ``why``: each where ``settings`` leave it alone and ``applies(path,
+    value)``, the ``avoid.`` ones unless ``avoid = "plain"``."""
+    plain = getattr(lookup(settings, ("avoid",)), "value", None) == "plain"
     out = []
-    for key, value in family_of(model.manifest.env).start_tuned.get(model.manifest.config.method.name, {}).items():
+    for key, value in getattr(family_of(model.manifest.env), table).get(model.manifest.config.method.name, {}).items():
         path = tuple(key.split("."))
-        if lookup(settings, path) is not None or (path == ("avoid", "best_of") and avoid.get("best_of", 1) >= value):
+        if lookup(settings, path) is not None or (path[0] == "avoid" and plain) or not applies(path, value):
             continue
-        out.append(Setting(path, value, f"{key} = {value} (the default for plans from anywhere)"))
+        out.append(Setting(path, value, f"{key} = {value} ({why})"))
     return out
 
 
