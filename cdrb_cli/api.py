@@ -152,8 +152,11 @@ class Planner:
         given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
         config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)
-        # a start away from the data's starts may take a larger best-of (the family's choice for plans from anywhere)
-        avoid = replace(self.avoidance, best_of=config.avoid.best_of)
+        # a start away from the data's starts may take a larger best-of (the family's choice for plans from anywhere);
+        # otherwise the prepared avoidance itself, whose counters (e.g. ``unrouted``) then keep counting every call
+        avoid = self.avoidance
+        if config.avoid.best_of != avoid.best_of:
+            avoid = replace(avoid, best_of=config.avoid.best_of)
         out = sample_plans(
             self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, device=self.device,
             avoid=avoid,
