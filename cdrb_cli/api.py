@@ -69,6 +69,10 @@ def _avoid(**fields) -> dict:
     return {f"avoid.{k}": v for k, v in fields.items()}
 
 
+#: the avoidance settings a plan's start may change from call to call (the family's choice for plans from anywhere)
+PER_CALL = ("best_of", "fallback_route_k")
+
+
 class Planner:
     """A planner loaded from a model artifact (``cdrb train``) or a model folder (``cdrb export --dir``), ready to
     plan on its environment."""
@@ -114,8 +118,8 @@ class Planner:
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
         self.device = setup_torch(device)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
-        route = load_route_buffer(route_buffer_path(given))
-        self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, route)
+        self._route = load_route_buffer(route_buffer_path(given))
+        self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, self._route)
 
     @property
     def spec(self) -> EnvSpec:
@@ -146,17 +150,22 @@ class Planner:
     ) -> Plans:
         """``n`` plans from ``start`` to ``goal`` (``sampler`` and denoising ``steps``: the model's by default)."""
         from cdrb_cli.stages.configure import plan_config
-        from cdrb_cli.stages.plan import sample_plans
+        from cdrb_cli.stages.plan import buffer_graph, sample_plans
 
         # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
         given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
         config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)
-        # a start away from the data's starts may take a larger best-of (the family's choice for plans from anywhere);
-        # otherwise the prepared avoidance itself, whose counters (e.g. ``unrouted``) then keep counting every call
+        # a start away from the data's starts may take a larger best-of and a second try from a buffer route (the
+        # family's choice for plans from anywhere); otherwise the prepared avoidance itself, whose counters (e.g.
+        # ``unrouted``) then keep counting every call
         avoid = self.avoidance
-        if config.avoid.best_of != avoid.best_of:
-            avoid = replace(avoid, best_of=config.avoid.best_of)
+        change = {f: getattr(config.avoid, f) for f in PER_CALL if getattr(config.avoid, f) != getattr(avoid, f)}
+        if change:
+            avoid = replace(avoid, **change)
+            if avoid.fallback_route_k is not None and avoid.graph is None:
+                avoid.graph = buffer_graph(self.method, self.spec, config.avoid, self._route)
+                self.avoidance.graph = avoid.graph  # built once: the same buffer and scene for every call
         out = sample_plans(
             self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, device=self.device,
             avoid=avoid,

@@ -60,6 +60,12 @@ class ClusterConfig(Record):
     split: Literal["train", "all"] = "train"
     n_init: int = Field(1, gt=0)
     max_iter: int = Field(100, gt=0)
+    graph_join: Literal["position", "features"] = Field(
+        "position",
+        description="how each demonstration state joins the buffer's transition graph (geodesic balls measure "
+        "along it): at the nearest buffer state by position (the family's position dims, so a similar velocity "
+        "never joins it to a state across a thin wall) or by every feature (buffers before schema 2.8)",
+    )
     seed: Seed
 
 
@@ -171,6 +177,14 @@ class AvoidConfig(Record):
         "collision-free steps, degraded to step k and restored (the method's repair), instead of from random "
         "buffer states; None: sample from scratch",
     )
+    fallback_route_k: int | None = Field(
+        None,
+        ge=1,
+        le=100_000,
+        description="buffer methods (CDRB): a pair whose kept plan from scratch still steps through an obstacle is "
+        "sampled again, best_of times, from the shortest route through the buffer degraded to step k and restored, "
+        "and the plan with the fewest steps through an obstacle (then the shortest) kept; None: no second try",
+    )
     route_clearance: float = Field(
         0.0,
         ge=0,
@@ -195,10 +209,13 @@ class AvoidConfig(Record):
 
     @model_validator(mode="after")
     def _check(self) -> AvoidConfig:
-        if self.route_clearance > 0 and self.route_k is None:
-            raise ValueError("route_clearance keeps routes clear of obstacles: set route_k too (or drop it)")
-        if self.route_buffer is not None and self.route_k is None:
-            raise ValueError("route_buffer is what routes go through: set route_k too (or drop it)")
+        routes = self.route_k is not None or self.fallback_route_k is not None
+        if self.route_clearance > 0 and not routes:
+            raise ValueError(
+                "route_clearance keeps routes clear of obstacles: set route_k or fallback_route_k too (or drop it)"
+            )
+        if self.route_buffer is not None and not routes:
+            raise ValueError("route_buffer is what routes go through: set route_k or fallback_route_k too (or drop it)")
         return self
 
     def label(self) -> str:
@@ -208,6 +225,7 @@ class AvoidConfig(Record):
         parts += [f"buffer route, k {self.route_k}{clear}"] if self.route_k else []
         parts += [f"guided x{self.guide_scale:g}"] if self.guide_scale else []
         parts += [f"best of {self.best_of}"] if self.best_of > 1 else []
+        parts += [f"buffer route when every plan crosses, k {self.fallback_route_k}"] if self.fallback_route_k else []
         return ", ".join(parts) or "plain"
 
 

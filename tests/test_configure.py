@@ -130,15 +130,18 @@ def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_mo
     cdrb = tiny_models["cdrb"]
     n = PointMazeFamily.start_tuned["cdrb"]["avoid.best_of"]
     assert n > 1
+    # the family's second try from a buffer route at k = 8, cut to the tiny model's last repair step (T = 8)
+    k = min(7, PointMazeFamily.start_tuned["cdrb"]["avoid.fallback_route_k"])
+    tuned = AvoidConfig(best_of=n, fallback_route_k=k)
     centre, corridor = _corridor_and_centre(cdrb)
     assert plan_config(cdrb, starts=centre[None]).avoid == AvoidConfig()  # where the data start: the paper's
-    assert plan_config(cdrb, starts=np.stack([centre, corridor])).avoid == AvoidConfig(best_of=n)
+    assert plan_config(cdrb, starts=np.stack([centre, corridor])).avoid == tuned
     # what the user sets wins; avoid=plain drops it; a method with nothing chosen plans as it is
     assert plan_config(cdrb, parse_set(["avoid=plain"]), starts=corridor[None]).avoid == AvoidConfig()
     assert plan_config(cdrb, parse_set(["avoid.best_of=2"]), starts=corridor[None]).avoid.best_of == 2
     assert plan_config(tiny_models["mlp"], starts=corridor[None]).avoid == AvoidConfig()
     # an eval under the protocol of starts anywhere takes it; the stock protocol keeps one plan per pair
-    assert eval_config(cdrb, protocol="anywhere").avoid == AvoidConfig(best_of=n)
+    assert eval_config(cdrb, protocol="anywhere").avoid == tuned
     assert eval_config(cdrb).avoid == AvoidConfig()
     assert (
         eval_config(tiny_models["diffuser"], protocol="anywhere").avoid.best_of
@@ -149,15 +152,16 @@ def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_mo
     assert scene.mask_buffer and scene.best_of == max(n, PointMazeFamily.scene_avoid["cdrb"]["best_of"])
 
 
-def test_the_start_default_is_a_best_of_alone():
-    """The Python API applies the default per call by changing the prepared planner's best-of, so a family's choice
-    for plans from anywhere may hold that one setting."""
+def test_the_start_default_is_what_a_call_may_change():
+    """The Python API applies the default per call by changing the prepared planner's best-of and second try, so a
+    family's choice for plans from anywhere may hold those settings alone."""
+    from cdrb_cli.api import PER_CALL
     from cdrb_cli.envs.registry import FAMILIES
 
     for family in FAMILIES.builtin_entries():
         for settings in family.start_tuned.values():
-            assert set(settings) == {"avoid.best_of"}, family.name
-            AvoidConfig(best_of=settings["avoid.best_of"])
+            assert {f"avoid.{f}" for f in PER_CALL} >= set(settings), family.name
+            AvoidConfig(**{key.split(".")[1]: value for key, value in settings.items()})
 
 
 def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_models, tmp_path, cdrb, monkeypatch):

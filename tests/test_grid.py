@@ -17,6 +17,7 @@ import pytest
 
 import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a grid composes)
 from cdrb_cli import artifacts
+from cdrb_cli.envs.pointmaze import PointMazeFamily
 from cdrb_cli.errors import BadInput
 from cdrb_cli.orchestration.grid import PoolBackend, expand, load_grid, run_grid
 from tests.conftest import ROOT, call_cdrb
@@ -1149,24 +1150,30 @@ def test_the_replanning_defaults_leave_a_time_indexed_clock_alone(tmp_path):
     assert any(t.kind == "eval" and "every:20" in " ".join(t.argv) for t in tasks)
 
 
+_START = {"pointmaze": PointMazeFamily.start_tuned}
+
+
 @pytest.mark.parametrize(
     "flags, meant",
     [
-        (["--set", 'protocol="anywhere"'], {"start_tuned": "by default"}),
-        (["--protocol", "anywhere"], {"start_tuned": "by default"}),
+        (["--set", 'protocol="anywhere"'], {"start_tuned": _START}),
+        (["--protocol", "anywhere"], {"start_tuned": _START}),
         (
             ["--set", 'protocol="anywhere"', "--set", 'replan="every:40"'],
-            {"start_tuned": "by default", "replan_tuned": "by default"},
+            {"start_tuned": _START, "replan_tuned": "by default"},
         ),
         ([], {}),
         (["--set", 'protocol="official-code"'], {}),
     ],
 )
-def test_a_memo_records_the_defaults_an_eval_takes_from_its_protocol(flags, meant):
+def test_a_memo_records_the_defaults_an_eval_takes_from_its_protocol(flags, meant, monkeypatch):
     """An eval from anywhere takes the family's choice for plans from anywhere: a memo written before that default
-    meant one plan per pair, and is out of date."""
+    (or before it changed) meant something else, and is out of date."""
     from cdrb_cli.orchestration.grid.memo import _meaning
     from cdrb_cli.orchestration.grid.spec import Task
 
     task = Task("eval x", "eval", ["eval", "model.h5", *flags, "--out", "e.h5"], [Path("e.h5")])
     assert _meaning(task) == meant
+    if meant:
+        monkeypatch.setattr(PointMazeFamily, "start_tuned", {"cdrb": {"avoid.best_of": 2}})
+        assert _meaning(task) != meant

@@ -204,7 +204,7 @@ def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_p
     )
     assert "--set avoid.route_k=2: mlp cannot restore" in refused("mlp", "--set", "avoid.route_k=2")
     assert "add avoid.route_buffer=" in refused("diffuser", "--set", "avoid.route_k=2")
-    assert "route_clearance keeps routes clear of obstacles: set route_k too" in refused(
+    assert "route_clearance keeps routes clear of obstacles: set route_k or fallback_route_k too" in refused(
         "cdrb", "--set", "avoid.route_clearance=0.1"
     )
     # the moved flags still work, with a note naming the setting
@@ -217,18 +217,24 @@ def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_p
 
 
 # ------------------------------------------------------------------------------------------------ routes
-def test_buffer_route_takes_free_steps_around_the_new_wall():
-    from cdrb_cli.stages.routes import BufferGraph
-
+def _north_closed_buffer():
+    """Maze Tight with its north gap closed, its geometry, and buffer states at rest: three jittered points in every
+    free cell, those in a wall dropped."""
     base = make_spec("maze-tight")
     spec = family_of(base).with_map(base, NORTH)
-    family = family_of(spec)
     g = MazeGeometry(spec.scene.maze)
     free = np.argwhere(g.free)
     rng = np.random.default_rng(0)
     xy = np.concatenate([g.cell_to_xy(free) + rng.uniform(-0.3, 0.3, (len(free), 2)) for _ in range(3)])
     states = np.concatenate([xy, np.zeros((len(xy), 2))], 1)
-    states = states[~family.in_collision(spec, states)]
+    return spec, g, states[~family_of(spec).in_collision(spec, states)]
+
+
+def test_buffer_route_takes_free_steps_around_the_new_wall():
+    from cdrb_cli.stages.routes import BufferGraph
+
+    spec, g, states = _north_closed_buffer()
+    family = family_of(spec)
     graph = BufferGraph(spec, states)
     start, goal = np.array([*g.cell_to_xy([5, 7]), 0, 0]), np.array([*g.cell_to_xy([1, 6]), 0, 0])
     route = graph.route(start, goal, 64)
@@ -243,6 +249,61 @@ def test_buffer_route_takes_free_steps_around_the_new_wall():
     cells = g.xy_to_cell(states[:, :2])
     centre = states[(cells[:, 0] >= 5) & (cells[:, 0] <= 9) & (cells[:, 1] >= 5) & (cells[:, 1] <= 9)]
     assert BufferGraph(spec, centre).route(start, goal, 64) is None
+
+
+class _LinePlanner:
+    """A stand-in planner for the sampler's plumbing: from scratch it plans the straight line (through any wall in
+    the way), a repair gives back the plan it was given (the buffer route), so what the second try changes is
+    visible."""
+
+    obs_dim = feature_dim = 4
+    horizon = 48
+    pinned = pinned_end = slice(0, 4)
+
+    def __init__(self):
+        from cdrb_cli.buffer import Normalizer
+
+        self.normalizer = Normalizer(low=np.full(4, -8.0, np.float32), high=np.full(4, 8.0, np.float32))
+        self.repairs_from = []
+
+    def sample(self, start, goal, rng, sampler=None, steps=None, keep_iterates=0):
+        import torch
+
+        from cdrb_cli.methods.base import SampleResult
+
+        w = torch.linspace(0, 1, self.horizon)[None, :, None]
+        return SampleResult(plans=start[:, None] * (1 - w) + goal[:, None] * w)
+
+    def repair(self, start, goal, previous, k, rng, sampler=None, steps=None):
+        from cdrb_cli.methods.base import SampleResult
+
+        self.repairs_from.append(k)
+        return SampleResult(plans=previous.clone())
+
+
+def test_a_pair_whose_every_plan_crosses_is_tried_again_from_a_buffer_route():
+    """``avoid.fallback_route_k``: only the pairs whose kept plan steps through a wall are sampled again, as repairs
+    of their buffer route from step k, and the better plan is kept; a pair whose plan is clear is left alone."""
+    from cdrb_cli.stages.plan import Avoidance, sample_plans
+    from cdrb_cli.stages.routes import BufferGraph
+
+    spec, g, states = _north_closed_buffer()
+    family = family_of(spec)
+    at = lambda cell: np.array([*g.cell_to_xy(cell), 0.0, 0.0])  # noqa: E731
+    starts = np.stack([at([5, 7]), at([1, 1])])  # through the closed north gap; along a free corridor
+    goals = np.stack([at([1, 6]), at([1, 3])])
+    lines = sample_plans(_LinePlanner(), starts, goals, 1, 0, avoid=Avoidance(spec, best_of=2)).plans
+    before = family.crossing_counts(spec, lines)
+    assert before[0] > 0 and before[1] == 0
+
+    method = _LinePlanner()
+    avoid = Avoidance(spec, best_of=2, graph=BufferGraph(spec, states), fallback_route_k=3)
+    plans = sample_plans(method, starts, goals, 1, 0, avoid=avoid).plans
+    assert avoid.rerouted == 1 and method.repairs_from == [3]  # one pair, tried again from k = 3
+    assert list(family.crossing_counts(spec, plans)) == [0, 0]
+    np.testing.assert_allclose(plans[1], lines[1])  # the clear pair keeps its plan
+    np.testing.assert_allclose(plans[:, 0], starts)
+    np.testing.assert_allclose(plans[:, -1], goals)
 
 
 def test_route_clearance_keeps_routes_off_the_walls_where_the_buffer_allows():

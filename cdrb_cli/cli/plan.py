@@ -57,7 +57,8 @@ def plan(
     retraining: [cyan]--scene closed.txt[/cyan] plans in the training map with walls added, avoiding them with
     the settings chosen for new obstacles (CDRB: masked buffer, a buffer route repaired from k = 8, best of 4);
     a start away from the demonstrations' starts keeps the best of several plans by the collision test (the
-    setting chosen for plans from anywhere; mazes: 16); [cyan]--set avoid=plain[/cyan] plans as the model is.
+    setting chosen for plans from anywhere; mazes: 16; CDRB tries a pair whose every plan crosses a wall again
+    from a buffer route); [cyan]--set avoid=plain[/cyan] plans as the model is.
     Also: [cyan]--batch-size N[/cyan] (plans sampled together, default 256)."""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.configure import plan_config, route_buffer_path

@@ -171,8 +171,9 @@ class EnvFamily(ABC):
     #: moving, so the plan clock may need to jump ahead and a plan to be chosen among several); a controller field
     #: applies where the controller has it, and ``avoid = "plain"`` drops the ``avoid.`` ones
     replan_tuned: ClassVar[dict[str, dict[str, Any]]] = {}
-    #: method name -> the ``avoid.best_of`` (the one setting it may hold: it needs no preparing of the planner) plan
-    #: and eval use by default for plans that start away from the demonstrations' starts: an eval under one of
+    #: method name -> the ``avoid.best_of`` and ``avoid.fallback_route_k`` (the settings it may hold: the Python API
+    #: applies them per call, ``api.PER_CALL``) plan and eval use by default for plans that start away from the
+    #: demonstrations' starts: an eval under one of
     #: :attr:`start_protocols`, a plan with a start that :meth:`off_protocol_starts` finds outside the protocol's
     #: starts. Each the choice of the family's tuning grid for plans from anywhere (a diffusion planner that starts
     #: where the data seldom does crosses walls more often, and a known map lets it keep the best of several plans);

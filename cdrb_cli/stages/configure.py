@@ -83,10 +83,16 @@ def avoid_base(model, settings: Sequence[Setting], in_scene: bool) -> dict:
     if chosen == "plain":
         return {}
     out = dict(family_of(model.manifest.env).scene_avoid.get(model.manifest.config.method.name, {}))
-    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
-    if out.get("route_k") is not None and steps is not None:  # a model with fewer steps repairs from its last
-        out["route_k"] = max(1, min(out["route_k"], steps - 1))
+    for key in ("route_k", "fallback_route_k"):
+        if out.get(key) is not None:
+            out[key] = _repair_step(model, out[key])
     return out
+
+
+def _repair_step(model, k: int) -> int:
+    """A family default's repair step for ``model``: one with fewer diffusion steps repairs from its last."""
+    steps = getattr(model.manifest.config.method, "diffusion_steps", None)
+    return k if steps is None else max(1, min(k, steps - 1))
 
 
 def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Setting]:
@@ -130,6 +136,8 @@ def _family_defaults(model, table: str, settings: Sequence[Setting], why: str, a
         path = tuple(key.split("."))
         if lookup(settings, path) is not None or (path[0] == "avoid" and plain) or not applies(path, value):
             continue
+        if path in (("avoid", "route_k"), ("avoid", "fallback_route_k")):
+            value = _repair_step(model, value)
         out.append(Setting(path, value, f"{key} = {value} ({why})"))
     return out
 
@@ -181,16 +189,17 @@ def check_avoid(model, avoid: AvoidConfig, settings: Sequence[Setting] = ()) -> 
             f"{where('mask_buffer')}: {name} samples from no replay buffer it could mask",
             hint="drop it (avoid.best_of, or avoid.guide_scale for Diffuser, keep plans out of obstacles)",
         )
-    if avoid.route_k is not None and not cls.repairs:
-        raise BadInput(
-            f"{where('route_k')}: {name} cannot restore a plan from a part-way step (it has no repair)",
-            hint="drop it (CDRB and Diffuser repair)",
-        )
-    if avoid.route_k is not None and not entry.needs_buffer and avoid.route_buffer is None:
-        raise BadInput(
-            f"{where('route_k')}: {name} carries no replay buffer to route through",
-            hint="add avoid.route_buffer=BUFFER.h5 (from `cdrb cluster` on the model's demos)",
-        )
+    for field in ("route_k", "fallback_route_k"):
+        if getattr(avoid, field) is not None and not cls.repairs:
+            raise BadInput(
+                f"{where(field)}: {name} cannot restore a plan from a part-way step (it has no repair)",
+                hint="drop it (CDRB and Diffuser repair)",
+            )
+        if getattr(avoid, field) is not None and not entry.needs_buffer and avoid.route_buffer is None:
+            raise BadInput(
+                f"{where(field)}: {name} carries no replay buffer to route through",
+                hint="add avoid.route_buffer=BUFFER.h5 (from `cdrb cluster` on the model's demos)",
+            )
     if avoid.guide_scale > 0 and not cls.guides:
         raise BadInput(f"{where('guide_scale')}: {name} has no guided sampling", hint="drop it (Diffuser has it)")
 

@@ -63,19 +63,28 @@ class Avoidance:
     best_of: int = 1
     graph: BufferGraph | None = None
     route_k: int | None = None
+    fallback_route_k: int | None = None
     masked: dict[str, int] | None = None  # what masking the buffer removed
     unrouted: int = 0  # pairs no buffer route joined (planned from scratch)
+    rerouted: int = 0  # pairs sampled again from a buffer route because every plan from scratch crossed
 
-    def choose(self, plans: np.ndarray) -> np.ndarray:
-        """Indices into ``plans`` (P * n, H, F), raw and grouped by pair, of the plan kept for each pair: the one
-        with the fewest steps through an obstacle (none, when one has none), the shortest path among those."""
+    def choose(self, plans: np.ndarray, per: int | None = None) -> np.ndarray:
+        """Indices into ``plans`` (P * per, H, F), raw and grouped by pair (``per``: plans per pair, default
+        ``best_of``), of the plan kept for each pair: the one with the fewest steps through an obstacle (none, when
+        one has none), the shortest path among those."""
+        per = per or self.best_of
         family = family_of(self.spec)
         states = plans[..., : self.spec.obs_dim]
-        counts = family.crossing_counts(self.spec, states).reshape(-1, self.best_of)
+        counts = family.crossing_counts(self.spec, states).reshape(-1, per)
         dims = list(self.spec.obstacles.dims)
-        length = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1).sum(-1).reshape(-1, self.best_of)
+        length = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1).sum(-1).reshape(-1, per)
         order = np.lexsort((length, counts), axis=-1) if counts.size else counts
-        return np.arange(len(counts)) * self.best_of + order[:, 0]
+        return np.arange(len(counts)) * per + order[:, 0]
+
+    def crossing(self, plans: np.ndarray) -> np.ndarray:
+        """Indices of the raw plans (n, H, F) with a step through an obstacle."""
+        states = plans[..., : self.spec.obs_dim]
+        return np.flatnonzero(np.asarray(family_of(self.spec).crossing_counts(self.spec, states)) > 0)
 
     def routes(self, starts: np.ndarray, goals: np.ndarray, horizon: int, features: int) -> np.ndarray | None:
         """Raw buffer routes (n, horizon, features) for raw start/goal states (n, obs_dim); a pair with no route
@@ -99,7 +108,7 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
     :class:`Avoidance` the sampler calls use."""
     family = family_of(spec)
     norm, obs = method.normalizer, method.obs_dim
-    out = Avoidance(spec, best_of=avoid.best_of, route_k=avoid.route_k)
+    out = Avoidance(spec, best_of=avoid.best_of, route_k=avoid.route_k, fallback_route_k=avoid.fallback_route_k)
     if avoid.mask_buffer:
 
         def collides(features: np.ndarray) -> np.ndarray:
@@ -109,16 +118,15 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
             out.masked = method.mask(collides)
         except ValueError as exc:
             raise BadInput(f"avoid.mask_buffer: {exc}", hint="the new obstacles cover the whole buffer") from None
-    if avoid.route_k is not None:
-        top = method.repair_steps()
-        if top is None or avoid.route_k > top:
+    for field in ("route_k", "fallback_route_k"):
+        k, top = getattr(avoid, field), method.repair_steps()
+        if k is not None and (top is None or k > top):
             raise BadInput(
-                f"avoid.route_k = {avoid.route_k}: {method.name} repairs from steps 1..{top}",
-                hint=f"use avoid.route_k={max(1, (top or 8) // 8)}",
+                f"avoid.{field} = {k}: {method.name} repairs from steps 1..{top}",
+                hint=f"use avoid.{field}={max(1, (top or 8) // 8)}",
             )
-        if avoid.route_buffer is not None and route_buffer is None:
-            raise ValueError("config.avoid.route_buffer is set: pass its buffer artifact")
-        out.graph = BufferGraph(spec, route_states(method, spec, route_buffer), clearance=avoid.route_clearance)
+    if avoid.route_k is not None or avoid.fallback_route_k is not None:
+        out.graph = buffer_graph(method, spec, avoid, route_buffer)
     if avoid.guide_scale > 0:
         raw_cost = family.collision_cost(spec)
         fractions = np.arange(GUIDE_SUBSTEPS) / GUIDE_SUBSTEPS
@@ -133,6 +141,14 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
 
         method.set_guide(cost, avoid.guide_scale)
     return out
+
+
+def buffer_graph(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_buffer=None) -> BufferGraph:
+    """The graph of buffer states that routes go through for ``avoid`` in the scene of ``spec``: the planner's own
+    (masked) buffer, or ``route_buffer`` (the artifact of ``avoid.route_buffer``)."""
+    if avoid.route_buffer is not None and route_buffer is None:
+        raise ValueError("config.avoid.route_buffer is set: pass its buffer artifact")
+    return BufferGraph(spec, route_states(method, spec, route_buffer), clearance=avoid.route_clearance)
 
 
 def load_route_buffer(path: Path | None):
@@ -164,13 +180,19 @@ def route_states(method: Planner, spec: EnvSpec, route_buffer=None) -> np.ndarra
 
 
 def warn_unrouted(avoid: Avoidance | None) -> None:
-    """Say how many pairs no buffer route joined (each was repaired from the straight line instead)."""
-    if avoid is not None and avoid.unrouted:
-        from cdrb_cli import ui
+    """Say how many pairs were tried again from a buffer route, and how many no buffer route joined (each was
+    repaired from the straight line instead)."""
+    from cdrb_cli import ui
 
+    if avoid is not None and avoid.rerouted:
+        ui.log(
+            f"{avoid.rerouted} start/goal pair(s) whose every plan crossed an obstacle were tried again from a buffer "
+            f"route (avoid.fallback_route_k = {avoid.fallback_route_k})"
+        )
+    if avoid is not None and avoid.unrouted:
         ui.warn(
-            f"--route-k: no route through the buffer joined {avoid.unrouted} start/goal pair(s); they were repaired "
-            "from the straight line (the buffer has no free steps around them)"
+            f"buffer routes: no route through the buffer joined {avoid.unrouted} start/goal pair(s); they were "
+            "repaired from the straight line (the buffer has no free steps around them)"
         )
 
 
@@ -232,35 +254,35 @@ def _sampler_call(
 ):
     """One sampler call for raw start/goal states (n, obs_dim): normalized in, plans (n, H, F) out in raw units and
     pinned exactly to the raw states; with ``previous`` (raw plans) and ``repair_k``, a repair instead of a plan
-    from scratch; with ``avoid``, N plans per pair in the same call and the best kept, and plans from scratch
-    repaired from buffer routes. Returns (plans, the method's SampleResult, seconds of the call, the route search
-    and the best-of choice included)."""
+    from scratch; with ``avoid``, N plans per pair in the same call and the best kept, plans from scratch repaired
+    from buffer routes, and (``fallback_route_k``) pairs whose kept plan still crosses an obstacle tried again from
+    a buffer route. Returns (plans, the method's SampleResult, seconds of the call, the route search and the
+    best-of choice included)."""
     import torch
 
-    if avoid is not None and avoid.best_of > 1:
-        reps = avoid.best_of
-        starts, goals = np.repeat(starts, reps, axis=0), np.repeat(goals, reps, axis=0)
-        previous = None if previous is None else np.repeat(previous, reps, axis=0)
-        t = time.perf_counter()
-        searched = 0.0
-        if avoid.route_k is not None and previous is None:  # one route per pair, repaired N times
-            routes = avoid.routes(starts[::reps], goals[::reps], method.horizon, method.feature_dim)
-            previous, repair_k = np.repeat(routes, reps, axis=0), avoid.route_k
-            searched = time.perf_counter() - t
-        out, res, seconds = _sampler_call(
-            method, starts, goals, rng, sampler, steps, keep_iterates, device, previous, repair_k
-        )
-        t = time.perf_counter()
+    t = time.perf_counter()
+    scratch, reps = previous is None, 1 if avoid is None else avoid.best_of
+    each_s, each_g = np.repeat(starts, reps, axis=0), np.repeat(goals, reps, axis=0)
+    previous = None if previous is None else np.repeat(previous, reps, axis=0)
+    if avoid is not None and avoid.route_k is not None and scratch:  # one route per pair, repaired N times
+        routes = avoid.routes(starts, goals, method.horizon, method.feature_dim)
+        previous, repair_k = np.repeat(routes, reps, axis=0), avoid.route_k
+    searched = time.perf_counter() - t
+    out, res, seconds = _restore(method, each_s, each_g, rng, previous, repair_k, sampler, steps, keep_iterates, device)
+    t = time.perf_counter()
+    if reps > 1:
         keep = avoid.choose(out)
         pick = torch.as_tensor(keep, device=res.plans.device)
-        res = SampleResult(plans=res.plans[pick], iterates=[(k, x[pick]) for k, x in res.iterates])
-        return out[keep], res, seconds + searched + (time.perf_counter() - t)  # the search and the choice count
-    searched = 0.0
-    if avoid is not None and avoid.route_k is not None and previous is None:
-        t = time.perf_counter()
-        previous = avoid.routes(starts, goals, method.horizon, method.feature_dim)
-        repair_k = avoid.route_k
-        searched = time.perf_counter() - t
+        out, res = out[keep], SampleResult(plans=res.plans[pick], iterates=[(k, x[pick]) for k, x in res.iterates])
+    if avoid is not None and avoid.fallback_route_k is not None and scratch and avoid.graph is not None:
+        out, res = _route_fallback(method, out, res, starts, goals, rng, sampler, steps, device, avoid)
+    return out, res, seconds + searched + (time.perf_counter() - t)  # the search and the choice count
+
+
+def _restore(method: Planner, starts, goals, rng, previous, repair_k, sampler, steps, keep_iterates, device):
+    """The method's own call for raw start/goal states (n, obs_dim): a plan from scratch, or with ``previous``
+    (raw, (n, H, F)) a repair from step ``repair_k``; returns (raw plans pinned exactly, SampleResult, seconds)."""
+    import torch
 
     def normalized(states):  # the state part of a normalized feature vector
         pad = np.zeros((len(states), method.feature_dim - method.obs_dim))
@@ -276,11 +298,40 @@ def _sampler_call(
         res = method.repair(st, gl, prev, repair_k, rng, sampler=sampler, steps=steps)
     if str(device) != "cpu" and torch.cuda.is_available():
         torch.cuda.synchronize()
-    seconds = time.perf_counter() - t + searched
+    seconds = time.perf_counter() - t
     out = method.normalizer.unnormalize(res.plans.cpu().numpy().astype(np.float64))
     out[:, 0, method.pinned] = starts[:, method.pinned]  # pinned exactly in raw units too
     out[:, -1, method.pinned_end] = goals[:, method.pinned_end]
     return out, res, seconds
+
+
+def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, steps, device, avoid: Avoidance):
+    """The second try of ``avoid.fallback_route_k``: each pair whose kept plan in ``out`` (raw, (n, H, F)) steps
+    through an obstacle is sampled again ``best_of`` times as a repair of its shortest buffer route from step k,
+    and the best of its kept plan and those is kept (:meth:`Avoidance.choose`). Returns (plans, SampleResult);
+    the iterates kept of a pair tried again are those of its first try."""
+    import torch
+
+    bad = avoid.crossing(out)
+    if not len(bad):
+        return out, res
+    avoid.rerouted += len(bad)
+    reps = avoid.best_of
+    routes = np.repeat(avoid.routes(starts[bad], goals[bad], method.horizon, method.feature_dim), reps, axis=0)
+    s, g = np.repeat(starts[bad], reps, axis=0), np.repeat(goals[bad], reps, axis=0)
+    again, res2, _ = _restore(method, s, g, rng, routes, avoid.fallback_route_k, sampler, steps, 0, device)
+    shape = out.shape[1:]
+    candidates = np.concatenate([out[bad][:, None], again.reshape(len(bad), reps, *shape)], axis=1)
+    pick = avoid.choose(candidates.reshape(-1, *shape), per=reps + 1)
+    out = out.copy()
+    out[bad] = candidates.reshape(-1, *shape)[pick]
+    first = res.plans[torch.as_tensor(bad, device=res.plans.device)][:, None]
+    normal = torch.cat([first, res2.plans.reshape(len(bad), reps, *res2.plans.shape[1:])], dim=1)
+    plans = res.plans.clone()
+    plans[torch.as_tensor(bad, device=plans.device)] = normal.reshape(-1, *plans.shape[1:])[
+        torch.as_tensor(pick, device=plans.device)
+    ]
+    return out, SampleResult(plans=plans, iterates=res.iterates)
 
 
 def replan_batch(

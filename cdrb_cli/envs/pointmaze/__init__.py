@@ -130,8 +130,13 @@ class PointMazeFamily(EnvFamily):
         "diffuser": {"controller.look_ahead": 4, "avoid.best_of": 8},
         "mlp": {"controller.look_ahead": 4},
     }
-    # chosen by experiments/tune/anywhere-maze-tight-best-of.toml (experiments/tuned/anywhere-maze-tight.toml)
-    start_tuned = {"cdrb": {"avoid.best_of": 16}, "diffuser": {"avoid.best_of": 16}}
+    # best-of chosen by experiments/tune/anywhere-maze-tight-best-of.toml (experiments/tuned/anywhere-maze-tight.toml);
+    # CDRB's second try from a buffer route only touches pairs whose every sample crosses a wall, at the route_k of
+    # scene_avoid
+    start_tuned = {
+        "cdrb": {"avoid.best_of": 16, "avoid.fallback_route_k": 8},
+        "diffuser": {"avoid.best_of": 16},
+    }
 
     # -------------------------------------------------------------- environments
     def env_ids(self) -> dict[str, str]:

@@ -50,9 +50,10 @@ def _meaning(task: Task) -> dict:
     replans = [v for k, v in sets if k in ("replan", "replan.mode")]
     if any(v.strip("\"'") != "never" for v in replans):
         out["replan_tuned"] = "by default"
-    anywhere = {p for f in FAMILIES.builtin_entries() if f.start_tuned for p in f.start_protocols}
+    tuned = [f for f in FAMILIES.builtin_entries() if f.start_tuned]
+    anywhere = {p for f in tuned for p in f.start_protocols}
     if any(k == "protocol" and v.strip("\"'") in anywhere for k, v in sets):
-        out["start_tuned"] = "by default"
+        out["start_tuned"] = {f.name: f.start_tuned for f in tuned}  # a changed default makes the memo stale
     return out
 
 
