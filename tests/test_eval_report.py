@@ -536,6 +536,24 @@ def test_the_summary_marks_a_method_above_the_floor_only_by_seed_noise():
     assert _above(row("a", 50.1, 9.0, seeds=1), row("s", 50.0, 9.0))  # one seed: no spread to test, means decide
 
 
+def test_the_summary_says_a_row_whose_floor_solves_every_pair_ranks_nothing():
+    """A straight line that solves (nearly) every pair leaves the row no room between floor and ceiling: the row is
+    named "floor = ceiling: no comparison" with a note; a row whose floor leaves room is not."""
+    from cdrb_cli.stages.report import CEILING, render_summary
+
+    def row(env, method, success):
+        return {"env": env, "env_name": env.title(), "method": method, "seeds": 5, "episodes": 100,
+                "success_mean": success, "success_std": 0.0, "weighted_success_mean": success}  # fmt: skip
+
+    rows = [row("fetch-reach", "straight", 100.0), row("fetch-reach", "cdrb", 100.0)]
+    rows += [row("fetch-push", "straight", CEILING - 0.2), row("fetch-push", "cdrb", 100.0)]
+    text = render_summary(rows)
+    lines = {ln.split(" | ")[0].strip("| "): ln for ln in text.splitlines() if ln.startswith("| Fetch")}
+    assert set(lines) == {"Fetch-Reach (floor = ceiling: no comparison)", "Fetch-Push"}
+    assert "cannot rank methods" in text
+    assert "floor = ceiling" not in render_summary(rows[2:])
+
+
 def test_the_summary_gives_a_method_one_column_whatever_preset_each_row_trained_at():
     """Rows trained at different presets (the mazes at the quick one, Fetch at the paper one) share each method's
     column and a note names the rows of the other preset; a row with a method at both presets keeps both columns."""

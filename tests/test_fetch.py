@@ -627,6 +627,44 @@ def test_a_plan_fails_by_its_block_path_on_block_tasks():
     assert family_of(reach).goal_path_in_collision(reach, r[None])[0]
 
 
+def test_crossings_by_body_split_the_gripper_from_the_block():
+    """Each body's crossings apart (the gripper through a wall while the block waits; the block jumping a wall under
+    a gripper that stays clear); their union is the family's plan-through-an-obstacle test, and `cdrb report` shows
+    them in the crossing column. Reach moves one body: no split."""
+    from types import SimpleNamespace
+
+    from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_crossing_text
+
+    spec = make_spec("fetch-push-obstacle")
+    family, wall = family_of(spec), spec.scene.walls[0]
+    wx, wy = float(wall.center[0]), float(wall.center[1])
+    before, after = wy - wall.half[1] - 0.08, wy + wall.half[1] + 0.08
+    z = TABLE_TOP + BLOCK_HALF
+    grip = np.stack([_state(spec, (wx, y, z), (1.10, 0.55, z)) for y in np.linspace(before, after, 8)])
+    block = np.stack([_state(spec, (1.05, 0.4, 0.6), (wx, y, z)) for y in np.linspace(before, after, 8)[[0, -1]]])
+    block = np.concatenate([block[:1].repeat(4, 0), block[1:].repeat(4, 0)])  # the jump in the middle
+    clear = np.stack([_state(spec, (1.05, 0.4, 0.6), (1.10, 0.55, z))] * 8)
+    paths = np.stack([grip, block, clear])
+    bodies = family.crossings_by_body(spec, paths)
+    assert {k: v.tolist() for k, v in bodies.items()} == {
+        "gripper": [True, False, False],
+        "block": [False, True, False],
+    }
+    np.testing.assert_array_equal(bodies["gripper"] | bodies["block"], family.path_in_collision(spec, paths))
+    reach = make_spec("fetch-reach-obstacle")
+    assert family_of(reach).crossings_by_body(reach, paths[..., : reach.obs_dim]) is None
+
+    ev = SimpleNamespace(
+        arrays={"plans": np.concatenate([paths, paths[2:]]), "episodes/seed": np.array([0, 1, 1, 0])},
+        manifest=SimpleNamespace(env=spec),
+    )
+    rates = body_crossing_rates(ev)
+    assert rates == {"gripper": [0.5, 0.0], "block": [0.0, 0.5]}
+    assert body_crossing_text([rates]) == "gripper 25.0; block 25.0"
+    assert body_crossing_text([rates], seed=1) == "gripper 0.0; block 50.0"
+    assert body_crossing_text([rates, None]) is None
+
+
 def test_unsticking_frees_a_block_the_wall_end_stalls():
     """Tuning-stream episodes where the pusher, on the expert's own plan, is left with no room behind the block at
     the wall's end and waits (a failure): with ``unstick`` the controller pushes the block out the free way closest

@@ -341,6 +341,17 @@ class EnvFamily(ABC):
 
         return path_crosses_boxes(paths, spec.obstacles)
 
+    def position_dims(self, spec: EnvSpec) -> list[int]:
+        """The state dims that say where the bodies are (the buffer's transition graph joins states by them):
+        the obstacle dims by default."""
+        return list(spec.obstacles.dims)
+
+    def crossings_by_body(self, spec: EnvSpec, paths: np.ndarray) -> dict[str, np.ndarray] | None:
+        """For a family whose plans move more than one body (Fetch: the gripper and the block): body name -> boolean
+        over paths (..., T, D), a state of that body in, or a step of it through, an obstacle (their union is
+        :meth:`path_in_collision`); None for one body."""
+        return None
+
     def crossing_counts(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         """Per path (..., T, D): how many of its T - 1 straight steps touch an obstacle (a step counts when either
         end is in collision or the segment between them passes through one): :meth:`path_in_collision` of each

@@ -20,6 +20,7 @@ from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.settings import clip
 from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, std_or_none, sum_failures
+from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_crossing_text, first_step_ratio, new_crossing_rates
 from cdrb_cli.stages.results import failure_text, is_policy_eval, per_seed
 
 PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
@@ -142,37 +143,6 @@ def _knows_map(controller: str) -> bool:
     return controller in CONTROLLERS and CONTROLLERS.get(controller).knows_map
 
 
-def first_step_ratio(evals) -> float | None:
-    """The median, over every episode of ``evals``, of the first planned step's length (in the obstacle dims)
-    against what the dynamics allow in one plan step: about 1 when plans start where the robot is, far above 1 when
-    a plan leaves its pinned start at once. None for policies, evals without plans, or an unknown limit."""
-    ratios = []
-    for ev in evals:
-        plans, limit = ev.arrays.get("plans"), ev.arrays.get("episodes/plan_step_limit")
-        if plans is None or limit is None or plans.shape[1] < 2 or not (np.asarray(limit) > 0).all():
-            return None
-        dims = list(ev.manifest.env.obstacles.dims)
-        step = np.linalg.norm(plans[:, 1, dims] - plans[:, 0, dims], axis=-1)
-        ratios.append(step / np.asarray(limit))
-    return float(np.median(np.concatenate(ratios))) if ratios else None
-
-
-def new_crossing_rates(ev) -> list[float] | None:
-    """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, an obstacle
-    the training scene did not have (walls added to a maze, boxes put down in a Fetch scene); None when the eval
-    ran in its training scene or stored no plans."""
-    from cdrb_cli.envs.registry import family_of
-
-    plans, spec = ev.arrays.get("plans"), ev.manifest.env
-    if plans is None:
-        return None
-    crosses = family_of(spec).new_obstacle_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
-    if crosses is None:
-        return None
-    seeds = np.asarray(ev.arrays["episodes/seed"])
-    return [float(crosses[seeds == s].mean()) for s in dict.fromkeys(seeds.tolist())]
-
-
 def collect_rows(evals) -> list[dict]:
     """One row per (environment, method). Several evals of one method (e.g. one per training seed) are pooled as
     separate seeds; within an environment every method must use the same protocol and the same evaluation seeds,
@@ -246,6 +216,7 @@ def collect_rows(evals) -> list[dict]:
                     **_rate("in_wall", [r.in_wall_fraction for r in per]),  # None for a policy: it makes no plans
                     **_rate("crossing", [r.plan_crossing_rate for r in per]),
                     **_rate("new_crossing", new_rates),  # None in the training scene
+                    "crossing_by_body": body_crossing_text([body_crossing_rates(ev) for ev in group]),
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
                     "first_step_ratio": first_step_ratio(group),
                     "impossible_jump_mean": None if impossible is None else 100 * impossible,
@@ -273,7 +244,7 @@ def seed_rows(evals) -> list[dict]:
     rows = []
     for ev in evals:
         c = ev.manifest.config
-        new_rates = new_crossing_rates(ev)
+        new_rates, bodies = new_crossing_rates(ev), body_crossing_rates(ev)
         for i, r in enumerate(per_seed(ev)):
             rows.append(
                 {
@@ -290,6 +261,7 @@ def seed_rows(evals) -> list[dict]:
                     "in_obstacle": None if r.in_wall_fraction is None else 100 * r.in_wall_fraction,
                     "plans_through_obstacle": None if r.plan_crossing_rate is None else 100 * r.plan_crossing_rate,
                     "plans_through_new_obstacle": None if new_rates is None else 100 * new_rates[i],
+                    "plans_through_obstacle_by_body": body_crossing_text([bodies], i),
                     "collisions": 100 * r.executed_collision_rate,
                     "plan_ms": 1000 * r.plan_seconds,
                     "failures": failure_text(r.failures),
@@ -404,7 +376,7 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
                 f"{_success_cell(r)} | "
                 f"{_pm(r['weighted_success_mean'], r['weighted_success_std'], r['seeds'])} | "
                 f"{_pm(r['clean_success_mean'], r['clean_success_std'], r['seeds'])} | "
-                f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])} | {opt(r['crossing_mean'], '.1f')} | "
+                f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])} | {_crossing_cell(r)} | "
                 f"{opt(r.get('new_crossing_mean'), '.1f')} | "
                 f"{opt(r['first_step_ratio'], '.2f')} | {opt(r['jump_ratio'], '.2f')} | "
                 f"{opt(r['impossible_jump_mean'], '.1f')} | "
@@ -416,6 +388,14 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
     if fmt == "table":
         return text.replace("**", "")
     return text
+
+
+def _crossing_cell(row: dict) -> str:
+    """Plans through an obstacle (%), with the share of each body where the family moves several."""
+    if row["crossing_mean"] is None:
+        return "–"
+    bodies = row.get("crossing_by_body")
+    return f"{row['crossing_mean']:.1f}" + (f" ({bodies})" if bodies else "")
 
 
 def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
@@ -435,7 +415,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     if figures:
         head.append("paper: " + " / ".join(paper_methods))
     lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
-    below = level = False
+    below = level = ceiling = False
     for env in envs:
         here = [cell[(env, m)] for m in floors + methods if (env, m) in cell]
         shapes = sorted({f"{r['seeds']} x {r['episodes']}" for r in here})
@@ -445,6 +425,9 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
         vals += [_summary_cell(cell[(env, m)]) if (env, m) in cell else "–" for m in floors] or ["no floor measured"]
         if floors and floor is None:
             vals[2] = "no floor measured"
+        if floor is not None and floor["success_mean"] >= CEILING:
+            vals[0] += " (floor = ceiling: no comparison)"
+            ceiling = True
         for m in methods:
             r = cell.get((env, m))
             if r is None:
@@ -477,6 +460,11 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
             f"≈ floor: above the straight line's mean, but not by more than seed noise (Welch's one-sided t-test "
             f"over training seeds, p ≥ {FLOOR_ALPHA})."
         )
+    if ceiling:
+        notes.append(
+            f"floor = ceiling: the straight line from start to goal already solves {CEILING:g}% or more of the pairs, "
+            "so the row cannot rank methods (it checks that none breaks what needs no plan)."
+        )
     if preset_note:
         notes.append(preset_note)
     if figures:
@@ -489,6 +477,8 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
 
 #: the significance level at which a method's success counts as above the straight line's
 FLOOR_ALPHA = 0.05
+#: a floor at or above this success (%) leaves a row nothing to rank
+CEILING = 99.0
 
 
 def _above(r: dict, floor: dict) -> bool:
@@ -544,7 +534,8 @@ def _summary_cell(r: dict) -> str:
 COLUMN_NOTES = (
     "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
     "planned state in one, or a straight segment between two consecutive planned states that crosses one (a plan "
-    "can have every state free and still jump a wall); through a new one: the same for the obstacles the "
+    "can have every state free and still jump a wall), in brackets by body where a plan moves several (Fetch: "
+    "gripper, block; one plan can count for both); through a new one: the same for the obstacles the "
     "training scene did not have (`--scene`/`--maze-map`; – in the training scene). First step / allowed: how far "
     "a plan's first step leaves the start, against one plan step of the dynamics (near 1: the plan starts where "
     "the robot is). Largest jump / allowed and plans with an impossible jump: "

@@ -16,7 +16,13 @@ from typing import Any
 import numpy as np
 
 from cdrb_cli.envs.family import EnvFamily, Episode
-from cdrb_cli.envs.fetch.geometry import block_obstacles, body_obstacles, paths_in_obstacles, states_in_obstacles
+from cdrb_cli.envs.fetch.geometry import (
+    block_obstacles,
+    body_obstacles,
+    paths_in_obstacles,
+    paths_in_obstacles_by_body,
+    states_in_obstacles,
+)
 from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_gripper_start, draw_task, scene_for, side
 from cdrb_cli.envs.geometry import path_crosses_boxes
 from cdrb_cli.envs.registry import FAMILIES
@@ -338,6 +344,16 @@ class FetchFamily(EnvFamily):
 
     def path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         return paths_in_obstacles(paths, spec.scene.solid, spec.scene.task)
+
+    def position_dims(self, spec: EnvSpec) -> list[int]:
+        """The gripper's x, y, z and, with a block, the block's."""
+        return list(range(6 if has_object(spec) else 3))
+
+    def crossings_by_body(self, spec: EnvSpec, paths: np.ndarray) -> dict[str, np.ndarray] | None:
+        """With a block: the gripper's and the block's crossings apart (their union is :meth:`path_in_collision`)."""
+        if not has_object(spec):
+            return None
+        return paths_in_obstacles_by_body(paths, spec.scene.solid, spec.scene.task)
 
     def goal_path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         """With a block: the planned block path through a wall or off the table (a gripper that dips into the

@@ -169,13 +169,21 @@ def paths_in_obstacles(paths: np.ndarray, walls: list[Box], task: str, bounded: 
     """Boolean over paths (..., T, D): a state in an obstacle, or a straight step between two states along which
     a body passes through a wall (for the fingers, as wide as the wider of the step's two states); ``bounded=False``:
     the walls alone, leaving the workspace not counted."""
+    return np.logical_or.reduce(list(paths_in_obstacles_by_body(paths, walls, task, bounded).values()))
+
+
+def paths_in_obstacles_by_body(
+    paths: np.ndarray, walls: list[Box], task: str, bounded: bool = True
+) -> dict[str, np.ndarray]:
+    """:func:`paths_in_obstacles` for each body apart: ``gripper`` (closed, or opened as wide as the plan has it)
+    and, for a task with one, ``block``."""
     paths = np.asarray(paths)
-    out = np.zeros(paths.shape[:-2], dtype=bool)
-    for ob in body_obstacles(walls, task):
+    out = {}
+    for name, ob in zip(("gripper", "block"), body_obstacles(walls, task)):
         if not bounded:
             ob = ob.model_copy(update={"low": [-1e3] * len(ob.low), "high": [1e3] * len(ob.high)})
-        out |= path_crosses_boxes(paths, ob)  # its states too
-    out |= _open_fingers_in_walls(paths, walls, task).any(axis=-1)
+        out[name] = np.asarray(path_crosses_boxes(paths, ob), dtype=bool)  # its states too
+    out["gripper"] = out["gripper"] | _open_fingers_in_walls(paths, walls, task).any(axis=-1)
     if task == "pick-place" and walls and paths.shape[-2] > 1:
         flat = paths.reshape(-1, *paths.shape[-2:])
         opening = _opening(flat)
@@ -187,5 +195,5 @@ def paths_in_obstacles(paths: np.ndarray, walls: list[Box], task: str, bounded: 
             a, b = flat[i, j, :3].astype(np.float64), flat[i, j + 1, :3].astype(np.float64)
             d = segment_box_distance(a, b, centers, halves, within=1e-12)
             hit[i[d <= 0.0]] = True
-        out |= hit.reshape(out.shape)
+        out["gripper"] = out["gripper"] | hit.reshape(out["gripper"].shape)
     return out

@@ -1,0 +1,65 @@
+"""Measurements `cdrb report` takes from the plans an eval stored (the eval's summary does not hold them): the first
+planned step against the allowed one, crossings of obstacles a scene added after training, and crossings by body."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def first_step_ratio(evals) -> float | None:
+    """The median, over every episode of ``evals``, of the first planned step's length (in the obstacle dims)
+    against what the dynamics allow in one plan step: about 1 when plans start where the robot is, far above 1 when
+    a plan leaves its pinned start at once. None for policies, evals without plans, or an unknown limit."""
+    ratios = []
+    for ev in evals:
+        plans, limit = ev.arrays.get("plans"), ev.arrays.get("episodes/plan_step_limit")
+        if plans is None or limit is None or plans.shape[1] < 2 or not (np.asarray(limit) > 0).all():
+            return None
+        dims = list(ev.manifest.env.obstacles.dims)
+        step = np.linalg.norm(plans[:, 1, dims] - plans[:, 0, dims], axis=-1)
+        ratios.append(step / np.asarray(limit))
+    return float(np.median(np.concatenate(ratios))) if ratios else None
+
+
+def new_crossing_rates(ev) -> list[float] | None:
+    """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, an obstacle
+    the training scene did not have (walls added to a maze, boxes put down in a Fetch scene); None when the eval
+    ran in its training scene or stored no plans."""
+    from cdrb_cli.envs.registry import family_of
+
+    plans, spec = ev.arrays.get("plans"), ev.manifest.env
+    if plans is None:
+        return None
+    crosses = family_of(spec).new_obstacle_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
+    if crosses is None:
+        return None
+    seeds = np.asarray(ev.arrays["episodes/seed"])
+    return [float(crosses[seeds == s].mean()) for s in dict.fromkeys(seeds.tolist())]
+
+
+def body_crossing_rates(ev) -> dict[str, list[float]] | None:
+    """Per body the family's collision test moves (Fetch: gripper, block), per evaluation seed, the share of
+    episodes whose (first) plan has that body in, or stepping through, an obstacle; None for a family with one body
+    or an eval that stored no plans."""
+    from cdrb_cli.envs.registry import family_of
+
+    plans, spec = ev.arrays.get("plans"), ev.manifest.env
+    if plans is None:
+        return None
+    bodies = family_of(spec).crossings_by_body(spec, np.asarray(plans)[..., : spec.obs_dim])
+    if bodies is None:
+        return None
+    seeds = np.asarray(ev.arrays["episodes/seed"])
+    order = list(dict.fromkeys(seeds.tolist()))
+    return {name: [float(hit[seeds == s].mean()) for s in order] for name, hit in bodies.items()}
+
+
+def body_crossing_text(rates: list[dict[str, list[float]] | None], seed: int | None = None) -> str | None:
+    """Percent of plans through an obstacle by body, e.g. ``gripper 12.0; block 30.0``: pooled over every seed of
+    ``rates`` (one entry per eval), or of seed index ``seed`` of the one eval; None when any eval lacks them."""
+    if not rates or any(r is None for r in rates):
+        return None
+    names = list(dict.fromkeys(n for r in rates for n in r))
+    if seed is not None:
+        return "; ".join(f"{n} {100 * rates[0][n][seed]:.1f}" for n in names)
+    return "; ".join(f"{n} {100 * float(np.mean([x for r in rates for x in r.get(n, [])])):.1f}" for n in names)
