@@ -5,9 +5,10 @@ CDRB's ball D(s, eps) is Euclidean in the normalised features, so near a thin wa
 sides, and a degradation may swap a state across the wall. The demonstrations say which buffer states are
 neighbours in free space: consecutive states of one demonstration. So:
 
-* :func:`transition_graph`: each demonstration state is mapped to its buffer state (the nearest buffer point, the
-  cluster it belongs to); consecutive distinct buffer states of one demonstration are joined by an undirected edge
-  weighted by their Euclidean distance in the normalised features. No map is read: the data alone say what is free.
+* :func:`transition_graph`: each demonstration state is mapped to its buffer state (the nearest buffer point by
+  position: nearest in every feature, a state by a thin wall can land on a point across it with a similar velocity);
+  consecutive distinct buffer states of one demonstration are joined by an undirected edge weighted by their
+  Euclidean distance in the normalised features. No map is read: the data alone say what is free.
 * :class:`GeodesicBalls`: a query state is attached to the graph at its nearest buffer state ``a`` (the step costs
   the Euclidean distance to it), and its ball of radius eps holds the buffer states ``j`` with
   ``|x - p_a| + g(a, j) < eps``, ``g`` the shortest-path distance along the graph. A draw is uniform over that set,
@@ -37,13 +38,17 @@ def nearest_point(points: np.ndarray, states: np.ndarray) -> np.ndarray:
     return cKDTree(np.asarray(points, dtype=np.float64)).query(np.asarray(states, dtype=np.float64))[1].astype(np.int64)
 
 
-def transition_graph(points: np.ndarray, states: np.ndarray, episode: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def transition_graph(
+    points: np.ndarray, states: np.ndarray, episode: np.ndarray, dims: list[int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The buffer's transition graph: ``states`` (N, D) are the demonstrations' states in the buffer's normalised
     features, in order, ``episode`` (N,) the demonstration each belongs to (consecutive rows of one demonstration
-    are consecutive states). Returns (edges (E, 2) int64 with i < j, each pair once, sorted; weights (E,) float64,
-    the Euclidean distance between the two buffer points). Deterministic: no randomness enters."""
+    are consecutive states); each state joins the graph at its nearest buffer point in the feature columns ``dims``
+    (all of them by default). Returns (edges (E, 2) int64 with i < j, each pair once, sorted; weights (E,) float64,
+    the Euclidean distance between the two buffer points in every feature). Deterministic: no randomness enters."""
     points = np.asarray(points, dtype=np.float64)
-    node = nearest_point(points, states)
+    cols = slice(None) if dims is None else list(dims)
+    node = nearest_point(points[:, cols], np.asarray(states, dtype=np.float64)[:, cols])
     episode = np.asarray(episode)
     same = (episode[1:] == episode[:-1]) & (node[1:] != node[:-1])
     a, b = node[:-1][same], node[1:][same]

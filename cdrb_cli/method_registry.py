@@ -65,6 +65,8 @@ class BufferInfo:
     diameter: float
     #: the largest shortest-path distance along the buffer's transition graph (None: no graph)
     graph_diameter: float | None = None
+    #: the diagonal of the data's bounding box in normalized features (2 per feature that varies, in quadrature)
+    box_diagonal: float | None = None
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,24 @@ def test_the_graph_joins_only_consecutive_states_of_one_demonstration_and_is_det
     assert summary["components"] == 2 and summary["isolated_nodes"] == 1 and summary["max_degree"] == 2
 
 
+def test_states_join_the_graph_by_position_so_a_velocity_never_pulls_one_across_a_wall():
+    """Nearest in every feature, a state by a thin wall (x = 0.5) moving like the buffer point across it joins that
+    point, and the graph gets an edge across the wall; nearest by position (the family's position dims) it joins the
+    point on its own side, as the demonstration's path did."""
+    # buffer points (x, y, vx, vy): two on the left of the wall, one on the right moving like the demo
+    points = np.array([[0.0, 0.0, 0.0, 0.0], [0.4, 0.0, 0.0, 0.0], [0.6, 0.0, 1.0, 0.0]])
+    # one demonstration on the left: from point 0 towards the wall, arriving fast at x = 0.45
+    states = np.array([[0.0, 0.0, 0.0, 0.0], [0.45, 0.0, 1.0, 0.0]])
+    episode = np.array([0, 0])
+    assert transition_graph(points, states, episode)[0].tolist() == [[0, 2]]  # across the wall
+    assert transition_graph(points, states, episode, [0, 1])[0].tolist() == [[0, 1]]
+    from cdrb_cli.envs.registry import family_of, make_spec
+
+    maze, push = make_spec("maze-tight"), make_spec("fetch-push-obstacle")
+    assert family_of(maze).position_dims(maze) == [0, 1]
+    assert family_of(push).position_dims(push) == [0, 1, 2, 3, 4, 5]  # the gripper's and the block's
+
+
 def test_a_geodesic_ball_never_reaches_across_a_wall_the_demos_went_round():
     """Beside the wall's far end the Euclidean ball draws states from the other side of the wall; the geodesic ball
     of the same radius never does, at any radius shorter than the way round."""
@@ -127,7 +145,8 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
     rows = split_rows(demos, buffer.manifest.config.split)
     episode = np.concatenate([np.full(n, i) for i, n in enumerate(demos.episode_length)])
     z = norm.normalize(demo_features(demos, buffer.manifest.config.features)[rows])
-    again = transition_graph(buffer.points, z, episode[rows])
+    assert buffer.manifest.config.graph_join == "position"  # states join at the nearest point by x, y
+    again = transition_graph(buffer.points, z, episode[rows], [0, 1])
     assert np.array_equal(edges, again[0]) and np.allclose(weights, again[1]) and len(edges) >= len(buffer.points) - 1
     info = json.loads(cdrb("inspect", buffer.path, "--json").stdout)
     assert info["graph"] == graph_summary(len(buffer.points), edges)
@@ -139,6 +158,11 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
         artifacts.save(old, "buffer", manifest, arrays)
     with h5py.File(old) as f:
         assert "graph" not in f
+    # a buffer of before states joined by position records that they joined by every feature
+    from cdrb_cli.artifacts.migrations import migrate_minor
+
+    assert migrate_minor("buffer", (2, 7), {"config": {"k": 10}})["config"]["graph_join"] == "features"
+    assert migrate_minor("buffer", (2, 8), {"config": {"k": 10}})["config"] == {"k": 10}
     with pytest.raises(BadInput, match="has no transition graph.*cdrb cluster"):
         artifacts.load(old, "buffer").graph()
     # the buffer picture draws the graph's edges; a buffer without one draws its states alone

@@ -450,3 +450,33 @@ def test_a_buffer_of_one_point_gives_no_ball_radius_unless_one_is_set(small_data
         resolve_train_config(demos.manifest.env, flat, from_mapping({"method.name": "cdrb"}))
     cfg = resolve_train_config(demos.manifest.env, flat, from_mapping({"method.name": "cdrb", "method.d_max": 1.5}))
     assert cfg.method.d_max == 1.5
+
+
+def test_d_max_from_the_data_box_is_the_diagonal_of_the_normalized_features(small_data):
+    """``method.d_max_from = "data-box"`` (the official Fetch code's d_max): 2 per feature that varies, in quadrature,
+    where the buffer's diameter is the default; a d_max set by the user wins over both."""
+    from cdrb_cli.methods.config import buffer_info, resolve_train_config
+    from cdrb_cli.settings import from_mapping
+
+    demos, buffer = small_data
+    info = buffer_info(buffer)
+    varying = int((np.asarray(buffer.high) > np.asarray(buffer.low)).sum())
+    assert varying >= 2 and info.box_diagonal == pytest.approx(2 * np.sqrt(varying))
+    env = demos.manifest.env
+    base = {"method.name": "cdrb"}
+    assert resolve_train_config(env, info, from_mapping(base)).method.d_max == pytest.approx(info.diameter)
+    box = resolve_train_config(env, info, from_mapping({**base, "method.d_max_from": "data-box"})).method
+    assert box.d_max == pytest.approx(info.box_diagonal) and box.d_max > info.diameter
+    set_too = {**base, "method.d_max_from": "data-box", "method.d_max": 1.5}
+    assert resolve_train_config(env, info, from_mapping(set_too)).method.d_max == 1.5
+    # `cdrb report` keeps such a model's row apart from the paper's CDRB
+    from types import SimpleNamespace
+
+    from cdrb_cli.methods.cdrb import CDRB
+
+    def label(**method):
+        return CDRB.variant(SimpleNamespace(config=SimpleNamespace(method=SimpleNamespace(**method))))
+
+    assert label(ball="euclidean", d_max_from="buffer") is None
+    assert label(ball="euclidean", d_max_from="data-box") == "d_max of the data box"
+    assert label(ball="geodesic", d_max_from="data-box") == "geodesic balls, d_max of the data box"

@@ -43,6 +43,12 @@ class CDRBParams(StartWeightParams):
         description="largest ball radius, in normalized feature space (default: the buffer's diameter; for geodesic "
         "balls its diameter along the transition graph)",
     )
+    d_max_from: Literal["buffer", "data-box"] = Field(
+        "buffer",
+        description="where d_max comes from when not set: the buffer's diameter (the largest ball holds the whole "
+        "buffer) or data-box, the diagonal of the data's bounding box in normalized features (the official Fetch "
+        "code's, about 1.8x larger there)",
+    )
     diffusion_steps: int = Field(gt=1, le=100_000, description="T, the number of diffusion steps")
     sampler: Literal["paper", "cold-improved"] = Field(
         "paper",
@@ -106,7 +112,10 @@ class CDRB(Planner):
         return GeodesicBalls(points, *graph, eps=self.eps)
 
     def variant(self) -> str | None:
-        return "geodesic balls" if self.config.method.ball == "geodesic" else None
+        m = self.config.method
+        parts = ["geodesic balls"] if m.ball == "geodesic" else []
+        parts += ["d_max of the data box"] if m.d_max_from == "data-box" else []
+        return ", ".join(parts) or None
 
     def extra_arrays(self):
         out = {"buffer/points": self.points}
@@ -317,12 +326,15 @@ class CDRB(Planner):
 def _data_defaults(spec, buffer, settings) -> dict:
     """d_max, the radius at the last diffusion step: the buffer's diameter, so that ball holds the whole buffer and
     the last degradation is the sampling prior (uniform buffer states); measured along the transition graph for
-    geodesic balls (their Euclidean diameter would leave the far states out of every ball)."""
+    geodesic balls (their Euclidean diameter would leave the far states out of every ball); with ``method.d_max_from
+    = "data-box"`` the diagonal of the data's bounding box, as the official Fetch code sets it."""
     if buffer is None:
         return {}
     from cdrb_cli.settings import lookup
 
-    ball = lookup(settings, ("method", "ball"))
+    ball, source = lookup(settings, ("method", "ball")), lookup(settings, ("method", "d_max_from"))
+    if source is not None and source.value == "data-box" and buffer.box_diagonal:
+        return {"d_max": buffer.box_diagonal}
     if ball is not None and ball.value == "geodesic" and buffer.graph_diameter:
         return {"d_max": buffer.graph_diameter}
     return {"d_max": buffer.diameter}

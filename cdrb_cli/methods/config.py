@@ -196,8 +196,16 @@ def buffer_info(buffer) -> BufferInfo | None:
     """What resolution needs of a buffer artifact (None without one)."""
     if buffer is None:
         return None
+    import numpy as np
+
     s = buffer.manifest.summary
-    return BufferInfo(features=buffer.manifest.config.features, diameter=s.diameter, graph_diameter=s.graph_diameter)
+    box = float(np.linalg.norm(np.where(np.asarray(buffer.high) > np.asarray(buffer.low), 2.0, 0.0)))
+    return BufferInfo(
+        features=buffer.manifest.config.features,
+        diameter=s.diameter,
+        graph_diameter=s.graph_diameter,
+        box_diagonal=box,
+    )
 
 
 def train_config(demos, buffer=None, method: str | None = None, settings: dict | None = None, seed: int = 0):

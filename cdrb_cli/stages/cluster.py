@@ -10,6 +10,7 @@ import numpy as np
 from cdrb_cli import artifacts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, diameter, kmeans_buffer, split_rows
 from cdrb_cli.configs import ClusterConfig, ClusterSummary
+from cdrb_cli.envs.registry import family_of
 from cdrb_cli.errors import BadInput
 from cdrb_cli.geodesic import graph_diameter, transition_graph
 
@@ -55,7 +56,8 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
     order = np.concatenate([np.arange(s, s + n) for s, n in zip(demos.episode_start, demos.episode_length)])
     row_episode = np.empty(len(order), dtype=np.int64)
     row_episode[order] = episode
-    edges, weights = transition_graph(points, z, row_episode[rows])
+    dims = family_of(demos.manifest.env).position_dims(demos.manifest.env) if config.graph_join == "position" else None
+    edges, weights = transition_graph(points, z, row_episode[rows], dims)
     reach = graph_diameter(len(points), edges, weights)
     summary = ClusterSummary(
         points=int(len(points)),
