@@ -277,3 +277,26 @@ def test_report_keeps_geodesic_and_euclidean_cdrb_apart(tmp_path, small_data, ti
     r = cdrb("report", tmp_path / "eval-geo.h5", tmp_path / "eval-euc.h5", "--format", "json")
     assert r.returncode == 0, r.stderr
     assert sorted(row["method"] for row in json.loads(r.stdout)) == ["cdrb", "cdrb [geodesic balls]"]
+
+
+def test_geodesic_training_warns_about_a_graph_joined_by_every_feature(small_data, capsys):
+    """A buffer from before states joined the graph by position still trains geodesic CDRB, with one warning line
+    that says how to get the position graph; a current buffer trains without it."""
+    from types import SimpleNamespace
+
+    from cdrb_cli.settings import from_mapping
+    from cdrb_cli.stages.train import _graph
+
+    demos, buffer = small_data
+    from cdrb_cli.methods.config import buffer_info, resolve_train_config
+
+    config = resolve_train_config(
+        demos.manifest.env, buffer_info(buffer), from_mapping({"method.name": "cdrb", "method.ball": "geodesic"})
+    )
+    edges, _ = _graph(buffer, config)
+    assert len(edges) and "joins states by every feature" not in capsys.readouterr().err
+    old_config = buffer.manifest.config.model_copy(update={"graph_join": "features"})
+    old = SimpleNamespace(path=buffer.path, graph=buffer.graph, manifest=SimpleNamespace(config=old_config))
+    assert np.array_equal(_graph(old, config)[0], edges)
+    err = capsys.readouterr().err
+    assert "joins states by every feature" in err and "`cdrb cluster` again" in err
