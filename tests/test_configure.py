@@ -180,11 +180,19 @@ def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_model
     assert f"best of {n}" in r.stderr
     seen = []
     real = plan_stage.sample_plans
-    monkeypatch.setattr(plan_stage, "sample_plans", lambda *a, **k: seen.append(k["avoid"].best_of) or real(*a, **k))
+
+    def spy(*a, **k):
+        avoid = k["avoid"]
+        seen.append((avoid.best_of, avoid.fallback_route_k, avoid.graph is not None))
+        return real(*a, **k)
+
+    monkeypatch.setattr(plan_stage, "sample_plans", spy)
     planner = api.Planner(model.path)
     planner.plan(corridor[:2], centre[:2])
     planner.plan(centre[:2], corridor[:2])
-    assert seen == [n, 1] and planner.avoidance.best_of == 1
+    # from the corridor: the best of n and a second try from a buffer route (its graph built for it); from the
+    # centre, the paper's one plan
+    assert seen == [(n, 7, True), (1, None, True)] and planner.avoidance.best_of == 1
 
 
 def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):
