@@ -60,11 +60,12 @@ class ClusterConfig(Record):
     split: Literal["train", "all"] = "train"
     n_init: int = Field(1, gt=0)
     max_iter: int = Field(100, gt=0)
-    graph_join: Literal["position", "features"] = Field(
-        "position",
+    graph_join: Literal["features", "position"] = Field(
+        "features",
         description="how each demonstration state joins the buffer's transition graph (geodesic balls measure "
-        "along it): at the nearest buffer state by position (the family's position dims, so a similar velocity "
-        "never joins it to a state across a thin wall) or by every feature (buffers before schema 2.8)",
+        "along it): at the nearest buffer state by every feature, or by position alone (the family's position "
+        "dims: a similar velocity never joins a state to a point across a thin wall, but edges then join states "
+        "of unlike velocities, so the graph's lengths grow)",
     )
     seed: Seed
 

@@ -145,8 +145,8 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
     rows = split_rows(demos, buffer.manifest.config.split)
     episode = np.concatenate([np.full(n, i) for i, n in enumerate(demos.episode_length)])
     z = norm.normalize(demo_features(demos, buffer.manifest.config.features)[rows])
-    assert buffer.manifest.config.graph_join == "position"  # states join at the nearest point by x, y
-    again = transition_graph(buffer.points, z, episode[rows], [0, 1])
+    assert buffer.manifest.config.graph_join == "features"  # states join at the nearest point in every feature
+    again = transition_graph(buffer.points, z, episode[rows])
     assert np.array_equal(edges, again[0]) and np.allclose(weights, again[1]) and len(edges) >= len(buffer.points) - 1
     info = json.loads(cdrb("inspect", buffer.path, "--json").stdout)
     assert info["graph"] == graph_summary(len(buffer.points), edges)
@@ -158,11 +158,16 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
         artifacts.save(old, "buffer", manifest, arrays)
     with h5py.File(old) as f:
         assert "graph" not in f
-    # a buffer of before states joined by position records that they joined by every feature
-    from cdrb_cli.artifacts.migrations import migrate_minor
-
-    assert migrate_minor("buffer", (2, 7), {"config": {"k": 10}})["config"]["graph_join"] == "features"
-    assert migrate_minor("buffer", (2, 8), {"config": {"k": 10}})["config"] == {"k": 10}
+    assert artifacts.load(old, "buffer").manifest.config.graph_join == "features"
+    # `--graph-join position`: states join at the nearest buffer state by x, y
+    r = cdrb("cluster", demos.path, "--k", "100", "--graph-join", "position", "--out", tmp_path / "pos.h5")
+    assert r.returncode == 0, r.stderr
+    pos = artifacts.load(tmp_path / "pos.h5", "buffer")
+    assert pos.manifest.config.graph_join == "position"
+    np.testing.assert_array_equal(pos.points, buffer.points)
+    assert np.array_equal(pos.graph()[0], transition_graph(buffer.points, z, episode[rows], [0, 1])[0])
+    r = cdrb("cluster", demos.path, "--graph-join", "x-y", "--out", tmp_path / "bad.h5")
+    assert r.returncode == 2 and "features" in r.stderr and not (tmp_path / "bad.h5").exists()
     with pytest.raises(BadInput, match="has no transition graph.*cdrb cluster"):
         artifacts.load(old, "buffer").graph()
     # the buffer picture draws the graph's edges; a buffer without one draws its states alone
@@ -277,26 +282,3 @@ def test_report_keeps_geodesic_and_euclidean_cdrb_apart(tmp_path, small_data, ti
     r = cdrb("report", tmp_path / "eval-geo.h5", tmp_path / "eval-euc.h5", "--format", "json")
     assert r.returncode == 0, r.stderr
     assert sorted(row["method"] for row in json.loads(r.stdout)) == ["cdrb", "cdrb [geodesic balls]"]
-
-
-def test_geodesic_training_warns_about_a_graph_joined_by_every_feature(small_data, capsys):
-    """A buffer from before states joined the graph by position still trains geodesic CDRB, with one warning line
-    that says how to get the position graph; a current buffer trains without it."""
-    from types import SimpleNamespace
-
-    from cdrb_cli.settings import from_mapping
-    from cdrb_cli.stages.train import _graph
-
-    demos, buffer = small_data
-    from cdrb_cli.methods.config import buffer_info, resolve_train_config
-
-    config = resolve_train_config(
-        demos.manifest.env, buffer_info(buffer), from_mapping({"method.name": "cdrb", "method.ball": "geodesic"})
-    )
-    edges, _ = _graph(buffer, config)
-    assert len(edges) and "joins states by every feature" not in capsys.readouterr().err
-    old_config = buffer.manifest.config.model_copy(update={"graph_join": "features"})
-    old = SimpleNamespace(path=buffer.path, graph=buffer.graph, manifest=SimpleNamespace(config=old_config))
-    assert np.array_equal(_graph(old, config)[0], edges)
-    err = capsys.readouterr().err
-    assert "joins states by every feature" in err and "`cdrb cluster` again" in err

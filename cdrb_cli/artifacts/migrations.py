@@ -142,15 +142,6 @@ def _ball_candidates_2_8(kind: str, m: Manifest) -> Manifest:
     return {**m, "config": {**cfg, "method": {"ball_candidates": "fixed", **method}}}
 
 
-def _graph_join_2_8(kind: str, m: Manifest) -> Manifest:
-    """Buffers written before the transition graph joined states by position joined them by every feature: their
-    ``graph_join`` is ``features`` (buffer 2.8), so they read as what they hold and an up-to-date check redoes them."""
-    cfg = m.get("config")
-    if kind != "buffer" or not isinstance(cfg, dict) or "graph_join" in cfg:
-        return m
-    return {**m, "config": {**cfg, "graph_join": "features"}}
-
-
 #: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
 #: older files did not follow; applied to every older file in order
 MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
@@ -158,7 +149,6 @@ MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest
     ((2, 5), _checkpoint_seconds_2_5),
     ((2, 6), _fetch_draws_2_4),
     ((2, 8), _ball_candidates_2_8),
-    ((2, 8), _graph_join_2_8),
 ]
 
 

@@ -226,6 +226,14 @@ def cluster(
         metavar="train|all",
         help="Episodes whose states form the buffer: train or all.",
     ),
+    graph_join: str = typer.Option(
+        "features",
+        "--graph-join",
+        parser=choice(literal_values("ClusterConfig", "graph_join"), "graph join"),
+        metavar="features|position",
+        help="How demo states join the transition graph geodesic balls measure along: at the nearest buffer state "
+        "by every feature, or by position alone.",
+    ),
     out: Path = typer.Option(Path("buffer.h5"), "--out", "-o", help="Buffer artifact to write."),
     plot: Path | None = typer.Option(None, "--plot", help="Also draw the buffer states on the scene to this PNG."),
     seed: int = SeedOpt,
@@ -243,7 +251,9 @@ def cluster(
 
     check_outputs(force, [demos], out=out, plot=plot)
     d = load_artifact(demos, "demos")
-    config = ClusterConfig(features=features, split=split, seed=seed, **({"k": k} if k is not None else {}))
+    config = ClusterConfig(
+        features=features, split=split, graph_join=graph_join, seed=seed, **({"k": k} if k is not None else {})
+    )
     buf = produce(out, "buffer", force, config, lambda: run_cluster(d, config, out), parents=[d])
     sm = buf.manifest.summary
     ui.log(

@@ -330,17 +330,10 @@ TRAIN_BYTES_PER_PARAMETER = 5 * 4
 
 def _graph(buffer, config: TrainConfig):
     """The buffer's transition graph where the method measures its balls along it (else None); a buffer without one
-    is refused with the way to make one, and one whose states joined it by every feature (a buffer before schema
-    2.8) is used with a warning."""
+    is refused with the way to make one."""
     if buffer is None or getattr(config.method, "ball", "euclidean") != "geodesic":
         return None
-    graph = buffer.graph()
-    if buffer.manifest.config.graph_join != "position":
-        ui.warn(
-            f"{buffer.path}: its transition graph joins states by every feature, so a few of its edges may cross a "
-            "thin wall (a buffer before schema 2.8); `cdrb cluster` again joins them by position"
-        )
-    return graph
+    return buffer.graph()
 
 
 def parameter_count(demos, buffer, config: TrainConfig) -> int:
