@@ -633,7 +633,7 @@ def test_crossings_by_body_split_the_gripper_from_the_block():
     them in the crossing column. Reach moves one body: no split."""
     from types import SimpleNamespace
 
-    from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_crossing_text
+    from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_state_rates, body_text
 
     spec = make_spec("fetch-push-obstacle")
     family, wall = family_of(spec), spec.scene.walls[0]
@@ -660,9 +660,15 @@ def test_crossings_by_body_split_the_gripper_from_the_block():
     )
     rates = body_crossing_rates(ev)
     assert rates == {"gripper": [0.5, 0.0], "block": [0.0, 0.5]}
-    assert body_crossing_text([rates]) == "gripper 25.0; block 25.0"
-    assert body_crossing_text([rates], seed=1) == "gripper 0.0; block 50.0"
-    assert body_crossing_text([rates, None]) is None
+    assert body_text([rates]) == "gripper 25.0; block 25.0"
+    assert body_text([rates], seed=1) == "gripper 0.0; block 50.0"
+    assert body_text([rates, None]) is None
+    # states in an obstacle by body: the gripper's 8-state path has its middle states in the wall, the block's none
+    states = family.collisions_by_body(spec, paths)
+    np.testing.assert_array_equal(states["gripper"] | states["block"], family.in_collision(spec, paths))
+    assert states["gripper"][0].any() and not states["block"].any()
+    share = body_state_rates(ev)
+    assert share["block"] == [0.0, 0.0] and share["gripper"][0] == pytest.approx(states["gripper"][0].mean() / 2)
 
 
 def test_unsticking_frees_a_block_the_wall_end_stalls():

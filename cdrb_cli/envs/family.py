@@ -352,6 +352,11 @@ class EnvFamily(ABC):
         :meth:`path_in_collision`); None for one body."""
         return None
 
+    def collisions_by_body(self, spec: EnvSpec, states: np.ndarray) -> dict[str, np.ndarray] | None:
+        """As :meth:`crossings_by_body` for states (..., D): body name -> boolean, that body in an obstacle (their
+        union is :meth:`in_collision`); None for one body."""
+        return None
+
     def crossing_counts(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         """Per path (..., T, D): how many of its T - 1 straight steps touch an obstacle (a step counts when either
         end is in collision or the segment between them passes through one): :meth:`path_in_collision` of each

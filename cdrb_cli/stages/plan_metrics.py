@@ -41,12 +41,23 @@ def body_crossing_rates(ev) -> dict[str, list[float]] | None:
     """Per body the family's collision test moves (Fetch: gripper, block), per evaluation seed, the share of
     episodes whose (first) plan has that body in, or stepping through, an obstacle; None for a family with one body
     or an eval that stored no plans."""
+    return _per_body(ev, lambda family, spec, states: family.crossings_by_body(spec, states))
+
+
+def body_state_rates(ev) -> dict[str, list[float]] | None:
+    """As :func:`body_crossing_rates`, the share of planned states with that body in an obstacle."""
+    return _per_body(ev, lambda family, spec, states: family.collisions_by_body(spec, states))
+
+
+def _per_body(ev, measure) -> dict[str, list[float]] | None:
+    """``measure(family, spec, planned states)`` (a boolean array per body, over plans or over their states) averaged
+    per evaluation seed; None where it gives none or the eval stored no plans."""
     from cdrb_cli.envs.registry import family_of
 
     plans, spec = ev.arrays.get("plans"), ev.manifest.env
     if plans is None:
         return None
-    bodies = family_of(spec).crossings_by_body(spec, np.asarray(plans)[..., : spec.obs_dim])
+    bodies = measure(family_of(spec), spec, np.asarray(plans)[..., : spec.obs_dim])
     if bodies is None:
         return None
     seeds = np.asarray(ev.arrays["episodes/seed"])
@@ -54,12 +65,14 @@ def body_crossing_rates(ev) -> dict[str, list[float]] | None:
     return {name: [float(hit[seeds == s].mean()) for s in order] for name, hit in bodies.items()}
 
 
-def body_crossing_text(rates: list[dict[str, list[float]] | None], seed: int | None = None) -> str | None:
-    """Percent of plans through an obstacle by body, e.g. ``gripper 12.0; block 30.0``: pooled over every seed of
-    ``rates`` (one entry per eval), or of seed index ``seed`` of the one eval; None when any eval lacks them."""
+def body_text(rates: list[dict[str, list[float]] | None], seed: int | None = None, digits: int = 1) -> str | None:
+    """Percent by body of :func:`body_crossing_rates` or :func:`body_state_rates`, e.g. ``gripper 12.0; block 30.0``:
+    pooled over every seed of ``rates`` (one entry per eval), or of seed index ``seed`` of the one eval; None when
+    any eval lacks them."""
     if not rates or any(r is None for r in rates):
         return None
     names = list(dict.fromkeys(n for r in rates for n in r))
     if seed is not None:
-        return "; ".join(f"{n} {100 * rates[0][n][seed]:.1f}" for n in names)
-    return "; ".join(f"{n} {100 * float(np.mean([x for r in rates for x in r.get(n, [])])):.1f}" for n in names)
+        return "; ".join(f"{n} {100 * rates[0][n][seed]:.{digits}f}" for n in names)
+    pooled = {n: float(np.mean([x for r in rates for x in r.get(n, [])])) for n in names}
+    return "; ".join(f"{n} {100 * v:.{digits}f}" for n, v in pooled.items())

@@ -20,7 +20,13 @@ from cdrb_cli import ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.settings import clip
 from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, std_or_none, sum_failures
-from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_crossing_text, first_step_ratio, new_crossing_rates
+from cdrb_cli.stages.plan_metrics import (
+    body_crossing_rates,
+    body_state_rates,
+    body_text,
+    first_step_ratio,
+    new_crossing_rates,
+)
 from cdrb_cli.stages.results import failure_text, is_policy_eval, per_seed
 
 PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id -> method -> (mean, std)
@@ -216,7 +222,8 @@ def collect_rows(evals) -> list[dict]:
                     **_rate("in_wall", [r.in_wall_fraction for r in per]),  # None for a policy: it makes no plans
                     **_rate("crossing", [r.plan_crossing_rate for r in per]),
                     **_rate("new_crossing", new_rates),  # None in the training scene
-                    "crossing_by_body": body_crossing_text([body_crossing_rates(ev) for ev in group]),
+                    "crossing_by_body": body_text([body_crossing_rates(ev) for ev in group]),
+                    "in_wall_by_body": body_text([body_state_rates(ev) for ev in group], digits=2),
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
                     "first_step_ratio": first_step_ratio(group),
                     "impossible_jump_mean": None if impossible is None else 100 * impossible,
@@ -244,7 +251,7 @@ def seed_rows(evals) -> list[dict]:
     rows = []
     for ev in evals:
         c = ev.manifest.config
-        new_rates, bodies = new_crossing_rates(ev), body_crossing_rates(ev)
+        new_rates, bodies, states = new_crossing_rates(ev), body_crossing_rates(ev), body_state_rates(ev)
         for i, r in enumerate(per_seed(ev)):
             rows.append(
                 {
@@ -261,7 +268,8 @@ def seed_rows(evals) -> list[dict]:
                     "in_obstacle": None if r.in_wall_fraction is None else 100 * r.in_wall_fraction,
                     "plans_through_obstacle": None if r.plan_crossing_rate is None else 100 * r.plan_crossing_rate,
                     "plans_through_new_obstacle": None if new_rates is None else 100 * new_rates[i],
-                    "plans_through_obstacle_by_body": body_crossing_text([bodies], i),
+                    "plans_through_obstacle_by_body": body_text([bodies], i),
+                    "in_obstacle_by_body": body_text([states], i, digits=2),
                     "collisions": 100 * r.executed_collision_rate,
                     "plan_ms": 1000 * r.plan_seconds,
                     "failures": failure_text(r.failures),
@@ -376,7 +384,8 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
                 f"{_success_cell(r)} | "
                 f"{_pm(r['weighted_success_mean'], r['weighted_success_std'], r['seeds'])} | "
                 f"{_pm(r['clean_success_mean'], r['clean_success_std'], r['seeds'])} | "
-                f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])} | {_crossing_cell(r)} | "
+                f"{_pm(r['in_wall_mean'], r['in_wall_std'], r['seeds'])}{_bodies(r.get('in_wall_by_body'))} | "
+                f"{_crossing_cell(r)} | "
                 f"{opt(r.get('new_crossing_mean'), '.1f')} | "
                 f"{opt(r['first_step_ratio'], '.2f')} | {opt(r['jump_ratio'], '.2f')} | "
                 f"{opt(r['impossible_jump_mean'], '.1f')} | "
@@ -394,8 +403,11 @@ def _crossing_cell(row: dict) -> str:
     """Plans through an obstacle (%), with the share of each body where the family moves several."""
     if row["crossing_mean"] is None:
         return "–"
-    bodies = row.get("crossing_by_body")
-    return f"{row['crossing_mean']:.1f}" + (f" ({bodies})" if bodies else "")
+    return f"{row['crossing_mean']:.1f}{_bodies(row.get('crossing_by_body'))}"
+
+
+def _bodies(text: str | None) -> str:
+    return f" ({text})" if text else ""
 
 
 def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
@@ -534,8 +546,8 @@ def _summary_cell(r: dict) -> str:
 COLUMN_NOTES = (
     "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
     "planned state in one, or a straight segment between two consecutive planned states that crosses one (a plan "
-    "can have every state free and still jump a wall), in brackets by body where a plan moves several (Fetch: "
-    "gripper, block; one plan can count for both); through a new one: the same for the obstacles the "
+    "can have every state free and still jump a wall); both in brackets by body where a plan moves several "
+    "(Fetch: gripper, block; one plan or state can count for both); through a new one: the same for the obstacles the "
     "training scene did not have (`--scene`/`--maze-map`; – in the training scene). First step / allowed: how far "
     "a plan's first step leaves the start, against one plan step of the dynamics (near 1: the plan starts where "
     "the robot is). Largest jump / allowed and plans with an impossible jump: "

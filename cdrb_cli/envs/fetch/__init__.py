@@ -22,6 +22,7 @@ from cdrb_cli.envs.fetch.geometry import (
     paths_in_obstacles,
     paths_in_obstacles_by_body,
     states_in_obstacles,
+    states_in_obstacles_by_body,
 )
 from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_gripper_start, draw_task, scene_for, side
 from cdrb_cli.envs.geometry import path_crosses_boxes
@@ -354,6 +355,13 @@ class FetchFamily(EnvFamily):
         if not has_object(spec):
             return None
         return paths_in_obstacles_by_body(paths, spec.scene.solid, spec.scene.task)
+
+    def collisions_by_body(self, spec: EnvSpec, states: np.ndarray) -> dict[str, np.ndarray] | None:
+        """With a block: the gripper's and the block's states in an obstacle apart (their union is
+        :meth:`in_collision`)."""
+        if not has_object(spec):
+            return None
+        return states_in_obstacles_by_body(states, spec.scene.solid, spec.scene.task)
 
     def goal_path_in_collision(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray:
         """With a block: the planned block path through a wall or off the table (a gripper that dips into the

@@ -144,11 +144,19 @@ def _body_obstacles(walls: tuple, task: str) -> tuple[BoxObstacles, ...]:
 
 def states_in_obstacles(states: np.ndarray, walls: list[Box], task: str) -> np.ndarray:
     """Boolean over states (..., D): any body overlaps a wall or leaves its workspace."""
+    return np.logical_or.reduce(list(states_in_obstacles_by_body(states, walls, task).values()))
+
+
+def states_in_obstacles_by_body(states: np.ndarray, walls: list[Box], task: str) -> dict[str, np.ndarray]:
+    """:func:`states_in_obstacles` for each body apart: ``gripper`` (closed, or opened as wide as the state has it)
+    and, for a task with one, ``block``."""
     states = np.asarray(states)
-    out = np.zeros(states.shape[:-1], dtype=bool)
-    for ob in body_obstacles(walls, task):
-        out |= in_boxes(states, ob)
-    return out | _open_fingers_in_walls(states, walls, task)
+    out = {
+        name: np.asarray(in_boxes(states, ob), dtype=bool)
+        for name, ob in zip(("gripper", "block"), body_obstacles(walls, task))
+    }
+    out["gripper"] = out["gripper"] | _open_fingers_in_walls(states, walls, task)
+    return out
 
 
 def _open_fingers_in_walls(states: np.ndarray, walls: list[Box], task: str) -> np.ndarray:
