@@ -604,14 +604,20 @@ def test_failure_causes_follow_their_definition():
     assert failure_counts([0, -1]) is None  # an episode not classified: no counts
 
 
+def _push_wall():
+    """Push Obstacle, its family, and where to cross its first wall: the wall's x, a y just before and just after
+    it, and the block's resting height."""
+    spec = make_spec("fetch-push-obstacle")
+    wall = spec.scene.walls[0]
+    wy = float(wall.center[1])
+    crossing = (float(wall.center[0]), wy - wall.half[1] - 0.08, wy + wall.half[1] + 0.08, TABLE_TOP + BLOCK_HALF)
+    return spec, family_of(spec), crossing
+
+
 def test_a_plan_fails_by_its_block_path_on_block_tasks():
     """The cause "plan" on Push/Pick is the planned block path through a wall (or off the table); a gripper dipping
     into the wall is not a plan failure there (it is one on Reach, where the gripper is what the plan moves)."""
-    spec = make_spec("fetch-push-obstacle")
-    family, wall = family_of(spec), spec.scene.walls[0]
-    wx, wy = float(wall.center[0]), float(wall.center[1])
-    before, after = wy - wall.half[1] - 0.08, wy + wall.half[1] + 0.08
-    z = TABLE_TOP + BLOCK_HALF
+    spec, family, (wx, before, after, z) = _push_wall()
     # the gripper goes through the wall's middle while the block stays put, away from it
     grip_through = np.stack([_state(spec, (wx, y, z), (1.10, 0.55, z)) for y in np.linspace(before, after, 8)])
     assert family.path_in_collision(spec, grip_through[None])[0]
@@ -635,11 +641,7 @@ def test_crossings_by_body_split_the_gripper_from_the_block():
 
     from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_state_rates, body_text
 
-    spec = make_spec("fetch-push-obstacle")
-    family, wall = family_of(spec), spec.scene.walls[0]
-    wx, wy = float(wall.center[0]), float(wall.center[1])
-    before, after = wy - wall.half[1] - 0.08, wy + wall.half[1] + 0.08
-    z = TABLE_TOP + BLOCK_HALF
+    spec, family, (wx, before, after, z) = _push_wall()
     grip = np.stack([_state(spec, (wx, y, z), (1.10, 0.55, z)) for y in np.linspace(before, after, 8)])
     block = np.stack([_state(spec, (1.05, 0.4, 0.6), (wx, y, z)) for y in np.linspace(before, after, 8)[[0, -1]]])
     block = np.concatenate([block[:1].repeat(4, 0), block[1:].repeat(4, 0)])  # the jump in the middle
