@@ -466,3 +466,57 @@ def test_select_never_writes_over_a_file_the_grid_reads_or_writes(tmp_path, monk
             select(grid, tmp_path / "s.toml", force=True, curves=victim)
         assert victim.read_bytes() == before
     assert not (tmp_path / "s.toml").exists()
+
+
+def _level_field_problems(tuned: dict) -> list[str]:
+    """What breaks one training budget per task or executes a planner with a controller that reads the map, in a
+    settings file (parsed TOML) `cdrb select` wrote."""
+    from cdrb_cli.envs.registry import CONTROLLERS
+    from cdrb_cli.methods.registry import METHODS
+
+    def controller(flags) -> str | None:
+        if isinstance(flags, dict):
+            return (flags.get("controller") or {}).get("name")
+        flags = list(flags)
+        return flags[flags.index("--controller") + 1] if "--controller" in flags else None
+
+    problems, lengths = [], {}
+    for s in tuned["settings"]:
+        if METHODS.get(s["method"]).kind != "planner":
+            continue
+        name = controller(s.get("eval", []))
+        if name is not None and CONTROLLERS.get(name).knows_map:
+            problems.append(f"{s['env']} / {s['method']}: executed by {name}, which reads the map")
+        steps = s["train"].get("steps") if isinstance(s.get("train"), dict) else None
+        if steps is not None:
+            lengths.setdefault(s["env"], {})[s["method"]] = steps
+    problems += [
+        f"{env}: planners at {sorted(set(m.values()))} steps" for env, m in lengths.items() if len(set(m.values())) > 1
+    ]
+    return problems
+
+
+def test_tuned_files_under_a_shared_budget_give_planners_one_length_and_no_map_aware_controller():
+    """A settings file `cdrb select` wrote under a grid's shared budget says so (`meta.budget`); every such shipped
+    file trains the planners of a task to one length and executes none with a controller that reads the map. The
+    check itself finds both faults in a file that has them."""
+    from cdrb_cli.orchestration.grid import load_grid
+    from cdrb_cli.orchestration.select import SHARED_BUDGET, settings_text
+
+    grid = ROOT / "experiments" / "tune" / "fetch-curves.toml"
+    assert f"budget = {SHARED_BUDGET!r}".replace("'", '"') in settings_text(load_grid(grid), grid, {})
+    for path in sorted((ROOT / "experiments" / "tuned").glob("*.toml")):
+        tuned = tomllib.loads(path.read_text())
+        if tuned.get("meta", {}).get("budget") == SHARED_BUDGET:
+            assert _level_field_problems(tuned) == [], path
+    bad = {
+        "settings": [
+            {"env": "e", "method": "cdrb", "train": {"steps": 5000}, "eval": {"controller": {"name": "fetch-track"}}},
+            {"env": "e", "method": "diffuser", "train": {"steps": 10000}, "eval": ["--controller", "fetch-push-path"]},
+            {"env": "e", "method": "diffusion-bc", "train": {"steps": 2500}, "eval": []},
+        ]
+    }
+    assert _level_field_problems(bad) == [
+        "e / diffuser: executed by fetch-push-path, which reads the map",
+        "e: planners at [5000, 10000] steps",
+    ]

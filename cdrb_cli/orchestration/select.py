@@ -339,6 +339,7 @@ def settings_text(
         "# Test grids `include` this file; re-run `cdrb select` rather than editing it.",
         "[meta]",
         f"rule = {toml_string(RULE)}",
+        *([f"budget = {toml_string(SHARED_BUDGET)}"] if spec.shared_budget else []),
         f"tuning_grid = {toml_string(str(grid_file))}",
         f"stream = {toml_string('tune, seeds ' + seeds)}",
         f"written = {toml_string(date.today().isoformat())}",
