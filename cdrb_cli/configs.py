@@ -153,6 +153,11 @@ class TrainState(Record):
 SamplerName = Annotated[str, RegisteredName(METHODS, values=lambda entry: entry.samplers, what="sampler")]
 
 
+#: the avoidance fields that repair a plan from a buffer route at a diffusion step k (each needs a method that
+#: repairs, a buffer to route through and k within the model's steps)
+ROUTE_STEPS = ("route_k", "fallback_route_k")
+
+
 class AvoidConfig(Record):
     """How a planner keeps its plans out of obstacles, at plan time, with the model unchanged (for obstacles the
     training data never saw: `--maze-map` at plan/eval time)."""
@@ -210,7 +215,7 @@ class AvoidConfig(Record):
 
     @model_validator(mode="after")
     def _check(self) -> AvoidConfig:
-        routes = self.route_k is not None or self.fallback_route_k is not None
+        routes = any(getattr(self, field) is not None for field in ROUTE_STEPS)
         if self.route_clearance > 0 and not routes:
             raise ValueError(
                 "route_clearance keeps routes clear of obstacles: set route_k or fallback_route_k too (or drop it)"

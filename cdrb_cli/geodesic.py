@@ -5,10 +5,10 @@ CDRB's ball D(s, eps) is Euclidean in the normalised features, so near a thin wa
 sides, and a degradation may swap a state across the wall. The demonstrations say which buffer states are
 neighbours in free space: consecutive states of one demonstration. So:
 
-* :func:`transition_graph`: each demonstration state is mapped to its buffer state (the nearest buffer point by
-  position: nearest in every feature, a state by a thin wall can land on a point across it with a similar velocity);
-  consecutive distinct buffer states of one demonstration are joined by an undirected edge weighted by their
-  Euclidean distance in the normalised features. No map is read: the data alone say what is free.
+* :func:`transition_graph`: each demonstration state is mapped to its buffer state (the nearest buffer point, the
+  cluster it belongs to: in every feature, or in the position dims alone with ``cdrb cluster --graph-join
+  position``); consecutive distinct buffer states of one demonstration are joined by an undirected edge weighted by
+  their Euclidean distance in the normalised features. No map is read: the data alone say what is free.
 * :class:`GeodesicBalls`: a query state is attached to the graph at its nearest buffer state ``a`` (the step costs
   the Euclidean distance to it), and its ball of radius eps holds the buffer states ``j`` with
   ``|x - p_a| + g(a, j) < eps``, ``g`` the shortest-path distance along the graph. A draw is uniform over that set,

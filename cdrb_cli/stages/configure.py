@@ -23,7 +23,7 @@ from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
-from cdrb_cli.configs import AvoidConfig, EvalConfig, PlanConfig, ReplanConfig
+from cdrb_cli.configs import ROUTE_STEPS, AvoidConfig, EvalConfig, PlanConfig, ReplanConfig
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
@@ -83,7 +83,7 @@ def avoid_base(model, settings: Sequence[Setting], in_scene: bool) -> dict:
     if chosen == "plain":
         return {}
     out = dict(family_of(model.manifest.env).scene_avoid.get(model.manifest.config.method.name, {}))
-    for key in ("route_k", "fallback_route_k"):
+    for key in ROUTE_STEPS:
         if out.get(key) is not None:
             out[key] = _repair_step(model, out[key])
     return out
@@ -136,7 +136,7 @@ def _family_defaults(model, table: str, settings: Sequence[Setting], why: str, a
         path = tuple(key.split("."))
         if lookup(settings, path) is not None or (path[0] == "avoid" and plain) or not applies(path, value):
             continue
-        if path in (("avoid", "route_k"), ("avoid", "fallback_route_k")):
+        if path[0] == "avoid" and path[-1] in ROUTE_STEPS:
             value = _repair_step(model, value)
         out.append(Setting(path, value, f"{key} = {value} ({why})"))
     return out
@@ -189,7 +189,7 @@ def check_avoid(model, avoid: AvoidConfig, settings: Sequence[Setting] = ()) -> 
             f"{where('mask_buffer')}: {name} samples from no replay buffer it could mask",
             hint="drop it (avoid.best_of, or avoid.guide_scale for Diffuser, keep plans out of obstacles)",
         )
-    for field in ("route_k", "fallback_route_k"):
+    for field in ROUTE_STEPS:
         if getattr(avoid, field) is not None and not cls.repairs:
             raise BadInput(
                 f"{where(field)}: {name} cannot restore a plan from a part-way step (it has no repair)",

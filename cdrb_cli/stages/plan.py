@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cdrb_cli import artifacts
-from cdrb_cli.configs import AvoidConfig, MaskCounts, PlanConfig, PlanSummary
+from cdrb_cli.configs import ROUTE_STEPS, AvoidConfig, MaskCounts, PlanConfig, PlanSummary
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
@@ -118,14 +118,14 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
             out.masked = method.mask(collides)
         except ValueError as exc:
             raise BadInput(f"avoid.mask_buffer: {exc}", hint="the new obstacles cover the whole buffer") from None
-    for field in ("route_k", "fallback_route_k"):
+    for field in ROUTE_STEPS:
         k, top = getattr(avoid, field), method.repair_steps()
         if k is not None and (top is None or k > top):
             raise BadInput(
                 f"avoid.{field} = {k}: {method.name} repairs from steps 1..{top}",
                 hint=f"use avoid.{field}={max(1, (top or 8) // 8)}",
             )
-    if avoid.route_k is not None or avoid.fallback_route_k is not None:
+    if any(getattr(avoid, field) is not None for field in ROUTE_STEPS):
         out.graph = buffer_graph(method, spec, avoid, route_buffer)
     if avoid.guide_scale > 0:
         raw_cost = family.collision_cost(spec)

@@ -31,10 +31,7 @@ def new_crossing_rates(ev) -> list[float] | None:
     if plans is None:
         return None
     crosses = family_of(spec).new_obstacle_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
-    if crosses is None:
-        return None
-    seeds = np.asarray(ev.arrays["episodes/seed"])
-    return [float(crosses[seeds == s].mean()) for s in dict.fromkeys(seeds.tolist())]
+    return None if crosses is None else _seed_means(ev, crosses)
 
 
 def body_crossing_rates(ev) -> dict[str, list[float]] | None:
@@ -58,11 +55,14 @@ def _per_body(ev, measure) -> dict[str, list[float]] | None:
     if plans is None:
         return None
     bodies = measure(family_of(spec), spec, np.asarray(plans)[..., : spec.obs_dim])
-    if bodies is None:
-        return None
+    return None if bodies is None else {name: _seed_means(ev, hit) for name, hit in bodies.items()}
+
+
+def _seed_means(ev, hit: np.ndarray) -> list[float]:
+    """The mean of ``hit`` (one row per episode of ``ev``, booleans over plans or their states) per evaluation seed,
+    in the order the seeds first appear."""
     seeds = np.asarray(ev.arrays["episodes/seed"])
-    order = list(dict.fromkeys(seeds.tolist()))
-    return {name: [float(hit[seeds == s].mean()) for s in order] for name, hit in bodies.items()}
+    return [float(hit[seeds == s].mean()) for s in dict.fromkeys(seeds.tolist())]
 
 
 def body_text(rates: list[dict[str, list[float]] | None], seed: int | None = None, digits: int = 1) -> str | None:
