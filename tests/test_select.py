@@ -310,7 +310,20 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     final = tomllib.loads((exp / "tuned" / "mazes.toml").read_text())["settings"]
 
     out = tmp_path / "runs" / "table1"
-    _cdrb("grid", exp / "table1" / "mazes.toml", *small, "--set", f"out={out}", "--set", "seeds=[0, 1]", cwd=tmp_path)
+    _cdrb(
+        "grid",
+        exp / "table1" / "mazes.toml",
+        *small,
+        "--set",
+        f"out={out}",
+        "--set",
+        "seeds=[0, 1]",
+        "--backend",
+        "pool",
+        "-j",
+        "2",
+        cwd=tmp_path,
+    )
     for s in final:
         steps = s["train"]["steps"]  # a table of settings
         for seed in (0, 1):

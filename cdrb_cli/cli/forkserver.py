@@ -17,6 +17,7 @@ import sys
 PRELOAD = (
     "numpy",
     "torch",
+    "torch._dynamo",  # what torch.optim imports on its first call (~2.5 s a process)
     "h5py",
     "scipy.spatial",
     "sklearn.cluster",
