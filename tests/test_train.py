@@ -234,11 +234,11 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
     """`--snapshot-at` writes, mid-run, the model a run of that many steps writes: same weights, optimizer state,
     curve and config; the later run then skips it as up to date."""
     demos, buffer = small_data
-    args = ["train", demos.path, "--buffer", buffer.path, "--set", "checkpoint_every=100", *TINY_FLAGS]
+    args = ["train", demos.path, "--buffer", buffer.path, "--set", "checkpoint_every=40", *TINY_FLAGS]
     out = tmp_path / "long.h5"
-    r = cdrb(*args, "--steps", "200", "--snapshot-at", "50,150", "--out", out)
+    r = cdrb(*args, "--steps", "80", "--snapshot-at", "20,60", "--out", out)
     assert r.returncode == 0, r.stderr
-    for s in (50, 150):
+    for s in (20, 60):
         snap = artifacts.load(tmp_path / f"long.step{s}.h5", "model")
         ref_path = tmp_path / f"ref{s}.h5"
         assert cdrb(*args, "--steps", str(s), "--out", ref_path).returncode == 0
@@ -255,32 +255,32 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
         assert r.returncode == 0 and "up to date" in r.stderr
     # the long run itself is what it would be without snapshots
     plain = tmp_path / "plain.h5"
-    assert cdrb(*args, "--steps", "200", "--out", plain).returncode == 0
+    assert cdrb(*args, "--steps", "80", "--out", plain).returncode == 0
     long = artifacts.load(out).arrays
     for k, v in artifacts.load(plain).arrays.items():
         np.testing.assert_array_equal(v, long[k], err_msg=k)
-    # a finished 150-step run extended to 200 with --resume: the same final model, and the 150-step model kept as
-    # the snapshot at 150 (a curve lengthened after the fact)
+    # a finished 60-step run extended to 80 with --resume: the same final model, and the 60-step model kept as
+    # the snapshot at 60 (a curve lengthened after the fact)
     ext = tmp_path / "ext.h5"
-    assert cdrb(*args, "--steps", "150", "--out", ext).returncode == 0
-    r = cdrb(*args, "--steps", "200", "--snapshot-at", "150", "--resume", "--out", ext)
+    assert cdrb(*args, "--steps", "60", "--out", ext).returncode == 0
+    r = cdrb(*args, "--steps", "80", "--snapshot-at", "60", "--resume", "--out", ext)
     assert r.returncode == 0 and "resuming" in r.stderr, r.stderr
     # (the same weights, optimizer state and training loss; its validation curve also has the shorter run's last point)
     extended = artifacts.load(ext).arrays
     for k, v in artifacts.load(plain).arrays.items():
         if k != "curve/valid_loss" and k != "curve/valid_step":
             np.testing.assert_array_equal(v, extended[k], err_msg=k)
-    kept = artifacts.load(tmp_path / "ext.step150.h5", "model")
-    assert kept.manifest.config == artifacts.load(tmp_path / "ref150.h5").manifest.config
-    for k, v in _weights(artifacts.load(tmp_path / "ref150.h5")).items():
+    kept = artifacts.load(tmp_path / "ext.step60.h5", "model")
+    assert kept.manifest.config == artifacts.load(tmp_path / "ref60.h5").manifest.config
+    for k, v in _weights(artifacts.load(tmp_path / "ref60.h5")).items():
         np.testing.assert_array_equal(v, _weights(kept)[k], err_msg=k)
     # bad snapshot steps, and an existing snapshot file without --force
-    for bad in ("200", "0", "75", "x"):
-        r = cdrb(*args, "--steps", "200", "--snapshot-at", bad, "--out", tmp_path / "b.h5")
+    for bad in ("80", "0", "35", "x"):
+        r = cdrb(*args, "--steps", "80", "--snapshot-at", bad, "--out", tmp_path / "b.h5")
         assert r.returncode == 2 and "--snapshot-at" in r.stderr and len(r.stderr.strip().splitlines()) <= 2, bad
-    (tmp_path / "new.step50.h5").write_bytes(b"mine")
-    r = cdrb(*args, "--steps", "200", "--snapshot-at", "50", "--out", tmp_path / "new.h5")
-    assert r.returncode == 2 and "new.step50.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
+    (tmp_path / "new.step20.h5").write_bytes(b"mine")
+    r = cdrb(*args, "--steps", "80", "--snapshot-at", "20", "--out", tmp_path / "new.h5")
+    assert r.returncode == 2 and "new.step20.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
 
 
 def test_a_bad_snapshot_step_gets_a_hint_that_would_work(small_data):
