@@ -371,3 +371,22 @@ def test_content_checksum_rules(tmp_path):
     with h5py.File(p, "r+") as f:
         f.attrs[CHECKSUM_ATTR] = "0" * 64
     assert "does not match its checksum" in _err(p)
+
+
+def test_a_read_that_hangs_is_stopped_at_the_time_limit(tmp_path, monkeypatch):
+    """The guard's child reads the file; one that never finishes is killed at CDRB_READ_TIMEOUT and the load is
+    refused in one line, and a child that ends is waited for, its error (exit 2) left to the parent's own read."""
+    import time
+
+    p = write(tmp_path / "d.h5", "demos")
+    monkeypatch.setenv("CDRB_READ_TIMEOUT", "0.5")
+    real = artifacts._load
+    monkeypatch.setattr(artifacts, "_load", lambda *a: time.sleep(60))  # what the forked child runs
+    with pytest.raises(ArtifactError, match=r"d.h5: reading it did not finish in 0.5\d* s"):
+        artifacts.load(p)
+    monkeypatch.setattr(artifacts, "_load", real)
+    assert artifacts.load(p, "demos").manifest.kind == "demos"
+    pid = os.fork()
+    if pid == 0:
+        os._exit(2)
+    assert os.WEXITSTATUS(artifacts._wait_child(pid, 10.0)) == 2

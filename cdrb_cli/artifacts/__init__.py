@@ -170,7 +170,7 @@ def _guarded_probe(path: Path, kind: str | None) -> None:
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
         raise ArtifactError(
-            f"{path}: reading it did not finish in {limit:.0f} s; the file is corrupt or hostile",
+            f"{path}: reading it did not finish in {limit:.3g} s; the file is corrupt or hostile",
             hint="re-create it with the command that wrote it",
         )
     if os.WIFSIGNALED(status):
