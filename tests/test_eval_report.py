@@ -361,7 +361,10 @@ def test_miniature_quickstart_end_to_end_and_rerun(tmp_path, cdrb):
     r = cdrb(*args, env={"OMP_NUM_THREADS": "2", "CDRB_PROGRESS_SECONDS": "0"})  # two workers, a thread each
     assert r.returncode == 0, r.stderr
     assert "| Maze Tight |" in r.stdout
-    assert "train cdrb, diffuser, mlp (quick preset), 2 at a time, 1 thread each" in r.stderr
+    assert (
+        "train cdrb, diffuser, mlp (quick preset), then evaluate each: 1 seed x 3 episodes, 2 at a time, 1 thread each"
+        in r.stderr
+    )
     for method in ("cdrb", "diffuser", "mlp"):  # each worker's progress is drawn by the command itself
         assert f"train {method}: 20/20 (100%)" in r.stderr and f"eval {method}: 3/3 (100%)" in r.stderr
     for name in (
@@ -382,8 +385,15 @@ def test_miniature_quickstart_end_to_end_and_rerun(tmp_path, cdrb):
         assert artifacts.load(out / f"model-{method}.h5", "model").manifest.config.method.start_weight == 10
     before = {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5")}
     again = cdrb(*args)
-    assert again.returncode == 0 and again.stderr.count("up to date") == 4  # collect, cluster, train, evaluate
+    assert again.returncode == 0 and again.stderr.count("up to date") == 3  # collect, cluster, train + evaluate
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5")} == before
+    # an eval lost: only it is made again, from the model on disk
+    (out / "eval-mlp.h5").unlink()
+    again = cdrb(*args)
+    assert again.returncode == 0 and "  mlp: model up to date" in again.stderr and "train mlp:" not in again.stderr
+    before.pop("eval-mlp.h5")
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5") if p.name != "eval-mlp.h5"} == before
+    assert artifacts.load(out / "eval-mlp.h5", "eval").manifest.summary.model_steps == 20
 
 
 def test_report_recomputes_from_the_episodes_and_prints_plain_text(evals, tmp_path, cdrb):

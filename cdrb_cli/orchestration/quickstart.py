@@ -67,16 +67,27 @@ def _side_by_side(jobs: list, processes: int, threads: int) -> str:
     return f", {processes} at a time, {threads} thread{'s' if threads > 1 else ''} each" if processes > 1 else ""
 
 
-def _train(job: dict) -> str:
-    """One method's training (in a worker process, or here): what was done (``trained``, ``resumed``...)."""
+def _train_and_evaluate(job: dict) -> str:
+    """One method's training, when its model is not up to date, then its evaluation (in a worker process, or
+    here): what the training did (``trained``, ``resumed``, ``model up to date``...)."""
     from cdrb_cli.methods.config import train_config
     from cdrb_cli.methods.registry import METHODS
+    from cdrb_cli.stages.configure import eval_config
+    from cdrb_cli.stages.evaluate import evaluate
     from cdrb_cli.stages.train import train_or_resume
 
-    demos = artifacts.load(Path(job["demos"]), "demos")
-    buffer = artifacts.load(Path(job["buffer"]), "buffer") if METHODS.get(job["method"]).needs_buffer else None
-    cfg = train_config(demos, buffer, job["method"], _train_settings(job["method"], job["steps"]), seed=job["seed"])
-    _, done = train_or_resume(demos, buffer, cfg, Path(job["out"]), device=_device(job), auto=True)
+    device = _device(job)
+    done = "model up to date"
+    if job["train"]:
+        demos = artifacts.load(Path(job["demos"]), "demos")
+        buffer = artifacts.load(Path(job["buffer"]), "buffer") if METHODS.get(job["method"]).needs_buffer else None
+        settings = _train_settings(job["method"], job["steps"])
+        cfg = train_config(demos, buffer, job["method"], settings, seed=job["seed"])
+        _, done = train_or_resume(demos, buffer, cfg, Path(job["model"]), device=device, auto=True)
+    model = artifacts.load(Path(job["model"]), "model")
+    ecfg = eval_config(model, episodes=job["episodes"], seeds=job["seeds"], seed=job["seed"])
+    video_dir = Path(job["folder"]) / "videos" if job["videos"] else None
+    evaluate(model, ecfg, Path(job["out"]), device=device, video_dir=video_dir, videos=job["videos"])
     return done
 
 
@@ -96,18 +107,6 @@ def _starts(spec, starts: str | None) -> str:
     if starts is not None:
         return starts
     return STARTS if family_of(spec).start_protocols else "protocol"
-
-
-def _evaluate(job: dict) -> str:
-    """One model's evaluation (in a worker process, or here); returns the path written."""
-    from cdrb_cli.stages.configure import eval_config
-    from cdrb_cli.stages.evaluate import evaluate
-
-    model = artifacts.load(Path(job["model"]), "model")
-    ecfg = eval_config(model, episodes=job["episodes"], seeds=job["seeds"], seed=job["seed"])
-    video_dir = Path(job["folder"]) / "videos" if job["videos"] else None
-    evaluate(model, ecfg, Path(job["out"]), device=_device(job), video_dir=video_dir, videos=job["videos"])
-    return job["out"]
 
 
 def _device(job: dict):
@@ -145,7 +144,7 @@ def quickstart(
     folder.mkdir(parents=True, exist_ok=True)
     # one quickstart per folder at a time (the lock of its report covers the whole run)
     with artifacts.claim_output(folder / "report.md", force=True):
-        total = 5
+        total = 4
         step = 0
         spec = make_spec(env)
         paths: dict[str, Path] = {}
@@ -163,38 +162,33 @@ def quickstart(
         buffer_path = paths["buffer"] = folder / "buffer.h5"
         buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)
 
-        # the trainings, then the evaluations, run side by side when the machine has the cores for them
-        jobs, models = [], {}
+        # each method's training and then its evaluation, one job per method, the jobs side by side when the
+        # machine has the cores for them: a method that trains faster is evaluated while the other still trains
+        jobs, models, evals = [], {}, {}
         for method in methods:
             out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
+            paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
             b = buffer if METHODS.get(method).needs_buffer else None
             cfg = train_config(demos, b, method, _train_settings(method, steps), seed=seed)
             models[method] = artifacts.find_up_to_date(out, "model", cfg, [demos] + ([b] if b is not None else []))
-            if models[method] is None:
+            if models[method] is not None:
+                ecfg = eval_config(models[method], episodes=eval_episodes, seeds=list(seeds), seed=seed)
+                evals[method] = artifacts.find_up_to_date(paths[f"eval-{method}"], "eval", ecfg, [models[method]])
+            if evals.get(method) is None:
+                train = models[method] is None
                 jobs.append(dict(demos=str(demos.path), buffer=str(buffer.path), method=method, steps=steps, seed=seed,
-                                 out=str(out), device=str(device)))  # fmt: skip
+                                 model=str(out), train=train, episodes=eval_episodes, seeds=list(seeds),
+                                 out=str(paths[f"eval-{method}"]), device=str(device), videos=videos,
+                                 folder=str(folder)))  # fmt: skip
         step += 1
         share = workers.plan(len(jobs), str(device))
-        _stage(step, total, f"train {', '.join(methods)} (quick preset){_side_by_side(jobs, *share)}")
-        for job, done in zip(jobs, workers.run(_train, jobs, *share)):
+        n = len(seeds)
+        what = f"train {', '.join(methods)} (quick preset), then evaluate each: {n} seed{'s' * (n != 1)} x "
+        _stage(step, total, f"{what}{eval_episodes} episodes{_side_by_side(jobs, *share)}")
+        for job, done in zip(jobs, workers.run(_train_and_evaluate, jobs, *share)):
             if done != "trained":
                 ui.log(f"  {job['method']}: {done}")
-        models = {m: models[m] or artifacts.load(paths[f"model-{m}"], "model") for m in methods}
-
-        evals, jobs = [], []
-        for method in methods:
-            ecfg = eval_config(models[method], episodes=eval_episodes, seeds=list(seeds), seed=seed)
-            out = paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
-            evals.append(artifacts.find_up_to_date(out, "eval", ecfg, [models[method]]))
-            if evals[-1] is None:
-                jobs.append(dict(model=str(models[method].path), episodes=eval_episodes, seeds=list(seeds), seed=seed,
-                                 out=str(out), device=str(device), videos=videos, folder=str(folder)))  # fmt: skip
-        step += 1
-        what = f"evaluate {', '.join(methods)}: {len(seeds)} seeds x {eval_episodes} episodes"
-        share = workers.plan(len(jobs), str(device))
-        _stage(step, total, what + _side_by_side(jobs, *share))
-        made = iter(workers.run(_evaluate, jobs, *share))
-        evals = [ev if ev is not None else artifacts.load(Path(next(made)), "eval") for ev in evals]
+        evals = [evals.get(m) or artifacts.load(paths[f"eval-{m}"], "eval") for m in methods]
 
         step += 1
         _stage(step, total, "report")
