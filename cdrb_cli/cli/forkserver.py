@@ -17,7 +17,6 @@ import sys
 PRELOAD = (
     "numpy",
     "torch",
-    "torch._dynamo",  # what torch.optim imports on its first call (~2.5 s a process)
     "h5py",
     "scipy.spatial",
     "sklearn.cluster",
@@ -33,6 +32,10 @@ PRELOAD = (
     "cdrb_cli.envs.pointmaze.env",
     "cdrb_cli.envs.fetch.env",
 )
+
+#: what the server imports before it forks the first task of a command: torch.optim imports torch._dynamo on its
+#: first call (~2.5 s a process), which only trainings make, so a grid pays it once, and only if it trains
+BEFORE_FIRST = {"train": ("torch._dynamo",)}
 
 
 def serve() -> None:
@@ -79,6 +82,9 @@ def serve() -> None:
             while b"\n" in pending:
                 line, pending = pending.split(b"\n", 1)
                 request = json.loads(line)
+                for name in BEFORE_FIRST.get(request["argv"][0] if request["argv"] else "", ()):
+                    with contextlib.suppress(ImportError):
+                        importlib.import_module(name)  # a no-op once imported
                 pid = os.fork()
                 if pid == 0:
                     _child(request, wake_r, wake_w)  # never returns
