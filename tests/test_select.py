@@ -232,7 +232,8 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     shutil.copytree(ROOT / "experiments", exp)
     small = ["--set", 'envs=["maze-tight"]', "--set", 'methods=["mlp", "cdrb"]', "--set", "demos=40"]
     small += ["--set", "k=50", "--set", "eval_episodes=2", "--include", ROOT / "tests" / "data" / "tiny-settings.toml"]
-    tune = [*small, "--set", "eval_seeds=[0]", "--backend", "pool", "-j", "2"]
+    pool = ["--backend", "pool", "-j", "2"]  # the local pool: no Ray start-up for each grid
+    tune = [*small, "--set", "eval_seeds=[0]", *pool]
 
     def grid_select(name: str, tuned: str, *extra) -> list[dict]:
         args = [*tune, "--set", f"out={tmp_path / 'runs' / name}", *extra]
@@ -318,10 +319,7 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
         f"out={out}",
         "--set",
         "seeds=[0, 1]",
-        "--backend",
-        "pool",
-        "-j",
-        "2",
+        *pool,
         cwd=tmp_path,
     )
     for s in final:

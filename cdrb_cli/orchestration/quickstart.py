@@ -164,18 +164,18 @@ def quickstart(
 
         # each method's training and then its evaluation, one job per method, the jobs side by side when the
         # machine has the cores for them: a method that trains faster is evaluated while the other still trains
-        jobs, models, evals = [], {}, {}
+        jobs, evals = [], {}
         for method in methods:
             out = paths[f"model-{method}"] = folder / f"model-{method}.h5"
             paths[f"eval-{method}"] = folder / f"eval-{method}.h5"
             b = buffer if METHODS.get(method).needs_buffer else None
             cfg = train_config(demos, b, method, _train_settings(method, steps), seed=seed)
-            models[method] = artifacts.find_up_to_date(out, "model", cfg, [demos] + ([b] if b is not None else []))
-            if models[method] is not None:
-                ecfg = eval_config(models[method], episodes=eval_episodes, seeds=list(seeds), seed=seed)
-                evals[method] = artifacts.find_up_to_date(paths[f"eval-{method}"], "eval", ecfg, [models[method]])
+            model = artifacts.find_up_to_date(out, "model", cfg, [demos] + ([b] if b is not None else []))
+            if model is not None:
+                ecfg = eval_config(model, episodes=eval_episodes, seeds=list(seeds), seed=seed)
+                evals[method] = artifacts.find_up_to_date(paths[f"eval-{method}"], "eval", ecfg, [model])
             if evals.get(method) is None:
-                train = models[method] is None
+                train = model is None
                 jobs.append(dict(demos=str(demos.path), buffer=str(buffer.path), method=method, steps=steps, seed=seed,
                                  model=str(out), train=train, episodes=eval_episodes, seeds=list(seeds),
                                  out=str(paths[f"eval-{method}"]), device=str(device), videos=videos,
