@@ -191,6 +191,12 @@ class AvoidConfig(Record):
         "sampled again, best_of times, from the shortest route through the buffer degraded to step k and restored, "
         "and the plan with the fewest steps through an obstacle (then the shortest) kept; None: no second try",
     )
+    fallback_route_itself: bool = Field(
+        False,
+        description="with fallback_route_k: a pair whose every plan and repair still steps through an obstacle keeps "
+        "the buffer route itself (buffer states joined by collision-free steps, evenly resampled to the horizon) "
+        "where it steps through fewer; False: the model's plans only",
+    )
     route_clearance: float = Field(
         0.0,
         ge=0,
@@ -220,6 +226,10 @@ class AvoidConfig(Record):
             raise ValueError(
                 "route_clearance keeps routes clear of obstacles: set route_k or fallback_route_k too (or drop it)"
             )
+        if self.fallback_route_itself and self.fallback_route_k is None:
+            raise ValueError(
+                "fallback_route_itself keeps the second try's route: set fallback_route_k too (or drop it)"
+            )
         if self.route_buffer is not None and not routes:
             raise ValueError("route_buffer is what routes go through: set route_k or fallback_route_k too (or drop it)")
         return self
@@ -232,6 +242,7 @@ class AvoidConfig(Record):
         parts += [f"guided x{self.guide_scale:g}"] if self.guide_scale else []
         parts += [f"best of {self.best_of}"] if self.best_of > 1 else []
         parts += [f"buffer route when every plan crosses, k {self.fallback_route_k}"] if self.fallback_route_k else []
+        parts += ["the route itself as a last resort"] if self.fallback_route_itself else []
         return ", ".join(parts) or "plain"
 
 

@@ -130,9 +130,10 @@ def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_mo
     cdrb = tiny_models["cdrb"]
     n = PointMazeFamily.start_tuned["cdrb"]["avoid.best_of"]
     assert n > 1
-    # the family's second try from a buffer route at k = 8, cut to the tiny model's last repair step (T = 8)
-    k = min(7, PointMazeFamily.start_tuned["cdrb"]["avoid.fallback_route_k"])
-    tuned = AvoidConfig(best_of=n, fallback_route_k=k)
+    # the family's second try from a buffer route, its k cut to the tiny model's last repair step (T = 8)
+    chosen = PointMazeFamily.start_tuned["cdrb"]
+    k = min(7, chosen["avoid.fallback_route_k"])
+    tuned = AvoidConfig(best_of=n, fallback_route_k=k, fallback_route_itself=chosen["avoid.fallback_route_itself"])
     centre, corridor = _corridor_and_centre(cdrb)
     assert plan_config(cdrb, starts=centre[None]).avoid == AvoidConfig()  # where the data start: the paper's
     assert plan_config(cdrb, starts=np.stack([centre, corridor])).avoid == tuned
@@ -183,7 +184,7 @@ def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_model
 
     def spy(*a, **k):
         avoid = k["avoid"]
-        seen.append((avoid.best_of, avoid.fallback_route_k, avoid.graph is not None))
+        seen.append((avoid.best_of, avoid.fallback_route_k, avoid.fallback_route_itself, avoid.graph is not None))
         return real(*a, **k)
 
     monkeypatch.setattr(plan_stage, "sample_plans", spy)
@@ -192,7 +193,8 @@ def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_model
     planner.plan(centre[:2], corridor[:2])
     # from the corridor: the best of n and a second try from a buffer route (its graph built for it); from the
     # centre, the paper's one plan
-    assert seen == [(n, 7, True), (1, None, True)] and planner.avoidance.best_of == 1
+    k = min(7, PointMazeFamily.start_tuned["cdrb"]["avoid.fallback_route_k"])
+    assert seen == [(n, k, True, True), (1, None, False, True)] and planner.avoidance.best_of == 1
 
 
 def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):

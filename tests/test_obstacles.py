@@ -306,6 +306,50 @@ def test_a_pair_whose_every_plan_crosses_is_tried_again_from_a_buffer_route():
     np.testing.assert_allclose(plans[:, -1], goals)
 
 
+class _StubbornPlanner(_LinePlanner):
+    """A stand-in whose repairs cross too: every repair is the straight line again, whatever route it was given."""
+
+    def repair(self, start, goal, previous, k, rng, sampler=None, steps=None):
+        self.repairs_from.append(k)
+        return self.sample(start, goal, rng)
+
+
+@pytest.mark.parametrize("itself", [False, True])
+def test_a_pair_whose_every_repair_crosses_may_keep_the_route_itself(itself):
+    """``avoid.fallback_route_itself``: when the repairs of the second try cross as well, the buffer route itself
+    (free by construction here) replaces the kept plan, pinned to the pair and normalized in the sampler's result
+    too; without it the crossing plan stays."""
+    from cdrb_cli.stages.plan import Avoidance, _sampler_call
+    from cdrb_cli.stages.routes import BufferGraph
+
+    spec, g, states = _north_closed_buffer()
+    family = family_of(spec)
+    at = lambda cell: np.array([*g.cell_to_xy(cell), 0.0, 0.0])  # noqa: E731
+    starts, goals = np.stack([at([5, 7]), at([1, 1])]), np.stack([at([1, 6]), at([1, 3])])
+    method = _StubbornPlanner()
+    graph = BufferGraph(spec, states)
+    avoid = Avoidance(spec, best_of=2, graph=graph, fallback_route_k=3, fallback_route_itself=itself)
+    plans, res, _ = _sampler_call(method, starts, goals, np.random.default_rng(0), None, None, avoid=avoid)
+    assert avoid.rerouted == 1 and method.repairs_from == [3]
+    assert avoid.route_kept == int(itself)
+    crossings = list(family.crossing_counts(spec, plans))
+    assert crossings[1] == 0 and (crossings[0] == 0) == itself
+    if itself:
+        np.testing.assert_allclose(plans[0], graph.route(starts[0], goals[0], method.horizon))
+        np.testing.assert_allclose(method.normalizer.unnormalize(res.plans.numpy()), plans, atol=1e-5)
+    np.testing.assert_allclose(plans[:, 0], starts)
+    np.testing.assert_allclose(plans[:, -1], goals)
+
+
+def test_the_route_itself_needs_the_second_try():
+    from cdrb_cli.configs import AvoidConfig
+
+    with pytest.raises(ValueError, match="fallback_route_itself keeps the second try's route: set fallback_route_k"):
+        AvoidConfig(fallback_route_itself=True)
+    label = AvoidConfig(fallback_route_k=8, fallback_route_itself=True).label()
+    assert label.endswith("the route itself as a last resort")
+
+
 def test_route_clearance_keeps_routes_off_the_walls_where_the_buffer_allows():
     from cdrb_cli.stages.routes import BufferGraph
 

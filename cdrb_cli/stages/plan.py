@@ -64,9 +64,11 @@ class Avoidance:
     graph: BufferGraph | None = None
     route_k: int | None = None
     fallback_route_k: int | None = None
+    fallback_route_itself: bool = False
     masked: dict[str, int] | None = None  # what masking the buffer removed
     unrouted: int = 0  # pairs no buffer route joined (planned from scratch)
     rerouted: int = 0  # pairs sampled again from a buffer route because every plan from scratch crossed
+    route_kept: int = 0  # pairs whose every plan and repair crossed, planned by the buffer route itself
 
     def choose(self, plans: np.ndarray, per: int | None = None) -> np.ndarray:
         """Indices into ``plans`` (P * per, H, F), raw and grouped by pair (``per``: plans per pair, default
@@ -108,7 +110,13 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
     :class:`Avoidance` the sampler calls use."""
     family = family_of(spec)
     norm, obs = method.normalizer, method.obs_dim
-    out = Avoidance(spec, best_of=avoid.best_of, route_k=avoid.route_k, fallback_route_k=avoid.fallback_route_k)
+    out = Avoidance(
+        spec,
+        best_of=avoid.best_of,
+        route_k=avoid.route_k,
+        fallback_route_k=avoid.fallback_route_k,
+        fallback_route_itself=avoid.fallback_route_itself,
+    )
     if avoid.mask_buffer:
 
         def collides(features: np.ndarray) -> np.ndarray:
@@ -188,6 +196,11 @@ def warn_unrouted(avoid: Avoidance | None) -> None:
         ui.log(
             f"{avoid.rerouted} start/goal pair(s) whose every plan crossed an obstacle were tried again from a buffer "
             f"route (avoid.fallback_route_k = {avoid.fallback_route_k})"
+        )
+    if avoid is not None and avoid.route_kept:
+        ui.log(
+            f"{avoid.route_kept} start/goal pair(s) whose every plan and repair crossed an obstacle were given the "
+            "buffer route itself (avoid.fallback_route_itself)"
         )
     if avoid is not None and avoid.unrouted:
         ui.warn(
@@ -308,8 +321,9 @@ def _restore(method: Planner, starts, goals, rng, previous, repair_k, sampler, s
 def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, steps, device, avoid: Avoidance):
     """The second try of ``avoid.fallback_route_k``: each pair whose kept plan in ``out`` (raw, (n, H, F)) steps
     through an obstacle is sampled again ``best_of`` times as a repair of its shortest buffer route from step k,
-    and the best of its kept plan and those is kept (:meth:`Avoidance.choose`). Returns (plans, SampleResult);
-    the iterates kept of a pair tried again are those of its first try."""
+    and the best of its kept plan and those is kept (:meth:`Avoidance.choose`); with ``fallback_route_itself``, a
+    pair whose kept plan then still crosses takes the route itself where it crosses less. Returns (plans,
+    SampleResult); the iterates kept of a pair tried again are those of its first try."""
     import torch
 
     bad = avoid.crossing(out)
@@ -317,7 +331,8 @@ def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, step
         return out, res
     avoid.rerouted += len(bad)
     reps = avoid.best_of
-    routes = np.repeat(avoid.routes(starts[bad], goals[bad], method.horizon, method.feature_dim), reps, axis=0)
+    each = avoid.routes(starts[bad], goals[bad], method.horizon, method.feature_dim)
+    routes = np.repeat(each, reps, axis=0)
     s, g = np.repeat(starts[bad], reps, axis=0), np.repeat(goals[bad], reps, axis=0)
     again, res2, _ = _restore(method, s, g, rng, routes, avoid.fallback_route_k, sampler, steps, 0, device)
     shape = out.shape[1:]
@@ -331,6 +346,20 @@ def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, step
     plans[torch.as_tensor(bad, device=plans.device)] = normal.reshape(-1, *plans.shape[1:])[
         torch.as_tensor(pick, device=plans.device)
     ]
+    if avoid.fallback_route_itself:
+        counts = family_of(avoid.spec).crossing_counts
+        states = slice(None), slice(None), slice(0, avoid.spec.obs_dim)
+        kept, route = counts(avoid.spec, out[bad][states]), counts(avoid.spec, each[states])
+        better = np.flatnonzero(np.asarray(route) < np.asarray(kept))
+        if len(better):
+            avoid.route_kept += len(better)
+            rows = bad[better]
+            out[rows] = each[better]
+            out[rows, 0, method.pinned] = starts[rows][:, method.pinned]
+            out[rows, -1, method.pinned_end] = goals[rows][:, method.pinned_end]
+            z = method.normalizer.normalize(out[rows])
+            routed = torch.as_tensor(z, dtype=plans.dtype, device=plans.device)
+            plans[torch.as_tensor(rows, device=plans.device)] = routed
     return out, SampleResult(plans=plans, iterates=res.iterates)
 
 

@@ -131,10 +131,11 @@ class PointMazeFamily(EnvFamily):
         "mlp": {"controller.look_ahead": 4},
     }
     # best-of chosen by experiments/tune/anywhere-maze-tight-best-of.toml (experiments/tuned/anywhere-maze-tight.toml);
-    # CDRB's second try from a buffer route only touches pairs whose every sample crosses a wall, at the route_k of
-    # scene_avoid
+    # CDRB's second try from a buffer route only touches pairs whose every sample crosses a wall: its k and the route
+    # itself as a last resort chosen on tuning pairs of that kind
+    # (docs/notebook/2026-11-29-hard-pairs-for-the-second-try.md)
     start_tuned = {
-        "cdrb": {"avoid.best_of": 16, "avoid.fallback_route_k": 8},
+        "cdrb": {"avoid.best_of": 16, "avoid.fallback_route_k": 4, "avoid.fallback_route_itself": True},
         "diffuser": {"avoid.best_of": 16},
     }
 
