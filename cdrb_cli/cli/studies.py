@@ -147,7 +147,7 @@ def quickstart(
     seed: int = SeedOpt,
 ) -> None:
     """Run the whole pipeline on Maze Tight: collect -> cluster -> train CDRB and Diffuser (quick; the states after a
-    plan's start weigh 10x, so plans leave from where the robot is) -> eval -> report. 5-9 minutes on 2 CPU cores.
+    plan's start weigh 10x, so plans leave from where the robot is) -> eval -> report. 3-9 minutes on 2 CPU cores.
     Re-running skips every stage that is up to date; an interrupted run resumes where it stopped. Prints the results
     table and the paths of the pictures."""
     if videos:
