@@ -244,6 +244,11 @@ class EnvFamily(ABC):
         """The controller a protocol prescribes (None: the family's default)."""
         return None
 
+    def collect_limit(self, spec: EnvSpec) -> int:
+        """Environment steps a demonstration may take (`cdrb collect`; its expert may settle earlier): the
+        episode limit, unless the family's data has its own episode length."""
+        return spec.episode_limit
+
     @abstractmethod
     def draw_episodes(self, spec: EnvSpec, n: int, seed: int, stream: int) -> list[Episode]:
         """``n`` episodes of protocol ``stream`` under ``seed``: the same for every method and run."""

@@ -41,6 +41,7 @@ EXPERTS: Registry[ExpertEntry] = Registry(
         "fetch-scripted": "cdrb_cli.envs.fetch.expert",
         "sac": "cdrb_cli.experts.sac",
         "minari-dataset": "cdrb_cli.experts.minari",
+        "ogbench-noisy": "cdrb_cli.envs.ogbench.expert",
     },
     ExpertEntry,
 )
@@ -53,6 +54,7 @@ CONTROLLERS: Registry[ControllerEntry] = Registry(
         "fetch-track": "cdrb_cli.envs.fetch.controllers",
         "fetch-push-path": "cdrb_cli.envs.fetch.controllers",
         "fetch-official": "cdrb_cli.envs.fetch.official",
+        "pursuit": "cdrb_cli.envs.ogbench.controllers",
     },
     ControllerEntry,
 )

@@ -17,7 +17,11 @@ from cdrb_cli.registry import Dispatch, Registry
 from cdrb_cli.schema_base import Record
 
 #: the built-in families' modules: importing one registers the family (envs.registry.FAMILIES) and its scene type
-FAMILY_MODULES = {"pointmaze": "cdrb_cli.envs.pointmaze", "fetch": "cdrb_cli.envs.fetch"}
+FAMILY_MODULES = {
+    "pointmaze": "cdrb_cli.envs.pointmaze",
+    "fetch": "cdrb_cli.envs.fetch",
+    "ogbench": "cdrb_cli.envs.ogbench",
+}
 
 
 class Scene(Record):

@@ -126,7 +126,8 @@ def _rollouts(spec: EnvSpec, config: CollectConfig, plan: list[Episode]) -> list
     if key not in _WORKER_ENVS:
         _WORKER_ENVS[key] = _env_and_expert(spec, config)
     env, agent = _WORKER_ENVS[key]
-    return [rollout(env, agent, spec, episode, spec.episode_limit) for episode in plan]
+    limit = family_of(spec).collect_limit(spec)
+    return [rollout(env, agent, spec, episode, limit) for episode in plan]
 
 
 def _env_and_expert(spec: EnvSpec, config: CollectConfig) -> tuple[Env, Expert]:
@@ -167,7 +168,7 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
         pool = env = None
         if n_workers == 1:
             env, agent = _env_and_expert(spec, config)
-            results = ([rollout(env, agent, spec, ep, spec.episode_limit) for ep in part] for part in parts)
+            results = ([rollout(env, agent, spec, ep, family.collect_limit(spec)) for ep in part] for part in parts)
         else:
             pool = ProcessPoolExecutor(
                 n_workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
