@@ -110,3 +110,58 @@ def test_navigate_data_redraws_goals_and_stays_out_of_walls(cdrb, tmp_path):
     g = OGBenchGeometry(spec.scene.maze)
     visited = {tuple(c) for c in g.xy_to_cell(states[:1001]).tolist()}
     assert len(visited) > 12
+
+
+def _official_file(path, lengths=(7, 5), obs_dim=2, pickled=False):
+    """A small file in OGBench's format: observations, actions and qpos/qvel as float32, terminals true on each
+    episode's last row (as its generation script writes them)."""
+    rng = np.random.default_rng(0)
+    n = sum(lengths)
+    obs = np.cumsum(rng.uniform(-0.2, 0.2, (n, obs_dim)), axis=0).astype(np.float32)
+    terminals = np.zeros(n, dtype=bool)
+    terminals[np.cumsum(lengths) - 1] = True
+    arrays = dict(observations=obs, actions=rng.uniform(-1, 1, (n, 2)).astype(np.float32), terminals=terminals)
+    arrays |= dict(qpos=obs.copy(), qvel=np.zeros((n, 2), np.float32))
+    if pickled:
+        arrays["observations"] = np.array([obs, None], dtype=object)
+    np.savez_compressed(path, **arrays)
+    return arrays
+
+
+def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
+    from cdrb_cli import artifacts
+
+    src = tmp_path / "pointmaze-medium-navigate-v0-val.npz"
+    raw = _official_file(src)
+    r = cdrb("import", "npz", src, "--out", tmp_path / "d.h5", "--valid-fraction", "0")
+    assert r.returncode == 0, r.stderr
+    demos = artifacts.load(tmp_path / "d.h5", "demos")
+    assert demos.manifest.env.id == "pointmaze-medium-navigate-v0"  # from the file's name
+    assert list(demos.arrays["episodes/length"]) == [7, 5]
+    np.testing.assert_allclose(demos.arrays["steps/observations"], raw["observations"])
+    actions = np.asarray(demos.arrays["steps/actions"])
+    # the last action of each episode has no next observation: dropped, as OGBench's loader drops it
+    np.testing.assert_allclose(actions[:6], raw["actions"][:6])
+    np.testing.assert_array_equal(actions[[6, 11]], 0.0)
+    goals = np.asarray(demos.arrays["steps/desired_goals"])
+    np.testing.assert_allclose(goals[:7], np.repeat(raw["observations"][6:7], 7, axis=0))
+    assert demos.manifest.config.expert.kind == "ogbench-dataset"
+    assert len(demos.manifest.config.expert.sha256) == 64
+
+
+@pytest.mark.parametrize(
+    ("make", "name", "message"),
+    [
+        (lambda p: _official_file(p, pickled=True), "pointmaze-large-stitch-v0.npz", "not a readable .npz file"),
+        (lambda p: _official_file(p, obs_dim=3), "pointmaze-large-stitch-v0.npz", "observations (12, 3)"),
+        (lambda p: np.savez(p, observations=np.zeros((3, 2))), "pointmaze-large-stitch-v0.npz", "no actions"),
+        (lambda p: _official_file(p), "maze-data.npz", "its name says no environment"),
+        (lambda p: p.write_bytes(b"PK\x03\x04 not a zip"), "pointmaze-giant-navigate-v0.npz", "not a readable"),
+    ],
+)
+def test_a_bad_official_file_is_refused_in_one_line(cdrb, tmp_path, make, name, message):
+    src = tmp_path / name
+    make(src)
+    r = cdrb("import", "npz", src, "--out", tmp_path / "d.h5")
+    assert r.returncode != 0 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "d.h5").exists()

@@ -178,6 +178,27 @@ def import_minari(
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 
 
+@import_app.command("npz")
+def import_npz(
+    file: Path = typer.Argument(..., help="A dataset file, e.g. OGBench's pointmaze-medium-navigate-v0.npz."),
+    env: str | None = typer.Option(None, "--env", help="The cdrb environment (default: from the file's name)."),
+    valid_fraction: float = typer.Option(0.1, "--valid-fraction", min=0.0, max=0.9, help="Share held out."),
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    seed: int = SeedOpt,
+    force: bool = ForceOpt,
+    as_json: bool = JsonOpt,
+) -> None:
+    """Import a dataset file (.npz, on disk) as a [bold]demos[/bold] artifact: OGBench's PointMaze files (each
+    episode's goal is its last state: the files hold none). Example: [cyan]cdrb import npz
+    pointmaze-medium-navigate-v0.npz --out demos.h5[/cyan]"""
+    from cdrb_cli.stages.dataset_files import import_file as run_import
+
+    check_outputs(force, out=out)
+    s = run_import(file, out, env=env, valid_fraction=valid_fraction, seed=seed).manifest.summary
+    ui.log(f"{file.name}: {s.episodes} episodes, {s.steps} steps, states inside obstacles: {s.states_in_walls}")
+    ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
+
+
 # ------------------------------------------------------------------------------------------------ expert
 expert_app = typer.Typer(
     help="Train stable-baselines3 experts (SAC + HER) for `cdrb collect --expert sac`.", no_args_is_help=True

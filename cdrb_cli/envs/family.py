@@ -454,7 +454,17 @@ class EnvFamily(ABC):
         matplotlib)."""
         raise NotImplementedError(f"the {self.name} family renders no simulator frames")
 
-    # -------------------------------------------------------------- interop (Minari datasets)
+    # -------------------------------------------------------------- interop (dataset files, Minari datasets)
+    def dataset_env(self, path: Path) -> str | None:
+        """The env id an outside dataset file of this family's format names (`cdrb import npz`), or None."""
+        return None
+
+    def read_dataset(self, spec: EnvSpec, path: Path) -> tuple[list, list, list, list, ExpertConfig] | None:
+        """The episodes of an outside dataset file for ``spec`` (`cdrb import npz`): per episode the states, the
+        actions with a zero last row, the goals per state and success, then the file's provenance record; None
+        when the family reads no such files. A malformed file is a one-line :class:`BadInput`."""
+        return None
+
     def from_gym(self, gym_id: str, kwargs: dict, name: str) -> EnvSpec | None:
         """The cdrb spec of the gymnasium environment ``gym_id`` made with ``kwargs`` (a Minari dataset's
         env_spec; ``name`` names a new layout), or None when it is not one of this family's."""

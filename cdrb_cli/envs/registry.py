@@ -42,6 +42,7 @@ EXPERTS: Registry[ExpertEntry] = Registry(
         "sac": "cdrb_cli.experts.sac",
         "minari-dataset": "cdrb_cli.experts.minari",
         "ogbench-noisy": "cdrb_cli.envs.ogbench.expert",
+        "ogbench-dataset": "cdrb_cli.envs.ogbench.dataset",
     },
     ExpertEntry,
 )

@@ -13,6 +13,7 @@ and a goal exactly 4 cells away, 200 steps.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -132,6 +133,16 @@ class OGBenchFamily(EnvFamily):
             goal = tuple(int(v) for v in goals[int(rng.integers(len(goals)))])
             out.append(Episode(int(s), start, goal))
         return out
+
+    def dataset_env(self, path: Path) -> str | None:
+        from cdrb_cli.envs.ogbench.dataset import env_for
+
+        return env_for(path)
+
+    def read_dataset(self, spec: EnvSpec, path: Path):
+        from cdrb_cli.envs.ogbench.dataset import read_episodes
+
+        return read_episodes(spec, path)
 
     def max_step(self, spec: EnvSpec) -> float:
         return math.sqrt(2.0) * ACTION_SCALE

@@ -1,0 +1,108 @@
+"""An official OGBench dataset file (``.npz``) read as demonstrations (`cdrb import npz`).
+
+OGBench writes each dataset with ``numpy.savez_compressed``: ``observations`` (N, obs), ``actions`` (N, act),
+``terminals`` (N,), true on the last row of each episode, and for the maze datasets ``qpos`` and ``qvel``. Its loader
+drops each episode's last action (no next observation follows it); so does this import (a demos episode ends with a
+zero action row). The files hold no goals: each episode's goal is taken as its last state (the hindsight goal every
+window of it is trained toward anyway), so its success is true by construction and says nothing. The file is read
+with ``allow_pickle=False``, so a file with object arrays is refused, never unpickled.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import zipfile
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdrb_cli.envs.family import ExpertConfig, ExpertEntry
+from cdrb_cli.envs.registry import EXPERTS
+from cdrb_cli.errors import BadInput
+
+#: an OGBench dataset file's name: <env>-<dataset type>-v<N>[-val].npz
+FILE_NAME = re.compile(r"^(pointmaze-[a-z]+-[a-z]+-v\d+)(-val)?\.npz$")
+#: the largest file read (the official PointMaze files are about 20-40 MB)
+MAX_BYTES = 2 * 1024**3
+
+
+class OGBenchSourceConfig(ExpertConfig):
+    """An OGBench dataset file imported by `cdrb import npz`: its name and sha256."""
+
+    kind: Literal["ogbench-dataset"] = "ogbench-dataset"
+    file: str = Field(max_length=4096, description="the file's name")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    goal_rule: str = Field("last state", description="what each episode's goal is (the files hold none)")
+
+    def describe(self) -> str:
+        return f"OGBench dataset file {self.file} (sha256 {self.sha256[:12]}; goals: each episode's last state)"
+
+
+def _no_rollouts(spec, config):
+    raise BadInput("--expert ogbench-dataset: imported episodes cannot be rolled out", hint="use ogbench-noisy")
+
+
+def _configure(policy: Path | None):
+    raise BadInput("--expert ogbench-dataset: use `cdrb import npz FILE.npz --out demos.h5`", hint="docs/cli.md")
+
+
+EXPERTS.register(ExpertEntry(OGBenchSourceConfig, _no_rollouts, _configure, "episodes imported from an OGBench file"))
+
+
+def env_for(path: Path) -> str | None:
+    """The env id an OGBench dataset file's name says, or None."""
+    m = FILE_NAME.match(Path(path).name)
+    return m.group(1) if m else None
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise BadInput(f"{path}: no such file", hint="check the path")
+    if path.stat().st_size > MAX_BYTES:
+        raise BadInput(f"{path}: larger than {MAX_BYTES // 1024**3} GiB", hint="not an OGBench PointMaze file")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return {k: np.asarray(f[k]) for k in ("observations", "actions", "terminals") if k in f.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise BadInput(f"{path}: not a readable .npz file ({type(exc).__name__})", hint="check the file") from None
+
+
+def read_episodes(spec, path: Path):
+    """The episodes of an OGBench ``.npz`` file for ``spec``: (states, actions with a zero last row, goals, success,
+    the source record), each list one entry per episode."""
+    from cdrb_cli.envs.registry import family_of
+
+    path = Path(path)
+    a = _arrays(path)
+    missing = [k for k in ("observations", "actions", "terminals") if k not in a]
+    if missing:
+        raise BadInput(f"{path}: no {', '.join(missing)} array", hint="an OGBench dataset has observations, "
+                       "actions and terminals")  # fmt: skip
+    obs, act, term = a["observations"], a["actions"], a["terminals"]
+    n = len(obs)
+    if obs.shape != (n, spec.obs_dim) or act.shape != (n, spec.action_dim) or term.shape != (n,) or n < 2:
+        raise BadInput(
+            f"{path}: observations {obs.shape}, actions {act.shape}, terminals {term.shape}; {spec.id} needs "
+            f"(N, {spec.obs_dim}), (N, {spec.action_dim}), (N,)",
+            hint="name the right environment with --env",
+        )
+    if not (np.isfinite(obs).all() and np.isfinite(act).all()):
+        raise BadInput(f"{path}: NaN or infinite values", hint="the file is damaged")
+    ends = np.flatnonzero(np.asarray(term, dtype=bool))
+    if not len(ends) or ends[-1] != n - 1:
+        raise BadInput(f"{path}: the last row does not end an episode (terminals)", hint="the file is damaged")
+    family, starts = family_of(spec), np.concatenate([[0], ends[:-1] + 1])
+    states, actions, goals, success = [], [], [], []
+    for a0, a1 in zip(starts, ends + 1):
+        if a1 - a0 < 2:
+            raise BadInput(f"{path}: an episode of one row (rows {a0}..{a1 - 1})", hint="the file is damaged")
+        S = obs[a0:a1].astype(np.float64)
+        states.append(S)
+        actions.append(np.concatenate([act[a0 : a1 - 1].astype(np.float64), np.zeros((1, spec.action_dim))]))
+        goals.append(np.repeat(S[-1:, spec.goal_dims], len(S), axis=0))
+        success.append(bool(family.success(spec, S, goals[-1][0]).any()))
+    source = OGBenchSourceConfig(file=path.name, sha256=hashlib.sha256(path.read_bytes()).hexdigest())
+    return states, actions, goals, success, source
