@@ -1,5 +1,6 @@
 """Every stock cdrb environment as a gymnasium env: ``import cdrb_cli.gym`` registers ``cdrb/<id>-v0`` for each id
-`cdrb envs` lists (the mazes, the Fetch tasks with and without walls), so ``gymnasium.make("cdrb/maze-tight-v0")``
+`cdrb envs` lists (the mazes, the Fetch tasks with and without walls; ``cdrb/<id>`` for OGBench's ids, which end in
+their own version), so ``gymnasium.make("cdrb/maze-tight-v0")``
 works in any gymnasium loop (or, without the import, ``gymnasium.make("cdrb_cli.gym:cdrb/maze-tight-v0")``).
 
 The env is cdrb's own simulator for the id (the same MuJoCo model, dynamics and reset noise as `cdrb eval`):
@@ -12,6 +13,8 @@ its collision test."""
 
 from __future__ import annotations
 
+import re
+
 import gymnasium
 import numpy as np
 from gymnasium import spaces
@@ -21,7 +24,10 @@ VERSION = 0
 
 
 def gym_id(env_id: str) -> str:
-    """The gymnasium id of a cdrb environment id."""
+    """The gymnasium id of a cdrb environment id: ``cdrb/<id>-v0``, or ``cdrb/<id>`` for an id that already ends
+    in a version (OGBench's names)."""
+    if re.search(r"-v\d+$", env_id):
+        return f"{NAMESPACE}/{env_id}"
     return f"{NAMESPACE}/{env_id}-v{VERSION}"
 
 

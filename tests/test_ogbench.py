@@ -165,3 +165,17 @@ def test_a_bad_official_file_is_refused_in_one_line(cdrb, tmp_path, make, name, 
     r = cdrb("import", "npz", src, "--out", tmp_path / "d.h5")
     assert r.returncode != 0 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert not (tmp_path / "d.h5").exists()
+
+
+def test_ogbench_ids_keep_their_version_as_gymnasium_ids():
+    import gymnasium
+
+    from cdrb_cli.gym import gym_id, register_envs
+
+    assert gym_id("pointmaze-medium-navigate-v0") == "cdrb/pointmaze-medium-navigate-v0"
+    assert gym_id("maze") == "cdrb/maze-v0"
+    assert "cdrb/pointmaze-giant-stitch-v0" in register_envs()
+    env = gymnasium.make("cdrb/pointmaze-large-navigate-v0")
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (2,)
+    env.close()
