@@ -195,7 +195,7 @@ class AvoidConfig(Record):
         False,
         description="with fallback_route_k: a pair whose every plan and repair still steps through an obstacle keeps "
         "the buffer route itself (buffer states joined by collision-free steps, evenly resampled to the horizon) "
-        "where it steps through fewer; False: the model's plans only",
+        "where that route steps through none; False: the model's plans only",
     )
     route_clearance: float = Field(
         0.0,

@@ -314,8 +314,8 @@ class _StubbornPlanner(_LinePlanner):
         return self.sample(start, goal, rng)
 
 
-@pytest.mark.parametrize("itself", [False, True])
-def test_a_pair_whose_every_repair_crosses_may_keep_the_route_itself(itself):
+@pytest.mark.parametrize(("itself", "pinned"), [(False, slice(0, 4)), (True, slice(0, 4)), (True, [0, 1, 2, 3])])
+def test_a_pair_whose_every_repair_crosses_may_keep_the_route_itself(itself, pinned):
     """``avoid.fallback_route_itself``: when the repairs of the second try cross as well, the buffer route itself
     (free by construction here) replaces the kept plan, pinned to the pair and normalized in the sampler's result
     too; without it the crossing plan stays."""
@@ -325,17 +325,21 @@ def test_a_pair_whose_every_repair_crosses_may_keep_the_route_itself(itself):
     spec, g, states = _north_closed_buffer()
     family = family_of(spec)
     at = lambda cell: np.array([*g.cell_to_xy(cell), 0.0, 0.0])  # noqa: E731
-    starts, goals = np.stack([at([5, 7]), at([1, 1])]), np.stack([at([1, 6]), at([1, 3])])
+    # a clear pair first, then two through the closed north gap (pinned dims given as a slice or as a list)
+    starts = np.stack([at([1, 1]), at([5, 7]), at([5, 6])])
+    goals = np.stack([at([1, 3]), at([1, 6]), at([1, 7])])
     method = _StubbornPlanner()
+    method.pinned = method.pinned_end = pinned
     graph = BufferGraph(spec, states)
     avoid = Avoidance(spec, best_of=2, graph=graph, fallback_route_k=3, fallback_route_itself=itself)
     plans, res, _ = _sampler_call(method, starts, goals, np.random.default_rng(0), None, None, avoid=avoid)
-    assert avoid.rerouted == 1 and method.repairs_from == [3]
-    assert avoid.route_kept == int(itself)
+    assert avoid.rerouted == 2 and method.repairs_from == [3]
+    assert avoid.route_kept == 2 * int(itself)
     crossings = list(family.crossing_counts(spec, plans))
-    assert crossings[1] == 0 and (crossings[0] == 0) == itself
+    assert crossings[0] == 0 and all((c == 0) == itself for c in crossings[1:])
     if itself:
-        np.testing.assert_allclose(plans[0], graph.route(starts[0], goals[0], method.horizon))
+        for i in (1, 2):
+            np.testing.assert_allclose(plans[i], graph.route(starts[i], goals[i], method.horizon))
         np.testing.assert_allclose(method.normalizer.unnormalize(res.plans.numpy()), plans, atol=1e-5)
     np.testing.assert_allclose(plans[:, 0], starts)
     np.testing.assert_allclose(plans[:, -1], goals)

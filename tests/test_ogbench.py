@@ -142,6 +142,7 @@ def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
     actions = np.asarray(demos.arrays["steps/actions"])
     # the last action of each episode has no next observation: dropped, as OGBench's loader drops it
     np.testing.assert_allclose(actions[:6], raw["actions"][:6])
+    np.testing.assert_allclose(actions[7:11], raw["actions"][7:11])  # the second episode, rows 7..11
     np.testing.assert_array_equal(actions[[6, 11]], 0.0)
     goals = np.asarray(demos.arrays["steps/desired_goals"])
     np.testing.assert_allclose(goals[:7], np.repeat(raw["observations"][6:7], 7, axis=0))
@@ -157,6 +158,30 @@ def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
         (lambda p: np.savez(p, observations=np.zeros((3, 2))), "pointmaze-large-stitch-v0.npz", "no actions"),
         (lambda p: _official_file(p), "maze-data.npz", "its name says no environment"),
         (lambda p: p.write_bytes(b"PK\x03\x04 not a zip"), "pointmaze-giant-navigate-v0.npz", "not a readable"),
+        (
+            lambda p: np.save(p.with_suffix(".npy"), np.zeros(3)) or p.with_suffix(".npy").rename(p),
+            "pointmaze-giant-navigate-v0.npz",
+            "not a readable .npz file (ValueError)",
+        ),
+        (
+            lambda p: np.savez(
+                p, observations=np.array([["a", "b"]] * 4), actions=np.zeros((4, 2)), terminals=np.eye(4)[3]
+            ),
+            "pointmaze-medium-stitch-v0.npz",
+            "observations is a 2-d <U1",
+        ),
+        (
+            lambda p: np.savez(
+                p, observations=np.full((4, 2), 1e300), actions=np.zeros((4, 2)), terminals=np.eye(4)[3]
+            ),
+            "pointmaze-medium-stitch-v0.npz",
+            "values beyond 1e6",
+        ),
+        (
+            lambda p: np.savez(p, observations=np.float64(3.0), actions=np.zeros((4, 2)), terminals=np.eye(4)[3]),
+            "pointmaze-medium-stitch-v0.npz",
+            "observations is a 0-d float64",
+        ),
     ],
 )
 def test_a_bad_official_file_is_refused_in_one_line(cdrb, tmp_path, make, name, message):

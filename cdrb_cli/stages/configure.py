@@ -118,9 +118,13 @@ def replan_base(model, controller: str, settings: Sequence[Setting]) -> list[Set
 def start_base(model, settings: Sequence[Setting], avoid: dict) -> list[Setting]:
     """The settings plans that start away from the demonstrations' starts use unless ``settings`` give them: the
     family's choice for plans from anywhere with this method (:attr:`~cdrb_cli.envs.family.EnvFamily.start_tuned`),
-    none with ``avoid = "plain"``, and a best-of no smaller than the one ``avoid`` (the avoidance base) has."""
+    none with ``avoid = "plain"``, a best-of no smaller than the one ``avoid`` (the avoidance base) has, and the route
+    itself as a last resort only with a second try (none where the settings turn the second try off)."""
+    second = lookup(settings, ("avoid", "fallback_route_k"))
 
     def applies(path: tuple[str, ...], value) -> bool:
+        if path == ("avoid", "fallback_route_itself"):
+            return second is None or second.value is not None
         return path != ("avoid", "best_of") or avoid.get("best_of", 1) < value
 
     return _family_defaults(model, "start_tuned", settings, "the default for plans from anywhere", applies)

@@ -322,7 +322,7 @@ def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, step
     """The second try of ``avoid.fallback_route_k``: each pair whose kept plan in ``out`` (raw, (n, H, F)) steps
     through an obstacle is sampled again ``best_of`` times as a repair of its shortest buffer route from step k,
     and the best of its kept plan and those is kept (:meth:`Avoidance.choose`); with ``fallback_route_itself``, a
-    pair whose kept plan then still crosses takes the route itself where it crosses less. Returns (plans,
+    pair whose kept plan then still crosses takes the route itself where the route crosses nothing. Returns (plans,
     SampleResult); the iterates kept of a pair tried again are those of its first try."""
     import torch
 
@@ -350,13 +350,14 @@ def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, step
         counts = family_of(avoid.spec).crossing_counts
         states = slice(None), slice(None), slice(0, avoid.spec.obs_dim)
         kept, route = counts(avoid.spec, out[bad][states]), counts(avoid.spec, each[states])
-        better = np.flatnonzero(np.asarray(route) < np.asarray(kept))
+        # a clear route only: a pair no route joined has the straight line here, which is no route of the buffer
+        better = np.flatnonzero((np.asarray(route) == 0) & (np.asarray(kept) > 0))
         if len(better):
             avoid.route_kept += len(better)
-            rows = bad[better]
-            out[rows] = each[better]
-            out[rows, 0, method.pinned] = starts[rows][:, method.pinned]
-            out[rows, -1, method.pinned_end] = goals[rows][:, method.pinned_end]
+            rows, sub = bad[better], each[better].copy()
+            sub[:, 0, method.pinned] = starts[rows][:, method.pinned]  # a list of dims or a slice alike
+            sub[:, -1, method.pinned_end] = goals[rows][:, method.pinned_end]
+            out[rows] = sub
             z = method.normalizer.normalize(out[rows])
             routed = torch.as_tensor(z, dtype=plans.dtype, device=plans.device)
             plans[torch.as_tensor(rows, device=plans.device)] = routed

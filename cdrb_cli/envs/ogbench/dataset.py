@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import re
-import zipfile
 from pathlib import Path
 from typing import Literal
 
@@ -27,6 +26,8 @@ from cdrb_cli.errors import BadInput
 FILE_NAME = re.compile(r"^(pointmaze-[a-z]+-[a-z]+-v\d+)(-val)?\.npz$")
 #: the largest file read (the official PointMaze files are about 20-40 MB)
 MAX_BYTES = 2 * 1024**3
+#: the largest magnitude of a value read (OGBench's mazes span tens of metres, actions [-1, 1])
+MAX_VALUE = 1e6
 
 
 class OGBenchSourceConfig(ExpertConfig):
@@ -64,10 +65,25 @@ def _arrays(path: Path) -> dict[str, np.ndarray]:
     if path.stat().st_size > MAX_BYTES:
         raise BadInput(f"{path}: larger than {MAX_BYTES // 1024**3} GiB", hint="not an OGBench PointMaze file")
     try:
-        with np.load(path, allow_pickle=False) as f:
+        f = np.load(path, allow_pickle=False)
+        if not isinstance(f, np.lib.npyio.NpzFile):
+            raise ValueError("one array, not an archive of named arrays")
+        with f:
             return {k: np.asarray(f[k]) for k in ("observations", "actions", "terminals") if k in f.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 - any damage (zip, deflate, .npy header, pickled objects): one line
         raise BadInput(f"{path}: not a readable .npz file ({type(exc).__name__})", hint="check the file") from None
+
+
+def _numbers(path: Path, name: str, a: np.ndarray, ndim: int) -> np.ndarray:
+    """``a`` as float64 when it is a real numeric (or boolean) array of ``ndim`` dimensions with finite values of a
+    sane size."""
+    real = a.dtype == np.bool_ or np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
+    if a.ndim != ndim or not real:
+        raise BadInput(f"{path}: {name} is a {a.ndim}-d {a.dtype} array", hint=f"expected {ndim}-d numbers")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all() or (np.abs(a) > MAX_VALUE).any():
+        raise BadInput(f"{path}: {name} has NaN, infinite or values beyond 1e6", hint="the file is damaged")
+    return a
 
 
 def read_episodes(spec, path: Path):
@@ -81,7 +97,9 @@ def read_episodes(spec, path: Path):
     if missing:
         raise BadInput(f"{path}: no {', '.join(missing)} array", hint="an OGBench dataset has observations, "
                        "actions and terminals")  # fmt: skip
-    obs, act, term = a["observations"], a["actions"], a["terminals"]
+    obs = _numbers(path, "observations", a["observations"], 2)
+    act = _numbers(path, "actions", a["actions"], 2)
+    term = _numbers(path, "terminals", a["terminals"], 1)
     n = len(obs)
     if obs.shape != (n, spec.obs_dim) or act.shape != (n, spec.action_dim) or term.shape != (n,) or n < 2:
         raise BadInput(
@@ -89,9 +107,7 @@ def read_episodes(spec, path: Path):
             f"(N, {spec.obs_dim}), (N, {spec.action_dim}), (N,)",
             hint="name the right environment with --env",
         )
-    if not (np.isfinite(obs).all() and np.isfinite(act).all()):
-        raise BadInput(f"{path}: NaN or infinite values", hint="the file is damaged")
-    ends = np.flatnonzero(np.asarray(term, dtype=bool))
+    ends = np.flatnonzero(term != 0)
     if not len(ends) or ends[-1] != n - 1:
         raise BadInput(f"{path}: the last row does not end an episode (terminals)", hint="the file is damaged")
     family, starts = family_of(spec), np.concatenate([[0], ends[:-1] + 1])
@@ -99,9 +115,9 @@ def read_episodes(spec, path: Path):
     for a0, a1 in zip(starts, ends + 1):
         if a1 - a0 < 2:
             raise BadInput(f"{path}: an episode of one row (rows {a0}..{a1 - 1})", hint="the file is damaged")
-        S = obs[a0:a1].astype(np.float64)
+        S = obs[a0:a1]
         states.append(S)
-        actions.append(np.concatenate([act[a0 : a1 - 1].astype(np.float64), np.zeros((1, spec.action_dim))]))
+        actions.append(np.concatenate([act[a0 : a1 - 1], np.zeros((1, spec.action_dim))]))
         goals.append(np.repeat(S[-1:, spec.goal_dims], len(S), axis=0))
         success.append(bool(family.success(spec, S, goals[-1][0]).any()))
     source = OGBenchSourceConfig(file=path.name, sha256=hashlib.sha256(path.read_bytes()).hexdigest())
