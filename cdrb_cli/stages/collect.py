@@ -168,7 +168,8 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
         pool = env = None
         if n_workers == 1:
             env, agent = _env_and_expert(spec, config)
-            results = ([rollout(env, agent, spec, ep, family.collect_limit(spec)) for ep in part] for part in parts)
+            limit = family.collect_limit(spec)
+            results = ([rollout(env, agent, spec, ep, limit) for ep in part] for part in parts)
         else:
             pool = ProcessPoolExecutor(
                 n_workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)

@@ -62,10 +62,10 @@ def _horizon(maze: str) -> int:
 
 
 def ogbench_spec(maze: str, dataset: str) -> EnvSpec:
-    g = OGBenchGeometry(layout(maze))
+    maze_layout = layout(maze)
     return EnvSpec(
         id=env_id(maze, dataset),
-        scene=OGBenchScene(maze=layout(maze), maze_name=maze, dataset=dataset),
+        scene=OGBenchScene(maze=maze_layout, maze_name=maze, dataset=dataset),
         obs_dim=2,
         action_dim=2,
         goal_dim=2,
@@ -76,7 +76,7 @@ def ogbench_spec(maze: str, dataset: str) -> EnvSpec:
         episode_limit=EPISODE_LIMIT,
         success_radius=SUCCESS_RADIUS,
         dt=TIMESTEP * FRAME_SKIP,
-        obstacles=g.obstacles(COLLISION_RADIUS),
+        obstacles=OGBenchGeometry(maze_layout).obstacles(COLLISION_RADIUS),
     )
 
 
@@ -128,7 +128,7 @@ class OGBenchFamily(EnvFamily):
             if spec.scene.dataset == "navigate":
                 goals = g.vertex_cells
             else:
-                goals = np.argwhere(g.bfs(start) == STITCH_CELLS)
+                goals = np.argwhere(g.bfs_from(start) == STITCH_CELLS)
                 goals = goals if len(goals) else np.asarray([start])
             goal = tuple(int(v) for v in goals[int(rng.integers(len(goals)))])
             out.append(Episode(int(s), start, goal))

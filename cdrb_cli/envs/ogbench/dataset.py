@@ -28,6 +28,8 @@ FILE_NAME = re.compile(r"^(pointmaze-[a-z]+-[a-z]+-v\d+)(-val)?\.npz$")
 MAX_BYTES = 2 * 1024**3
 #: the largest magnitude of a value read (OGBench's mazes span tens of metres, actions [-1, 1])
 MAX_VALUE = 1e6
+#: the arrays an import reads
+KEYS = ("observations", "actions", "terminals")
 
 
 class OGBenchSourceConfig(ExpertConfig):
@@ -69,7 +71,7 @@ def _arrays(path: Path) -> dict[str, np.ndarray]:
         if not isinstance(f, np.lib.npyio.NpzFile):
             raise ValueError("one array, not an archive of named arrays")
         with f:
-            return {k: np.asarray(f[k]) for k in ("observations", "actions", "terminals") if k in f.files}
+            return {k: np.asarray(f[k]) for k in KEYS if k in f.files}
     except Exception as exc:  # noqa: BLE001 - any damage (zip, deflate, .npy header, pickled objects): one line
         raise BadInput(f"{path}: not a readable .npz file ({type(exc).__name__})", hint="check the file") from None
 
@@ -93,7 +95,7 @@ def read_episodes(spec, path: Path):
 
     path = Path(path)
     a = _arrays(path)
-    missing = [k for k in ("observations", "actions", "terminals") if k not in a]
+    missing = [k for k in KEYS if k not in a]
     if missing:
         raise BadInput(f"{path}: no {', '.join(missing)} array", hint="an OGBench dataset has observations, "
                        "actions and terminals")  # fmt: skip

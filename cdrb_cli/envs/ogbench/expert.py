@@ -48,12 +48,10 @@ class OGBenchExpert:
         self.goal, self.rng = np.asarray(goal, dtype=np.float64)[:2].copy(), rng
 
     def act(self, state: np.ndarray) -> np.ndarray:
-        xy = np.asarray(state, dtype=np.float64)[:2]
+        xy, g = np.asarray(state, dtype=np.float64)[:2], self.geometry
         if self.redraw and np.linalg.norm(xy - self.goal) <= self.spec.success_radius:
-            cells = self.geometry.vertex_cells
-            cell = cells[int(self.rng.integers(len(cells)))]
-            self.goal = self.geometry.cell_to_xy(cell) + self.rng.uniform(-RESET_NOISE, RESET_NOISE, 2)
-        g = self.geometry
+            cell = g.vertex_cells[int(self.rng.integers(len(g.vertex_cells)))]
+            self.goal = g.cell_to_xy(cell) + self.rng.uniform(-RESET_NOISE, RESET_NOISE, 2)
         sub = g.cell_to_xy(g.toward(g.xy_to_cell(xy), g.xy_to_cell(self.goal)))
         direction = (sub - xy) / (np.linalg.norm(sub - xy) + 1e-6)
         return np.clip(direction + self.rng.normal(0.0, self.cfg.noise, 2), -1.0, 1.0)

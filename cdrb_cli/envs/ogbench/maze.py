@@ -11,7 +11,6 @@ from functools import cached_property
 
 import numpy as np
 
-from cdrb_cli.envs.geometry import BoxObstacles
 from cdrb_cli.envs.pointmaze.maze import MazeGeometry, MazeLayout
 
 MAZE_UNIT = 4.0
@@ -83,17 +82,10 @@ class OGBenchGeometry(MazeGeometry):
         i = np.floor((xy[..., 1] - ORIGIN) / self.s + 0.5)
         return np.stack([i, j], axis=-1).astype(np.int64)
 
-    def obstacles(self, agent_radius: float) -> BoxObstacles:
-        c, h = self.wall_boxes
+    def bounds(self) -> tuple[list[float], list[float]]:
+        """The map's outer edges: from half a cell below cell (0, 0)'s centre."""
         low = ORIGIN - self.s / 2
-        return BoxObstacles(
-            dims=[0, 1],
-            centers=c.round(9).tolist(),
-            half_sizes=h.round(9).tolist(),
-            inflate=agent_radius,
-            low=[low, low],
-            high=[low + self.n_cols * self.s, low + self.n_rows * self.s],
-        )
+        return [low, low], [low + self.n_cols * self.s, low + self.n_rows * self.s]
 
     @cached_property
     def vertex_cells(self) -> np.ndarray:
@@ -112,7 +104,7 @@ class OGBenchGeometry(MazeGeometry):
         """OGBench's oracle subgoal: of the current cell's four neighbours (in the order up, left, down, right by
         index: (-1, 0), (0, -1), (1, 0), (0, 1)), the first free one strictly closer to the goal by grid distance;
         the cell itself when none is."""
-        dist = self._bfs_cached(tuple(int(v) for v in goal_cell))
+        dist = self.bfs_from(goal_cell)
         i, j = int(cell[0]), int(cell[1])
         best, here = (i, j), dist[i, j] if dist[i, j] >= 0 else np.inf
         for di, dj in ((-1, 0), (0, -1), (1, 0), (0, 1)):
@@ -121,8 +113,10 @@ class OGBenchGeometry(MazeGeometry):
                 best, here = (a, b), dist[a, b]
         return best
 
-    def _bfs_cached(self, goal: tuple[int, int]) -> np.ndarray:
+    def bfs_from(self, cell) -> np.ndarray:
+        """:meth:`bfs` from ``cell``, computed once per cell (the expert asks every step, collection every episode)."""
+        key = (int(cell[0]), int(cell[1]))
         cache = self.__dict__.setdefault("_bfs", {})
-        if goal not in cache:
-            cache[goal] = self.bfs(goal)
-        return cache[goal]
+        if key not in cache:
+            cache[key] = self.bfs(key)
+        return cache[key]

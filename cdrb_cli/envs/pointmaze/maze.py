@@ -236,16 +236,21 @@ class MazeGeometry:
                     j += 1
         return np.array(centers, dtype=np.float64).reshape(-1, 2), np.array(halves, dtype=np.float64).reshape(-1, 2)
 
+    def bounds(self) -> tuple[list[float], list[float]]:
+        """The map's outer edges, ([x low, y low], [x high, y high]) in metres: centred on the origin."""
+        half_w, half_h = self.n_cols * self.s / 2, self.n_rows * self.s / 2
+        return [-half_w, -half_h], [half_w, half_h]
+
     def obstacles(self, agent_radius: float) -> BoxObstacles:
         c, h = self.wall_boxes
-        half_w, half_h = self.n_cols * self.s / 2, self.n_rows * self.s / 2
+        low, high = self.bounds()
         return BoxObstacles(
             dims=[0, 1],
             centers=c.round(9).tolist(),
             half_sizes=h.round(9).tolist(),
             inflate=agent_radius,
-            low=[-half_w, -half_h],
-            high=[half_w, half_h],
+            low=low,
+            high=high,
         )
 
     # -------------------------------------------------------------- protocol
