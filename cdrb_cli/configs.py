@@ -197,6 +197,13 @@ class AvoidConfig(Record):
         "the buffer route itself (buffer states joined by collision-free steps, evenly resampled to the horizon) "
         "where that route steps through none; False: the model's plans only",
     )
+    first_step: bool = Field(
+        False,
+        description="the first planned step counts: among a pair's plans with the fewest steps through an obstacle, "
+        "one that leaves the start by no more than 1.5x what the dynamics allow in one plan step is kept before a "
+        "shorter one that leaps, and with fallback_route_k a pair whose kept plan leaps gets the second try too; "
+        "False: crossings, then length",
+    )
     route_clearance: float = Field(
         0.0,
         ge=0,
@@ -243,6 +250,7 @@ class AvoidConfig(Record):
         parts += [f"best of {self.best_of}"] if self.best_of > 1 else []
         parts += [f"buffer route when every plan crosses, k {self.fallback_route_k}"] if self.fallback_route_k else []
         parts += ["the route itself as a last resort"] if self.fallback_route_itself else []
+        parts += ["first step within 1.5x"] if self.first_step else []
         return ", ".join(parts) or "plain"
 
 

@@ -133,13 +133,18 @@ def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_mo
     # the family's second try from a buffer route, its k cut to the tiny model's last repair step (T = 8)
     chosen = PointMazeFamily.start_tuned["cdrb"]
     k = min(7, chosen["avoid.fallback_route_k"])
-    tuned = AvoidConfig(best_of=n, fallback_route_k=k, fallback_route_itself=chosen["avoid.fallback_route_itself"])
+    tuned = AvoidConfig(
+        best_of=n,
+        fallback_route_k=k,
+        fallback_route_itself=chosen["avoid.fallback_route_itself"],
+        first_step=chosen["avoid.first_step"],
+    )
     centre, corridor = _corridor_and_centre(cdrb)
     assert plan_config(cdrb, starts=centre[None]).avoid == AvoidConfig()  # where the data start: the paper's
     assert plan_config(cdrb, starts=np.stack([centre, corridor])).avoid == tuned
     # the second try turned off takes its last resort with it
     off = plan_config(cdrb, parse_set(["avoid.fallback_route_k=null"]), starts=corridor[None]).avoid
-    assert off == AvoidConfig(best_of=n)
+    assert off == AvoidConfig(best_of=n, first_step=chosen["avoid.first_step"])
     # what the user sets wins; avoid=plain drops it; a method with nothing chosen plans as it is
     assert plan_config(cdrb, parse_set(["avoid=plain"]), starts=corridor[None]).avoid == AvoidConfig()
     assert plan_config(cdrb, parse_set(["avoid.best_of=2"]), starts=corridor[None]).avoid.best_of == 2
@@ -187,7 +192,7 @@ def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_model
 
     def spy(*a, **k):
         avoid = k["avoid"]
-        seen.append((avoid.best_of, avoid.fallback_route_k, avoid.fallback_route_itself, avoid.graph is not None))
+        seen.append((avoid.best_of, avoid.fallback_route_k, avoid.fallback_route_itself, avoid.first_step))
         return real(*a, **k)
 
     monkeypatch.setattr(plan_stage, "sample_plans", spy)
@@ -197,7 +202,8 @@ def test_cli_and_api_plans_from_the_corridor_keep_the_best_of_several(tiny_model
     # from the corridor: the best of n and a second try from a buffer route (its graph built for it); from the
     # centre, the paper's one plan
     k = min(7, PointMazeFamily.start_tuned["cdrb"]["avoid.fallback_route_k"])
-    assert seen == [(n, k, True, True), (1, None, False, True)] and planner.avoidance.best_of == 1
+    assert seen == [(n, k, True, True), (1, None, False, False)] and planner.avoidance.best_of == 1
+    assert planner.avoidance.graph is not None
 
 
 def test_cli_plans_avoid_a_new_wall_by_default(tiny_models, tmp_path, cdrb):

@@ -121,6 +121,30 @@ def test_best_of_keeps_a_free_plan_then_the_shortest():
     np.testing.assert_array_equal(avoid.choose(plans), [2, 4])  # pair 1: the shorter free plan; pair 2: fewest
 
 
+def test_best_of_prefers_a_plan_that_starts_where_the_robot_is():
+    """With avoid.first_step, among plans that cross nothing one whose first step is within FIRST_STEP_TOLERANCE x
+    the step limit is kept before a shorter one that leaps from its start; crossings still come first (a leap that
+    stays clear beats a plan through a wall); without it the shortest clear plan is kept."""
+    from cdrb_cli.stages.plan import FIRST_STEP_TOLERANCE, Avoidance
+
+    spec = family_of(make_spec("maze-tight")).with_map(make_spec("maze-tight"), NORTH)
+    g = MazeGeometry(spec.scene.maze)
+    a, b, c = (np.array([*g.cell_to_xy(cell), 0, 0]) for cell in ([5, 7], [6, 7], [3, 7]))
+    limit = 0.2
+    # a leap: the whole way in the first step, then standing at the end; a walk: small steps all the way, longer
+    leap = np.stack([a, b, b, b, b, b])
+    walk = np.stack([a + (b - a) * f for f in (0, 0.1, 0.3, 0.6, 1.0, 1.0)])
+    walk[2:5, 1] += 0.3  # a detour: longer than the leap
+    assert np.linalg.norm((leap[1] - leap[0])[:2]) > FIRST_STEP_TOLERANCE * limit
+    assert np.linalg.norm((walk[1] - walk[0])[:2]) <= FIRST_STEP_TOLERANCE * limit
+    through = np.stack([a, a + (c - a) * 0.05, c, c, c, c])  # a short first step, through the closed north gap
+    plans = np.stack([leap, walk, leap, through])
+    np.testing.assert_array_equal(Avoidance(spec, best_of=2, first_step=True, step_limit=limit).choose(plans), [1, 2])
+    np.testing.assert_array_equal(Avoidance(spec, best_of=2, step_limit=limit).choose(plans), [0, 2])
+    np.testing.assert_array_equal(Avoidance(spec, first_step=True, step_limit=limit).leaping(plans), [0, 2])
+    assert not len(Avoidance(spec, step_limit=limit).leaping(plans))
+
+
 # ------------------------------------------------------------------------------------------------ masking
 def test_masked_buffer_never_restores_a_state_inside_the_new_wall(tiny_models):
     from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans
@@ -302,6 +326,43 @@ def test_a_pair_whose_every_plan_crosses_is_tried_again_from_a_buffer_route():
     assert avoid.rerouted == 1 and method.repairs_from == [3]  # one pair, tried again from k = 3
     assert list(family.crossing_counts(spec, plans)) == [0, 0]
     np.testing.assert_allclose(plans[1], lines[1])  # the clear pair keeps its plan
+    np.testing.assert_allclose(plans[:, 0], starts)
+    np.testing.assert_allclose(plans[:, -1], goals)
+
+
+class _LeapingPlanner(_LinePlanner):
+    """A stand-in whose plans from scratch leave the start at once (the first step goes half the way)."""
+
+    def sample(self, start, goal, rng, sampler=None, steps=None, keep_iterates=0):
+        import torch
+
+        from cdrb_cli.methods.base import SampleResult
+
+        w = torch.full((self.horizon,), 0.5)
+        w[0], w[-1] = 0.0, 1.0
+        w = w[None, :, None]
+        return SampleResult(plans=start[:, None] * (1 - w) + goal[:, None] * w)
+
+
+def test_a_pair_whose_every_plan_leaps_from_its_start_is_tried_again():
+    """A clear plan whose first step goes farther than FIRST_STEP_TOLERANCE x the step limit also gets the second
+    try: the repair of its buffer route (which walks from the start) is kept instead; a pair whose plan starts
+    gently is left alone."""
+    from cdrb_cli.stages.plan import Avoidance, sample_plans
+    from cdrb_cli.stages.routes import BufferGraph
+
+    spec, g, states = _north_closed_buffer()
+    at = lambda cell: np.array([*g.cell_to_xy(cell), 0.0, 0.0])  # noqa: E731
+    starts, goals = np.stack([at([1, 1]), at([1, 1])]), np.stack([at([1, 3]), at([1, 1]) + [0.05, 0, 0, 0]])
+    method = _LeapingPlanner()
+    limit = 2 * np.linalg.norm(goals[0, :2] - starts[0, :2]) / method.horizon  # the route's steps fit; a leap not
+    avoid = Avoidance(
+        spec, best_of=2, graph=BufferGraph(spec, states), fallback_route_k=3, first_step=True, step_limit=limit
+    )
+    plans = sample_plans(method, starts, goals, 1, 0, avoid=avoid).plans
+    assert avoid.rerouted == 1 and method.repairs_from == [3]
+    first = np.linalg.norm(plans[:, 1, :2] - plans[:, 0, :2], axis=1)
+    assert first[0] <= 1.5 * limit
     np.testing.assert_allclose(plans[:, 0], starts)
     np.testing.assert_allclose(plans[:, -1], goals)
 

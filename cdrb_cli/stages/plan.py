@@ -54,6 +54,11 @@ def scene_spec(model, maze_map: Path | None, flag: str | None = None) -> EnvSpec
 GUIDE_SUBSTEPS = 4
 
 
+#: a plan's first step may be this many times what the dynamics allow in one plan step: best-of choices prefer
+#: plans within it, and `cdrb plan` warns when the median plan leaves its start faster
+FIRST_STEP_TOLERANCE = 1.5
+
+
 @dataclass
 class Avoidance:
     """What keeps a planner's plans out of the obstacles of ``spec`` at plan time (:func:`prepare_planner`):
@@ -67,26 +72,44 @@ class Avoidance:
     fallback_route_itself: bool = False
     masked: dict[str, int] | None = None  # what masking the buffer removed
     unrouted: int = 0  # pairs no buffer route joined (planned from scratch)
-    rerouted: int = 0  # pairs sampled again from a buffer route because every plan from scratch crossed
+    rerouted: int = 0  # pairs sampled again from a buffer route because every plan from scratch crossed or leapt
     route_kept: int = 0  # pairs whose every plan and repair crossed, planned by the buffer route itself
+    first_step: bool = False  # the first step counts in the choice and calls for the second try
+    #: what the dynamics allow in one plan step (the family's max step x the model's stride); None: unknown
+    step_limit: float | None = None
 
     def choose(self, plans: np.ndarray, per: int | None = None) -> np.ndarray:
         """Indices into ``plans`` (P * per, H, F), raw and grouped by pair (``per``: plans per pair, default
         ``best_of``), of the plan kept for each pair: the one with the fewest steps through an obstacle (none, when
-        one has none), the shortest path among those."""
+        one has none); with ``first_step``, among those one whose first step leaves the start by no more than
+        :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (a robot can follow it from where it is), where one does;
+        then the shortest path."""
         per = per or self.best_of
         family = family_of(self.spec)
         states = plans[..., : self.spec.obs_dim]
         counts = family.crossing_counts(self.spec, states).reshape(-1, per)
         dims = list(self.spec.obstacles.dims)
-        length = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1).sum(-1).reshape(-1, per)
-        order = np.lexsort((length, counts), axis=-1) if counts.size else counts
+        steps = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1)
+        length = steps.sum(-1).reshape(-1, per)
+        leaps = np.zeros_like(length, dtype=bool)
+        if self.first_step and self.step_limit and steps.shape[-1]:
+            leaps = (steps[..., 0] > FIRST_STEP_TOLERANCE * self.step_limit).reshape(-1, per)
+        order = np.lexsort((length, leaps, counts), axis=-1) if counts.size else counts
         return np.arange(len(counts)) * per + order[:, 0]
 
     def crossing(self, plans: np.ndarray) -> np.ndarray:
         """Indices of the raw plans (n, H, F) with a step through an obstacle."""
         states = plans[..., : self.spec.obs_dim]
         return np.flatnonzero(np.asarray(family_of(self.spec).crossing_counts(self.spec, states)) > 0)
+
+    def leaping(self, plans: np.ndarray) -> np.ndarray:
+        """With ``first_step``, indices of the raw plans (n, H, F) whose first step leaves the start by more than
+        :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (none without it, or when the limit is unknown)."""
+        if not (self.first_step and self.step_limit) or plans.shape[1] < 2:
+            return np.zeros(0, dtype=np.int64)
+        dims = list(self.spec.obstacles.dims)
+        first = np.linalg.norm(plans[:, 1, dims] - plans[:, 0, dims], axis=-1)
+        return np.flatnonzero(first > FIRST_STEP_TOLERANCE * self.step_limit)
 
     def routes(self, starts: np.ndarray, goals: np.ndarray, horizon: int, features: int) -> np.ndarray | None:
         """Raw buffer routes (n, horizon, features) for raw start/goal states (n, obs_dim); a pair with no route
@@ -116,7 +139,10 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
         route_k=avoid.route_k,
         fallback_route_k=avoid.fallback_route_k,
         fallback_route_itself=avoid.fallback_route_itself,
+        first_step=avoid.first_step,
     )
+    max_step = family.max_step(spec)
+    out.step_limit = None if max_step is None else float(max_step * method.config.stride)
     if avoid.mask_buffer:
 
         def collides(features: np.ndarray) -> np.ndarray:
@@ -194,8 +220,9 @@ def warn_unrouted(avoid: Avoidance | None) -> None:
 
     if avoid is not None and avoid.rerouted:
         ui.log(
-            f"{avoid.rerouted} start/goal pair(s) whose every plan crossed an obstacle were tried again from a buffer "
-            f"route (avoid.fallback_route_k = {avoid.fallback_route_k})"
+            f"{avoid.rerouted} start/goal pair(s) whose every plan crossed an obstacle or left the start faster "
+            "than the dynamics allow were tried again from a buffer route "
+            f"(avoid.fallback_route_k = {avoid.fallback_route_k})"
         )
     if avoid is not None and avoid.route_kept:
         ui.log(
@@ -320,13 +347,14 @@ def _restore(method: Planner, starts, goals, rng, previous, repair_k, sampler, s
 
 def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, steps, device, avoid: Avoidance):
     """The second try of ``avoid.fallback_route_k``: each pair whose kept plan in ``out`` (raw, (n, H, F)) steps
-    through an obstacle is sampled again ``best_of`` times as a repair of its shortest buffer route from step k,
+    through an obstacle, or leaves its start faster than the dynamics allow (:meth:`Avoidance.leaping`), is sampled
+    again ``best_of`` times as a repair of its shortest buffer route from step k,
     and the best of its kept plan and those is kept (:meth:`Avoidance.choose`); with ``fallback_route_itself``, a
     pair whose kept plan then still crosses takes the route itself where the route crosses nothing. Returns (plans,
     SampleResult); the iterates kept of a pair tried again are those of its first try."""
     import torch
 
-    bad = avoid.crossing(out)
+    bad = np.union1d(avoid.crossing(out), avoid.leaping(out))
     if not len(bad):
         return out, res
     avoid.rerouted += len(bad)
@@ -473,10 +501,6 @@ def make_plans(
         arrays["iterate_steps"] = np.asarray(iter_steps, dtype=np.int64)
     artifacts.save(out, "plans", manifest, arrays)
     return artifacts.load(out, "plans")
-
-
-#: a plan's first step may be this many times what the dynamics allow in one plan step before `cdrb plan` warns
-FIRST_STEP_TOLERANCE = 1.5
 
 
 def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfig | None = None) -> str | None:
