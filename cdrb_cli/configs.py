@@ -327,6 +327,16 @@ class ReplanConfig(Record):
     repair_steps: int | None = Field(
         None, gt=0, le=100_000, description="denoising steps of a repair (null: every step from k)"
     )
+    waypoint_reach: float | None = Field(
+        None,
+        gt=0,
+        le=1e6,
+        description="goals farther than one plan reaches: every plan (the first and each re-plan) aims at the point "
+        "this far (in the obstacle dimensions' units, metres in the mazes) along the shortest route through the "
+        "buffer's states to the goal, or at the goal once the route is that short; re-plans move the waypoint on. "
+        "Routes go through the model's buffer (CDRB), joined by collision-free steps; null: every plan aims at the "
+        "goal",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> ReplanConfig:
@@ -338,6 +348,8 @@ class ReplanConfig(Record):
             raise ValueError(f"mode {self.mode!r} takes neither `every` nor `deviation` other than its own")
         if self.mode == "never" and (self.repair_k is not None or self.repair_steps is not None):
             raise ValueError("repair_k/repair_steps repair a plan when re-planning: set a replan mode too")
+        if self.mode == "never" and self.waypoint_reach is not None:
+            raise ValueError("waypoint_reach: a plan toward a waypoint needs re-plans to go on: set a replan mode too")
         if self.repair_steps is not None and self.repair_k is None:
             raise ValueError("repair_steps needs repair_k")
         if self.repair_steps is not None and self.repair_k is not None and self.repair_steps > self.repair_k:
@@ -363,9 +375,12 @@ class ReplanConfig(Record):
         raise ValueError("expected never, every:N or deviation:D")
 
     def label(self) -> str:
-        """A short human name: ``open loop``, ``every 20`` or ``deviation 0.3``, with ``, repair k=4``."""
+        """A short human name: ``open loop``, ``every 20`` or ``deviation 0.3``, with ``, repair k=4`` and
+        ``, waypoints 8 ahead``."""
         base = {"never": "open loop", "every": f"every {self.every}", "deviation": f"deviation {self.deviation}"}
-        return base[self.mode] + ("" if self.repair_k is None else f", repair k={self.repair_k}")
+        repair = "" if self.repair_k is None else f", repair k={self.repair_k}"
+        ahead = "" if self.waypoint_reach is None else f", waypoints {self.waypoint_reach:g} ahead"
+        return base[self.mode] + repair + ahead
 
 
 class EvalConfig(Record):

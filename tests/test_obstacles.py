@@ -275,6 +275,36 @@ def test_buffer_route_takes_free_steps_around_the_new_wall():
     assert BufferGraph(spec, centre).route(start, goal, 64) is None
 
 
+def test_a_waypoint_lies_reach_along_the_route_and_is_the_goal_once_the_route_is_short():
+    """``BufferGraph.waypoint``: the point ``reach`` along the shortest route by arc length (so on the route, within
+    ``reach`` of the start as the crow flies, and joined to the start by free steps), the goal itself once the route
+    is no longer than ``reach``; ``waypoint_aims`` gives it as a goal state (at rest)."""
+    from cdrb_cli.stages.routes import BufferGraph, waypoint_aims
+
+    spec, g, states = _north_closed_buffer()
+    family = family_of(spec)
+    graph = BufferGraph(spec, states)
+    start, goal = np.array([*g.cell_to_xy([5, 7]), 0.4, -0.2]), np.array([*g.cell_to_xy([1, 6]), 0, 0])
+    points = graph.polyline(start, goal)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1))])
+    for reach in (0.5, 2.0, 0.4 * arc[-1]):
+        point = graph.waypoint(start, goal, reach)
+        i = int(np.searchsorted(arc, reach)) - 1
+        a, b = points[i, :2], points[i + 1, :2]
+        # on the segment that holds arc length ``reach``, at that arc length
+        assert np.isclose(arc[i] + np.linalg.norm(point[:2] - a), reach)
+        assert np.isclose(np.linalg.norm(point[:2] - a) + np.linalg.norm(b - point[:2]), np.linalg.norm(b - a))
+        assert np.linalg.norm(point[:2] - start[:2]) <= reach + 1e-9
+        walked = np.concatenate([points[: i + 1, :2], point[None, :2]])[None]
+        assert not family.path_in_collision(spec, np.concatenate([walked, np.zeros_like(walked)], -1))[0]
+    np.testing.assert_array_equal(graph.waypoint(start, goal, arc[-1] + 0.1), goal)
+    aims = waypoint_aims(graph, spec, 2.0, features=4)
+    out = aims(np.stack([start, goal]), np.stack([goal, goal]))
+    np.testing.assert_allclose(out[0, :2], graph.waypoint(start, goal, 2.0)[:2])
+    assert (out[0, 2:] == 0).all()  # a goal state: at rest
+    np.testing.assert_array_equal(out[1], goal)  # already there: the goal itself
+
+
 class _LinePlanner:
     """A stand-in planner for the sampler's plumbing: from scratch it plans the straight line (through any wall in
     the way), a repair gives back the plan it was given (the buffer route), so what the second try changes is

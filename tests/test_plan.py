@@ -143,7 +143,7 @@ def test_plans_that_leave_their_start_or_cross_a_wall_are_warned_about():
     start, or one whose straight step crosses a wall, gets one warning line saying which."""
     from cdrb_cli.envs.pointmaze.maze import MazeGeometry
     from cdrb_cli.envs.registry import family_of, make_spec
-    from cdrb_cli.stages.plan import disconnected_warning
+    from cdrb_cli.stages.plan_warnings import disconnected_warning
 
     spec = make_spec("maze-tight")
     allowed = family_of(spec).max_step(spec) * 2

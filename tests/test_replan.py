@@ -277,3 +277,65 @@ def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, t
     del data["replan"]
     assert type(config).model_validate(data) == config
     assert artifacts.existing(tmp_path / "e.h5", "eval", config, [model]).up_to_date
+
+
+def test_waypoints_lead_plans_toward_a_far_goal_one_reach_at_a_time(models, tmp_path):
+    """``replan.waypoint_reach``: the first plan aims at the point that far along the buffer route to the goal (the
+    goal once it is that close), and so does every re-plan, from where the robot is then."""
+    from cdrb_cli.configs import ReplanConfig
+    from cdrb_cli.stages.plan import buffer_graph
+    from cdrb_cli.stages.routes import waypoint_aims
+
+    model = models["cdrb"]
+    reach = 1.5
+    config = eval_config(model, episodes=4, seeds=[0], replan="every:45", **{"replan.waypoint_reach": reach})
+    ev = evaluate(model, config, tmp_path / "wp.h5")
+    assert ev.manifest.config.replan.waypoint_reach == reach
+    assert "waypoints 1.5 ahead" in ev.manifest.config.replan.label()
+    method = load_method(model)
+    spec = model.manifest.env
+    family = family_of(spec)
+    aims = waypoint_aims(buffer_graph(method, spec, config.avoid), spec, reach, method.feature_dim)
+    starts, goals = ev.arrays["episodes/start"], ev.arrays["episodes/goal"]
+    expected = aims(starts, family.goal_state(spec, goals))
+    plans = ev.arrays["plans"]
+    np.testing.assert_allclose(plans[:, -1, : spec.obs_dim], expected, atol=1e-5)  # the first plans end there
+    far = np.linalg.norm(goals - starts[:, :2], axis=1) > reach
+    assert far.any() and (np.linalg.norm(expected[far, :2] - starts[far, :2], axis=1) <= reach + 1e-6).all()
+    with pytest.raises(ValueError, match="waypoint_reach"):
+        ReplanConfig(waypoint_reach=1.0)
+
+
+def test_re_plans_aim_where_the_aims_say(models):
+    """run_closed_loop's ``aims``: each re-plan ends at the aim computed from the state it starts at."""
+    model = models["cdrb"]
+    method = load_method(model)
+    spec = model.manifest.env
+    family = family_of(spec)
+    shift = np.zeros(spec.obs_dim)
+    shift[spec.goal_dims[0]] = 0.25
+
+    def aims(states, goal_states):
+        return goal_states + shift
+
+    episodes = family.draw_episodes(spec, 3, 0, STREAM_EVAL)
+    starts, goals = family.reset_states(spec, episodes)
+    plans = sample_plans(method, starts, family.goal_state(spec, goals), 1, 0, batch_size=3)[0]
+    entry = CONTROLLERS.get("pd")
+    runs = run_closed_loop(
+        family,
+        spec,
+        method,
+        episodes,
+        plans,
+        lambda env: entry.build(spec, env, entry.config(), method.config.stride),
+        eval_config(model, episodes=3, seeds=[0], replan="every:30").replan,
+        spec.episode_limit,
+        (0, 0, 0),
+        aims=aims,
+    )
+    goal_states = family.goal_state(spec, np.stack([r.goal for r in runs]))
+    assert sum(r.replans for r in runs) > 0
+    for run, goal in zip(runs, goal_states):
+        for plan in run.plans[1:]:
+            np.testing.assert_allclose(plan[-1, : spec.obs_dim], goal + shift)

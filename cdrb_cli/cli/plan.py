@@ -106,7 +106,8 @@ def _tell(result, spec, model, config, plot: Path | None) -> None:
     """What `cdrb plan` says on stderr about the plans it wrote (their safety, a masked buffer, a first step or a
     jump out of the scene), and the picture ``plot``."""
     from cdrb_cli.envs.geometry import largest_jump
-    from cdrb_cli.stages.plan import disconnected_warning, draw_plans, off_scene_warning
+    from cdrb_cli.stages.plan import draw_plans
+    from cdrb_cli.stages.plan_warnings import disconnected_warning, off_scene_warning
 
     if config.avoid.label() != "plain":
         ui.log(f"avoiding obstacles: {config.avoid.label()}")

@@ -30,6 +30,7 @@ from cdrb_cli.stages.metrics import (
     failure_code,
 )
 from cdrb_cli.stages.plan import (
+    buffer_graph,
     load_planner,
     mask_counts,
     prepare_planner,
@@ -169,6 +170,7 @@ def evaluate(
         return evaluate_policy(model, config, out, spec, device, video_dir, videos)
     method = load_planner(model, device=device, ema=config.use_ema)
     avoid = prepare_planner(method, spec, config.avoid, route_buffer)
+    aims = _waypoints(method, spec, config, avoid, route_buffer)
     if spec.pin_end_dims != model.manifest.env.pin_end_dims:  # a protocol that pins more (the official Fetch pin)
         method.pinned_end = spec.pin_end_dims
     METHODS.get(method.name).check_sampler(config.sampler)
@@ -189,10 +191,11 @@ def evaluate(
                 spec, config.episodes, seed, EVAL_STREAMS[config.stream], config.protocol
             )
             starts, goals = family.reset_states(spec, episodes, env)
+            goal_states = family.goal_state(spec, goals)
             plans, _, _, _, sec_batch = sample_plans(
                 method,
                 starts,
-                family.goal_state(spec, goals),
+                goal_states if aims is None else aims(starts, goal_states),
                 1,
                 seed,
                 config.sampler,
@@ -206,7 +209,7 @@ def evaluate(
             if config.replan.mode == "never":
                 runs = _open_loop(ctx, starts, goals, controller)
             else:
-                runs = _closed_loop(ctx, method, config, avoid)
+                runs = _closed_loop(ctx, method, config, avoid, aims)
             for plan, states_visited, result, history in runs:
                 results.append(result)
                 if len(executed) < videos:
@@ -240,6 +243,24 @@ def evaluate(
         (made, made_at), visited, goal = drawn[0]
         plot_replans(spec, made, made_at, visited, goal, replan_plot, method.name, config.replan)
     return artifacts.load(out, "eval")
+
+
+def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=None):
+    """With ``replan.waypoint_reach``, the function that turns each plan's goal into its waypoint
+    (:func:`~cdrb_cli.stages.routes.waypoint_aims`), through the avoidance's buffer graph or one of the model's
+    buffer built for it; None without it."""
+    from cdrb_cli.stages.routes import waypoint_aims
+
+    reach = config.replan.waypoint_reach
+    if reach is None:
+        return None
+    if avoid.graph is None and route_buffer is None and not hasattr(method, "ball"):
+        raise BadInput(
+            f"replan.waypoint_reach: routes go through a replay buffer, and a {method.name} model carries none",
+            hint="plan with a CDRB model, or drop replan.waypoint_reach",
+        )
+    graph = avoid.graph if avoid.graph is not None else buffer_graph(method, spec, config.avoid, route_buffer)
+    return waypoint_aims(graph, spec, reach, method.feature_dim)
 
 
 @dataclass(frozen=True)
@@ -287,10 +308,10 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
         yield ctx.plans[e], run.states, result, None
 
 
-def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None):
+def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None, aims=None):
     """Yield (last plan, states, result, (plans, steps they were made at)) for every episode of one eval seed
     executed closed loop (stages/replan.py) in lockstep groups; the plan measures cover every plan an episode
-    made."""
+    made; ``aims``: where each re-plan aims (:func:`_waypoints`)."""
     from cdrb_cli.stages.replan import GROUP, run_closed_loop
 
     spec, family = ctx.spec, ctx.family
@@ -312,6 +333,7 @@ def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None):
             config.sample_steps,
             method.device,
             avoid,
+            aims,
         )
         for episode, run in zip(group, runs):
             made = np.stack(run.plans)[..., : spec.obs_dim]  # (plans, H, obs_dim)

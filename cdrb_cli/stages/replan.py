@@ -93,9 +93,11 @@ def run_closed_loop(
     sample_steps=None,
     device="cpu",
     avoid=None,
+    aims=None,
 ) -> list[ClosedLoopEpisode]:
     """Run ``episodes`` in lockstep from their open-loop plans ``first_plans`` (n, H, F), planning again as
-    ``replan`` says; ``seeds`` = (the command's seed, the eval seed, the group index) seed every re-plan."""
+    ``replan`` says; ``seeds`` = (the command's seed, the eval seed, the group index) seed every re-plan; ``aims``
+    (states, goal states) -> the goal states re-plans aim at (waypoints toward far goals; None: the goals)."""
     n = len(episodes)
     stride = method.config.stride
     envs = [family.make_env(spec) for _ in episodes]
@@ -132,10 +134,11 @@ def run_closed_loop(
                     [remainder(runs[i].plans[-1], controllers[i].progress(int(since[i]), stride), obs[i]) for i in idx]
                 )
             rng = replan_rng(seeds[0], seeds[1], seeds[2], t + 1)
+            aim = goal_states[idx] if aims is None else aims(obs[idx], goal_states[idx])
             plans, seconds = replan_batch(
                 method,
                 obs[idx],
-                goal_states[idx],
+                aim,
                 rng,
                 sampler,
                 replan.repair_steps if replan.repair_k is not None else sample_steps,

@@ -86,12 +86,34 @@ class BufferGraph:
     def route(self, start: np.ndarray, goal: np.ndarray, horizon: int) -> np.ndarray | None:
         """The shortest route from ``start`` to ``goal`` (raw feature rows) through the graph, as ``horizon`` raw
         feature rows at even spacing along it (start and goal exact); None when no route joins them."""
+        points = self.polyline(start, goal)
+        return None if points is None else _resample(points, self.dims, horizon)
+
+    def waypoint(self, start: np.ndarray, goal: np.ndarray, reach: float) -> np.ndarray | None:
+        """The point ``reach`` along the shortest route from ``start`` to ``goal`` (raw feature rows; arc length
+        in the obstacle dimensions), between two route points joined by a free step; ``goal`` itself when the route
+        is no longer than ``reach``; None when no route joins them."""
+        points = self.polyline(start, goal)
+        if points is None:
+            return None
+        seg = np.linalg.norm(np.diff(points[:, self.dims], axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        if s[-1] <= reach:
+            return np.asarray(goal, np.float64).copy()
+        i = int(np.searchsorted(s, reach, side="right")) - 1  # the segment that holds arc length ``reach``
+        w = (reach - s[i]) / max(seg[i], 1e-12)
+        return (1 - w) * points[i] + w * points[i + 1]
+
+    def polyline(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        """The shortest route from ``start`` to ``goal`` through the graph as its points (m, F): the start, the
+        buffer states it passes, the goal; the two alone when the straight step between them is free; None when no
+        route joins them."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         start, goal = np.asarray(start, np.float64), np.asarray(goal, np.float64)
         if not self._crosses(start[None], goal[None])[0]:
-            return _resample(np.stack([start, goal]), self.dims, horizon)
+            return np.stack([start, goal])
         s_nodes, s_d = self._attach(start)
         g_nodes, g_d = self._attach(goal)
         if not len(s_nodes) or not len(g_nodes):
@@ -109,8 +131,7 @@ class BufferGraph:
         while node != S:
             path.append(int(node))
             node = pred[node]
-        points = np.concatenate([start[None], self.states[path[::-1]], goal[None]])
-        return _resample(points, self.dims, horizon)
+        return np.concatenate([start[None], self.states[path[::-1]], goal[None]])
 
 
 def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
@@ -124,3 +145,22 @@ def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
     out = np.stack([np.interp(t, s, points[:, f]) for f in range(points.shape[1])], axis=1)
     out[0], out[-1] = points[0], points[-1]
     return out
+
+
+def waypoint_aims(graph: BufferGraph, spec: EnvSpec, reach: float, features: int):
+    """The aims of plans toward far goals: a function of raw states (n, obs_dim) and goal states (n, obs_dim) that
+    gives each pair's waypoint ``reach`` along its shortest route through ``graph`` as a goal state (the goal
+    itself when the route is that short, or when no route joins them)."""
+    family = family_of(spec)
+    dims = list(spec.goal_dims)
+
+    def aims(states: np.ndarray, goal_states: np.ndarray) -> np.ndarray:
+        out = np.array(goal_states, dtype=np.float64)
+        for i, (s, g) in enumerate(zip(states, goal_states)):
+            pad = np.zeros(features - len(s))
+            point = graph.waypoint(np.concatenate([s, pad]), np.concatenate([g, pad]), reach)
+            if point is not None:
+                out[i] = family.goal_state(spec, point[None, dims])[0]
+        return out
+
+    return aims
