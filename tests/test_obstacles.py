@@ -305,6 +305,23 @@ def test_a_waypoint_lies_reach_along_the_route_and_is_the_goal_once_the_route_is
     np.testing.assert_array_equal(out[1], goal)  # already there: the goal itself
 
 
+def test_transition_routes_follow_what_the_demonstrations_joined():
+    """Routes along the transition graph go only where consecutive buffer states were joined (no map read): a
+    chain of states around a wall is followed even though the straight step would be shorter; states no edge joins
+    have no route; a waypoint lies the reach along the chain."""
+    from cdrb_cli.stages.routes import TransitionRoutes
+
+    spec = family_of(make_spec("maze-tight")).with_map(make_spec("maze-tight"), NORTH)
+    xy = np.array([[0.0, 0.0], [0.0, 2.0], [2.0, 2.0], [2.0, 0.0], [5.0, 5.0]])  # a U, and one state apart
+    states = np.concatenate([xy, np.zeros((5, 2))], 1)
+    routes = TransitionRoutes(spec, states, np.array([[0, 1], [1, 2], [2, 3]]))
+    line = routes.polyline(states[0] + [0.1, 0, 0, 0], states[3] + [-0.1, 0, 0, 0])
+    np.testing.assert_allclose(line[1:-1, :2], xy[:4])  # round the U, not straight across
+    assert routes.polyline(states[0], states[4]) is None  # nothing joins the lone state
+    np.testing.assert_allclose(routes.waypoint(states[0], states[3], 3.0)[:2], [1.0, 2.0])
+    np.testing.assert_array_equal(routes.waypoint(states[0], states[3], 6.0), states[3])
+
+
 class _LinePlanner:
     """A stand-in planner for the sampler's plumbing: from scratch it plans the straight line (through any wall in
     the way), a repair gives back the plan it was given (the buffer route), so what the second try changes is

@@ -279,23 +279,31 @@ def test_an_eval_from_before_closed_loop_reads_as_one_plan_per_episode(models, t
     assert artifacts.existing(tmp_path / "e.h5", "eval", config, [model]).up_to_date
 
 
-def test_waypoints_lead_plans_toward_a_far_goal_one_reach_at_a_time(models, tmp_path):
+@pytest.mark.parametrize("graph", ["transitions", "free-steps"])
+def test_waypoints_lead_plans_toward_a_far_goal_one_reach_at_a_time(models, tmp_path, graph):
     """``replan.waypoint_reach``: the first plan aims at the point that far along the buffer route to the goal (the
-    goal once it is that close), and so does every re-plan, from where the robot is then."""
+    goal once it is that close), and so does every re-plan, from where the robot is then; the route goes along the
+    model's transition graph (the default: no map read) or through buffer states joined by free steps."""
     from cdrb_cli.configs import ReplanConfig
     from cdrb_cli.stages.plan import buffer_graph
-    from cdrb_cli.stages.routes import waypoint_aims
+    from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
 
     model = models["cdrb"]
     reach = 1.5
-    config = eval_config(model, episodes=4, seeds=[0], replan="every:45", **{"replan.waypoint_reach": reach})
+    settings = {"replan.waypoint_reach": reach, "replan.waypoint_graph": graph}
+    config = eval_config(model, episodes=4, seeds=[0], replan="every:45", **settings)
     ev = evaluate(model, config, tmp_path / "wp.h5")
     assert ev.manifest.config.replan.waypoint_reach == reach
     assert "waypoints 1.5 ahead" in ev.manifest.config.replan.label()
     method = load_method(model)
     spec = model.manifest.env
     family = family_of(spec)
-    aims = waypoint_aims(buffer_graph(method, spec, config.avoid), spec, reach, method.feature_dim)
+    assert "buffer/graph/edges" in model.arrays  # a CDRB model carries its buffer's transition graph
+    if graph == "transitions":
+        routes = TransitionRoutes(spec, method.normalizer.unnormalize(method.points), method.buffer_graph[0])
+    else:
+        routes = buffer_graph(method, spec, config.avoid)
+    aims = waypoint_aims(routes, spec, reach, method.feature_dim)
     starts, goals = ev.arrays["episodes/start"], ev.arrays["episodes/goal"]
     expected = aims(starts, family.goal_state(spec, goals))
     plans = ev.arrays["plans"]

@@ -119,7 +119,7 @@ class CDRB(Planner):
 
     def extra_arrays(self):
         out = {"buffer/points": self.points}
-        if self.config.method.ball == "geodesic":
+        if self.buffer_graph is not None:  # the balls' graph, or the routes' (stages/routes.py TransitionRoutes)
             edges, weights = self.buffer_graph
             out |= {"buffer/graph/edges": np.asarray(edges, np.int64), "buffer/graph/weights": np.asarray(weights)}
         return out

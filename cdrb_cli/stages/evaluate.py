@@ -170,7 +170,7 @@ def evaluate(
         return evaluate_policy(model, config, out, spec, device, video_dir, videos)
     method = load_planner(model, device=device, ema=config.use_ema)
     avoid = prepare_planner(method, spec, config.avoid, route_buffer)
-    aims = _waypoints(method, spec, config, avoid, route_buffer)
+    aims = _waypoints(method, spec, config, avoid, route_buffer, model.path)
     if spec.pin_end_dims != model.manifest.env.pin_end_dims:  # a protocol that pins more (the official Fetch pin)
         method.pinned_end = spec.pin_end_dims
     METHODS.get(method.name).check_sampler(config.sampler)
@@ -245,22 +245,33 @@ def evaluate(
     return artifacts.load(out, "eval")
 
 
-def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=None):
+def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=None, path=None):
     """With ``replan.waypoint_reach``, the function that turns each plan's goal into its waypoint
-    (:func:`~cdrb_cli.stages.routes.waypoint_aims`), through the avoidance's buffer graph or one of the model's
-    buffer built for it; None without it."""
-    from cdrb_cli.stages.routes import waypoint_aims
+    (:func:`~cdrb_cli.stages.routes.waypoint_aims`) along the routes ``replan.waypoint_graph`` names: the model's
+    transition graph, or its buffer states joined by free steps (the avoidance's graph where it has one); None
+    without it."""
+    from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
 
-    reach = config.replan.waypoint_reach
-    if reach is None:
+    replan = config.replan
+    if replan.waypoint_reach is None:
         return None
-    if avoid.graph is None and route_buffer is None and not hasattr(method, "ball"):
+    if not hasattr(method, "points"):
         raise BadInput(
             f"replan.waypoint_reach: routes go through a replay buffer, and a {method.name} model carries none",
             hint="plan with a CDRB model, or drop replan.waypoint_reach",
         )
-    graph = avoid.graph if avoid.graph is not None else buffer_graph(method, spec, config.avoid, route_buffer)
-    return waypoint_aims(graph, spec, reach, method.feature_dim)
+    if replan.waypoint_graph == "transitions":
+        if method.buffer_graph is None:
+            raise BadInput(
+                f"replan.waypoint_graph = transitions: {path or 'the model'} carries no transition graph (models "
+                "trained from a buffer with one carry it)",
+                hint='retrain it from a buffer of `cdrb cluster`, or set replan.waypoint_graph="free-steps"',
+            )
+        states = method.normalizer.unnormalize(np.asarray(method.points, dtype=np.float64))
+        graph = TransitionRoutes(spec, states, method.buffer_graph[0])
+    else:
+        graph = avoid.graph if avoid.graph is not None else buffer_graph(method, spec, config.avoid, route_buffer)
+    return waypoint_aims(graph, spec, replan.waypoint_reach, method.feature_dim)
 
 
 @dataclass(frozen=True)

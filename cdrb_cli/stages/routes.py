@@ -93,16 +93,7 @@ class BufferGraph:
         """The point ``reach`` along the shortest route from ``start`` to ``goal`` (raw feature rows; arc length
         in the obstacle dimensions), between two route points joined by a free step; ``goal`` itself when the route
         is no longer than ``reach``; None when no route joins them."""
-        points = self.polyline(start, goal)
-        if points is None:
-            return None
-        seg = np.linalg.norm(np.diff(points[:, self.dims], axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        if s[-1] <= reach:
-            return np.asarray(goal, np.float64).copy()
-        i = int(np.searchsorted(s, reach, side="right")) - 1  # the segment that holds arc length ``reach``
-        w = (reach - s[i]) / max(seg[i], 1e-12)
-        return (1 - w) * points[i] + w * points[i + 1]
+        return _along(self.polyline(start, goal), self.dims, reach, goal)
 
     def polyline(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
         """The shortest route from ``start`` to ``goal`` through the graph as its points (m, F): the start, the
@@ -134,6 +125,68 @@ class BufferGraph:
         return np.concatenate([start[None], self.states[path[::-1]], goal[None]])
 
 
+class TransitionRoutes:
+    """Routes along the buffer's transition graph (:func:`~cdrb_cli.geodesic.transition_graph`: buffer states that
+    one demonstration visited one after the other are joined), so no map is read: the data alone say where the robot
+    can go. A start or goal joins the graph at its nearest buffer state (in the obstacle dimensions); a step's
+    length is measured in those dimensions. The same :meth:`polyline` / :meth:`waypoint` as :class:`BufferGraph`.
+
+    ``states`` (K, F) raw feature rows, ``edges`` (E, 2) indices into them."""
+
+    def __init__(self, spec: EnvSpec, states: np.ndarray, edges: np.ndarray):
+        from scipy.sparse import coo_matrix
+        from scipy.spatial import cKDTree
+
+        self.states = np.asarray(states, dtype=np.float64)
+        self.dims = list(spec.obstacles.dims)
+        K = len(self.states)
+        e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        length = np.maximum(
+            np.linalg.norm(self.states[e[:, 0]][:, self.dims] - self.states[e[:, 1]][:, self.dims], axis=1), 1e-9
+        )
+        rows, cols = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
+        self.graph = coo_matrix((np.concatenate([length, length]), (rows, cols)), shape=(K, K)).tocsr()
+        self.tree = cKDTree(self.states[:, self.dims])
+        self._toward: dict[int, np.ndarray] = {}  # goal node -> each node's next node toward it (-9999: none)
+
+    def polyline(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        """The route from ``start`` to ``goal`` (raw feature rows): the start, the buffer states of the shortest
+        path between their nearest buffer states, the goal; None when the graph joins no path between them."""
+        from scipy.sparse.csgraph import dijkstra
+
+        start, goal = np.asarray(start, np.float64), np.asarray(goal, np.float64)
+        a = int(self.tree.query(start[self.dims])[1])
+        b = int(self.tree.query(goal[self.dims])[1])
+        if b not in self._toward:  # one search per goal: every re-plan toward it walks the same tree
+            self._toward[b] = dijkstra(self.graph, directed=False, indices=b, return_predecessors=True)[1]
+        nxt = self._toward[b]
+        path, node = [a], a
+        while node != b:
+            node = int(nxt[node])
+            if node < 0:
+                return None
+            path.append(node)
+        return np.concatenate([start[None], self.states[path], goal[None]])
+
+    def waypoint(self, start: np.ndarray, goal: np.ndarray, reach: float) -> np.ndarray | None:
+        """As :meth:`BufferGraph.waypoint`, along the transition graph."""
+        return _along(self.polyline(start, goal), self.dims, reach, goal)
+
+
+def _along(points: np.ndarray | None, dims: list[int], reach: float, goal: np.ndarray) -> np.ndarray | None:
+    """The point ``reach`` along the polyline ``points`` (arc length over ``dims``), ``goal`` itself when the polyline
+    is no longer; None for no polyline."""
+    if points is None:
+        return None
+    seg = np.linalg.norm(np.diff(points[:, dims], axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= reach:
+        return np.asarray(goal, np.float64).copy()
+    i = int(np.searchsorted(s, reach, side="right")) - 1  # the segment that holds arc length ``reach``
+    w = (reach - s[i]) / max(seg[i], 1e-12)
+    return (1 - w) * points[i] + w * points[i + 1]
+
+
 def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
     """``n`` rows evenly spaced by arc length (over ``dims``) along the polyline ``points`` (m, F), every feature
     interpolated linearly; the first and last rows are the polyline's ends."""
@@ -147,7 +200,7 @@ def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
     return out
 
 
-def waypoint_aims(graph: BufferGraph, spec: EnvSpec, reach: float, features: int):
+def waypoint_aims(graph: BufferGraph | TransitionRoutes, spec: EnvSpec, reach: float, features: int):
     """The aims of plans toward far goals: a function of raw states (n, obs_dim) and goal states (n, obs_dim) that
     gives each pair's waypoint ``reach`` along its shortest route through ``graph`` as a goal state (the goal
     itself when the route is that short, or when no route joins them)."""

@@ -329,11 +329,14 @@ TRAIN_BYTES_PER_PARAMETER = 5 * 4
 
 
 def _graph(buffer, config: TrainConfig):
-    """The buffer's transition graph where the method measures its balls along it (else None); a buffer without one
-    is refused with the way to make one."""
-    if buffer is None or getattr(config.method, "ball", "euclidean") != "geodesic":
+    """The buffer's transition graph for a method that keeps its buffer: required where it measures its balls along
+    it (a buffer without one is refused with the way to make one), else carried where the buffer has one (waypoint
+    routes go along it); None for the other methods."""
+    if buffer is None or not METHODS.get(config.method.name).needs_buffer:
         return None
-    return buffer.graph()
+    if getattr(config.method, "ball", "euclidean") == "geodesic":
+        return buffer.graph()
+    return buffer.graph() if "graph/edges" in buffer.arrays else None
 
 
 def parameter_count(demos, buffer, config: TrainConfig) -> int:
