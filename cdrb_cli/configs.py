@@ -237,9 +237,17 @@ class AvoidConfig(Record):
             raise ValueError(
                 "fallback_route_itself keeps the second try's route: set fallback_route_k too (or drop it)"
             )
-        if self.route_buffer is not None and not routes:
-            raise ValueError("route_buffer is what routes go through: set route_k or fallback_route_k too (or drop it)")
         return self
+
+    def check_route_buffer(self, waypoints: bool = False, plan: bool = False) -> None:
+        """A route buffer without anything that routes through it is a mistake: raise one line saying so (a plan or
+        eval config calls this; an eval's waypoints route through it too)."""
+        if self.route_buffer is not None and not waypoints and all(getattr(self, f) is None for f in ROUTE_STEPS):
+            also = "" if plan else ", or replan.waypoint_reach"
+            raise ValueError(
+                f"avoid.route_buffer is what routes go through: set avoid.route_k or avoid.fallback_route_k{also} "
+                "too (or drop it)"
+            )
 
     def label(self) -> str:
         """A short description, e.g. 'masked buffer, best of 8'."""
@@ -286,6 +294,11 @@ class PlanConfig(Record):
         None, description="the name of the map file planned in instead of the model's (its content is the env)"
     )
     seed: Seed
+
+    @model_validator(mode="after")
+    def _routes(self) -> PlanConfig:
+        self.avoid.check_route_buffer(plan=True)
+        return self
 
 
 class PlanSummary(Record):
@@ -419,6 +432,11 @@ class EvalConfig(Record):
         if len(set(seeds)) != len(seeds):
             raise ValueError(f"{seeds}: repeated seeds (each seed's pairs would count twice): list each once")
         return seeds
+
+    @model_validator(mode="after")
+    def _routes(self) -> EvalConfig:
+        self.avoid.check_route_buffer(waypoints=self.replan.waypoint_reach is not None)
+        return self
 
 
 class SeedResult(Record):

@@ -527,6 +527,24 @@ def test_eval_only_variants_share_the_base_model_and_cluster_variants_get_their_
     assert {t.id for t in expand(spec) if t.kind == "report"} == {"report gated", "report official", "report k20"}
 
 
+def test_a_planner_without_a_buffer_names_the_grid_buffer_by_placeholder(tmp_path):
+    """``{buffer}`` in an eval flag is the environment's buffer (the base clustering): the eval reads it, so it
+    depends on the clustering, even for a method that trains without one (no second clustering is made)."""
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]') + (
+        '\n[[variants]]\nname = "routed"\n'
+        'eval = { replan = { mode = "every", every = 40, waypoint_reach = 2.0 }, '
+        'avoid = { route_buffer = "{buffer}" } }\n'
+    )
+    spec = load_grid(_grid(tmp_path, text))
+    tasks = expand(spec)
+    (cluster,) = [t for t in tasks if t.kind == "cluster"]  # made for the placeholder alone: mlp needs no buffer
+    ev = next(t for t in tasks if t.id == "eval maze-tight/routed/mlp-s0")
+    buffer = cluster.outputs[0]
+    assert f'avoid.route_buffer="{buffer}"' in ev.argv and "{buffer}" not in " ".join(ev.argv)
+    assert cluster.id in ev.deps and buffer in ev.inputs
+    assert not [t for t in tasks if t.kind == "train" and "--buffer" in t.argv]
+
+
 def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_path):
     text = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\neval_seeds = [0, 1]\nreport = false")
     spec = load_grid(_grid(tmp_path, text))

@@ -347,3 +347,32 @@ def test_re_plans_aim_where_the_aims_say(models):
     for run, goal in zip(runs, goal_states):
         for plan in run.plans[1:]:
             np.testing.assert_allclose(plan[-1, : spec.obs_dim], goal + shift)
+
+
+def test_a_planner_without_a_buffer_takes_waypoints_through_a_route_buffer(models, small_data, tmp_path):
+    """Diffuser carries no buffer: its waypoints route through ``avoid.route_buffer`` (the buffer of its demos,
+    along that buffer's transition graph); without one the eval is refused in one line. A route buffer with nothing
+    routing through it stays a mistake for `cdrb plan`."""
+    from cdrb_cli.configs import AvoidConfig, PlanConfig
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.plan import route_states
+    from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
+
+    _, buffer = small_data
+    model = models["diffuser"]
+    settings = {"replan.waypoint_reach": 1.5, "avoid.route_buffer": str(buffer.path)}
+    config = eval_config(model, episodes=3, seeds=[0], replan="every:45", **settings)
+    ev = evaluate(model, config, tmp_path / "wp.h5", route_buffer=buffer)
+    method = load_method(model)
+    spec = model.manifest.env
+    routes = TransitionRoutes(spec, route_states(method, spec, buffer), buffer.graph()[0])
+    aims = waypoint_aims(routes, spec, 1.5, method.feature_dim)
+    starts, goals = ev.arrays["episodes/start"], ev.arrays["episodes/goal"]
+    expected = aims(starts, family_of(spec).goal_state(spec, goals))
+    np.testing.assert_allclose(ev.arrays["plans"][:, -1, : spec.obs_dim], expected, atol=1e-5)
+    bare = eval_config(model, episodes=3, seeds=[0], replan="every:45", **{"replan.waypoint_reach": 1.5})
+    with pytest.raises(BadInput, match="route_buffer"):
+        evaluate(model, bare, tmp_path / "bare.h5")
+    assert not (tmp_path / "bare.h5").exists()
+    with pytest.raises(ValueError, match="avoid.route_buffer is what routes go through"):
+        PlanConfig(sampler="ddpm", n=1, seed=0, avoid=AvoidConfig(route_buffer="b.h5"))

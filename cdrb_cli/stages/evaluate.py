@@ -247,20 +247,23 @@ def evaluate(
 
 def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=None, path=None):
     """With ``replan.waypoint_reach``, the function that turns each plan's goal into its waypoint
-    (:func:`~cdrb_cli.stages.routes.waypoint_aims`) along the routes ``replan.waypoint_graph`` names: the model's
-    transition graph, or its buffer states joined by free steps (the avoidance's graph where it has one); None
-    without it."""
+    (:func:`~cdrb_cli.stages.routes.waypoint_aims`) along the routes ``replan.waypoint_graph`` names through the
+    buffer ``route_buffer`` (``avoid.route_buffer``) or the model's own: its transition graph, or its states joined
+    by free steps (the avoidance's graph where it has one); None without it."""
+    from cdrb_cli.stages.plan import route_states
     from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
 
     replan = config.replan
     if replan.waypoint_reach is None:
         return None
-    if not hasattr(method, "points"):
+    if route_buffer is None and not hasattr(method, "points"):
         raise BadInput(
             f"replan.waypoint_reach: routes go through a replay buffer, and a {method.name} model carries none",
-            hint="plan with a CDRB model, or drop replan.waypoint_reach",
+            hint="name one: --set avoid.route_buffer=BUFFER.h5 (the buffer of the model's demos)",
         )
-    if replan.waypoint_graph == "transitions":
+    if replan.waypoint_graph == "transitions" and route_buffer is not None:
+        graph = TransitionRoutes(spec, route_states(method, spec, route_buffer), route_buffer.graph()[0])
+    elif replan.waypoint_graph == "transitions":
         if method.buffer_graph is None:
             raise BadInput(
                 f"replan.waypoint_graph = transitions: {path or 'the model'} carries no transition graph (models "

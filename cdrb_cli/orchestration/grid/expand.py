@@ -79,6 +79,11 @@ def without_repeated_sets(flags: list[str]) -> list[str]:
     return out
 
 
+#: in an eval flag's value, the path of the environment's buffer (the base clustering): a planner that keeps no
+#: buffer names it as its route buffer, e.g. ``eval = { avoid = { route_buffer = "{buffer}" } }``
+BUFFER_PLACEHOLDER = "{buffer}"
+
+
 def expand(spec: GridSpec) -> list[Task]:
     """The grid's tasks in an order where every task comes after the tasks it reads from."""
     from cdrb_cli.methods.registry import METHODS
@@ -118,6 +123,16 @@ def expand(spec: GridSpec) -> list[Task]:
                 efolder = folder / v.name if v.name else folder
                 vtag = f"{v.name}/" if own_model else ""
                 train_extra, eval_extra = flags_for(spec, env, method, model_v)[0], flags_for(spec, env, method, v)[1]
+                eval_reads: tuple[list[str], list[Path]] = (
+                    [],
+                    [],
+                )  # (task ids, files) eval flags name beyond the model
+                if any(BUFFER_PLACEHOLDER in f for f in eval_extra):
+                    cluster_id, env_buffer = buffer_task(
+                        spec, env, cluster_flags_for(spec, env, method), buffers, tasks
+                    )
+                    eval_extra = [f.replace(BUFFER_PLACEHOLDER, str(env_buffer)) for f in eval_extra]
+                    eval_reads = ([cluster_id], [env_buffer])
                 length, snaps = spec.curve(env, method)
                 for seed in spec.seeds:
                     model = mfolder / f"{method}-s{seed}.h5"
@@ -149,7 +164,15 @@ def expand(spec: GridSpec) -> list[Task]:
                         if spec.tensorboard:  # the eval's figures join its model's training curves
                             meta["log_dir"] = str(spec.out / "tensorboard" / env / f"{vtag}{method}-s{seed}")
                         tasks.append(
-                            Task(f"eval {tag}", "eval", argv, [ev], [train_id], [m], meta | {"stream": stream})
+                            Task(
+                                f"eval {tag}",
+                                "eval",
+                                argv,
+                                [ev],
+                                [train_id, *eval_reads[0]],
+                                [m, *eval_reads[1]],
+                                meta | {"stream": stream},
+                            )
                         )
                         if m == model:
                             evals[v.name].append((f"eval {tag}", ev))
