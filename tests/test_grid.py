@@ -545,6 +545,22 @@ def test_a_planner_without_a_buffer_names_the_grid_buffer_by_placeholder(tmp_pat
     assert not [t for t in tasks if t.kind == "train" and "--buffer" in t.argv]
 
 
+def test_demos_per_environment_where_datasets_differ_in_size(tmp_path):
+    text = TINY.replace('envs = ["maze-tight"]', 'envs = ["maze-tight", "maze"]').replace(
+        "eval_episodes = 3", 'eval_episodes = 3\ndemos_for = { "maze" = 12 }'
+    )
+    tasks = {t.id: t for t in expand(load_grid(_grid(tmp_path, text)))}
+    counts = {
+        env: tasks[f"collect {env}"].argv[tasks[f"collect {env}"].argv.index("-n") + 1]
+        for env in ("maze", "maze-tight")
+    }
+    assert counts == {"maze": "12", "maze-tight": "40"}
+    with pytest.raises(BadInput, match="no-such-env"):
+        load_grid(
+            _grid(tmp_path, TINY.replace("eval_episodes = 3", 'eval_episodes = 3\ndemos_for = { "no-such-env" = 5 }'))
+        )
+
+
 def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_path):
     text = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\neval_seeds = [0, 1]\nreport = false")
     spec = load_grid(_grid(tmp_path, text))

@@ -100,7 +100,7 @@ def expand(spec: GridSpec) -> list[Task]:
             Task(
                 collect_id,
                 "collect",
-                ["collect", env, "-n", str(spec.demos), "--seed", str(spec.data_seed), *collect_extra]
+                ["collect", env, "-n", str(spec.demos_of(env)), "--seed", str(spec.data_seed), *collect_extra]
                 + ["--out", str(demos)],
                 [demos],
             )

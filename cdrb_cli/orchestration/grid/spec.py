@@ -178,6 +178,11 @@ class GridSpec(_Strict):
         description="training and evaluation device (cpu, cuda, auto)",
     )
     demos: Int = Field(1000, ge=2, le=1_000_000, description="demonstrations collected per environment")
+    demos_for: dict[str, Annotated[int, Strict(), Field(ge=2, le=1_000_000)]] = Field(
+        default_factory=dict,
+        description="demonstrations for the environments whose datasets differ in size from `demos` (e.g. OGBench's "
+        "giant navigate, 500; stitch, 5,000), by environment id",
+    )
     data_seed: SeedValue = Field(0, description="seed of `cdrb collect` and `cdrb cluster`")
     k: Int = Field(
         1000, ge=0, le=10_000_000, description="replay-buffer clusters (`cdrb cluster --k`; 0 keeps the full buffer)"
@@ -241,6 +246,19 @@ class GridSpec(_Strict):
         if ext is None:
             return self.steps, sorted(self.snapshot_at)
         return ext.steps, sorted([*self.snapshot_at, self.steps])
+
+    def demos_of(self, env: str) -> int:
+        """The demonstrations collected for ``env``."""
+        return self.demos_for.get(env, self.demos)
+
+    @field_validator("demos_for")
+    @classmethod
+    def _known_envs(cls, value: dict[str, int]) -> dict[str, int]:
+        from cdrb_cli.envs.registry import make_spec
+
+        for env in value:
+            make_spec(env)  # an unknown id: one line naming it
+        return value
 
     @field_validator("eval_seeds")
     @classmethod
