@@ -184,7 +184,7 @@ def test_plans_thrown_out_of_the_scene_are_warned_about(tiny_models, tmp_path, c
         assert r.returncode == 0 and words not in r.stderr, r.stderr
 
     from cdrb_cli.envs.registry import make_spec
-    from cdrb_cli.stages.plan import off_scene_warning
+    from cdrb_cli.stages.plan_warnings import off_scene_warning
 
     spec = make_spec("maze-tight")
     assert off_scene_warning(spec, np.array([1.0, 20.0, np.nan]), 2) is None  # the map is 21.2 m across
