@@ -63,8 +63,9 @@ def test_a_replanning_interval_beyond_the_episode_is_open_loop_exactly(models, t
     assert closed.manifest.config.replan.mode == "every" and never.manifest.config.replan.mode == "never"
 
 
-def _closed_loop(model, replan, n=4, seed=0):
-    """Run ``n`` episodes of eval seed ``seed`` closed loop with the model's PD controller (gated clock)."""
+def _closed_loop(model, replan, n=4, seed=0, aims=None):
+    """Run ``n`` episodes of eval seed ``seed`` closed loop with the model's PD controller (gated clock), re-plans
+    aiming where ``aims`` says (the goals when None)."""
     method = load_method(model)
     spec = model.manifest.env
     family = family_of(spec)
@@ -83,6 +84,7 @@ def _closed_loop(model, replan, n=4, seed=0):
         cfg,
         spec.episode_limit,
         (0, seed, 0),
+        aims=aims,
     )
     return spec, family, runs
 
@@ -317,31 +319,10 @@ def test_waypoints_lead_plans_toward_a_far_goal_one_reach_at_a_time(models, tmp_
 def test_re_plans_aim_where_the_aims_say(models):
     """run_closed_loop's ``aims``: each re-plan ends at the aim computed from the state it starts at."""
     model = models["cdrb"]
-    method = load_method(model)
     spec = model.manifest.env
-    family = family_of(spec)
     shift = np.zeros(spec.obs_dim)
     shift[spec.goal_dims[0]] = 0.25
-
-    def aims(states, goal_states):
-        return goal_states + shift
-
-    episodes = family.draw_episodes(spec, 3, 0, STREAM_EVAL)
-    starts, goals = family.reset_states(spec, episodes)
-    plans = sample_plans(method, starts, family.goal_state(spec, goals), 1, 0, batch_size=3)[0]
-    entry = CONTROLLERS.get("pd")
-    runs = run_closed_loop(
-        family,
-        spec,
-        method,
-        episodes,
-        plans,
-        lambda env: entry.build(spec, env, entry.config(), method.config.stride),
-        eval_config(model, episodes=3, seeds=[0], replan="every:30").replan,
-        spec.episode_limit,
-        (0, 0, 0),
-        aims=aims,
-    )
+    spec, family, runs = _closed_loop(model, {"replan": "every:30"}, n=3, aims=lambda states, goals: goals + shift)
     goal_states = family.goal_state(spec, np.stack([r.goal for r in runs]))
     assert sum(r.replans for r in runs) > 0
     for run, goal in zip(runs, goal_states):
