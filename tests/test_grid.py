@@ -561,6 +561,20 @@ def test_demos_per_environment_where_datasets_differ_in_size(tmp_path):
         )
 
 
+def test_reuse_rewrites_a_file_a_setting_names(tmp_path):
+    """A reused clustering moves its buffer to the other grid's file: an eval that names it in a setting (a route
+    buffer) reads that file then, as one naming it in an option does."""
+    from cdrb_cli.orchestration.grid.reuse import _replace_files
+
+    here, there = tmp_path / "a" / "buffer.h5", tmp_path / "b" / "buffer.h5"
+    for f in (here, there):
+        f.parent.mkdir()
+        f.write_bytes(b"x")
+    argv = ["eval", "m.h5", "--set", f'avoid.route_buffer="{here}"', f"--route-buffer={here}", "--set", "n=3"]
+    out = _replace_files(argv, {os.path.realpath(here): str(there)})
+    assert out == ["eval", "m.h5", "--set", f'avoid.route_buffer="{there}"', f"--route-buffer={there}", "--set", "n=3"]
+
+
 def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_path):
     text = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\neval_seeds = [0, 1]\nreport = false")
     spec = load_grid(_grid(tmp_path, text))

@@ -132,13 +132,30 @@ def _finished_elsewhere(folders: list[Path], cache: dict) -> list[dict]:
     return sorted(found, key=lambda m: REUSABLE.index(m["argv"][0]))
 
 
+def _setting_file(token: str) -> tuple[str, str] | None:
+    """(key, path) of a ``--set`` value that names a file as a JSON string (``avoid.route_buffer="/x/b.h5"``),
+    else None."""
+    key, eq, value = token.partition("=")
+    if not eq or key.startswith("-") or not value.startswith('"'):
+        return None
+    try:
+        text = json.loads(value)
+    except ValueError:
+        return None
+    return (key, text) if isinstance(text, str) and text else None
+
+
 def _replace_files(argv: list[str], moved: dict[str, str]) -> list[str]:
-    """``argv`` with every file of ``moved`` (a token, or the value of ``--flag=FILE``) replaced."""
+    """``argv`` with every file of ``moved`` (a token, the value of ``--flag=FILE``, or a setting's quoted value
+    ``key="FILE"``) replaced."""
     out = []
     for a in argv:
         name, eq, value = a.partition("=")
+        setting = _setting_file(a)
         if eq and name.startswith("--") and _real(value) in moved:
             out.append(f"{name}={moved[_real(value)]}")
+        elif setting is not None and _real(setting[1]) in moved:
+            out.append(f"{setting[0]}={json.dumps(moved[_real(setting[1])])}")
         else:
             out.append(moved.get(_real(a), a))
     return out
@@ -206,6 +223,7 @@ def reuse_finished(spec: GridSpec, tasks: list[Task]) -> list[Task]:
     gone = {f for files in dropped.values() for f in files}
     for t in kept:
         named = [a.partition("=")[2] if a.startswith("--") else a for a in t.argv] + [str(p) for p in t.inputs]
+        named += [s[1] for s in map(_setting_file, t.argv) if s is not None]
         left = [n for n in named if n and _real(n) in gone]
         if left:
             raise BadInput(
