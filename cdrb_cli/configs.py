@@ -347,7 +347,8 @@ class ReplanConfig(Record):
         description="goals farther than one plan reaches: every plan (the first and each re-plan) aims at the point "
         "this far (in the obstacle dimensions' units, metres in the mazes) along the shortest route through the "
         "buffer's states to the goal, or at the goal once the route is that short; re-plans move the waypoint on. "
-        "Routes go through the model's buffer (CDRB), along waypoint_graph; null: every plan aims at the goal",
+        "Routes go through the model's buffer (CDRB) or avoid.route_buffer (a planner without one), along "
+        "waypoint_graph; null: every plan aims at the goal",
     )
     waypoint_graph: Literal["transitions", "free-steps"] = Field(
         "transitions",
