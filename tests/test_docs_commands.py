@@ -12,6 +12,9 @@ into commands (on ``&&``, ``||``, ``|``, ``;`` and parentheses, after dropping a
 * a ``cdrb grid`` of an experiment file lists its tasks with ``--dry-run`` (the README's tour runs from a ``tour/``
   folder, so its ``../experiments/`` paths are read from there).
 
+docs/benchmarks.md also gives commands inline, as code spans that start with ``cdrb grid``, ``cdrb select``, ``cdrb
+report`` or ``python benchmarks/``: those are checked the same way.
+
 A ``python benchmarks/X.py`` or ``bash benchmarks/X.sh`` command names a script that exists. The docs/notebook/
 entries are a record of what was run then, not instructions, and are not checked.
 """
@@ -54,6 +57,24 @@ def _bash_lines(path: Path):
         pending = ""
 
 
+#: the code spans of the results page that are commands (others name settings, labels or files)
+INLINE = re.compile(r"`((?:cdrb (?:grid|select|report)|python benchmarks/)[^`]*)`")
+
+
+def _inline_lines(path: Path):
+    """(line number, text) of every command given as a code span outside the fenced blocks (one may wrap lines)."""
+    text, fenced, kept = path.read_text(), False, []
+    for line in text.splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+            kept.append("")
+            continue
+        kept.append("" if fenced else line)
+    prose = "\n".join(kept)
+    for m in INLINE.finditer(prose):
+        yield prose.count("\n", 0, m.start()) + 1, m.group(1).replace("\n", " ")
+
+
 def _commands(text: str) -> list[list[str]]:
     """The simple commands of one shell line, as argument lists (redirections dropped)."""
     text = text.strip()
@@ -78,7 +99,8 @@ def _commands(text: str) -> list[list[str]]:
 def _documented():
     """(where, argument list) of every command shown in a bash block of the checked docs."""
     for name in DOCS:
-        for number, line in _bash_lines(ROOT / name):
+        inline = _inline_lines(ROOT / name) if name == "docs/benchmarks.md" else ()
+        for number, line in [*_bash_lines(ROOT / name), *inline]:
             for argv in _commands(line):
                 if argv[0] == "time" and len(argv) > 1:  # the shell's timer in front of the command
                     argv = argv[1:]
