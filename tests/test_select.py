@@ -380,10 +380,16 @@ def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_pa
     bad = ['["maze"]\ncdrb = [1]\n', "maze = 3\n", '["maze"]\ncdrb = ["a", 1]\n', "= =\n", ""]
     bad += ['["maze"]\ncdrb = [nan, 1]\n', '["maze"]\ncdrb = [-5, 1]\n', '["maze"]\ncdrb = [50, 1e308]\n']
     bad += ['["maze"]\ncdrb = [true, false]\n', '["mazee"]\ncdrb = [1, 2]\n', '["maze"]\ncdrbb = [1, 2]\n']
+    bad += ['others = "QRL"\n["maze"]\ncdrb = [1, 2]\n', 'others = ["QRL"]\n["maze"]\nHIQL = [1, 2]\n']
     for text in bad:
         own.write_text(text)
         with pytest.raises(BadInput, match="--paper-figures"):
             paper_figures(own)
+    # published methods the project does not implement, when the file lists them (OGBench's file ships so)
+    own.write_text('others = ["QRL"]\n["maze"]\nQRL = [86, 9]\ncdrb = [1, 2]\n')
+    assert paper_figures(own) == {"maze": {"QRL": (86.0, 9.0), "cdrb": (1.0, 2.0)}}
+    published = paper_figures(Path(__file__).resolve().parent.parent / "experiments/ogbench/published.toml")
+    assert len(published) == 6 and published["pointmaze-giant-navigate-v0"]["QRL"] == (68.0, 7.0)
     doc = "a\n<!-- t:begin -->\nold\n<!-- t:end -->\nb\n<!-- u:begin -->\nkeep\n<!-- u:end -->\n"
     assert replace_block(doc, "t", "new\n", "doc.md").startswith("a\n<!-- t:begin -->\nnew\n<!-- t:end -->\nb\n")
     assert "keep" in replace_block(doc, "t", "new", "doc.md")  # only the named block

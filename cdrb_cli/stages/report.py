@@ -34,7 +34,8 @@ PAPER_FIGURES = "paper_table1.toml"  # package data: the paper's Table 1, env id
 
 def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, float]]]:
     """The paper's Table 1 figures (success %, mean and std) per environment id and method, from the shipped data
-    file or from ``path`` (a TOML file of the same shape)."""
+    file or from ``path`` (a TOML file of the same shape). Method names are the registry's, or those the file lists
+    in a top-level ``others = [...]``: published methods this project does not implement (OGBench's six)."""
     from importlib import resources
 
     import tomllib
@@ -63,6 +64,12 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
     def percent(x) -> bool:
         return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and 0 <= x <= 100
 
+    others = raw.pop("others", [])
+    if not isinstance(others, list) or not all(isinstance(o, str) and o.strip() for o in others):
+        raise BadInput(
+            f"--paper-figures {where}: others must be a list of method names",
+            hint='e.g. others = ["QRL", "HIQL"]: published methods this project does not implement',
+        )
     if not raw:
         raise BadInput(f"--paper-figures {where}: has no figures", hint="see cdrb_cli/paper_table1.toml for the shape")
     out = {}
@@ -82,7 +89,8 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
             raise BadInput(f"--paper-figures {where}: [{clip(env, 40)}]: {exc.message}",
                            hint="`cdrb envs` lists them") from None  # fmt: skip
         for m in by:
-            METHODS.get(m, f"--paper-figures {where}: [{clip(env, 40)}]")
+            if m not in others:
+                METHODS.get(m, f"--paper-figures {where}: [{clip(env, 40)}] (or list it in others = [...])")
         out[env] = {m: (float(v[0]), float(v[1])) for m, v in by.items()}
     return out
 
