@@ -388,7 +388,7 @@ def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_pa
     # published methods the project does not implement, when the file lists them (OGBench's file ships so)
     own.write_text('others = ["QRL"]\n["maze"]\nQRL = [86, 9]\ncdrb = [1, 2]\n')
     assert paper_figures(own) == {"maze": {"QRL": (86.0, 9.0), "cdrb": (1.0, 2.0)}}
-    published = paper_figures(Path(__file__).resolve().parent.parent / "experiments/ogbench/published.toml")
+    published = paper_figures(Path(__file__).resolve().parent.parent / "docs/results/ogbench_published.toml")
     assert len(published) == 6 and published["pointmaze-giant-navigate-v0"]["QRL"] == (68.0, 7.0)
     doc = "a\n<!-- t:begin -->\nold\n<!-- t:end -->\nb\n<!-- u:begin -->\nkeep\n<!-- u:end -->\n"
     assert replace_block(doc, "t", "new\n", "doc.md").startswith("a\n<!-- t:begin -->\nnew\n<!-- t:end -->\nb\n")
