@@ -261,19 +261,19 @@ def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=No
             f"replan.waypoint_reach: routes go through a replay buffer, and a {method.name} model carries none",
             hint="name one: --set avoid.route_buffer=BUFFER.h5 (the buffer of the model's demos)",
         )
-    if replan.waypoint_graph == "transitions" and route_buffer is not None:
+    if replan.waypoint_graph == "free-steps":
+        graph = avoid.graph if avoid.graph is not None else buffer_graph(method, spec, config.avoid, route_buffer)
+    elif route_buffer is not None:
         graph = TransitionRoutes(spec, route_states(method, spec, route_buffer), route_buffer.graph()[0])
-    elif replan.waypoint_graph == "transitions":
-        if method.buffer_graph is None:
-            raise BadInput(
-                f"replan.waypoint_graph = transitions: {path or 'the model'} carries no transition graph (models "
-                "trained from a buffer with one carry it)",
-                hint='retrain it from a buffer of `cdrb cluster`, or set replan.waypoint_graph="free-steps"',
-            )
+    elif method.buffer_graph is None:
+        raise BadInput(
+            f"replan.waypoint_graph = transitions: {path or 'the model'} carries no transition graph (models "
+            "trained from a buffer with one carry it)",
+            hint='retrain it from a buffer of `cdrb cluster`, or set replan.waypoint_graph="free-steps"',
+        )
+    else:  # the model's own buffer, unmasked: the graph's indices are into all of it
         states = method.normalizer.unnormalize(np.asarray(method.points, dtype=np.float64))
         graph = TransitionRoutes(spec, states, method.buffer_graph[0])
-    else:
-        graph = avoid.graph if avoid.graph is not None else buffer_graph(method, spec, config.avoid, route_buffer)
     return waypoint_aims(graph, spec, replan.waypoint_reach, method.feature_dim)
 
 

@@ -89,11 +89,8 @@ class Avoidance:
         states = plans[..., : self.spec.obs_dim]
         counts = family.crossing_counts(self.spec, states).reshape(-1, per)
         dims = list(self.spec.obstacles.dims)
-        steps = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1)
-        length = steps.sum(-1).reshape(-1, per)
-        leaps = np.zeros_like(length, dtype=bool)
-        if self.first_step and self.step_limit and steps.shape[-1]:
-            leaps = (steps[..., 0] > FIRST_STEP_TOLERANCE * self.step_limit).reshape(-1, per)
+        length = np.linalg.norm(np.diff(states[..., dims], axis=-2), axis=-1).sum(-1).reshape(-1, per)
+        leaps = self._leaps(plans).reshape(-1, per)
         order = np.lexsort((length, leaps, counts), axis=-1) if counts.size else counts
         return np.arange(len(counts)) * per + order[:, 0]
 
@@ -105,11 +102,16 @@ class Avoidance:
     def leaping(self, plans: np.ndarray) -> np.ndarray:
         """With ``first_step``, indices of the raw plans (n, H, F) whose first step leaves the start by more than
         :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (none without it, or when the limit is unknown)."""
-        if not (self.first_step and self.step_limit) or plans.shape[1] < 2:
-            return np.zeros(0, dtype=np.int64)
+        return np.flatnonzero(self._leaps(plans))
+
+    def _leaps(self, plans: np.ndarray) -> np.ndarray:
+        """Per raw plan (..., H, F): whether ``first_step`` is on and its first step leaves the start by more than
+        :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (all False without it or a known limit)."""
+        if not (self.first_step and self.step_limit) or plans.shape[-2] < 2:
+            return np.zeros(plans.shape[:-2], dtype=bool)
         dims = list(self.spec.obstacles.dims)
-        first = np.linalg.norm(plans[:, 1, dims] - plans[:, 0, dims], axis=-1)
-        return np.flatnonzero(first > FIRST_STEP_TOLERANCE * self.step_limit)
+        first = np.linalg.norm(plans[..., 1, dims] - plans[..., 0, dims], axis=-1)
+        return first > FIRST_STEP_TOLERANCE * self.step_limit
 
     def routes(self, starts: np.ndarray, goals: np.ndarray, horizon: int, features: int) -> np.ndarray | None:
         """Raw buffer routes (n, horizon, features) for raw start/goal states (n, obs_dim); a pair with no route

@@ -123,16 +123,13 @@ def expand(spec: GridSpec) -> list[Task]:
                 efolder = folder / v.name if v.name else folder
                 vtag = f"{v.name}/" if own_model else ""
                 train_extra, eval_extra = flags_for(spec, env, method, model_v)[0], flags_for(spec, env, method, v)[1]
-                eval_reads: tuple[list[str], list[Path]] = (
-                    [],
-                    [],
-                )  # (task ids, files) eval flags name beyond the model
+                read_ids, read_files = [], []  # what the eval flags name beyond the model: its task, its file
                 if any(BUFFER_PLACEHOLDER in f for f in eval_extra):
                     cluster_id, env_buffer = buffer_task(
                         spec, env, cluster_flags_for(spec, env, method), buffers, tasks
                     )
                     eval_extra = [f.replace(BUFFER_PLACEHOLDER, str(env_buffer)) for f in eval_extra]
-                    eval_reads = ([cluster_id], [env_buffer])
+                    read_ids, read_files = [cluster_id], [env_buffer]
                 length, snaps = spec.curve(env, method)
                 for seed in spec.seeds:
                     model = mfolder / f"{method}-s{seed}.h5"
@@ -169,8 +166,8 @@ def expand(spec: GridSpec) -> list[Task]:
                                 "eval",
                                 argv,
                                 [ev],
-                                [train_id, *eval_reads[0]],
-                                [m, *eval_reads[1]],
+                                [train_id, *read_ids],
+                                [m, *read_files],
                                 meta | {"stream": stream},
                             )
                         )
