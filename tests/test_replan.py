@@ -357,3 +357,69 @@ def test_a_planner_without_a_buffer_takes_waypoints_through_a_route_buffer(model
     assert not (tmp_path / "bare.h5").exists()
     with pytest.raises(ValueError, match="avoid.route_buffer is what routes go through"):
         PlanConfig(sampler="ddpm", n=1, seed=0, avoid=AvoidConfig(route_buffer="b.h5"))
+
+
+class _Recorder:
+    """A policy that records the goals it is asked to act toward and stands still."""
+
+    def __init__(self, act_dim: int):
+        self.act_dim, self.seen = act_dim, []
+
+    def reset(self, n, rng):
+        self.seen = []
+
+    def act(self, states, goals, rng):
+        self.seen.append((np.array(states), np.array(goals)))
+        return np.zeros((len(states), self.act_dim))
+
+
+def test_a_policy_acts_toward_waypoints_given_anew_on_a_clock(small_data, tmp_path):
+    """A closed-loop policy toward far goals: ``run_policy``'s aims give it the waypoint of the state it is in every
+    ``every`` env steps and keep it in between; the waypoint as a goal is the one a planner's plans end at."""
+    from cdrb_cli.stages.evaluate import run_policy
+    from cdrb_cli.stages.plan import buffer_states
+    from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims, waypoint_goals
+
+    _, buffer = small_data
+    spec = buffer.manifest.env
+    family = family_of(spec)
+    routes = TransitionRoutes(spec, buffer_states(buffer, spec, spec.id), buffer.graph()[0])
+    goals_of = waypoint_goals(routes, spec, 1.5)
+    episodes = family.draw_episodes(spec, 3, 0, STREAM_EVAL)
+    policy = _Recorder(spec.action_dim)
+    run_policy(family, spec, episodes, policy, 12, np.random.default_rng(0), (goals_of, 5))
+    _, goals = family.reset_states(spec, episodes)
+    assert len(policy.seen) == 12
+    for t, (_, given) in enumerate(policy.seen):
+        aimed_at = t - t % 5
+        np.testing.assert_allclose(given, goals_of(policy.seen[aimed_at][0], goals))
+    first = policy.seen[0]
+    np.testing.assert_allclose(
+        family.goal_state(spec, first[1]),
+        waypoint_aims(routes, spec, 1.5, spec.obs_dim)(first[0], family.goal_state(spec, goals)),
+    )
+    far = np.linalg.norm(goals - first[0][:, spec.goal_dims], axis=1) > 1.5
+    assert far.any() and not np.allclose(first[1][far], goals[far])  # far goals get a waypoint, not the goal
+
+
+def test_a_policy_eval_toward_waypoints_reads_its_route_buffer(small_data, tmp_path):
+    """`cdrb eval` of Diffusion BC with ``replan.waypoint_reach``: the route buffer is a parent of the eval; without
+    one, or with a re-planning mode that is not a clock, it is refused in one line and writes nothing."""
+    from cdrb_cli.errors import BadInput
+    from tests.test_policies import TINY_BC
+
+    demos, buffer = small_data
+    cfg = train_config(demos, None, "diffusion-bc", {**TINY_BC, "steps": 10, "checkpoint_every": 10})
+    model = train(demos, None, cfg, tmp_path / "bc.h5")
+    settings = {"replan.waypoint_reach": 1.5, "avoid.route_buffer": str(buffer.path)}
+    config = eval_config(model, episodes=2, seeds=[0], replan="every:20", **settings)
+    ev = evaluate(model, config, tmp_path / "wp.h5", route_buffer=buffer)
+    assert buffer.sha256 in [p.sha256 for p in ev.manifest.parents]
+    assert ev.manifest.config.replan.waypoint_reach == 1.5
+    bare = eval_config(model, episodes=2, seeds=[0], replan="every:20", **{"replan.waypoint_reach": 1.5})
+    with pytest.raises(BadInput, match="route_buffer"):
+        evaluate(model, bare, tmp_path / "bare.h5")
+    drift = eval_config(model, episodes=2, seeds=[0], replan="deviation:0.5", **settings)
+    with pytest.raises(BadInput, match="replan.mode"):
+        evaluate(model, drift, tmp_path / "drift.h5", route_buffer=buffer)
+    assert not (tmp_path / "bare.h5").exists() and not (tmp_path / "drift.h5").exists()

@@ -183,7 +183,7 @@ def check_avoid(model, avoid: AvoidConfig, settings: Sequence[Setting] = ()) -> 
         return named(settings, ("avoid", field), getattr(avoid, field))
 
     if entry.kind != "planner":
-        if avoid != AvoidConfig():
+        if avoid.model_copy(update={"route_buffer": None}) != AvoidConfig():  # a route buffer leads to waypoints
             given = next((s.source for s in settings if s.path[0] == "avoid"), "avoid")
             raise BadInput(f"{given}: {name} is a policy: it makes no plans to choose or guide", hint="drop it")
         return
@@ -269,6 +269,14 @@ def _controller_name(model, family, protocol: str, settings: Sequence[Setting]) 
     return name
 
 
+def _toward_waypoints(path: tuple[str, ...]) -> bool:
+    """Is the setting at ``path`` one a policy takes toward waypoints (``replan.waypoint_reach``): the clock that
+    gives the next waypoint, the route and the buffer it goes through."""
+    if path == ("avoid", "route_buffer"):
+        return True
+    return path[:1] == ("replan",) and path[1:2] not in (("repair_k",), ("repair_steps",))
+
+
 def eval_config(
     model,
     settings: Sequence[Setting] = (),
@@ -287,7 +295,10 @@ def eval_config(
     family = family_of(spec)
     entry = _method(model)
     if entry.kind == "policy":
+        waypoints = (w := lookup(settings, ("replan", "waypoint_reach"))) is not None and w.value is not None
         for s in settings:
+            if waypoints and _toward_waypoints(s.path):
+                continue
             if s.path[0] in ("replan", "controller", "avoid"):
                 what = {"replan": "has no plan to re-plan", "controller": "executes no plan with a controller"}
                 raise BadInput(

@@ -118,10 +118,18 @@ POLICY_BATCH = 25
 
 
 def run_policy(
-    family: EnvFamily, spec: EnvSpec, episodes: Sequence[Episode], policy, steps: int, rng: np.random.Generator
+    family: EnvFamily,
+    spec: EnvSpec,
+    episodes: Sequence[Episode],
+    policy,
+    steps: int,
+    rng: np.random.Generator,
+    aims=None,
 ) -> tuple[list[Rollout], list[np.ndarray], float]:
     """Run a closed-loop policy on ``episodes`` in lockstep (one env each): every step, one call of
-    ``policy.act`` for all of them. Returns the rollouts, the goals and the mean seconds per ``act`` call."""
+    ``policy.act`` for all of them. ``aims``: (function of states and goals giving the goals to act toward,
+    env steps between two calls of it), toward waypoints; None: the episodes' goals throughout. Returns the
+    rollouts, the goals and the mean seconds per ``act`` call."""
     envs = [family.make_env(spec) for _ in episodes]
     try:
         resets = [env.reset(ep) for env, ep in zip(envs, episodes)]
@@ -129,10 +137,12 @@ def run_policy(
         goals = np.stack([np.asarray(r[1], dtype=np.float64) for r in resets])
         states = [obs]
         policy.reset(len(episodes), rng)
-        seconds = 0.0
-        for _ in range(steps):
+        seconds, toward = 0.0, goals
+        for t in range(steps):
             t0 = time.perf_counter()
-            actions = policy.act(obs, goals, rng)
+            if aims is not None and t % aims[1] == 0:
+                toward = aims[0](obs, goals)
+            actions = policy.act(obs, toward, rng)
             seconds += time.perf_counter() - t0
             obs = np.stack([env.step(a) for env, a in zip(envs, actions)])
             states.append(obs)
@@ -167,7 +177,7 @@ def evaluate(
             raise ValueError("config.scene is set: pass the spec of its map (stages.plan.scene_spec)")
         spec = family.protocol_spec(model.manifest.env, config.protocol)
     if METHODS.get(model.manifest.config.method.name).kind == "policy":
-        return evaluate_policy(model, config, out, spec, device, video_dir, videos)
+        return evaluate_policy(model, config, out, spec, device, video_dir, videos, route_buffer)
     method = load_planner(model, device=device, ema=config.use_ema)
     avoid = prepare_planner(method, spec, config.avoid, route_buffer)
     aims = _waypoints(method, spec, config, avoid, route_buffer, model.path)
@@ -371,10 +381,14 @@ def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None, aims=Non
             yield run.plans[-1], run.states, result, (run.plans, run.plan_steps)
 
 
-def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu", video_dir=None, videos: int = 0):
+def evaluate_policy(
+    model, config: EvalConfig, out, spec: EnvSpec, device="cpu", video_dir=None, videos: int = 0, route_buffer=None
+):
     """`cdrb eval` of a closed-loop policy: the same pairs, episode limit and measures as for a planner; the plan
     measures are "not measured" (NaN, reported as n/a) and ``plan_seconds`` is the time of one ``act`` call (one
-    batched network call for up to :data:`POLICY_BATCH` episodes, divided by their number)."""
+    batched network call for up to :data:`POLICY_BATCH` episodes, divided by their number). With
+    ``replan.waypoint_reach`` the policy acts toward waypoints along routes through ``route_buffer``, given anew
+    every ``replan.every`` env steps (the means a planner gets toward far goals)."""
     from cdrb_cli.methods.checkpoint import load_method
 
     t0 = time.time()
@@ -384,6 +398,7 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
     policy.config = policy.config.model_copy(
         update={"method": policy.config.method.model_copy(update={"sampler": config.sampler})}
     )
+    aims = _policy_waypoints(model, spec, config, route_buffer)
     env = family.make_env(spec)
     expert = ExpertReference(family, spec)
     steps = spec.episode_limit + config.extra_steps
@@ -398,7 +413,7 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
             rng = step_rng(config.seed, STREAM_EVAL, seed)
             for b in range(0, len(episodes), POLICY_BATCH):
                 batch = episodes[b : b + POLICY_BATCH]
-                runs, goals, sec = run_policy(family, spec, batch, policy, steps, rng)
+                runs, goals, sec = run_policy(family, spec, batch, policy, steps, rng, aims)
                 for episode, run, goal in zip(batch, runs, goals):
                     length = expert.path_length(env, episode)
                     per_call = sec / len(batch)
@@ -415,8 +430,9 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
     summary = summarize(
         policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
     ).model_copy(update={"variant": policy.variant()})
+    parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
-        "eval", env=spec, config=config, seed=config.seed, parents=[model], summary=summary
+        "eval", env=spec, config=config, seed=config.seed, parents=parents, summary=summary
     )
     artifacts.save(out, "eval", manifest, episode_arrays(results, plans=False))
     if video_dir is not None and executed:
@@ -424,6 +440,34 @@ def evaluate_policy(model, config: EvalConfig, out, spec: EnvSpec, device="cpu",
 
         rollout_gifs(spec, executed, video_dir, label=policy.name)
     return artifacts.load(out, "eval")
+
+
+def _policy_waypoints(model, spec: EnvSpec, config: EvalConfig, route_buffer=None):
+    """With ``replan.waypoint_reach``, (the function giving a policy's waypoint goals, env steps between two of them)
+    along the routes ``replan.waypoint_graph`` names through ``route_buffer`` (a policy keeps no buffer); None
+    without it."""
+    from cdrb_cli.stages.plan import buffer_states
+    from cdrb_cli.stages.routes import BufferGraph, TransitionRoutes, waypoint_goals
+
+    replan, name = config.replan, model.manifest.config.method.name
+    if replan.waypoint_reach is None:
+        return None
+    if replan.mode != "every":
+        raise BadInput(
+            f"replan.mode = {replan.mode}: a {name} policy is given its next waypoint on a clock",
+            hint="set replan.mode=every and replan.every=STEPS",
+        )
+    if route_buffer is None:
+        raise BadInput(
+            f"replan.waypoint_reach: routes go through a replay buffer, and a {name} model carries none",
+            hint="name one: --set avoid.route_buffer=BUFFER.h5 (the buffer of the model's demos)",
+        )
+    states = buffer_states(route_buffer, spec, model.manifest.env.id)
+    if replan.waypoint_graph == "free-steps":
+        graph = BufferGraph(spec, states, clearance=config.avoid.route_clearance)
+    else:
+        graph = TransitionRoutes(spec, states, route_buffer.graph()[0])
+    return waypoint_goals(graph, spec, replan.waypoint_reach), replan.every
 
 
 def _result(

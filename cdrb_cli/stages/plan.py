@@ -202,17 +202,23 @@ def route_states(method: Planner, spec: EnvSpec, route_buffer=None) -> np.ndarra
     or the states of the buffer artifact ``route_buffer`` (which must be of the model's environment)."""
     if route_buffer is None:
         return method.normalizer.unnormalize(method.ball.points)
+    states = buffer_states(route_buffer, spec, method.spec.id)  # the model's own task, before any map change
+    pad = np.zeros((len(states), method.feature_dim - spec.obs_dim))
+    return np.concatenate([states, pad], axis=1)
+
+
+def buffer_states(route_buffer, spec: EnvSpec, task: str) -> np.ndarray:
+    """The raw states (K, obs_dim) of the buffer artifact ``route_buffer``, which must be of the model's task
+    ``task``."""
     from cdrb_cli.buffer import Normalizer
 
-    env, task = route_buffer.manifest.env, method.spec.id  # the model's own task, before any map change
+    env = route_buffer.manifest.env
     if env.obs_dim != spec.obs_dim or env.id != task:
         raise BadInput(
             f"--route-buffer {route_buffer.path}: a buffer of {env.id}, but the model plans in {task}",
             hint="cluster the model's own demos (`cdrb cluster DEMOS`)",
         )
-    states = Normalizer(route_buffer.low, route_buffer.high).unnormalize(route_buffer.points)[:, : spec.obs_dim]
-    pad = np.zeros((len(states), method.feature_dim - spec.obs_dim))
-    return np.concatenate([states, pad], axis=1)
+    return Normalizer(route_buffer.low, route_buffer.high).unnormalize(route_buffer.points)[:, : spec.obs_dim]
 
 
 def warn_unrouted(avoid: Avoidance | None) -> None:

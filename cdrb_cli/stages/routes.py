@@ -200,20 +200,52 @@ def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
     return out
 
 
+def waypoint_points(graph: BufferGraph | TransitionRoutes, reach: float, features: int):
+    """A function of raw states (n, obs_dim) and goal states (n, obs_dim) that gives each pair's point ``reach``
+    along its shortest route through ``graph`` (a raw feature row; the goal itself when the route is that short),
+    or None where no route joins them."""
+
+    def points(states: np.ndarray, goal_states: np.ndarray) -> list[np.ndarray | None]:
+        out = []
+        for s, g in zip(states, goal_states):
+            pad = np.zeros(features - len(s))
+            out.append(graph.waypoint(np.concatenate([s, pad]), np.concatenate([g, pad]), reach))
+        return out
+
+    return points
+
+
 def waypoint_aims(graph: BufferGraph | TransitionRoutes, spec: EnvSpec, reach: float, features: int):
     """The aims of plans toward far goals: a function of raw states (n, obs_dim) and goal states (n, obs_dim) that
     gives each pair's waypoint ``reach`` along its shortest route through ``graph`` as a goal state (the goal
     itself when the route is that short, or when no route joins them)."""
     family = family_of(spec)
     dims = list(spec.goal_dims)
+    points = waypoint_points(graph, reach, features)
 
     def aims(states: np.ndarray, goal_states: np.ndarray) -> np.ndarray:
         out = np.array(goal_states, dtype=np.float64)
-        for i, (s, g) in enumerate(zip(states, goal_states)):
-            pad = np.zeros(features - len(s))
-            point = graph.waypoint(np.concatenate([s, pad]), np.concatenate([g, pad]), reach)
+        for i, point in enumerate(points(states, goal_states)):
             if point is not None:
                 out[i] = family.goal_state(spec, point[None, dims])[0]
         return out
 
     return aims
+
+
+def waypoint_goals(graph: BufferGraph | TransitionRoutes, spec: EnvSpec, reach: float):
+    """The goals a closed-loop policy is given toward far goals: a function of raw states (n, obs_dim) and the
+    episodes' goals (n, goal_dim) that gives each one's waypoint ``reach`` along its shortest route through
+    ``graph`` as a goal (the goal itself when the route is that short, or when no route joins them)."""
+    family = family_of(spec)
+    dims = list(spec.goal_dims)
+    points = waypoint_points(graph, reach, spec.obs_dim)
+
+    def goals_of(states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        out = np.array(goals, dtype=np.float64)
+        for i, point in enumerate(points(states, family.goal_state(spec, out))):
+            if point is not None:
+                out[i] = point[dims]
+        return out
+
+    return goals_of
