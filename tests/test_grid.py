@@ -447,6 +447,29 @@ def test_includes_apply_in_order_and_a_loop_is_an_error(tmp_path):
         load_grid(grid)
 
 
+def test_a_selection_that_misses_a_run_its_tuning_grid_tunes_is_refused(tmp_path):
+    """A test grid including a `cdrb select` file runs nothing unchosen: an env x method the selection's tuning grid
+    tunes but the selection holds no choice for (written before that run was tuned) is one line naming both files;
+    a run the tuning grid never tuned, or a grid narrowed to the chosen runs, goes."""
+    (tmp_path / "tune").mkdir()
+    (tmp_path / "tune" / "t.toml").write_text(TINY)  # tunes mlp and cdrb on maze-tight
+    (tmp_path / "tuned.toml").write_text(
+        '[meta]\nrule = "x"\ntuning_grid = "tune/t.toml"\n'
+        '[[settings]]\nenv = "maze-tight"\nmethod = "cdrb"\nchosen = "c"\ntrain = ["--steps", "30"]\n'
+    )
+    grid = _grid(
+        tmp_path, 'include = ["tuned.toml"]\n' + TINY.replace('["mlp", "cdrb"]', '["mlp", "cdrb", "straight"]')
+    )
+    with pytest.raises(BadInput, match=r"mlp on maze-tight: tuned.toml holds no choice for it, though tune/t.toml"):
+        load_grid(grid)
+    assert {t.id for t in expand(load_grid(grid, overrides=['methods=["cdrb", "straight"]']))} >= {
+        "train maze-tight/cdrb-s0",
+        "train maze-tight/straight-s0",
+    }
+    (tmp_path / "tune" / "t.toml").unlink()  # the tuning grid gone: the selection is provenance only
+    load_grid(grid)
+
+
 def test_a_setting_stated_by_two_included_files_is_passed_once_and_an_override_still_holds(tmp_path):
     # a tuned settings file repeats what the data file it was chosen under also says
     (tmp_path / "data.toml").write_text('[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "horizon=16"]\n')

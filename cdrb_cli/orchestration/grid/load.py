@@ -98,6 +98,46 @@ def _origin(path: Path, overrides: list[str], *keys) -> str:
     return str(path)
 
 
+def _check_selections(spec: GridSpec, path: Path, files: dict[Path, SettingsFile]) -> None:
+    """Refuse a run its included selection should have chosen for and did not: an environment x method that the
+    selection's tuning grid (``meta.tuning_grid``) tunes but the selection holds no choice for (it was written
+    before that run was tuned), which would otherwise run with the defaults, unchosen."""
+    for where, sfile in files.items():
+        tuning = _tuning_grid(where, sfile.meta.get("tuning_grid"))
+        if tuning is None:
+            continue
+        try:
+            raw = read_toml(tuning, "grid file")
+        except BadInput:
+            continue  # provenance only: a tuning grid moved away is not this grid's error
+        tuned = {(e, m) for e in raw.get("envs", []) for m in raw.get("methods", [])}
+        chosen = {(s.env, s.method) for s in sfile.settings}
+        out = where.relative_to(Path.cwd()) if where.is_relative_to(Path.cwd()) else where
+        for env in spec.envs:
+            for method in spec.methods:
+                if (env, method) in tuned and (env, method) not in chosen:
+                    raise BadInput(
+                        f"{path}: {method} on {env}: {where.name} holds no choice for it, though "
+                        f"{sfile.meta['tuning_grid']} tunes it",
+                        hint=f"run `cdrb select {sfile.meta['tuning_grid']} --out {out}` once its runs are done, "
+                        "or narrow the grid (--set envs=/methods=)",
+                    )
+
+
+def _tuning_grid(selection: Path, name: str | None) -> Path | None:
+    """The tuning grid a selection names (as `cdrb select` was given it: relative to where it ran, the checkout's
+    root for the shipped files), looked for beside the selection and up its folders; None when not found."""
+    if not name:
+        return None
+    given = Path(name)
+    if given.is_absolute():
+        return given if given.is_file() else None
+    for folder in [Path.cwd(), *selection.parents]:
+        if (folder / given).is_file():
+            return folder / given
+    return None
+
+
 def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] = ()) -> GridSpec:
     """Read and check a grid file: unknown keys, environments and methods are one-line errors naming the file.
 
@@ -129,6 +169,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     _check_reuse(spec, path, overrides, set_keys)
     _check_names_given(spec, path, overrides, set_keys)
     _check_lengths_and_seeds(spec, path, overrides, set_keys)
+    _check_selections(spec, path, seen["files"])
     if spec.tensorboard:  # every training would fail on a missing extra: one line now
         from cdrb_cli.stages.train_log import summary_writer
 

@@ -93,11 +93,12 @@ class Settings(_Strict):
 
 class SettingsFile(_Strict):
     """A settings file that grids (and other settings files) ``include``: shared data choices, or the settings
-    `cdrb select` chose on the tuning stream. ``meta`` is free provenance (the rule, the tuning grid)."""
+    `cdrb select` chose on the tuning stream. ``meta`` is provenance (the rule, the tuning grid); a grid that
+    includes a selection checks that it holds a choice for every run its tuning grid tunes."""
 
     include: list[Path] = Field(default_factory=list, description="more settings files, before this one's")
     settings: list[Settings] = Field(default_factory=list)
-    meta: dict[str, str] = Field(default_factory=dict, description="provenance: not read by the grid")
+    meta: dict[str, str] = Field(default_factory=dict, description="provenance: the rule, the tuning grid")
 
 
 class Scoped(_Strict):
