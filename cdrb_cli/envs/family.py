@@ -403,6 +403,12 @@ class EnvFamily(ABC):
         step; None when the family has no such bound. A plan step of stride s may move s times this."""
         return None
 
+    def plan_step_limit(self, spec: EnvSpec, stride: int) -> float | None:
+        """What the dynamics allow in one plan step of ``stride`` env steps (over the obstacle dimensions): the
+        tolerance first-step and jump checks compare against; None when the family has no bound."""
+        max_step = self.max_step(spec)
+        return None if max_step is None else float(max_step * stride)
+
     def path_length(self, spec: EnvSpec, states: np.ndarray) -> float:
         """Length of a path of states (T, D), measured in the goal dimensions."""
         return float(np.linalg.norm(np.diff(np.asarray(states)[:, spec.goal_dims], axis=0), axis=1).sum())

@@ -190,8 +190,7 @@ def evaluate(
     )
     expert = ExpertReference(family, spec)
     steps = spec.episode_limit + config.extra_steps
-    max_step = family.max_step(spec)
-    step_limit = 0.0 if max_step is None else float(max_step * model.manifest.config.stride)
+    step_limit = family.plan_step_limit(spec, model.manifest.config.stride) or 0.0
     results: list[EpisodeResult] = []
     all_plans, per_seed, executed, drawn = [], [], [], []
     with ui.progress() as bar:

@@ -143,8 +143,7 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
         fallback_route_itself=avoid.fallback_route_itself,
         first_step=avoid.first_step,
     )
-    max_step = family.max_step(spec)
-    out.step_limit = None if max_step is None else float(max_step * method.config.stride)
+    out.step_limit = family.plan_step_limit(spec, method.config.stride)
     if avoid.mask_buffer:
 
         def collides(features: np.ndarray) -> np.ndarray:

@@ -23,9 +23,8 @@ def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfi
     crossing = np.asarray(family.path_in_collision(spec, states), dtype=bool)
     if crossing.any():
         problems.append(f"{int(crossing.sum())} of {len(states)} plans pass through an obstacle")
-    max_step = family.max_step(spec)
-    if max_step is not None and states.shape[1] > 1:
-        allowed = max_step * stride
+    allowed = family.plan_step_limit(spec, stride)
+    if allowed is not None and states.shape[1] > 1:
         dims = list(spec.obstacles.dims)
         first = float(np.median(np.linalg.norm(states[:, 1, dims] - states[:, 0, dims], axis=-1)))
         if first > FIRST_STEP_TOLERANCE * allowed:
@@ -63,8 +62,7 @@ def off_scene_warning(spec: EnvSpec, jumps, stride: int, avoid: AvoidConfig | No
     if not far.any():
         return None
     largest = float(jumps[far].max())
-    max_step = family_of(spec).max_step(spec)
-    allowed = max_step * stride if max_step else None
+    allowed = family_of(spec).plan_step_limit(spec, stride)
     ratio = f", {largest / allowed:.3g}x the {allowed:.2f} m the dynamics allow in one plan step" if allowed else ""
     if avoid is not None and avoid.guide_scale > 0:
         advice = f"avoid.guide_scale={avoid.guide_scale:g} pushes plans out of the scene: lower it"
