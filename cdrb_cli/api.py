@@ -70,7 +70,7 @@ def _avoid(**fields) -> dict:
 
 
 #: the avoidance settings a plan's start may change from call to call (the family's choice for plans from anywhere)
-PER_CALL = ("best_of", "fallback_route_k", "fallback_route_itself", "first_step")
+PER_CALL = ("best_of", "fallback_route_k", "fallback_route_itself", "first_step", "retime")
 
 
 class Planner:

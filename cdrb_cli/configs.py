@@ -204,6 +204,14 @@ class AvoidConfig(Record):
         "shorter one that leaps, and with fallback_route_k a pair whose kept plan leaps gets the second try too; "
         "False: crossings, then length",
     )
+    retime: bool = Field(
+        False,
+        description="a kept plan from scratch that steps through no obstacle but leaves its start by more than 1.5x "
+        "what the dynamics allow in one plan step is retimed where that brings its first step within 1.5x: the same "
+        "path (its states in order, the same straight steps between them), its states respaced evenly by arc "
+        "length, so the plan goes as far at a pace the robot can follow and still steps through no obstacle; "
+        "False: the model's timing",
+    )
     route_clearance: float = Field(
         0.0,
         ge=0,
@@ -259,6 +267,7 @@ class AvoidConfig(Record):
         parts += [f"buffer route when every plan crosses, k {self.fallback_route_k}"] if self.fallback_route_k else []
         parts += ["the route itself as a last resort"] if self.fallback_route_itself else []
         parts += ["first step within 1.5x"] if self.first_step else []
+        parts += ["leaping plans retimed"] if self.retime else []
         return ", ".join(parts) or "plain"
 
 

@@ -138,13 +138,14 @@ def test_plans_from_anywhere_use_the_settings_chosen_for_them_by_default(tiny_mo
         fallback_route_k=k,
         fallback_route_itself=chosen["avoid.fallback_route_itself"],
         first_step=chosen["avoid.first_step"],
+        retime=chosen["avoid.retime"],
     )
     centre, corridor = _corridor_and_centre(cdrb)
     assert plan_config(cdrb, starts=centre[None]).avoid == AvoidConfig()  # where the data start: the paper's
     assert plan_config(cdrb, starts=np.stack([centre, corridor])).avoid == tuned
     # the second try turned off takes its last resort with it
     off = plan_config(cdrb, parse_set(["avoid.fallback_route_k=null"]), starts=corridor[None]).avoid
-    assert off == AvoidConfig(best_of=n, first_step=chosen["avoid.first_step"])
+    assert off == AvoidConfig(best_of=n, first_step=chosen["avoid.first_step"], retime=chosen["avoid.retime"])
     # what the user sets wins; avoid=plain drops it; a method with nothing chosen plans as it is
     assert plan_config(cdrb, parse_set(["avoid=plain"]), starts=corridor[None]).avoid == AvoidConfig()
     assert plan_config(cdrb, parse_set(["avoid.best_of=2"]), starts=corridor[None]).avoid.best_of == 2

@@ -414,6 +414,62 @@ def test_a_pair_whose_every_plan_leaps_from_its_start_is_tried_again():
     np.testing.assert_allclose(plans[:, -1], goals)
 
 
+def _on_polyline(points: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """Per point (n, 2): its distance to the polyline ``path`` (m, 2)."""
+    a, b = path[:-1], path[1:]
+    d = b - a
+    t = np.clip(((points[:, None] - a[None]) * d[None]).sum(-1) / np.maximum((d * d).sum(-1), 1e-12)[None], 0, 1)
+    return np.linalg.norm(points[:, None] - (a[None] + t[..., None] * d[None]), axis=-1).min(axis=1)
+
+
+def test_a_plan_that_still_leaps_is_retimed_along_its_own_path():
+    """``avoid.retime``: a clear kept plan whose first step leaps is respaced evenly by arc length along its own path:
+    the first step within the tolerance, the ends exactly where they were, every state on the plan's own steps, still
+    clear; a plan that starts gently is left alone, so is one through an obstacle (respaced, more of its states could
+    fall in the wall), one whose path is too long to respace within the tolerance, and nothing changes without the
+    setting. Through the sampler the normalized plans follow."""
+    from cdrb_cli.stages.plan import FIRST_STEP_TOLERANCE, Avoidance, _sampler_call, sample_plans
+
+    spec, g, _ = _north_closed_buffer()
+    family = family_of(spec)
+    at = lambda cell: np.array([*g.cell_to_xy(cell), 0.0, 0.0])  # noqa: E731
+    a, b, c = at([5, 7]), at([6, 7]), at([3, 7])
+    H, limit = 12, 0.25
+    leap = np.stack([a, *(b for _ in range(H - 1))])  # the whole way at once, then standing
+    walk = np.stack([a + (b - a) * f for f in np.linspace(0, 1, H)])
+    through = np.stack([a, c, *(c for _ in range(H - 2))])  # a leap through the closed north gap
+    far = np.stack([a, *(a + [40.0, 0, 0, 0] for _ in range(H - 1))])  # too far for H steps at any pace
+    plans = np.stack([leap, walk, through, far])
+    avoid = Avoidance(spec, retime=True, step_limit=limit)
+    out, rows = avoid.retimed_plans(plans)
+    np.testing.assert_array_equal(rows, [0])
+    assert avoid.retimed == 1
+    for i in (1, 2, 3):
+        np.testing.assert_array_equal(out[i], plans[i])
+    for i in rows:
+        steps = np.linalg.norm(np.diff(out[i][:, :2], axis=0), axis=1)
+        assert steps[0] <= FIRST_STEP_TOLERANCE * limit and np.ptp(steps) < 1e-9  # evenly spaced
+        np.testing.assert_array_equal(out[i][[0, -1]], plans[i][[0, -1]])
+        assert _on_polyline(out[i][:, :2], plans[i][:, :2]).max() < 1e-9
+    counts = family.crossing_counts(spec, plans[..., : spec.obs_dim])
+    np.testing.assert_array_equal(family.crossing_counts(spec, out[..., : spec.obs_dim]), counts)
+    assert counts[0] == 0 and counts[2] > 0
+    same, none = Avoidance(spec, step_limit=limit).retimed_plans(plans)
+    assert same is plans and not len(none)
+    # through the sampler: the leaping stand-in's plan is retimed, in raw units and in the normalized result
+    method = _LeapingPlanner()
+    start, goal = at([1, 1])[None], at([1, 3])[None]
+    gentle = 1.2 * np.linalg.norm(goal[0, :2] - start[0, :2]) / (method.horizon - 1)
+    avoid = Avoidance(spec, retime=True, step_limit=gentle)
+    sampled = sample_plans(method, start, goal, 1, 0, avoid=avoid).plans
+    assert avoid.retimed == 1
+    first = np.linalg.norm(sampled[0, 1, :2] - sampled[0, 0, :2])
+    assert first <= FIRST_STEP_TOLERANCE * gentle
+    np.testing.assert_allclose(sampled[0, [0, -1]], np.concatenate([start, goal]))
+    out, res, _ = _sampler_call(method, start, goal, np.random.default_rng(0), None, None, avoid=avoid)
+    np.testing.assert_allclose(method.normalizer.unnormalize(res.plans.numpy().astype(np.float64)), out, atol=1e-5)
+
+
 class _StubbornPlanner(_LinePlanner):
     """A stand-in whose repairs cross too: every repair is the straight line again, whatever route it was given."""
 

@@ -75,6 +75,8 @@ class Avoidance:
     rerouted: int = 0  # pairs sampled again from a buffer route because every plan from scratch crossed or leapt
     route_kept: int = 0  # pairs whose every plan and repair crossed, planned by the buffer route itself
     first_step: bool = False  # the first step counts in the choice and calls for the second try
+    retime: bool = False  # a kept plan that still leaps is respaced along its own path
+    retimed: int = 0  # plans retimed so
     #: what the dynamics allow in one plan step (the family's max step x the model's stride); None: unknown
     step_limit: float | None = None
 
@@ -104,14 +106,38 @@ class Avoidance:
         :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (none without it, or when the limit is unknown)."""
         return np.flatnonzero(self._leaps(plans))
 
-    def _leaps(self, plans: np.ndarray) -> np.ndarray:
-        """Per raw plan (..., H, F): whether ``first_step`` is on and its first step leaves the start by more than
-        :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (all False without it or a known limit)."""
-        if not (self.first_step and self.step_limit) or plans.shape[-2] < 2:
+    def _leaps(self, plans: np.ndarray, on: bool | None = None) -> np.ndarray:
+        """Per raw plan (..., H, F): whether ``first_step`` (or ``on``) is on and its first step leaves the start by
+        more than :data:`FIRST_STEP_TOLERANCE` times ``step_limit`` (all False without it or a known limit)."""
+        on = self.first_step if on is None else on
+        if not (on and self.step_limit) or plans.shape[-2] < 2:
             return np.zeros(plans.shape[:-2], dtype=bool)
         dims = list(self.spec.obstacles.dims)
         first = np.linalg.norm(plans[..., 1, dims] - plans[..., 0, dims], axis=-1)
         return first > FIRST_STEP_TOLERANCE * self.step_limit
+
+    def retimed_plans(self, plans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """With ``retime``, (the raw plans (n, H, F) with each clear one that leaps from its start respaced evenly
+        by arc length along its own path where that brings its first step within the tolerance, the indices of
+        those); the plans unchanged and no index without it. The ends stay exactly where they were and every new
+        state lies on one of the plan's own straight steps, so a plan that steps through no obstacle still steps
+        through none (a plan through one keeps its timing: respaced, more of its states could fall inside)."""
+        from cdrb_cli.stages.routes import _resample
+
+        leaps = self._leaps(plans, on=self.retime)
+        if leaps.any():
+            counts = family_of(self.spec).crossing_counts(self.spec, plans[..., : self.spec.obs_dim])
+            leaps &= np.asarray(counts) == 0
+        rows = np.flatnonzero(leaps)
+        if not len(rows):
+            return plans, rows
+        dims = list(self.spec.obstacles.dims)
+        even = np.stack([_resample(plans[i], dims, plans.shape[1]) for i in rows])
+        ok = ~self._leaps(even, on=True)
+        out = plans.copy()
+        out[rows[ok]] = even[ok]
+        self.retimed += int(ok.sum())
+        return out, rows[ok]
 
     def routes(self, starts: np.ndarray, goals: np.ndarray, horizon: int, features: int) -> np.ndarray | None:
         """Raw buffer routes (n, horizon, features) for raw start/goal states (n, obs_dim); a pair with no route
@@ -142,6 +168,7 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
         fallback_route_k=avoid.fallback_route_k,
         fallback_route_itself=avoid.fallback_route_itself,
         first_step=avoid.first_step,
+        retime=avoid.retime,
     )
     out.step_limit = family.plan_step_limit(spec, method.config.stride)
     if avoid.mask_buffer:
@@ -225,6 +252,11 @@ def warn_unrouted(avoid: Avoidance | None) -> None:
     repaired from the straight line instead)."""
     from cdrb_cli import ui
 
+    if avoid is not None and avoid.retimed:
+        ui.log(
+            f"{avoid.retimed} plan(s) that left their start faster than the dynamics allow were retimed along their "
+            "own path (avoid.retime)"
+        )
     if avoid is not None and avoid.rerouted:
         ui.log(
             f"{avoid.rerouted} start/goal pair(s) whose every plan crossed an obstacle or left the start faster "
@@ -323,6 +355,13 @@ def _sampler_call(
         out, res = out[keep], SampleResult(plans=res.plans[pick], iterates=[(k, x[pick]) for k, x in res.iterates])
     if avoid is not None and avoid.fallback_route_k is not None and scratch and avoid.graph is not None:
         out, res = _route_fallback(method, out, res, starts, goals, rng, sampler, steps, device, avoid)
+    if avoid is not None and avoid.retime and scratch:
+        out, rows = avoid.retimed_plans(out)
+        if len(rows):
+            plans = res.plans.clone()
+            z = torch.as_tensor(method.normalizer.normalize(out[rows]), dtype=plans.dtype, device=plans.device)
+            plans[torch.as_tensor(rows, device=plans.device)] = z
+            res = SampleResult(plans=plans, iterates=res.iterates)
     return out, res, seconds + searched + (time.perf_counter() - t)  # the search and the choice count
 
 

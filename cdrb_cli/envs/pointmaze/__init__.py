@@ -134,13 +134,15 @@ class PointMazeFamily(EnvFamily):
     # CDRB's second try from a buffer route only touches pairs whose every sample crosses a wall: its k and the route
     # itself as a last resort chosen on tuning pairs of that kind
     # (docs/notebook/2026-11-29-hard-pairs-for-the-second-try.md); the first step counted in both choices, so a plan
-    # starts where the robot is (docs/notebook/2026-11-29-plans-that-start-where-the-robot-is.md)
+    # starts where the robot is, and a plan that still leaps retimed along its own path
+    # (docs/notebook/2026-11-29-plans-that-start-where-the-robot-is.md)
     start_tuned = {
         "cdrb": {
             "avoid.best_of": 16,
             "avoid.fallback_route_k": 4,
             "avoid.fallback_route_itself": True,
             "avoid.first_step": True,
+            "avoid.retime": True,
         },
         "diffuser": {"avoid.best_of": 16},
     }
