@@ -123,13 +123,7 @@ def expand(spec: GridSpec) -> list[Task]:
                 efolder = folder / v.name if v.name else folder
                 vtag = f"{v.name}/" if own_model else ""
                 train_extra, eval_extra = flags_for(spec, env, method, model_v)[0], flags_for(spec, env, method, v)[1]
-                read_ids, read_files = [], []  # what the eval flags name beyond the model: its task, its file
-                if any(BUFFER_PLACEHOLDER in f for f in eval_extra):
-                    cluster_id, env_buffer = buffer_task(
-                        spec, env, cluster_flags_for(spec, env, method), buffers, tasks
-                    )
-                    eval_extra = [f.replace(BUFFER_PLACEHOLDER, str(env_buffer)) for f in eval_extra]
-                    read_ids, read_files = [cluster_id], [env_buffer]
+                eval_extra, read_ids, read_files = _placeholders(spec, env, method, eval_extra, buffers, tasks)
                 length, snaps = spec.curve(env, method)
                 for seed in spec.seeds:
                     model = mfolder / f"{method}-s{seed}.h5"
@@ -176,8 +170,15 @@ def expand(spec: GridSpec) -> list[Task]:
     _link_flag_files(tasks)
     if spec.reuse:
         tasks = reuse_finished(spec, tasks)
+    return tasks + (_reports(out, evals) if spec.report else [])
+
+
+def _reports(out: Path, evals: dict[str, list[tuple[str, Path]]]) -> list[Task]:
+    """One `cdrb report` task per variant over its final models' evals (``evals``: variant name -> (task id, eval
+    file) pairs)."""
+    tasks = []
     for name, items in evals.items():
-        if not items or not spec.report:
+        if not items:
             continue
         report = out / ("report.md" if not name else f"report-{name}.md")
         argv = ["report", *[str(p) for _, p in items], "--out", str(report), "--force"]
@@ -192,6 +193,15 @@ def expand(spec: GridSpec) -> list[Task]:
             )
         )
     return tasks
+
+
+def _placeholders(spec: GridSpec, env: str, method: str, flags: list[str], buffers: dict, tasks: list[Task]):
+    """(``flags`` with :data:`BUFFER_PLACEHOLDER` as the environment's buffer, the task ids and files that adds to
+    what the eval reads): the buffer's clustering is added to ``tasks`` when none made it yet."""
+    if not any(BUFFER_PLACEHOLDER in f for f in flags):
+        return flags, [], []
+    cluster_id, env_buffer = buffer_task(spec, env, cluster_flags_for(spec, env, method), buffers, tasks)
+    return [f.replace(BUFFER_PLACEHOLDER, str(env_buffer)) for f in flags], [cluster_id], [env_buffer]
 
 
 def flag_files(argv: list[str]) -> list[Path]:
