@@ -526,6 +526,42 @@ def test_the_summary_marks_every_method_that_does_not_beat_the_straight_line():
     assert "90.0 ± 1.0 (85.0) ≤ floor" in text and "| – |" in text  # Fetch-Reach has no such floor
 
 
+def test_published_figures_of_methods_outside_the_registry_print_as_their_source_gives_them(tmp_path):
+    """A --paper-figures file may list published methods this project does not implement (``others``): their
+    column follows ours, in the file's order, with – where a row has none; whole per cents print whole (OGBench's
+    table), a file with decimals prints two (the paper's Table 1). A name neither registered nor listed is refused."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.report import paper_figures, render_summary
+
+    path = tmp_path / "published.toml"
+    path.write_text(
+        'others = ["QRL", "HIQL"]\n["maze"]\nQRL = [86, 9]\nHIQL = [58, 5]\n["maze-tight"]\nQRL = [68, 7]\n'
+    )
+    figures = paper_figures(path)
+    rows = [
+        {
+            "env": env,
+            "env_name": env,
+            "method": "cdrb",
+            "seeds": 3,
+            "episodes": 100,
+            "success_mean": 99.0,
+            "success_std": 1.0,
+            "weighted_success_mean": 90.0,
+        }  # fmt: skip
+        for env in ("maze", "maze-tight")
+    ]
+    text = render_summary(rows, figures)
+    assert "paper: QRL / HIQL" in text.splitlines()[0]
+    lines = [ln for ln in text.splitlines() if ln.startswith("| maze")]
+    assert lines[0].endswith("| 86 / 58 |") and lines[1].endswith("| 68 / – |")
+    decimals = render_summary(rows, {**figures, "maze": {"QRL": (86.5, 9.0), "HIQL": (58.0, 5.0)}})
+    assert "| 86.50 / 58.00 |" in decimals
+    path.write_text('["maze"]\nQRL = [86, 9]\n')
+    with pytest.raises(BadInput, match="others"):
+        paper_figures(path)
+
+
 def test_the_summary_marks_a_method_above_the_floor_only_by_seed_noise():
     """Above the straight line's mean is not beating it: a gap inside the seeds' spread (Welch's one-sided test,
     5%) is marked ≈ floor, a gap well outside it is not, and with no spread on either side any gap counts."""

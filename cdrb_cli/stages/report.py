@@ -432,6 +432,8 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     floor_heads = [f"{m.replace('straight', 'straight line', 1)} (floor)" for m in floors] or ["straight line (floor)"]
     head = ["Table 1 row", "seeds x pairs", *floor_heads, *methods]
     paper_methods = [m for m in dict.fromkeys(m for env in envs for m in figures.get(env, {}))]
+    # published figures as their source gives them: whole per cents (OGBench) or two decimals (the paper's Table 1)
+    places = 0 if all(v[0].is_integer() for by in figures.values() for v in by.values()) else 2
     if figures:
         head.append("paper: " + " / ".join(paper_methods))
     lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
@@ -462,9 +464,8 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
                 level = True
             vals.append(text)
         if figures:
-            vals.append(
-                " / ".join(f"{figures[env][m][0]:.2f}" if m in figures.get(env, {}) else "–" for m in paper_methods)
-            )
+            known = figures.get(env, {})
+            vals.append(" / ".join(f"{known[m][0]:.{places}f}" if m in known else "–" for m in paper_methods))
         lines.append("| " + " | ".join(vals) + " |")
     notes = [
         "Cells: success (%) ± sample std over training seeds, then (in brackets) weighted success: successful "
