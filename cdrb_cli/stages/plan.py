@@ -122,7 +122,7 @@ class Avoidance:
         those); the plans unchanged and no index without it. The ends stay exactly where they were and every new
         state lies on one of the plan's own straight steps, so a plan that steps through no obstacle still steps
         through none (a plan through one keeps its timing: respaced, more of its states could fall inside)."""
-        from cdrb_cli.stages.routes import _resample
+        from cdrb_cli.stages.routes import resample_evenly
 
         leaps = self._leaps(plans, on=self.retime)
         if leaps.any():
@@ -132,7 +132,7 @@ class Avoidance:
         if not len(rows):
             return plans, rows
         dims = list(self.spec.obstacles.dims)
-        even = np.stack([_resample(plans[i], dims, plans.shape[1]) for i in rows])
+        even = np.stack([resample_evenly(plans[i], dims, plans.shape[1]) for i in rows])
         ok = ~self._leaps(even, on=True)
         out = plans.copy()
         out[rows[ok]] = even[ok]

@@ -87,7 +87,7 @@ class BufferGraph:
         """The shortest route from ``start`` to ``goal`` (raw feature rows) through the graph, as ``horizon`` raw
         feature rows at even spacing along it (start and goal exact); None when no route joins them."""
         points = self.polyline(start, goal)
-        return None if points is None else _resample(points, self.dims, horizon)
+        return None if points is None else resample_evenly(points, self.dims, horizon)
 
     def waypoint(self, start: np.ndarray, goal: np.ndarray, reach: float) -> np.ndarray | None:
         """The point ``reach`` along the shortest route from ``start`` to ``goal`` (raw feature rows; arc length
@@ -187,7 +187,7 @@ def _along(points: np.ndarray | None, dims: list[int], reach: float, goal: np.nd
     return (1 - w) * points[i] + w * points[i + 1]
 
 
-def _resample(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
+def resample_evenly(points: np.ndarray, dims: list[int], n: int) -> np.ndarray:
     """``n`` rows evenly spaced by arc length (over ``dims``) along the polyline ``points`` (m, F), every feature
     interpolated linearly; the first and last rows are the polyline's ends."""
     seg = np.linalg.norm(np.diff(points[:, dims], axis=0), axis=1)
