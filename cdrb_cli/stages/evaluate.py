@@ -266,10 +266,7 @@ def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=No
     if replan.waypoint_reach is None:
         return None
     if route_buffer is None and not hasattr(method, "points"):
-        raise BadInput(
-            f"replan.waypoint_reach: routes go through a replay buffer, and a {method.name} model carries none",
-            hint="name one: --set avoid.route_buffer=BUFFER.h5 (the buffer of the model's demos)",
-        )
+        raise _no_route_buffer(method.name)
     if replan.waypoint_graph == "free-steps":
         graph = avoid.graph if avoid.graph is not None else buffer_graph(method, spec, config.avoid, route_buffer)
     elif route_buffer is not None:
@@ -441,6 +438,14 @@ def evaluate_policy(
     return artifacts.load(out, "eval")
 
 
+def _no_route_buffer(name: str) -> BadInput:
+    """The one-line refusal of waypoints for a model that carries no buffer and was given no route buffer."""
+    return BadInput(
+        f"replan.waypoint_reach: routes go through a replay buffer, and a {name} model carries none",
+        hint="name one: --set avoid.route_buffer=BUFFER.h5 (the buffer of the model's demos)",
+    )
+
+
 def _policy_waypoints(model, spec: EnvSpec, config: EvalConfig, route_buffer=None):
     """With ``replan.waypoint_reach``, (the function giving a policy's waypoint goals, env steps between two of them)
     along the routes ``replan.waypoint_graph`` names through ``route_buffer`` (a policy keeps no buffer); None
@@ -457,10 +462,7 @@ def _policy_waypoints(model, spec: EnvSpec, config: EvalConfig, route_buffer=Non
             hint="set replan.mode=every and replan.every=STEPS",
         )
     if route_buffer is None:
-        raise BadInput(
-            f"replan.waypoint_reach: routes go through a replay buffer, and a {name} model carries none",
-            hint="name one: --set avoid.route_buffer=BUFFER.h5 (the buffer of the model's demos)",
-        )
+        raise _no_route_buffer(name)
     states = buffer_states(route_buffer, spec, model.manifest.env.id)
     if replan.waypoint_graph == "free-steps":
         graph = BufferGraph(spec, states, clearance=config.avoid.route_clearance)

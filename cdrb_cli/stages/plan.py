@@ -358,10 +358,7 @@ def _sampler_call(
     if avoid is not None and avoid.retime and scratch:
         out, rows = avoid.retimed_plans(out)
         if len(rows):
-            plans = res.plans.clone()
-            z = torch.as_tensor(method.normalizer.normalize(out[rows]), dtype=plans.dtype, device=plans.device)
-            plans[torch.as_tensor(rows, device=plans.device)] = z
-            res = SampleResult(plans=plans, iterates=res.iterates)
+            res = SampleResult(plans=_set_rows(method, res.plans.clone(), rows, out[rows]), iterates=res.iterates)
     return out, res, seconds + searched + (time.perf_counter() - t)  # the search and the choice count
 
 
@@ -432,10 +429,18 @@ def _route_fallback(method: Planner, out, res, starts, goals, rng, sampler, step
             sub[:, 0, method.pinned] = starts[rows][:, method.pinned]  # a list of dims or a slice alike
             sub[:, -1, method.pinned_end] = goals[rows][:, method.pinned_end]
             out[rows] = sub
-            z = method.normalizer.normalize(out[rows])
-            routed = torch.as_tensor(z, dtype=plans.dtype, device=plans.device)
-            plans[torch.as_tensor(rows, device=plans.device)] = routed
+            _set_rows(method, plans, rows, sub)
     return out, SampleResult(plans=plans, iterates=res.iterates)
+
+
+def _set_rows(method: Planner, plans, rows: np.ndarray, raw: np.ndarray):
+    """``plans`` (the sampler's normalized tensor) with ``rows`` set, in place, to the raw plans ``raw``; returns
+    it. What replaced a kept plan after the sampler (a buffer route, a retimed plan) shows in its result too."""
+    import torch
+
+    z = torch.as_tensor(method.normalizer.normalize(raw), dtype=plans.dtype, device=plans.device)
+    plans[torch.as_tensor(rows, device=plans.device)] = z
+    return plans
 
 
 def replan_batch(
