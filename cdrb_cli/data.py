@@ -85,19 +85,35 @@ class TransitionSampler(WindowSampler):
     """What a goal-conditioned policy learns from: (n, H + 1, F) rows, the first H the state-action features of H
     consecutive steps from a uniformly drawn step t (the chunk of actions to predict from the state at t; indices
     past the episode's end repeat its last row), the last the features of the *goal state*: the episode's final
-    state, or with probability ``relabel`` a uniformly drawn later state of the same episode (hindsight
-    relabelling, "future"). The expert reaches its goal, so the final state stands for the commanded goal."""
+    state, or with probability ``relabel`` a later state of the same episode (hindsight relabelling, "future"):
+    uniform over the rest of the episode, or with ``relabel_horizon`` h the state a Geometric(1/h) number of steps
+    ahead (mean h, cut at the episode's end), as goal-conditioned RL samples goals with a discount 1 - 1/h; goals
+    near the present are then as common as the near goals (waypoints) a policy is given when it acts. The expert
+    reaches its goal, so the final state stands for the commanded goal."""
 
-    def __init__(self, demos, features: str, normalizer: Normalizer, horizon: int, split: str = "train", relabel=0.0):
+    def __init__(
+        self,
+        demos,
+        features: str,
+        normalizer: Normalizer,
+        horizon: int,
+        split: str = "train",
+        relabel=0.0,
+        relabel_horizon: float | None = None,
+    ):
         super().__init__(demos, features, normalizer, horizon, 1, split)
         self.relabel = float(relabel)
+        self.relabel_horizon = relabel_horizon
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         pair = rng.integers(0, self.n_windows, size=n)
         e = np.searchsorted(self.cum, pair, side="right")
         t = pair - np.concatenate([[0], self.cum])[e]  # 0 .. L-2
         last = self.lengths[e] - 1
-        future = t + 1 + np.floor(rng.random(n) * (last - t)).astype(np.int64)  # uniform in t+1 .. L-1
+        if self.relabel_horizon is None:
+            future = t + 1 + np.floor(rng.random(n) * (last - t)).astype(np.int64)  # uniform in t+1 .. L-1
+        else:  # t + Geometric(1/h) on 1, 2, ..., cut at L-1
+            future = np.minimum(t + rng.geometric(1.0 / self.relabel_horizon, size=n), last)
         goal = np.where(rng.random(n) < self.relabel, future, last)
         idx = window_index(self.lengths[e], self.horizon, 1, t)
         idx = np.concatenate([idx, goal[:, None]], axis=1) + self.starts[e][:, None]

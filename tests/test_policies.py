@@ -39,6 +39,43 @@ def test_transitions_hold_a_chunk_from_a_step_and_a_goal_of_the_same_episode(sma
             assert (rows[:, 3] > t).all() and (rows[:, 3] < last[t]).mean() > 0.5  # uniform over later states
 
 
+def test_relabelled_goals_lie_a_geometric_number_of_steps_ahead(small_data):
+    """With relabel_horizon h a relabelled goal is min(t + G, last) with G ~ Geometric(1/h) on 1, 2, ...: the
+    offsets' sum matches that law's (a z-test summed over each sample's cut), and the uniform law fails the same
+    test, so it can tell them apart."""
+    from cdrb_cli.buffer import Normalizer, demo_features
+    from cdrb_cli.data import TransitionSampler
+
+    demos, _ = small_data
+    raw = demo_features(demos, "state-action")
+    ident = Normalizer(low=-np.ones(raw.shape[1], np.float32), high=np.ones(raw.shape[1], np.float32))
+    row_of = {row.tobytes(): i for i, row in enumerate(raw.astype(np.float32))}
+    episode = np.repeat(np.arange(len(demos.episode_length)), demos.episode_length)
+    last = (demos.episode_start + demos.episode_length - 1)[episode]
+    h, n = 4.0, 4000
+
+    def z_of(horizon):
+        batch = TransitionSampler(demos, "state-action", ident, 1, "all", 1.0, horizon).sample(
+            n, np.random.default_rng(2)
+        )
+        t = np.array([row_of[b[0].tobytes()] for b in batch])
+        goal = np.array([row_of[b[-1].tobytes()] for b in batch])
+        cut, d = last[t] - t, goal - t
+        assert (d >= 1).all() and (d <= cut).all() and (episode[goal] == episode[t]).all()
+        mean = var = 0.0
+        for c in cut:  # min(G, c): P(j) = p (1-p)^(j-1) for j < c, the rest of the mass at c
+            p = 1 / h
+            pmf = p * (1 - p) ** np.arange(c)
+            pmf[-1] = (1 - p) ** (c - 1)
+            j = np.arange(1, c + 1)
+            m = (pmf * j).sum()
+            mean, var = mean + m, var + (pmf * (j - m) ** 2).sum()
+        return (d.sum() - mean) / np.sqrt(var)
+
+    assert abs(z_of(h)) < 4
+    assert abs(z_of(None)) > 8
+
+
 def test_resume_of_diffusion_bc_is_exact(small_data, tmp_path):
     demos, _ = small_data
     full = train(

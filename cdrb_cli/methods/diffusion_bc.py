@@ -5,8 +5,9 @@ A closed-loop policy, not a planner: every environment step (or every ``act_ever
 
 * data: transitions of the demonstrations (``data.TransitionSampler``): the state at a step t, the ``horizon``
   actions from t, and a goal state from the same episode (its final state, or a later one with probability
-  ``relabel``); everything min/max-normalized to [-1, 1] with the demonstrations' state-action normalizer; the
-  condition is the normalized state and the goal's dims of the normalized goal state;
+  ``relabel``: uniform over the rest, or about ``relabel_horizon`` steps ahead); everything min/max-normalized to
+  [-1, 1] with the demonstrations' state-action normalizer; the condition is the normalized state and the goal's
+  dims of the normalized goal state;
 * the denoiser: the MLP Sieve (``nets/sieve.py``), fed the noisy actions, the step as t/T and the condition;
 * training: epsilon prediction with an L2 loss, t uniform over the T steps, the reference's linear betas
   1e-4 .. 0.02 (diffusers' DDPMScheduler, ``fixed_small`` variance);
@@ -48,6 +49,13 @@ class DiffusionBCParams(MethodParams):
     relabel: float = Field(
         0.0, ge=0, le=1, description="share of training goals relabelled to a later state of the episode"
     )
+    relabel_horizon: float | None = Field(
+        None,
+        ge=1,
+        le=1e7,
+        description="relabelled goals lie a Geometric(1/h) number of steps ahead (mean h, cut at the episode's end), "
+        "as with a discount 1 - 1/h; null: uniform over the rest of the episode",
+    )
 
 
 class DiffusionBC(Policy):
@@ -85,7 +93,13 @@ class DiffusionBC(Policy):
         from cdrb_cli.data import TransitionSampler
 
         return TransitionSampler(
-            demos, self.config.features, normalizer, self.horizon, split, self.config.method.relabel
+            demos,
+            self.config.features,
+            normalizer,
+            self.horizon,
+            split,
+            self.config.method.relabel,
+            self.config.method.relabel_horizon,
         )
 
     # -------------------------------------------------------------- training
