@@ -640,3 +640,36 @@ def test_first_step_ratio_is_the_median_first_step_over_the_allowed_step():
     assert first_step_ratio([ev([0.1], 0.0)]) is None
     policy = SimpleNamespace(arrays={}, manifest=None)
     assert first_step_ratio([policy]) is None
+
+
+def test_a_method_whose_rows_chose_their_own_settings_is_one_summary_column_with_its_settings_named():
+    """Where each row ran a method with its own re-planning settings (a tuned selection), the summary gives the
+    method one column and names each row's settings under the table; what sets a method apart (a variant, a
+    map-aware controller) stays in its column's name, and a row with two settings of one method keeps them apart."""
+    from cdrb_cli.stages.report import render_summary
+
+    def row(env, column, settings, success):
+        method = column if settings == "plain" else f"{column.split(' [')[0]} [{settings}]"
+        return {"env": env, "env_name": env, "method": method, "column": column, "settings": settings, "seeds": 3,
+                "episodes": 50, "success_mean": success, "success_std": 1.0, "weighted_success_mean": 5.0}  # fmt: skip
+
+    rows = [
+        row("a", "straight", "every 80, waypoints 6 ahead", 20.0),
+        row("b", "straight", "every 80, waypoints 6 ahead", 30.0),
+        row("c", "straight", "every 80, waypoints 6 ahead", 25.0),
+        row("a", "cdrb", "every 80, waypoints 10 ahead", 90.0),
+        row("b", "cdrb", "every 80, waypoints 10 ahead", 91.0),
+        row("c", "cdrb", "every 80, waypoints 6 ahead", 92.0),
+        row("a", "cdrb [geodesic balls]", "every 80, waypoints 10 ahead", 93.0),
+    ]
+    text = render_summary(rows)
+    head = text.splitlines()[0]
+    assert head == "| Table 1 row | seeds x pairs | straight line (floor) | cdrb | cdrb [geodesic balls] |"
+    assert "| c | 3 x 50 | 25.0 ± 1.0 (5.0) | 92.0 ± 1.0 (5.0) | – |" in text
+    assert "straight line: every 80, waypoints 6 ahead on every row" in text
+    assert "cdrb: every 80, waypoints 10 ahead (every 80, waypoints 6 ahead on c)" in text
+    assert "cdrb [geodesic balls]: every 80, waypoints 10 ahead on every row" in text
+    # two settings of one method on one row: each keeps its own column, and no settings note is needed
+    apart = render_summary(rows + [row("a", "cdrb", "every 20", 50.0)])
+    assert "cdrb [every 80, waypoints 10 ahead]" in apart.splitlines()[0] and "cdrb [every 20]" in apart
+    assert "as its row chose them" not in apart

@@ -137,17 +137,30 @@ def method_label(ev) -> str:
     """The method, its preset when not the quick one, how it was executed when closed loop and how it kept its plans
     out of obstacles (e.g. ``cdrb [every 20, repair k=4]``, ``cdrb [masked buffer, best of 4]``), and whether its
     controller reads the map: each is its own row."""
+    return _label(ev, settings=True)
+
+
+def _label(ev, settings: bool) -> str:
+    """:func:`method_label`, or with ``settings`` false without the run's settings (re-planning, avoidance): what
+    sets the method apart, the column a summary may give it when each row chose its own settings."""
     s = ev.manifest.summary
     label = s.method if s.model_preset == "quick" else f"{s.method} ({s.model_preset})"
     config = ev.manifest.config
     how = [s.variant] if getattr(s, "variant", None) else []
-    how += [config.replan.label()] if config.replan.mode != "never" else []
-    avoid = getattr(config, "avoid", None)
-    if avoid is not None and avoid.label() != "plain":
-        how.append(avoid.label())
+    how += _settings(ev) if settings else []
     if not is_policy_eval(ev) and _knows_map(config.controller.name):
         how.append("planner + map-aware controller")
     return f"{label} [{'; '.join(how)}]" if how else label
+
+
+def _settings(ev) -> list[str]:
+    """How an eval ran its method: its re-planning and its avoidance of obstacles, where not the plain ones."""
+    config = ev.manifest.config
+    how = [config.replan.label()] if config.replan.mode != "never" else []
+    avoid = getattr(config, "avoid", None)
+    if avoid is not None and avoid.label() != "plain":
+        how.append(avoid.label())
+    return how
 
 
 def _knows_map(controller: str) -> bool:
@@ -243,6 +256,8 @@ def collect_rows(evals) -> list[dict]:
                     "failures": failure_text(sum_failures(r.failures for r in per)),
                     "path": ui.plain(";".join(str(ev.path) for ev in group)),
                     "env_name": ui.plain(_env_name(first.manifest.env)),
+                    "column": ui.plain(_label(first, settings=False)),
+                    "settings": ui.plain(", ".join(_settings(first))) or "plain",
                 }
             )
     return rows
@@ -425,6 +440,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     with ``paper`` the paper's figures. A row without a straight-line eval says so instead of a floor."""
     figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
     rows, preset_note = preset_columns([_markdown_safe(r) for r in rows])
+    rows, settings_note = setting_columns(rows)
     envs = list(dict.fromkeys(r["env"] for r in rows))
     cell = {(r["env"], r["method"]): r for r in rows}
     floors = [m for m in method_order(dict.fromkeys(r["method"] for r in rows)) if m.split(" ")[0] == "straight"]
@@ -488,6 +504,8 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
         )
     if preset_note:
         notes.append(preset_note)
+    if settings_note:
+        notes.append(settings_note)
     if figures:
         notes.append(
             "The paper's figures were measured with other experts, controllers, success radius, horizon/stride and "
@@ -543,6 +561,40 @@ def preset_columns(rows: list[dict]) -> tuple[list[dict], str]:
         for preset, names in where.items()
     )
     return merged, note
+
+
+def setting_columns(rows: list[dict]) -> tuple[list[dict], str]:
+    """``rows`` with each method's run settings (re-planning, avoidance) taken out of its column name (``cdrb [every
+    80, waypoints 10 ahead]`` -> ``cdrb``), so one method is one column where each row chose its own settings (a
+    tuned selection), and a note naming each column's settings row by row. What sets a method apart stays in its
+    name (a variant such as geodesic balls, a map-aware controller). Where two of one row's methods would then
+    share a column, ``rows`` are kept as they are."""
+    if not rows or any("column" not in r for r in rows):
+        return rows, ""
+    merged = [{**r, "method": _strip_settings(r)} for r in rows]
+    if len({(r["env"], r["method"]) for r in merged}) < len(merged):
+        return rows, ""
+    if all(r["method"] == o["method"] for r, o in zip(merged, rows)):
+        return rows, ""
+    columns = method_order(dict.fromkeys(r["method"] for r in merged))
+    parts = []
+    for column in sorted(columns, key=lambda c: c.split(" ")[0] != "straight"):  # the floors first, as the table
+        by_setting: dict[str, list[str]] = {}
+        for r in merged:
+            if r["method"] == column:
+                by_setting.setdefault(r["settings"], []).append(r["env_name"])
+        name = column.replace("straight", "straight line", 1) if column.split(" ")[0] == "straight" else column
+        most, *rest = sorted(by_setting, key=lambda k: -len(by_setting[k]))
+        others = "; ".join(f"{k} on {', '.join(by_setting[k])}" for k in rest)
+        parts.append(f"{name}: {most}" + (f" ({others})" if rest else " on every row"))
+    return merged, "Each column's settings (re-planning, avoidance), as its row chose them: " + ". ".join(parts) + "."
+
+
+def _strip_settings(row: dict) -> str:
+    """The row's column name without its run settings, its preset taken out as :func:`preset_columns` did."""
+    column = row["column"]
+    base = row["method"].split(" [")[0]  # the method and its preset as the row's name has it
+    return base + column[len(column.split(" [")[0]) :]
 
 
 def _summary_cell(r: dict) -> str:
