@@ -496,7 +496,7 @@ def test_one_seed_shows_no_interval(tmp_path):
 def test_the_summary_marks_every_method_that_does_not_beat_the_straight_line():
     """One line per environment: the straight line is the floor column, a method at or below it is marked, a
     policy's weighted success is n/a, and a row with no straight-line eval says so rather than marking nothing."""
-    from cdrb_cli.stages.report import render_summary
+    from cdrb_cli.stages.report_summary import render_summary
 
     def row(env, method, success, weighted, seeds=3):
         return {"env": env, "env_name": env.title(), "method": method, "seeds": seeds, "episodes": 100,
@@ -531,7 +531,8 @@ def test_published_figures_of_methods_outside_the_registry_print_as_their_source
     column follows ours, in the file's order, with – where a row has none; whole per cents print whole (OGBench's
     table), a file with decimals prints two (the paper's Table 1). A name neither registered nor listed is refused."""
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.stages.report import paper_figures, render_summary
+    from cdrb_cli.stages.report import paper_figures
+    from cdrb_cli.stages.report_summary import render_summary
 
     path = tmp_path / "published.toml"
     path.write_text(
@@ -565,7 +566,7 @@ def test_published_figures_of_methods_outside_the_registry_print_as_their_source
 def test_the_summary_marks_a_method_above_the_floor_only_by_seed_noise():
     """Above the straight line's mean is not beating it: a gap inside the seeds' spread (Welch's one-sided test,
     5%) is marked ≈ floor, a gap well outside it is not, and with no spread on either side any gap counts."""
-    from cdrb_cli.stages.report import _above, render_summary
+    from cdrb_cli.stages.report_summary import _above, render_summary
 
     def row(method, success, std, seeds=5):
         return {"env": "fetch-push", "env_name": "Push", "method": method, "seeds": seeds, "episodes": 100,
@@ -585,7 +586,7 @@ def test_the_summary_marks_a_method_above_the_floor_only_by_seed_noise():
 def test_the_summary_says_a_row_whose_floor_solves_every_pair_ranks_nothing():
     """A straight line that solves (nearly) every pair leaves the row no room between floor and ceiling: the row is
     named "floor = ceiling: no comparison" with a note; a row whose floor leaves room is not."""
-    from cdrb_cli.stages.report import CEILING, render_summary
+    from cdrb_cli.stages.report_summary import CEILING, render_summary
 
     def row(env, method, success):
         return {"env": env, "env_name": env.title(), "method": method, "seeds": 5, "episodes": 100,
@@ -603,7 +604,7 @@ def test_the_summary_says_a_row_whose_floor_solves_every_pair_ranks_nothing():
 def test_the_summary_gives_a_method_one_column_whatever_preset_each_row_trained_at():
     """Rows trained at different presets (the mazes at the quick one, Fetch at the paper one) share each method's
     column and a note names the rows of the other preset; a row with a method at both presets keeps both columns."""
-    from cdrb_cli.stages.report import render_summary
+    from cdrb_cli.stages.report_summary import render_summary
 
     def row(env, method, success):
         return {"env": env, "env_name": env.title(), "method": method, "seeds": 3, "episodes": 100,
@@ -646,7 +647,7 @@ def test_a_method_whose_rows_chose_their_own_settings_is_one_summary_column_with
     """Where each row ran a method with its own re-planning settings (a tuned selection), the summary gives the
     method one column and names each row's settings under the table; what sets a method apart (a variant, a
     map-aware controller) stays in its column's name, and a row with two settings of one method keeps them apart."""
-    from cdrb_cli.stages.report import render_summary
+    from cdrb_cli.stages.report_summary import render_summary
 
     def row(env, column, settings, success):
         method = column if settings == "plain" else f"{column.split(' [')[0]} [{settings}]"

@@ -402,9 +402,9 @@ def test_paper_figures_come_from_the_data_file_and_a_bad_file_is_one_line(tmp_pa
 
 
 def test_names_from_an_artifact_cannot_break_a_markdown_table_or_its_block():
-    from cdrb_cli.stages.report import _markdown_safe
+    from cdrb_cli.stages.report import markdown_safe
 
-    row = _markdown_safe({"method": "a|b\n<!-- t:end -->\n<script>", "success_mean": 1.0})
+    row = markdown_safe({"method": "a|b\n<!-- t:end -->\n<script>", "success_mean": 1.0})
     assert row == {"method": "a\\|b &lt;!-- t:end --> &lt;script>", "success_mean": 1.0}
 
 

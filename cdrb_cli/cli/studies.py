@@ -61,6 +61,7 @@ def report(
     Evals of one environment must share a protocol (seeds, episodes, controller); mixing is an error."""
     from cdrb_cli.stages import docs_blocks, report_figures
     from cdrb_cli.stages import report as rep
+    from cdrb_cli.stages.report_summary import render_summary
 
     if (docs is None) != (block is None):
         raise BadInput("--docs and --block go together", hint="e.g. --docs docs/benchmarks.md --block table1-mazes")
@@ -85,7 +86,7 @@ def report(
             raise BadInput("--per-seed has no summary format", hint="use --format table, markdown, csv or json")
         text = rep.render_seed_rows(rep.seed_rows(arts), fmt)
     elif fmt == "summary":
-        text = rep.render_summary(rows, paper=figures)
+        text = render_summary(rows, paper=figures)
     else:
         text = rep.render(rows, "markdown" if docs is not None else fmt, paper=figures)
     # every check before the first file is written: a bad --docs block or evals without plans leave nothing behind

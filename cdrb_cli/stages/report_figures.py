@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli.errors import BadInput
-from cdrb_cli.stages.report import method_label, method_order, method_rank, preset_columns
+from cdrb_cli.stages.report import method_label, method_order, method_rank
+from cdrb_cli.stages.report_summary import preset_columns
 
 
 def plot_bars(rows: list[dict], path) -> Path:
