@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from cdrb_cli.nets.activations import Mish
 from cdrb_cli.nets.config import MLPConfig
 
 
@@ -13,7 +14,7 @@ class TrajectoryMLP(nn.Module):
         super().__init__()
         layers, width = [], 2 * cond_dim
         for h in config.hidden:
-            layers += [nn.Linear(width, h), nn.Mish()]
+            layers += [nn.Linear(width, h), Mish()]
             width = h
         layers.append(nn.Linear(width, horizon * feature_dim))
         self.net = nn.Sequential(*layers)

@@ -13,11 +13,13 @@ import math
 import torch
 from torch import nn
 
+from cdrb_cli.nets.activations import Mish
+
 
 def mlp(n_in: int, n_out: int, hidden: list[int]):
     layers, width = [], n_in
     for h in hidden:
-        layers += [nn.Linear(width, h), nn.Mish()]
+        layers += [nn.Linear(width, h), Mish()]
         width = h
     return nn.Sequential(*layers, nn.Linear(width, n_out))
 
@@ -27,7 +29,7 @@ class NoiseMLP(nn.Module):
 
     def __init__(self, act_dim: int, cond_dim: int, hidden: list[int]):
         super().__init__()
-        self.t_mlp = nn.Sequential(nn.Linear(16, 32), nn.Mish(), nn.Linear(32, 16))
+        self.t_mlp = nn.Sequential(nn.Linear(16, 32), Mish(), nn.Linear(32, 16))
         self.net = mlp(act_dim + 16 + cond_dim, act_dim, hidden)
 
     def forward(self, a, t, cond):

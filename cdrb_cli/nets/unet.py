@@ -11,20 +11,21 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from cdrb_cli.nets.activations import Mish
 from cdrb_cli.nets.config import UNetConfig
 from cdrb_cli.nets.embeddings import SinusoidalEmbedding
 
 
 class ConvNormAct(nn.Sequential):
     def __init__(self, c_in: int, c_out: int, kernel: int, groups: int):
-        super().__init__(nn.Conv1d(c_in, c_out, kernel, padding=kernel // 2), nn.GroupNorm(groups, c_out), nn.Mish())
+        super().__init__(nn.Conv1d(c_in, c_out, kernel, padding=kernel // 2), nn.GroupNorm(groups, c_out), Mish())
 
 
 class ResidualTemporalBlock(nn.Module):
     def __init__(self, c_in: int, c_out: int, emb_dim: int, kernel: int, groups: int):
         super().__init__()
         self.first = ConvNormAct(c_in, c_out, kernel, groups)
-        self.step_bias = nn.Sequential(nn.Mish(), nn.Linear(emb_dim, c_out))
+        self.step_bias = nn.Sequential(Mish(), nn.Linear(emb_dim, c_out))
         self.second = ConvNormAct(c_out, c_out, kernel, groups)
         self.skip = nn.Conv1d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
 
@@ -46,7 +47,7 @@ class TemporalUNet(nn.Module):
             if w % g:
                 raise ValueError(f"U-Net width {w} is not divisible by {g} GroupNorm groups")
         self.step_embedding = nn.Sequential(
-            SinusoidalEmbedding(dim), nn.Linear(dim, dim * 4), nn.Mish(), nn.Linear(dim * 4, dim)
+            SinusoidalEmbedding(dim), nn.Linear(dim, dim * 4), Mish(), nn.Linear(dim * 4, dim)
         )
         self.down = nn.ModuleList()
         for i, (c_in, c_out) in enumerate(pairs):
