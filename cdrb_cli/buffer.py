@@ -335,10 +335,14 @@ class BallSampler:
                 dist, idx = np.asarray(dist).reshape(-1, kmax), np.asarray(idx).reshape(-1, kmax)
                 # neighbours come sorted by distance: if the k-th is still inside the ball, there may be more
                 saturated[sl] = (dist[:, -1] <= own) & (kmax < self.K)
-                valid = idx < self.K
-                safe = np.where(valid, idx, 0)
-                dd = self.points[safe] - q[sl][:, None, :]
-                valid &= np.einsum("qkd,qkd->qk", dd, dd) < qr2[sl, None]
+                # inside the ball by the tree's distance, except in a band of rounding width around the sphere,
+                # where membership is decided from the differences, as every other path of the sampler does
+                r = np.sqrt(qr2[sl])[:, None]
+                valid = (idx < self.K) & (dist < r)
+                qi, kj = np.nonzero((idx < self.K) & (np.abs(dist - r) <= 1e-9 * (1.0 + r)))
+                if qi.size:
+                    dd = self.points[idx[qi, kj]] - q[sl][qi]
+                    valid[qi, kj] = np.einsum("nd,nd->n", dd, dd) < qr2[sl][qi]
                 counts = valid.sum(axis=1)
                 pick = np.floor(rng.random(len(counts)) * counts).astype(np.int64)
                 chosen = (np.cumsum(valid, axis=1) > pick[:, None]).argmax(axis=1)

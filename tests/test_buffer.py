@@ -71,6 +71,23 @@ def test_tree_enumeration_is_exact_when_balls_overflow_k():
     _check_uniform(idx, points, x, r)
 
 
+def test_tree_enumeration_decides_points_on_the_sphere_from_differences():
+    """Points within rounding of the ball's sphere are inside exactly when their squared difference, summed as the
+    sampler's other paths sum it, is below r^2: the tree's own distances decide only points clearly in or out."""
+    rng = np.random.default_rng(11)
+    x, r = rng.normal(size=3), 0.7
+    u = rng.normal(size=(400, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    points = np.concatenate([x + r * u, x + 0.5 * r * u[:20], x + 2 * r * u[:50]])  # on, inside, outside
+    d = points - x
+    inside = np.flatnonzero(np.einsum("nd,nd->n", d, d) < r * r)  # the sampler's membership, summed its way
+    assert 20 < len(inside) < 420, "test set-up: rounding puts some sphere points inside and some outside"
+    s = BallSampler(points, np.array([0.0, r]))
+    n = 60_000
+    idx = s._enumerate_tree(np.repeat(x[None], n, 0), np.full(n, r * r), np.random.default_rng(12))
+    assert set(np.unique(idx).tolist()) == set(inside.tolist())
+
+
 @pytest.mark.parametrize("impl", SAMPLERS)
 def test_mixed_queries_each_uniform(impl):
     rng = np.random.default_rng(5)
