@@ -116,6 +116,12 @@ class TrainConfig(Record):
         "so a slow run killed early can --resume",
     )
     split: Literal["train", "all"] = Field("train", description="episodes trained on: train, or all (no validation)")
+    precision: Literal["float32", "bfloat16"] = Field(
+        "float32",
+        description="arithmetic of the training step's forward passes: bfloat16 runs them under torch.autocast "
+        "(weights, gradients, optimizer state and evaluation stay float32); fast where the CPU has bfloat16 "
+        "instructions (AVX-512 BF16, AMX) or on a GPU that supports it, slow elsewhere",
+    )
 
     #: fields that only say when progress is saved, never what is computed: a model made with other values of
     #: them is still up to date (artifacts.existing)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 import pytest
 
@@ -247,3 +249,52 @@ def test_resume_of_diffusion_ql_is_exact_with_both_optimizers_and_targets(small_
     for k in keys:
         np.testing.assert_array_equal(full.arrays[k], resumed.arrays[k], err_msg=k)
     assert float(full.arrays["weights/targets/updates"]) == 30
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_bfloat16_runs_the_forward_passes_of_an_update_and_keeps_the_weights_float32(small_data, precision):
+    """precision=bfloat16: every forward pass of a Diffusion-QL update (critic, target, BC loss, the actor's
+    differentiable chain) runs its linear layers in bfloat16; weights and optimizer state stay float32, and the
+    update's loss is the float32 one up to bfloat16 rounding."""
+    import torch
+
+    demos, _ = small_data
+    seen = []
+    runs = {}
+    for p in dict.fromkeys(["float32", precision]):
+        torch.manual_seed(0)
+        method, _ = _ql(demos, precision=p)
+        hooks = [
+            m.register_forward_hook(lambda mod, inp, out, p=p: seen.append((p, out.dtype)))
+            for net in (method.actor, method.critic, method.targets.actor, method.targets.critic)
+            for m in net.modules()
+            if isinstance(m, torch.nn.Linear)
+        ]
+        batch = torch.from_numpy(method.data(demos, method.normalizer, "train").sample(32, np.random.default_rng(3)))
+        opts = method.make_optimizers()
+        loss = method.update(batch, np.random.default_rng(0), opts)
+        for h in hooks:
+            h.remove()
+        assert np.isfinite(loss)
+        params = [*method.actor.parameters(), *method.critic.parameters(), *method.targets.parameters()]
+        assert all(q.dtype == torch.float32 for q in params if q.is_floating_point())
+        assert all(s["exp_avg"].dtype == torch.float32 for o in opts.values() for s in o.state.values())
+        runs[p] = loss
+    dtypes = {d for p, d in seen if p == precision}
+    assert dtypes == {torch.bfloat16 if precision == "bfloat16" else torch.float32}
+    assert runs[precision] == pytest.approx(runs["float32"], rel=0.05)
+
+
+def test_bfloat16_is_refused_on_a_gpu_without_it(monkeypatch):
+    import torch
+
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages.train import check_precision
+
+    cfg = types.SimpleNamespace(precision="bfloat16")
+    check_precision(cfg, "cpu")  # a CPU runs it, natively or emulated
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda: False)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "Tesla V100")
+    with pytest.raises(BadInput, match="precision=bfloat16: Tesla V100 has no bfloat16"):
+        check_precision(cfg, "cuda")
+    check_precision(types.SimpleNamespace(precision="float32"), "cuda")

@@ -480,3 +480,31 @@ def test_d_max_from_the_data_box_is_the_diagonal_of_the_normalized_features(smal
     assert label(ball="euclidean", d_max_from="buffer") is None
     assert label(ball="euclidean", d_max_from="data-box") == "d_max of the data box"
     assert label(ball="geodesic", d_max_from="data-box") == "geodesic balls, d_max of the data box"
+
+
+@pytest.mark.parametrize("name", ["cdrb", "mlp"])
+def test_a_bfloat16_training_step_runs_the_network_in_bfloat16_and_keeps_float32_weights(small_data, name):
+    """precision=bfloat16 runs a planner's training forward pass under autocast (its convolutions or linear layers
+    give bfloat16), the logged loss is a float32 number close to the float32 step's, the weights stay float32."""
+    import torch
+
+    from cdrb_cli.methods.base import build_method
+    from cdrb_cli.stages.train import check_inputs
+
+    demos, buffer = small_data
+    out = {}
+    for precision in ("float32", "bfloat16"):
+        cfg = train_config(demos, buffer, name, tiny(name, precision=precision, batch_size=32))
+        torch.manual_seed(0)
+        method = build_method(cfg, demos.manifest.env, check_inputs(demos, buffer, cfg.features), buffer.points)
+        seen = []
+        layers = [m for m in method.net.modules() if isinstance(m, (torch.nn.Conv1d, torch.nn.Linear))]
+        hooks = [m.register_forward_hook(lambda mod, inp, o, seen=seen: seen.append(o.dtype)) for m in layers]
+        batch = torch.from_numpy(method.data(demos, method.normalizer, "train").sample(32, np.random.default_rng(1)))
+        loss = method.update(batch, np.random.default_rng(2), method.make_optimizers())
+        for h in hooks:
+            h.remove()
+        assert set(seen) == {torch.bfloat16 if precision == "bfloat16" else torch.float32}
+        assert all(p.dtype == torch.float32 for p in method.net.parameters())
+        out[precision] = loss
+    assert out["bfloat16"] == pytest.approx(out["float32"], rel=0.05)

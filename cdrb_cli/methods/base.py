@@ -114,7 +114,8 @@ class Method:
 
     def update(self, batch: torch.Tensor, rng: np.random.Generator, optimizers: dict) -> float:
         """One training update; returns the loss to log. Raises :class:`NonFiniteLoss` before touching weights."""
-        loss = self.loss(batch, rng)
+        with self.autocast(batch.device):
+            loss = self.loss(batch, rng).float()
         if not torch.isfinite(loss):
             raise NonFiniteLoss(float(loss.detach()))
         opt = optimizers["net"]
@@ -124,6 +125,13 @@ class Method:
             torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.config.grad_clip)
         opt.step()
         return float(loss.detach())
+
+    def autocast(self, device: torch.device):
+        """The context the forward passes of a training update run in: ``torch.autocast`` to bfloat16 when the
+        training config asks for it (``precision``), else nothing. Backward passes and optimizer steps stay outside
+        it, as torch recommends; they follow the dtypes the forward passes chose."""
+        wanted = getattr(self.config, "precision", "float32") == "bfloat16"
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=wanted)
 
     def extra_arrays(self) -> dict[str, np.ndarray]:
         """Arrays the model artifact must carry for sampling (e.g. the CDRB buffer)."""

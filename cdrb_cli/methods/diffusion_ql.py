@@ -169,12 +169,15 @@ class DiffusionQL(Policy):
         cond, a, nxt = self._parts(batch)
         r, done = self.reward(batch)
         gen = torch_generator(rng)
-        q1, q2 = self.critic(cond, a)
-        target = self.critic_target(nxt, r, done, gen)
-        critic_loss = torch.mean((q1 - target) ** 2) + torch.mean((q2 - target) ** 2)
+        with self.autocast(batch.device):
+            q1, q2 = self.critic(cond, a)
+            target = self.critic_target(nxt, r, done, gen).float()
+            critic_loss = torch.mean((q1.float() - target) ** 2) + torch.mean((q2.float() - target) ** 2)
         self._step(optimizers["critic"], self.critic, critic_loss)
-        bc = self.bc_loss(cond, a, rng)
-        n1, n2 = self.critic(cond, self._sample(self.actor, cond, gen))  # gradients through the sampling chain
+        with self.autocast(batch.device):
+            bc = self.bc_loss(cond, a, rng).float()
+            n1, n2 = self.critic(cond, self._sample(self.actor, cond, gen))  # gradients through the sampling chain
+            n1, n2 = n1.float(), n2.float()
         if rng.random() < 0.5:
             n1, n2 = n2, n1
         self._step(optimizers["actor"], self.actor, bc + p.eta * (-n1.mean() / n2.abs().mean().detach()))

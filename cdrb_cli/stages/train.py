@@ -53,6 +53,18 @@ def check_inputs(demos, buffer, features: str) -> Normalizer:
     return bnorm
 
 
+def check_precision(config: TrainConfig, device) -> None:
+    """Refuse bfloat16 arithmetic on a GPU that has none (a CPU always runs it, natively or emulated)."""
+    import torch
+
+    if config.precision != "bfloat16" or torch.device(device).type != "cuda" or torch.cuda.is_bf16_supported():
+        return
+    raise BadInput(
+        f"--set precision=bfloat16: {torch.cuda.get_device_name(device)} has no bfloat16 arithmetic",
+        hint="train with --set precision=float32 (the default)",
+    )
+
+
 def snapshot_path(out: Path, step: int) -> Path:
     """Where ``--snapshot-at STEP`` writes the model as it is after STEP steps: ``<out stem>.step<STEP>.h5``."""
     out = Path(out)
@@ -159,6 +171,7 @@ def train(
 
     spec = demos.manifest.env
     normalizer = check_inputs(demos, buffer, config.features)
+    check_precision(config, device)
     entry = METHODS.get(config.method.name)
     points = buffer.points if (buffer is not None and entry.needs_buffer) else None
     torch.manual_seed(config.seed)  # network initialization
