@@ -116,7 +116,7 @@ class Planner:
         #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
         self._given, self._scene_file = given, None if scene is None else Path(scene)
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
-        self.device = setup_torch(device)
+        self.device = setup_torch(device, allocator=False)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
         self._route = load_route_buffer(route_buffer_path(given))
         self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, self._route)
@@ -236,5 +236,6 @@ def evaluate(
     route = load_route_buffer(route_buffer_path(given))
     inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
     check_output(Path(out), True, "out", inputs)  # an existing file: up to date, or refused without force below
-    result = eval_artifact(m, config, out, force=force, device=setup_torch(device), scene=where, route_buffer=route)
+    device = setup_torch(device, allocator=False)
+    result = eval_artifact(m, config, out, force=force, device=device, scene=where, route_buffer=route)
     return result.manifest.summary

@@ -99,9 +99,11 @@ def keep_freed_memory() -> bool:
     (and the memory back at every free). A network pass at batch 64 allocates dozens of such intermediates; fresh
     pages for each cost more than the arithmetic of a cheap activation (on a 2-core AMD EPYC a batch-64 U-Net pass
     runs ~20% faster: docs/benchmarks.md §11). The process keeps up to 64 MiB of freed memory to reuse. Leaves
-    the allocator alone where a user set its ``MALLOC_*_`` variables, where the C library is not glibc, and
-    outside Linux; returns whether it changed anything."""
-    if not sys.platform.startswith("linux") or any(k.startswith("MALLOC_") for k in os.environ):
+    the allocator alone where a user tuned it (``GLIBC_TUNABLES`` or any ``MALLOC_*`` variable), where the C library
+    is not glibc, and outside Linux; returns whether it changed anything. The commands call it; the Python API
+    (:mod:`cdrb_cli.api`) does not, since the process is its caller's."""
+    tuned = "GLIBC_TUNABLES" in os.environ or any(k.startswith("MALLOC_") for k in os.environ)
+    if not sys.platform.startswith("linux") or tuned:
         return False
     try:
         mallopt = ctypes.CDLL(None).mallopt
@@ -111,10 +113,13 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(_M_MMAP_THRESHOLD, HEAP_BLOCK_MAX)) and bool(mallopt(_M_TRIM_THRESHOLD, 2 * HEAP_BLOCK_MAX))
 
 
-def setup_torch(device: str = "auto", threads: int | None = None):
+def setup_torch(device: str = "auto", threads: int | None = None, allocator: bool = True):
+    """Threads and device for a stage; ``allocator``: also let the heap keep freed blocks (:func:`keep_freed_memory`),
+    which a command does for its own process and a library caller's process is left without."""
     import torch
 
-    keep_freed_memory()
+    if allocator:
+        keep_freed_memory()
     n = threads or cpu_threads()
     torch.set_num_threads(n)
     if device == "auto":

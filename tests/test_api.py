@@ -18,8 +18,13 @@ def model(small_data, tmp_path_factory):
     return train(demos, buffer, cfg, tmp_path_factory.mktemp("api") / "m.h5")
 
 
-def test_plan_from_coordinates_holds_start_and_goal_and_measures_obstacles(model):
+def test_plan_from_coordinates_holds_start_and_goal_and_measures_obstacles(model, monkeypatch):
+    from cdrb_cli import torch_utils
+
+    tuned = []
+    monkeypatch.setattr(torch_utils, "keep_freed_memory", lambda: tuned.append(1))
     planner = api.Planner(model.path)
+    assert not tuned, "the API changed its caller's allocator"
     plans = planner.plan(start=[0.0, 0.0], goal=[6.0, 6.0], n=4, seed=3)
     H, D = planner.method.horizon, planner.spec.obs_dim
     assert plans.states.shape == (4, H, D) and plans.pair_index.tolist() == [0, 0, 0, 0]

@@ -145,7 +145,7 @@ class CDRB(Planner):
         start, goal = self.ends(batch, self.obs_dim)
         k = rng.integers(1, self.T, size=B)
         noisy = self.pin(self._degrade(batch, k, rng), start, goal)
-        pred = self.pin(self.net(noisy, torch.as_tensor(k, device=batch.device)), start, goal)
+        pred = self.pin(self.net(noisy, torch.as_tensor(k, device=batch.device)).float(), start, goal)
         sq = start_weighted((pred - batch) ** 2, self.config.method)
         per_sample = torch.mean(sq, dim=(1, 2))
         p = self.config.method.loss_weight_power

@@ -78,7 +78,7 @@ class Diffuser(Planner):
         gen = torch_generator(rng)
         noise = torch.randn(batch.shape, generator=gen, dtype=batch.dtype).to(batch.device)
         noisy = self.pin(self.train_sched.add_noise(batch, noise, t), start, goal)
-        pred = self.net(noisy, t)
+        pred = self.net(noisy, t).float()
         if self.config.method.predict == "x0":
             return torch.mean(start_weighted((self.pin(pred, start, goal) - batch) ** 2, self.config.method))
         return torch.mean(start_weighted((pred - noise) ** 2, self.config.method))

@@ -20,7 +20,7 @@ class MLPParams(MethodParams):
 class MLPPlanner(Planner):
     def loss(self, batch, rng):
         start, goal = self.ends(batch, self.obs_dim)
-        pred = self.pin(self.net(*self.pinned_only(start, goal)), start, goal)
+        pred = self.pin(self.net(*self.pinned_only(start, goal)).float(), start, goal)
         return torch.mean((pred - batch) ** 2)
 
     def _sample(self, start, goal, rng, sampler, steps, keep_iterates) -> SampleResult:

@@ -2,10 +2,14 @@
 
 With s = sigmoid(x), 1 + e^x = 1 / (1 - s), so tanh(softplus(x)) = (1 - (1 - s)^2) / (1 + (1 - s)^2) = p / (2 - p)
 with p = s (2 - s). torch's own kernel evaluates exp, log1p and tanh, and its CPU tanh is slow: on a 2-core AMD
-EPYC (AVX-512) this form runs a batch-64 U-Net pass in ~70% of the time, with outputs within 2e-6 of torch's (float64
-reference, |x| <= 30; docs/benchmarks.md §11). p = s (2 - s) keeps the relative precision for negative x, where
-mish(x) is tiny, and for large x p rounds to 1 and the output to x. A module without parameters: state dicts of
-models trained with ``nn.Mish`` load unchanged.
+EPYC (AVX-512) this form runs a batch-64 U-Net pass in ~70% of the time, with outputs within 2e-6 of the definition
+(float64 reference, |x| <= 60; docs/notebook/2026-11-29-mish-through-one-sigmoid.md). p = s (2 - s) keeps the
+relative precision for negative x, where mish(x) is tiny, and for large x p rounds to 1 and the output to x.
+
+Under autograd the five operations would keep five intermediates for the backward pass; :class:`_MishFunction`
+keeps only the input and differentiates by the closed form d mish / dx = t + x s (1 - t^2), t = p / (2 - p), so a
+training step holds no more than with torch's Mish. Half and bfloat16 inputs (autocast) are computed in float32 and
+rounded once, as torch's kernel does. A module without parameters: models saved with ``nn.Mish`` load unchanged.
 """
 
 from __future__ import annotations
@@ -13,11 +17,36 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+_LOW = (torch.float16, torch.bfloat16)
 
-def mish(x: torch.Tensor) -> torch.Tensor:
+
+def _forward(x: torch.Tensor) -> torch.Tensor:
     s = torch.sigmoid(x)
     p = s * (2.0 - s)
     return x * p / (2.0 - p)
+
+
+class _MishFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return _forward(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        s = torch.sigmoid(x)
+        p = s * (2.0 - s)
+        t = p / (2.0 - p)
+        return grad * (t + x * s * (1.0 - t * t))
+
+
+def mish(x: torch.Tensor) -> torch.Tensor:
+    if x.dtype in _LOW:
+        return mish(x.float()).to(x.dtype)
+    if torch.is_grad_enabled() and x.requires_grad:
+        return _MishFunction.apply(x)
+    return _forward(x)
 
 
 class Mish(nn.Module):

@@ -47,7 +47,11 @@ class TwinCritic(nn.Module):
 
     def forward(self, cond, a):
         x = torch.cat([cond, a], dim=-1)
-        return self.q1(x), self.q2(x)
+        h1, h2 = self.q1[:-1](x), self.q2[:-1](x)
+        # the values themselves in float32 even under bfloat16 autocast: with the tuned rewards Q reaches ~-200,
+        # where bfloat16 steps by 1.0, coarser than the temporal differences the critic learns
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            return self.q1[-1](h1.float()), self.q2[-1](h2.float())
 
 
 class Targets(nn.Module):
