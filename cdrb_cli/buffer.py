@@ -207,10 +207,10 @@ class BallSampler:
 
     def _strategy(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For balls of squared radii ``r2``: whether to try rejection first (balls expected to hold at least
-        ~sqrt(K) points; smaller ones are enumerated directly), and the first round's candidates, enough for ~95%
-        of the queries to hit at the ball's estimated share p of the buffer (a handful for the large balls, up to
-        ``first_tries`` for the small ones). Both depend on the radius alone, never on what is drawn, so the law
-        stays exact."""
+        ``reject_first_at`` x sqrt(K) points; smaller ones are enumerated directly), and the first round's
+        candidates, enough for ~95% of the queries to hit at the ball's estimated share p of the buffer (a handful
+        for the large balls, up to ``first_tries`` for the small ones). Both depend on the radius alone, never on
+        what is drawn, so the law stays exact."""
         share = self.ball_fraction(np.sqrt(r2))
         big = share * np.sqrt(self.K) >= self.reject_first_at
         with np.errstate(divide="ignore"):
@@ -414,11 +414,6 @@ class TorchBallSampler:
         self.eps = torch.as_tensor(np.asarray(eps, dtype=np.float64), device=self.points.device)
         self.strategy = strategy
         self.first_tries = 32
-        # balls whose estimated share of the buffer p has p sqrt(K) at least this try rejection first. Half the
-        # balance point: queries on the data (where sampling puts them) sit in denser parts of the buffer than the
-        # average probe, so balls near the balance hold more points than estimated, and enumerating them means
-        # repeated, wider KD-tree queries (on the quickstart's buffer 5x slower at batch 64 than rejection first)
-        self.reject_first_at = 0.5
         self.max_tries = int(np.ceil(4 * np.sqrt(self.K)))
         self.chunk_elems = chunk_elems
 

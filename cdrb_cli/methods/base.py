@@ -130,7 +130,7 @@ class Method:
         """The context the forward passes of a training update run in: ``torch.autocast`` to bfloat16 when the
         training config asks for it (``precision``), else nothing. Backward passes and optimizer steps stay outside
         it, as torch recommends; they follow the dtypes the forward passes chose."""
-        wanted = getattr(self.config, "precision", "float32") == "bfloat16"
+        wanted = self.config.precision == "bfloat16"
         return torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=wanted)
 
     def extra_arrays(self) -> dict[str, np.ndarray]:
