@@ -10,6 +10,7 @@
 #   * the same for Diffusion-QL, from which its reference budget (1,000,000 steps) is extrapolated.
 #
 # Usage: bash benchmarks/gpu_timing.sh OUT_DIR [STEPS]
+#   (METHODS, PRECISIONS, OFFICIAL=0, SAMPLER=0, DEMOS narrow it: see their lines below)
 # Needs the cdrb dependencies importable (pip install -e . on the GPU machine, or PYTHONPATH with them), a CUDA
 # torch, and about 5 minutes on an H100/H200. Writes OUT_DIR/gpu_timing.json and OUT_DIR/sampler_cuda.json.
 set -euo pipefail
@@ -21,13 +22,16 @@ py=${PYTHON:-python3}
 device=${DEVICE:-cuda}  # DEVICE=cpu: a dry run of this script on a machine without one
 demos=${DEMOS:-1000}    # fewer (and SAMPLER=0) for a dry run
 sampler=${SAMPLER:-1}
+methods=${METHODS:-cdrb diffuser mlp diffusion-bc diffusion-ql}  # timed at the paper preset on Fetch Push Obstacle
+precisions=${PRECISIONS:-float32}  # e.g. "float32 bfloat16": each method at each
+official=${OFFICIAL:-1}  # 0: leave out the Maze Tight and official-Fetch-size rows
 cdrb() { "$py" -m cdrb_cli "$@"; }
 
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$out/gpu.txt"; } || true
 "$py" -c 'import torch; print("torch", torch.__version__, "cuda", torch.cuda.is_available())' | tee -a "$out/gpu.txt"
 
 for env in maze-tight fetch-push-obstacle; do  # 1,000 Maze Tight demos: the sampler benchmark's K = 100,000
-  cdrb collect "$env" -n "$demos" --seed 0 --workers 8 --out "$work/$env-demos.h5" >/dev/null
+  cdrb collect "$env" -n "$demos" --seed 0 --workers "${WORKERS:-8}" --out "$work/$env-demos.h5" >/dev/null
   cdrb cluster "$work/$env-demos.h5" --seed 0 --out "$work/$env-buffer.h5" >/dev/null
 done
 
@@ -37,7 +41,8 @@ if [ "$sampler" = 1 ]; then  # its CPU reference rows are the slow part: cut at 
 fi
 
 # one row per run: env, method, setting, parameters, ms per step between step 100 and the last
-rows="$work/rows.jsonl"
+rows="$out/rows.jsonl"  # under OUT_DIR, so a run cut short keeps the rows it timed
+: >"$rows"
 time_run() {  # env method label extra-args...
   local env=$1 method=$2 label=$3
   shift 3
@@ -59,13 +64,18 @@ EOF
   tail -n 1 "$rows" >&2
 }
 
-for method in cdrb diffuser mlp diffusion-bc diffusion-ql; do
-  time_run fetch-push-obstacle "$method" paper
+for precision in $precisions; do  # bfloat16: the forward passes under autocast (TrainConfig.precision)
+  label=paper && [ "$precision" = float32 ] || label=paper-$precision
+  for method in $methods; do
+    time_run fetch-push-obstacle "$method" "$label" --set precision="$precision"
+  done
 done
-for method in cdrb diffuser; do
-  time_run maze-tight "$method" paper
-  time_run fetch-push-obstacle "$method" official-fetch --set method.diffusion_steps=16
-done
+if [ "$official" = 1 ]; then
+  for method in cdrb diffuser; do
+    time_run maze-tight "$method" paper
+    time_run fetch-push-obstacle "$method" official-fetch --set method.diffusion_steps=16
+  done
+fi
 
 "$py" - "$rows" "$out/gpu_timing.json" <<'EOF'
 import json, sys, platform
