@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
+import logging
 import os
 import re
 import shutil
@@ -162,7 +163,14 @@ class RayBackend:
     def __init__(self, address: str | None, workers: int | None):
         import ray
 
-        kwargs = {"include_dashboard": False, "log_to_driver": False, "ignore_reinit_error": True}
+        # Ray's own notices (its start-up, its token set-up) would interleave with the grid's progress on stderr;
+        # its errors still show
+        kwargs = {
+            "include_dashboard": False,
+            "log_to_driver": False,
+            "ignore_reinit_error": True,
+            "logging_level": logging.ERROR,
+        }
         if address is None and workers:
             kwargs["num_cpus"] = workers
         # "local": a Ray of its own, whatever RAY_ADDRESS or the last `ray start` on this machine say (joining a
