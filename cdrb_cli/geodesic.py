@@ -17,6 +17,15 @@ neighbours in free space: consecutive states of one demonstration. So:
   are never in a ball (their distance is infinite); a query farther from its anchor than eps has an empty ball (the
   state is kept, as for an empty Euclidean ball).
 
+The radii: the paper's schedule grows eps_k to the buffer's Euclidean diameter. Stretched to the graph's diameter
+(``method.geodesic_radii = "scaled"``), it gives far larger balls at every step, since paths along a
+demonstration zig-zag through the features (on a Fetch buffer the graph's diameter is ~11x the Euclidean one and
+its first ball holds about a fifth of the buffer against the paper's 0.3%): a degradation much stronger than the
+paper's from the first step on. :meth:`GeodesicBalls.matched_radii` (the default, ``"matched"``) gives each step
+the graph radius that holds as many (centre, member) pairs of buffer states as the paper's Euclidean radius of that
+step holds, so each step degrades as strongly as the paper's and only which states a ball holds differs; the last
+radius stays the graph's diameter, so the last ball holds each component whole.
+
 Memory is K^2 (a float64 distance and an int32 index per pair: 11 MiB at K = 1,000, 1.1 GiB at K = 10,000, whose
 all-pairs shortest paths take about 35 s on one core; `benchmarks/geodesic_balls.py` measures both).
 """
@@ -130,20 +139,65 @@ class GeodesicBalls:
         d, a = self._tree.query(np.asarray(x, dtype=np.float64))
         return np.asarray(a, dtype=np.int64), np.asarray(d, dtype=np.float64)
 
+    def _below(self, rows: np.ndarray, left: np.ndarray) -> np.ndarray:
+        """For each anchor ``rows[q]`` the number of buffer points whose graph distance to it is below ``left[q]``:
+        one binary search per row of the sorted table, all rows a step at a time (log2(K) gathers)."""
+        lo, hi = np.zeros(len(rows), dtype=np.int64), np.full(len(rows), self.K, dtype=np.int64)
+        for _ in range(int(self.K).bit_length()):
+            mid = (lo + hi) // 2
+            below = self.sorted[rows, np.minimum(mid, self.K - 1)] < left
+            open_ = lo < hi
+            lo = np.where(open_ & below, mid + 1, lo)
+            hi = np.where(open_ & ~below, mid, hi)
+        return lo
+
+    def pairs_below(self, radius: float) -> int:
+        """The number of ordered pairs (i, j) of buffer points (i = j included) with graph distance below
+        ``radius``: how many members the balls of that radius around every buffer point hold together."""
+        rows = np.arange(self.K)
+        return int(self._below(rows, np.full(self.K, float(radius))).sum())
+
+    def matched_radii(self, shape: np.ndarray, last: float) -> np.ndarray:
+        """Graph radii matched to a Euclidean schedule: ``shape`` is the schedule's radii for a diameter of 1
+        (``radii(schedule, 1.0, T)``), scaled here by the buffer's Euclidean diameter as the paper's balls are.
+        For each step the least radius r whose balls around the K buffer points hold at least as many members
+        together (:meth:`pairs_below`) as that step's Euclidean balls hold, counted exactly; the last step's radius
+        is ``last`` (the graph's diameter: its ball holds each component whole). Deterministic: distances from
+        ``scipy.spatial.distance.cdist`` (no BLAS, so no dependence on threads), shortest paths, a bisection."""
+        from scipy.spatial.distance import cdist
+
+        chunk = max(1, 4_000_000 // self.K)
+        blocks = lambda: (cdist(self.points[a : a + chunk], self.points).ravel() for a in range(0, self.K, chunk))  # noqa: E731
+        reference = np.asarray(shape, dtype=np.float64) * max(float(d.max()) for d in blocks())
+        counts = np.zeros(len(reference) + 1, dtype=np.int64)
+        for d in blocks():  # d < eps_k exactly when k >= the number of radii <= d
+            counts += np.bincount(np.searchsorted(reference, d, side="right"), minlength=len(counts))
+        wanted = np.cumsum(counts)[: len(reference)]
+        finite = self.sorted[np.isfinite(self.sorted)]
+        top = float(np.nextafter(finite.max(), np.inf)) if finite.size else 0.0
+        reachable = self.pairs_below(top)
+        out = np.zeros(len(reference), dtype=np.float64)
+        for k in range(1, len(reference)):
+            if wanted[k] > reachable:  # more pairs than the graph connects: every component whole
+                out[k] = last
+                continue
+            lo, hi = 0.0, top
+            while True:
+                mid = lo + (hi - lo) / 2
+                if mid <= lo or mid >= hi:
+                    break
+                lo, hi = (lo, mid) if self.pairs_below(mid) >= wanted[k] else (mid, hi)
+            out[k] = hi
+        out[-1] = last
+        return np.minimum.accumulate(out[::-1])[::-1] if len(out) else out
+
     def ball_sizes(self, x: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(anchor, number of buffer points in each query's geodesic ball)."""
         a, d = self.anchor(x)
         left = np.asarray(radius, dtype=np.float64) - d  # what the graph may still spend
-        # the entries of the anchor's sorted row below ``left`` (strictly inside): one binary search per query, all
-        # queries a step at a time, so a call costs log2(K) gathers instead of reading K distances per query
-        lo, hi = np.zeros(len(a), dtype=np.int64), np.full(len(a), self.K, dtype=np.int64)
-        for _ in range(int(self.K).bit_length()):
-            mid = (lo + hi) // 2
-            below = self.sorted[a, np.minimum(mid, self.K - 1)] < left
-            open_ = lo < hi
-            lo = np.where(open_ & below, mid + 1, lo)
-            hi = np.where(open_ & ~below, mid, hi)
-        return a, lo
+        # the entries of the anchor's sorted row below ``left`` (strictly inside), so a call costs log2(K) gathers
+        # instead of reading K distances per query
+        return a, self._below(a, left)
 
     def members(self, x: np.ndarray, radius: float) -> np.ndarray:
         """The buffer indices in the geodesic ball of radius ``radius`` around one query ``x`` (for tests)."""

@@ -180,6 +180,42 @@ def test_cluster_writes_the_graph_inspect_shows_it_and_an_older_buffer_says_it_h
     assert with_graph.shape == without.shape and not np.array_equal(with_graph, without)
 
 
+def _pair_counts(points, edges, weights):
+    """Every ordered pair's Euclidean and graph distance (i = j included), from dense matrices (another way than
+    the sampler's sorted tables)."""
+    from scipy.sparse.csgraph import shortest_path
+
+    k = len(points)
+    adj = np.zeros((k, k))
+    for (i, j), w in zip(edges.tolist(), weights.tolist()):
+        adj[i, j] = adj[j, i] = w
+    return np.linalg.norm(points[:, None] - points[None], axis=-1).ravel(), shortest_path(adj, directed=False).ravel()
+
+
+@pytest.mark.parametrize("schedule", ["linear", "log", "geometric"])
+def test_matched_geodesic_radii_hold_as_many_buffer_pairs_as_the_papers_balls(schedule):
+    """Each step's geodesic radius is the least whose balls around the buffer states hold together as many members
+    as the paper's Euclidean balls of that step (the schedule over the Euclidean diameter); the last is d_max. The
+    scaled radii (the schedule over the graph's diameter) hold more at the first step."""
+    from cdrb_cli.buffer import radii
+
+    points, states, episode = _u_routes(n=31)
+    edges, weights = transition_graph(points, states, episode)
+    geo = GeodesicBalls(points, edges, weights)
+    euc, graph = _pair_counts(points, edges, weights)
+    last = graph[np.isfinite(graph)].max()
+    T = 12
+    eps = geo.matched_radii(radii(schedule, 1.0, T), last)
+    reference = radii(schedule, euc.max(), T)
+    assert eps[0] == 0 and eps[-1] == last and np.all(np.diff(eps) >= 0)
+    for k in range(1, T - 1):
+        wanted = int((euc < reference[k]).sum())
+        assert int((graph < eps[k]).sum()) >= wanted, k
+        assert int((graph < np.nextafter(eps[k], 0)).sum()) < wanted, k  # the least such radius
+    scaled = radii(schedule, last, T)
+    assert (graph < scaled[1]).sum() > (euc < reference[1]).sum()
+
+
 def test_cdrb_with_geodesic_balls_trains_plans_and_degrades_only_within_them(tmp_path, small_data, cdrb):
     """`--set method.ball=geodesic`: the model carries the buffer's graph, every degradation of training and of
     sampling replaces a state by a member of its geodesic ball, and plans come out; a tampered graph in the model is
@@ -200,6 +236,13 @@ def test_cdrb_with_geodesic_balls_trains_plans_and_degrades_only_within_them(tmp
     method = load_method(model)
     ball = method.ball
     assert isinstance(ball, GeodesicBalls)
+    # matched radii by default, the same ones when the model is loaded again; the last ball holds the buffer whole
+    from cdrb_cli.buffer import radii
+
+    p = method.config.method
+    assert p.geodesic_radii == "matched" and method.eps[-1] == p.d_max
+    assert np.array_equal(method.eps, ball.matched_radii(radii(p.schedule, 1.0, method.T), p.d_max))
+    assert np.array_equal(load_method(artifacts.load(model.path, "model")).eps, method.eps)
     rng = np.random.default_rng(0)
     x = torch.from_numpy(ball.random_states((6, method.horizon), rng).astype(np.float32))
     x[:, :, :2] += 0.05  # off the buffer: attached through the nearest point

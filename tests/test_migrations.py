@@ -188,3 +188,17 @@ def test_fetch_scenes_before_the_goal_distance_rule_read_as_drawn(tmp_path):
     assert kept["env"]["scene"]["min_goal_distance"] == 0.09
     maze = {"env": {"scene": {"family": "pointmaze"}}}
     assert migrate_minor("demos", (2, 3), maze) == maze
+
+
+def test_geodesic_models_before_matched_radii_read_as_scaled_and_euclidean_ones_as_they_are():
+    """Model 2.14 matched geodesic radii to the paper's ball sizes: an older geodesic model stretched its schedule to
+    the graph's diameter and reads as ``scaled``; an older Euclidean model, which reads no geodesic radii, keeps the
+    default, so it still equals a new request's config (a grid does not train it again)."""
+    from cdrb_cli.artifacts.migrations import migrate_minor
+
+    geo = {"config": {"method": {"name": "cdrb", "ball": "geodesic"}}}
+    assert migrate_minor("model", (2, 13), geo)["config"]["method"]["geodesic_radii"] == "scaled"
+    assert "geodesic_radii" not in migrate_minor("model", (2, 14), geo)["config"]["method"]
+    for euclidean in ({"name": "cdrb", "ball": "euclidean"}, {"name": "cdrb"}):
+        m = {"config": {"method": euclidean}}
+        assert migrate_minor("model", (2, 13), m) == m

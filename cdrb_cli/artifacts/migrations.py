@@ -13,7 +13,9 @@ Minor versions that renamed values are migrated too (:func:`migrate_minor`): sch
 schedule ``log`` (log-spaced, convex) to ``geometric`` (``log`` is now the official code's concave schedule) and
 the CDRB samplers ``alg1``/``alg2`` to ``paper``/``cold-improved``, and records for older CDRB models that the
 action part of their end states was kept (``method.end_actions = "kept"``; only state-action models differ);
-CDRB models before 2.8 drew 32 rejection candidates for every ball (``method.ball_candidates = "fixed"``).
+CDRB models before 2.8 drew 32 rejection candidates for every ball (``method.ball_candidates = "fixed"``);
+before 2.14 geodesic radii were the schedule stretched to the graph's diameter (``method.geodesic_radii =
+"scaled"``).
 """
 
 from __future__ import annotations
@@ -142,6 +144,17 @@ def _ball_candidates_2_8(kind: str, m: Manifest) -> Manifest:
     return {**m, "config": {**cfg, "method": {"ball_candidates": "fixed", **method}}}
 
 
+def _geodesic_radii_2_14(kind: str, m: Manifest) -> Manifest:
+    """CDRB models written before geodesic radii were matched to the paper's ball sizes stretched the schedule to
+    the graph's diameter: ``method.geodesic_radii`` is ``scaled`` for them, so they degrade as they were trained
+    (model 2.14)."""
+    cfg = m.get("config")
+    method = cfg.get("method") if isinstance(cfg, dict) else None
+    if kind != "model" or not isinstance(method, dict) or method.get("ball") != "geodesic":
+        return m  # Euclidean balls read no geodesic radii: their models stay equal to a new request's config
+    return {**m, "config": {**cfg, "method": {"geodesic_radii": "scaled", **method}}}
+
+
 #: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
 #: older files did not follow; applied to every older file in order
 MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
@@ -149,6 +162,7 @@ MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest
     ((2, 5), _checkpoint_seconds_2_5),
     ((2, 6), _fetch_draws_2_4),
     ((2, 8), _ball_candidates_2_8),
+    ((2, 14), _geodesic_radii_2_14),
 ]
 
 

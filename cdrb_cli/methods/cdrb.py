@@ -75,6 +75,13 @@ class CDRBParams(StartWeightParams):
         "features) or geodesic (along the buffer's transition graph, the paths the demonstrations took: a "
         "degradation never swaps a state across a wall the demos went round; the buffer must carry its graph)",
     )
+    geodesic_radii: Literal["matched", "scaled"] = Field(
+        "matched",
+        description="geodesic balls: each step's radius along the graph. matched: the radius whose balls around the "
+        "buffer states hold as many members as the paper's Euclidean balls of that step (the schedule over the "
+        "buffer's Euclidean diameter), so a step degrades as strongly as the paper's; scaled: the schedule "
+        "stretched to d_max (models before schema 2.14). The last radius is d_max either way",
+    )
 
 
 class CDRB(Planner):
@@ -109,11 +116,14 @@ class CDRB(Planner):
             raise ValueError("geodesic balls need the buffer's transition graph")
         from cdrb_cli.geodesic import GeodesicBalls
 
-        return GeodesicBalls(points, *graph, eps=self.eps)
+        balls = GeodesicBalls(points, *graph, eps=self.eps)
+        if p.geodesic_radii == "matched":
+            self.eps = balls.eps = balls.matched_radii(radii(p.schedule, 1.0, self.T), p.d_max)
+        return balls
 
     def variant(self) -> str | None:
         m = self.config.method
-        parts = ["geodesic balls"] if m.ball == "geodesic" else []
+        parts = [f"geodesic balls{', scaled radii' * (m.geodesic_radii == 'scaled')}"] if m.ball == "geodesic" else []
         parts += ["d_max of the data box"] if m.d_max_from == "data-box" else []
         return ", ".join(parts) or None
 
