@@ -192,28 +192,53 @@ def _pair_counts(points, edges, weights):
     return np.linalg.norm(points[:, None] - points[None], axis=-1).ravel(), shortest_path(adj, directed=False).ravel()
 
 
-@pytest.mark.parametrize("schedule", ["linear", "log", "geometric"])
-def test_matched_geodesic_radii_hold_as_many_buffer_pairs_as_the_papers_balls(schedule):
-    """Each step's geodesic radius is the least whose balls around the buffer states hold together as many members
-    as the paper's Euclidean balls of that step (the schedule over the Euclidean diameter); the last is d_max. The
-    scaled radii (the schedule over the graph's diameter) hold more at the first step."""
+def _two_u_routes(shift: float = 0.5):
+    """Two copies of :func:`_u_routes`, ``shift`` apart along y: two components of the graph."""
+    points, states, episode = _u_routes(n=31)
+    far = points + [0.0, shift]
+    return (
+        np.concatenate([points, far]),
+        np.concatenate([states, states + [0.0, shift]]),
+        np.concatenate([episode, episode + 2]),
+    )
+
+
+@pytest.mark.parametrize(
+    "schedule, T, routes",
+    [("linear", 12, 1), ("log", 12, 1), ("geometric", 12, 1), ("linear", 128, 1), ("linear", 12, 2)],
+)
+def test_matched_geodesic_radii_hold_as_many_buffer_pairs_as_the_papers_balls(schedule, T, routes):
+    """Each step's geodesic radius is the least r >= the paper's Euclidean radius whose balls around the buffer
+    states hold together as many members as the paper's balls of that step hold among pairs of one component; the
+    last is d_max. At T = 128 the first Euclidean balls hold no neighbour of a buffer state, yet the geodesic radius
+    stays the Euclidean one (not 0: a query off the buffer still finds its neighbour); with two components the
+    radii do not jump to d_max. The scaled radii (the schedule over the graph's diameter) hold more at the first
+    step."""
     from cdrb_cli.buffer import radii
 
-    points, states, episode = _u_routes(n=31)
+    points, states, episode = _u_routes(n=31) if routes == 1 else _two_u_routes()
     edges, weights = transition_graph(points, states, episode)
     geo = GeodesicBalls(points, edges, weights)
     euc, graph = _pair_counts(points, edges, weights)
-    last = graph[np.isfinite(graph)].max()
-    T = 12
+    same = np.isfinite(graph)  # pairs of one component
+    last = np.nextafter(graph[same].max(), np.inf)  # d_max: every pair of one component strictly inside
     eps = geo.matched_radii(radii(schedule, 1.0, T), last)
     reference = radii(schedule, euc.max(), T)
     assert eps[0] == 0 and eps[-1] == last and np.all(np.diff(eps) >= 0)
     for k in range(1, T - 1):
-        wanted = int((euc < reference[k]).sum())
-        assert int((graph < eps[k]).sum()) >= wanted, k
-        assert int((graph < np.nextafter(eps[k], 0)).sum()) < wanted, k  # the least such radius
+        wanted = int(((euc < reference[k]) & same).sum())
+        assert eps[k] >= reference[k] > 0 and int((graph < eps[k]).sum()) >= wanted, k
+        least = eps[k] == reference[k] or int((graph < np.nextafter(eps[k], 0)).sum()) < wanted
+        assert least, k
+    if routes == 2:  # where the paper's balls first hold more pairs than the graph joins, the radii still grow
+        k = next(k for k in range(1, T) if (euc < reference[k]).sum() > same.sum())
+        assert eps[k] < eps[k + 1] < last
+    if T == 128:
+        assert (euc[euc > 0] >= reference[1]).all() and eps[1] == reference[1]
     scaled = radii(schedule, last, T)
-    assert (graph < scaled[1]).sum() > (euc < reference[1]).sum()
+    assert (graph < scaled[1]).sum() > (euc < reference[1]).sum() or T == 128  # at 128 both: themselves
+    smaller = geo.matched_radii(radii(schedule, 1.0, T), 0.5)  # a d_max set below the matched radii cuts them
+    assert smaller[-1] == 0.5 and smaller.max() == 0.5 and np.array_equal(smaller, np.minimum(eps, 0.5))
 
 
 def test_cdrb_with_geodesic_balls_trains_plans_and_degrades_only_within_them(tmp_path, small_data, cdrb):

@@ -202,3 +202,17 @@ def test_geodesic_models_before_matched_radii_read_as_scaled_and_euclidean_ones_
     for euclidean in ({"name": "cdrb", "ball": "euclidean"}, {"name": "cdrb"}):
         m = {"config": {"method": euclidean}}
         assert migrate_minor("model", (2, 13), m) == m
+
+
+def test_evals_of_geodesic_models_before_matched_radii_name_the_scaled_variant():
+    """Eval 2.17: an older eval of a geodesic model evaluated the scaled radii and says so when read."""
+    from cdrb_cli.artifacts.migrations import migrate_minor
+
+    for old, new in [
+        ("geodesic balls", "geodesic balls, scaled radii"),
+        ("geodesic balls, d_max of the data box", "geodesic balls, scaled radii, d_max of the data box"),
+    ]:
+        assert migrate_minor("eval", (2, 16), {"summary": {"variant": old}})["summary"]["variant"] == new
+        assert migrate_minor("eval", (2, 17), {"summary": {"variant": old}})["summary"]["variant"] == old
+    for kept in ({"summary": {"variant": None}}, {"summary": {"variant": "d_max of the data box"}}):
+        assert migrate_minor("eval", (2, 16), kept) == kept

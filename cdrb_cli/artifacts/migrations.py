@@ -15,7 +15,7 @@ the CDRB samplers ``alg1``/``alg2`` to ``paper``/``cold-improved``, and records 
 action part of their end states was kept (``method.end_actions = "kept"``; only state-action models differ);
 CDRB models before 2.8 drew 32 rejection candidates for every ball (``method.ball_candidates = "fixed"``);
 before 2.14 geodesic radii were the schedule stretched to the graph's diameter (``method.geodesic_radii =
-"scaled"``).
+"scaled"``), and evals before 2.17 of geodesic models name that variant.
 """
 
 from __future__ import annotations
@@ -155,6 +155,25 @@ def _geodesic_radii_2_14(kind: str, m: Manifest) -> Manifest:
     return {**m, "config": {**cfg, "method": {"geodesic_radii": "scaled", **method}}}
 
 
+def _geodesic_variant_2_17(kind: str, m: Manifest) -> Manifest:
+    """Evals written before geodesic radii were matched evaluated models with the scaled radii, then the only ones,
+    under the variant "geodesic balls": they read as "geodesic balls, scaled radii", what such a model is called now,
+    so `cdrb report` keeps them apart from evals of matched-radii models (eval 2.17)."""
+    summary = m.get("summary")
+    variant = summary.get("variant") if isinstance(summary, dict) else None
+    if (
+        kind != "eval"
+        or not isinstance(variant, str)
+        or not variant.startswith("geodesic balls")
+        or "scaled" in variant
+    ):
+        return m
+    return {
+        **m,
+        "summary": {**summary, "variant": variant.replace("geodesic balls", "geodesic balls, scaled radii", 1)},
+    }
+
+
 #: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
 #: older files did not follow; applied to every older file in order
 MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
@@ -163,6 +182,7 @@ MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest
     ((2, 6), _fetch_draws_2_4),
     ((2, 8), _ball_candidates_2_8),
     ((2, 14), _geodesic_radii_2_14),
+    ((2, 17), _geodesic_variant_2_17),
 ]
 
 

@@ -77,10 +77,11 @@ class CDRBParams(StartWeightParams):
     )
     geodesic_radii: Literal["matched", "scaled"] = Field(
         "matched",
-        description="geodesic balls: each step's radius along the graph. matched: the radius whose balls around the "
-        "buffer states hold as many members as the paper's Euclidean balls of that step (the schedule over the "
-        "buffer's Euclidean diameter), so a step degrades as strongly as the paper's; scaled: the schedule "
-        "stretched to d_max (models before schema 2.14). The last radius is d_max either way",
+        description="geodesic balls: each step's radius along the graph. matched: the least radius, not below the "
+        "paper's Euclidean one of that step, whose balls around the buffer states hold as many members as the "
+        "paper's balls (the schedule over the buffer's Euclidean diameter) hold among pairs of one component, so a "
+        "step degrades as strongly as the paper's; scaled: the schedule stretched to d_max (models before schema "
+        "2.14). The last radius is d_max either way, and none is above it",
     )
 
 
