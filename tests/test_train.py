@@ -477,9 +477,12 @@ def test_d_max_from_the_data_box_is_the_diagonal_of_the_normalized_features(smal
     def label(**method):
         return CDRB.variant(SimpleNamespace(config=SimpleNamespace(method=SimpleNamespace(**method))))
 
-    assert label(ball="euclidean", d_max_from="buffer") is None
-    assert label(ball="euclidean", d_max_from="data-box") == "d_max of the data box"
-    assert label(ball="geodesic", d_max_from="data-box") == "geodesic balls, d_max of the data box"
+    assert label(ball="euclidean", d_max_from="buffer", geodesic_radii="matched") is None
+    assert label(ball="euclidean", d_max_from="data-box", geodesic_radii="matched") == "d_max of the data box"
+    geo = label(ball="geodesic", d_max_from="data-box", geodesic_radii="matched")
+    assert geo == "geodesic balls, d_max of the data box"
+    scaled = label(ball="geodesic", d_max_from="buffer", geodesic_radii="scaled")
+    assert scaled == "geodesic balls, scaled radii"
 
 
 @pytest.mark.parametrize("name", ["cdrb", "mlp"])

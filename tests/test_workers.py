@@ -4,6 +4,8 @@ a user's error re-raised as its one line, and the cores shared out."""
 from __future__ import annotations
 
 import os
+import time
+from pathlib import Path
 
 import pytest
 
@@ -12,7 +14,15 @@ from cdrb_cli.errors import BadInput, RunFailed
 
 
 def _job(payload):
-    """A worker's job: report progress and a log line, then answer (or fail as the payload says)."""
+    """A worker's job: report progress and a log line, then answer (or fail as the payload says). With a
+    ``meet`` folder it first waits (up to 60 s) until two processes have started jobs there, so a quick worker
+    cannot take every job before the other one is up."""
+    if payload.get("meet"):
+        meet = Path(payload["meet"])
+        (meet / str(os.getpid())).touch()
+        deadline = time.monotonic() + 60
+        while len(list(meet.iterdir())) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
     with ui.progress() as bar:
         task = bar.add_task(f"job {payload['n']}", total=3, info="")
         for i in range(3):
@@ -25,9 +35,10 @@ def _job(payload):
     return payload["n"] * 10
 
 
-def test_jobs_run_side_by_side_and_their_progress_comes_back(capfd, monkeypatch):
+def test_jobs_run_side_by_side_and_their_progress_comes_back(capfd, monkeypatch, tmp_path):
     monkeypatch.setenv("CDRB_PROGRESS_SECONDS", "0")
-    assert workers.run(_job, [{"n": i} for i in range(3)], processes=2, threads=1) == [0, 10, 20]
+    jobs = [{"n": i, "meet": str(tmp_path)} for i in range(3)]
+    assert workers.run(_job, jobs, processes=2, threads=1) == [0, 10, 20]
     err = capfd.readouterr().err
     for i in range(3):
         assert f"job {i}: 3/3 (100%)" in err
