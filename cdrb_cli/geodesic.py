@@ -22,9 +22,9 @@ The radii: the paper's schedule grows eps_k to the buffer's Euclidean diameter. 
 demonstration zig-zag through the features (on a Fetch buffer the graph's diameter is ~11x the Euclidean one and
 its first ball holds about a fifth of the buffer against the paper's 0.3%): a degradation much stronger than the
 paper's from the first step on. :meth:`GeodesicBalls.matched_radii` (the default, ``"matched"``) gives each step
-the graph radius that holds as many (centre, member) pairs of buffer states as the paper's Euclidean radius of that
-step holds, so each step degrades as strongly as the paper's and only which states a ball holds differs; the last
-radius stays the graph's diameter, so the last ball holds each component whole.
+the least graph radius, not below the paper's, that holds as many (centre, member) pairs of buffer states as the
+paper's Euclidean radius of that step holds among pairs of one component, so each step degrades as strongly as the
+paper's and only which states a ball holds differs; the last radius stays d_max (the graph's diameter).
 
 Memory is K^2 (a float64 distance and an int32 index per pair: 11 MiB at K = 1,000, 1.1 GiB at K = 10,000, whose
 all-pairs shortest paths take about 35 s on one core; `benchmarks/geodesic_balls.py` measures both).
@@ -200,7 +200,7 @@ class GeodesicBalls:
             out[k] = hi
         if len(out) > 1:
             out[-1] = last
-        return np.minimum(out, last) if len(out) > 1 else out
+        return np.minimum(out, last)
 
     def ball_sizes(self, x: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(anchor, number of buffer points in each query's geodesic ball)."""

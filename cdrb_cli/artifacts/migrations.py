@@ -161,12 +161,7 @@ def _geodesic_variant_2_17(kind: str, m: Manifest) -> Manifest:
     so `cdrb report` keeps them apart from evals of matched-radii models (eval 2.17)."""
     summary = m.get("summary")
     variant = summary.get("variant") if isinstance(summary, dict) else None
-    if (
-        kind != "eval"
-        or not isinstance(variant, str)
-        or not variant.startswith("geodesic balls")
-        or "scaled" in variant
-    ):
+    if kind != "eval" or not isinstance(variant, str) or not variant.startswith("geodesic balls"):
         return m
     return {
         **m,

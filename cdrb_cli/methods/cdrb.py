@@ -95,6 +95,8 @@ class CDRB(Planner):
         self.points = np.asarray(buffer_points, dtype=np.float32)
         self.eps = radii(p.schedule, p.d_max, self.T)
         self.ball = self._sampler(self.points, self.buffer_graph)
+        if p.ball == "geodesic" and p.geodesic_radii == "matched":  # needs the graph's tables the sampler built
+            self.eps = self.ball.eps = self.ball.matched_radii(radii(p.schedule, 1.0, self.T), p.d_max)
         self._whole_ball = self.ball  # the unmasked sampler, which a mask takes its subset of
         self._torch_ball = None  # built on first use on a non-CPU device
         self._collides = None  # with a masked buffer: which normalized features collide (re-drawn after restoring)
@@ -117,10 +119,7 @@ class CDRB(Planner):
             raise ValueError("geodesic balls need the buffer's transition graph")
         from cdrb_cli.geodesic import GeodesicBalls
 
-        balls = GeodesicBalls(points, *graph, eps=self.eps)
-        if p.geodesic_radii == "matched":
-            self.eps = balls.eps = balls.matched_radii(radii(p.schedule, 1.0, self.T), p.d_max)
-        return balls
+        return GeodesicBalls(points, *graph, eps=self.eps)
 
     def variant(self) -> str | None:
         m = self.config.method
