@@ -639,7 +639,7 @@ def test_crossings_by_body_split_the_gripper_from_the_block():
     them in the crossing column. Reach moves one body: no split."""
     from types import SimpleNamespace
 
-    from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_state_rates, body_text
+    from cdrb_cli.stages.plan_metrics import body_crossing_rates, body_state_rates, body_text, plan_measures
 
     spec, family, (wx, before, after, z) = _push_wall()
     grip = np.stack([_state(spec, (wx, y, z), (1.10, 0.55, z)) for y in np.linspace(before, after, 8)])
@@ -671,6 +671,12 @@ def test_crossings_by_body_split_the_gripper_from_the_block():
     assert states["gripper"][0].any() and not states["block"].any()
     share = body_state_rates(ev)
     assert share["block"] == [0.0, 0.0] and share["gripper"][0] == pytest.approx(states["gripper"][0].mean() / 2)
+    # as an eval stores them per episode (and keeps them without its plans), read back in the file's name order:
+    # the same rates to the bit, the bodies in the family's order
+    stored = dict(sorted(plan_measures(spec, ev.arrays["plans"]).items()))
+    kept = SimpleNamespace(arrays={"episodes/seed": ev.arrays["episodes/seed"], **stored}, manifest=ev.manifest)
+    assert list(body_crossing_rates(kept)) == ["gripper", "block"] and list(body_state_rates(kept))[0] == "gripper"
+    assert body_crossing_rates(kept) == rates and body_state_rates(kept) == share
 
 
 def test_unsticking_frees_a_block_the_wall_end_stalls():

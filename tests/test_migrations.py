@@ -81,6 +81,7 @@ def test_v1_model_evaluates_as_before(tmp_path):
     added = {"episodes/plan_crosses_obstacle", "episodes/plan_max_jump", "episodes/plan_step_limit"}  # 2.2 metrics
     added |= {"episodes/replans", "episodes/planning_seconds"}  # 2.4: closed-loop planning
     added |= {"episodes/failure"}  # 2.5: failures by cause
+    added |= {"episodes/plan_states", "episodes/plan_first_step"}  # 2.18: what report measures on plans
     assert new.arrays.keys() == old.arrays.keys() | added
     # the 2.4 and 2.5 datasets are back-filled when the 1.x file is read: one plan per episode, failures unclassified
     assert (old.arrays["episodes/replans"] == 0).all() and (old.arrays["episodes/failure"] == -1).all()

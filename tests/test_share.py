@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
+from tests.conftest import ROOT
 
 
 @pytest.fixture(scope="module")
@@ -133,3 +134,48 @@ def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models
     r = cdrb("export", model, "--dir", tmp_path / "m")
     assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "m")
     assert "No evaluation was exported" in (tmp_path / "m" / "README.md").read_text()
+
+
+def test_a_compact_eval_drops_the_plans_and_reports_the_same(tiny_models, tmp_path, cdrb):
+    """`cdrb export EVAL --compact FILE`: the eval without its plans, with what `cdrb report` measures on them kept
+    per episode, so the report is the same (here with walls added at eval time, so the plans-through-a-new-wall
+    column has figures); an eval written before evals stored those measures has them computed from its plans."""
+    from cdrb_cli.stages.plan_metrics import FIRST_STEP, NEW_CROSSING, PLAN_STATES
+
+    closed = ROOT / "experiments" / "maps" / "maze-tight-closed-north.txt"
+    full, compact = tmp_path / "eval.h5", tmp_path / "kept" / "eval.h5"
+    r = cdrb("eval", tiny_models["cdrb"].path, "--maze-map", closed, "--episodes", "6", "--seeds", "0,1", "--out", full)
+    assert r.returncode == 0, r.stderr
+    ev = artifacts.load(full, "eval")
+    assert {FIRST_STEP, NEW_CROSSING, PLAN_STATES} <= set(ev.arrays) and "plans" in ev.arrays
+    assert ev.arrays[NEW_CROSSING].any()  # untrained plans run through the added walls: the column is not empty
+    compact.parent.mkdir()
+    r = cdrb("export", full, "--compact", compact)
+    assert r.returncode == 0 and r.stdout.strip() == str(compact)
+    kept = artifacts.load(compact, "eval")
+    assert "plans" not in kept.arrays and kept.manifest.config == ev.manifest.config
+    assert compact.stat().st_size < full.stat().st_size
+
+    def report(path):
+        r = cdrb("report", path, "--format", "csv")
+        assert r.returncode == 0, r.stderr
+        return r.stdout.replace(str(path), "EVAL")
+
+    assert report(compact) == report(full)
+    # an eval of an older schema (plans, no stored measures) gives the same compact eval's measures
+    older = {name: a for name, a in ev.arrays.items() if name not in (FIRST_STEP, NEW_CROSSING, PLAN_STATES)}
+    artifacts.save(tmp_path / "older.h5", "eval", ev.manifest, older)
+    assert report(tmp_path / "older.h5") == report(full)
+    r = cdrb("export", tmp_path / "older.h5", "--compact", tmp_path / "older-kept.h5")
+    assert r.returncode == 0, r.stderr
+    again = artifacts.load(tmp_path / "older-kept.h5", "eval")
+    for name in (FIRST_STEP, NEW_CROSSING, PLAN_STATES):
+        np.testing.assert_array_equal(again.arrays[name], ev.arrays[name])
+    # one target at a time; an existing file kept unless forced; never the input itself
+    r = cdrb("export", full, "--compact", tmp_path / "x.h5", "--dir", tmp_path / "d")
+    assert r.returncode == 2 and "--compact FILE (an eval)" in r.stderr and not (tmp_path / "x.h5").exists()
+    r = cdrb("export", full, "--compact", compact)
+    assert r.returncode == 2 and "file exists" in r.stderr
+    r = cdrb("export", full, "--compact", full, "--force")
+    assert r.returncode == 2 and "is an input of this command" in r.stderr
+    assert artifacts.load(full, "eval").arrays.keys() == ev.arrays.keys()

@@ -29,7 +29,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.8", "model": "2.14", "plans": "2.10", "eval": "2.17"}
+SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.8", "model": "2.14", "plans": "2.10", "eval": "2.18"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
@@ -335,7 +335,14 @@ class Eval(ArtifactBase):
         DatasetSpec("episodes/start", "f", ("E", "obs_dim")),
         DatasetSpec("episodes/goal", "f", ("E", "goal_dim")),
         DatasetSpec("plans", "f", ("E", "H", "feature_dim"), required=False),
+        # from schema 2.18, what `cdrb report` takes from the plans, per episode (stages/plan_metrics.py), so an
+        # eval without its plans gives the same figures
+        DatasetSpec("episodes/plan_states", "i", ("E",), required=False),
+        DatasetSpec("episodes/plan_first_step", "f", ("E",), required=False),
+        DatasetSpec("episodes/plan_crosses_new_obstacle", "b", ("E",), required=False),
     )
+    #: per body the family's collision test moves: bodies/<name>/crossing, bodies/<name>/states_in_obstacle
+    groups = (GroupSpec("bodies/", "bi", required=False),)
 
     @classmethod
     def dims(cls, manifest):
@@ -352,6 +359,10 @@ class Eval(ArtifactBase):
             return f"episodes/failure holds codes outside -1..{top}"
         if failure is not None and (failure >= 0).all() and ((failure == 0) != arrays["episodes/success"]).any():
             return f"episodes/failure disagrees with episodes/success (code 0 is a success, 1..{top} a failure's cause)"
+        episodes = len(arrays["episodes/seed"])
+        for name, a in arrays.items():
+            if name.startswith("bodies/") and np.shape(a) != (episodes,):
+                return f"{name} has shape {np.shape(a)}: one entry per episode ({episodes}) expected"
         return None
 
 

@@ -28,7 +28,10 @@ def export_cmd(
     root: Path | None = typer.Option(
         None, "--root", help="With --minari: the datasets folder (default: MINARI_DATASETS_PATH, else ~/.minari)."
     ),
-    force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name, or a folder."),
+    compact: Path | None = typer.Option(
+        None, "--compact", help="An eval: the file to write it to without its plans, every figure of them kept."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name, a folder or a file."),
 ) -> None:
     """Export a [bold]demos[/bold] artifact as a Minari dataset, or a [bold]model[/bold] as a folder anyone can
     load without cdrb's HDF5 reader.
@@ -39,10 +42,25 @@ def export_cmd(
     opens it. --dir DIR: model.safetensors (every array by its artifact name: raw and EMA weights, normaliser,
     CDRB's buffer states), config.json (the manifest: resolved config, environment, provenance), a README model card
     (with --eval, the figures measured) and SHA256SUMS; `cdrb import model DIR` and `api.Planner(DIR)` load it.
-    Prints the folder written."""
-    if (minari is None) == (folder is None):
-        raise BadInput("give one of --minari NAME (a demos artifact) or --dir DIR (a model)",
+    --compact FILE: an [bold]eval[/bold] without its plans (a tenth of a Fetch eval's size), with what `cdrb
+    report` measures on them (first steps, plans through an obstacle by body and through new ones) kept per
+    episode, so its report is the same: how a table's evals are kept beside it.
+    Example: [cyan]cdrb export runs/t/eval-cdrb-s0.h5 --compact kept/eval-cdrb-s0.h5[/cyan]
+
+    Prints the folder or file written."""
+    if sum(x is not None for x in (minari, folder, compact)) != 1:
+        raise BadInput("give one of --minari NAME (a demos artifact), --dir DIR (a model) or --compact FILE (an eval)",
                        hint="`cdrb export --help` says what each writes")  # fmt: skip
+    if compact is not None:
+        from cdrb_cli.artifacts import check_output
+        from cdrb_cli.stages.share import compact_eval
+
+        check_output(compact, force, "--compact", [artifact])
+        ev = load_artifact(artifact, "eval")
+        out = compact_eval(ev, compact)
+        ui.log(f"{len(ev.arrays['episodes/seed'])} episodes written without their plans")
+        ui.emit(out)
+        return
     if minari is not None:
         from cdrb_cli.stages.minari_io import dataset_id_for, export_minari
 

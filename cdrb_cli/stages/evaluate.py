@@ -37,6 +37,7 @@ from cdrb_cli.stages.plan import (
     sample_plans,
     warn_unrouted,
 )
+from cdrb_cli.stages.plan_metrics import plan_measures
 from cdrb_cli.stages.results import EpisodeResult, episode_arrays, failure_text, seed_result, summarize
 
 
@@ -231,8 +232,10 @@ def evaluate(
     env.close()
     warn_unrouted(avoid)
     arrays = episode_arrays(results)
+    plans = np.concatenate(all_plans).astype(np.float32)
+    arrays.update(plan_measures(spec, plans))  # what report takes from the plans, kept without them too
     if keep_plans:
-        arrays["plans"] = np.concatenate(all_plans).astype(np.float32)
+        arrays["plans"] = plans
     summary = summarize(
         method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
     )

@@ -1,9 +1,9 @@
-"""A model as a folder anyone can load without cdrb's HDF5 reader: ``model.safetensors`` (every array of the model
-artifact: the raw and EMA weights, the normaliser, CDRB's buffer states, the loss curve and the optimiser state a
-resumed training needs), ``config.json`` (the model's manifest: the resolved config, the environment spec, the
-provenance and any settings profile), a ``README.md`` model card and ``SHA256SUMS``; and the folder back, refused
-unless every file is the one SHA256SUMS names. Nothing is pickled: safetensors holds raw tensors and a JSON
-header."""
+"""An eval kept without its plans (:func:`compact_eval`), and a model as a folder anyone can load without cdrb's HDF5
+reader: ``model.safetensors`` (every array of the model artifact: the raw and EMA weights, the normaliser, CDRB's
+buffer states, the loss curve and the optimiser state a resumed training needs), ``config.json`` (the model's
+manifest: the resolved config, the environment spec, the provenance and any settings profile), a ``README.md`` model
+card and ``SHA256SUMS``; and the folder back, refused unless every file is the one SHA256SUMS names. Nothing is
+pickled: safetensors holds raw tensors and a JSON header."""
 
 from __future__ import annotations
 
@@ -30,6 +30,21 @@ MAX_SUMS_BYTES = 1 << 16
 
 
 # ------------------------------------------------------------------------------------------------ export
+def compact_eval(ev, out: Path) -> Path:
+    """``ev`` (an eval artifact) without its plans, written as ``out``: the same manifest and per-episode records,
+    and every measure `cdrb report` takes from the plans kept per episode (computed from them here for an eval
+    written before evals stored them), so a report of the compact eval is the report of ``ev`` in a file a
+    fraction of its size: the form in which a table's evals are kept beside it."""
+    from cdrb_cli.stages.plan_metrics import plan_measures
+
+    arrays = {name: a for name, a in ev.arrays.items() if name != "plans"}
+    if "plans" in ev.arrays:
+        arrays = {**plan_measures(ev.manifest.env, ev.arrays["plans"]), **arrays}
+    manifest = ev.manifest.model_copy(update={"schema_version": artifacts.SCHEMA_VERSIONS["eval"]})
+    artifacts.save(out, "eval", manifest, arrays)
+    return Path(out)
+
+
 def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False) -> Path:
     """Write ``model`` (a model artifact) as the folder ``folder``, whole or not at all (written beside it, then
     renamed); ``evals``: eval artifacts of this model whose figures the model card lists."""
