@@ -205,8 +205,8 @@ def test_tuning_pairs_and_the_official_protocol(evals, tmp_path, cdrb):
 
 
 def test_an_eval_without_plans(evals, tmp_path, cdrb):
-    """`--no-plans` keeps every episode measure but not the plans: the report reads it (the first-step column
-    n/a) and `--plans-plot` says which flag left them out."""
+    """`--no-plans` keeps every episode measure but not the plans, and what the report measures on plans is kept
+    per episode (the first-step column is there as with the plans); `--plans-plot` says which flag left them out."""
     model = evals["cdrb"].manifest.parents[0].path
     r = cdrb("eval", model, "--seeds", "0", "-n", "4", "--no-plans", "--out", tmp_path / "bare.h5")
     assert r.returncode == 0, r.stderr
@@ -214,7 +214,7 @@ def test_an_eval_without_plans(evals, tmp_path, cdrb):
     assert "plans" not in bare.arrays and len(bare.arrays["episodes/success"]) == 4
     assert bare.arrays["episodes/plan_crosses_obstacle"].shape == (4,)
     rows = json.loads(cdrb("report", tmp_path / "bare.h5", "--format", "json").stdout)
-    assert len(rows) == 1 and rows[0]["method"] == "cdrb"
+    assert len(rows) == 1 and rows[0]["method"] == "cdrb" and rows[0]["first_step_ratio"] > 0
     r = cdrb("report", tmp_path / "bare.h5", "--plans-plot", tmp_path / "p.png")
     assert r.returncode == 2 and "--no-plans" in r.stderr and not (tmp_path / "p.png").exists()
     # the plans are checked before any picture is drawn: the bar chart is not left behind either

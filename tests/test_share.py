@@ -179,3 +179,30 @@ def test_a_compact_eval_drops_the_plans_and_reports_the_same(tiny_models, tmp_pa
     r = cdrb("export", full, "--compact", full, "--force")
     assert r.returncode == 2 and "is an input of this command" in r.stderr
     assert artifacts.load(full, "eval").arrays.keys() == ev.arrays.keys()
+    # nothing to drop, or a file that cannot be kept as it is: refused in one line, nothing written
+    r = cdrb("export", compact, "--compact", tmp_path / "twice.h5")
+    assert r.returncode == 2 and "holds no plans" in r.stderr and not (tmp_path / "twice.h5").exists()
+    r = cdrb("export", ROOT / "tests" / "data" / "v1" / "eval.h5", "--compact", tmp_path / "v1.h5")
+    assert r.returncode == 2 and "measured less" in r.stderr and not (tmp_path / "v1.h5").exists()
+    r = cdrb("export", full, "--compact", tmp_path / "y.h5", "--eval", full)
+    assert r.returncode == 2 and "goes with --dir" in r.stderr and not (tmp_path / "y.h5").exists()
+
+
+def test_stored_plan_measures_are_checked_when_read(tmp_path):
+    """Counts of planned states in an obstacle by body must come with the plans' lengths and lie within them."""
+    from types import SimpleNamespace
+
+    from cdrb_cli.artifacts.kinds import Eval
+
+    manifest = SimpleNamespace(config=SimpleNamespace(seeds=[0], episodes=2))
+    base = {"episodes/seed": np.array([0, 0]), "episodes/success": np.array([True, False])}
+    good = {**base, "episodes/plan_states": np.array([5, 5]), "bodies/block/states_in_obstacle": np.array([0, 5])}
+    assert Eval.check_data(manifest, good) is None
+    for bad in (
+        {**good, "bodies/block/states_in_obstacle": np.array([0, 6])},
+        {**good, "bodies/block/states_in_obstacle": np.array([-1, 0])},
+        {k: v for k, v in good.items() if k != "episodes/plan_states"},
+        {**good, "episodes/plan_states": np.array([0, 5])},
+        {**good, "bodies/block/crossing": np.array([True])},
+    ):
+        assert Eval.check_data(manifest, bad) is not None

@@ -359,10 +359,18 @@ class Eval(ArtifactBase):
             return f"episodes/failure holds codes outside -1..{top}"
         if failure is not None and (failure >= 0).all() and ((failure == 0) != arrays["episodes/success"]).any():
             return f"episodes/failure disagrees with episodes/success (code 0 is a success, 1..{top} a failure's cause)"
-        episodes = len(arrays["episodes/seed"])
+        episodes, states = len(arrays["episodes/seed"]), arrays.get("episodes/plan_states")
+        if states is not None and (np.asarray(states) <= 0).any():
+            return "episodes/plan_states holds a plan of no states"
         for name, a in arrays.items():
-            if name.startswith("bodies/") and np.shape(a) != (episodes,):
+            if not name.startswith("bodies/"):
+                continue
+            if np.shape(a) != (episodes,):
                 return f"{name} has shape {np.shape(a)}: one entry per episode ({episodes}) expected"
+            if name.endswith("/states_in_obstacle") and (
+                states is None or (np.asarray(a) < 0).any() or (np.asarray(a) > np.asarray(states)).any()
+            ):
+                return f"{name}: counts of planned states need episodes/plan_states and must lie in 0..plan_states"
         return None
 
 

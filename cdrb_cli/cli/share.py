@@ -15,7 +15,9 @@ from cdrb_cli.errors import BadInput
 
 @app.command("export")
 def export_cmd(
-    artifact: Path = typer.Argument(..., help="A demos artifact (with --minari) or a model artifact (with --dir)."),
+    artifact: Path = typer.Argument(
+        ..., help="A demos artifact (with --minari), a model artifact (with --dir) or an eval (with --compact)."
+    ),
     minari: str | None = typer.Option(
         None, "--minari", help="Demos: the dataset name, [namespace/]name[-vN] (-v0 is added), e.g. cdrb/maze-tight."
     ),
@@ -33,8 +35,8 @@ def export_cmd(
     ),
     force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name, a folder or a file."),
 ) -> None:
-    """Export a [bold]demos[/bold] artifact as a Minari dataset, or a [bold]model[/bold] as a folder anyone can
-    load without cdrb's HDF5 reader.
+    """Export a [bold]demos[/bold] artifact as a Minari dataset, a [bold]model[/bold] as a folder anyone can
+    load without cdrb's HDF5 reader, or an [bold]eval[/bold] without its plans.
 
     --minari NAME: observations are goal dicts (observation, achieved_goal, desired_goal), the reward is cdrb's
     success test (as a sparse reward) and infos["success"] has it per step; the env_spec is the gymnasium equivalent
@@ -51,6 +53,11 @@ def export_cmd(
     if sum(x is not None for x in (minari, folder, compact)) != 1:
         raise BadInput("give one of --minari NAME (a demos artifact), --dir DIR (a model) or --compact FILE (an eval)",
                        hint="`cdrb export --help` says what each writes")  # fmt: skip
+    if evals and folder is None:
+        raise BadInput("--eval lists an eval in a model folder's card: it goes with --dir DIR",
+                       hint="drop --eval, or export the model with --dir")  # fmt: skip
+    if root is not None and minari is None:
+        raise BadInput("--root is where Minari datasets go: it goes with --minari NAME", hint="drop --root")
     if compact is not None:
         from cdrb_cli.artifacts import check_output
         from cdrb_cli.stages.share import compact_eval

@@ -44,7 +44,8 @@ def _first_steps(spec, plans: np.ndarray) -> np.ndarray:
 def first_step_ratio(evals) -> float | None:
     """The median, over every episode of ``evals``, of the first planned step's length (in the obstacle dims)
     against what the dynamics allow in one plan step: about 1 when plans start where the robot is, far above 1 when
-    a plan leaves its pinned start at once. None for policies, evals without plans, or an unknown limit."""
+    a plan leaves its pinned start at once. None for policies, evals with neither plans nor the stored measure, or
+    an unknown limit."""
     ratios = []
     for ev in evals:
         step, plans = ev.arrays.get(FIRST_STEP), ev.arrays.get("plans")
@@ -60,7 +61,7 @@ def first_step_ratio(evals) -> float | None:
 def new_crossing_rates(ev) -> list[float] | None:
     """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, an obstacle
     the training scene did not have (walls added to a maze, boxes put down in a Fetch scene); None when the eval
-    ran in its training scene or stored no plans."""
+    ran in its training scene or stored neither plans nor this measure."""
     from cdrb_cli.envs.registry import family_of
 
     crosses, plans, spec = ev.arrays.get(NEW_CROSSING), ev.arrays.get("plans"), ev.manifest.env
@@ -72,7 +73,7 @@ def new_crossing_rates(ev) -> list[float] | None:
 def body_crossing_rates(ev) -> dict[str, list[float]] | None:
     """Per body the family's collision test moves (Fetch: gripper, block), per evaluation seed, the share of
     episodes whose (first) plan has that body in, or stepping through, an obstacle; None for a family with one body
-    or an eval that stored no plans."""
+    or an eval that stored neither plans nor the per-body measures."""
     stored = _stored_bodies(ev, "crossing")
     if stored is not None:
         return {name: _seed_means(ev, hit) for name, hit in stored.items()}

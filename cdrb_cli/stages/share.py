@@ -35,12 +35,23 @@ def compact_eval(ev, out: Path) -> Path:
     and every measure `cdrb report` takes from the plans kept per episode (computed from them here for an eval
     written before evals stored them), so a report of the compact eval is the report of ``ev`` in a file a
     fraction of its size: the form in which a table's evals are kept beside it."""
+    from cdrb_cli.artifacts import RECOMPUTE_BEFORE, parse_version
     from cdrb_cli.stages.plan_metrics import plan_measures
 
+    version, current = ev.manifest.schema_version, artifacts.SCHEMA_VERSIONS["eval"]
+    if parse_version(version) > parse_version(current):
+        raise BadInput(f"{ev.path}: written by eval schema {version}, newer than this cdrb's {current}",
+                       hint="compact it with the cdrb that wrote it")  # fmt: skip
+    if parse_version(version) < RECOMPUTE_BEFORE["eval"]:
+        raise BadInput(f"{ev.path}: eval schema {version} measured less than today's evals, which grids redo",
+                       hint="evaluate the model again (`cdrb eval`), then compact that eval")  # fmt: skip
+    if "plans" not in ev.arrays:
+        raise BadInput(f"{ev.path}: holds no plans (a policy's eval, or one written with --no-plans): nothing to drop",
+                       hint="it is already as small as a compact eval")  # fmt: skip
     arrays = {name: a for name, a in ev.arrays.items() if name != "plans"}
-    if "plans" in ev.arrays:
-        arrays = {**plan_measures(ev.manifest.env, ev.arrays["plans"]), **arrays}
-    manifest = ev.manifest.model_copy(update={"schema_version": artifacts.SCHEMA_VERSIONS["eval"]})
+    arrays = {**plan_measures(ev.manifest.env, ev.arrays["plans"]), **arrays}
+    # the same eval (its provenance says when and by what it ran), in today's layout, which its reader migrated to
+    manifest = ev.manifest.model_copy(update={"schema_version": current})
     artifacts.save(out, "eval", manifest, arrays)
     return Path(out)
 
