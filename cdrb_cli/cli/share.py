@@ -46,7 +46,8 @@ def export_cmd(
     (with --eval, the figures measured) and SHA256SUMS; `cdrb import model DIR` and `api.Planner(DIR)` load it.
     --compact FILE: an [bold]eval[/bold] without its plans (a tenth of a Fetch eval's size), with what `cdrb
     report` measures on them (first steps, plans through an obstacle by body and through new ones) kept per
-    episode, so its report is the same: how a table's evals are kept beside it.
+    episode, so its report is the same: how a table's evals are kept beside it (one with no plans, e.g. a policy's,
+    is copied as it is).
     Example: [cyan]cdrb export runs/t/eval-cdrb-s0.h5 --compact kept/eval-cdrb-s0.h5[/cyan]
 
     Prints the folder or file written."""
@@ -65,7 +66,8 @@ def export_cmd(
         check_output(compact, force, "--compact", [artifact])
         ev = load_artifact(artifact, "eval")
         out = compact_eval(ev, compact)
-        ui.log(f"{len(ev.arrays['episodes/seed'])} episodes written without their plans")
+        kept = "without their plans" if "plans" in ev.arrays else "as they were (the eval holds no plans)"
+        ui.log(f"{len(ev.arrays['episodes/seed'])} episodes written {kept}")
         ui.emit(out)
         return
     if minari is not None:

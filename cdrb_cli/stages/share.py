@@ -34,7 +34,8 @@ def compact_eval(ev, out: Path) -> Path:
     """``ev`` (an eval artifact) without its plans, written as ``out``: the same manifest and per-episode records,
     and every measure `cdrb report` takes from the plans kept per episode (computed from them here for an eval
     written before evals stored them), so a report of the compact eval is the report of ``ev`` in a file a
-    fraction of its size: the form in which a table's evals are kept beside it."""
+    fraction of its size: the form in which a table's evals are kept beside it. An eval without plans (a policy's,
+    or one written with ``--no-plans``) is copied as it was written."""
     from cdrb_cli.artifacts import RECOMPUTE_BEFORE, parse_version
     from cdrb_cli.stages.plan_metrics import plan_measures
 
@@ -45,9 +46,12 @@ def compact_eval(ev, out: Path) -> Path:
     if parse_version(version) < RECOMPUTE_BEFORE["eval"]:
         raise BadInput(f"{ev.path}: eval schema {version} measured less than today's evals, which grids redo",
                        hint="evaluate the model again (`cdrb eval`), then compact that eval")  # fmt: skip
-    if "plans" not in ev.arrays:
-        raise BadInput(f"{ev.path}: holds no plans (a policy's eval, or one written with --no-plans): nothing to drop",
-                       hint="it is already as small as a compact eval")  # fmt: skip
+    if "plans" not in ev.arrays:  # a policy's eval, or one written with --no-plans: nothing to drop, kept as written
+        from cdrb_cli.files import atomic_path
+
+        with atomic_path(out) as tmp:
+            shutil.copyfile(ev.path, tmp)
+        return Path(out)
     arrays = {name: a for name, a in ev.arrays.items() if name != "plans"}
     arrays = {**plan_measures(ev.manifest.env, ev.arrays["plans"]), **arrays}
     # the same eval (its provenance says when and by what it ran), in today's layout, which its reader migrated to
