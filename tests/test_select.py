@@ -164,6 +164,34 @@ def test_a_curve_whose_plans_through_obstacles_still_fall_is_extended_with_its_e
     assert not still_rising(done)
 
 
+def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_extension_passes_it(tmp_path):
+    """`steps_cap`: `cdrb select` sums up in one line the curves that still rise at the cap (they stop there by the
+    grid's rule) and asks to extend only those below it, never past it; a grid whose [[extend]] entry goes past its
+    own cap is refused in one line."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.grid import load_grid
+    from cdrb_cli.orchestration.select import rising_notes
+
+    at_cap, below = _cand("k2", 0, 10000), _cand("k2", 0, 5000, method="diffuser")
+    rising = {("maze", "cdrb"): (at_cap, 12.0, 4.0), ("maze", "diffuser"): (below, 0.0, 0.0)}
+    line, warnings = rising_notes(rising, 10000)
+    cap = "1 curves still rise at the grid's cap of 10000 steps (steps_cap), where they stop: "
+    assert line == cap + "maze / cdrb +12.0 ± 4.0 points"
+    assert len(warnings) == 1 and warnings[0].startswith("maze / diffuser: the curve still rises at 5000 steps")
+    assert warnings[0].endswith("steps = 10000)")  # doubling would pass the cap
+    line, warnings = rising_notes(rising, None)  # no cap: each is asked to be extended, to twice its length
+    assert line is None and [w.rsplit("steps = ", 1)[1] for w in warnings] == ["20000)", "10000)"]
+    grid = tmp_path / "tune.toml"
+    grid.write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\nsteps_cap = 200\n'
+        'eval_stream = "tune"\n[[extend]]\nsteps = 400\n'
+    )
+    with pytest.raises(BadInput, match="beyond steps_cap = 200"):
+        load_grid(grid)
+    grid.write_text(grid.read_text().replace("steps = 400", "steps = 200"))
+    assert load_grid(grid).steps_cap == 200
+
+
 def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path):
     """A run's final model keeps its name when an [[extend]] entry trains it further: an eval made before (archived,
     its model elsewhere) has the very command of the longer run's eval, and only the training length it records

@@ -259,6 +259,34 @@ def _paired_change(prev: Candidate, last: Candidate, field: str) -> tuple[float,
     return sum(changes) / len(changes), std_or_none(changes) / len(changes) ** 0.5, [a for a, _ in pairs]
 
 
+def rising_notes(rising: dict[tuple[str, str], tuple], cap: int | None) -> tuple[str | None, list[str]]:
+    """What `cdrb select` says of the curves :func:`still_rising` found: one line for those that reached the grid's
+    ``steps_cap`` (they stop there by the grid's own rule), and a warning for each other, with the [[extend]] entry
+    that would run it further."""
+    capped = [(key, r) for key, r in rising.items() if cap is not None and r[0].steps >= cap]
+    line = None
+    if capped:
+        line = f"{len(capped)} curves still rise at the grid's cap of {cap} steps (steps_cap), where they stop: " + (
+            "; ".join(f"{env} / {method} {_gain_text(gain, se)}" for (env, method), (_, gain, se) in capped)
+        )
+    warnings = []
+    for (env, method), (c, gain, se) in rising.items():
+        if cap is not None and c.steps >= cap:
+            continue
+        why = f"+{gain:.1f} ± {se:.1f} points of success" if gain or se else "shared budget: another planner's rises"
+        warnings.append(
+            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why} over the previous length, "
+            f"or fewer plans through an obstacle): extend it before choosing from it (the same runs, resumed: an "
+            f"[[extend]] entry in the grid file with envs = [{toml_string(env)}], methods = [{toml_string(method)}], "
+            f"steps = {2 * c.steps if cap is None else min(2 * c.steps, cap)})"
+        )
+    return line, warnings
+
+
+def _gain_text(gain: float, se: float) -> str:
+    return f"+{gain:.1f} ± {se:.1f} points" if gain or se else "(shared budget)"
+
+
 def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], tuple]:
     """Per (env, method) whose curve still rises by :data:`RISING`: (its best candidate at the longest length, the
     gain in success points over the previous length, the standard error of that gain). A method with one length or
@@ -469,14 +497,11 @@ def select(
 
         summary = summary_text(cands, best, rising)
         check_docs_block(docs, block, summary, inputs)
-    for (env, method), (c, gain, se) in rising.items():
-        why = f"+{gain:.1f} ± {se:.1f} points of success" if gain or se else "shared budget: another planner's rises"
-        ui.warn(
-            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why} over the previous length, "
-            f"or fewer plans through an obstacle): extend it before choosing from it, unless a common cap stops it "
-            f"there (the same runs, resumed: an [[extend]] entry in the grid file with envs = [{toml_string(env)}], "
-            f"methods = [{toml_string(method)}], steps = {2 * c.steps})"
-        )
+    summary_line, warnings = rising_notes(rising, spec.steps_cap)
+    if summary_line is not None:
+        ui.log(summary_line)
+    for line in warnings:
+        ui.warn(line)
     for (env, method), c in best.items():
         ui.log(
             f"{env} / {method}: {c.name} (success {c.success:.1f}%, through an obstacle "

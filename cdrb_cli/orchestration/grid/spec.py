@@ -205,6 +205,11 @@ class GridSpec(_Strict):
         description="learning curves: every training also writes its model at these steps (below `steps`), and each "
         "snapshot is evaluated like the final model",
     )
+    steps_cap: Steps | None = Field(
+        None,
+        description="tuning grids: the longest any curve runs ([[extend]] entries stop here); `cdrb select` sums up "
+        "in one line the curves that still rise at it instead of asking to extend each",
+    )
     extend: list[Extension] = Field(
         default_factory=list,
         max_length=1000,
@@ -259,6 +264,15 @@ class GridSpec(_Strict):
 
         for env in value:
             make_spec(env)  # an unknown id: one line naming it
+        return value
+
+    @field_validator("extend")
+    @classmethod
+    def _under_the_cap(cls, value: list[Extension], info) -> list[Extension]:
+        cap = info.data.get("steps_cap")
+        over = next((e for e in value if cap is not None and e.steps > cap), None)
+        if over is not None:
+            raise ValueError(f"an [[extend]] entry trains to {over.steps} steps, beyond steps_cap = {cap}")
         return value
 
     @field_validator("eval_seeds")
