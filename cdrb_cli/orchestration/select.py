@@ -263,17 +263,17 @@ def rising_notes(rising: dict[tuple[str, str], tuple], cap: int | None) -> tuple
     """What `cdrb select` says of the curves :func:`still_rising` found: one line for those that reached the grid's
     ``steps_cap`` (they stop there by the grid's own rule), and a warning for each other, with the [[extend]] entry
     that would run it further."""
-    capped = [(key, r) for key, r in rising.items() if cap is not None and r[0].steps >= cap]
+    capped = {key: r for key, r in rising.items() if cap is not None and r[0].steps >= cap}
     line = None
     if capped:
         line = f"{len(capped)} curves still rise at the grid's cap of {cap} steps (steps_cap), where they stop: " + (
-            "; ".join(f"{env} / {method} {_gain_text(gain, se)}" for (env, method), (_, gain, se) in capped)
+            "; ".join(f"{env} / {method} {_gain_text(gain, se)}" for (env, method), (_, gain, se) in capped.items())
         )
     warnings = []
     for (env, method), (c, gain, se) in rising.items():
-        if cap is not None and c.steps >= cap:
+        if (env, method) in capped:
             continue
-        why = f"+{gain:.1f} ± {se:.1f} points of success" if gain or se else "shared budget: another planner's rises"
+        why = f"{_gain_text(gain, se)} of success" if gain or se else "shared budget: another planner's rises"
         warnings.append(
             f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why} over the previous length, "
             f"or fewer plans through an obstacle): extend it before choosing from it (the same runs, resumed: an "
