@@ -176,7 +176,10 @@ def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_exten
     rising = {("maze", "cdrb"): (at_cap, 12.0, 4.0), ("maze", "diffuser"): (below, 0.0, 0.0)}
     line, warnings = rising_notes(rising, 10000)
     cap = "1 curves still rise at the grid's cap of 10000 steps (steps_cap), where they stop: "
-    assert line == cap + "maze / cdrb +12.0 ± 4.0 points"
+    assert line == cap + "maze / cdrb +12.0 ± 4.0 success points"
+    falling = {("maze", "mlp"): (at_cap, -3.7, 0.9)}  # rises only by fewer plans through an obstacle
+    falls = "maze / mlp -3.7 ± 0.9 success points, fewer plans through an obstacle"
+    assert rising_notes(falling, 10000)[0].endswith(falls)
     assert len(warnings) == 1 and warnings[0].startswith("maze / diffuser: the curve still rises at 5000 steps")
     assert warnings[0].endswith("steps = 10000)")  # doubling would pass the cap
     line, warnings = rising_notes(rising, None)  # no cap: each is asked to be extended, to twice its length

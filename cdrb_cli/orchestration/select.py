@@ -273,10 +273,10 @@ def rising_notes(rising: dict[tuple[str, str], tuple], cap: int | None) -> tuple
     for (env, method), (c, gain, se) in rising.items():
         if (env, method) in capped:
             continue
-        why = f"{_gain_text(gain, se)} of success" if gain or se else "shared budget: another planner's rises"
+        why = f"{_gain_text(gain, se)} over the previous length" if gain or se else "another planner's rises"
         warnings.append(
-            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why} over the previous length, "
-            f"or fewer plans through an obstacle): extend it before choosing from it (the same runs, resumed: an "
+            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why}): extend it before "
+            f"choosing from it (the same runs, resumed: an "
             f"[[extend]] entry in the grid file with envs = [{toml_string(env)}], methods = [{toml_string(method)}], "
             f"steps = {2 * c.steps if cap is None else min(2 * c.steps, cap)})"
         )
@@ -284,7 +284,12 @@ def rising_notes(rising: dict[tuple[str, str], tuple], cap: int | None) -> tuple
 
 
 def _gain_text(gain: float, se: float) -> str:
-    return f"+{gain:.1f} ± {se:.1f} points" if gain or se else "(shared budget)"
+    """A rising curve's change in success points; where success did not gain by more than its standard error, the
+    curve rose by :func:`still_rising`'s other test, fewer plans through an obstacle."""
+    if not (gain or se):
+        return "(shared budget)"
+    text = f"{gain:+.1f} ± {se:.1f} success points"
+    return text if gain > se else f"{text}, fewer plans through an obstacle"
 
 
 def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], tuple]:
