@@ -89,8 +89,9 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     ]
     rising = still_rising(cands)
     assert set(rising) == {("maze", "cdrb")}
-    best, gain, se = rising[("maze", "cdrb")]
-    assert best.variant == "s8" and abs(gain - 36.67) < 0.01 and abs(se - 12.55) < 0.01
+    rise = rising[("maze", "cdrb")]
+    assert rise.best.variant == "s8" and abs(rise.gain - 36.67) < 0.01 and abs(rise.se - 12.55) < 0.01
+    assert rise.by == "success"
     # the same means, but every run gained alike: paired, a rise; and a gain within the noise is not one
     assert still_rising([point("k2", 0, 1000, [50.0, 70.0, 60.0]), point("k2", 0, 2000, [52.0, 72.0, 62.0])])
     assert not still_rising([point("k2", 0, 1000, [50.0, 70.0, 60.0]), point("k2", 0, 2000, [60.0, 66.0, 60.0])])
@@ -158,7 +159,16 @@ def test_a_curve_whose_plans_through_obstacles_still_fall_is_extended_with_its_e
         point(5000, [61.0, 60.0, 62.0], [51.0, 50.0, 52.0], "diffuser"),
     ]
     assert set(still_rising(cands)) == {("maze", "cdrb")}
-    assert set(still_rising(cands, shared_budget=True)) == {("maze", "cdrb"), ("maze", "diffuser")}
+    shared = still_rising(cands, shared_budget=True)
+    assert set(shared) == {("maze", "cdrb"), ("maze", "diffuser")}
+    assert shared[("maze", "cdrb")].by == "crossings" and shared[("maze", "diffuser")].by == "shared"
+    assert shared[("maze", "cdrb")].text().endswith("success points, fewer plans through an obstacle")
+    # success level at the ceiling, or unchanged on every seed, while the crossings fall: a rise by crossings, said so
+    ceiling = [point(2500, [98.0, 97.0, 96.0], [40.0, 41.0, 39.0]), point(5000, [100.0] * 3, [10.0, 12.0, 11.0])]
+    flat = [point(2500, [70.0] * 3, [40.0, 41.0, 39.0]), point(5000, [70.0] * 3, [10.0, 12.0, 11.0])]
+    for case in (ceiling, flat):
+        rise = still_rising(case)[("maze", "cdrb")]
+        assert rise.by == "crossings" and "fewer plans through an obstacle" in rise.text(), rise
     # no plan left through an obstacle: nothing left to fall
     done = [point(2500, [70.0, 75.0, 72.0], [9.0, 8.0, 7.0]), point(5000, [72.0, 70.0, 74.0], [0.0, 0.0, 0.0])]
     assert not still_rising(done)
@@ -170,14 +180,14 @@ def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_exten
     own cap is refused in one line."""
     from cdrb_cli.errors import BadInput
     from cdrb_cli.orchestration.grid import load_grid
-    from cdrb_cli.orchestration.select import rising_notes
+    from cdrb_cli.orchestration.select import Rise, rising_notes
 
     at_cap, below = _cand("k2", 0, 10000), _cand("k2", 0, 5000, method="diffuser")
-    rising = {("maze", "cdrb"): (at_cap, 12.0, 4.0), ("maze", "diffuser"): (below, 0.0, 0.0)}
+    rising = {("maze", "cdrb"): Rise(at_cap, 12.0, 4.0, "success"), ("maze", "diffuser"): Rise(below, 0, 0, "shared")}
     line, warnings = rising_notes(rising, 10000)
     cap = "1 curves still rise at the grid's cap of 10000 steps (steps_cap), where they stop: "
     assert line == cap + "maze / cdrb +12.0 ± 4.0 success points"
-    falling = {("maze", "mlp"): (at_cap, -3.7, 0.9)}  # rises only by fewer plans through an obstacle
+    falling = {("maze", "mlp"): Rise(at_cap, -3.7, 0.9, "crossings")}  # rises only by fewer plans through an obstacle
     falls = "maze / mlp -3.7 ± 0.9 success points, fewer plans through an obstacle"
     assert rising_notes(falling, 10000)[0].endswith(falls)
     assert len(warnings) == 1 and warnings[0].startswith("maze / diffuser: the curve still rises at 5000 steps")

@@ -259,23 +259,42 @@ def _paired_change(prev: Candidate, last: Candidate, field: str) -> tuple[float,
     return sum(changes) / len(changes), std_or_none(changes) / len(changes) ** 0.5, [a for a, _ in pairs]
 
 
-def rising_notes(rising: dict[tuple[str, str], tuple], cap: int | None) -> tuple[str | None, list[str]]:
+@dataclass(frozen=True)
+class Rise:
+    """A curve :func:`still_rising` found still rising: its best candidate at the longest length, the paired change in
+    success points over the previous length and that change's standard error (both 0 where success was not measured
+    twice), and why it rises: ``"success"`` (success gained beyond its standard error), ``"crossings"`` (fewer plans
+    through an obstacle) or ``"shared"`` (another planner of its environment rises, under a shared budget)."""
+
+    best: Candidate
+    gain: float
+    se: float
+    by: str
+
+    def text(self) -> str:
+        if self.by == "shared":
+            return "(shared budget: another planner's curve rises)"
+        change = f"{self.gain:+.1f} ± {self.se:.1f} success points"
+        return change if self.by == "success" else f"{change}, fewer plans through an obstacle"
+
+
+def rising_notes(rising: dict[tuple[str, str], Rise], cap: int | None) -> tuple[str | None, list[str]]:
     """What `cdrb select` says of the curves :func:`still_rising` found: one line for those that reached the grid's
     ``steps_cap`` (they stop there by the grid's own rule), and a warning for each other, with the [[extend]] entry
     that would run it further."""
-    capped = {key: r for key, r in rising.items() if cap is not None and r[0].steps >= cap}
+    capped = {key: r for key, r in rising.items() if cap is not None and r.best.steps >= cap}
     line = None
     if capped:
         line = f"{len(capped)} curves still rise at the grid's cap of {cap} steps (steps_cap), where they stop: " + (
-            "; ".join(f"{env} / {method} {_gain_text(gain, se)}" for (env, method), (_, gain, se) in capped.items())
+            "; ".join(f"{env} / {method} {r.text()}" for (env, method), r in capped.items())
         )
     warnings = []
-    for (env, method), (c, gain, se) in rising.items():
+    for (env, method), r in rising.items():
         if (env, method) in capped:
             continue
-        why = f"{_gain_text(gain, se)} over the previous length" if gain or se else "another planner's rises"
+        c = r.best
         warnings.append(
-            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {why}): extend it before "
+            f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {r.text()}): extend it before "
             f"choosing from it (the same runs, resumed: an "
             f"[[extend]] entry in the grid file with envs = [{toml_string(env)}], methods = [{toml_string(method)}], "
             f"steps = {2 * c.steps if cap is None else min(2 * c.steps, cap)})"
@@ -283,18 +302,8 @@ def rising_notes(rising: dict[tuple[str, str], tuple], cap: int | None) -> tuple
     return line, warnings
 
 
-def _gain_text(gain: float, se: float) -> str:
-    """A rising curve's change in success points; where success did not gain by more than its standard error, the
-    curve rose by :func:`still_rising`'s other test, fewer plans through an obstacle."""
-    if not (gain or se):
-        return "(shared budget)"
-    text = f"{gain:+.1f} ± {se:.1f} success points"
-    return text if gain > se else f"{text}, fewer plans through an obstacle"
-
-
-def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], tuple]:
-    """Per (env, method) whose curve still rises by :data:`RISING`: (its best candidate at the longest length, the
-    gain in success points over the previous length, the standard error of that gain). A method with one length or
+def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], Rise]:
+    """Per (env, method) whose curve still rises by :data:`RISING`, its :class:`Rise`. A method with one length or
     one training seed has no curve to judge."""
     out = {}
     for key in dict.fromkeys((c.env, c.method) for c in cands):
@@ -311,7 +320,8 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
         gains = success is not None and success[0] > success[1] and not all(v >= 100.0 for v in success[2])
         falls = crossing is not None and -crossing[0] > crossing[1] and not all(v <= 0.0 for v in crossing[2])
         if gains or falls:
-            out[key] = (last, *(success[:2] if success is not None else (0.0, 0.0)))
+            gain, se = success[:2] if success is not None else (0.0, 0.0)
+            out[key] = Rise(last, gain, se, "success" if gains else "crossings")
     if shared_budget:  # one planner that rises extends its environment's others with it
         for env in {env for env, method in out if METHODS.get(method).kind == "planner"}:
             trained = [c for c in cands if c.env == env and c.planner and c.steps is not None]
@@ -320,7 +330,7 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
                 last = min((c for c in trained if c.method == method and c.steps == longest), key=Candidate.rank,
                            default=None)  # fmt: skip
                 if last is not None:
-                    out[(env, method)] = (last, 0.0, 0.0)
+                    out[(env, method)] = Rise(last, 0.0, 0.0, "shared")
     return out
 
 
