@@ -679,6 +679,24 @@ def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
         load_grid(grid, ["demos=1"])  # validated like the file's own value
 
 
+def test_grid_set_variants_runs_the_named_arms_only(tmp_path):
+    text = TINY + "".join(
+        f'\n[[variants]]\nname = "{n}"\nmethods = ["cdrb"]\ntrain = ["--set", "method.diffusion_steps={t}"]\n'
+        for n, t in (("T4", 4), ("T6", 6), ("T2", 2))
+    )
+    grid = _grid(tmp_path, text)
+    trains = lambda spec: sorted(t.id for t in expand(spec) if t.kind == "train")  # noqa: E731
+    assert len(trains(load_grid(grid))) == 6
+    spec = load_grid(grid, ['variants=["T2", "T4"]'])
+    assert [v.name for v in spec.variants] == ["T4", "T2"]  # the file's order
+    assert trains(spec) == [f"train maze-tight/{n}/cdrb-s{s}" for n in ("T2", "T4") for s in (0, 1)]
+    assert [v.name for v in load_grid(grid, ["variants=T6"]).variants] == ["T6"]
+    with pytest.raises(BadInput, match=r"--set variants=\[.T9.\]: variants: T9: no such variant.*T4, T6, T2"):
+        load_grid(grid, ['variants=["T9"]'])
+    with pytest.raises(BadInput, match="a list of the file's variant names"):
+        load_grid(grid, ["variants=[]"])
+
+
 @pytest.mark.parametrize(
     "line, words",
     [

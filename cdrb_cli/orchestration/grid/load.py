@@ -147,6 +147,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     raw = read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
     path = Path(path).resolve()
     cwd_out, set_keys = _apply_overrides(raw, overrides)
+    variant_names = raw.pop("_variant_names", None)
     try:
         spec = GridSpec.model_validate(raw)
     except ValidationError as exc:
@@ -161,7 +162,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         + anchor_all(spec.settings, path.parent)
         + _included_settings(list(extra_includes), Path.cwd(), (path,), read, seen)
     )
-    spec.variants = anchor_all(spec.variants, path.parent)
+    spec.variants = anchor_all(_pick_variants(spec.variants, variant_names, path, overrides), path.parent)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
     check_flags(spec, path)
@@ -188,18 +189,38 @@ def _apply_overrides(raw: dict, overrides: list[str]) -> tuple[Path | None, set[
     for text in overrides:
         key, value = parse_override(text)
         set_keys.add(key)
+        if key == "variants":  # names: run those of the file's variants only (one arm of an ablation)
+            raw["_variant_names"] = value
+            continue
         if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
             raise BadInput(
                 f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
                 hint="one of "
-                + ", ".join(
-                    k for k in GridSpec.model_fields if k not in ("settings", "variants", "include", "resources")
-                ),
+                + ", ".join(k for k in GridSpec.model_fields if k not in ("settings", "include", "resources"))
+                + " (variants: a list of the file's variant names to run)",
             )
         raw[key] = value
         if key == "out":
             cwd_out = Path(str(value)).resolve()
     return cwd_out, set_keys
+
+
+def _pick_variants(variants: list, names, path: Path, overrides: list[str]) -> list:
+    """The file's variants, or only those ``--set variants=[...]`` names (in the file's order)."""
+    if names is None:
+        return variants
+    where = _origin(path, overrides, "variants")
+    if isinstance(names, str):
+        names = [names]
+    known = [v.name for v in variants]
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise BadInput(f"{where}: variants: give a list of the file's variant names",
+                       hint=f'e.g. --set \'variants=["{known[0] if known else "NAME"}"]\'')  # fmt: skip
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise BadInput(f"{where}: variants: {clip(', '.join(unknown), 80)}: no such variant in {path.name}",
+                       hint="its variants: " + (", ".join(known) or "none"))  # fmt: skip
+    return [v for v in variants if v.name in names]
 
 
 def _check_reuse(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
