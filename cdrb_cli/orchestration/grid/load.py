@@ -146,8 +146,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     KEY=VALUE`) replace top-level keys of the file; an ``out`` given so is relative to the current folder."""
     raw = read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
     path = Path(path).resolve()
-    cwd_out, set_keys = _apply_overrides(raw, overrides)
-    variant_names = raw.pop("_variant_names", None)
+    cwd_out, set_keys, variant_names = _apply_overrides(raw, overrides)
     try:
         spec = GridSpec.model_validate(raw)
     except ValidationError as exc:
@@ -182,27 +181,31 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     return spec
 
 
-def _apply_overrides(raw: dict, overrides: list[str]) -> tuple[Path | None, set[str]]:
+#: top-level grid keys that hold tables, which `--set` does not replace
+_NOT_SET = ("settings", "include", "resources")
+
+
+def _apply_overrides(raw: dict, overrides: list[str]) -> tuple[Path | None, set[str], object]:
     """`cdrb grid --set KEY=VALUE` applied to the file's top-level keys: the ``out`` given so (relative to the
-    current folder), and the keys set."""
-    cwd_out, set_keys = None, set()
+    current folder), the keys set, and the variant names ``--set variants=`` selects (None: every variant)."""
+    cwd_out, set_keys, variant_names = None, set(), None
     for text in overrides:
         key, value = parse_override(text)
         set_keys.add(key)
         if key == "variants":  # names: run those of the file's variants only (one arm of an ablation)
-            raw["_variant_names"] = value
+            variant_names = value
             continue
-        if key not in GridSpec.model_fields or key in ("settings", "variants", "include", "resources"):
+        if key not in GridSpec.model_fields or key in _NOT_SET:
             raise BadInput(
                 f"--set {clip(text)}: {clip(repr(key), 60)} is not a top-level grid key that --set can change",
                 hint="one of "
-                + ", ".join(k for k in GridSpec.model_fields if k not in ("settings", "include", "resources"))
+                + ", ".join(k for k in GridSpec.model_fields if k not in _NOT_SET)
                 + " (variants: a list of the file's variant names to run)",
             )
         raw[key] = value
         if key == "out":
             cwd_out = Path(str(value)).resolve()
-    return cwd_out, set_keys
+    return cwd_out, set_keys, variant_names
 
 
 def _pick_variants(variants: list, names, path: Path, overrides: list[str]) -> list:
