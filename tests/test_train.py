@@ -474,8 +474,9 @@ def test_d_max_from_the_data_box_is_the_diagonal_of_the_normalized_features(smal
 
     from cdrb_cli.methods.cdrb import CDRB
 
-    def label(**method):
-        return CDRB.variant(SimpleNamespace(config=SimpleNamespace(method=SimpleNamespace(**method))))
+    def label(preset="paper", loss_weight_power=0.0, **method):
+        method = SimpleNamespace(loss_weight_power=loss_weight_power, **method)
+        return CDRB.variant(SimpleNamespace(config=SimpleNamespace(preset=preset, method=method)))
 
     assert label(ball="euclidean", d_max_from="buffer", geodesic_radii="matched") is None
     assert label(ball="euclidean", d_max_from="data-box", geodesic_radii="matched") == "d_max of the data box"
@@ -483,6 +484,17 @@ def test_d_max_from_the_data_box_is_the_diagonal_of_the_normalized_features(smal
     assert geo == "geodesic balls, d_max of the data box"
     scaled = label(ball="geodesic", d_max_from="buffer", geodesic_radii="scaled")
     assert scaled == "geodesic balls, scaled radii"
+    # a loss weight other than the preset's is named too (the quick preset weights by 1/eps_k, the paper's does not)
+    official = label(ball="euclidean", d_max_from="data-box", geodesic_radii="matched", loss_weight_power=1.0)
+    assert official == "d_max of the data box, 1/eps_k loss weight"
+    assert (
+        label(preset="quick", ball="euclidean", d_max_from="buffer", geodesic_radii="matched", loss_weight_power=1.0)
+        is None
+    )
+    unweighted = label(preset="quick", ball="euclidean", d_max_from="buffer", geodesic_radii="matched")
+    assert unweighted == "unweighted loss"
+    squared = label(ball="euclidean", d_max_from="buffer", geodesic_radii="matched", loss_weight_power=2.0)
+    assert squared == "loss weight (eps_1/eps_k)^2"
 
 
 @pytest.mark.parametrize("name", ["cdrb", "mlp"])
