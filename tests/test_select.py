@@ -62,7 +62,6 @@ def _cdrb(*args, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
     return proc
 
 
-@pytest.mark.slow
 def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standard_error():
     """The points of a curve are snapshots of the same runs: the gain is judged per training seed (paired)."""
     from cdrb_cli.orchestration.select import still_rising
@@ -265,6 +264,7 @@ def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     assert "*: the curve still rises" in text
 
 
+@pytest.mark.slow
 def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp_path):
     """The documented chain on the shipped files (copied, so the tuned files written are the copies'), narrowed to
     Maze Tight x {MLP, CDRB} with tiny nets: each `cdrb select` writes the settings the next file includes, and the
