@@ -106,10 +106,3 @@ def tiny_models(small_data, tmp_path_factory):
         cfg = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=30))
         out[method] = train(demos, b, cfg, root / f"{method}.h5")
     return out
-
-
-def pytest_collection_modifyitems(config, items):
-    """Run the tests marked slow first. Under pytest-xdist a minute-long test that starts near the end keeps one
-    worker busy while the others have nothing left; started first, the short tests fill in around it (the
-    longest-first rule for scheduling jobs on parallel machines). The order is otherwise the collection order."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
