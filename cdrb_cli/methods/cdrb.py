@@ -87,6 +87,8 @@ class CDRBParams(StartWeightParams):
 
 def _loss_weight_label(power: float) -> str:
     """The loss weight (eps_1 / eps_k)^p as a label: ``1/eps_k loss weight`` for the official code's p = 1."""
+    if power == 0:
+        return "unweighted loss"
     return "1/eps_k loss weight" if power == 1 else f"loss weight (eps_1/eps_k)^{power:g}"
 
 
@@ -130,9 +132,10 @@ class CDRB(Planner):
         m = self.config.method
         parts = [f"geodesic balls{', scaled radii' * (m.geodesic_radii == 'scaled')}"] if m.ball == "geodesic" else []
         parts += ["d_max of the data box"] if m.d_max_from == "data-box" else []
-        preset_power = METHODS.get("cdrb").presets.get(self.config.preset, {}).get("loss_weight_power", 0.0)
-        if m.loss_weight_power != preset_power:  # the preset's own weight goes without saying in its label
-            parts.append("unweighted loss" if m.loss_weight_power == 0 else _loss_weight_label(m.loss_weight_power))
+        preset = METHODS.get("cdrb").presets.get(self.config.preset, {})
+        default = preset.get("loss_weight_power", CDRBParams.model_fields["loss_weight_power"].default)
+        if m.loss_weight_power != default:  # the preset's own weight goes without saying in its label
+            parts.append(_loss_weight_label(m.loss_weight_power))
         return ", ".join(parts) or None
 
     def extra_arrays(self):
