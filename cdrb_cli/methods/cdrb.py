@@ -86,7 +86,8 @@ class CDRBParams(StartWeightParams):
 
 
 def _loss_weight_label(power: float) -> str:
-    """The loss weight (eps_1 / eps_k)^p as a label: ``1/eps_k loss weight`` for the official code's p = 1."""
+    """The loss weight (eps_1 / eps_k)^p as a label: ``unweighted loss`` at p = 0, ``1/eps_k loss weight`` for the
+    official code's p = 1."""
     if power == 0:
         return "unweighted loss"
     return "1/eps_k loss weight" if power == 1 else f"loss weight (eps_1/eps_k)^{power:g}"
