@@ -160,10 +160,10 @@ def _closed_loop_beats_random(model, spec, tmp_path, cdrb) -> None:
 
 @pytest.mark.slow
 def test_diffusion_bc_learns_the_loss_and_beats_a_random_policy(tmp_path, cdrb):
-    """On a small corridor maze: the loss falls, and closed loop the policy reaches the goal far more often than
-    uniform random actions on the same episodes."""
+    """On a small corridor maze: over 600 updates the loss falls, and closed loop the policy reaches the goal far more
+    often than uniform random actions on the same episodes (400 updates pass too, so the budget has a margin)."""
     spec, demos = _corridor_demos(tmp_path)
-    cfg = train_config(demos, None, "diffusion-bc", {"steps": 1500, "net.embed_dim": 32, "net.hidden": 128})
+    cfg = train_config(demos, None, "diffusion-bc", {"steps": 600, "net.embed_dim": 32, "net.hidden": 128})
     model = train(demos, None, cfg, tmp_path / "bc.h5")
     loss = model.arrays["curve/loss"]
     assert loss[-3:].mean() < 0.6 * loss[:3].mean()
@@ -172,10 +172,12 @@ def test_diffusion_bc_learns_the_loss_and_beats_a_random_policy(tmp_path, cdrb):
 
 @pytest.mark.slow
 def test_diffusion_ql_beats_a_random_policy(tmp_path, cdrb):
-    """The same corridor: over 1,500 updates of Diffusion-QL (BC + Q term, sparse success reward) the actor's BC
-    loss falls, and it acts far better than random actions (measured: 100% of 20 episodes)."""
+    """The same corridor: over 700 updates of Diffusion-QL (BC + Q term, sparse success reward) the actor's BC
+    loss falls, and it acts far better than random actions (measured: 100% of 20 episodes; 65% after 450
+    updates, so the budget has a margin)."""
     spec, demos = _corridor_demos(tmp_path)
-    cfg = train_config(demos, None, "diffusion-ql", {"steps": 1500, "net.hidden": [128] * 3, "batch_size": 128})
+    settings = {"steps": 700, "net.hidden": [128] * 3, "batch_size": 64, "lr": 1e-3}
+    cfg = train_config(demos, None, "diffusion-ql", settings)
     model = train(demos, None, cfg, tmp_path / "ql.h5")
     loss = model.arrays["curve/loss"]  # the actor's BC (DDPM) term
     assert loss[-3:].mean() < 0.6 * loss[:3].mean()
