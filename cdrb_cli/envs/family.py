@@ -59,6 +59,12 @@ class Env(Protocol):
     def close(self) -> None: ...
 
 
+def close_all(envs) -> None:
+    """Close every env of ``envs``."""
+    for env in envs:
+        env.close()
+
+
 class Expert(Protocol):
     """A demonstrator: ``reset`` once per episode, then ``act`` every step until ``settled`` (or the limit)."""
 

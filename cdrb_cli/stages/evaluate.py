@@ -19,7 +19,7 @@ import numpy as np
 
 from cdrb_cli import artifacts, ui
 from cdrb_cli.configs import EvalConfig, EvalSummary
-from cdrb_cli.envs.family import Env, EnvFamily, Episode
+from cdrb_cli.envs.family import Env, EnvFamily, Episode, close_all
 from cdrb_cli.envs.geometry import largest_jump
 from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
@@ -126,12 +126,16 @@ def run_policy(
     steps: int,
     rng: np.random.Generator,
     aims=None,
+    envs: Sequence[Env] | None = None,
 ) -> tuple[list[Rollout], list[np.ndarray], float]:
     """Run a closed-loop policy on ``episodes`` in lockstep (one env each): every step, one call of
     ``policy.act`` for all of them. ``aims``: (function of states and goals giving the goals to act toward,
-    env steps between two calls of it), toward waypoints; None: the episodes' goals throughout. Returns the
+    env steps between two calls of it), toward waypoints; None: the episodes' goals throughout. ``envs``: at
+    least one env per episode, reset here and left open (an eval reuses them batch after batch, as its open-loop
+    path reuses one env: building a MuJoCo env costs about 0.1 s); None: fresh ones, closed after. Returns the
     rollouts, the goals and the mean seconds per ``act`` call."""
-    envs = [family.make_env(spec) for _ in episodes]
+    own = envs is None
+    envs = [family.make_env(spec) for _ in episodes] if own else list(envs[: len(episodes)])
     try:
         resets = [env.reset(ep) for env, ep in zip(envs, episodes)]
         obs = np.stack([r[0] for r in resets])
@@ -148,8 +152,8 @@ def run_policy(
             obs = np.stack([env.step(a) for env, a in zip(envs, actions)])
             states.append(obs)
     finally:
-        for env in envs:
-            env.close()
+        if own:
+            close_all(envs)
     S = np.stack(states, axis=1)  # (episodes, steps + 1, obs_dim)
     return [measure(spec, S[i], goals[i], steps) for i in range(len(episodes))], list(goals), seconds / max(steps, 1)
 
@@ -186,6 +190,7 @@ def evaluate(
         method.pinned_end = spec.pin_end_dims
     METHODS.get(method.name).check_sampler(config.sampler)
     env = family.make_env(spec)
+    pool: list[Env] = []  # closed loop: one env per episode of a lockstep group
     controller = CONTROLLERS.get(config.controller.name).build(
         spec, env, config.controller, model.manifest.config.stride
     )
@@ -219,7 +224,7 @@ def evaluate(
             if config.replan.mode == "never":
                 runs = _open_loop(ctx, starts, goals, controller)
             else:
-                runs = _closed_loop(ctx, method, config, avoid, aims)
+                runs = _closed_loop(ctx, method, config, pool, avoid, aims)
             for plan, states_visited, result, history in runs:
                 results.append(result)
                 if len(executed) < videos:
@@ -229,7 +234,7 @@ def evaluate(
                 bar.update(task, advance=1, info=f"success {np.mean([r.success for r in results]):.1%}")
             all_plans.append(plans)
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
-    env.close()
+    close_all([env, *pool])
     warn_unrouted(avoid)
     arrays = episode_arrays(results)
     plans = np.concatenate(all_plans).astype(np.float32)
@@ -331,10 +336,11 @@ def _open_loop(ctx: _SeedRun, starts, goals, controller):
         yield ctx.plans[e], run.states, result, None
 
 
-def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None, aims=None):
+def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, envs: list[Env], avoid=None, aims=None):
     """Yield (last plan, states, result, (plans, steps they were made at)) for every episode of one eval seed
     executed closed loop (stages/replan.py) in lockstep groups; the plan measures cover every plan an episode
-    made; ``aims``: where each re-plan aims (:func:`_waypoints`)."""
+    made; ``envs``: the eval's envs for a group, grown here to the largest group and reused (the caller closes
+    them); ``aims``: where each re-plan aims (:func:`_waypoints`)."""
     from cdrb_cli.stages.replan import GROUP, run_closed_loop
 
     spec, family = ctx.spec, ctx.family
@@ -342,6 +348,7 @@ def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None, aims=Non
     stride = method.config.stride
     for g, b in enumerate(range(0, len(ctx.episodes), GROUP)):
         group = ctx.episodes[b : b + GROUP]
+        envs.extend(family.make_env(spec) for _ in range(len(group) - len(envs)))
         runs = run_closed_loop(
             family,
             spec,
@@ -357,6 +364,7 @@ def _closed_loop(ctx: _SeedRun, method, config: EvalConfig, avoid=None, aims=Non
             method.device,
             avoid,
             aims,
+            envs,
         )
         for episode, run in zip(group, runs):
             made = np.stack(run.plans)[..., : spec.obs_dim]  # (plans, H, obs_dim)
@@ -399,6 +407,7 @@ def evaluate_policy(
     )
     aims = _policy_waypoints(model, spec, config, route_buffer)
     env = family.make_env(spec)
+    pool = [family.make_env(spec) for _ in range(min(POLICY_BATCH, config.episodes))]
     expert = ExpertReference(family, spec)
     steps = spec.episode_limit + config.extra_steps
     results: list[EpisodeResult] = []
@@ -412,7 +421,7 @@ def evaluate_policy(
             rng = step_rng(config.seed, STREAM_EVAL, seed)
             for b in range(0, len(episodes), POLICY_BATCH):
                 batch = episodes[b : b + POLICY_BATCH]
-                runs, goals, sec = run_policy(family, spec, batch, policy, steps, rng, aims)
+                runs, goals, sec = run_policy(family, spec, batch, policy, steps, rng, aims, pool)
                 for episode, run, goal in zip(batch, runs, goals):
                     length = expert.path_length(env, episode)
                     per_call = sec / len(batch)
@@ -425,7 +434,7 @@ def evaluate_policy(
                         executed.append((run.states, run.states, goal, run.success))
                 bar.update(task, advance=len(batch), info=f"success {np.mean([r.success for r in results]):.1%}")
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
-    env.close()
+    close_all([env, *pool])
     summary = summarize(
         policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
     ).model_copy(update={"variant": policy.variant()})

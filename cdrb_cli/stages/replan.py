@@ -23,13 +23,13 @@ segments through them, the largest jump) cover every plan the episode made.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from cdrb_cli.configs import ReplanConfig
-from cdrb_cli.envs.family import Controller, Env, EnvFamily, Episode
+from cdrb_cli.envs.family import Controller, Env, EnvFamily, Episode, close_all
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.methods.base import Planner
 from cdrb_cli.seeding import replan_rng
@@ -94,13 +94,17 @@ def run_closed_loop(
     device="cpu",
     avoid=None,
     aims=None,
+    envs: Sequence[Env] | None = None,
 ) -> list[ClosedLoopEpisode]:
     """Run ``episodes`` in lockstep from their open-loop plans ``first_plans`` (n, H, F), planning again as
     ``replan`` says; ``seeds`` = (the command's seed, the eval seed, the group index) seed every re-plan; ``aims``
-    (states, goal states) -> the goal states re-plans aim at (waypoints toward far goals; None: the goals)."""
+    (states, goal states) -> the goal states re-plans aim at (waypoints toward far goals; None: the goals);
+    ``envs``: at least one env per episode, reset here and left open (reused group after group); None: fresh
+    ones, closed after."""
     n = len(episodes)
     stride = method.config.stride
-    envs = [family.make_env(spec) for _ in episodes]
+    own = envs is None
+    envs = [family.make_env(spec) for _ in episodes] if own else list(envs[:n])
     try:
         controllers = [make_controller(env) for env in envs]
         resets = [env.reset(ep) for env, ep in zip(envs, episodes)]
@@ -154,8 +158,8 @@ def run_closed_loop(
                 controllers[i].reset(plans[j])
                 since[i] = 0
     finally:
-        for env in envs:
-            env.close()
+        if own:
+            close_all(envs)
     S = np.stack(states, axis=1)  # (n, steps + 1, obs_dim)
     for i, run in enumerate(runs):
         run.states = S[i]
