@@ -123,22 +123,30 @@ def _corridor_demos(tmp_path):
     return spec, collect(spec, collect_config(spec, episodes=60, seed=0), tmp_path / "d.h5")
 
 
+class RandomActions:
+    """A policy of uniform random actions in [-1, 1]^act_dim."""
+
+    def __init__(self, act_dim: int):
+        self.act_dim = act_dim
+
+    def reset(self, n, rng):
+        pass
+
+    def act(self, states, goals, rng):
+        return rng.uniform(-1, 1, size=(len(states), self.act_dim))
+
+
 def _random_policy_success(spec, episodes: int) -> float:
     """Success of uniform random actions on the first tuning episodes (seed 0) of ``spec``."""
     from cdrb_cli.envs.registry import family_of
     from cdrb_cli.seeding import STREAM_TUNE
     from cdrb_cli.stages.evaluate import run_policy
 
-    class Random:
-        def reset(self, n, rng):
-            pass
-
-        def act(self, states, goals, rng):
-            return rng.uniform(-1, 1, size=(len(states), spec.action_dim))
-
     family = family_of(spec)
     pairs = family.draw_episodes(spec, episodes, 0, STREAM_TUNE)
-    runs, _, _ = run_policy(family, spec, pairs, Random(), spec.episode_limit, np.random.default_rng(0))
+    runs, _, _ = run_policy(
+        family, spec, pairs, RandomActions(spec.action_dim), spec.episode_limit, np.random.default_rng(0)
+    )
     return float(np.mean([run.success for run in runs]))
 
 

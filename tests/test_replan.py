@@ -425,28 +425,18 @@ def test_a_policy_eval_toward_waypoints_reads_its_route_buffer(small_data, tmp_p
     assert not (tmp_path / "bare.h5").exists() and not (tmp_path / "drift.h5").exists()
 
 
-class _RandomActions:
-    def __init__(self, act_dim):
-        self.act_dim = act_dim
-
-    def reset(self, n, rng):
-        pass
-
-    def act(self, states, goals, rng):
-        return rng.uniform(-1, 1, size=(len(states), self.act_dim))
-
-
 @pytest.mark.parametrize("env_id", ["maze-tight", "fetch-pick-place-obstacle"])
 def test_envs_reused_batch_after_batch_run_as_fresh_ones(env_id):
     """An eval reuses its lockstep envs from batch to batch: episodes run in envs that ran other episodes before
     (and one env more than they need) give exactly what fresh envs give."""
     from cdrb_cli.envs.registry import make_spec
     from cdrb_cli.stages.evaluate import run_policy
+    from tests.test_policies import RandomActions
 
     spec = make_spec(env_id)
     family = family_of(spec)
     first, then = family.draw_episodes(spec, 4, 0, STREAM_EVAL), family.draw_episodes(spec, 3, 1, STREAM_EVAL)
-    policy = _RandomActions(spec.action_dim)
+    policy = RandomActions(spec.action_dim)
 
     def states(episodes, envs=None):
         runs, _, _ = run_policy(family, spec, episodes, policy, 30, np.random.default_rng(5), envs=envs)
