@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -677,6 +678,12 @@ def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
         load_grid(grid, ["demos"])
     with pytest.raises(BadInput, match="demos"):
         load_grid(grid, ["demos=1"])  # validated like the file's own value
+    # a list given as one bare value is refused with the list it means, written out
+    with pytest.raises(
+        BadInput,
+        match=re.escape('--set envs=maze: envs: Input should be a valid list (a TOML list, e.g. envs=["maze"])'),
+    ):
+        load_grid(grid, ["envs=maze"])
 
 
 def test_grid_set_variants_runs_the_named_arms_only(tmp_path):

@@ -152,7 +152,11 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     except ValidationError as exc:
         err = exc.errors()[0]
         where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
-        raise BadInput(f"{_origin(path, overrides, *err['loc'][:1])}: {where}: {err['msg']}",
+        msg = err["msg"]
+        if err.get("type") == "list_type" and len(err["loc"]) == 1:  # a TOML list, even of one value
+            example = clip(json.dumps(err["input"], default=str), 60)
+            msg += f" (a TOML list, e.g. {err['loc'][0]}=[{example}])"
+        raise BadInput(f"{_origin(path, overrides, *err['loc'][:1])}: {where}: {msg}",
                        hint="see docs/cli.md, `cdrb grid`") from None  # fmt: skip
     read = [path]
     seen = {"files": {}, "count": 0}
