@@ -21,9 +21,12 @@ _LOW = (torch.float16, torch.bfloat16)
 
 
 def _forward(x: torch.Tensor) -> torch.Tensor:
+    """x p / (2 - p), p = s (2 - s): the same operations in the same order as written, in place where a fresh
+    intermediate allows (the products commute exactly), so three buffers are allocated instead of six."""
     s = torch.sigmoid(x)
-    p = s * (2.0 - s)
-    return x * p / (2.0 - p)
+    p = torch.rsub(s, 2.0).mul_(s)
+    q = torch.rsub(p, 2.0)
+    return p.mul_(x).div_(q)
 
 
 class _MishFunction(torch.autograd.Function):
@@ -35,10 +38,12 @@ class _MishFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         (x,) = ctx.saved_tensors
+        # grad * (t + x s (1 - t^2)), in place as in _forward (1 - a is -a + 1 exactly)
         s = torch.sigmoid(x)
-        p = s * (2.0 - s)
-        t = p / (2.0 - p)
-        return grad * (t + x * s * (1.0 - t * t))
+        p = torch.rsub(s, 2.0).mul_(s)
+        t = p.div_(torch.rsub(p, 2.0))
+        u = torch.mul(t, t).neg_().add_(1.0)
+        return s.mul_(x).mul_(u).add_(t).mul_(grad)
 
 
 def mish(x: torch.Tensor) -> torch.Tensor:
