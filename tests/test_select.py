@@ -100,6 +100,24 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     assert still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 99.0])])
 
 
+def test_the_curve_judged_still_rising_is_the_one_the_rule_can_choose():
+    """A map-aware executor that solves every pair at both lengths (the best by success, never chosen) does not hide
+    the rise of the candidate the rule chooses."""
+    from cdrb_cli.orchestration.select import still_rising
+
+    def point(variant, order, steps, successes, aware=False):
+        c = _cand(variant, order, steps, success=sum(successes) / len(successes), method="mlp")
+        c.models = [{"seed": i, "success": v} for i, v in enumerate(successes)]
+        c.map_aware = aware
+        return c
+
+    track = [point("track", 1, 2500, [71.0, 64.0, 67.0]), point("track", 1, 5000, [83.0, 82.0, 84.0])]
+    aware = [point("push-path", 0, n, [100.0, 100.0, 100.0], aware=True) for n in (2500, 5000)]
+    rise = still_rising(aware + track)[("maze", "mlp")]
+    assert rise.best.variant == "track" and abs(rise.gain - 15.67) < 0.01
+    assert not still_rising(aware)
+
+
 def test_a_planner_is_never_chosen_with_a_controller_that_reads_the_map():
     from cdrb_cli.errors import BadInput
 

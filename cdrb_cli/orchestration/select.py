@@ -304,8 +304,10 @@ def rising_notes(rising: dict[tuple[str, str], Rise], cap: int | None) -> tuple[
 
 def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], Rise]:
     """Per (env, method) whose curve still rises by :data:`RISING`, its :class:`Rise`. A method with one length or
-    one training seed has no curve to judge."""
+    one training seed has no curve to judge. A candidate the rule never chooses (executed by a controller that
+    reads the map) is not the curve judged either."""
     out = {}
+    cands = [c for c in cands if not c.map_aware]
     for key in dict.fromkeys((c.env, c.method) for c in cands):
         mine = [c for c in cands if (c.env, c.method) == key and c.steps is not None]
         lengths = sorted({c.steps for c in mine})
