@@ -211,6 +211,19 @@ def tampered(path):
             pass
 
 
+class RandomActions:
+    """A policy of uniform random actions in [-1, 1]^act_dim."""
+
+    def __init__(self, act_dim: int):
+        self.act_dim = act_dim
+
+    def reset(self, n, rng):
+        pass
+
+    def act(self, states, goals, rng):
+        return rng.uniform(-1, 1, size=(len(states), self.act_dim))
+
+
 def run_doc_block(text: str, heading: str, sizes: dict[str, str], cwd, extra_env=None, timeout: int = 900):
     """Run the first ```bash block after ``heading`` (a regex) of a docs page as written, with only the
     ``sizes`` patterns replaced (each must occur, so a page edited away from them fails), with the test's Python

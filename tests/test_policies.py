@@ -10,6 +10,7 @@ import pytest
 from cdrb_cli import artifacts
 from cdrb_cli.methods.config import train_config
 from cdrb_cli.stages.train import train
+from tests.factories import RandomActions
 
 TINY_BC = {"net.embed_dim": 16, "net.hidden": 32, "method.diffusion_steps": 8, "batch_size": 8, "lr": 2e-3}
 CORRIDOR = "#######\n#S...G#\n#.###.#\n#.....#\n#######\n"
@@ -121,19 +122,6 @@ def _corridor_demos(tmp_path):
     m.write_text(CORRIDOR)
     spec = make_spec(None, m)
     return spec, collect(spec, collect_config(spec, episodes=60, seed=0), tmp_path / "d.h5")
-
-
-class RandomActions:
-    """A policy of uniform random actions in [-1, 1]^act_dim."""
-
-    def __init__(self, act_dim: int):
-        self.act_dim = act_dim
-
-    def reset(self, n, rng):
-        pass
-
-    def act(self, states, goals, rng):
-        return rng.uniform(-1, 1, size=(len(states), self.act_dim))
 
 
 def _random_policy_success(spec, episodes: int) -> float:

@@ -14,6 +14,7 @@ from cdrb_cli.stages.evaluate import evaluate
 from cdrb_cli.stages.plan import sample_plans
 from cdrb_cli.stages.replan import deviation, plan_at, remainder, run_closed_loop
 from cdrb_cli.stages.train import train
+from tests.factories import RandomActions
 from tests.test_train import tiny
 
 PLANNERS = ("cdrb", "diffuser", "mlp")
@@ -431,7 +432,6 @@ def test_envs_reused_batch_after_batch_run_as_fresh_ones(env_id):
     (and one env more than they need) give exactly what fresh envs give."""
     from cdrb_cli.envs.registry import make_spec
     from cdrb_cli.stages.evaluate import run_policy
-    from tests.test_policies import RandomActions
 
     spec = make_spec(env_id)
     family = family_of(spec)
