@@ -62,29 +62,32 @@ def _cdrb(*args, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
     return proc
 
 
+def _point(variant, order, steps, successes, method="cdrb", map_aware=False):
+    """A curve point: a candidate whose training seeds 0, 1, ... succeed as ``successes`` say."""
+    c = _cand(variant, order, steps, success=sum(successes) / len(successes), method=method)
+    c.models = [{"seed": i, "success": v} for i, v in enumerate(successes)]
+    c.map_aware = map_aware
+    return c
+
+
 def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standard_error():
     """The points of a curve are snapshots of the same runs: the gain is judged per training seed (paired)."""
     from cdrb_cli.orchestration.select import still_rising
 
-    def point(variant, order, steps, successes, method="cdrb"):
-        c = _cand(variant, order, steps, success=sum(successes) / len(successes), method=method)
-        c.models = [{"seed": i, "success": v} for i, v in enumerate(successes)]
-        return c
-
     cands = [
         # CDRB: the best at 5k (s8, 94.7) gained 60, 17, 33 over its own 2.5k runs: 36.7 ± 12.5, rising
-        point("k2", 0, 2500, [20.0, 30.0, 16.0]),
-        point("k2", 0, 5000, [90.0, 30.0, 27.0]),
-        point("s8", 1, 2500, [40.0, 70.0, 64.0]),
-        point("s8", 1, 5000, [100.0, 87.0, 97.0]),
+        _point("k2", 0, 2500, [20.0, 30.0, 16.0]),
+        _point("k2", 0, 5000, [90.0, 30.0, 27.0]),
+        _point("s8", 1, 2500, [40.0, 70.0, 64.0]),
+        _point("s8", 1, 5000, [100.0, 87.0, 97.0]),
         # Diffuser: the best at 5k (k2 by variant order on a tie) gained 4, -2, 1: 1.0 ± 1.7, not rising, though its
         # other candidate gained 10, -2, 2
-        point("k2", 0, 2500, [96.0, 97.0, 98.0], "diffuser"),
-        point("k2", 0, 5000, [100.0, 95.0, 99.0], "diffuser"),
-        point("s8", 1, 2500, [90.0, 96.0, 98.0], "diffuser"),
-        point("s8", 1, 5000, [100.0, 94.0, 100.0], "diffuser"),
+        _point("k2", 0, 2500, [96.0, 97.0, 98.0], "diffuser"),
+        _point("k2", 0, 5000, [100.0, 95.0, 99.0], "diffuser"),
+        _point("s8", 1, 2500, [90.0, 96.0, 98.0], "diffuser"),
+        _point("s8", 1, 5000, [100.0, 94.0, 100.0], "diffuser"),
         # one length only: no curve to judge
-        point("k2", 0, 5000, [10.0, 90.0, 50.0], "mlp"),
+        _point("k2", 0, 5000, [10.0, 90.0, 50.0], "mlp"),
     ]
     rising = still_rising(cands)
     assert set(rising) == {("maze", "cdrb")}
@@ -92,12 +95,12 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     assert rise.best.variant == "s8" and abs(rise.gain - 36.67) < 0.01 and abs(rise.se - 12.55) < 0.01
     assert rise.by == "success"
     # the same means, but every run gained alike: paired, a rise; and a gain within the noise is not one
-    assert still_rising([point("k2", 0, 1000, [50.0, 70.0, 60.0]), point("k2", 0, 2000, [52.0, 72.0, 62.0])])
-    assert not still_rising([point("k2", 0, 1000, [50.0, 70.0, 60.0]), point("k2", 0, 2000, [60.0, 66.0, 60.0])])
+    assert still_rising([_point("k2", 0, 1000, [50.0, 70.0, 60.0]), _point("k2", 0, 2000, [52.0, 72.0, 62.0])])
+    assert not still_rising([_point("k2", 0, 1000, [50.0, 70.0, 60.0]), _point("k2", 0, 2000, [60.0, 66.0, 60.0])])
     # a paired gain at the ceiling (every seed solves every episode) leaves nothing to extend for; one seed short
     # of it still rises
-    assert not still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 100.0])])
-    assert still_rising([point("k2", 0, 5000, [98.0, 97.0, 96.0]), point("k2", 0, 10000, [100.0, 100.0, 99.0])])
+    assert not still_rising([_point("k2", 0, 5000, [98.0, 97.0, 96.0]), _point("k2", 0, 10000, [100.0, 100.0, 100.0])])
+    assert still_rising([_point("k2", 0, 5000, [98.0, 97.0, 96.0]), _point("k2", 0, 10000, [100.0, 100.0, 99.0])])
 
 
 def test_the_curve_judged_still_rising_is_the_one_the_rule_can_choose():
@@ -105,14 +108,8 @@ def test_the_curve_judged_still_rising_is_the_one_the_rule_can_choose():
     the rise of the candidate the rule chooses."""
     from cdrb_cli.orchestration.select import still_rising
 
-    def point(variant, order, steps, successes, aware=False):
-        c = _cand(variant, order, steps, success=sum(successes) / len(successes), method="mlp")
-        c.models = [{"seed": i, "success": v} for i, v in enumerate(successes)]
-        c.map_aware = aware
-        return c
-
-    track = [point("track", 1, 2500, [71.0, 64.0, 67.0]), point("track", 1, 5000, [83.0, 82.0, 84.0])]
-    aware = [point("push-path", 0, n, [100.0, 100.0, 100.0], aware=True) for n in (2500, 5000)]
+    track = [_point("track", 1, n, v, "mlp") for n, v in ((2500, [71.0, 64.0, 67.0]), (5000, [83.0, 82.0, 84.0]))]
+    aware = [_point("push-path", 0, n, [100.0, 100.0, 100.0], "mlp", map_aware=True) for n in (2500, 5000)]
     rise = still_rising(aware + track)[("maze", "mlp")]
     assert rise.best.variant == "track" and abs(rise.gain - 15.67) < 0.01
     assert not still_rising(aware)

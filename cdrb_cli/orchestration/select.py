@@ -203,14 +203,18 @@ def curve_rows(cands: list[Candidate]) -> list[dict]:
     ]
 
 
+def choosable(cands: list[Candidate]) -> list[Candidate]:
+    """The candidates :data:`RULE` may choose: none executed by a controller that reads the map."""
+    return [c for c in cands if not c.map_aware]
+
+
 def choose(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], Candidate]:
     """Per (env, method), the candidate :data:`RULE` ranks first; with ``shared_budget``, the planners of one
     environment at one training length (:data:`SHARED_BUDGET`)."""
     best: dict[tuple[str, str], Candidate] = {}
-    for c in cands:
+    allowed = choosable(cands)
+    for c in allowed:
         key = (c.env, c.method)
-        if c.map_aware:
-            continue
         if key not in best or c.rank() < best[key].rank():
             best[key] = c
     missing = {(c.env, c.method) for c in cands} - set(best)
@@ -226,7 +230,7 @@ def choose(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[st
         trained = [k for k, c in best.items() if k[0] == env and c.planner and c.steps is not None]
         length = max((best[k].steps for k in trained), default=None)
         for key in trained:
-            at = [c for c in cands if (c.env, c.method) == key and c.steps == length and not c.map_aware]
+            at = [c for c in allowed if (c.env, c.method) == key and c.steps == length]
             if not at:
                 raise BadInput(
                     f"{env} / {key[1]}: no candidate at {length} steps, the length its environment's planners share",
@@ -307,7 +311,7 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
     one training seed has no curve to judge. A candidate the rule never chooses (executed by a controller that
     reads the map) is not the curve judged either."""
     out = {}
-    cands = [c for c in cands if not c.map_aware]
+    cands = choosable(cands)
     for key in dict.fromkeys((c.env, c.method) for c in cands):
         mine = [c for c in cands if (c.env, c.method) == key and c.steps is not None]
         lengths = sorted({c.steps for c in mine})
