@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,15 +84,12 @@ class Normalizer:
 
 
 def _apply(x, fn, norm: Normalizer):
-    try:
-        import torch
-
-        if isinstance(x, torch.Tensor):
-            c = torch.as_tensor(norm.center, dtype=x.dtype, device=x.device)
-            h = torch.as_tensor(norm.half, dtype=x.dtype, device=x.device)
-            return fn(c, h, x)
-    except ImportError:  # pragma: no cover
-        pass
+    # a tensor implies torch is imported already: numpy callers (collect, cluster) never pay torch's import
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(x, torch.Tensor):
+        c = torch.as_tensor(norm.center, dtype=x.dtype, device=x.device)
+        h = torch.as_tensor(norm.half, dtype=x.dtype, device=x.device)
+        return fn(c, h, x)
     x = np.asarray(x)
     out = fn(norm.center, norm.half, x.astype(np.float64))
     return out.astype(x.dtype if x.dtype.kind == "f" else np.float64)

@@ -22,3 +22,23 @@ def test_deferred_module_imports_on_first_attribute_and_never_enters_sys_modules
 def test_missing_module_is_an_import_error():
     with pytest.raises(ImportError):
         lazy_import("no_such_module_cdrb")
+
+
+def test_collect_cluster_and_inspect_never_import_torch(tmp_path):
+    """Stages without a network never pay torch's import (seconds in a fresh process): a real process collects,
+    clusters and inspects, then lists the torch modules it loaded."""
+    import subprocess
+
+    demos, buffer = tmp_path / "d.h5", tmp_path / "b.h5"
+    code = (
+        "import sys\n"
+        "from cdrb_cli.cli import main\n"
+        f"assert main(['collect', 'maze-tight', '-n', '4', '--seed', '0', '--out', {str(demos)!r}]) == 0\n"
+        f"assert main(['cluster', {str(demos)!r}, '--k', '20', '--out', {str(buffer)!r}]) == 0\n"
+        f"assert main(['inspect', {str(buffer)!r}]) == 0\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'torch'))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "[]"
+    assert demos.exists() and buffer.exists()
