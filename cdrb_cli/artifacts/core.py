@@ -104,8 +104,8 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
             f.attrs[VERSION_ATTR] = version
             f.attrs[CHECKSUM_ATTR] = content_sha256(payload, arrays)
             f.create_dataset(MANIFEST, data=np.bytes_(payload))
-            # each parent group looked up once: h5py resolves a path's parents at every call otherwise, which is
-            # most of the cost of a model's ~500 datasets (a checkpoint written every few seconds in short runs)
+            # each parent group looked up once: h5py resolves a path's parents at every call otherwise, about a
+            # fifth of writing a model's ~500 datasets (a checkpoint written every few seconds in short runs)
             groups: dict[str, h5py.Group] = {"": f}
             for name, value in arrays.items():
                 arr = np.asarray(value)
