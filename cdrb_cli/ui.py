@@ -15,6 +15,7 @@ from rich.progress import (
     MofNCompleteColumn,
     Progress,
     SpinnerColumn,
+    Task,
     TextColumn,
     TimeElapsedColumn,
     TimeRemainingColumn,
@@ -80,6 +81,20 @@ def emit(result: Any, as_json: bool = False) -> None:
 PROGRESS_SECONDS = 30.0
 
 
+def shows_eta(task: Task) -> bool:
+    """Whether a task's time left may be estimated from its rate: not for one added with ``eta=False``, a count of
+    unlike items (a grid's tasks: an eval takes seconds, a training an hour), whose recent rate says nothing about
+    the rest."""
+    return task.fields.get("eta", True) is not False
+
+
+class EtaColumn(TimeRemainingColumn):
+    """``eta`` and the time left, or nothing for a task whose rate does not predict it (:func:`shows_eta`)."""
+
+    def render(self, task: Task) -> Text:
+        return Text.assemble("eta ", super().render(task)) if shows_eta(task) else Text("")
+
+
 class LineProgress(Progress):
     """Progress for a stderr that is not a terminal (nohup, CI and SLURM logs): a live bar there is printed only when
     it ends, so each task instead gets one plain line every ``interval`` seconds and one when it completes."""
@@ -110,7 +125,7 @@ class LineProgress(Progress):
         elapsed = time.strftime("%H:%M:%S", time.gmtime(task.elapsed or 0))
         eta = (
             ""
-            if done or not task.time_remaining
+            if done or not task.time_remaining or not shows_eta(task)
             else f", eta {time.strftime('%H:%M:%S', time.gmtime(task.time_remaining))}"
         )
         info = task.fields.get("info") or ""
@@ -153,8 +168,7 @@ def progress(transient: bool = False):
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
-        TextColumn("eta"),
-        TimeRemainingColumn(),
+        EtaColumn(),
         TextColumn("{task.fields[info]}", markup=False),
     ]
     if not err.is_terminal and not _quiet:

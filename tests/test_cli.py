@@ -178,6 +178,23 @@ def test_help_labels_fall_back_to_typers_own_on_another_typer_layout(monkeypatch
     assert core.TyperArgument._usage_display_name is before
 
 
+def test_a_task_added_without_eta_shows_no_time_left_on_a_terminal_either():
+    """The live bar's time-left column: ``eta`` and a time for a task of alike items, nothing for one added with
+    ``eta=False`` (as a grid's count of tasks is)."""
+    from rich.progress import Progress
+
+    from cdrb_cli import ui
+
+    with Progress(disable=True) as bar:
+        alike, unlike = bar.add_task("train", total=10), bar.add_task("grid", total=10, eta=False)
+        for _ in range(3):
+            bar.advance(alike)
+            bar.advance(unlike)
+        column = ui.EtaColumn()
+        assert column.render(bar.tasks[alike]).plain.startswith("eta ")
+        assert column.render(bar.tasks[unlike]).plain == ""
+
+
 def test_progress_prints_plain_lines_while_it_runs_when_stderr_is_not_a_terminal(small_data, tmp_path, cdrb):
     """With stderr piped (nohup, CI, SLURM) training prints a plain progress line every CDRB_PROGRESS_SECONDS while it
     runs, with rising step counts, and one at the end; not the escape codes of a live bar."""

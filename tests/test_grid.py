@@ -354,9 +354,15 @@ def test_a_failing_task_is_reported_and_the_others_go_on(tmp_path):
     # a setting that is valid but makes training diverge: a failure only the run itself can find
     text = TINY + '\n[[settings]]\nmethod = "mlp"\ntrain = ["--set", "lr=1e30"]\n'
     grid = _grid(tmp_path, text)
-    proc = _cli("grid", str(grid), "--backend", "pool", "-j", "2")
+    # progress as plain lines at every change (stderr is not a terminal here)
+    proc = call_cdrb(
+        "grid", grid, "--backend", "pool", "-j", "2", env={"OMP_NUM_THREADS": "1", "CDRB_PROGRESS_SECONDS": "0"}
+    )
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.strip().splitlines()[-1].startswith("error: 2 of 11 grid tasks failed")
+    # the grid's bar counts unlike tasks (evals of seconds, trainings of hours): it shows no time left
+    bars = [line for line in proc.stderr.splitlines() if line.startswith("grid: ")]
+    assert len(bars) >= 5 and not any("eta" in line for line in bars), bars
     summary = json.loads((tmp_path / "runs" / "grid.json").read_text())
     status = {t["id"]: t for t in summary["tasks"]}
     for seed in (0, 1):

@@ -441,7 +441,8 @@ def grid(
         ui.log(f"{len(tasks)} tasks on {runner.name} ({runner.workers} workers/CPUs), artifacts in {spec.out}")
         try:
             with ui.progress() as bar:
-                job = bar.add_task("grid", total=len(tasks), info="")
+                # no eta from the rate of finished tasks: a grid's evals take seconds and its trainings hours
+                job = bar.add_task("grid", total=len(tasks), info="", eta=False)
 
                 def on_event(event: str, res: TaskResult) -> None:
                     if event == "retry":
