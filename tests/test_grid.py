@@ -48,8 +48,8 @@ def _grid(tmp_path: Path, text: str = TINY, name: str = "grid.toml") -> Path:
     return path
 
 
-def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return call_cdrb(*args, cwd=cwd, env={"OMP_NUM_THREADS": "1"})
+def _cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
+    return call_cdrb(*args, cwd=cwd, env={"OMP_NUM_THREADS": "1", **(env or {})})
 
 
 # ------------------------------------------------------------------------------------------------ file and graph
@@ -355,9 +355,7 @@ def test_a_failing_task_is_reported_and_the_others_go_on(tmp_path):
     text = TINY + '\n[[settings]]\nmethod = "mlp"\ntrain = ["--set", "lr=1e30"]\n'
     grid = _grid(tmp_path, text)
     # progress as plain lines at every change (stderr is not a terminal here)
-    proc = call_cdrb(
-        "grid", grid, "--backend", "pool", "-j", "2", env={"OMP_NUM_THREADS": "1", "CDRB_PROGRESS_SECONDS": "0"}
-    )
+    proc = _cli("grid", str(grid), "--backend", "pool", "-j", "2", env={"CDRB_PROGRESS_SECONDS": "0"})
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.strip().splitlines()[-1].startswith("error: 2 of 11 grid tasks failed")
     # the grid's bar counts unlike tasks (evals of seconds, trainings of hours): it shows no time left
