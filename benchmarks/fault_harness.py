@@ -32,8 +32,9 @@ def cdrb_cmd(*args) -> list[str]:
     return [sys.executable, "-m", "cdrb_cli", *map(str, args)]
 
 
-def stage_commands(root: Path) -> dict[str, list]:
-    """The commands under test (tiny settings), in pipeline order; each writes ``root/<name>.h5``."""
+def stage_commands(root: Path, train_steps: int = 150) -> dict[str, list]:
+    """The commands under test (tiny settings, a checkpoint every 10 training steps), in pipeline order; each
+    writes ``root/<name>.h5``."""
     settings = ["net.dim=8", "net.dim_mults=1,2", "horizon=16", "stride=10", "method.diffusion_steps=8"]
     tiny = [arg for s in settings + ["batch_size=8", "checkpoint_every=10"] for arg in ("--set", s)]
     return {
@@ -45,7 +46,7 @@ def stage_commands(root: Path) -> dict[str, list]:
             "--buffer",
             root / "cluster.h5",
             "--steps",
-            "150",
+            train_steps,
             *tiny,
             "--device",
             "cpu",
@@ -74,10 +75,10 @@ class FaultStats:
     delays: list[float] = field(default_factory=list)
 
 
-def reference(root: Path) -> tuple[dict[str, dict], dict[str, float]]:
+def reference(root: Path, train_steps: int = 150) -> tuple[dict[str, dict], dict[str, float]]:
     """Run every stage once, uninterrupted; returns its arrays and wall times."""
     refs, times = {}, {}
-    for name, args in stage_commands(root).items():
+    for name, args in stage_commands(root, train_steps).items():
         t = time.time()
         proc = subprocess.run(cdrb_cmd(*args, "--out", root / f"{name}.h5"), capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr
@@ -123,28 +124,27 @@ def kill_and_rerun(
         stats.rerun_mismatch += 1
 
 
-def run_faults(root: Path, kills_per_stage: int, seed: int = 0) -> dict[str, FaultStats]:
+def run_faults(root: Path, kills_per_stage: int, seed: int = 0, train_steps: int = 150) -> dict[str, FaultStats]:
     root.mkdir(parents=True, exist_ok=True)
-    refs, times = reference(root)
+    refs, times = reference(root, train_steps)
     rng = np.random.default_rng(seed)
     stats = {}
-    for name, args in stage_commands(root).items():
+    for name, args in stage_commands(root, train_steps).items():
         st = stats[name] = FaultStats()
         for _ in range(kills_per_stage):
             kill_and_rerun(root, name, args, refs[name], times[name], rng, st)
     return stats
 
 
-def crash_before_rename(root: Path) -> dict[str, bool]:
+def crash_before_rename(root: Path, train_steps: int = 150) -> dict[str, bool]:
     """CDRB_CRASH_BEFORE_RENAME=1 kills each writer between writing and renaming: the previous artifact (the
     reference run's) must survive byte for byte."""
     out = {}
     env = dict(os.environ, CDRB_CRASH_BEFORE_RENAME="1")
-    for name, args in stage_commands(root).items():
+    for name, args in stage_commands(root, train_steps).items():
         target = root / f"{name}.h5"
         before = target.read_bytes()
-        extra = ["--force"] if name != "train" else ["--force"]
-        proc = subprocess.run(cdrb_cmd(*args, "--out", target, *extra), env=env, capture_output=True, text=True)
+        proc = subprocess.run(cdrb_cmd(*args, "--out", target, "--force"), env=env, capture_output=True, text=True)
         intact = proc.returncode != 0 and target.read_bytes() == before
         for p in root.iterdir():
             if p.name.startswith(f".{target.name}.tmp-"):
