@@ -4,8 +4,10 @@ come from the config records."""
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
+import tomllib
 
 from cdrb_cli.errors import BadInput
 from cdrb_cli.settings import Setting, apply, lookup, parse_set, parse_value, read_config_file
@@ -86,7 +88,7 @@ def test_dry_run_layers_presets_data_and_settings(small_data, tmp_path, cdrb):
 def test_config_template_round_trips(small_data, tmp_path, cdrb):
     """`cdrb config --format toml` is a valid --config file that reproduces the defaults."""
     demos, buffer = small_data
-    for method, fmt in (("cdrb", "toml"), ("diffuser", "json")):
+    for method, fmt in (("cdrb", "toml"), ("diffuser", "json"), ("diffusion-bc", "toml")):  # bc: a null default
         r = cdrb("config", "train", "--method", method, "--preset", "paper", "--format", fmt)
         assert r.returncode == 0, r.stderr
         path = tmp_path / f"{method}.{fmt}"
@@ -95,6 +97,32 @@ def test_config_template_round_trips(small_data, tmp_path, cdrb):
         a = json.loads(cdrb("train", demos.path, *extra, "--config", path, "--dry-run").stdout)
         b = json.loads(cdrb("train", demos.path, *extra, "--method", method, "--preset", "paper", "--dry-run").stdout)
         assert a == b
+
+
+@pytest.mark.parametrize("args", [["plan"], ["eval"], ["eval", "--controller", "fetch-track"]])
+def test_plan_and_eval_templates_comment_every_key_and_uncomment_to_the_defaults(args, cdrb):
+    """A plan/eval template sets nothing (the model's profile, its env and --scene choose defaults first); each
+    commented key uncomments to valid TOML holding the table's default; JSON, which cannot comment, is refused."""
+    from cdrb_cli.stages.show_config import config_template
+
+    r = cdrb("config", *args, "--format", "toml")
+    assert r.returncode == 0, r.stderr
+    doc = tomllib.loads(r.stdout)
+    assert all(v == {} for v in doc.values()), doc  # only empty tables: no key is set
+    uncommented = re.sub(r"(?m)^# (?=[a-z_]+ = (?!\.\.\.))", "", r.stdout)
+    values = tomllib.loads(uncommented)
+    controller = args[2] if len(args) > 2 else None
+    rows = config_template(args[0], controller=controller, every_controller=False)
+    active = [row for row in rows if not isinstance(row.default, str) or not row.default.startswith("(")]
+    active = [row for row in active if row.default is not None]
+    assert active
+    for row in active:
+        node = values
+        for part in row.key.split("."):
+            node = node[part]
+        assert node == (list(row.default) if isinstance(row.default, tuple) else row.default), row.key
+    r = cdrb("config", args[0], "--format", "json")
+    assert r.returncode == 2 and "--format toml" in r.stderr and not r.stdout
 
 
 def test_config_table_lists_every_field_with_its_description(cdrb):
@@ -252,8 +280,6 @@ def test_a_setting_is_strict_inside_registry_records_and_given_once(small_data, 
 def test_a_toml_table_lists_its_null_settings_and_tables_round_trip(tmp_path):
     """TOML has no null: a table names its null settings in a ``null`` list (a config file, a grid's table); the
     tables a settings file writes read back as the same settings, as flags and as a --config file alike."""
-    import tomllib
-
     import cdrb_cli.cli  # noqa: F401  (installs the description of the commands)
     from cdrb_cli.orchestration.grid import as_table, parse_command, table_flags
     from cdrb_cli.settings import toml_value

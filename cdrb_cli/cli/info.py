@@ -183,5 +183,12 @@ def config_cmd(
         raise BadInput("--controller describes eval settings", hint="use `cdrb config eval --controller ...`")
     if stage == "collect" and fmt != "table":
         raise BadInput(f"--format {fmt}: collect reads no --config file", hint="collect settings are --set keys")
-    template = config_template(stage, method=method, net=net, preset=preset, controller=controller)
-    sys.stdout.write(render_template(template, fmt))
+    if stage in ("plan", "eval") and fmt == "json":
+        raise BadInput(
+            f"--format json: {stage} takes defaults from the model and its env, which a JSON file would override",
+            hint=f"`cdrb config {stage} --format toml` writes a template with every key commented out",
+        )
+    template = config_template(
+        stage, method=method, net=net, preset=preset, controller=controller, every_controller=fmt == "table"
+    )
+    sys.stdout.write(render_template(template, fmt, all_commented=stage in ("plan", "eval")))

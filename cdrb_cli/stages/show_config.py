@@ -70,7 +70,7 @@ def _train_rows(method: str | None, net: str | None, preset: str | None) -> list
     return rows
 
 
-def _eval_rows(controller: str | None) -> list[Row]:
+def _eval_rows(controller: str | None, every_controller: bool = True) -> list[Row]:
     from cdrb_cli.configs import EvalConfig
     from cdrb_cli.envs.registry import CONTROLLERS
     from cdrb_cli.stages.configure import EVAL_DEFAULTS
@@ -83,6 +83,9 @@ def _eval_rows(controller: str | None) -> list[Row]:
         Row("replan", "str", "(shortcut)", "shortcut for replan.mode and its value: never, every:N or deviation:D"),
         Row("avoid", "str", "(shortcut)", _AVOID_HELP),
     ]
+    if not controller and not every_controller:  # a template holds one controller's settings: the env's by default
+        about = "the env's default controller; `--controller NAME` adds a controller's settings to the template"
+        return [*rows, Row("controller.name", "str", "(the env's)", about)]
     entries = [CONTROLLERS.get(controller, "--controller")] if controller else CONTROLLERS.entries()
     for entry in entries:
         about = entry.description or "the controller (the first is the default)"
@@ -120,14 +123,20 @@ def _collect_rows() -> list[Row]:
 
 
 def config_template(
-    stage: str, method: str | None = None, net: str | None = None, preset: str | None = None, controller=None
+    stage: str,
+    method: str | None = None,
+    net: str | None = None,
+    preset: str | None = None,
+    controller=None,
+    every_controller: bool = True,
 ) -> list[Row]:
-    """The settings of ``stage`` (train, plan, eval or collect) with their defaults for these choices."""
+    """The settings of ``stage`` (train, plan, eval or collect) with their defaults for these choices; eval lists
+    every controller's settings unless ``every_controller`` is false (a --config template: one controller)."""
     if stage == "collect":
         return _collect_rows()
     if stage == "plan":
         return _plan_rows()
-    return _train_rows(method, net, preset) if stage == "train" else _eval_rows(controller)
+    return _train_rows(method, net, preset) if stage == "train" else _eval_rows(controller, every_controller)
 
 
 def settable_keys() -> list[str]:
@@ -159,10 +168,18 @@ def _nested(rows: list[Row]) -> dict:
     return out
 
 
-def _toml(rows: list[Row]) -> str:
+#: the head of a plan/eval template, whose keys are all commented out
+CHOSEN_ELSEWHERE = (
+    "# every key is commented out: a plan or eval takes its defaults from the model's settings profile, its env's\n"
+    "# choices (re-planning, plans from anywhere) and --scene before these static ones; uncomment a key to fix it"
+)
+
+
+def _toml(rows: list[Row], all_commented: bool = False) -> str:
     """A TOML template: top-level keys first, then one table per section; defaults that depend on the data, and
-    null defaults (TOML has no null), are commented out."""
-    lines = ["# cdrb settings (read with --config FILE); `cdrb config --format table` describes each key", ""]
+    null defaults (TOML has no null), are commented out, and every key with ``all_commented``."""
+    lines = ["# cdrb settings (read with --config FILE); `cdrb config --format table` describes each key"]
+    lines += [CHOSEN_ELSEWHERE, ""] if all_commented else [""]
     sections: dict[str, list[Row]] = {}
     for r in rows:
         head, _, rest = r.key.partition(".")
@@ -172,18 +189,30 @@ def _toml(rows: list[Row]) -> str:
             lines += ["", f"[{section}]"]
         for r in sections.get(section, []):
             leaf = r.key.split(".")[-1]
-            text = f"{leaf} = {toml_value(r.default)}"
-            if r.default is None or _placeholder(r.default):
-                text = f"# {leaf} = ...  {r.default if r.default is not None else 'null'}"
+            if _holds_null(r.default) or _placeholder(r.default):
+                text = f"# {leaf} = ...  {_plain(r.default)}"
+            else:
+                text = f"{'# ' if all_commented else ''}{leaf} = {toml_value(r.default)}"
             lines.append(f"{text:<40} # {r.description}" if r.description else text)
     return "\n".join(lines) + "\n"
 
 
-def render_template(rows: list[Row], fmt: str) -> str:
+def _holds_null(v: Any) -> bool:
+    """Whether a default is or contains None, which TOML cannot write."""
+    if isinstance(v, dict):
+        return any(_holds_null(x) for x in v.values())
+    if isinstance(v, (list, tuple)):
+        return any(_holds_null(x) for x in v)
+    return v is None
+
+
+def render_template(rows: list[Row], fmt: str, all_commented: bool = False) -> str:
+    """The rows as a table, or as a JSON or TOML template for ``--config`` (TOML: every key commented out with
+    ``all_commented``, for stages whose defaults come from elsewhere first)."""
     if fmt == "json":
         return json.dumps(_nested(rows), indent=2) + "\n"
     if fmt == "toml":
-        return _toml(rows)
+        return _toml(rows, all_commented)
     from rich.console import Console
     from rich.table import Table
     from rich.text import Text
