@@ -125,6 +125,26 @@ def test_plan_and_eval_templates_comment_every_key_and_uncomment_to_the_defaults
     assert r.returncode == 2 and "--format toml" in r.stderr and not r.stdout
 
 
+def test_toml_template_nests_records_and_keeps_descriptions_to_one_comment_line():
+    """A record nested in a record gets its own table (a plugin's method or controller may declare one), keys that
+    are not bare are quoted, and a description with line breaks or control characters stays one comment."""
+    from cdrb_cli.stages.show_config import Row, render_template
+
+    rows = [
+        Row("steps", "int", 3, "two\nlines = 9"),
+        Row("method.sub.inner", "float", 0.5, "a\x07bell"),
+        Row("method.w", "int", 2, ""),
+        Row("method.sub.my key", "int", 5, ""),
+        Row("controller.gain", "float", None, "null\rdefault"),
+    ]
+    text = render_template(rows, "toml")
+    assert tomllib.loads(text) == {"steps": 3, "method": {"w": 2, "sub": {"inner": 0.5, "my key": 5}}, "controller": {}}
+    assert text.index("[method]") < text.index("[method.sub]") and "\x07" not in text
+    commented = render_template(rows, "toml", all_commented=True)
+    uncommented = re.sub(r'(?m)^# (?=[a-z_"][^=\n]* = (?!\.\.\.))', "", commented)
+    assert tomllib.loads(uncommented) == tomllib.loads(text)
+
+
 def test_config_table_lists_every_field_with_its_description(cdrb):
     from cdrb_cli.configs import TrainConfig
     from cdrb_cli.methods.cdrb import CDRBParams

@@ -232,6 +232,7 @@ def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
         (["--seed", str(2**70)], "--seed"),
         (["--seed", "-1"], "--seed"),
         (["--buffer", demos.path], "'demos' artifact"),
+        (["--method", "diffusion-bc"], "clustered on 'state' features, but this training uses 'state-action'"),
     ]
     for extra, needle in cases:
         args = ["train", demos.path, "--out", tmp_path / "m.h5"]

@@ -9,7 +9,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cdrb_cli.settings import Setting, toml_value, type_name
+from cdrb_cli.settings import Setting, toml_key, toml_value, type_name
 
 #: shown for defaults `cdrb train` fills in from its inputs
 FROM_DATA = "(from the data)"
@@ -180,21 +180,27 @@ def _toml(rows: list[Row], all_commented: bool = False) -> str:
     null defaults (TOML has no null), are commented out, and every key with ``all_commented``."""
     lines = ["# cdrb settings (read with --config FILE); `cdrb config --format table` describes each key"]
     lines += [CHOSEN_ELSEWHERE, ""] if all_commented else [""]
-    sections: dict[str, list[Row]] = {}
+    sections: dict[tuple[str, ...], list[Row]] = {}  # by the key's parent path: a record nested in a record too
     for r in rows:
-        head, _, rest = r.key.partition(".")
-        sections.setdefault(head if rest else "", []).append(r)
-    for section in ["", *[s for s in sections if s]]:
+        sections.setdefault(tuple(r.key.split(".")[:-1]), []).append(r)
+    tops = list(dict.fromkeys(s[0] for s in sections if s))  # a record's table before the records nested in it
+    for section in [(), *sorted((s for s in sections if s), key=lambda s: (tops.index(s[0]), len(s)))]:
         if section:
-            lines += ["", f"[{section}]"]
+            lines += ["", f"[{'.'.join(toml_key(p) for p in section)}]"]
         for r in sections.get(section, []):
-            leaf = r.key.split(".")[-1]
+            leaf = toml_key(r.key.split(".")[-1])
             if _holds_null(r.default) or _placeholder(r.default):
-                text = f"# {leaf} = ...  {_plain(r.default)}"
+                text = f"# {leaf} = ...  {_one_line(_plain(r.default))}"
             else:
                 text = f"{'# ' if all_commented else ''}{leaf} = {toml_value(r.default)}"
-            lines.append(f"{text:<40} # {r.description}" if r.description else text)
+            about = _one_line(r.description)
+            lines.append(f"{text:<40} # {about}" if about else text)
     return "\n".join(lines) + "\n"
+
+
+def _one_line(text: str) -> str:
+    """Text for a TOML comment: one line, no control characters."""
+    return " ".join("".join(c if c.isprintable() else " " for c in text).split())
 
 
 def _holds_null(v: Any) -> bool:
