@@ -113,8 +113,7 @@ def test_plan_and_eval_templates_comment_every_key_and_uncomment_to_the_defaults
     values = tomllib.loads(uncommented)
     controller = args[2] if len(args) > 2 else None
     rows = config_template(args[0], controller=controller, every_controller=False)
-    active = [row for row in rows if not isinstance(row.default, str) or not row.default.startswith("(")]
-    active = [row for row in active if row.default is not None]
+    active = [row for row in rows if not row.placeholder and row.default is not None]
     assert active
     for row in active:
         node = values
@@ -136,9 +135,15 @@ def test_toml_template_nests_records_and_keeps_descriptions_to_one_comment_line(
         Row("method.w", "int", 2, ""),
         Row("method.sub.my key", "int", 5, ""),
         Row("controller.gain", "float", None, "null\rdefault"),
+        Row("controller.tag", "str", "(v2)", "a text default that looks like a note"),
+        Row("seed", "int", "(--seed)", "", placeholder=True),
     ]
     text = render_template(rows, "toml")
-    assert tomllib.loads(text) == {"steps": 3, "method": {"w": 2, "sub": {"inner": 0.5, "my key": 5}}, "controller": {}}
+    expected = {"steps": 3, "method": {"w": 2, "sub": {"inner": 0.5, "my key": 5}}, "controller": {"tag": "(v2)"}}
+    assert tomllib.loads(text) == expected and json.loads(render_template(rows, "json"))["controller"] == {
+        "gain": None,
+        "tag": "(v2)",
+    }
     assert text.index("[method]") < text.index("[method.sub]") and "\x07" not in text
     commented = render_template(rows, "toml", all_commented=True)
     uncommented = re.sub(r'(?m)^# (?=[a-z_"][^=\n]* = (?!\.\.\.))', "", commented)

@@ -21,6 +21,12 @@ class Row:
     type: str
     default: Any
     description: str
+    #: the default is a note for the reader (what fills it in), not a value a template may write
+    placeholder: bool = False
+
+
+def _note(key: str, text: str, description: str) -> Row:
+    return Row(key, "str", text, description, placeholder=True)
 
 
 def _rows(model: type[BaseModel], values: dict, prefix: str = "", skip=(), placeholders=None) -> list[Row]:
@@ -33,15 +39,16 @@ def _rows(model: type[BaseModel], values: dict, prefix: str = "", skip=(), place
         if isinstance(f.annotation, type) and issubclass(f.annotation, BaseModel) and name not in values:
             rows += _rows(f.annotation, {}, f"{key}.", placeholders=placeholders)  # a nested record: its fields
             continue
+        note = False
         if name in values:
             default = values[name]
         elif key in placeholders:
-            default = placeholders[key]
+            default, note = placeholders[key], True
         elif f.is_required():
-            default = FROM_DATA
+            default, note = FROM_DATA, True
         else:
             default = f.get_default(call_default_factory=True)
-        rows.append(Row(key, type_name(f.annotation), default, f.description or ""))
+        rows.append(Row(key, type_name(f.annotation), default, f.description or "", placeholder=note))
     return rows
 
 
@@ -78,14 +85,14 @@ def _eval_rows(controller: str | None, every_controller: bool = True) -> list[Ro
     placeholders = {"seed": "(--seed)", "scene": "(--scene)"}
     rows = _rows(EvalConfig, EVAL_DEFAULTS, skip=("controller", "sampler", "protocol"), placeholders=placeholders)
     rows += [
-        Row("sampler", "str", "(the model's)", "a sampler of the model's method (`cdrb methods`)"),
-        Row("protocol", "str", "(the env's)", "the start/goal protocol (`cdrb envs` lists each family's)"),
-        Row("replan", "str", "(shortcut)", "shortcut for replan.mode and its value: never, every:N or deviation:D"),
-        Row("avoid", "str", "(shortcut)", _AVOID_HELP),
+        _note("sampler", "(the model's)", "a sampler of the model's method (`cdrb methods`)"),
+        _note("protocol", "(the env's)", "the start/goal protocol (`cdrb envs` lists each family's)"),
+        _note("replan", "(shortcut)", "shortcut for replan.mode and its value: never, every:N or deviation:D"),
+        _note("avoid", "(shortcut)", _AVOID_HELP),
     ]
     if not controller and not every_controller:  # a template holds one controller's settings: the env's by default
         about = "the env's default controller; `--controller NAME` adds a controller's settings to the template"
-        return [*rows, Row("controller.name", "str", "(the env's)", about)]
+        return [*rows, _note("controller.name", "(the env's)", about)]
     entries = [CONTROLLERS.get(controller, "--controller")] if controller else CONTROLLERS.entries()
     for entry in entries:
         about = entry.description or "the controller (the first is the default)"
@@ -105,8 +112,8 @@ def _plan_rows() -> list[Row]:
 
     rows = _rows(PlanConfig, {"n": 1}, skip=("sampler",), placeholders={"seed": "(--seed)", "scene": "(--scene)"})
     rows += [
-        Row("sampler", "str", "(the model's)", "a sampler of the model's method (`cdrb methods`)"),
-        Row("avoid", "str", "(shortcut)", _AVOID_HELP),
+        _note("sampler", "(the model's)", "a sampler of the model's method (`cdrb methods`)"),
+        _note("avoid", "(shortcut)", _AVOID_HELP),
     ]
     return rows
 
@@ -150,15 +157,11 @@ def settable_keys() -> list[str]:
     return list(dict.fromkeys(keys))
 
 
-def _placeholder(value: Any) -> bool:
-    return isinstance(value, str) and value.startswith("(")
-
-
 def _nested(rows: list[Row]) -> dict:
     """The settings with known defaults as nested objects (defaults that depend on the data are left out)."""
     out: dict = {}
     for r in rows:
-        if _placeholder(r.default):
+        if r.placeholder:
             continue
         node = out
         *parents, leaf = r.key.split(".")
@@ -189,7 +192,7 @@ def _toml(rows: list[Row], all_commented: bool = False) -> str:
             lines += ["", f"[{'.'.join(toml_key(p) for p in section)}]"]
         for r in sections.get(section, []):
             leaf = toml_key(r.key.split(".")[-1])
-            if _holds_null(r.default) or _placeholder(r.default):
+            if _holds_null(r.default) or r.placeholder:
                 text = f"# {leaf} = ...  {_one_line(_plain(r.default))}"
             else:
                 text = f"{'# ' if all_commented else ''}{leaf} = {toml_value(r.default)}"
