@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import jsonschema
@@ -48,3 +49,11 @@ def test_cli_export_and_check(tmp_path, cdrb):
     (tmp_path / "eval.v2.schema.json").write_text("{}")
     r = cdrb("schema", "check", tmp_path)
     assert r.returncode == 1 and "eval.v2.schema.json" in r.stderr
+    # a schema file read as every input file is: bytes that are not text, or a FIFO, are one line, not a hang
+    (tmp_path / "eval.v2.schema.json").write_bytes(b"\xff\xfe{}")
+    r = cdrb("schema", "check", tmp_path)
+    assert r.returncode == 2 and "eval.v2.schema.json: not a text file" in r.stderr and r.stderr.count("\n") == 1
+    (tmp_path / "eval.v2.schema.json").unlink()
+    os.mkfifo(tmp_path / "eval.v2.schema.json")
+    r = cdrb("schema", "check", tmp_path)
+    assert r.returncode == 2 and "not a regular file" in r.stderr

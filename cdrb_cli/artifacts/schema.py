@@ -43,6 +43,14 @@ def drift(folder: str | Path) -> list[str]:
     stale = []
     for name, text in schemas().items():
         path = folder / name
-        if not path.exists() or path.read_text() != text:
+        if not path.exists() or _read(path) != text:
             stale.append(name)
     return stale
+
+
+def _read(path: Path) -> str:
+    """A committed schema file's text, through the guarded reader every input file passes (a FIFO, a device or a
+    file that is not UTF-8 is one line of error, not a hang or a traceback)."""
+    from cdrb_cli.files import read_input_text
+
+    return read_input_text(path, "", 16 * 2**20, "schema file", hint="run `cdrb schema export` to write it again")

@@ -254,4 +254,6 @@ def trained_model(path: Path, allow_partial: bool):
             f"{path}: training stopped at step {st.step} of {m.manifest.config.steps} (an unfinished checkpoint)",
             hint="finish it with `cdrb train ... --resume`, or pass --allow-partial",
         )
+    if not st.finished:
+        ui.warn(f"{path}: an unfinished training, used at its checkpoint (step {st.step} of {m.manifest.config.steps})")
     return m
