@@ -64,6 +64,23 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def replace_folder(new: str | Path, final: str | Path) -> None:
+    """Put the finished folder ``new`` (beside ``final``) at ``final``. A folder already there is first renamed
+    aside to ``.NAME.old-*`` and removed only after the new one is in place, so a crash at any point leaves one
+    whole folder (the old one, perhaps under its aside name), never none."""
+    new, final = Path(new), Path(final)
+    aside = None
+    if final.exists():
+        aside = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))
+        os.replace(final, aside)  # an empty folder is replaced by the rename
+    os.replace(new, final)
+    _fsync_dir(final.parent)
+    if aside is not None:
+        import shutil
+
+        shutil.rmtree(aside, ignore_errors=True)
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

@@ -4,6 +4,7 @@ model and the same plans, the folder loads with safetensors and json alone, and 
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -134,6 +135,43 @@ def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models
     r = cdrb("export", model, "--dir", tmp_path / "m")
     assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "m")
     assert "No evaluation was exported" in (tmp_path / "m" / "README.md").read_text()
+    # --force replaces the folder whole: the old one is set aside before the new one goes in, then removed
+    (tmp_path / "m" / "mine.txt").write_text("old")
+    r = cdrb("export", tiny_models["mlp"].path, "--dir", tmp_path / "m", "--force")
+    assert r.returncode == 0 and not (tmp_path / "m" / "mine.txt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".m.")) == []
+
+
+def test_replace_folder_keeps_one_whole_folder_at_every_step(tmp_path, monkeypatch):
+    """A crash between the two renames leaves the old folder whole under its aside name, never no folder."""
+    from cdrb_cli import files
+
+    final, new = tmp_path / "out", tmp_path / ".out.new"
+    final.mkdir()
+    (final / "a").write_text("old")
+    new.mkdir()
+    (new / "a").write_text("new")
+    real = os.replace
+    calls = []
+
+    def crash_on_second(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:
+            raise OSError("crash")
+        return real(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", crash_on_second)
+    with pytest.raises(OSError):
+        files.replace_folder(new, final)
+    aside = [p for p in tmp_path.iterdir() if p.name.startswith(".out.old-")]
+    assert len(aside) == 1 and (aside[0] / "a").read_text() == "old" and (new / "a").read_text() == "new"
+    monkeypatch.setattr(files.os, "replace", real)
+    final2 = tmp_path / "out2"
+    final2.mkdir()
+    (final2 / "b").write_text("old")
+    files.replace_folder(new, final2)
+    assert (final2 / "a").read_text() == "new" and not (final2 / "b").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out2.old-")]
 
 
 def test_a_compact_eval_drops_the_plans_and_reports_the_same(tiny_models, tmp_path, cdrb):

@@ -33,6 +33,7 @@ import numpy as np
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.artifacts.outputs import locked
 from cdrb_cli.errors import BadInput
+from cdrb_cli.files import replace_folder
 
 #: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
 ENV_TAG = "cdrb-env:"
@@ -363,9 +364,7 @@ def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_spac
                 data_format="hdf5",
             )
         final.parent.mkdir(parents=True, exist_ok=True)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp_root / dataset_id, final)
+        replace_folder(tmp_root / dataset_id, final)
     finally:
         if old is None:
             os.environ.pop("MINARI_DATASETS_PATH", None)

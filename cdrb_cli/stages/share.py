@@ -18,7 +18,7 @@ import numpy as np
 
 from cdrb_cli import artifacts
 from cdrb_cli.errors import BadInput
-from cdrb_cli.files import read_input_text, sha256_file
+from cdrb_cli.files import read_input_text, replace_folder, sha256_file
 from cdrb_cli.settings import clip
 
 WEIGHTS, CONFIG, CARD, SUMS = "model.safetensors", "config.json", "README.md", "SHA256SUMS"
@@ -86,9 +86,7 @@ def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False
         for name in (*FILES, SUMS):
             with open(tmp / name, "rb") as fh:
                 os.fsync(fh.fileno())
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
+        replace_folder(tmp, folder)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
