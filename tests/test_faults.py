@@ -90,6 +90,20 @@ def test_inspect_neutralizes_markup_and_terminal_escapes(tmp_path, cdrb):
     assert "\x1b" not in r.stdout and "[red]boom[/red]" in r.stdout and "more characters" in r.stdout
 
 
+@pytest.mark.parametrize(
+    "kind, mutate, needle",
+    [
+        ("model", lambda m: m["config"]["method"].update(name="magic"), "magic"),
+        ("eval", lambda m: m["config"]["controller"].update(name="joystick"), "joystick"),
+    ],
+)
+def test_unknown_methods_and_controllers_in_manifests_are_refused(tmp_path, kind, mutate, needle):
+    p = write(tmp_path / f"{kind}.h5", kind)
+    _absurd_manifest(p, mutate)
+    with pytest.raises(BadInput, match=needle):
+        artifacts.load(p)
+
+
 def test_empty_datasets_are_refused(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
     with tampered(p) as f:
