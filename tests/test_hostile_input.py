@@ -60,8 +60,8 @@ def test_maps_beyond_the_layout_bounds_are_one_line_naming_the_file(tmp_path, cd
 
 # ------------------------------------------------------------------------------------------------ deep TOML
 def test_toml_nested_thousands_deep_is_one_line(tmp_path, cdrb):
-    """`report --paper-figures` and `grid --set` parse TOML recursively: a value nested 3000 deep is one line
-    naming the flag, not a RecursionError."""
+    """`report --paper-figures`, `grid --set` and Fetch `--scene` files parse TOML recursively: a value nested
+    3000 deep is one line naming the flag, not a RecursionError."""
     from cdrb_cli.orchestration.grid.load import parse_override
     from cdrb_cli.stages.report import paper_figures
 
@@ -74,6 +74,12 @@ def test_toml_nested_thousands_deep_is_one_line(tmp_path, cdrb):
     ev = write(tmp_path / "ev.h5", "eval")
     line = _one_line(cdrb("report", ev, "--paper", "--paper-figures", arrays))
     assert line.startswith(f"error: --paper-figures {arrays}")
+
+    from cdrb_cli.envs.fetch.scenes import load_scene_change
+
+    for path in (arrays, tables):  # a Fetch scene file, parsed the same way
+        with pytest.raises(BadInput, match="--scene .*not valid TOML"):
+            load_scene_change(path)
 
     deep = "seeds=" + "[" * 3000 + "]" * 3000
     with pytest.raises(BadInput, match="--set seeds=.*too deep"):
