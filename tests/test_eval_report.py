@@ -332,9 +332,9 @@ def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):
         (["--set", "sample_steps=999"], "--set sample_steps=999: the model has T = 8 diffusion steps, so at most 8"),
     ]:
         r = cdrb("eval", model, *args, "--out", tmp_path / "e.h5")
-        assert r.returncode == 2 and needle in r.stderr, (args, r.stderr)
+        assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
     r = cdrb("eval", demos.path, "--out", tmp_path / "e.h5")
-    assert r.returncode == 2 and "'model' artifact" in r.stderr
+    assert r.returncode == 2 and "'model' artifact" in r.stderr and r.stderr.count("\n") == 1
     assert not (tmp_path / "e.h5").exists()
 
 
