@@ -308,7 +308,7 @@ class PlanConfig(Record):
     scene: str | None = Field(
         None, description="the name of the map file planned in instead of the model's (its content is the env)"
     )
-    seed: Seed
+    seed: Seed = Field(description="every sampling draw, from the buffer states or noise a plan starts from (`--seed`)")
 
     @model_validator(mode="after")
     def _routes(self) -> PlanConfig:
@@ -440,7 +440,7 @@ class EvalConfig(Record):
     scene: str | None = Field(
         None, description="the name of the map file evaluated in instead of the model's (its content is the env)"
     )
-    seed: Seed
+    seed: Seed = Field(description="the sampling draws of plans and policies (the pairs come from `seeds`; `--seed`)")
 
     @field_validator("seeds")
     @classmethod
