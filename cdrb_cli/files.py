@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -76,8 +77,6 @@ def replace_folder(new: str | Path, final: str | Path) -> None:
     os.replace(new, final)
     _fsync_dir(final.parent)
     if aside is not None:
-        import shutil
-
         shutil.rmtree(aside, ignore_errors=True)
 
 

@@ -124,7 +124,7 @@ def resolve_train_config(
         raise BadInput(f"--method {entry.name} needs --buffer BUFFER", hint="make one with `cdrb cluster DEMOS`")
     s_feat = lookup(settings, ("features",))
     valid_feature = s_feat is not None and s_feat.value in ("state", "state-action")  # else validation names it
-    if entry.needs_buffer and valid_feature and s_feat.value != buffer.features:
+    if buffer is not None and valid_feature and s_feat.value != buffer.features:
         raise BadInput(
             f"{s_feat.source}: the buffer was clustered on {buffer.features!r} features",
             hint="omit it, or re-cluster with the same --features",
@@ -138,6 +138,12 @@ def resolve_train_config(
             )
     given = defaults(entry, preset, net, spec, buffer, seed, data)
     config = validate(TrainConfig, apply(given, settings), settings, "train")
+    if buffer is not None and config.features != buffer.features:  # a default of the method's, not a setting
+        raise BadInput(
+            f"--buffer: clustered on {buffer.features!r} features, but this training uses {config.features!r} (the "
+            f"{entry.name} method's default)",
+            hint=f"cluster with `--features {config.features}`, or leave --buffer out for a method that needs none",
+        )
     _check_net(config, settings)
     return config
 

@@ -42,12 +42,6 @@ def check_inputs(demos, buffer, features: str) -> Normalizer:
             + (" (same id, different spec)" if buffer.manifest.env.id == spec.id else ""),
             hint="cluster these demos: `cdrb cluster DEMOS`",
         )
-    made_on = buffer.manifest.config.features
-    if made_on != features:
-        raise BadInput(
-            f"--buffer {buffer.path}: clustered on {made_on!r} features, but this training uses {features!r}",
-            hint=f"cluster with `--features {features}`, or leave --buffer out for a method that needs none",
-        )
     bnorm = Normalizer(low=buffer.low, high=buffer.high)
     if not bnorm.allclose(norm):
         raise BadInput(
