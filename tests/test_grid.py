@@ -541,7 +541,8 @@ def test_eval_only_variants_share_the_base_model_and_cluster_variants_get_their_
     assert "eval maze-tight/official/mlp-s0" not in tasks
     # a variant with cluster flags: its own buffer, clustered from the same demos, and its own models
     (cluster,) = [t for t in tasks.values() if t.kind == "cluster" and "20" in t.argv]
-    assert cluster.argv[-4:-1] == ["--k", "20", "--out"] and cluster.outputs[0].parent == out
+    assert cluster.argv[2:4] == ["--k", "20"] and cluster.argv.count("--k") == 1  # the variant's k, once
+    assert cluster.outputs[0].parent == out
     assert cluster.outputs[0] != out / "buffer-k50.h5"  # not the grid's own buffer
     k20 = tasks["train maze-tight/k20/cdrb-s0"]
     assert str(cluster.outputs[0]) in k20.argv and cluster.id in k20.deps
@@ -553,6 +554,30 @@ def test_eval_only_variants_share_the_base_model_and_cluster_variants_get_their_
     assert tasks["eval maze-tight/k20/cdrb-s0"].meta["stream"] == "tune"
     assert "--stream" in gated.argv and gated.argv[gated.argv.index("--stream") + 1] == "test"
     assert {t.id for t in expand(spec) if t.kind == "report"} == {"report gated", "report official", "report k20"}
+
+
+def test_a_cluster_option_named_twice_is_passed_once_with_its_last_value(tmp_path):
+    """Two settings files both naming `--features` (an included data file and a tuned file) make the same buffer
+    as one naming it once: one clustering, one flag, the last value (as `cdrb cluster` itself would read it)."""
+    once = TINY + '\n[[settings]]\nmethod = "cdrb"\ncluster = ["--features", "state-action"]\n'
+    twice = once + '\n[[settings]]\nmethod = "cdrb"\ncluster = ["--k", "20", "--features", "state-action"]\n'
+    clusters = {}
+    for name, text in {"once": once, "twice": twice}.items():
+        folder = tmp_path / name
+        folder.mkdir()
+        (cluster,) = [t for t in expand(load_grid(_grid(folder, text))) if t.kind == "cluster"]
+        clusters[name] = cluster
+    argv = clusters["twice"].argv
+    assert argv.count("--features") == 1 and argv[argv.index("--features") + 1] == "state-action"
+    assert argv[argv.index("--k") + 1] == "20" and argv.count("--k") == 1  # the settings' k replaces the grid's
+    # the option named twice with one value names the same buffer as the option named once
+    assert clusters["once"].argv.count("--features") == 1
+    changed = once.replace('cluster = ["--features", "state-action"]', 'cluster = ["--features", "state"]')
+    last = changed + '\n[[settings]]\nmethod = "cdrb"\ncluster = ["--features", "state-action"]\n'
+    (folder := tmp_path / "last").mkdir()
+    (cluster,) = [t for t in expand(load_grid(_grid(folder, last))) if t.kind == "cluster"]
+    assert cluster.argv.count("--features") == 1 and "state-action" in cluster.argv
+    assert cluster.outputs[0].name == clusters["once"].outputs[0].name
 
 
 def test_a_planner_without_a_buffer_names_the_grid_buffer_by_placeholder(tmp_path):

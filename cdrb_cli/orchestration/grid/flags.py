@@ -118,6 +118,28 @@ def walk_options(tokens: list[str], table: dict[str, OptionInfo]):
             i += 1
 
 
+def last_value_wins(flags: list[str], command: str) -> list[str]:
+    """``flags`` of ``cdrb command`` with each option that takes one value kept once, at its first place, with the
+    value given last (as the command itself reads a repeated option); flags, arguments and ``--set`` (a repeatable
+    option) are kept as they are. A grid whose included files both name ``--features`` thus writes one flag, and the
+    same clustering gets the same command line, whichever files declared it."""
+    groups: list[list[str]] = []
+    last: dict[str, list[str]] = {}
+    tokens = iter(flags)
+    for token, entry, _value in walk_options(flags, options(command)):
+        group = [next(tokens)]
+        if entry is not None and entry.takes_value and "=" not in token:
+            group += [t for t in [next(tokens, None)] if t is not None]
+        if entry is None or not entry.takes_value or entry.param == "sets":
+            groups.append(group)
+        elif entry.param in last:
+            last[entry.param][:] = group
+        else:
+            last[entry.param] = group
+            groups.append(group)
+    return [t for g in groups for t in g]
+
+
 def parse_command(
     argv: list[str], file_key=str, fold: bool = True
 ) -> tuple[list[str], dict[str, object], list[tuple[str, str]]]:

@@ -12,7 +12,7 @@ from pathlib import Path
 from cdrb_cli import __version__
 from cdrb_cli.errors import BadInput
 from cdrb_cli.orchestration.grid.commands import keyed_params, options
-from cdrb_cli.orchestration.grid.flags import parse_command
+from cdrb_cli.orchestration.grid.flags import last_value_wins, parse_command
 from cdrb_cli.orchestration.grid.memo import cached_sha
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
 from cdrb_cli.settings import clip
@@ -238,6 +238,7 @@ def buffer_task(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks
     """The cluster task and buffer of ``env``'s demos clustered with ``flags``, added to ``tasks`` on first use:
     runs with the same flags share one buffer (none: ``buffer-kK.h5``; else ``buffer-<hash of the flags>.h5``, since
     the flags may change k)."""
+    flags = last_value_wins(flags, "cluster")
     key = json.dumps(flags)
     if key not in buffers:
         folder = spec.out / env
@@ -245,7 +246,8 @@ def buffer_task(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks
         tag = hashlib.sha256(key.encode()).hexdigest()[:8] if flags else ""
         path = folder / (f"buffer-{tag}.h5" if flags else f"buffer-k{spec.k}.h5")
         task_id = f"cluster {env}" + (f"/{tag}" if tag else "")
-        argv = ["cluster", str(demos), "--k", str(spec.k), "--seed", str(spec.data_seed), *flags, "--out", str(path)]
+        options = last_value_wins(["--k", str(spec.k), "--seed", str(spec.data_seed), *flags], "cluster")
+        argv = ["cluster", str(demos), *options, "--out", str(path)]
         tasks.append(Task(task_id, "cluster", argv, [path], [f"collect {env}"], [demos]))
         buffers[key] = (task_id, path)
     return buffers[key]
