@@ -679,6 +679,36 @@ def test_crossings_by_body_split_the_gripper_from_the_block():
     assert body_crossing_rates(kept) == rates and body_state_rates(kept) == share
 
 
+def test_plans_through_a_wall_leave_out_a_gripper_under_the_table_top():
+    """The crossing test counts a body leaving its workspace too: a Push plan that skims the table 5 mm lower than
+    the grip site may go (the finger tips in the table top) crosses no wall, and the wall measure says so, where a
+    plan through the wall counts in both. Stored per episode as evals keep it and read back as recomputed; the
+    mazes, whose walls are the whole test, have no second measure."""
+    from types import SimpleNamespace
+
+    from cdrb_cli.envs.fetch.geometry import GRIP_WORKSPACE
+    from cdrb_cli.stages.plan_metrics import WALL_CROSSING, plan_measures, wall_crossing_rates
+
+    spec, family, (wx, before, after, z) = _push_wall()
+    floor = GRIP_WORKSPACE[0][2]
+    through = np.stack([_state(spec, (wx, y, z + 0.01), (1.10, 0.55, z)) for y in np.linspace(before, after, 8)])
+    low = np.stack([_state(spec, (1.55, 0.45 + 0.05 * i, floor - 0.005), (1.10, 0.55, z)) for i in range(8)])
+    skim = low.copy()
+    skim[:, 2] = floor + 0.002  # as low as the workspace allows, in no wall: neither test
+    paths = np.stack([through, low, skim])
+    assert family.path_in_collision(spec, paths).tolist() == [True, True, False]
+    assert family.wall_crossings(spec, paths).tolist() == [True, False, False]
+    seeds = np.array([0, 0, 1])
+    ev = SimpleNamespace(arrays={"plans": paths, "episodes/seed": seeds}, manifest=SimpleNamespace(env=spec))
+    assert wall_crossing_rates(ev) == [0.5, 0.0]
+    stored = plan_measures(spec, paths)
+    assert stored[WALL_CROSSING].tolist() == [True, False, False]
+    kept = SimpleNamespace(arrays={"episodes/seed": ev.arrays["episodes/seed"], **stored}, manifest=ev.manifest)
+    assert wall_crossing_rates(kept) == wall_crossing_rates(ev)
+    maze = make_spec("maze-tight")  # its walls are the whole test: no second measure
+    assert family_of(maze).wall_crossings(maze, np.zeros((1, 4, maze.obs_dim))) is None
+
+
 def test_unsticking_frees_a_block_the_wall_end_stalls():
     """Tuning-stream episodes where the pusher, on the expert's own plan, is left with no room behind the block at
     the wall's end and waits (a failure): with ``unstick`` the controller pushes the block out the free way closest

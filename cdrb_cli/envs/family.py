@@ -363,6 +363,12 @@ class EnvFamily(ABC):
         :meth:`path_in_collision`); None for one body."""
         return None
 
+    def wall_crossings(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray | None:
+        """Boolean over paths (..., T, D): a state in, or a step through, a wall, the workspace's bounds not
+        counted (:meth:`path_in_collision` counts both: a Fetch gripper planned under the table top is out of
+        reach, not across a wall); None where the two are the same test."""
+        return None
+
     def collisions_by_body(self, spec: EnvSpec, states: np.ndarray) -> dict[str, np.ndarray] | None:
         """As :meth:`crossings_by_body` for states (..., D): body name -> boolean, that body in an obstacle (their
         union is :meth:`in_collision`); None for one body."""

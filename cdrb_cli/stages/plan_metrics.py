@@ -1,5 +1,6 @@
 """Measurements `cdrb report` takes from the plans an eval stored (the eval's summary does not hold them): the first
-planned step against the allowed one, crossings of obstacles a scene added after training, and crossings by body.
+planned step against the allowed one, crossings of obstacles a scene added after training, crossings of the walls
+alone (the workspace's bounds left out), and crossings by body.
 
 An eval also stores them per episode beside its plans (:func:`plan_measures`), so one saved without its plans
 (`cdrb eval --no-plans`, `cdrb export EVAL --compact`) gives the same figures; an eval written before they were
@@ -11,6 +12,7 @@ import numpy as np
 
 FIRST_STEP = "episodes/plan_first_step"  #: the first planned step's length in the obstacle dims
 NEW_CROSSING = "episodes/plan_crosses_new_obstacle"  #: a state in, or a step through, an obstacle added after training
+WALL_CROSSING = "episodes/plan_crosses_wall"  #: a state in, or a step through, a wall (the workspace not counted)
 PLAN_STATES = "episodes/plan_states"  #: the planned states of the episode's (first) plan
 BODIES = "bodies/"  #: bodies/<name>/crossing (per episode) and bodies/<name>/states_in_obstacle (a count)
 
@@ -29,6 +31,9 @@ def plan_measures(spec, plans: np.ndarray) -> dict[str, np.ndarray]:
     new = family.new_obstacle_crossings(spec, states)
     if new is not None:
         out[NEW_CROSSING] = np.asarray(new, dtype=bool)
+    walls = family.wall_crossings(spec, states)
+    if walls is not None:
+        out[WALL_CROSSING] = np.asarray(walls, dtype=bool)
     for name, hit in (family.crossings_by_body(spec, states) or {}).items():
         out[f"{BODIES}{name}/crossing"] = np.asarray(hit, dtype=bool)
     for name, hit in (family.collisions_by_body(spec, states) or {}).items():
@@ -67,6 +72,18 @@ def new_crossing_rates(ev) -> list[float] | None:
     crosses, plans, spec = ev.arrays.get(NEW_CROSSING), ev.arrays.get("plans"), ev.manifest.env
     if crosses is None and plans is not None:
         crosses = family_of(spec).new_obstacle_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
+    return None if crosses is None else _seed_means(ev, crosses)
+
+
+def wall_crossing_rates(ev) -> list[float] | None:
+    """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, a wall, the
+    workspace's bounds not counted; None for a family where that is the crossing test itself, or an eval that
+    stored neither plans nor this measure."""
+    from cdrb_cli.envs.registry import family_of
+
+    crosses, plans, spec = ev.arrays.get(WALL_CROSSING), ev.arrays.get("plans"), ev.manifest.env
+    if crosses is None and plans is not None:
+        crosses = family_of(spec).wall_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
     return None if crosses is None else _seed_means(ev, crosses)
 
 

@@ -26,6 +26,7 @@ from cdrb_cli.stages.plan_metrics import (
     body_text,
     first_step_ratio,
     new_crossing_rates,
+    wall_crossing_rates,
 )
 from cdrb_cli.stages.results import failure_text, is_policy_eval, per_seed
 
@@ -223,6 +224,8 @@ def collect_rows(evals) -> list[dict]:
             impossible = mean_or_none([r.impossible_jump_rate for r in per])
             new_rates = [new_crossing_rates(ev) for ev in group]
             new_rates = [x for rates in new_rates for x in rates] if all(new_rates) else [None]
+            wall_rates = [wall_crossing_rates(ev) for ev in group]
+            wall_rates = [x for rates in wall_rates for x in rates] if all(wall_rates) else [None]
             first = group[0]
             rows.append(
                 {
@@ -243,6 +246,7 @@ def collect_rows(evals) -> list[dict]:
                     **_rate("in_wall", [r.in_wall_fraction for r in per]),  # None for a policy: it makes no plans
                     **_rate("crossing", [r.plan_crossing_rate for r in per]),
                     **_rate("new_crossing", new_rates),  # None in the training scene
+                    **_rate("wall_crossing", wall_rates),  # None where the walls are the whole test
                     "crossing_by_body": body_text([body_crossing_rates(ev) for ev in group]),
                     "in_wall_by_body": body_text([body_state_rates(ev) for ev in group], digits=2),
                     "jump_ratio": mean_or_none([r.jump_ratio for r in per]),
@@ -275,6 +279,7 @@ def seed_rows(evals) -> list[dict]:
     for ev in evals:
         c = ev.manifest.config
         new_rates, bodies, states = new_crossing_rates(ev), body_crossing_rates(ev), body_state_rates(ev)
+        walls = wall_crossing_rates(ev)
         for i, r in enumerate(per_seed(ev)):
             rows.append(
                 {
@@ -290,6 +295,7 @@ def seed_rows(evals) -> list[dict]:
                     "success_without_collision": 100 * r.clean_success_rate,
                     "in_obstacle": None if r.in_wall_fraction is None else 100 * r.in_wall_fraction,
                     "plans_through_obstacle": None if r.plan_crossing_rate is None else 100 * r.plan_crossing_rate,
+                    "plans_through_a_wall": None if walls is None else 100 * walls[i],
                     "plans_through_new_obstacle": None if new_rates is None else 100 * new_rates[i],
                     "plans_through_obstacle_by_body": body_text([bodies], i),
                     "in_obstacle_by_body": body_text([states], i, digits=2),
@@ -423,10 +429,14 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
 
 
 def _crossing_cell(row: dict) -> str:
-    """Plans through an obstacle (%), with the share of each body where the family moves several."""
+    """Plans through an obstacle (%), with the share of each body where the family moves several, and of the walls
+    alone where the workspace's bounds count too."""
     if row["crossing_mean"] is None:
         return "–"
-    return f"{row['crossing_mean']:.1f}{_bodies(row.get('crossing_by_body'))}"
+    walls = row.get("wall_crossing_mean")
+    return f"{row['crossing_mean']:.1f}{_bodies(row.get('crossing_by_body'))}" + (
+        "" if walls is None else f"; a wall {walls:.1f}"
+    )
 
 
 def _bodies(text: str | None) -> str:
@@ -438,7 +448,9 @@ COLUMN_NOTES = (
     "Weighted success: successful episodes whose plan has no state in an obstacle. Plans through an obstacle: a "
     "planned state in one, or a straight segment between two consecutive planned states that crosses one (a plan "
     "can have every state free and still jump a wall); both in brackets by body where a plan moves several "
-    "(Fetch: gripper, block; one plan or state can count for both); through a new one: the same for the obstacles the "
+    "(Fetch: gripper, block; one plan or state can count for both), and after them the plans through a wall alone "
+    "where a body's leaving its workspace counts too (Fetch: a gripper planned under the table top); through a new "
+    "one: the same for the obstacles the "
     "training scene did not have (`--scene`/`--maze-map`; – in the training scene). First step / allowed: how far "
     "a plan's first step leaves the start, against one plan step of the dynamics (near 1: the plan starts where "
     "the robot is). Largest jump / allowed and plans with an impossible jump: "

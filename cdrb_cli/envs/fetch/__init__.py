@@ -356,6 +356,12 @@ class FetchFamily(EnvFamily):
             return None
         return paths_in_obstacles_by_body(paths, spec.scene.solid, spec.scene.task)
 
+    def wall_crossings(self, spec: EnvSpec, paths: np.ndarray) -> np.ndarray | None:
+        """Every body's walls (the fingers as wide as the plan opens them), the workspace's bounds left out: a
+        gripper planned a few millimetres under the table top (Push Obstacle keeps it 6 mm above that bound all
+        the way) is not a plan across the wall."""
+        return paths_in_obstacles(paths, spec.scene.solid, spec.scene.task, bounded=False)
+
     def collisions_by_body(self, spec: EnvSpec, states: np.ndarray) -> dict[str, np.ndarray] | None:
         """With a block: the gripper's and the block's states in an obstacle apart (their union is
         :meth:`in_collision`)."""
