@@ -3,6 +3,7 @@ a worker killed mid-task, a failing task, and re-running a finished grid."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -20,7 +21,7 @@ import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a g
 from cdrb_cli import artifacts
 from cdrb_cli.envs.pointmaze import PointMazeFamily
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid import PoolBackend, expand, load_grid, run_grid
+from cdrb_cli.orchestration.grid import PoolBackend, cluster_flags_for, expand, load_grid, run_grid
 from tests.conftest import ROOT, call_cdrb
 
 TINY = """
@@ -578,6 +579,14 @@ def test_a_cluster_option_named_twice_is_passed_once_with_its_last_value(tmp_pat
     (cluster,) = [t for t in expand(load_grid(_grid(folder, last))) if t.kind == "cluster"]
     assert cluster.argv.count("--features") == 1 and "state-action" in cluster.argv
     assert cluster.outputs[0].name == clusters["once"].outputs[0].name
+    # a buffer a grid already made under the name the repeated flags gave keeps it (its runs stay done)
+    spec = load_grid(_grid(tmp_path / "twice", twice))
+    given = cluster_flags_for(spec, "maze-tight", "cdrb")
+    old_name = f"buffer-{hashlib.sha256(json.dumps(given).encode()).hexdigest()[:8]}.h5"
+    (spec.out / "maze-tight").mkdir(parents=True)
+    (spec.out / "maze-tight" / old_name).write_bytes(b"")
+    (kept,) = [t for t in expand(spec) if t.kind == "cluster"]
+    assert kept.outputs[0].name == old_name and kept.argv[2:] == clusters["twice"].argv[2:-1] + [str(kept.outputs[0])]
 
 
 def test_a_planner_without_a_buffer_names_the_grid_buffer_by_placeholder(tmp_path):

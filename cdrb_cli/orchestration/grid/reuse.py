@@ -237,13 +237,16 @@ def reuse_finished(spec: GridSpec, tasks: list[Task]) -> list[Task]:
 def buffer_task(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks: list[Task]) -> tuple[str, Path]:
     """The cluster task and buffer of ``env``'s demos clustered with ``flags``, added to ``tasks`` on first use:
     runs with the same flags share one buffer (none: ``buffer-kK.h5``; else ``buffer-<hash of the flags>.h5``, since
-    the flags may change k)."""
-    flags = last_value_wins(flags, "cluster")
+    the flags may change k). An option named twice counts once, with its last value (:func:`last_value_wins`); a
+    buffer a grid already made under the name the repeated flags give keeps that name, so its runs stay done."""
+    given, flags = flags, last_value_wins(flags, "cluster")
     key = json.dumps(flags)
     if key not in buffers:
         folder = spec.out / env
         demos = folder / "demos.h5"
-        tag = hashlib.sha256(key.encode()).hexdigest()[:8] if flags else ""
+        tag = _flags_tag(flags)
+        if given != flags and (folder / f"buffer-{_flags_tag(given)}.h5").exists():
+            tag = _flags_tag(given)
         path = folder / (f"buffer-{tag}.h5" if flags else f"buffer-k{spec.k}.h5")
         task_id = f"cluster {env}" + (f"/{tag}" if tag else "")
         options = last_value_wins(["--k", str(spec.k), "--seed", str(spec.data_seed), *flags], "cluster")
@@ -251,6 +254,10 @@ def buffer_task(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks
         tasks.append(Task(task_id, "cluster", argv, [path], [f"collect {env}"], [demos]))
         buffers[key] = (task_id, path)
     return buffers[key]
+
+
+def _flags_tag(flags: list[str]) -> str:
+    return hashlib.sha256(json.dumps(flags).encode()).hexdigest()[:8] if flags else ""
 
 
 def train_snapshot(model: Path, step: int) -> Path:
