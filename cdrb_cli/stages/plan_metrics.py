@@ -67,24 +67,27 @@ def new_crossing_rates(ev) -> list[float] | None:
     """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, an obstacle
     the training scene did not have (walls added to a maze, boxes put down in a Fetch scene); None when the eval
     ran in its training scene or stored neither plans nor this measure."""
-    from cdrb_cli.envs.registry import family_of
-
-    crosses, plans, spec = ev.arrays.get(NEW_CROSSING), ev.arrays.get("plans"), ev.manifest.env
-    if crosses is None and plans is not None:
-        crosses = family_of(spec).new_obstacle_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
-    return None if crosses is None else _seed_means(ev, crosses)
+    return _stored_or_measured(
+        ev, NEW_CROSSING, lambda family, spec, states: family.new_obstacle_crossings(spec, states)
+    )
 
 
 def wall_crossing_rates(ev) -> list[float] | None:
     """Per evaluation seed, the share of episodes whose (first) plan has a state in, or a step through, a wall, the
     workspace's bounds not counted; None for a family where that is the crossing test itself, or an eval that
     stored neither plans nor this measure."""
+    return _stored_or_measured(ev, WALL_CROSSING, lambda family, spec, states: family.wall_crossings(spec, states))
+
+
+def _stored_or_measured(ev, name: str, measure) -> list[float] | None:
+    """Per evaluation seed, the mean of the per-episode measure ``name`` the eval stored, or else of ``measure(family,
+    spec, planned states)`` on its plans; None where neither gives one."""
     from cdrb_cli.envs.registry import family_of
 
-    crosses, plans, spec = ev.arrays.get(WALL_CROSSING), ev.arrays.get("plans"), ev.manifest.env
-    if crosses is None and plans is not None:
-        crosses = family_of(spec).wall_crossings(spec, np.asarray(plans)[..., : spec.obs_dim])
-    return None if crosses is None else _seed_means(ev, crosses)
+    hits, plans, spec = ev.arrays.get(name), ev.arrays.get("plans"), ev.manifest.env
+    if hits is None and plans is not None:
+        hits = measure(family_of(spec), spec, np.asarray(plans)[..., : spec.obs_dim])
+    return None if hits is None else _seed_means(ev, hits)
 
 
 def body_crossing_rates(ev) -> dict[str, list[float]] | None:

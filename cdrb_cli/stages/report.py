@@ -222,10 +222,8 @@ def collect_rows(evals) -> list[dict]:
             succ = np.array([r.success_rate for r in per])
             ratios = [r.path_length_ratio for r in per if r.path_length_ratio is not None]
             impossible = mean_or_none([r.impossible_jump_rate for r in per])
-            new_rates = [new_crossing_rates(ev) for ev in group]
-            new_rates = [x for rates in new_rates for x in rates] if all(new_rates) else [None]
-            wall_rates = [wall_crossing_rates(ev) for ev in group]
-            wall_rates = [x for rates in wall_rates for x in rates] if all(wall_rates) else [None]
+            new_rates = _pooled([new_crossing_rates(ev) for ev in group])
+            wall_rates = _pooled([wall_crossing_rates(ev) for ev in group])
             first = group[0]
             rows.append(
                 {
@@ -265,6 +263,11 @@ def collect_rows(evals) -> list[dict]:
                 }
             )
     return rows
+
+
+def _pooled(rates: list[list[float] | None]) -> list:
+    """Every eval's per-seed rates in one list, or [None] when an eval of the group lacks them."""
+    return [x for r in rates for x in r] if all(rates) else [None]
 
 
 def _rate(name: str, values: list) -> dict:

@@ -125,11 +125,9 @@ def last_value_wins(flags: list[str], command: str) -> list[str]:
     same clustering gets the same command line, whichever files declared it."""
     groups: list[list[str]] = []
     last: dict[str, list[str]] = {}
-    tokens = iter(flags)
-    for token, entry, _value in walk_options(flags, options(command)):
-        group = [next(tokens)]
-        if entry is not None and entry.takes_value and "=" not in token:
-            group += [t for t in [next(tokens, None)] if t is not None]
+    for token, entry, value in walk_options(flags, options(command)):
+        separate = entry is not None and entry.takes_value and "=" not in token and value is not None
+        group = [token, value] if separate else [token]
         if entry is None or not entry.takes_value or entry.param == "sets":
             groups.append(group)
         elif entry.param in last:
