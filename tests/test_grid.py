@@ -589,6 +589,44 @@ def test_a_cluster_option_named_twice_is_passed_once_with_its_last_value(tmp_pat
     assert kept.outputs[0].name == old_name and kept.argv[2:] == clusters["twice"].argv[2:-1] + [str(kept.outputs[0])]
 
 
+def test_one_clustering_spelled_two_ways_is_one_buffer(tmp_path):
+    """`--features=state-action` and `--features state-action` are one clustering to `cdrb cluster`, so to the grid:
+    one cluster task, one buffer name, one spelling on its command line."""
+    names = {}
+    for form in ('"--features", "state-action"', '"--features=state-action"'):
+        text = TINY + f'\n[[settings]]\nmethod = "cdrb"\ncluster = ["--features", "state", {form}]\n'
+        (folder := tmp_path / str(len(names))).mkdir()
+        (cluster,) = [t for t in expand(load_grid(_grid(folder, text))) if t.kind == "cluster"]
+        assert cluster.argv.count("--features") == 1 and "state-action" in cluster.argv, cluster.argv
+        names[form] = cluster.outputs[0].name
+    assert len(set(names.values())) == 1, names
+
+
+def test_buffers_named_before_folding_keep_every_run_on_its_buffer(tmp_path):
+    """A grid whose base settings cluster with `--features state-action` and whose variant names the option again
+    made two buffers before repeated options were folded (named from the flags as given). Both flag lists now fold
+    to one line; with both old buffers on disk, each training still reads the one it read, so none is redone."""
+    text = TINY + (
+        '\n[[settings]]\nmethod = "cdrb"\ncluster = ["--features", "state-action"]\n'
+        '\n[[variants]]\nname = "plain"\neval = ["--max-lag", "0.6"]\n'
+        '\n[[variants]]\nname = "sa"\ncluster = ["--features", "state-action"]\n'
+    )
+    spec = load_grid(_grid(tmp_path, text))
+    tag = lambda flags: hashlib.sha256(json.dumps(flags).encode()).hexdigest()[:8]  # noqa: E731
+    once, twice = ["--features", "state-action"], ["--features", "state-action"] * 2
+    (spec.out / "maze-tight").mkdir(parents=True)
+    for flags in (once, twice):
+        (spec.out / "maze-tight" / f"buffer-{tag(flags)}.h5").write_bytes(b"")
+    reads = {
+        t.id: {p.name for p in t.inputs if p.name.startswith("buffer-")}
+        for t in expand(spec)
+        if t.kind == "train" and "cdrb" in t.id
+    }
+    assert reads, "no CDRB trainings"
+    for tid, names in reads.items():
+        assert names == {f"buffer-{tag(twice if '/sa/' in tid else once)}.h5"}, (tid, names)
+
+
 def test_a_planner_without_a_buffer_names_the_grid_buffer_by_placeholder(tmp_path):
     """``{buffer}`` in an eval flag is the environment's buffer (the base clustering): the eval reads it, so it
     depends on the clustering, even for a method that trains without one (no second clustering is made)."""

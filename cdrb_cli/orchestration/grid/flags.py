@@ -126,8 +126,11 @@ def last_value_wins(flags: list[str], command: str) -> list[str]:
     groups: list[list[str]] = []
     last: dict[str, list[str]] = {}
     for token, entry, value in walk_options(flags, options(command)):
-        separate = entry is not None and entry.takes_value and "=" not in token and value is not None
-        group = [token, value] if separate else [token]
+        if entry is not None and entry.takes_value and value is not None:
+            # one spelling for one value: ``--x=y`` as ``--x y`` (the command reads both alike)
+            group = [token.partition("=")[0] if token.startswith("--") else token, value]
+        else:
+            group = [token]
         if entry is None or not entry.takes_value or entry.param == "sets":
             groups.append(group)
         elif entry.param in last:

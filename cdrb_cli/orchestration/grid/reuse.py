@@ -240,13 +240,14 @@ def buffer_task(spec: GridSpec, env: str, flags: list[str], buffers: dict, tasks
     the flags may change k). An option named twice counts once, with its last value (:func:`last_value_wins`); a
     buffer a grid already made under the name the repeated flags give keeps that name, so its runs stay done."""
     given, flags = flags, last_value_wins(flags, "cluster")
-    key = json.dumps(flags)
+    folder = spec.out / env
+    key, tag = json.dumps(flags), _flags_tag(flags)
+    if given != flags and (folder / f"buffer-{_flags_tag(given)}.h5").exists():
+        # made before folding under the name of these very flags: that buffer (and the runs that read it) stays,
+        # even where other flags of the grid fold to the same line and keep theirs
+        key, tag = json.dumps(given), _flags_tag(given)
     if key not in buffers:
-        folder = spec.out / env
         demos = folder / "demos.h5"
-        tag = _flags_tag(flags)
-        if given != flags and (folder / f"buffer-{_flags_tag(given)}.h5").exists():
-            tag = _flags_tag(given)
         path = folder / (f"buffer-{tag}.h5" if flags else f"buffer-k{spec.k}.h5")
         task_id = f"cluster {env}" + (f"/{tag}" if tag else "")
         options = last_value_wins(["--k", str(spec.k), "--seed", str(spec.data_seed), *flags], "cluster")
