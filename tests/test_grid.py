@@ -272,16 +272,22 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
 
 def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):
     """With one worker the grid hands over one task at a time, the first ready one in its own order: a model's evals
-    run before the next model trains (everything submitted at once would train every model first, so a grid
-    stopped part-way would leave no finished row)."""
+    run before the next model trains, a variant's evals too, which the grid lists after all the trainings
+    (everything submitted at once would train every model first, so a grid stopped part-way would leave no finished
+    row)."""
     text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]')
+    text += '\n[[variants]]\nname = "base"\n\n[[variants]]\nname = "lag"\neval = ["--max-lag", "0.6"]\n'
     spec = load_grid(_grid(tmp_path, text))
+    assert [t.id for t in expand(spec)].index("eval maze-tight/lag/mlp-s0") > [t.id for t in expand(spec)].index(
+        "train maze-tight/mlp-s1"
+    )  # the grid lists the variant's evals last: the run order moves them up
     submitted: list[str] = []
     in_flight: list[int] = []
 
     class Recording(PoolBackend):
         def submit(self, payload):
-            submitted.append(f"{payload['argv'][0]} {Path(payload['outputs'][0]).name}")
+            out = Path(payload["outputs"][0])
+            submitted.append(f"{payload['argv'][0]} {out.parent.name}/{out.name}")
             future = super().submit(payload)
             in_flight.append(sum(not f.done() for f in futures) + 1)
             futures.append(future)
@@ -295,12 +301,15 @@ def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):
         backend.close()
     assert all(r.status == "done" for r in run.results)
     assert submitted == [
-        "collect demos.h5",
-        "train mlp-s0.h5",
-        "eval eval-mlp-s0.h5",
-        "train mlp-s1.h5",
-        "eval eval-mlp-s1.h5",
-        "report report.md",
+        "collect maze-tight/demos.h5",
+        "train maze-tight/mlp-s0.h5",
+        "eval base/eval-mlp-s0.h5",
+        "eval lag/eval-mlp-s0.h5",
+        "train maze-tight/mlp-s1.h5",
+        "eval base/eval-mlp-s1.h5",
+        "eval lag/eval-mlp-s1.h5",
+        "report runs/report-base.md",
+        "report runs/report-lag.md",
     ]
     assert max(in_flight) == 1
 

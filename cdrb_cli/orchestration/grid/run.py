@@ -284,12 +284,12 @@ def run_grid(
     ready, skipped when its memo is current, retried ``retries`` times on failure; dependants of a failed task are
     skipped. A task reading another grid's file (``reuse``) fails if that file changed since the grid was expanded.
     A backend with a ``capacity`` (the local pool) is handed at most that many tasks at once, the ready task first
-    in the grid's order (environment by environment, each model's evals right after it): one environment's rows
-    are finished before the next one's trainings start, so a grid stopped part-way leaves whole rows. Writes
-    OUT/grid.json."""
+    in the grid's order (environment by environment, each model's evals, its variants' and snapshots' included,
+    right after it): one environment's rows are finished before the next one's trainings start, so a grid stopped
+    part-way leaves whole rows. Writes OUT/grid.json."""
     t0 = time.time()
     tasks = expand(spec) if tasks is None else tasks
-    order = {t.id: i for i, t in enumerate(tasks)}
+    order = _run_order(tasks)
     capacity = getattr(backend, "capacity", None)
     queued: list[Task] = []  # ready to run, waiting for a free slot of the backend
     results = {t.id: TaskResult(t.id, t.kind, outputs=[str(p) for p in t.outputs]) for t in tasks}
@@ -364,6 +364,19 @@ def run_grid(
                 emit("failed", res)
     ordered = [results[t.id] for t in tasks]
     return GridRun(ordered, _write_summary(spec, backend.name, ordered, t0), time.time() - t0, backend.name)
+
+
+def _run_order(tasks: list[Task]) -> dict[str, tuple[int, int, int]]:
+    """Each task's rank among ready tasks: the grid's order, with every eval moved up to right after the training it
+    reads (a variant's evals and a snapshot's too, which the grid lists after all of an environment's trainings), so
+    a finished model is measured before the next one trains."""
+    pos = {t.id: i for i, t in enumerate(tasks)}
+    kind = {t.id: t.kind for t in tasks}
+    order = {}
+    for t in tasks:
+        trains = [pos[d] for d in t.deps if kind.get(d) == "train"]
+        order[t.id] = (max(trains), 1, pos[t.id]) if t.kind == "eval" and trains else (pos[t.id], 0, pos[t.id])
+    return order
 
 
 def _log_eval(task) -> None:
