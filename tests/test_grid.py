@@ -49,6 +49,11 @@ def _grid(tmp_path: Path, text: str = TINY, name: str = "grid.toml") -> Path:
     return path
 
 
+def _buffer_name(flags: list[str]) -> str:
+    """The buffer file name a grid gives a clustering's flags: a hash of them."""
+    return f"buffer-{hashlib.sha256(json.dumps(flags).encode()).hexdigest()[:8]}.h5"
+
+
 def _cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
     return call_cdrb(*args, cwd=cwd, env={"OMP_NUM_THREADS": "1", **(env or {})})
 
@@ -278,9 +283,8 @@ def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):
     text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]')
     text += '\n[[variants]]\nname = "base"\n\n[[variants]]\nname = "lag"\neval = ["--max-lag", "0.6"]\n'
     spec = load_grid(_grid(tmp_path, text))
-    assert [t.id for t in expand(spec)].index("eval maze-tight/lag/mlp-s0") > [t.id for t in expand(spec)].index(
-        "train maze-tight/mlp-s1"
-    )  # the grid lists the variant's evals last: the run order moves them up
+    listed = [t.id for t in expand(spec)]
+    assert listed.index("eval maze-tight/lag/mlp-s0") > listed.index("train maze-tight/mlp-s1")  # moved up below
     submitted: list[str] = []
     in_flight: list[int] = []
 
@@ -591,7 +595,7 @@ def test_a_cluster_option_named_twice_is_passed_once_with_its_last_value(tmp_pat
     # a buffer a grid already made under the name the repeated flags gave keeps it (its runs stay done)
     spec = load_grid(_grid(tmp_path / "twice", twice))
     given = cluster_flags_for(spec, "maze-tight", "cdrb")
-    old_name = f"buffer-{hashlib.sha256(json.dumps(given).encode()).hexdigest()[:8]}.h5"
+    old_name = _buffer_name(given)
     (spec.out / "maze-tight").mkdir(parents=True)
     (spec.out / "maze-tight" / old_name).write_bytes(b"")
     (kept,) = [t for t in expand(spec) if t.kind == "cluster"]
@@ -621,11 +625,10 @@ def test_buffers_named_before_folding_keep_every_run_on_its_buffer(tmp_path):
         '\n[[variants]]\nname = "sa"\ncluster = ["--features", "state-action"]\n'
     )
     spec = load_grid(_grid(tmp_path, text))
-    tag = lambda flags: hashlib.sha256(json.dumps(flags).encode()).hexdigest()[:8]  # noqa: E731
     once, twice = ["--features", "state-action"], ["--features", "state-action"] * 2
     (spec.out / "maze-tight").mkdir(parents=True)
     for flags in (once, twice):
-        (spec.out / "maze-tight" / f"buffer-{tag(flags)}.h5").write_bytes(b"")
+        (spec.out / "maze-tight" / _buffer_name(flags)).write_bytes(b"")
     reads = {
         t.id: {p.name for p in t.inputs if p.name.startswith("buffer-")}
         for t in expand(spec)
@@ -633,7 +636,7 @@ def test_buffers_named_before_folding_keep_every_run_on_its_buffer(tmp_path):
     }
     assert reads, "no CDRB trainings"
     for tid, names in reads.items():
-        assert names == {f"buffer-{tag(twice if '/sa/' in tid else once)}.h5"}, (tid, names)
+        assert names == {_buffer_name(twice if "/sa/" in tid else once)}, (tid, names)
 
 
 def test_a_planner_without_a_buffer_names_the_grid_buffer_by_placeholder(tmp_path):
