@@ -21,7 +21,7 @@ import cdrb_cli.cli  # noqa: F401  (installs the description of the commands a g
 from cdrb_cli import artifacts
 from cdrb_cli.envs.pointmaze import PointMazeFamily
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid import PoolBackend, cluster_flags_for, expand, load_grid, run_grid
+from cdrb_cli.orchestration.grid import PoolBackend, cluster_flags_for, expand, grid, load_grid, run_grid
 from tests.conftest import ROOT, call_cdrb
 
 TINY = """
@@ -236,7 +236,11 @@ def _outputs(run) -> dict[str, float]:
 
 
 def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
-    spec = load_grid(_grid(tmp_path))
+    path = _grid(tmp_path)
+    spec = load_grid(path)
+    fresh = _cli("grid", str(path), "--dry-run")  # nothing made yet: every task to run, none commented out
+    assert fresh.returncode == 0 and "# up to date" not in fresh.stdout
+    assert f"{len(expand(spec))} tasks: 0 up to date, {len(expand(spec))} to run" in fresh.stderr
     backend = PoolBackend(2)
     try:
         run = run_grid(spec, backend)
@@ -263,9 +267,19 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
     again = run_grid(spec, Refuse())
     assert {r.status for r in again.results} == {"up to date"}
     assert _outputs(again) == before
+    # and a dry run says so: every command a shell comment
+    listing = _cli("grid", str(path), "--dry-run").stdout.splitlines()
+    assert len(listing) == len(run.results) and all(line.startswith("# up to date: cdrb ") for line in listing)
 
-    # one output removed: that task and only what depends on it run again (the CLI decides for the others)
+    # one output removed: that task and only what depends on it run again (the CLI decides for the others), which
+    # is what a dry run lists to run, as commands, and in --json
     Path(run.results[[r.id for r in run.results].index("eval maze-tight/cdrb-s1")].outputs[0]).unlink()
+    dry = grid(path, dry_run=True)
+    assert sorted(t.id for t in dry.pending()) == ["eval maze-tight/cdrb-s1", "report"]
+    listed = _cli("grid", str(path), "--dry-run", "--json")
+    rows = json.loads(listed.stdout)
+    assert sorted(r["id"] for r in rows if not r["up_to_date"]) == ["eval maze-tight/cdrb-s1", "report"]
+    assert f"{len(rows)} tasks: {len(rows) - 2} up to date, 2 to run: 1 eval, 1 report" in listed.stderr
     backend = PoolBackend(1)
     try:
         third = run_grid(spec, backend)

@@ -90,7 +90,10 @@ def grid(
     ),
     retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
     dry_run: bool = typer.Option(
-        False, "--dry-run", help="Print the tasks' commands (one per line; with --json a list of tasks) and stop."
+        False,
+        "--dry-run",
+        help="Print the tasks' commands, one per line, those a run would skip as up to date after '# up to date: ' "
+        "(with --json a list of tasks), and stop.",
     ),
     overrides: list[str] = GridSetOpt,
     includes: list[Path] = GridIncludeOpt,
@@ -118,6 +121,12 @@ def grid(
     if dry_run:
         import shlex
 
+        todo = res.pending()
+        kinds = [t.kind for t in todo]
+        ui.log(
+            f"{len(res.tasks)} tasks: {len(res.tasks) - len(todo)} up to date, {len(todo)} to run"
+            + (": " + ", ".join(f"{kinds.count(k)} {k}" for k in dict.fromkeys(kinds)) if kinds else "")
+        )
         if as_json:  # one object per task: what it is, its command, what it writes, the tasks it waits for
             rows = [
                 {
@@ -126,13 +135,15 @@ def grid(
                     "argv": t.argv,
                     "outputs": [str(p) for p in t.outputs],
                     "deps": t.deps,
+                    "up_to_date": res.up_to_date[t.id],
                 }
-                for t in res
+                for t in res.tasks
             ]
             ui.emit(rows, as_json=True)
             return
-        for task in res:
-            sys.stdout.write("cdrb " + shlex.join(task.argv) + "\n")
+        for task in res.tasks:  # a task a run would skip is a shell comment: the listing stays a runnable script
+            mark = "# up to date: " if res.up_to_date[task.id] else ""
+            sys.stdout.write(mark + "cdrb " + shlex.join(task.argv) + "\n")
         return
     ui.log(
         f"grid finished in {res.seconds / 60:.1f} min: {res.count('done')} run, {res.count('up to date')} up to date"

@@ -33,6 +33,7 @@ from cdrb_cli.orchestration.grid.load import load_grid, parse_override
 from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, memo_path, written_here
 from cdrb_cli.orchestration.grid.reuse import file_sha, measure_difference, reuse_finished
 from cdrb_cli.orchestration.grid.run import (
+    DryRun,
     GridRun,
     PoolBackend,
     RayBackend,
@@ -57,6 +58,7 @@ from cdrb_cli.orchestration.grid.spec import (
 
 __all__ = [
     "BASE",
+    "DryRun",
     "GridRun",
     "GridSpec",
     "KINDS",

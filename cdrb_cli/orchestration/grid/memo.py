@@ -119,6 +119,23 @@ def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
     return _matches(memo, now) and all(now["outputs"].values())
 
 
+def up_to_date(spec: GridSpec, tasks: list[Task], cache: dict) -> dict[str, bool]:
+    """Which tasks a run would skip: those whose memo is current and whose dependencies would all be skipped too (a
+    dependency that runs again may rewrite what the task read, so the task runs after it, as the run decides)."""
+    by_id = {t.id: t for t in tasks}
+    fresh: dict[str, bool] = {}
+
+    def visit(task: Task) -> bool:
+        if task.id not in fresh:
+            deps = [by_id[d] for d in task.deps if d in by_id]
+            fresh[task.id] = all(visit(d) for d in deps) and is_done(spec, task, cache)
+        return fresh[task.id]
+
+    for task in tasks:
+        visit(task)
+    return fresh
+
+
 def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:
     """Whether every output of ``task`` is the file this grid's memo says the task wrote: the grid's own artifact,
     which it may replace when the task is out of date (a file the memo does not vouch for is never overwritten)."""

@@ -23,7 +23,7 @@ from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.errors import BadInput, RunFailed
 from cdrb_cli.orchestration.grid.expand import expand
 from cdrb_cli.orchestration.grid.load import load_grid
-from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, write_memo, written_here
+from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, up_to_date, write_memo, written_here
 from cdrb_cli.orchestration.grid.reuse import REUSABLE, regular_sha
 from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task
 from cdrb_cli.settings import clip
@@ -263,6 +263,17 @@ def make_backend(backend: str, workers: int | None, address: str | None):
 
 
 @dataclass
+class DryRun:
+    """What a run would do: every task, and which of them it would skip as up to date."""
+
+    tasks: list[Task]
+    up_to_date: dict[str, bool]
+
+    def pending(self) -> list[Task]:
+        return [t for t in self.tasks if not self.up_to_date[t.id]]
+
+
+@dataclass
 class GridRun:
     results: list[TaskResult]
     summary: Path
@@ -427,7 +438,7 @@ def grid(
     dry_run: bool = False,
     overrides: list[str] = (),
     includes: list[Path] = (),
-) -> GridRun | list[Task]:
+) -> GridRun | DryRun:
     """Load, expand and run a grid file with a progress bar and one line per finished task (stderr)."""
     spec = load_grid(path, overrides, includes)
     tasks = expand(spec)
@@ -442,7 +453,7 @@ def grid(
         )
     check_outputs(spec, tasks)  # a dry run lists what a real one would do, so it is refused the same way
     if dry_run:
-        return tasks
+        return DryRun(tasks, up_to_date(spec, tasks, spec._shas))
     spec.out.mkdir(parents=True, exist_ok=True)
     with artifacts.claim_output(spec.out / "grid.json", force=True, flag=f"{path}: out ="):
         runner = make_backend(backend, workers, address)
