@@ -242,11 +242,17 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
     assert fresh.returncode == 0 and "# up to date" not in fresh.stdout
     assert f"{len(expand(spec))} tasks: 0 up to date, {len(expand(spec))} to run" in fresh.stderr
     backend = PoolBackend(2)
+    infos: list[str] = []  # what the grid's bar shows after it: the running tasks' last progress lines
     try:
-        run = run_grid(spec, backend)
+        run = run_grid(spec, backend, on_progress=infos.append)
     finally:
         backend.close()
     assert [r.status for r in run.results] == ["done"] * len(run.results)
+    # each task's stderr stays in the grid's folder, and the bar showed the trainings' own progress lines
+    logs = spec.out / ".grid" / "logs"
+    assert len(list(logs.glob("*.log"))) == len(run.results)
+    assert "train cdrb: " in (logs / "train_maze-tight_cdrb-s0.log").read_text()
+    assert any(re.search(r"train maze-tight/\w+-s\d: train \w+: \d+/\d+", i) for i in infos), infos
     for r in run.results:
         if r.kind == "eval":
             ev = artifacts.load(Path(r.outputs[0]), "eval")
@@ -287,6 +293,26 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
         backend.close()
     ran = sorted(r.id for r in third.results if r.status == "done")
     assert ran == ["eval maze-tight/cdrb-s1", "report"]
+
+
+def test_a_task_log_gives_its_last_progress_line_and_is_never_written_through_a_link(tmp_path):
+    from cdrb_cli.orchestration.grid.memo import fresh_log, last_line
+
+    log = tmp_path / "logs" / "t.log"
+    assert last_line(log) == ""  # not made yet
+    fresh_log(log)
+    assert log.read_bytes() == b"" and last_line(log) == ""
+    # a live bar redraws with carriage returns, plain progress lines end with newlines; blank tails are skipped
+    log.write_text(
+        "loading\ntrain cdrb: 1/10 (10%)\rtrain cdrb: 2/10 (20%)\r" + "x" * 5000 + "\rtrain cdrb: 3/10\n\n  \n"
+    )
+    assert last_line(log) == "train cdrb: 3/10"
+    target = tmp_path / "precious.txt"
+    target.write_text("keep")
+    log.unlink()
+    log.symlink_to(target)
+    fresh_log(log)
+    assert target.read_text() == "keep" and not log.is_symlink() and log.read_bytes() == b""
 
 
 def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):

@@ -3,8 +3,10 @@ and output), so a rerun does no work for a task whose files still match, however
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import os
 import re
 from pathlib import Path
 
@@ -32,6 +34,32 @@ def cached_sha(path: Path, cache: dict) -> str | None:
 
 def memo_path(spec: GridSpec, task: Task) -> Path:
     return spec.out / ".grid" / f"{_slug(task.id)}.json"
+
+
+def log_path(spec: GridSpec, task: Task) -> Path:
+    """Where a local task's stderr goes while it runs and stays after it (its progress lines, its errors)."""
+    return spec.out / ".grid" / "logs" / f"{_slug(task.id)}.log"
+
+
+def fresh_log(path: Path) -> None:
+    """An empty log file at ``path`` (made anew: a link planted there is removed, never written through)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
+
+
+def last_line(path: str | Path, tail: int = 4096) -> str:
+    """The last non-blank line of a task's log (a live bar's redraws end with a carriage return, plain progress
+    lines with a newline), or "" when there is none yet."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - tail))
+            text = f.read().decode(errors="replace")
+    except OSError:
+        return ""
+    lines = [ln.strip() for ln in text.replace("\r", "\n").split("\n")]
+    return next((ln for ln in reversed(lines) if ln), "")
 
 
 def _meaning(task: Task) -> dict:

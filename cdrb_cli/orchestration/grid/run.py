@@ -4,6 +4,7 @@ cdrb_cli` processes), retried once, with progress, a summary and the report."""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import json
 import logging
 import os
@@ -23,7 +24,16 @@ from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.errors import BadInput, RunFailed
 from cdrb_cli.orchestration.grid.expand import expand
 from cdrb_cli.orchestration.grid.load import load_grid
-from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, up_to_date, write_memo, written_here
+from cdrb_cli.orchestration.grid.memo import (
+    check_outputs,
+    fresh_log,
+    is_done,
+    last_line,
+    log_path,
+    up_to_date,
+    write_memo,
+    written_here,
+)
 from cdrb_cli.orchestration.grid.reuse import REUSABLE, regular_sha
 from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task
 from cdrb_cli.settings import clip
@@ -46,23 +56,28 @@ def execute(payload: dict, server=None) -> dict:
     # PYTHONSAFEPATH: the task's `python -m` must not import modules from the current folder (a `typer.py` beside
     # the grid would run in every task); cdrb is imported from where it is installed
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1")
+    log = Path(payload["log"]) if payload.get("log") else None  # the grid's log of the task (local pool)
+    if log is not None:
+        fresh_log(log)
     if server is not None and not cold_only(argv):
-        rc, stderr, seconds = run_task(server, argv, env, _register, _unregister)
+        rc, stderr, seconds = run_task(server, argv, env, _register, _unregister, log)
     else:
         t = time.time()
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "cdrb_cli", *argv],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=env,
-            preexec_fn=parent_death_hook(),
-        )
-        _register(proc)
-        try:
-            _, stderr = proc.communicate()
-        finally:
-            _unregister(proc)
+        with open(log, "w") if log is not None else contextlib.nullcontext(subprocess.PIPE) as err:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "cdrb_cli", *argv],
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+                env=env,
+                preexec_fn=parent_death_hook(),
+            )
+            _register(proc)
+            try:
+                _, stderr = proc.communicate()
+            finally:
+                _unregister(proc)
+        stderr = log.read_text(errors="replace") if log is not None else stderr
         rc, seconds = proc.returncode, time.time() - t
     tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
     return {"rc": rc, "seconds": seconds, "stderr": tail}
@@ -81,6 +96,8 @@ def _unregister(proc) -> None:
 #: the task processes this process started and that still run (the pool's threads start them): subprocesses, or
 #: the warm server's forks (:class:`~cdrb_cli.orchestration.grid.warm.WarmTask`, the same four methods)
 _RUNNING: set = set()
+#: seconds between looks at the running tasks' logs (their progress, shown after the grid's bar)
+PROGRESS_POLL = 5.0
 _RUNNING_LOCK = threading.Lock()
 
 
@@ -116,6 +133,8 @@ class PoolBackend:
     once (:mod:`~cdrb_cli.orchestration.grid.warm`; ``CDRB_GRID_WARM=0``: a fresh process per task)."""
 
     name = "local pool"
+    #: tasks write their stderr into the grid's folder (OUT/.grid/logs), where the grid reads their progress
+    logs = True
 
     def __init__(self, workers: int, warm: bool | None = None):
         self.workers = workers
@@ -290,6 +309,7 @@ def run_grid(
     retries: int = 1,
     on_event: Callable[[str, TaskResult], None] | None = None,
     tasks: list[Task] | None = None,
+    on_progress: Callable[[str], None] | None = None,
 ) -> GridRun:
     """Execute the grid's tasks (``tasks``, default: the expanded grid) on ``backend``: each when its inputs are
     ready, skipped when its memo is current, retried ``retries`` times on failure; dependants of a failed task are
@@ -297,7 +317,8 @@ def run_grid(
     A backend with a ``capacity`` (the local pool) is handed at most that many tasks at once, the ready task first
     in the grid's order (environment by environment, each model's evals, its variants' and snapshots' included,
     right after it): one environment's rows are finished before the next one's trainings start, so a grid stopped
-    part-way leaves whole rows. Writes OUT/grid.json."""
+    part-way leaves whole rows. With a backend whose tasks log into the grid's folder, ``on_progress`` is called
+    every few seconds with the running tasks' last progress lines. Writes OUT/grid.json."""
     t0 = time.time()
     tasks = expand(spec) if tasks is None else tasks
     order = _run_order(tasks)
@@ -322,6 +343,8 @@ def run_grid(
             argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
         payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
         payload |= {"cpus": res.cpus, "gpus": res.gpus}
+        if getattr(backend, "logs", False):
+            payload["log"] = str(log_path(spec, task))
         results[task.id].attempts += 1
         state[task.id] = "running"
         running[backend.submit(payload)] = task
@@ -355,7 +378,10 @@ def run_grid(
                 progressed = progressed or state[task.id] == "failed"  # settle its dependants next pass
         if not running:
             break
-        finished, _ = cf.wait(list(running), return_when=cf.FIRST_COMPLETED)
+        logged = on_progress is not None and getattr(backend, "logs", False)
+        finished, _ = cf.wait(list(running), timeout=PROGRESS_POLL if logged else None, return_when=cf.FIRST_COMPLETED)
+        if logged:
+            on_progress(_progress(spec, running.values()))
         for fut in finished:
             task = running.pop(fut)
             res = results[task.id]
@@ -375,6 +401,12 @@ def run_grid(
                 emit("failed", res)
     ordered = [results[t.id] for t in tasks]
     return GridRun(ordered, _write_summary(spec, backend.name, ordered, t0), time.time() - t0, backend.name)
+
+
+def _progress(spec: GridSpec, tasks) -> str:
+    """The running tasks' last log lines, one clause each: what a long training is at, without opening its log."""
+    lines = [(t.id, last_line(log_path(spec, t))) for t in tasks]
+    return "; ".join(f"{tid}: {clip(line, 90)}" if line else tid for tid, line in lines)
 
 
 def _run_order(tasks: list[Task]) -> dict[str, tuple[int, int, int]]:
@@ -477,7 +509,10 @@ def grid(
                     ui.log(f"{event:10s} {secs}  {res.id}")
                     bar.advance(job)
 
-                run = run_grid(spec, runner, retries=retries, on_event=on_event, tasks=tasks)
+                def on_progress(info: str) -> None:
+                    bar.update(job, info=clip(info, 200))
+
+                run = run_grid(spec, runner, retries=retries, on_event=on_event, tasks=tasks, on_progress=on_progress)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the running tasks stop too, instead of being waited for
             stop_running()
             raise

@@ -174,11 +174,17 @@ class WarmServer:
         shutil.rmtree(self.home, ignore_errors=True)
 
 
-def run_task(server: WarmServer, argv: list[str], env: dict, register, unregister) -> tuple[int, str, float]:
-    """Run ``cdrb argv`` in a forked task; ``register``/``unregister`` put its process where the grid's stop logic
-    finds it. Returns (exit code, stderr, seconds)."""
-    fd, name = tempfile.mkstemp(prefix="cdrb-task-", suffix=".err")
-    os.close(fd)
+def run_task(
+    server: WarmServer, argv: list[str], env: dict, register, unregister, log: Path | None = None
+) -> tuple[int, str, float]:
+    """Run ``cdrb argv`` in a forked task, its stderr into the file ``log`` (kept) or a temp file (removed);
+    ``register``/``unregister`` put its process where the grid's stop logic finds it. Returns (exit code, stderr,
+    seconds)."""
+    if log is None:
+        fd, name = tempfile.mkstemp(prefix="cdrb-task-", suffix=".err")
+        os.close(fd)
+    else:
+        name = str(log)
     t = time.time()
     try:
         task = server.start(argv, env, Path(name))
@@ -189,5 +195,6 @@ def run_task(server: WarmServer, argv: list[str], env: dict, register, unregiste
             unregister(task)
         return rc, Path(name).read_text(errors="replace"), time.time() - t
     finally:
-        with contextlib.suppress(OSError):
-            os.unlink(name)
+        if log is None:
+            with contextlib.suppress(OSError):
+                os.unlink(name)
