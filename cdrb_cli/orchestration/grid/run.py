@@ -96,9 +96,9 @@ def _unregister(proc) -> None:
 #: the task processes this process started and that still run (the pool's threads start them): subprocesses, or
 #: the warm server's forks (:class:`~cdrb_cli.orchestration.grid.warm.WarmTask`, the same four methods)
 _RUNNING: set = set()
+_RUNNING_LOCK = threading.Lock()
 #: seconds between looks at the running tasks' logs (their progress, shown after the grid's bar)
 PROGRESS_POLL = 5.0
-_RUNNING_LOCK = threading.Lock()
 
 
 def stop_running(grace: float = 5.0) -> None:
@@ -327,6 +327,8 @@ def run_grid(
     results = {t.id: TaskResult(t.id, t.kind, outputs=[str(p) for p in t.outputs]) for t in tasks}
     state = {t.id: "pending" for t in tasks}
     cache = spec._shas
+    logs = getattr(backend, "logs", False)  # its tasks write their stderr where log_path says
+    polled = on_progress is not None and logs
     running: dict[cf.Future, Task] = {}
     emit = on_event or (lambda *_: None)
 
@@ -343,7 +345,7 @@ def run_grid(
             argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
         payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
         payload |= {"cpus": res.cpus, "gpus": res.gpus}
-        if getattr(backend, "logs", False):
+        if logs:
             payload["log"] = str(log_path(spec, task))
         results[task.id].attempts += 1
         state[task.id] = "running"
@@ -378,9 +380,8 @@ def run_grid(
                 progressed = progressed or state[task.id] == "failed"  # settle its dependants next pass
         if not running:
             break
-        logged = on_progress is not None and getattr(backend, "logs", False)
-        finished, _ = cf.wait(list(running), timeout=PROGRESS_POLL if logged else None, return_when=cf.FIRST_COMPLETED)
-        if logged:
+        finished, _ = cf.wait(list(running), timeout=PROGRESS_POLL if polled else None, return_when=cf.FIRST_COMPLETED)
+        if polled:
             on_progress(_progress(spec, running.values()))
         for fut in finished:
             task = running.pop(fut)
