@@ -3,6 +3,7 @@ a worker killed mid-task, a failing task, and re-running a finished grid."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -235,7 +236,14 @@ def _outputs(run) -> dict[str, float]:
     return {p: os.stat(p).st_mtime_ns for r in run.results for p in r.outputs}
 
 
-def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
+def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path, monkeypatch):
+    from cdrb_cli.orchestration.grid import run as grid_run
+
+    # tasks print progress lines often and the grid reads them often; FORCE_COLOR must not turn a task's log into a
+    # terminal's redraws
+    monkeypatch.setenv("CDRB_PROGRESS_SECONDS", "0.05")
+    monkeypatch.setenv("FORCE_COLOR", "1")
+    monkeypatch.setattr(grid_run, "PROGRESS_POLL", 0.2)
     path = _grid(tmp_path)
     spec = load_grid(path)
     fresh = _cli("grid", str(path), "--dry-run")  # nothing made yet: every task to run, none commented out
@@ -252,6 +260,7 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
     logs = spec.out / ".grid" / "logs"
     assert len(list(logs.glob("*.log"))) == len(run.results)
     assert "train cdrb: " in (logs / "train_maze-tight_cdrb-s0.log").read_text()
+    assert not any("\x1b" in log.read_text() for log in logs.glob("*.log"))
     assert any(re.search(r"train maze-tight/\w+-s\d: train \w+: \d+/\d+", i) for i in infos), infos
     for r in run.results:
         if r.kind == "eval":
@@ -296,23 +305,123 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path):
 
 
 def test_a_task_log_gives_its_last_progress_line_and_is_never_written_through_a_link(tmp_path):
-    from cdrb_cli.orchestration.grid.memo import fresh_log, last_line
+    from cdrb_cli.orchestration.grid.memo import fresh_log, last_line, open_log, read_log
 
-    log = tmp_path / "logs" / "t.log"
+    log = tmp_path / ".grid" / "logs" / "t.log"
     assert last_line(log) == ""  # not made yet
     fresh_log(log)
     assert log.read_bytes() == b"" and last_line(log) == ""
-    # a live bar redraws with carriage returns, plain progress lines end with newlines; blank tails are skipped
+    # a live bar redraws with carriage returns, plain progress lines end with newlines; blank tails are skipped;
+    # terminal control sequences (a bar drawn under FORCE_COLOR) never reach the grid's own bar
     log.write_text(
         "loading\ntrain cdrb: 1/10 (10%)\rtrain cdrb: 2/10 (20%)\r" + "x" * 5000 + "\rtrain cdrb: 3/10\n\n  \n"
     )
     assert last_line(log) == "train cdrb: 3/10"
+    log.write_text("\x1b[2K\x1b[1mtrain cdrb\x1b[0m \x1b[91m━━\x1b[0m 4/10\x1b]8;;http://x\x07 \x07\x08done\r")
+    assert last_line(log) == "train cdrb ━━ 4/10 done"
+    # the next attempt starts an empty log and keeps the last one beside it
+    fresh_log(log)
+    assert log.read_bytes() == b"" and "4/10" in (log.parent / "t.log.1").read_text()
+
+    # a link planted at the name is removed, never followed; one planted after the grid made the log is refused
     target = tmp_path / "precious.txt"
     target.write_text("keep")
     log.unlink()
     log.symlink_to(target)
     fresh_log(log)
     assert target.read_text() == "keep" and not log.is_symlink() and log.read_bytes() == b""
+    log.unlink()
+    log.symlink_to(target)
+    with pytest.raises(OSError):
+        os.close(open_log(log))
+    assert read_log(log) == "" and last_line(log) == "" and target.read_text() == "keep"
+    # a FIFO at the name: neither the writer's open nor the grid's poll blocks on it
+    log.unlink()
+    os.mkfifo(log)
+    with pytest.raises(OSError):
+        os.close(open_log(log))
+    assert last_line(log) == ""
+    # a linked log folder is refused with one line, nothing made through it
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    linked = tmp_path / "out2" / ".grid"
+    linked.parent.mkdir()
+    linked.symlink_to(elsewhere)
+    with pytest.raises(BadInput, match="a link, not a folder of the grid's own"):
+        fresh_log(linked / "logs" / "t.log")
+    assert list(elsewhere.iterdir()) == []
+
+
+@pytest.mark.parametrize("warm", [False, True])
+def test_a_task_never_writes_its_stderr_through_a_link_at_its_log(tmp_path, warm):
+    """The log the grid made, swapped for a link before the task opens it (fresh process or warm fork): the task
+    fails, and the link's target is untouched."""
+    from cdrb_cli.orchestration.grid.run import execute
+    from cdrb_cli.orchestration.grid.warm import WarmServer
+
+    target, log = tmp_path / "precious.txt", tmp_path / "t.log"
+    target.write_text("keep")
+    log.symlink_to(target)
+    payload = {"argv": ["grid", "/dev/zero"], "kind": "eval", "outputs": [], "cpus": 1, "log": str(log)}
+    server = WarmServer() if warm else None
+    try:
+        if warm:
+            assert execute({**payload, "log": None}, server)["rc"] == 2  # the server answers, the command fails
+        with pytest.raises(OSError) if not warm else contextlib.nullcontext():
+            out = execute(payload, server)
+            assert out["rc"] != 0
+    finally:
+        if server is not None:
+            server.close()
+    assert target.read_text() == "keep"
+
+
+def test_the_grids_bar_shows_only_running_tasks_and_their_latest_lines(tmp_path, monkeypatch):
+    """What the bar shows after the grid's progress while tasks run: each running task's last log line, read as the
+    task writes it, and never a task that has finished."""
+    import concurrent.futures as cf
+
+    from cdrb_cli.orchestration.grid import run as grid_run
+
+    monkeypatch.setattr(grid_run, "PROGRESS_POLL", 0.01)
+    spec = load_grid(_grid(tmp_path, TINY.replace('envs = ["maze-tight"]', 'envs = ["maze", "maze-tight"]')))
+    tasks = [t for t in expand(spec) if t.kind == "collect"]
+    assert [t.id for t in tasks] == ["collect maze", "collect maze-tight"]
+
+    class Held:
+        """Two slots; the test finishes the tasks one at a time from the progress callback."""
+
+        name, logs, capacity = "held", True, 2
+
+        def __init__(self):
+            self.futures: list[tuple[cf.Future, dict]] = []
+
+        def submit(self, payload):
+            assert Path(payload["log"]).read_bytes() == b""  # made anew before the task is handed over
+            fut = cf.Future()
+            self.futures.append((fut, payload))
+            return fut
+
+    backend, shown = Held(), []
+
+    def on_progress(info: str) -> None:
+        shown.append(info)
+        first, second = backend.futures
+        if len(shown) == 1:  # both running, nothing written yet
+            Path(first[1]["log"]).write_text("collect maze: 3/40\r")
+            Path(second[1]["log"]).write_text("collect maze-tight: 7/40\n")
+        elif len(shown) == 2:
+            first[0].set_result({"rc": 1, "seconds": 0.0, "stderr": ["boom"]})
+        elif len(shown) == 3:
+            second[0].set_result({"rc": 1, "seconds": 0.0, "stderr": ["boom"]})
+
+    run = grid_run.run_grid(spec, backend, retries=0, tasks=tasks, on_progress=on_progress)
+    assert [r.status for r in run.results] == ["failed", "failed"]
+    a, b = tasks[0].id, tasks[1].id
+    assert shown[0] == f"{a}; {b}"
+    assert shown[1] == f"{a}: collect maze: 3/40; {b}: collect maze-tight: 7/40"
+    assert shown[2] == f"{b}: collect maze-tight: 7/40"  # the finished task is gone at once
+    assert shown[3:] == [""]  # and nothing is left once no task runs
 
 
 def test_the_pool_is_handed_ready_tasks_in_the_grids_order(tmp_path):

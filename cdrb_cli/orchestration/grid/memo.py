@@ -41,24 +41,71 @@ def log_path(spec: GridSpec, task: Task) -> Path:
     return spec.out / ".grid" / "logs" / f"{_slug(task.id)}.log"
 
 
+#: how much of the end of a task's log is read back: its last progress line, the lines a failure reports
+LOG_TAIL = 64 << 10
+#: terminal control sequences (CSI, OSC) and the other C0 controls a task may write into its log
+_CONTROL = re.compile(
+    r"\x1b\[[0-?]*[ -/]*[@-~]"  # CSI: colours, erase-line, cursor moves
+    r"|\x1b\][^\x07\x1b]*(?:\x07|\x1b\\)?"  # OSC: links, titles
+    r"|\x1b.?|[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]"  # other escapes, C0 controls but tab and line ends
+)
+
+
+def _own_folder(folder: Path) -> None:
+    """Make the grid's log folder (OUT/.grid/logs); a link at it or at OUT/.grid is refused, not followed."""
+    for d in (folder.parent, folder):
+        if d.is_symlink():
+            raise BadInput(f"{d}: a link, not a folder of the grid's own", hint="remove it; the grid makes it")
+        d.mkdir(exist_ok=True, parents=d == folder.parent)
+
+
 def fresh_log(path: Path) -> None:
-    """An empty log file at ``path`` (made anew: a link planted there is removed, never written through)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """An empty log file at ``path`` for a task's next attempt, made by the grid before it hands the task over.
+    The last attempt's log, a regular file, is kept beside it as ``NAME.1`` (why a retried task failed stays
+    readable); a link or anything else planted at the name is removed, never written through."""
+    _own_folder(path.parent)
     with contextlib.suppress(FileNotFoundError):
-        path.unlink()
+        if path.is_file() and not path.is_symlink():
+            os.replace(path, path.with_name(path.name + ".1"))
+        else:
+            path.unlink()
     os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
+
+
+def _regular_fd(path: str | Path, flags: int) -> int:
+    """``path`` opened with ``flags``, never through a link, never blocking on a FIFO; OSError unless a regular
+    file."""
+    import stat
+
+    fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(f"{path}: not a regular file")
+    return fd
+
+
+def open_log(path: str | Path) -> int:
+    """A descriptor appending to the task log ``path`` (see :func:`_regular_fd`); the caller closes it."""
+    return _regular_fd(path, os.O_WRONLY | os.O_APPEND)
+
+
+def read_log(path: str | Path, tail: int = LOG_TAIL) -> str:
+    """The last ``tail`` bytes of a task's log as text, terminal control sequences removed ("" when it cannot be
+    read as a regular file)."""
+    try:
+        fd = _regular_fd(path, os.O_RDONLY)
+    except OSError:
+        return ""
+    with os.fdopen(fd, "rb") as f:
+        f.seek(max(0, f.seek(0, 2) - tail))
+        data = f.read(tail)
+    return _CONTROL.sub("", data.decode(errors="replace").replace("\r\n", "\n").replace("\r", "\n"))
 
 
 def last_line(path: str | Path, tail: int = 4096) -> str:
     """The last non-blank line of a task's log (a live bar's redraws end with a carriage return, plain progress
     lines with a newline), or "" when there is none yet."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(max(0, f.seek(0, 2) - tail))
-            text = f.read().decode(errors="replace")
-    except OSError:
-        return ""
-    lines = [ln.strip() for ln in text.replace("\r", "\n").split("\n")]
+    lines = [ln.strip() for ln in read_log(path, tail).split("\n")]
     return next((ln for ln in reversed(lines) if ln), "")
 
 

@@ -4,7 +4,6 @@ cdrb_cli` processes), retried once, with progress, a summary and the report."""
 from __future__ import annotations
 
 import concurrent.futures as cf
-import contextlib
 import json
 import logging
 import os
@@ -30,6 +29,8 @@ from cdrb_cli.orchestration.grid.memo import (
     is_done,
     last_line,
     log_path,
+    open_log,
+    read_log,
     up_to_date,
     write_memo,
     written_here,
@@ -55,29 +56,33 @@ def execute(payload: dict, server=None) -> dict:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
     # PYTHONSAFEPATH: the task's `python -m` must not import modules from the current folder (a `typer.py` beside
     # the grid would run in every task); cdrb is imported from where it is installed
-    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1")
-    log = Path(payload["log"]) if payload.get("log") else None  # the grid's log of the task (local pool)
-    if log is not None:
-        fresh_log(log)
+    # TTY_COMPATIBLE=0: a task's stderr is a file or a pipe, never a terminal, whatever FORCE_COLOR says, so its
+    # progress is plain lines (a live bar's redraws would grow its log by megabytes an hour)
+    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1", TTY_COMPATIBLE="0")
+    log = Path(payload["log"]) if payload.get("log") else None  # the grid's log of the task (local pool), made by it
     if server is not None and not cold_only(argv):
         rc, stderr, seconds = run_task(server, argv, env, _register, _unregister, log)
     else:
         t = time.time()
-        with open(log, "w") if log is not None else contextlib.nullcontext(subprocess.PIPE) as err:
+        fd = open_log(log) if log is not None else None
+        try:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "cdrb_cli", *argv],
                 stdout=subprocess.PIPE,
-                stderr=err,
+                stderr=subprocess.PIPE if fd is None else fd,
                 text=True,
                 env=env,
                 preexec_fn=parent_death_hook(),
             )
-            _register(proc)
-            try:
-                _, stderr = proc.communicate()
-            finally:
-                _unregister(proc)
-        stderr = log.read_text(errors="replace") if log is not None else stderr
+        finally:
+            if fd is not None:
+                os.close(fd)
+        _register(proc)
+        try:
+            _, stderr = proc.communicate()
+        finally:
+            _unregister(proc)
+        stderr = read_log(log) if log is not None else stderr
         rc, seconds = proc.returncode, time.time() - t
     tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
     return {"rc": rc, "seconds": seconds, "stderr": tail}
@@ -345,7 +350,8 @@ def run_grid(
             argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
         payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
         payload |= {"cpus": res.cpus, "gpus": res.gpus}
-        if logs:
+        if logs:  # made here, before the task is handed over, so no poll reads an earlier attempt's lines
+            fresh_log(log_path(spec, task))
             payload["log"] = str(log_path(spec, task))
         results[task.id].attempts += 1
         state[task.id] = "running"
@@ -381,8 +387,6 @@ def run_grid(
         if not running:
             break
         finished, _ = cf.wait(list(running), timeout=PROGRESS_POLL if polled else None, return_when=cf.FIRST_COMPLETED)
-        if polled:
-            on_progress(_progress(spec, running.values()))
         for fut in finished:
             task = running.pop(fut)
             res = results[task.id]
@@ -400,6 +404,8 @@ def run_grid(
             else:
                 state[task.id], res.status, res.stderr = "failed", "failed", out["stderr"]
                 emit("failed", res)
+        if polled:  # the tasks still running, after the finished ones are settled
+            on_progress(_progress(spec, running.values()))
     ordered = [results[t.id] for t in tasks]
     return GridRun(ordered, _write_summary(spec, backend.name, ordered, t0), time.time() - t0, backend.name)
 

@@ -95,7 +95,8 @@ class WarmServer:
     def __init__(self):
         self.started = time.time()  # the code the server imports is cdrb's as of now (see :meth:`stale`)
         self.home = tempfile.mkdtemp(prefix="cdrb-warm-")
-        env = dict(os.environ, PYTHONSAFEPATH="1", CDRB_WARM_PARENT=str(os.getpid()))
+        # TTY_COMPATIBLE=0: its consoles, made at import, draw for files (a task's log), not for a terminal
+        env = dict(os.environ, PYTHONSAFEPATH="1", CDRB_WARM_PARENT=str(os.getpid()), TTY_COMPATIBLE="0")
         self.log = Path(self.home) / "server.log"
         with open(self.log, "w") as log:
             self.proc = subprocess.Popen(
@@ -180,6 +181,8 @@ def run_task(
     """Run ``cdrb argv`` in a forked task, its stderr into the file ``log`` (kept) or a temp file (removed);
     ``register``/``unregister`` put its process where the grid's stop logic finds it. Returns (exit code, stderr,
     seconds)."""
+    from cdrb_cli.orchestration.grid.memo import read_log
+
     if log is None:
         fd, name = tempfile.mkstemp(prefix="cdrb-task-", suffix=".err")
         os.close(fd)
@@ -193,7 +196,7 @@ def run_task(
             rc = task.wait()
         finally:
             unregister(task)
-        return rc, Path(name).read_text(errors="replace"), time.time() - t
+        return rc, read_log(name), time.time() - t
     finally:
         if log is None:
             with contextlib.suppress(OSError):
