@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import pytest
@@ -42,3 +43,29 @@ def test_collect_cluster_and_inspect_never_import_torch(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "[]"
     assert demos.exists() and buffer.exists()
+
+
+def test_the_command_line_loads_the_grid_machinery_only_when_a_grid_needs_it():
+    """`cdrb --help` and every command but grid and select start without the grid's spec, expansion and runner (and
+    the configs they read): the command line imports only the grid's command catalogue; the package's names load on
+    first use, each the object its module defines."""
+    code = (
+        "import sys\n"
+        "import cdrb_cli.cli\n"
+        "heavy = [m for m in sys.modules if m.startswith('cdrb_cli.orchestration.grid.') and m[28:] != 'commands']\n"
+        "print(sorted(heavy), 'cdrb_cli.configs' in sys.modules)\n"
+        "from cdrb_cli.orchestration.grid import expand, load_grid\n"
+        "import cdrb_cli.orchestration.grid.expansion as ex, cdrb_cli.orchestration.grid.load as ld\n"
+        "assert expand is ex.expand and load_grid is ld.load_grid and callable(expand)\n"
+        "from cdrb_cli.orchestration import grid\n"
+        "assert grid.expand is ex.expand and 'run_grid' in dir(grid)\n"
+        "try:\n"
+        "    grid.nothing\n"
+        "except AttributeError as exc:\n"
+        "    print(exc)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    first, last = r.stdout.strip().splitlines()
+    assert first == "[] False"
+    assert "has no attribute 'nothing'" in last

@@ -20,79 +20,52 @@ which skips it when its artifact is up to date (the CLI's own rule) and resumes 
 
 from __future__ import annotations
 
-from cdrb_cli.orchestration.grid.expand import (
-    BASE,
-    cluster_flags_for,
-    collect_flags_for,
-    expand,
-    flags_for,
-    without_repeated_sets,
-)
-from cdrb_cli.orchestration.grid.flags import as_table, parse_command, walk_options, without_setting
-from cdrb_cli.orchestration.grid.load import load_grid, parse_override
-from cdrb_cli.orchestration.grid.memo import check_outputs, is_done, memo_path, written_here
-from cdrb_cli.orchestration.grid.reuse import file_sha, measure_difference, reuse_finished
-from cdrb_cli.orchestration.grid.run import (
-    DryRun,
-    GridRun,
-    PoolBackend,
-    RayBackend,
-    TaskResult,
-    execute,
-    grid,
-    make_backend,
-    run_grid,
-    stop_running,
-)
-from cdrb_cli.orchestration.grid.spec import (
-    KINDS,
-    MAX_TASKS,
-    GridSpec,
-    Settings,
-    SettingsFile,
-    Task,
-    Variant,
-    read_toml,
-    table_flags,
-)
+import importlib
 
-__all__ = [
-    "BASE",
-    "DryRun",
-    "GridRun",
-    "GridSpec",
-    "KINDS",
-    "MAX_TASKS",
-    "PoolBackend",
-    "RayBackend",
-    "Settings",
-    "SettingsFile",
-    "Task",
-    "TaskResult",
-    "Variant",
-    "as_table",
-    "check_outputs",
-    "cluster_flags_for",
-    "collect_flags_for",
-    "execute",
-    "expand",
-    "file_sha",
-    "flags_for",
-    "grid",
-    "is_done",
-    "load_grid",
-    "make_backend",
-    "measure_difference",
-    "memo_path",
-    "parse_command",
-    "parse_override",
-    "read_toml",
-    "reuse_finished",
-    "run_grid",
-    "stop_running",
-    "table_flags",
-    "walk_options",
-    "without_repeated_sets",
-    "without_setting",
-    "written_here",
-]
+#: each name the package offers -> the module that defines it, imported on first use: `cdrb` imports the grid's
+#: command catalogue (grid.commands) at start-up, and every command but grid and select would otherwise pay for
+#: the whole grid machinery (its configs, spec, runner) before it starts
+_EXPORTS = {
+    **dict.fromkeys(
+        ["BASE", "cluster_flags_for", "collect_flags_for", "expand", "flags_for", "without_repeated_sets"], "expansion"
+    ),
+    **dict.fromkeys(["as_table", "parse_command", "walk_options", "without_setting"], "flags"),
+    **dict.fromkeys(["load_grid", "parse_override"], "load"),
+    **dict.fromkeys(["check_outputs", "is_done", "memo_path", "written_here"], "memo"),
+    **dict.fromkeys(["file_sha", "measure_difference", "reuse_finished"], "reuse"),
+    **dict.fromkeys(
+        [
+            "DryRun",
+            "GridRun",
+            "PoolBackend",
+            "RayBackend",
+            "TaskResult",
+            "execute",
+            "grid",
+            "make_backend",
+            "run_grid",
+            "stop_running",
+        ],
+        "run",
+    ),
+    **dict.fromkeys(
+        ["GridSpec", "KINDS", "MAX_TASKS", "Settings", "SettingsFile", "Task", "Variant", "read_toml", "table_flags"],
+        "spec",
+    ),
+}
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])
+
+
+__all__ = sorted(_EXPORTS)

@@ -11,7 +11,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from cdrb_cli.errors import BadInput
-from cdrb_cli.orchestration.grid.expand import (
+from cdrb_cli.orchestration.grid.expansion import (
     BASE,
     cluster_flags_for,
     collect_flags_for,

@@ -14,7 +14,7 @@ from cdrb_cli import ui
 from cdrb_cli.configs import MAX_SEED
 from cdrb_cli.errors import BadInput
 from cdrb_cli.orchestration.grid.checks import check_commands
-from cdrb_cli.orchestration.grid.expand import flags_for, model_variants
+from cdrb_cli.orchestration.grid.expansion import flags_for, model_variants
 from cdrb_cli.orchestration.grid.flags import check_flags, parse_command
 from cdrb_cli.orchestration.grid.spec import (
     MAX_TASKS,

@@ -21,7 +21,7 @@ from typing import Literal
 
 from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.errors import BadInput, RunFailed
-from cdrb_cli.orchestration.grid.expand import expand
+from cdrb_cli.orchestration.grid.expansion import expand
 from cdrb_cli.orchestration.grid.load import load_grid
 from cdrb_cli.orchestration.grid.memo import (
     check_outputs,
