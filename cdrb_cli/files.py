@@ -92,6 +92,18 @@ def _before_rename_hook(tmp: Path, final: Path) -> None:
         os._exit(86)
 
 
+def regular_fd(path: str | Path, flags: int) -> int:
+    """``path`` opened with ``flags``, never through a link (its last component) and never blocking on a FIFO's
+    open; OSError unless it is a regular file (a FIFO would block a read, a device never end)."""
+    import stat
+
+    fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(f"{path}: not a regular file")
+    return fd
+
+
 def guarded_fd(path: Path, flag: str, max_bytes: int, what: str, hint: str) -> int:
     """An open read-only descriptor of ``path`` after the checks every input file passes (see
     :func:`check_input_file`); the caller closes it."""

@@ -11,7 +11,6 @@ import json
 import os
 import select
 import signal
-import stat
 import sys
 
 #: what the server imports before it forks: what every kind of task would import first
@@ -108,11 +107,9 @@ def _child(request: dict, *fds: int) -> None:
         die_with_parent(os.getppid())
         _name(f"cdrb-{request['argv'][0] if request['argv'] else 'task'}")
         null = os.open(os.devnull, os.O_RDWR)
-        # the task's log, made by the grid: never written through a link, never a FIFO's blocking open
-        err = os.open(request["stderr"], os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW | os.O_NONBLOCK)
-        if not stat.S_ISREG(os.fstat(err).st_mode):
-            raise OSError(f"{request['stderr']}: not a regular file")
-        os.set_blocking(err, True)
+        from cdrb_cli.files import regular_fd
+
+        err = regular_fd(request["stderr"], os.O_WRONLY | os.O_APPEND)  # the task's log, made by the grid
         os.dup2(null, 0)
         os.dup2(null, 1)
         os.dup2(err, 2)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from cdrb_cli import __version__, artifacts
 from cdrb_cli.errors import BadInput
+from cdrb_cli.files import regular_fd
 from cdrb_cli.orchestration.grid.commands import keyed_params
 from cdrb_cli.orchestration.grid.flags import parse_command
 from cdrb_cli.orchestration.grid.spec import GridSpec, Task, read_small
@@ -72,28 +73,17 @@ def fresh_log(path: Path) -> None:
     os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
 
 
-def _regular_fd(path: str | Path, flags: int) -> int:
-    """``path`` opened with ``flags``, never through a link, never blocking on a FIFO; OSError unless a regular
-    file."""
-    import stat
-
-    fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
-    if not stat.S_ISREG(os.fstat(fd).st_mode):
-        os.close(fd)
-        raise OSError(f"{path}: not a regular file")
-    return fd
-
-
 def open_log(path: str | Path) -> int:
-    """A descriptor appending to the task log ``path`` (see :func:`_regular_fd`); the caller closes it."""
-    return _regular_fd(path, os.O_WRONLY | os.O_APPEND)
+    """A descriptor appending to the task log ``path`` (see :func:`~cdrb_cli.files.regular_fd`); the caller
+    closes it."""
+    return regular_fd(path, os.O_WRONLY | os.O_APPEND)
 
 
 def read_log(path: str | Path, tail: int = LOG_TAIL) -> str:
     """The last ``tail`` bytes of a task's log as text, terminal control sequences removed ("" when it cannot be
     read as a regular file)."""
     try:
-        fd = _regular_fd(path, os.O_RDONLY)
+        fd = regular_fd(path, os.O_RDONLY)
     except OSError:
         return ""
     with os.fdopen(fd, "rb") as f:
