@@ -227,7 +227,8 @@ class RandomActions:
 def run_doc_block(text: str, heading: str, sizes: dict[str, str], cwd, extra_env=None, timeout: int = 900):
     """Run the first ```bash block after ``heading`` (a regex) of a docs page as written, with only the
     ``sizes`` patterns replaced (each must occur, so a page edited away from them fails), with the test's Python
-    environment's ``cdrb`` first on PATH; returns the finished process (stdout, stderr)."""
+    environment's ``cdrb`` first on PATH (on Linux its commands forked from a warm server: tests/warm_shell.py);
+    returns the finished process (stdout, stderr)."""
     import os
     import re
     import subprocess
@@ -238,7 +239,16 @@ def run_doc_block(text: str, heading: str, sizes: dict[str, str], cwd, extra_env
     for pattern, small in sizes.items():
         assert re.search(pattern, script), pattern
         script = re.sub(pattern, small, script)
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", **(extra_env or {}))
-    return subprocess.run(
-        ["bash", "-euo", "pipefail", "-c", script], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
-    )
+    from tests.warm_shell import warm_cdrb
+
+    with warm_cdrb() if sys.platform.startswith("linux") else contextlib.nullcontext(None) as shim:
+        path = os.pathsep.join([*([str(shim)] if shim else []), str(Path(sys.executable).parent), os.environ["PATH"]])
+        env = dict(os.environ, PATH=path, **(extra_env or {}))
+        return subprocess.run(
+            ["bash", "-euo", "pipefail", "-c", script],
+            cwd=cwd,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
@@ -43,3 +44,20 @@ def test_the_readme_tour_runs_as_written_in_a_fresh_folder(tmp_path):
     exported = artifacts.load(folder / "demos.h5", "demos").arrays["steps/observations"]
     assert artifacts.load(folder / "imported.h5", "demos").arrays["steps/observations"].shape == exported.shape
     assert "| Maze Tight |" in proc.stdout  # the report's table on stdout
+
+
+def test_a_doc_scripts_cdrb_gives_its_output_exit_code_and_folder(tmp_path):
+    """The `cdrb` the doc scripts run (a warm fork on Linux) behaves as the installed one: stdout where the script
+    sends it, the one-line error on stderr, the exit code, the script's folder and environment."""
+    block = (
+        "## S\n```bash\nmkdir -p sub && cd sub\ncdrb envs > envs.txt\n"
+        'if cdrb inspect "$WHAT" 2> err.txt; then exit 9; else echo "rc=$?"; fi\n'
+        'echo "out=$(cdrb inspect "$WHAT" 2>&1 || true)"\necho "which=$(command -v cdrb)"\n```\n'
+    )
+    proc = run_doc_block(block, r"## S\n", {}, tmp_path, {"WHAT": "nothing.h5"})
+    assert proc.returncode == 0, proc.stderr
+    assert "maze-tight" in (tmp_path / "sub" / "envs.txt").read_text()
+    assert (tmp_path / "sub" / "err.txt").read_text().strip() == "error: nothing.h5: no such file (check the path)"
+    lines = proc.stdout.splitlines()
+    assert lines[:2] == ["rc=2", "out=error: nothing.h5: no such file (check the path)"]
+    assert ("/cdrb-shell-" in lines[2]) == sys.platform.startswith("linux")  # the warm `cdrb` was the one run

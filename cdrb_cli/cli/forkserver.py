@@ -110,11 +110,13 @@ def _child(request: dict, *fds: int) -> None:
         from cdrb_cli.files import regular_fd
 
         err = regular_fd(request["stderr"], os.O_WRONLY | os.O_APPEND)  # the task's log, made by the grid
+        # stdout: discarded (a grid's tasks name their outputs), or into the file the request names (it exists)
+        out = regular_fd(request["stdout"], os.O_WRONLY | os.O_APPEND) if request.get("stdout") else null
         os.dup2(null, 0)
-        os.dup2(null, 1)
+        os.dup2(out, 1)
         os.dup2(err, 2)
-        os.close(null)
-        os.close(err)
+        for fd in {null, out, err}:
+            os.close(fd)
         sys.stdin = open(0, closefd=False)  # new file objects: none of the server's locks come along
         sys.stdout = open(1, "w", buffering=1, closefd=False)
         sys.stderr = open(2, "w", buffering=1, closefd=False)

@@ -9,7 +9,7 @@ the same `cdrb_cli.cli.main` a fresh process would, in the task's own folder, en
 its output in files; its exit code comes back to the grid.
 
 The server speaks JSON lines on its stdin/stdout (plain data, nothing that could run code): a request ``{"id",
-"argv", "env", "cwd", "stderr"}`` is answered at once with ``{"id", "pid"}`` (the grid can signal the task itself)
+"argv", "env", "cwd", "stderr"}`` (and ``"stdout"``, a file for the task's stdout, else it is discarded) is answered at once with ``{"id", "pid"}`` (the grid can signal the task itself)
 and, when the task ends, with ``{"id", "rc"}``. The server has one thread (it forks: no other thread may hold a
 lock then), waits for requests and for its children in one ``select`` loop, starts with ``PYTHONSAFEPATH`` from an
 empty folder (no module of the grid's folder is ever imported), and dies with the grid (Linux's parent-death
@@ -130,15 +130,19 @@ class WarmServer:
                 started.set()
                 done.set()
 
-    def start(self, argv: list[str], env: dict, stderr: Path) -> WarmTask:
-        """Fork a task running ``cdrb argv`` with ``env`` in this process's current folder, its stderr into the
-        file ``stderr`` (which exists)."""
+    def start(
+        self, argv: list[str], env: dict, stderr: Path, cwd: Path | None = None, stdout: Path | None = None
+    ) -> WarmTask:
+        """Fork a task running ``cdrb argv`` with ``env`` in the folder ``cwd`` (default: this process's), its
+        stderr into the file ``stderr`` and its stdout into the file ``stdout`` or nowhere (files that exist)."""
         started, done, result = threading.Event(), threading.Event(), {}
         with self._lock:
             self._next += 1
             rid = self._next
             self._waiting[rid] = (started, done, result)
-            request = {"id": rid, "argv": argv, "env": env, "cwd": os.getcwd(), "stderr": str(stderr)}
+            request = {"id": rid, "argv": argv, "env": env, "cwd": str(cwd or os.getcwd()), "stderr": str(stderr)}
+            if stdout is not None:
+                request["stdout"] = str(stdout)
             try:
                 self.proc.stdin.write((json.dumps(request) + "\n").encode())
                 self.proc.stdin.flush()
