@@ -4,12 +4,17 @@ that re-running (with --resume for training) reproduces the uninterrupted result
 Run as a script for many kills (the table in docs/reliability.md), and used by tests/test_faults.py (a few kills per
 command, in CI):
 
-    python benchmarks/fault_harness.py [--kills 20] [--seed 0] [--workdir DIR]
+    python benchmarks/fault_harness.py [--kills 20] [--seed 0] [--workdir DIR] [--warm]
+
+Each command runs as a fresh interpreter, or with ``--warm`` as a fork of the grid's warm server (its imports done:
+the same `cdrb_cli.cli.main`, the same writes, and every kill lands in the command's own work instead of in its
+3-4 s of imports; the tests use it).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import subprocess
@@ -30,6 +35,56 @@ VOLATILE = {"episodes/plan_seconds", "episodes/planning_seconds"}  # timings
 
 def cdrb_cmd(*args) -> list[str]:
     return [sys.executable, "-m", "cdrb_cli", *map(str, args)]
+
+
+class Launcher:
+    """Starts `cdrb` commands: fresh interpreters, or (``warm``) forks of one warm server
+    (:class:`cdrb_cli.orchestration.grid.warm.WarmServer`), whose task processes die by SIGKILL as any other."""
+
+    def __init__(self, root: Path, warm: bool = False):
+        self.root, self.server, self.logs = root, None, []
+        if warm:
+            from cdrb_cli.orchestration.grid.warm import WarmServer
+
+            self.server = WarmServer()
+
+    def start(self, args: list, env: dict | None = None):
+        """The command's process (``kill``, ``wait``), its output discarded."""
+        if self.server is None:
+            return subprocess.Popen(cdrb_cmd(*args), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        fd, log = tempfile.mkstemp(prefix="task-", suffix=".err", dir=self.root)
+        os.close(fd)
+        self.logs.append(log)  # kept until close: the forked child opens it after the server has answered
+        return self.server.start([str(a) for a in args], dict(env or os.environ), Path(log))
+
+    def run(self, args: list, env: dict | None = None) -> tuple[int, str]:
+        """Run the command to its end: (exit code, stderr)."""
+        if self.server is None:
+            proc = subprocess.run(cdrb_cmd(*args), env=env, capture_output=True, text=True)
+            return proc.returncode, proc.stderr
+        fd, log = tempfile.mkstemp(prefix="task-", suffix=".err", dir=self.root)
+        os.close(fd)
+        try:
+            rc = self.server.start([str(a) for a in args], dict(env or os.environ), Path(log)).wait()
+            return rc, Path(log).read_text(errors="replace")
+        finally:
+            os.unlink(log)
+
+    def close(self) -> None:
+        if self.server is not None:
+            self.server.close()
+        for log in self.logs:
+            with contextlib.suppress(OSError):
+                os.unlink(log)
+
+
+@contextlib.contextmanager
+def launcher(root: Path, warm: bool = False):
+    launch = Launcher(root, warm)
+    try:
+        yield launch
+    finally:
+        launch.close()
 
 
 def stage_commands(root: Path, train_steps: int = 150) -> dict[str, list]:
@@ -72,23 +127,31 @@ class FaultStats:
     output_corrupt: int = 0
     rerun_mismatch: int = 0
     temp_files_left: int = 0
+    failed_before_kill: int = 0
     delays: list[float] = field(default_factory=list)
 
 
-def reference(root: Path, train_steps: int = 150) -> tuple[dict[str, dict], dict[str, float]]:
+def reference(root: Path, launch: Launcher, train_steps: int = 150) -> tuple[dict[str, dict], dict[str, float]]:
     """Run every stage once, uninterrupted; returns its arrays and wall times."""
     refs, times = {}, {}
     for name, args in stage_commands(root, train_steps).items():
         t = time.time()
-        proc = subprocess.run(cdrb_cmd(*args, "--out", root / f"{name}.h5"), capture_output=True, text=True)
-        assert proc.returncode == 0, proc.stderr
+        rc, err = launch.run([*args, "--out", root / f"{name}.h5"])
+        assert rc == 0, err
         times[name] = time.time() - t
         refs[name] = arrays_of(root / f"{name}.h5")
     return refs, times
 
 
 def kill_and_rerun(
-    root: Path, name: str, args: list, ref: dict, duration: float, rng: np.random.Generator, stats: FaultStats
+    root: Path,
+    launch: Launcher,
+    name: str,
+    args: list,
+    ref: dict,
+    duration: float,
+    rng: np.random.Generator,
+    stats: FaultStats,
 ) -> None:
     """One fault: start the command, SIGKILL it at a random moment of its expected run, check, re-run."""
     out = root / f"{name}-killed.h5"
@@ -96,10 +159,11 @@ def kill_and_rerun(
         out.unlink()
     delay = float(rng.uniform(0.3, max(duration, 0.6)))
     stats.delays.append(delay)
-    proc = subprocess.Popen(cdrb_cmd(*args, "--out", out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = launch.start([*args, "--out", out])
     time.sleep(delay)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.kill()
+    if proc.wait() not in (0, -signal.SIGKILL):  # it failed on its own before the kill: a broken harness or command
+        stats.failed_before_kill += 1
     stats.kills += 1
     resume = []
     if not out.exists():
@@ -119,24 +183,26 @@ def kill_and_rerun(
     for p in leftovers:  # a crashed writer's temp file: never an artifact, safe to delete
         p.unlink()
     extra = resume if resume else (["--force"] if out.exists() else [])
-    proc = subprocess.run(cdrb_cmd(*args, "--out", out, *extra), capture_output=True, text=True)
-    if proc.returncode != 0 or not same_arrays(arrays_of(out), ref):
+    rc, _ = launch.run([*args, "--out", out, *extra])
+    if rc != 0 or not same_arrays(arrays_of(out), ref):
         stats.rerun_mismatch += 1
 
 
-def run_faults(root: Path, kills_per_stage: int, seed: int = 0, train_steps: int = 150) -> dict[str, FaultStats]:
+def run_faults(
+    root: Path, launch: Launcher, kills_per_stage: int, seed: int = 0, train_steps: int = 150
+) -> dict[str, FaultStats]:
     root.mkdir(parents=True, exist_ok=True)
-    refs, times = reference(root, train_steps)
+    refs, times = reference(root, launch, train_steps)
     rng = np.random.default_rng(seed)
     stats = {}
     for name, args in stage_commands(root, train_steps).items():
         st = stats[name] = FaultStats()
         for _ in range(kills_per_stage):
-            kill_and_rerun(root, name, args, refs[name], times[name], rng, st)
+            kill_and_rerun(root, launch, name, args, refs[name], times[name], rng, st)
     return stats
 
 
-def crash_before_rename(root: Path, train_steps: int = 150) -> dict[str, bool]:
+def crash_before_rename(root: Path, launch: Launcher, train_steps: int = 150) -> dict[str, bool]:
     """CDRB_CRASH_BEFORE_RENAME=1 kills each writer between writing and renaming: the previous artifact (the
     reference run's) must survive byte for byte."""
     out = {}
@@ -144,8 +210,8 @@ def crash_before_rename(root: Path, train_steps: int = 150) -> dict[str, bool]:
     for name, args in stage_commands(root, train_steps).items():
         target = root / f"{name}.h5"
         before = target.read_bytes()
-        proc = subprocess.run(cdrb_cmd(*args, "--out", target, "--force"), env=env, capture_output=True, text=True)
-        intact = proc.returncode != 0 and target.read_bytes() == before
+        rc, _ = launch.run([*args, "--out", target, "--force"], env=env)
+        intact = rc != 0 and target.read_bytes() == before
         for p in root.iterdir():
             if p.name.startswith(f".{target.name}.tmp-"):
                 p.unlink()
@@ -158,11 +224,14 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workdir", type=Path)
+    ap.add_argument("--warm", action="store_true", help="fork each command from a warm server (Linux)")
     args = ap.parse_args()
     root = args.workdir or Path(tempfile.mkdtemp(prefix="cdrb-faults-"))
+    root.mkdir(parents=True, exist_ok=True)
     t = time.time()
-    stats = run_faults(root, args.kills, args.seed)
-    crashed = crash_before_rename(root)
+    with launcher(root, args.warm) as launch:
+        stats = run_faults(root, launch, args.kills, args.seed)
+        crashed = crash_before_rename(root, launch)
     print(
         f"| fault | stage | injected | output absent | unfinished checkpoint left | corrupt outputs | "
         f"re-run differs from uninterrupted | temp files left |  ({time.time() - t:.0f}s)"
