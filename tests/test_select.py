@@ -4,6 +4,7 @@ report chain run from the shipped files at a tiny budget."""
 from __future__ import annotations
 
 import csv
+import json
 import shutil
 import subprocess
 from pathlib import Path
@@ -343,16 +344,22 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     r = _cdrb(*again, "--out", tmp_path / "y.toml", cwd=tmp_path, check=False)
     assert r.returncode == 2 and "evaluates another cdrb-s0.h5" in r.stderr and not (tmp_path / "y.toml").exists()
 
-    rows = grid_select("mazes-clock", "mazes-clock.toml", "--set", "steps=20")
+    # the later grids take the sweep's demos and buffer (`reuse`) instead of collecting and clustering again
+    reuse = ["--set", f'reuse=["{tmp_path / "runs" / "mazes-sweep"}"]']
+    rows = grid_select("mazes-clock", "mazes-clock.toml", "--set", "steps=20", *reuse)
+    reused = json.loads((tmp_path / "runs" / "mazes-clock" / "grid.json").read_text())["reused"]
+    assert (
+        "collect maze-tight" in reused and not (tmp_path / "runs" / "mazes-clock" / "maze-tight" / "demos.h5").exists()
+    )
     assert {r["candidate"] for r in rows} == {
         "time-indexed", "gated-0.6", "gated-0.6-wait10", "gated-0.3-wait10", "official-executor"
     }  # fmt: skip
-    rows = grid_select("mazes-curves", "mazes.toml", "--set", "steps=100", "--set", "snapshot_at=[50]")
+    rows = grid_select("mazes-curves", "mazes.toml", "--set", "steps=100", "--set", "snapshot_at=[50]", *reuse)
     assert sorted({int(r["steps"]) for r in rows}) == [50, 100]
     for path in (tmp_path / "runs" / "mazes-curves").rglob("eval-*.h5"):  # each eval names its model's length
         assert artifacts.load(path, "eval").manifest.summary.model_steps == (50 if ".step50." in path.name else 100)
     # the learning curves: one row per candidate x training length x training seed, whose mean is the pooled score
-    curves_args = [*tune, "--set", f"out={tmp_path / 'runs' / 'mazes-curves'}", "--set", "steps=100"]
+    curves_args = [*tune, "--set", f"out={tmp_path / 'runs' / 'mazes-curves'}", "--set", "steps=100", *reuse]
     curves_args = [a for a in curves_args if a not in ("--backend", "pool", "-j", "2")] + ["--set", "snapshot_at=[50]"]
     _cdrb("select", exp / "tune" / "mazes-curves.toml", *curves_args, "--out", tmp_path / "again.toml",
           "--curves", tmp_path / "curves.csv", cwd=tmp_path)  # fmt: skip
@@ -375,6 +382,7 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
         f"out={out}",
         "--set",
         "seeds=[0, 1]",
+        *reuse,
         *pool,
         cwd=tmp_path,
     )
