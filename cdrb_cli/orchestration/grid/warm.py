@@ -9,8 +9,9 @@ the same `cdrb_cli.cli.main` a fresh process would, in the task's own folder, en
 its output in files; its exit code comes back to the grid.
 
 The server speaks JSON lines on its stdin/stdout (plain data, nothing that could run code): a request ``{"id",
-"argv", "env", "cwd", "stderr"}`` (and ``"stdout"``, a file for the task's stdout, else it is discarded) is answered at once with ``{"id", "pid"}`` (the grid can signal the task itself)
-and, when the task ends, with ``{"id", "rc"}``. The server has one thread (it forks: no other thread may hold a
+"argv", "env", "cwd", "stderr"}`` (and ``"stdout"``, a file for the task's stdout, else it is discarded) is
+answered at once with ``{"id", "pid"}`` (the grid can signal the task itself) and, when the task ends, with
+``{"id", "rc"}``. The server has one thread (it forks: no other thread may hold a
 lock then), waits for requests and for its children in one ``select`` loop, starts with ``PYTHONSAFEPATH`` from an
 empty folder (no module of the grid's folder is ever imported), and dies with the grid (Linux's parent-death
 signal), as its children die with it.
