@@ -103,12 +103,18 @@ def test_cli_collect_bad_inputs(tmp_path, cdrb):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.txt", "fifo.txt", "huge.txt"]  # nothing written
 
 
-def test_sac_expert_train_and_collect_tiny_budget(tmp_path, cdrb):
+def test_sac_expert_train_and_collect_tiny_budget(tmp_path, cdrb, monkeypatch):
     """The SB3 SAC+HER path end to end on a tiny budget (a useful expert needs ~1M steps: docs/environments.md)."""
+    import tempfile
+
     policy = tmp_path / "expert.zip"
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # SB3's default logger makes a folder there
     r = cdrb("expert", "train", "umaze", "--steps", "400", "--out", policy, "--seed", "1")
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == str(policy) and policy.stat().st_size > 0
+    assert not list(scratch.glob("SB3-*"))  # no log folder left behind
     out = tmp_path / "sac.h5"
     r = cdrb("collect", "umaze", "--expert", "sac", "--policy", policy, "-n", "2", "--out", out)
     assert r.returncode == 0, r.stderr

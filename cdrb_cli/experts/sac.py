@@ -46,6 +46,7 @@ def train_sac(spec: EnvSpec, steps: int, seed: int, out: Path, her: bool = True,
     import torch
     from stable_baselines3 import SAC, HerReplayBuffer
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
 
     from cdrb_cli.artifacts import atomic_path
 
@@ -79,6 +80,8 @@ def train_sac(spec: EnvSpec, steps: int, seed: int, out: Path, her: bool = True,
             self.bar.update(self.task, completed=self.num_timesteps)
             return True
 
+    # a logger that writes nothing: SB3's default one makes an empty folder in the temp directory for every run
+    model.set_logger(Logger(None, []))
     with ui.progress() as bar:
         task = bar.add_task("SAC expert", total=steps, info="")
         model.learn(total_timesteps=steps, callback=_Progress(bar, task))
