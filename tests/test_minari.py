@@ -4,9 +4,11 @@ errors. No network: every dataset lives under a temporary MINARI_DATASETS_PATH."
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -39,6 +41,8 @@ def _make_dataset(dataset_id: str, gym_id: str, episodes: int = 4, steps: int = 
 
     import_gymnasium_robotics()
     env = gym.make(gym_id, **kwargs)
+    with contextlib.suppress(OSError, TypeError):  # the maze XML gymnasium-robotics leaves in the temp folder
+        os.unlink(getattr(env.unwrapped, "tmp_xml_file_path", None))
     rng = np.random.default_rng(seed)
     buffers = []
     for e in range(episodes):
@@ -61,11 +65,16 @@ def _make_dataset(dataset_id: str, gym_id: str, episodes: int = 4, steps: int = 
                 truncations=[False] * (steps - 1) + [True],
             )
         )
-    with warnings.catch_warnings():
+    saved = tempfile.tempdir
+    with warnings.catch_warnings(), tempfile.TemporaryDirectory() as own:
         warnings.simplefilter("ignore")
-        minari.create_dataset_from_buffers(
-            dataset_id, buffers, env=env.spec, algorithm_name="random", data_format="hdf5"
-        )
+        tempfile.tempdir = own  # Minari makes the env again: its maze XML goes here, not into the temp folder
+        try:
+            minari.create_dataset_from_buffers(
+                dataset_id, buffers, env=env.spec, algorithm_name="random", data_format="hdf5"
+            )
+        finally:
+            tempfile.tempdir = saved
     env.close()
     return buffers
 
@@ -139,11 +148,15 @@ def test_the_stock_maps_and_fetch_tasks_are_recognised(tmp_path, datasets):
 
 
 @pytest.mark.parametrize("env", ["maze-tight", "fetch-push-obstacle"])
-def test_export_opens_with_minari_and_import_of_export_is_the_same_demos(tmp_path, datasets, env):
+def test_export_opens_with_minari_and_import_of_export_is_the_same_demos(tmp_path, datasets, env, monkeypatch):
     r = _cli("collect", env, "-n", "3", "--seed", "1", "--workers", "1", "--out", tmp_path / "d.h5")
     assert r.returncode == 0, r.stderr
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     r = _cli("export", tmp_path / "d.h5", "--minari", "cdrb/demo")
     assert r.returncode == 0, r.stderr
+    assert not list(scratch.iterdir())  # nothing left in the temp folder (a maze's XML, when Minari makes the env)
     assert Path(r.stdout.strip()) == datasets / "cdrb" / "demo-v0"
     ds = minari.load_dataset("cdrb/demo-v0")  # Minari's own reader
     assert ds.total_episodes == 3

@@ -349,8 +349,13 @@ def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_spac
     minari = _minari()
     tmp_root = Path(tempfile.mkdtemp(prefix=".cdrb-export-", dir=root))
     old = os.environ.get("MINARI_DATASETS_PATH")
+    saved_tempdir = tempfile.tempdir
     try:
         os.environ["MINARI_DATASETS_PATH"] = str(tmp_root)
+        # Minari makes the environment to read it; a gymnasium-robotics maze then writes its XML into the temp
+        # folder and leaves it there: here that folder is one of the export's own, removed below
+        (tmp_root / ".tmp").mkdir()
+        tempfile.tempdir = str(tmp_root / ".tmp")
         with warnings.catch_warnings():  # Minari's advice about authors, permalinks and eval envs
             warnings.simplefilter("ignore", UserWarning)
             minari.create_dataset_from_buffers(
@@ -366,6 +371,7 @@ def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_spac
         final.parent.mkdir(parents=True, exist_ok=True)
         replace_folder(tmp_root / dataset_id, final)
     finally:
+        tempfile.tempdir = saved_tempdir
         if old is None:
             os.environ.pop("MINARI_DATASETS_PATH", None)
         else:
