@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -14,6 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cdrb_cli import artifacts
+from cdrb_cli.artifacts import core
 from cdrb_cli.errors import ArtifactError, BadInput
 from tests.factories import KINDS, build, tampered, write
 
@@ -373,12 +375,36 @@ def test_content_checksum_rules(tmp_path):
     assert "does not match its checksum" in _err(p)
 
 
+def test_bytes_written_or_read_safely_here_skip_the_probe_and_others_do_not(tmp_path, monkeypatch):
+    """The forked probe runs for content this process has neither written nor read safely; the same bytes again
+    (the same file, or a copy) load without it, and a file changed in place is probed again."""
+    probed = []
+    real = artifacts._guarded_probe
+    monkeypatch.setattr(artifacts, "_guarded_probe", lambda p, k: probed.append(p.name) or real(p, k))
+    p = write(tmp_path / "d.h5", "demos")
+    artifacts.load(p)
+    assert probed == []  # written by this process
+    monkeypatch.setattr(core, "_SAFE_CONTENT", set())  # as if another process had written it
+    artifacts.load(p)
+    shutil.copy(p, tmp_path / "copy.h5")
+    assert artifacts.load(tmp_path / "copy.h5").sha256 == artifacts.load(p).sha256
+    assert probed == ["d.h5"]  # probed once, then known by its bytes
+    with tampered(p) as f:
+        f.attrs["cdrb_kind"] = "model"
+    with pytest.raises(ArtifactError):
+        artifacts.load(p)
+    with pytest.raises(ArtifactError):
+        artifacts.load(p)
+    assert probed == ["d.h5", "d.h5", "d.h5"]  # other bytes: probed, and a failed read is never taken as safe
+
+
 def test_a_read_that_hangs_is_stopped_at_the_time_limit(tmp_path, monkeypatch):
     """The guard's child reads the file; one that never finishes is killed at CDRB_READ_TIMEOUT and the load is
     refused in one line, and a child that ends is waited for, its error (exit 2) left to the parent's own read."""
     import time
 
     p = write(tmp_path / "d.h5", "demos")
+    monkeypatch.setattr(core, "_SAFE_CONTENT", set())  # bytes this process has not written or read
     monkeypatch.setenv("CDRB_READ_TIMEOUT", "0.5")
     real = artifacts._load
     monkeypatch.setattr(artifacts, "_load", lambda *a: time.sleep(60))  # what the forked child runs

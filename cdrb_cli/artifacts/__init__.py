@@ -25,7 +25,9 @@ from cdrb_cli.artifacts.core import (
     ArtifactBase,
     atomic_path,
     check_shapes,
+    known_safe,
     load_arrays,
+    mark_safe,
     parse_version,
     read_h5,
     sha256_file,
@@ -98,10 +100,14 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     (a :class:`BadInput`, exit code 2) with a one-line message for anything that is not a valid artifact.
 
     The file is first read in a forked child process with a time limit (:func:`_guarded_probe`): the HDF5
-    library can loop forever or crash on some corrupted files, and that must not hang or kill cdrb."""
+    library can loop forever or crash on some corrupted files, and that must not hang or kill cdrb. Bytes this
+    process wrote, or has read so before, skip the probe (:func:`~cdrb_cli.artifacts.core.known_safe`: by their
+    sha256, which the artifact records anyway); a fork costs 30-60 ms in a process that has imported torch."""
     path = Path(path)
-    _guarded_probe(path, kind)
-    return _load(path, kind)
+    sha = sha256_file(path) if path.is_file() else None  # a non-file: the reader's checks say what it is
+    if not known_safe(sha) and _guarded_probe(path, kind) and sha is not None:
+        mark_safe(sha)
+    return _load(path, kind, sha)
 
 
 def _read_timeout(path: Path) -> float:
@@ -146,12 +152,13 @@ def _wait_child(pid: int, limit: float) -> int | None:
             os.close(fd)
 
 
-def _guarded_probe(path: Path, kind: str | None) -> None:
+def _guarded_probe(path: Path, kind: str | None) -> bool:
     """Read and validate ``path`` in a forked child. If the child hangs past the time limit or dies from a
-    signal, raise :class:`ArtifactError`; otherwise return (the caller then reads the file itself, and gets the
-    same errors the child got). Disabled where ``os.fork`` is unavailable or ``CDRB_READ_GUARD=0``."""
+    signal, raise :class:`ArtifactError`; otherwise return whether it read a valid artifact (the caller then reads
+    the file itself, and gets the same errors the child got). Disabled (False) where ``os.fork`` is unavailable or
+    ``CDRB_READ_GUARD=0``."""
     if not hasattr(os, "fork") or os.environ.get("CDRB_READ_GUARD") == "0" or not path.is_file():
-        return
+        return False
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # fork with threads: the child only reads the file
         pid = os.fork()
@@ -178,9 +185,10 @@ def _guarded_probe(path: Path, kind: str | None) -> None:
             f"{path}: the HDF5 library crashed reading it (signal {os.WTERMSIG(status)}); the file is corrupt",
             hint="re-create it with the command that wrote it",
         )
+    return os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
 
 
-def _load(path: Path, kind: str | None) -> ArtifactBase:
+def _load(path: Path, kind: str | None, sha: str | None = None) -> ArtifactBase:
     try:
         f, found_kind, version, manifest_data, datasets, lenient = read_h5(path, kind, SCHEMA_VERSIONS, can_migrate)
         try:
@@ -202,7 +210,7 @@ def _load(path: Path, kind: str | None) -> ArtifactBase:
                 raise ArtifactError(f"{path}: {problem}", hint="the file is corrupt or hostile; re-create it")
         finally:
             f.close()
-        art = cls(manifest, arrays, path=path, sha256=sha256_file(path))
+        art = cls(manifest, arrays, path=path, sha256=sha or sha256_file(path))
         art.migrated_from = version if old else None
         return art
     except CdrbError:  # our own errors (bad input, or a registry module that failed) keep their message

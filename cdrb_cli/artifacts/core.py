@@ -87,6 +87,23 @@ def parse_version(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
+# ------------------------------------------------------------------------------------------------ known-safe bytes
+#: sha256 of every file content this process wrote as an artifact or has read without a hang or a crash of the
+#: HDF5 library: the same bytes read the same way, so loading them again needs no forked, time-limited probe
+_SAFE_CONTENT: set[str] = set()
+_SAFE_MAX = 1 << 16  # a bound on the set's memory (64k hashes, ~8 MB); it starts again empty beyond it
+
+
+def mark_safe(sha256: str) -> None:
+    if len(_SAFE_CONTENT) >= _SAFE_MAX:
+        _SAFE_CONTENT.clear()
+    _SAFE_CONTENT.add(sha256)
+
+
+def known_safe(sha256: str | None) -> bool:
+    return sha256 is not None and sha256 in _SAFE_CONTENT
+
+
 # ------------------------------------------------------------------------------------------------ writing
 def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays: Mapping[str, np.ndarray]) -> Path:
     """Write an artifact atomically. ``arrays`` maps dataset paths (``a/b``) to numeric arrays."""
@@ -117,6 +134,7 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
                 if parent not in groups:
                     groups[parent] = f.require_group(parent)
                 groups[parent].create_dataset(leaf, data=arr)
+        mark_safe(sha256_file(tmp))  # from the page cache: a small part of the write
     return path
 
 
