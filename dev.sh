@@ -21,8 +21,8 @@ case "${1:-}" in
   setup) setup ;;
   cdrb)  shift; exec "$VENV/bin/cdrb" "$@" ;;  # the installed command, without activating .venv
   demo)  setup; shift; "$VENV/bin/cdrb" quickstart "$@" ;;
-  # one pytest-xdist worker per core (tests/conftest.py gives each one torch thread, and the slow tests first); an
-  # idle worker takes queued tests from the other (worksteal); CDRB_TEST_WORKERS=0 runs serially
+  # one pytest-xdist worker per core (tests/conftest.py gives each one torch thread); an idle worker takes queued
+  # tests from the other (worksteal); CDRB_TEST_WORKERS=0 runs serially
   test)  setup; shift; "$VENV/bin/python" -m pytest -q -n "${CDRB_TEST_WORKERS:-auto}" --dist worksteal "$@" ;;
   *) echo "usage: ./dev.sh {setup|demo|test|cdrb} [args...]" >&2; exit 2 ;;
 esac

@@ -18,12 +18,6 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def pytest_collection_modifyitems(config, items):
-    """The slow end-to-end tests first, the rest in their usual order: the workers start on the long tests and the
-    short ones fill the end, so no worker is left alone with a minutes-long test while the other idles."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-
-
 def run_cdrb(*args, cwd=None, env=None, timeout=600):
     """Run the real CLI in a subprocess; returns CompletedProcess with text stdout/stderr."""
     full_env = dict(os.environ)
