@@ -80,6 +80,19 @@ def replace_folder(new: str | Path, final: str | Path) -> None:
         shutil.rmtree(aside, ignore_errors=True)
 
 
+@contextmanager
+def temp_folder_at(folder: str | Path) -> Iterator[None]:
+    """Python's temp folder (``tempfile``'s) set to ``folder`` within the block, then back to what it was: for
+    library calls that leave files in the temp folder (gymnasium-robotics' mazes write their XML there and never
+    remove it), run with a folder the caller removes."""
+    saved = tempfile.tempdir
+    tempfile.tempdir = str(folder)
+    try:
+        yield
+    finally:
+        tempfile.tempdir = saved
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

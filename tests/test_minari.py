@@ -4,7 +4,6 @@ errors. No network: every dataset lives under a temporary MINARI_DATASETS_PATH."
 
 from __future__ import annotations
 
-import contextlib
 import os
 import subprocess
 import sys
@@ -16,6 +15,7 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
+from cdrb_cli.files import temp_folder_at
 from tests.conftest import call_cdrb
 
 minari = pytest.importorskip("minari")
@@ -40,42 +40,37 @@ def _make_dataset(dataset_id: str, gym_id: str, episodes: int = 4, steps: int = 
     from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
 
     import_gymnasium_robotics()
-    env = gym.make(gym_id, **kwargs)
-    with contextlib.suppress(OSError, TypeError):  # the maze XML gymnasium-robotics leaves in the temp folder
-        os.unlink(getattr(env.unwrapped, "tmp_xml_file_path", None))
-    rng = np.random.default_rng(seed)
-    buffers = []
-    for e in range(episodes):
-        obs, _ = env.reset(seed=seed + e)
-        seen, acts = [obs], []
-        for _ in range(steps):
-            a = rng.uniform(-1, 1, size=env.action_space.shape).astype(np.float32)
-            obs, *_ = env.step(a)
-            seen.append(obs)
-            acts.append(a)
-        stacked = {k: np.array([o[k] for o in seen]) for k in seen[0]} if isinstance(obs, dict) else np.array(seen)
-        buffers.append(
-            EpisodeBuffer(
-                id=e,
-                seed=seed + e,
-                observations=stacked,
-                actions=np.array(acts),
-                rewards=[0.0] * steps,
-                terminations=[False] * steps,
-                truncations=[False] * (steps - 1) + [True],
+    # the maze XML gymnasium-robotics writes (here, and when Minari makes the env again) goes to a folder removed after
+    with tempfile.TemporaryDirectory() as own, temp_folder_at(own):
+        env = gym.make(gym_id, **kwargs)
+        rng = np.random.default_rng(seed)
+        buffers = []
+        for e in range(episodes):
+            obs, _ = env.reset(seed=seed + e)
+            seen, acts = [obs], []
+            for _ in range(steps):
+                a = rng.uniform(-1, 1, size=env.action_space.shape).astype(np.float32)
+                obs, *_ = env.step(a)
+                seen.append(obs)
+                acts.append(a)
+            stacked = {k: np.array([o[k] for o in seen]) for k in seen[0]} if isinstance(obs, dict) else np.array(seen)
+            buffers.append(
+                EpisodeBuffer(
+                    id=e,
+                    seed=seed + e,
+                    observations=stacked,
+                    actions=np.array(acts),
+                    rewards=[0.0] * steps,
+                    terminations=[False] * steps,
+                    truncations=[False] * (steps - 1) + [True],
+                )
             )
-        )
-    saved = tempfile.tempdir
-    with warnings.catch_warnings(), tempfile.TemporaryDirectory() as own:
-        warnings.simplefilter("ignore")
-        tempfile.tempdir = own  # Minari makes the env again: its maze XML goes here, not into the temp folder
-        try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
             minari.create_dataset_from_buffers(
                 dataset_id, buffers, env=env.spec, algorithm_name="random", data_format="hdf5"
             )
-        finally:
-            tempfile.tempdir = saved
-    env.close()
+        env.close()
     return buffers
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.artifacts.outputs import locked
 from cdrb_cli.errors import BadInput
-from cdrb_cli.files import replace_folder
+from cdrb_cli.files import replace_folder, temp_folder_at
 
 #: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
 ENV_TAG = "cdrb-env:"
@@ -349,15 +349,13 @@ def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_spac
     minari = _minari()
     tmp_root = Path(tempfile.mkdtemp(prefix=".cdrb-export-", dir=root))
     old = os.environ.get("MINARI_DATASETS_PATH")
-    saved_tempdir = tempfile.tempdir
     try:
         os.environ["MINARI_DATASETS_PATH"] = str(tmp_root)
         # Minari makes the environment to read it; a gymnasium-robotics maze then writes its XML into the temp
         # folder and leaves it there: here that folder is one of the export's own, removed below
         (tmp_root / ".tmp").mkdir()
-        tempfile.tempdir = str(tmp_root / ".tmp")
-        with warnings.catch_warnings():  # Minari's advice about authors, permalinks and eval envs
-            warnings.simplefilter("ignore", UserWarning)
+        with temp_folder_at(tmp_root / ".tmp"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # Minari's advice about authors, permalinks and eval envs
             minari.create_dataset_from_buffers(
                 dataset_id,
                 episodes,
@@ -371,7 +369,6 @@ def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_spac
         final.parent.mkdir(parents=True, exist_ok=True)
         replace_folder(tmp_root / dataset_id, final)
     finally:
-        tempfile.tempdir = saved_tempdir
         if old is None:
             os.environ.pop("MINARI_DATASETS_PATH", None)
         else:
