@@ -22,11 +22,11 @@ from pathlib import Path
 
 SHIM = """#!/usr/bin/env bash
 # the test's cdrb: the command runs as a fork of a warm server (tests/warm_shell.py)
-for a in "$@"; do case "$a" in --video|--video=*) exec {real} "$@";; esac; done
 d=$(mktemp -d {relay}/call.XXXXXX) || exit 1
 printf '%s\\0' "$@" > "$d/argv"; env -0 > "$d/env"; printf '%s' "$PWD" > "$d/cwd"; mkfifo "$d/rc"
 printf '%s\\n' "$d" > {relay}/requests
 read -r rc < "$d/rc"
+if [ "$rc" = cold ]; then rm -rf "$d"; exec {real} "$@"; fi  # a command that must start fresh
 cat "$d/out"; cat "$d/err" >&2
 rm -rf "$d"
 exit "$rc"
@@ -38,10 +38,16 @@ def _fields(path: Path) -> list[str]:
 
 
 def _serve_call(server, folder: Path) -> None:
-    """Run one call the shim handed over; its exit code goes back on the call's FIFO (-1 if it could not start)."""
+    """Run one call the shim handed over; its exit code goes back on the call's FIFO (-1 if it could not start),
+    or ``cold`` for a command that must start fresh, which the shim then runs itself."""
+    from cdrb_cli.orchestration.grid.warm import cold_only
+
     rc = -1
     try:
         argv = _fields(folder / "argv")
+        if cold_only(argv):
+            rc = "cold"
+            return
         env = dict(item.split("=", 1) for item in _fields(folder / "env") if "=" in item)
         out, err = folder / "out", folder / "err"
         out.touch()
