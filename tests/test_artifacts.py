@@ -380,7 +380,7 @@ def test_bytes_written_or_read_safely_here_skip_the_probe_and_others_do_not(tmp_
     (the same file, or a copy) load without it, and a file changed in place is probed again."""
     probed = []
     real = artifacts._guarded_probe
-    monkeypatch.setattr(artifacts, "_guarded_probe", lambda p, k: probed.append(p.name) or real(p, k))
+    monkeypatch.setattr(artifacts, "_guarded_probe", lambda p, *rest: probed.append(p.name) or real(p, *rest))
     p = write(tmp_path / "d.h5", "demos")
     artifacts.load(p)
     assert probed == []  # written by this process

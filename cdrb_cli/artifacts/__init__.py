@@ -105,7 +105,7 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     sha256, which the artifact records anyway); a fork costs 30-60 ms in a process that has imported torch."""
     path = Path(path)
     sha = sha256_file(path) if path.is_file() else None  # a non-file: the reader's checks say what it is
-    if not known_safe(sha) and _guarded_probe(path, kind) and sha is not None:
+    if not known_safe(sha) and _guarded_probe(path, kind, sha) and sha is not None:
         mark_safe(sha)
     return _load(path, kind, sha)
 
@@ -152,11 +152,11 @@ def _wait_child(pid: int, limit: float) -> int | None:
             os.close(fd)
 
 
-def _guarded_probe(path: Path, kind: str | None) -> bool:
+def _guarded_probe(path: Path, kind: str | None, sha: str | None = None) -> bool:
     """Read and validate ``path`` in a forked child. If the child hangs past the time limit or dies from a
     signal, raise :class:`ArtifactError`; otherwise return whether it read a valid artifact (the caller then reads
-    the file itself, and gets the same errors the child got). Disabled (False) where ``os.fork`` is unavailable or
-    ``CDRB_READ_GUARD=0``."""
+    the file itself, and gets the same errors the child got). ``sha``: the file's sha256 when the caller has it (the
+    child does not hash it again). Disabled (False) where ``os.fork`` is unavailable or ``CDRB_READ_GUARD=0``."""
     if not hasattr(os, "fork") or os.environ.get("CDRB_READ_GUARD") == "0" or not path.is_file():
         return False
     with warnings.catch_warnings():
@@ -165,7 +165,7 @@ def _guarded_probe(path: Path, kind: str | None) -> bool:
     if pid == 0:  # child: read everything, report only through the exit status
         code = 0
         try:
-            _load(path, kind)
+            _load(path, kind, sha)
         except BadInput:
             code = 2
         except BaseException:
