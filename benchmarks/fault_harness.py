@@ -48,27 +48,27 @@ class Launcher:
 
             self.server = WarmServer()
 
+    def _fork(self, args: list, env: dict | None):
+        """A forked command, its stderr in a fresh file kept until :meth:`close` (the child opens it only after
+        the server has answered)."""
+        fd, log = tempfile.mkstemp(prefix="task-", suffix=".err", dir=self.root)
+        os.close(fd)
+        self.logs.append(log)
+        return self.server.start([str(a) for a in args], dict(env or os.environ), Path(log)), Path(log)
+
     def start(self, args: list, env: dict | None = None):
         """The command's process (``kill``, ``wait``), its output discarded."""
         if self.server is None:
             return subprocess.Popen(cdrb_cmd(*args), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        fd, log = tempfile.mkstemp(prefix="task-", suffix=".err", dir=self.root)
-        os.close(fd)
-        self.logs.append(log)  # kept until close: the forked child opens it after the server has answered
-        return self.server.start([str(a) for a in args], dict(env or os.environ), Path(log))
+        return self._fork(args, env)[0]
 
     def run(self, args: list, env: dict | None = None) -> tuple[int, str]:
         """Run the command to its end: (exit code, stderr)."""
         if self.server is None:
             proc = subprocess.run(cdrb_cmd(*args), env=env, capture_output=True, text=True)
             return proc.returncode, proc.stderr
-        fd, log = tempfile.mkstemp(prefix="task-", suffix=".err", dir=self.root)
-        os.close(fd)
-        try:
-            rc = self.server.start([str(a) for a in args], dict(env or os.environ), Path(log)).wait()
-            return rc, Path(log).read_text(errors="replace")
-        finally:
-            os.unlink(log)
+        task, log = self._fork(args, env)
+        return task.wait(), log.read_text(errors="replace")
 
     def close(self) -> None:
         if self.server is not None:
