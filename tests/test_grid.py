@@ -1109,13 +1109,15 @@ def _alive(pids: set[int]) -> set[int]:
 def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig, warm):
     """SIGTERM: the grid stops its running tasks and exits 130 at once (a training keeps its checkpoint); SIGKILL:
     the tasks die with it. Either way no process the grid started (a task, the warm server and its forks, or a
-    fresh process per task) outlives it by more than a few seconds."""
+    fresh process per task) outlives it by more than a few seconds, and none leaves a scratch folder behind."""
     text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
     grid = _grid(tmp_path, text.replace("steps = 20", "steps = 100000"))
+    scratch = tmp_path / "scratch"  # the grid's temp folder
+    scratch.mkdir()
     proc = subprocess.Popen(
         [sys.executable, "-m", "cdrb_cli", "grid", str(grid), "--backend", "pool", "-j", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env=dict(os.environ, OMP_NUM_THREADS="1", CDRB_GRID_WARM=warm),
+        env=dict(os.environ, OMP_NUM_THREADS="1", CDRB_GRID_WARM=warm, TMPDIR=str(scratch)),
     )  # fmt: skip
     lock = tmp_path / "runs" / "maze-tight" / ".mlp-s0.h5.lock"  # held by the training while it runs
     deadline = time.time() + 300
@@ -1125,6 +1127,7 @@ def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig, warm):
     time.sleep(3)
     started = _tree(proc.pid) - {proc.pid}
     assert started, "the grid runs its training in a process of its own"
+    made = [p.name for p in scratch.iterdir()]
     proc.send_signal(sig)
     t = time.time()
     rc = proc.wait(timeout=30)
@@ -1133,6 +1136,10 @@ def test_a_stopped_grid_leaves_no_task_running(tmp_path, sig, warm):
     while _alive(started) and time.time() - t < 10:
         time.sleep(0.2)
     assert not _alive(started)
+    if warm == "1":
+        assert any(name.startswith("cdrb-warm-") for name in made), made
+    # torchinductor_<user>: torch's cache, one per user and reused, not a run's scratch
+    assert [p.name for p in scratch.iterdir() if not p.name.startswith("torchinductor_")] == []
 
 
 def test_warm_tasks_write_what_fresh_processes_write(tmp_path):

@@ -39,7 +39,24 @@ BEFORE_FIRST = {"train": ("torch._dynamo",)}
 
 
 def serve() -> None:
-    """The server's loop (``python -m cdrb_cli.orchestration.grid.warm``)."""
+    """The server: its loop, then its scratch folder (``CDRB_WARM_HOME``) removed however it ends, also when the
+    grid was killed with -9 and the kernel's SIGTERM ends the server."""
+    home = os.environ.get("CDRB_WARM_HOME")
+    signal.signal(signal.SIGTERM, _terminated)
+    try:
+        _loop()
+    finally:
+        if home:
+            import shutil
+
+            shutil.rmtree(home, ignore_errors=True)
+
+
+def _terminated(signum, frame) -> None:
+    raise SystemExit(128 + signum)
+
+
+def _loop() -> None:
     from cdrb_cli.envs.pointmaze.env import import_gymnasium_robotics
     from cdrb_cli.workers import die_with_parent
 

@@ -97,7 +97,10 @@ class WarmServer:
         self.started = time.time()  # the code the server imports is cdrb's as of now (see :meth:`stale`)
         self.home = tempfile.mkdtemp(prefix="cdrb-warm-")
         # TTY_COMPATIBLE=0: its consoles, made at import, draw for files (a task's log), not for a terminal
-        env = dict(os.environ, PYTHONSAFEPATH="1", CDRB_WARM_PARENT=str(os.getpid()), TTY_COMPATIBLE="0")
+        env = dict(
+            os.environ, PYTHONSAFEPATH="1", CDRB_WARM_PARENT=str(os.getpid()), CDRB_WARM_HOME=self.home,
+            TTY_COMPATIBLE="0",
+        )  # fmt: skip
         self.log = Path(self.home) / "server.log"
         with open(self.log, "w") as log:
             self.proc = subprocess.Popen(
