@@ -167,8 +167,8 @@ class Planner:
                 avoid.graph = buffer_graph(self.method, self.spec, config.avoid, self._route)
                 self.avoidance.graph = avoid.graph  # built once: the same buffer and scene for every call
         out = sample_plans(
-            self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, device=self.device,
-            avoid=avoid,
+            self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, batch_size=config.batch,
+            device=self.device, avoid=avoid,
         )  # fmt: skip
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]

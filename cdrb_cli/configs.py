@@ -304,6 +304,13 @@ class PlanConfig(Record):
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = Field(True, description="plan with the EMA weights (false: the raw weights)")
     keep_iterates: int = Field(0, ge=0, description="intermediate iterates kept per plan (`--plot` draws them)")
+    batch: int | None = Field(
+        256,
+        gt=0,
+        le=100_000,
+        description="plans sampled together; each batch draws from a random stream of its own, so another size "
+        "gives other plans of the same law (None: a file from before the size was recorded)",
+    )
     avoid: AvoidConfig = Field(default_factory=AvoidConfig, description="keeping plans out of obstacles")
     scene: str | None = Field(
         None, description="the name of the map file planned in instead of the model's (its content is the env)"

@@ -59,6 +59,27 @@ def test_protocol_pairs_and_plot(tiny_models, tmp_path, cdrb):
     np.testing.assert_array_equal(p.starts, q.starts)
 
 
+def test_the_batch_size_is_a_recorded_setting_and_the_memo_tells_sizes_apart(tiny_models, tmp_path, cdrb):
+    """Plans sampled together share a random stream, so the batch size is part of what the plans are: recorded in
+    the artifact, reproduced by the same size, and a file of another size is never "up to date"."""
+    model, out = tiny_models["cdrb"].path, tmp_path / "p.h5"
+    args = ("plan", model, "--pairs", "3", "-n", "2", "--seed", "5")
+    assert cdrb(*args, "--out", out).returncode == 0
+    whole = artifacts.load(out)
+    assert whole.manifest.config.batch == 256
+    r = cdrb(*args, "--out", out, "--batch-size", "1")  # other settings: refused without --force, file kept
+    assert r.returncode == 2 and "--force" in r.stderr, r.stderr
+    np.testing.assert_array_equal(artifacts.load(out).arrays["plans"], whole.arrays["plans"])
+    for name, flags in (("a.h5", ["--batch-size", "1"]), ("b.h5", ["--set", "batch=1"])):
+        assert cdrb(*args, "--out", tmp_path / name, *flags).returncode == 0
+    one, again = artifacts.load(tmp_path / "a.h5"), artifacts.load(tmp_path / "b.h5")
+    assert one.manifest.config.batch == 1
+    np.testing.assert_array_equal(one.arrays["plans"], again.arrays["plans"])
+    assert not np.array_equal(one.arrays["plans"], whole.arrays["plans"])
+    r = cdrb(*args, "--out", tmp_path / "c.h5", "--batch-size", "1", "--set", "batch=2")
+    assert r.returncode == 2 and "batch" in r.stderr, r.stderr
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [

@@ -169,6 +169,15 @@ def _geodesic_variant_2_17(kind: str, m: Manifest) -> Manifest:
     }
 
 
+def _plan_batch_2_11(kind: str, m: Manifest) -> Manifest:
+    """Plans written before the batch size was recorded: ``batch`` is null (unknown; the size sets the random
+    streams), so no request counts such a file as up to date (plans 2.11)."""
+    cfg = m.get("config")
+    if kind != "plans" or not isinstance(cfg, dict) or "batch" in cfg:
+        return m
+    return {**m, "config": {**cfg, "batch": None}}
+
+
 #: (version, manifest migration) for minor versions that renamed values or gave a recorded setting a default that
 #: older files did not follow; applied to every older file in order
 MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest]]] = [
@@ -176,6 +185,7 @@ MINOR_MIGRATIONS: list[tuple[tuple[int, int], Callable[[str, Manifest], Manifest
     ((2, 5), _checkpoint_seconds_2_5),
     ((2, 6), _fetch_draws_2_4),
     ((2, 8), _ball_candidates_2_8),
+    ((2, 11), _plan_batch_2_11),
     ((2, 14), _geodesic_radii_2_14),
     ((2, 17), _geodesic_variant_2_17),
 ]

@@ -43,7 +43,9 @@ def plan(
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
-    batch_size: int = typer.Option(256, "--batch-size", min=1, hidden=True, help="Plans sampled together."),
+    batch_size: int | None = typer.Option(
+        None, "--batch-size", min=1, max=100_000, hidden=True, help="Plans sampled together (setting `batch`)."
+    ),
     moved: dict | None = None,
 ) -> None:
     """Plan from start to goal and write a [bold]plans[/bold] artifact (start and goal held exactly).
@@ -59,13 +61,15 @@ def plan(
     a start away from the demonstrations' starts keeps the best of several plans by the collision test (the
     setting chosen for plans from anywhere; mazes: 16; CDRB tries a pair whose every plan crosses a wall again
     from a buffer route); [cyan]--set avoid=plain[/cyan] plans as the model is.
-    Also: [cyan]--batch-size N[/cyan] (plans sampled together, default 256)."""
+    Also: [cyan]--batch-size N[/cyan], the setting [cyan]batch[/cyan] (plans sampled together, default 256;
+    each batch has a random stream of its own, so another size gives other plans)."""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.configure import plan_config, route_buffer_path
     from cdrb_cli.stages.plan import load_route_buffer, make_plans, plan_points, scene_spec
     from cdrb_cli.torch_utils import setup_torch
 
     flags = [] if n is None else [(f"--num-plans {n}", "n", n)]
+    flags += [] if batch_size is None else [(f"--batch-size {batch_size}", "batch", batch_size)]
     selection = read_selection(config_file)
     settings = run_settings(None if selection else config_file, sets, flags, moved)
     m = trained_model(model, allow_partial)
@@ -90,7 +94,6 @@ def plan(
             config,
             out,
             device=setup_torch(device),
-            batch_size=batch_size,
             spec=spec,
             route_buffer=route_art,
         ),

@@ -493,7 +493,6 @@ def make_plans(
     config: PlanConfig,
     out,
     device="cpu",
-    batch_size: int = 256,
     spec: EnvSpec | None = None,
     route_buffer=None,
 ):
@@ -513,7 +512,7 @@ def make_plans(
         config.sampler,
         config.sample_steps,
         config.keep_iterates,
-        batch_size,
+        config.batch,
         device,
         avoid,
     )
@@ -528,7 +527,7 @@ def make_plans(
         plans_crossing=int(np.asarray(family.path_in_collision(spec, plans[..., : spec.obs_dim])).sum()),
         masked=mask_counts(method, avoid),
         seconds_per_batch=round(sec, 6),
-        seconds_per_plan=round(sec / min(batch_size, len(plans)), 6),
+        seconds_per_plan=round(sec / min(config.batch, len(plans)), 6),
         device=str(device),
     )
     manifest = artifacts.make_manifest(
