@@ -282,6 +282,26 @@ def test_export_never_deletes_or_races_another_dataset(tmp_path, datasets):
     assert r.returncode == 2 and "--root" in r.stderr and (tmp_path / "afile").read_text() == "x"
 
 
+def test_a_relative_root_is_the_current_folders(tmp_path, datasets, monkeypatch):
+    """--root given relative to the current folder: the dataset lands there (gymnasium would read a relative XML
+    path as one in its own assets), and a failed export leaves no empty folders."""
+    r = _cli("collect", "maze-tight", "-n", "2", "--out", tmp_path / "d.h5")
+    assert r.returncode == 0, r.stderr
+    r = _cli("export", tmp_path / "d.h5", "--minari", "cdrb/rel", "--root", "rel", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert Path(r.stdout.strip()) == tmp_path / "rel" / "cdrb" / "rel-v0"
+    assert (tmp_path / "rel" / "cdrb" / "rel-v0" / "data" / "metadata.json").is_file()
+    from cdrb_cli.stages import minari_io
+
+    def broken(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(minari_io, "_write_dataset", broken)
+    with pytest.raises(OSError, match="disk full"):
+        minari_io.export_minari(artifacts.load(tmp_path / "d.h5", "demos"), "a/b", root=tmp_path / "new" / "root")
+    assert not (tmp_path / "new").exists()
+
+
 def test_damaged_episodes_are_one_line_naming_the_dataset(tmp_path, datasets):
     """NaN in the states, or fewer actions than steps, in an otherwise valid dataset: one line naming the dataset
     and the episode, exit 2, nothing written."""

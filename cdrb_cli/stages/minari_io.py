@@ -20,6 +20,7 @@ cdrb never downloads: a dataset id is looked up in Minari's local folder (``MINA
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -274,7 +275,8 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
     from minari.data_collector.episode_buffer import EpisodeBuffer
 
     dataset_id = dataset_id_for(name)
-    root = Path(root) if root is not None else _root()
+    # absolute: the env's files are written under it, and gymnasium reads a relative XML path as one in its assets
+    root = (Path(root) if root is not None else _root()).absolute()
     if root.exists() and not root.is_dir():
         raise BadInput(f"--root {root}: not a folder", hint="give the folder Minari datasets live in")
     final = root / dataset_id
@@ -317,10 +319,19 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
         f"{ENV_TAG} {spec.id}; demonstrator: {expert.kind}; success: cdrb's test (within {spec.success_radius} of "
         "the goal), per step in infos['success'] and as the sparse reward."
     )
+    made = [d for d in (final.parent, *final.parent.parents) if not d.exists()]
     final.parent.mkdir(parents=True, exist_ok=True)
-    with locked(final, "--minari"):
-        _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
-        return _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description)
+    try:
+        with locked(final, "--minari"):
+            _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
+            return _write_dataset(
+                final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description
+            )
+    except BaseException:
+        for d in made:  # a failed export leaves no empty namespace folders behind (innermost first)
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
 
 
 def _check_export_target(final: Path, root: Path, dataset_id: str, force: bool) -> None:
