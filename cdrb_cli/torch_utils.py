@@ -76,9 +76,11 @@ def cpu_threads() -> int:
     :data:`MAX_THREADS`. "Now" is a short sample of the CPU accounting, not the 1-minute load average, so an idle
     machine trains with every core whatever ran a minute ago; threads beyond the free cores would spin against the
     other work and slow the run by far more than their share (docs/cli.md)."""
-    env = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if env.isdigit() and int(env) > 0:
-        return min(int(env), 256)
+    from cdrb_cli.envvars import omp_threads
+
+    given = omp_threads()
+    if given is not None:
+        return min(given, 256)
     allowed = usable_cores()
     cores = max(1, min(len(allowed) if allowed else (os.cpu_count() or 1), MAX_THREADS))
     busy = busy_cores(allowed)

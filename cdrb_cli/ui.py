@@ -172,7 +172,9 @@ def progress(transient: bool = False):
         TextColumn("{task.fields[info]}", markup=False),
     ]
     if not err.is_terminal and not _quiet:
-        interval = float(os.environ.get("CDRB_PROGRESS_SECONDS", PROGRESS_SECONDS))
+        from cdrb_cli.envvars import progress_seconds
+
+        interval = progress_seconds(PROGRESS_SECONDS)
         with LineProgress(*columns, console=err, interval=interval) as p:
             yield p
         return

@@ -114,6 +114,26 @@ def _rewrite_attr(p, name, value):
         f.attrs[name] = value
 
 
+@pytest.mark.parametrize("value", [3e38, -1e30, 1e19])
+def test_huge_finite_values_are_refused_on_read_and_write(tmp_path, value):
+    """A re-signed file with a value far beyond anything cdrb writes (a buffer state of 3e38 would otherwise pass
+    every check and break the ball sampler's KD-tree later) is one error naming the file and the dataset."""
+    p = write(tmp_path / "b.h5", "buffer")
+    with tampered(p) as f:
+        points = f["points"][()]
+        points[0, 0] = value
+        del f["points"]
+        f["points"] = points
+    msg = _err(p)
+    assert str(p) in msg and "/points" in msg and "beyond" in msg
+    manifest, arrays = build("buffer")
+    arrays["points"] = arrays["points"].copy()
+    arrays["points"][0, 0] = value
+    with pytest.raises(ValueError, match="beyond"):
+        artifacts.save(tmp_path / "c.h5", "buffer", manifest, arrays)
+    assert not (tmp_path / "c.h5").exists()
+
+
 def test_newer_major_is_refused(tmp_path):
     p = write(tmp_path / "d.h5", "demos")
     _rewrite_attr(p, "cdrb_schema_version", "3.0")

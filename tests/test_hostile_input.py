@@ -237,3 +237,41 @@ def test_sigterm_stops_a_grid_on_ray_with_exit_130_and_one_line(tmp_path):
     while _train_pids(out) and time.time() - t < 30:
         time.sleep(0.2)
     assert not _train_pids(out)
+
+
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("OMP_NUM_THREADS", "99999"),  # OpenMP itself crashes (SIGSEGV) on such a count in scikit-learn's k-means
+        ("OMP_NUM_THREADS", "abc"),
+        ("OMP_NUM_THREADS", "0"),
+        ("CDRB_PROGRESS_SECONDS", "abc"),
+        ("CDRB_PROGRESS_SECONDS", "-1"),
+        ("CDRB_MAX_ARTIFACT_BYTES", "-1"),
+        ("CDRB_MAX_ARTIFACT_BYTES", "1e9"),
+        ("CDRB_READ_TIMEOUT", "inf"),
+    ],
+)
+def test_bad_numbers_in_the_environment_are_one_line_before_any_work(small_data, tmp_path, cdrb, name, value):
+    demos, _ = small_data
+    out = tmp_path / "b.h5"
+    r = cdrb("cluster", demos.path, "--k", "5", "--out", out, env={name: value})
+    assert r.returncode == 2 and r.stderr.startswith(f"error: {name}={value!r}"), r.stderr
+    assert r.stderr.count("\n") == 1 and not list(tmp_path.iterdir())
+
+
+def test_good_numbers_in_the_environment_are_taken(small_data, tmp_path, cdrb):
+    demos, _ = small_data
+    env = {"OMP_NUM_THREADS": "1", "CDRB_PROGRESS_SECONDS": "0", "CDRB_READ_TIMEOUT": "5"}
+    r = cdrb("cluster", demos.path, "--k", "5", "--out", tmp_path / "b.h5", env=env)
+    assert r.returncode == 0, r.stderr
+    r = cdrb("inspect", tmp_path / "b.h5", env={"CDRB_MAX_ARTIFACT_BYTES": "64"})  # its arrays declare more
+    assert r.returncode == 2 and "more than this file can hold" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("methods", ["", ",", " , "])
+def test_quickstart_refuses_an_empty_method_list(tmp_path, cdrb, methods):
+    """An empty --methods is a mistake (a shell variable that was never set), not a request for the default
+    methods' several-minute run."""
+    r = cdrb("quickstart", "--methods", methods, "--out", tmp_path / "qs")
+    assert r.returncode == 2 and "--methods" in r.stderr and not (tmp_path / "qs").exists(), r.stderr

@@ -111,13 +111,9 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
 
 
 def _read_timeout(path: Path) -> float:
-    text = os.environ.get("CDRB_READ_TIMEOUT", "30")
-    try:
-        base = float(text)
-    except ValueError:
-        base = float("nan")
-    if not base > 0 or base == float("inf"):
-        raise BadInput(f"CDRB_READ_TIMEOUT={text!r}: not a positive number of seconds", hint="unset it, or e.g. 30")
+    from cdrb_cli.envvars import read_timeout
+
+    base = read_timeout()
     try:
         size = path.stat().st_size
     except OSError:

@@ -26,6 +26,7 @@ import h5py
 import numpy as np
 from pydantic import ValidationError
 
+from cdrb_cli.envvars import max_artifact_bytes
 from cdrb_cli.errors import ArtifactError, BadInput
 from cdrb_cli.files import atomic_path, check_input_file, read_input_text, sha256_file  # noqa: F401  (re-exported)
 from cdrb_cli.schema_base import Record
@@ -38,8 +39,13 @@ MANIFEST = "manifest"
 #: the manifest is read only when its declared size is below this
 MAX_MANIFEST_BYTES = 16 * 2**20
 #: arrays are read only when their declared total size is below both this and FILE_EXPANSION x the file size
-MAX_TOTAL_BYTES = int(os.environ.get("CDRB_MAX_ARTIFACT_BYTES", 16 * 2**30))
+#: (``CDRB_MAX_ARTIFACT_BYTES`` sets another limit)
+MAX_TOTAL_BYTES = 16 * 2**30
 FILE_EXPANSION = 64
+#: the largest magnitude a float in an artifact may have: far beyond any state, weight or count cdrb writes (a
+#: float64 counter is exact to 2**53 ~ 9e15), and far enough below float32's range (~3e38) that squared distances
+#: and normalizations of such values stay finite
+MAX_MAGNITUDE = 1e18
 #: at most this many objects (groups + datasets) per file
 MAX_OBJECTS = 20_000
 
@@ -130,6 +136,8 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
                     raise TypeError(f"dataset {name}: dtype {arr.dtype} is not numeric")
                 if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
                     raise ValueError(f"dataset {name}: refusing to write non-finite values")
+                if arr.dtype.kind == "f" and arr.size and np.abs(arr).max() > MAX_MAGNITUDE:
+                    raise ValueError(f"dataset {name}: refusing to write values beyond +-{MAX_MAGNITUDE:g}")
                 parent, _, leaf = name.rpartition("/")
                 if parent not in groups:
                     groups[parent] = f.require_group(parent)
@@ -139,6 +147,10 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
 
 
 # ------------------------------------------------------------------------------------------------ reading
+def _a(word: str) -> str:
+    return "an" if word[:1].lower() in "aeiou" else "a"
+
+
 def _open(path: Path) -> h5py.File:
     if not path.exists():
         raise BadInput(f"{path}: no such file", hint="check the path")
@@ -264,7 +276,8 @@ def read_h5(
             raise ArtifactError(f"{path}: unknown artifact kind {kind!r}", hint=f"known: {', '.join(current_versions)}")
         if expected_kind is not None and kind != expected_kind:
             raise ArtifactError(
-                f"{path}: is a '{kind}' artifact, but a '{expected_kind}' artifact is needed here",
+                f"{path}: is {_a(kind)} '{kind}' artifact, but {_a(expected_kind)} '{expected_kind}' artifact is "
+                "needed here",
                 hint=f"pass the {expected_kind} file",
             )
         try:
@@ -318,7 +331,7 @@ def read_h5(
             if ds.shape is None:
                 raise ArtifactError(f"{path}: dataset /{name} has no shape (empty dataspace)", hint="re-create it")
             total += int(np.prod(ds.shape, dtype=np.float64)) * dt.itemsize
-        limit = min(MAX_TOTAL_BYTES, _expansion_limit(path))
+        limit = min(max_artifact_bytes(MAX_TOTAL_BYTES), _expansion_limit(path))
         if total > limit:
             raise ArtifactError(
                 f"{path}: datasets declare {total / 2**20:.0f} MiB, "
@@ -405,6 +418,11 @@ def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, n
         arr = np.asarray(arr)
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise ArtifactError(f"{path}: dataset /{name} contains NaN or inf", hint="re-create the artifact")
+        if arr.dtype.kind == "f" and arr.size and np.abs(arr).max() > MAX_MAGNITUDE:
+            raise ArtifactError(
+                f"{path}: dataset /{name} holds values beyond +-{MAX_MAGNITUDE:g}, which no cdrb artifact does",
+                hint="re-create the artifact",
+            )
         out[name] = arr
     return out
 

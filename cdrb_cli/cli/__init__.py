@@ -19,7 +19,7 @@ from pathlib import Path
 
 import typer
 
-from cdrb_cli import PROG, interrupts, provenance, ui
+from cdrb_cli import PROG, envvars, interrupts, provenance, ui
 from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError
 
 try:  # typer >= 0.20 vendors click; older versions use the click package
@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     command = typer.main.get_command(app)
     restore_signals = interrupts.install()
     try:
+        envvars.check()  # a bad number in the environment stops the command before any work
         with provenance.running([PROG, *args]) if argv is not None else contextlib.nullcontext():
             code = command.main(args=args, prog_name=PROG, standalone_mode=False)
         if code == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into a returned exit code 130

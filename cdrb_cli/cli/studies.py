@@ -160,7 +160,7 @@ def quickstart(
     from cdrb_cli.orchestration.quickstart import quickstart as run_quickstart
     from cdrb_cli.torch_utils import setup_torch
 
-    method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else DEFAULT_METHODS
+    method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods is not None else DEFAULT_METHODS
     check_methods(method_list, "--methods")
     make_spec(env or DEFAULT_ENV)
     if out.exists() and not out.is_dir():
