@@ -70,6 +70,11 @@ def replace_folder(new: str | Path, final: str | Path) -> None:
     aside to ``.NAME.old-*`` and removed only after the new one is in place, so a crash at any point leaves one
     whole folder (the old one, perhaps under its aside name), never none."""
     new, final = Path(new), Path(final)
+    # the umask's modes, as for any folder and file a user makes (mkdtemp makes 0700, some writers 0600)
+    mask = _umask()
+    for path in [new, *new.rglob("*")]:
+        if not path.is_symlink():
+            path.chmod((0o777 if path.is_dir() else 0o666) & ~mask)
     aside = None
     if final.exists():
         aside = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))

@@ -223,3 +223,22 @@ def test_an_output_may_not_overwrite_a_text_input(tiny_models, tmp_path, cdrb):
     with pytest.raises(BadInput, match="is an input"):
         api.evaluate(model, scene, episodes=1, scene=scene, force=True)
     assert scene.read_bytes() == before
+
+
+def test_output_names_too_long_or_with_control_characters_are_one_line(tmp_path, cdrb):
+    """A name the file system cannot take once the temp file's marks are added, or one with a newline (stdout
+    prints the path written, one per line), is refused before any work; a picture flag's folder hint names a
+    picture."""
+    from cdrb_cli.artifacts import check_output
+
+    for name in ("a" * 250 + ".h5", "a\nb.h5", "tab\there.h5", "bell\x07.h5"):
+        with pytest.raises(BadInput) as err:
+            check_output(tmp_path / name, False)
+        assert str(err.value).count("\n") == 0 and ("bytes" in str(err.value) or "control" in str(err.value))
+    check_output(tmp_path / ("a" * 197 + ".h5"), False)  # 200 bytes: taken
+    (tmp_path / "d.png").mkdir()
+    with pytest.raises(BadInput, match="such as plot.png"):
+        check_output(tmp_path / "d.png", True, "--plot", suffixes=(".png",))
+    r = cdrb("collect", "maze-tight", "-n", "1", "--out", tmp_path / ("b" * 240 + ".h5"))
+    assert r.returncode == 2 and "--out" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith("b")]

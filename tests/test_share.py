@@ -135,6 +135,10 @@ def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models
     r = cdrb("export", model, "--dir", tmp_path / "m")
     assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "m")
     assert "No evaluation was exported" in (tmp_path / "m" / "README.md").read_text()
+    mask = os.umask(0)
+    os.umask(mask)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in [tmp_path / "m", *(tmp_path / "m").iterdir()]}
+    assert modes == {"m": 0o777 & ~mask, **{n: 0o666 & ~mask for n in modes if n != "m"}}, modes  # the umask's
     # --force replaces the folder whole: the old one is set aside before the new one goes in, then removed
     (tmp_path / "m" / "mine.txt").write_text("old")
     r = cdrb("export", tiny_models["mlp"].path, "--dir", tmp_path / "m", "--force")

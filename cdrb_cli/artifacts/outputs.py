@@ -34,6 +34,10 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
+#: the longest output file name: 255 bytes (most file systems) less the marks of its temp and lock files
+MAX_NAME_BYTES = 200
+
+
 def check_output(
     path: str | Path,
     force: bool,
@@ -44,6 +48,14 @@ def check_output(
     """Validate an output path before any work starts (see the module docstring); returns it as a Path."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
+    if any(ord(c) < 32 or ord(c) == 127 for c in str(path)):
+        # stdout names the file written, a line per path: a newline inside one would read as two
+        raise BadInput(f"{flag} {str(path)!r}: a control character (a newline?) in the path", hint="rename it")
+    if len(os.fsencode(path.name)) > MAX_NAME_BYTES:
+        raise BadInput(
+            f"{flag} {path.name[:40]}...: a file name of {len(os.fsencode(path.name))} bytes",
+            hint=f"use a name of at most {MAX_NAME_BYTES} bytes: file systems allow 255, less the temp file's marks",
+        )
     if suffixes and path.suffix.lower() not in suffixes:
         raise BadInput(f"{flag} {path}: unsupported file type", hint=f"use {', '.join(suffixes)}")
     if not folder.is_dir():
@@ -51,7 +63,8 @@ def check_output(
     if path.is_symlink():
         raise BadInput(f"{flag} {path}: is a symbolic link", hint="pass the path of a regular file")
     if path.is_dir():
-        raise BadInput(f"{flag} {path}: is a folder", hint="give a file name such as model.h5")
+        example = f"plot{suffixes[0]}" if suffixes else "model.h5"
+        raise BadInput(f"{flag} {path}: is a folder", hint=f"give a file name such as {example}")
     if path.exists():
         mode = path.stat().st_mode
         if not stat.S_ISREG(mode):
