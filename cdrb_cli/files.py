@@ -4,6 +4,7 @@ Artifacts, settings files, maps, scenes and pictures all use these."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import shutil
@@ -83,6 +84,22 @@ def replace_folder(new: str | Path, final: str | Path) -> None:
     _fsync_dir(final.parent)
     if aside is not None:
         shutil.rmtree(aside, ignore_errors=True)
+
+
+@contextmanager
+def new_folder(folder: str | Path) -> Iterator[Path]:
+    """``folder`` made (with its missing parents) for the block; when the block fails or is interrupted, the folders
+    it made that are still empty are removed, innermost first, so a failed run leaves no empty folders behind."""
+    folder = Path(folder)
+    made = [d for d in (folder, *folder.parents) if not d.exists()]
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        yield folder
+    except BaseException:
+        for d in made:
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
 
 
 @contextmanager

@@ -242,3 +242,21 @@ def test_output_names_too_long_or_with_control_characters_are_one_line(tmp_path,
     r = cdrb("collect", "maze-tight", "-n", "1", "--out", tmp_path / ("b" * 240 + ".h5"))
     assert r.returncode == 2 and "--out" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert not [p for p in tmp_path.iterdir() if p.name.startswith("b")]
+
+
+def test_a_failed_run_leaves_no_empty_folders_it_made(tmp_path):
+    """new_folder (GIF folders, Minari namespaces): interrupted, the folders it made and left empty go; a folder
+    that existed, or one holding a file, stays; a block that ends well keeps its folder."""
+    from cdrb_cli.files import new_folder
+
+    (tmp_path / "had").mkdir()
+    with pytest.raises(KeyboardInterrupt), new_folder(tmp_path / "had" / "a" / "b"):
+        raise KeyboardInterrupt
+    assert list((tmp_path / "had").iterdir()) == []
+    with pytest.raises(OSError), new_folder(tmp_path / "c" / "d") as folder:
+        (folder.parent / "kept.txt").write_text("x")
+        raise OSError("disk full")
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["kept.txt"]
+    with new_folder(tmp_path / "e") as folder:
+        pass
+    assert folder.is_dir()

@@ -283,15 +283,14 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
     carries a caption (label, episode, environment step, outcome); frames play at :data:`GIF_FRAME_MS` and the last
     one stays :data:`GIF_HOLD_MS`. A progress bar counts the episodes drawn."""
     from cdrb_cli import ui
-    from cdrb_cli.files import atomic_path
+    from cdrb_cli.files import atomic_path, new_folder
 
     fam = family_of(spec)
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     use_simulator = True
     written = []
     episodes = list(episodes)
-    with ui.progress() as bar:
+    with new_folder(folder), ui.progress() as bar:
         task = bar.add_task("rollout GIFs", total=len(episodes), info="")
         for i, (plan, states, goal, ok) in enumerate(episodes):
             frames = None

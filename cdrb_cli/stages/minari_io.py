@@ -20,7 +20,6 @@ cdrb never downloads: a dataset id is looked up in Minari's local folder (``MINA
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 import shutil
@@ -34,7 +33,7 @@ import numpy as np
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.artifacts.outputs import locked
 from cdrb_cli.errors import BadInput
-from cdrb_cli.files import replace_folder, temp_folder_at
+from cdrb_cli.files import new_folder, replace_folder, temp_folder_at
 
 #: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
 ENV_TAG = "cdrb-env:"
@@ -319,19 +318,9 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
         f"{ENV_TAG} {spec.id}; demonstrator: {expert.kind}; success: cdrb's test (within {spec.success_radius} of "
         "the goal), per step in infos['success'] and as the sparse reward."
     )
-    made = [d for d in (final.parent, *final.parent.parents) if not d.exists()]
-    final.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with locked(final, "--minari"):
-            _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
-            return _write_dataset(
-                final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description
-            )
-    except BaseException:
-        for d in made:  # a failed export leaves no empty namespace folders behind (innermost first)
-            with contextlib.suppress(OSError):
-                d.rmdir()
-        raise
+    with new_folder(final.parent), locked(final, "--minari"):
+        _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
+        return _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description)
 
 
 def _check_export_target(final: Path, root: Path, dataset_id: str, force: bool) -> None:
