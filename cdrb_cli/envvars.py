@@ -25,10 +25,12 @@ def number(
         value = int(text) if integer else float(text)
     except ValueError:
         value = math.nan
-    if not (0 <= value <= most and (zero or value > 0)) or not math.isfinite(value):
+    limit = min(most, 2**63 - 1) if integer else most  # a whole number as any C library may take it
+    if not (0 <= value <= limit and (zero or value > 0) and value != math.inf):
         what = "a whole number" if integer else "a number"
         bound = f" from 1 to {most:g}" if integer and math.isfinite(most) else (" from 0 up" if zero else " above 0")
-        raise BadInput(f"{name}={text!r}: not {what}{bound}", hint=hint)
+        shown = text if len(text) <= 40 else text[:40] + "..."
+        raise BadInput(f"{name}={shown!r}: not {what}{bound}", hint=hint)
     return value
 
 
