@@ -134,16 +134,20 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
                 arr = np.asarray(value)
                 if arr.dtype.kind not in _ALLOWED_KINDS:
                     raise TypeError(f"dataset {name}: dtype {arr.dtype} is not numeric")
-                if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-                    raise ValueError(f"dataset {name}: refusing to write non-finite values")
-                if arr.dtype.kind == "f" and arr.size and np.abs(arr).max() > MAX_MAGNITUDE:
-                    raise ValueError(f"dataset {name}: refusing to write values beyond +-{MAX_MAGNITUDE:g}")
+                if arr.dtype.kind == "f" and not _in_bounds(arr):
+                    what = "non-finite values" if not np.isfinite(arr).all() else f"values beyond +-{MAX_MAGNITUDE:g}"
+                    raise ValueError(f"dataset {name}: refusing to write {what}")
                 parent, _, leaf = name.rpartition("/")
                 if parent not in groups:
                     groups[parent] = f.require_group(parent)
                 groups[parent].create_dataset(leaf, data=arr)
         mark_safe(sha256_file(tmp))  # from the page cache: a small part of the write
     return path
+
+
+def _in_bounds(arr: np.ndarray) -> bool:
+    """Every value finite and within +-MAX_MAGNITUDE: one pass over the array (NaN and inf fail the comparison)."""
+    return bool((np.abs(arr) <= MAX_MAGNITUDE).all())
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -416,9 +420,9 @@ def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, n
                 f"{path}: dataset /{name} cannot be read ({type(exc).__name__}); the file is corrupt"
             ) from None
         arr = np.asarray(arr)
-        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-            raise ArtifactError(f"{path}: dataset /{name} contains NaN or inf", hint="re-create the artifact")
-        if arr.dtype.kind == "f" and arr.size and np.abs(arr).max() > MAX_MAGNITUDE:
+        if arr.dtype.kind == "f" and not _in_bounds(arr):
+            if not np.isfinite(arr).all():
+                raise ArtifactError(f"{path}: dataset /{name} contains NaN or inf", hint="re-create the artifact")
             raise ArtifactError(
                 f"{path}: dataset /{name} holds values beyond +-{MAX_MAGNITUDE:g}, which no cdrb artifact does",
                 hint="re-create the artifact",

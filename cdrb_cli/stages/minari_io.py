@@ -366,8 +366,7 @@ def _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_spac
                 description=description,
                 data_format="hdf5",
             )
-        final.parent.mkdir(parents=True, exist_ok=True)
-        replace_folder(tmp_root / dataset_id, final)
+        replace_folder(tmp_root / dataset_id, final)  # final.parent: made by the caller
     finally:
         if old is None:
             os.environ.pop("MINARI_DATASETS_PATH", None)
