@@ -236,12 +236,18 @@ def test_output_names_too_long_or_with_control_characters_are_one_line(tmp_path,
             check_output(tmp_path / name, False)
         assert str(err.value).count("\n") == 0 and ("bytes" in str(err.value) or "control" in str(err.value))
     check_output(tmp_path / ("a" * 197 + ".h5"), False)  # 200 bytes: taken
+    for text in (f"{tmp_path}/x.h5/", f"{tmp_path}/x.h5/.", "."):  # Path() would drop the slash and write x.h5
+        with pytest.raises(BadInput, match="names a folder"):
+            check_output(text, False)
     (tmp_path / "d.png").mkdir()
     with pytest.raises(BadInput, match="such as plot.png"):
         check_output(tmp_path / "d.png", True, "--plot", suffixes=(".png",))
     r = cdrb("collect", "maze-tight", "-n", "1", "--out", tmp_path / ("b" * 240 + ".h5"))
     assert r.returncode == 2 and "--out" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert not [p for p in tmp_path.iterdir() if p.name.startswith("b")]
+    r = cdrb("collect", "maze-tight", "-n", "1", "--out", f"{tmp_path}/c.h5/")
+    assert r.returncode == 2 and "names a folder" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "c.h5").exists()
 
 
 def test_a_failed_run_leaves_no_empty_folders_it_made(tmp_path):

@@ -46,6 +46,12 @@ def check_output(
     suffixes: tuple[str, ...] = (),
 ) -> Path:
     """Validate an output path before any work starts (see the module docstring); returns it as a Path."""
+    text = os.fspath(path)
+    if isinstance(text, str) and text.endswith((os.sep, os.sep + ".")) or text in (".", ".."):
+        # Path() drops a trailing slash: 'x.h5/' names a folder, and writing the file x.h5 would not be what was asked
+        raise BadInput(
+            f"{flag} {text}: names a folder (it ends with {os.sep!r})", hint="give a file name such as model.h5"
+        )
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if any(ord(c) < 32 or ord(c) == 127 for c in str(path)):

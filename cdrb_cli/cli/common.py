@@ -83,6 +83,15 @@ DeviceOpt = typer.Option("auto", "--device", help="auto (CUDA when present), cpu
 
 
 # ------------------------------------------------------------------------------------------------ choices
+def file_path(value) -> Path:
+    """A typer ``parser`` for an option naming a file to write: ``x.h5/`` names a folder, and ``Path`` would drop
+    the slash and write the file ``x.h5`` instead."""
+    text = os.fspath(value)
+    if text.endswith((os.sep, os.sep + ".")) or text in (".", ".."):
+        raise ValueError(f"{text!r} names a folder (it ends with {os.sep!r}); give a file name")
+    return Path(text)
+
+
 def choice(values: Callable[[], list[str]], what: str) -> Callable[[str], str]:
     """A typer ``parser`` accepting the strings ``values()`` gives when the option is parsed (not at start-up)."""
 

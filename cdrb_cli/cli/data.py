@@ -17,6 +17,7 @@ from cdrb_cli.cli.common import (
     check_video_folder,
     choice,
     expert_registry,
+    file_path,
     literal_values,
     load_artifact,
     registered,
@@ -49,9 +50,12 @@ def collect(
         "protocol+anywhere alternates between the two.",
     ),
     maze_map: Path | None = MapOpt,
-    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     plot: Path | None = typer.Option(
-        None, "--plot", help="Also draw a sample of demos on the scene to this PNG (Fetch: top and side views)."
+        None,
+        "--plot",
+        help="Also draw a sample of demos on the scene to this PNG (Fetch: top and side views).",
+        parser=file_path,
     ),
     video: Path | None = typer.Option(None, "--video", help="Write GIFs of the first demos to this folder."),
     videos: int = typer.Option(3, "--videos", min=1, max=100, help="How many demo GIFs with --video."),
@@ -155,7 +159,7 @@ def import_minari(
     valid_fraction: float = typer.Option(
         0.1, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation."
     ),
-    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -183,7 +187,7 @@ def import_npz(
     file: Path = typer.Argument(..., help="A dataset file, e.g. OGBench's pointmaze-medium-navigate-v0.npz."),
     env: str | None = typer.Option(None, "--env", help="The cdrb environment (default: from the file's name)."),
     valid_fraction: float = typer.Option(0.1, "--valid-fraction", min=0.0, max=0.9, help="Share held out."),
-    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write."),
+    out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
@@ -214,7 +218,7 @@ def expert_train(
     ),
     her: bool = typer.Option(True, "--her/--no-her", help="Hindsight experience replay (future strategy, 4 goals)."),
     maze_map: Path | None = MapOpt,
-    out: Path = typer.Option(Path("expert.zip"), "--out", "-o", help="SB3 zip to write."),
+    out: Path = typer.Option(Path("expert.zip"), "--out", "-o", help="SB3 zip to write.", parser=file_path),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
 ) -> None:
@@ -255,8 +259,10 @@ def cluster(
         help="How demo states join the transition graph geodesic balls measure along: at the nearest buffer state "
         "by every feature, or by position alone.",
     ),
-    out: Path = typer.Option(Path("buffer.h5"), "--out", "-o", help="Buffer artifact to write."),
-    plot: Path | None = typer.Option(None, "--plot", help="Also draw the buffer states on the scene to this PNG."),
+    out: Path = typer.Option(Path("buffer.h5"), "--out", "-o", help="Buffer artifact to write.", parser=file_path),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Also draw the buffer states on the scene to this PNG.", parser=file_path
+    ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,

@@ -17,6 +17,7 @@ from cdrb_cli.cli.common import (
     check_outputs,
     check_video_folder,
     choice,
+    file_path,
     report_gifs,
     trained_model,
 )
@@ -74,7 +75,7 @@ SceneOpt = typer.Option(
     "them with the settings chosen for new obstacles (`--set avoid=plain`: as the model is).",
 )
 VideoOpt = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder.")
-EvalOutOpt = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write.")
+EvalOutOpt = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write.", parser=file_path)
 VideosOpt = typer.Option(3, "--videos", min=1, hidden=True, help="How many rollout GIFs with --video.")
 KeepPlansOpt = typer.Option(
     True, "--plans/--no-plans", hidden=True, help="Keep each episode's (first) plan in the eval artifact."

@@ -15,6 +15,7 @@ from cdrb_cli.cli.common import (
     JsonOpt,
     app,
     choice,
+    file_path,
 )
 from cdrb_cli.errors import BadInput
 
@@ -24,13 +25,19 @@ from cdrb_cli.errors import BadInput
 def select(
     grid_file: Path = typer.Argument(..., help="A tuning grid (TOML) whose evals `cdrb grid` has run."),
     out: Path = typer.Option(
-        ..., "--out", "-o", metavar="FILE", help="The settings file to write (TOML), for test grids to include."
+        ...,
+        "--out",
+        "-o",
+        metavar="FILE",
+        help="The settings file to write (TOML), for test grids to include.",
+        parser=file_path,
     ),
     table: Path | None = typer.Option(
         None,
         "--table",
         metavar="FILE",
         help="Also write every candidate's scores: CSV (.csv) or a markdown table (other names).",
+        parser=file_path,
     ),
     curves: Path | None = typer.Option(
         None,
@@ -38,6 +45,7 @@ def select(
         metavar="FILE",
         help="Also write the learning curves as CSV: one row per candidate, training length and training seed "
         "(success, weighted success, success without collision, plans through an obstacle, collisions; per cent).",
+        parser=file_path,
     ),
     docs: Path | None = typer.Option(
         None,
@@ -46,6 +54,7 @@ def select(
         help="Also write what was chosen (one line per environment, a column per method: tuning success ± std, "
         "training length, plans through an obstacle) into FILE between <!-- BLOCK:begin --> and "
         "<!-- BLOCK:end --> (with --block).",
+        parser=file_path,
     ),
     block: str | None = typer.Option(None, "--block", metavar="NAME", help="The marked block of --docs to replace."),
     overrides: list[str] = GridSetOpt,

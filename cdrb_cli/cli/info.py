@@ -16,6 +16,7 @@ from cdrb_cli.cli.common import (
     check_outputs,
     choice,
     controller_registry,
+    file_path,
     method_registry,
     registered,
 )
@@ -33,6 +34,7 @@ def inspect(
         "--plot",
         metavar="FILE",
         help="For a model: also draw its training curve (training and validation loss per step) to FILE (PNG).",
+        parser=file_path,
     ),
     force: bool = ForceOpt,
 ) -> None:

@@ -7,7 +7,17 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import ui
-from cdrb_cli.cli.common import DeviceOpt, ForceOpt, JsonOpt, PartialOpt, SeedOpt, app, check_outputs, trained_model
+from cdrb_cli.cli.common import (
+    DeviceOpt,
+    ForceOpt,
+    JsonOpt,
+    PartialOpt,
+    SeedOpt,
+    app,
+    check_outputs,
+    file_path,
+    trained_model,
+)
 from cdrb_cli.cli.options import (
     PLAN_MOVED,
     SCENE_FLAGS,
@@ -34,12 +44,14 @@ def plan(
     ),
     n: int | None = typer.Option(None, "--num-plans", "-n", min=1, max=10_000, help="Plans per start/goal pair."),
     maze_map: Path | None = SceneMapOpt,
-    plot: Path | None = typer.Option(None, "--plot", help="Draw the scene and the plans to this PNG."),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Draw the scene and the plans to this PNG.", parser=file_path
+    ),
     sets: list[str] = RunSetOpt,
     config_file: Path | None = RunConfigOpt,
     allow_partial: bool = PartialOpt,
     device: str = DeviceOpt,
-    out: Path = typer.Option(Path("plans.h5"), "--out", "-o", help="Plans artifact to write."),
+    out: Path = typer.Option(Path("plans.h5"), "--out", "-o", help="Plans artifact to write.", parser=file_path),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import ui
-from cdrb_cli.cli.common import ForceOpt, JsonOpt, app, check_outputs, load_artifact
+from cdrb_cli.cli.common import ForceOpt, JsonOpt, app, check_outputs, file_path, load_artifact
 from cdrb_cli.cli.data import import_app
 from cdrb_cli.errors import BadInput
 
@@ -90,7 +90,7 @@ def export_cmd(
 @import_app.command("model")
 def import_model(
     folder: Path = typer.Argument(..., help="A model folder of `cdrb export MODEL --dir DIR`."),
-    out: Path = typer.Option(Path("model.h5"), "--out", "-o", help="Model artifact to write."),
+    out: Path = typer.Option(Path("model.h5"), "--out", "-o", help="Model artifact to write.", parser=file_path),
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
 ) -> None:

@@ -16,6 +16,7 @@ from cdrb_cli.cli.common import (
     check_outputs,
     check_positive,
     choice,
+    file_path,
     load_artifact,
     parse_seeds,
 )
@@ -48,11 +49,18 @@ def report(
         "--docs",
         metavar="FILE",
         help="Write the markdown report into FILE between <!-- BLOCK:begin --> and <!-- BLOCK:end --> (with --block).",
+        parser=file_path,
     ),
     block: str | None = typer.Option(None, "--block", metavar="NAME", help="The marked block of --docs to replace."),
-    out: Path | None = typer.Option(None, "--out", "-o", help="Write the report to this file (else stdout)."),
-    plot: Path | None = typer.Option(None, "--plot", help="Bar chart of success and planned-in-obstacle rates (PNG)."),
-    plans_plot: Path | None = typer.Option(None, "--plans-plot", help="Every method's plans for the same pairs (PNG)."),
+    out: Path | None = typer.Option(
+        None, "--out", "-o", help="Write the report to this file (else stdout).", parser=file_path
+    ),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Bar chart of success and planned-in-obstacle rates (PNG).", parser=file_path
+    ),
+    plans_plot: Path | None = typer.Option(
+        None, "--plans-plot", help="Every method's plans for the same pairs (PNG).", parser=file_path
+    ),
     force: bool = ForceOpt,
 ) -> None:
     """Compare eval artifacts in a Table-1-style report (success mean ± std over seeds, plus planned states in

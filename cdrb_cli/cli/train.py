@@ -15,6 +15,7 @@ from cdrb_cli.cli.common import (
     app,
     check_outputs,
     check_positive,
+    file_path,
     int_values,
     load_artifact,
 )
@@ -38,7 +39,9 @@ def train(
     config_file: Path | None = ConfigOpt,
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the resolved config as JSON and exit."),
     device: str = DeviceOpt,
-    out: Path = typer.Option(Path("model.h5"), "--out", "-o", help="Model artifact to write (also the checkpoint)."),
+    out: Path = typer.Option(
+        Path("model.h5"), "--out", "-o", help="Model artifact to write (also the checkpoint).", parser=file_path
+    ),
     resume: bool = typer.Option(False, "--resume", help="Continue the checkpoint in --out (same settings and inputs)."),
     log_dir: Path | None = typer.Option(
         None,
