@@ -178,8 +178,9 @@ class AvoidConfig(Record):
         1,
         ge=1,
         le=64,
-        description="sample this many plans per start/goal pair in one batch and keep the first with no step "
-        "through an obstacle, else the one with the fewest (1: one plan, as the paper)",
+        description="sample this many plans per start/goal pair in one batch and keep the one with the fewest "
+        "steps through an obstacle, then (with avoid.first_step) one whose first step the robot can follow, then the "
+        "shortest (1: one plan, as the paper)",
     )
     route_k: int | None = Field(
         None,

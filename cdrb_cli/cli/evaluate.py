@@ -53,7 +53,7 @@ ProtocolOpt = typer.Option(
     None,
     "--protocol",
     metavar="NAME",
-    help="The evaluation protocol (default: the environment's; `cdrb envs` lists them). 'official-code' "
+    help="The evaluation protocol (default: the environment's; `cdrb envs --json` lists them). 'official-code' "
     "evaluates as the official CDRB code; 'detour' (with --scene) keeps the pairs the new obstacles lengthen; "
     "'anywhere' starts anywhere, with the settings chosen for plans from anywhere (mazes: the best of 16 plans).",
 )

@@ -10,7 +10,6 @@ import typer
 
 from cdrb_cli import ui
 from cdrb_cli.cli.common import (
-    ForceOpt,
     ListJsonOpt,
     app,
     check_outputs,
@@ -36,7 +35,7 @@ def inspect(
         help="For a model: also draw its training curve (training and validation loss per step) to FILE (PNG).",
         parser=file_path,
     ),
-    force: bool = ForceOpt,
+    force: bool = typer.Option(False, "--force", help="Overwrite --plot if it exists (otherwise it is an error)."),
 ) -> None:
     """Validate an artifact and print its kind, version, provenance, summary and dataset shapes.
 
