@@ -64,6 +64,34 @@ def _settings(settings: dict | None, **fields) -> list:
     return given + extra
 
 
+def _switch(value, name: str) -> bool:
+    """A yes/no argument: True or False (numpy's too), not any value that happens to be truthy."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise BadInput(f"{name} = {clip(repr(value), 40)}: not True or False", hint=f"pass {name}=True or False")
+    return bool(value)
+
+
+def _path(value, name: str) -> Path:
+    """A file or folder argument: a str or os.PathLike, as a Path."""
+    if not isinstance(value, (str, Path)) and not hasattr(value, "__fspath__"):
+        raise BadInput(f"{name} = {clip(repr(value), 40)}: not a path", hint=f"pass {name} as a str or a Path")
+    return Path(value)
+
+
+def _text(value, name: str, hint: str) -> str:
+    if not isinstance(value, str):
+        raise BadInput(f"{name} = {clip(repr(value), 40)}: not a string", hint=hint)
+    return value
+
+
+def _mapping(value, name: str = "settings") -> dict | None:
+    if value is not None and not isinstance(value, dict):
+        raise BadInput(
+            f"{name} = {clip(repr(value), 40)}: not a dict", hint='pass dotted keys, e.g. {"avoid.best_of": 4}'
+        )
+    return value
+
+
 def _avoid(**fields) -> dict:
     """The avoidance keyword arguments of :class:`Planner` and :func:`evaluate` as ``avoid.*`` settings."""
     return {f"avoid.{k}": v for k, v in fields.items()}
@@ -89,20 +117,21 @@ class Planner:
         guide_scale: float | None = None,
         route_clearance: float | None = None,
         settings: dict | None = None,
+        allow_partial: bool = False,
     ):
         """``scene``: plan among obstacles the data never saw (`cdrb plan --scene`: a maze map with walls added, a
         Fetch TOML file of boxes put down), avoiding them as `cdrb plan` does by default (``settings={"avoid":
         "plain"}``: as the model is); ``mask_buffer``, ``best_of``, ``route_k``, ``route_clearance``,
         ``guide_scale``: the ``avoid.*`` settings of those names; ``settings``: any plan setting by its dotted key
-        (`cdrb config plan`)."""
+        (`cdrb config plan`); ``allow_partial``: plan with an unfinished training's checkpoint (a warning)."""
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
         from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
-        from cdrb_cli.stages.share import load_model
+        from cdrb_cli.stages.share import check_finished, load_model
         from cdrb_cli.torch_utils import setup_torch
 
         given = _settings(
-            settings,
-            **{"use_ema": None if ema else False},
+            _mapping(settings),
+            **{"use_ema": None if _switch(ema, "ema") else False},
             **_avoid(
                 mask_buffer=mask_buffer,
                 best_of=best_of,
@@ -111,12 +140,14 @@ class Planner:
                 route_clearance=route_clearance,
             ),
         )
-        self.model = load_model(Path(model))
-        self._spec = scene_spec(self.model, None if scene is None else Path(scene))
+        self.model = load_model(_path(model, "model"))
+        check_finished(self.model, _switch(allow_partial, "allow_partial"), "allow_partial=True")
+        scene = None if scene is None else _path(scene, "scene")
+        self._spec = scene_spec(self.model, scene)
         #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
         self._given, self._scene_file = given, None if scene is None else Path(scene)
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
-        self.device = setup_torch(device, allocator=False)
+        self.device = setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
         self._route = load_route_buffer(route_buffer_path(given))
         self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, self._route)
@@ -133,7 +164,7 @@ class Planner:
         name = flag.lstrip("-")
         try:
             values = np.asarray(point, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise BadInput(f"{name} = {clip(repr(point), 60)}: not a list of numbers", hint="e.g. [0.0, 0.0]") from None
         if values.ndim != 1 or not len(values):
             raise BadInput(f"{name}: a flat list of numbers, not shape {values.shape}", hint="e.g. [0.0, 0.0]")
@@ -143,17 +174,22 @@ class Planner:
         self,
         start: Sequence[float] | np.ndarray,
         goal: Sequence[float] | np.ndarray,
-        n: int = 1,
+        n: int | None = None,
         seed: int = 0,
         sampler: str | None = None,
         steps: int | None = None,
     ) -> Plans:
-        """``n`` plans from ``start`` to ``goal`` (``sampler`` and denoising ``steps``: the model's by default)."""
+        """``n`` plans from ``start`` to ``goal`` (1, or the ``n`` of the planner's settings; ``sampler`` and
+        denoising ``steps``: the model's by default). A setting given here and in the planner's ``settings`` is
+        refused (neither would silently win)."""
+        from cdrb_cli.settings import given_once, plain
         from cdrb_cli.stages.configure import plan_config
         from cdrb_cli.stages.plan import buffer_graph, sample_plans
 
         # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
         given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
+        given_once(self._given, given, sep=" and ")
+        seed = plain(seed)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
         config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)
         # a start away from the data's starts may take a larger best-of and a second try from a buffer route (the
@@ -201,20 +237,27 @@ def evaluate(
     replan: str | None = None,
     settings: dict | None = None,
     seed: int = 0,
+    allow_partial: bool = False,
 ) -> EvalSummary:
     """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary. The
     arguments are the eval settings of those names (``controller``: ``controller.name``; the avoidance ones
     ``avoid.*``, as in :class:`Planner`; ``replan``: ``never``, ``every:N`` or ``deviation:D``), checked as the
     CLI checks them; ``settings``: any other by its dotted key (`cdrb config eval`); ``scene`` with
-    ``protocol="detour"`` for the pairs new obstacles lengthen."""
+    ``protocol="detour"`` for the pairs new obstacles lengthen; ``allow_partial``: evaluate an unfinished training's
+    checkpoint (a warning; the eval records the step it stopped at)."""
     from cdrb_cli.artifacts import check_output
+    from cdrb_cli.settings import plain
     from cdrb_cli.stages.configure import eval_config, route_buffer_path
     from cdrb_cli.stages.evaluate import eval_artifact
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
+    from cdrb_cli.stages.share import check_finished
     from cdrb_cli.torch_utils import setup_torch
 
+    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
+        raise BadInput(f"seeds = {clip(repr(seeds), 40)}: not a list of seeds", hint="e.g. seeds=[0, 1, 2]")
+    force = _switch(force, "force")
     given = _settings(
-        settings,
+        _mapping(settings),
         episodes=episodes,
         seeds=list(seeds),
         stream=stream,
@@ -229,13 +272,15 @@ def evaluate(
             route_clearance=route_clearance,
         ),
     )
-    m = artifacts.load(Path(model), "model")
-    map_path = None if scene is None else Path(scene)
+    m = artifacts.load(_path(model, "model"), "model")
+    check_finished(m, _switch(allow_partial, "allow_partial"), "allow_partial=True")
+    out = _path(out, "out")
+    map_path = None if scene is None else _path(scene, "scene")
     where = scene_spec(m, map_path)
-    config = eval_config(m, given, seed=seed, scene_file=map_path, scene=where)
+    config = eval_config(m, given, seed=plain(seed), scene_file=map_path, scene=where)
     route = load_route_buffer(route_buffer_path(given))
     inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
     check_output(Path(out), True, "out", inputs)  # an existing file: up to date, or refused without force below
-    device = setup_torch(device, allocator=False)
+    device = setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False)
     result = eval_artifact(m, config, out, force=force, device=device, scene=where, route_buffer=route)
     return result.manifest.summary

@@ -8,8 +8,11 @@ observations are cdrb's raw state vectors, actions the family's, the reward 1 on
 radius) and 0 otherwise, and an episode terminates on success and is truncated at the id's episode limit. A reset
 draws its start and goal from the environment's evaluation protocol (``options={"episode": EPISODE}`` resets to a
 given :class:`~cdrb_cli.envs.family.Episode`, e.g. one of `cdrb eval`'s pairs); ``info["goal"]`` is the goal.
-``env.unwrapped.cdrb_spec`` is the environment's spec (its scene and obstacles) and ``env.unwrapped.collides(states)``
-its collision test."""
+``protocol`` (``gymnasium.make(id, protocol="official-code")``) is one of the family's (`cdrb envs --json`), with its
+success radius, episode limit and noise as `cdrb eval --protocol` has them, and ``stream`` the pairs' stream (test,
+tune or train). ``env.unwrapped.cdrb_spec`` is the environment's spec (its scene and obstacles) and
+``env.unwrapped.collides(states)`` its collision test. Bad arguments, seeds, episodes and actions raise cdrb's
+:class:`~cdrb_cli.errors.BadInput` with a one-line message."""
 
 from __future__ import annotations
 
@@ -18,6 +21,9 @@ import re
 import gymnasium
 import numpy as np
 from gymnasium import spaces
+
+from cdrb_cli.errors import BadInput
+from cdrb_cli.settings import clip
 
 NAMESPACE = "cdrb"
 VERSION = 0
@@ -36,13 +42,24 @@ class CdrbEnv(gymnasium.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(self, env_id: str, protocol: str | None = None, stream: str = "test"):
+    def __init__(self, env_id: str, protocol: str | None = None, stream: str = "test", render_mode: str | None = None):
         from cdrb_cli.envs.registry import family_of, make_spec
         from cdrb_cli.seeding import EVAL_STREAMS
 
-        self.cdrb_spec = make_spec(env_id)
-        self.family = family_of(self.cdrb_spec)
-        self.protocol = protocol or self.family.protocol
+        base = make_spec(env_id)
+        self.family = family_of(base)
+        known = [p for p in self.family.protocols() if p not in self.family.scene_protocols]
+        self.protocol = self.family.protocol if protocol is None else protocol
+        if self.protocol not in known:
+            raise BadInput(f"protocol = {clip(repr(protocol), 40)}: not a protocol of {env_id}",
+                           hint=f"choose one of {', '.join(known)}")  # fmt: skip
+        if stream not in EVAL_STREAMS:
+            raise BadInput(f"stream = {clip(repr(stream), 40)}: not a stream", hint=f"choose {', '.join(EVAL_STREAMS)}")
+        if render_mode is not None:
+            raise BadInput(f"render_mode = {clip(repr(render_mode), 40)}: this env draws nothing",
+                           hint="`cdrb eval --video DIR` writes rollout GIFs")  # fmt: skip
+        self.render_mode = None
+        self.cdrb_spec = self.family.protocol_spec(base, self.protocol)
         self._stream = EVAL_STREAMS[stream]
         spec = self.cdrb_spec
         self.observation_space = spaces.Box(-np.inf, np.inf, (spec.obs_dim,), np.float64)
@@ -52,19 +69,57 @@ class CdrbEnv(gymnasium.Env):
         self._steps = 0
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        from cdrb_cli.envs.family import Episode
+
+        if seed is not None:
+            if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
+                raise BadInput(f"seed = {clip(repr(seed), 40)}: not a seed", hint="pass a whole number in 0..2**32-1")
+            seed = int(seed)
+        if options is not None and not isinstance(options, dict):
+            raise BadInput(f"options = {clip(repr(options), 40)}: not a dict", hint="pass options={'episode': EPISODE}")
         super().reset(seed=seed)
         episode = (options or {}).get("episode")
         if episode is None:
-            draw = int(self.np_random.integers(2**31)) if seed is None else int(seed)
+            draw = int(self.np_random.integers(2**31)) if seed is None else seed
             episode = self.family.draw_protocol_episodes(self.cdrb_spec, 1, draw, self._stream, self.protocol)[0]
+        elif not isinstance(episode, Episode):
+            raise BadInput(f"options['episode'] = {clip(repr(episode), 40)}: not an Episode",
+                           hint="pass one of cdrb's episodes (family.draw_episodes)")  # fmt: skip
         if self._sim is None:
             self._sim = self.family.make_env(self.cdrb_spec)
-        state, self.goal = self._sim.reset(episode)
-        self._steps = 0
-        return np.asarray(state, np.float64), {"goal": np.array(self.goal), "episode": episode}
+        try:
+            state, goal = self._sim.reset(episode)
+        except Exception as exc:  # the simulator's own checks (assertions, bad cells) on another family's episode
+            why = clip(str(exc), 60) or type(exc).__name__
+            raise BadInput(
+                f"options['episode'] = {clip(repr(episode), 60)}: not an episode of this environment ({why})",
+                hint="draw it for this id",
+            ) from None
+        state = np.asarray(state, np.float64)
+        if options and options.get("episode") is not None:  # a given episode: its start, and the goal reached from it
+            at_goal = state.copy()
+            at_goal[list(self.cdrb_spec.goal_dims)] = goal
+            inside = self.family.in_collision(self.cdrb_spec, np.stack([state, at_goal]))
+            if inside.any():
+                which = "start" if inside[0] else "goal"
+                raise BadInput(f"options['episode'] = {clip(repr(episode), 60)}: its {which} is inside an obstacle",
+                               hint="choose a free start and goal")  # fmt: skip
+        self.goal, self._steps = goal, 0
+        return state, {"goal": np.array(self.goal), "episode": episode}
 
     def step(self, action):
-        state = np.asarray(self._sim.step(np.asarray(action, np.float64)), np.float64)
+        if self._sim is None:
+            raise BadInput("step before reset (or after close)", hint="call env.reset() first")
+        try:
+            action = np.asarray(action, np.float64)
+        except (TypeError, ValueError):
+            raise BadInput(
+                f"action = {clip(repr(action), 40)}: not numbers", hint="an array of the action space's shape"
+            ) from None
+        if action.shape != self.action_space.shape or not np.isfinite(action).all():
+            raise BadInput(f"action of shape {action.shape}: {self.action_space.shape} finite numbers expected",
+                           hint="an array of the action space's shape")  # fmt: skip
+        state = np.asarray(self._sim.step(action), np.float64)
         self._steps += 1
         success = bool(self.family.success(self.cdrb_spec, state, self.goal))
         truncated = self._steps >= self.cdrb_spec.episode_limit and not success
@@ -77,7 +132,18 @@ class CdrbEnv(gymnasium.Env):
 
     def collides(self, states) -> np.ndarray:
         """Per state (..., obs_dim): inside an obstacle of the environment?"""
-        return np.asarray(self.family.in_collision(self.cdrb_spec, np.asarray(states, np.float64)))
+        try:
+            states = np.asarray(states, np.float64)
+        except (TypeError, ValueError):
+            raise BadInput(f"states = {clip(repr(states), 40)}: not numbers", hint="an array (..., obs_dim)") from None
+        if states.ndim < 1 or states.shape[-1] != self.cdrb_spec.obs_dim or not np.isfinite(states).all():
+            n = self.cdrb_spec.obs_dim
+            raise BadInput(f"states of shape {states.shape}: finite states of {n} numbers expected",
+                           hint="an array (..., obs_dim)")  # fmt: skip
+        return np.asarray(self.family.in_collision(self.cdrb_spec, states))
+
+    def render(self):
+        raise BadInput("this env draws nothing", hint="`cdrb eval --video DIR` writes rollout GIFs")
 
     def close(self) -> None:
         if self._sim is not None:

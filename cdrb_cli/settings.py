@@ -112,8 +112,22 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
 
 
 def from_mapping(values: dict[str, Any], source: str = "settings") -> list[Setting]:
-    """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API."""
-    return [Setting(_key(str(k), f"{source} {k}"), v, f"{source} {k}={v}") for k, v in values.items()]
+    """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API; numpy numbers
+    and arrays are taken as the Python numbers and lists they hold."""
+    return [Setting(_key(str(k), f"{source} {k}"), plain(v), f"{source} {k}={v}") for k, v in values.items()]
+
+
+def plain(value: Any) -> Any:
+    """``value`` with numpy scalars as Python numbers and numpy arrays, tuples and lists as lists of them (what a
+    setting read from JSON or TOML would hold); anything else unchanged, for the settings' own checks."""
+    kind = type(value).__module__
+    if kind == "numpy" and hasattr(value, "item") and getattr(value, "ndim", None) == 0:
+        return value.item()
+    if kind == "numpy" and hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    return value
 
 
 #: the key under which a TOML table lists its settings that are null (TOML has no null): ``null = ["max_lag"]``

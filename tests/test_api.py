@@ -74,3 +74,57 @@ def test_plan_arguments_are_checked_as_the_cli_checks_them(model, kw, needle):
     with pytest.raises(BadInput) as err:
         planner.plan(**args)
     assert needle in err.value.line() and "\n" not in err.value.line()
+
+
+def test_an_unfinished_model_is_refused_unless_allowed_and_its_eval_says_its_step(small_data, model, tmp_path):
+    """As `cdrb plan`/`cdrb eval` without --allow-partial: a training's checkpoint is refused by name; allowed, it
+    plans with a warning, and its eval records the step the training stopped at (not the steps it was set for, which
+    `cdrb select` would read as a finished model's)."""
+    demos, buffer = small_data
+    six = train(demos, buffer, train_config(demos, buffer, "cdrb", {"steps": 6, "net.dim": 8}), tmp_path / "six.h5")
+    m = six.manifest  # six steps of a training set for 20, as a checkpoint of it reads
+    update = {
+        "state": m.state.model_copy(update={"finished": False}),
+        "config": m.config.model_copy(update={"steps": 20}),
+    }
+    part = artifacts.save(tmp_path / "part.h5", "model", m.model_copy(update=update), six.arrays)
+    with pytest.raises(BadInput, match="stopped at step 6 of 20.*allow_partial=True"):
+        api.Planner(part)
+    with pytest.raises(BadInput, match="stopped at step 6 of 20"):
+        api.evaluate(part, tmp_path / "e.h5", episodes=1, stream="tune")
+    assert not (tmp_path / "e.h5").exists()
+    assert api.Planner(part, allow_partial=True).plan([0.0, 0.0], [6.0, 6.0]).states.shape[0] == 1
+    summary = api.evaluate(part, tmp_path / "e.h5", episodes=1, stream="tune", allow_partial=True)
+    assert summary.model_steps == 6
+    assert api.evaluate(model.path, tmp_path / "f.h5", episodes=1, stream="tune").model_steps == 20
+
+
+def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_path):
+    """numpy integers (a seed from a numpy loop, an n from an array) plan as the Python ints they hold; a yes/no
+    argument takes True or False only (a truthy "no" must not turn EMA weights on or overwrite a file); paths,
+    devices, settings and seeds of the wrong type, a coordinate past float range, and a setting given both to the
+    planner and to a call are one-line BadInputs."""
+    planner = api.Planner(model.path)
+    a = planner.plan([0.0, 0.0], [6.0, 6.0], n=np.int64(2), seed=np.int64(3))
+    b = planner.plan([0.0, 0.0], [6.0, 6.0], n=2, seed=3)
+    np.testing.assert_array_equal(a.states, b.states)
+    ev = api.evaluate(model.path, tmp_path / "e.h5", episodes=np.int64(1), seeds=np.array([0]), seed=np.int64(1))
+    assert ev.per_seed[0].episodes == 1
+    bad = [
+        (lambda: api.Planner(model.path, ema="no"), "ema = 'no': not True or False"),
+        (lambda: api.Planner(model.path, allow_partial=1), "allow_partial"),
+        (lambda: api.Planner(None), "model = None: not a path"),
+        (lambda: api.Planner(model.path, device=None), "device = None"),
+        (lambda: api.Planner(model.path, settings="avoid.best_of=4"), "settings = 'avoid.best_of=4': not a dict"),
+        (lambda: planner.plan([0.0, 10**400], [6.0, 6.0]), "not a list of numbers"),
+        (lambda: api.Planner(model.path, settings={"n": 3}).plan([0, 0], [6, 6], n=2), "n=2"),
+        (lambda: api.evaluate(model.path, tmp_path / "e.h5", episodes=1, force="no"), "force = 'no'"),
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds=5), "seeds = 5: not a list of seeds"),
+        (lambda: api.evaluate(model.path, None), "out = None: not a path"),
+    ]
+    for call, needle in bad:
+        with pytest.raises(BadInput) as err:
+            call()
+        assert needle in err.value.line() and "\n" not in err.value.line(), err.value.line()
+    assert artifacts.load(tmp_path / "e.h5", "eval").manifest.summary.per_seed[0].episodes == 1  # not overwritten
+    assert api.Planner(model.path, settings={"n": 3}).plan([0, 0], [6, 6]).states.shape[0] == 3

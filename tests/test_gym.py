@@ -3,6 +3,9 @@ and stepped, and a cdrb plan executed in the gymnasium env does what `cdrb eval`
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import gymnasium
 import numpy as np
 import pytest
@@ -63,3 +66,70 @@ def test_a_plan_executed_in_the_gymnasium_env_matches_cdrb_eval(tiny_models, tmp
         final = env.family.distance(spec, obs, info["goal"])
         assert final == pytest.approx(float(ev.arrays["episodes/final_distance"][e]), abs=1e-6)
     env.close()
+
+
+def test_arguments_seeds_episodes_and_actions_are_checked():
+    """The env's protocol is the family's protocol spec (success radius, episode limit as `cdrb eval --protocol`
+    has them); an unknown protocol or stream, a seed outside 32 bits (gymnasium would fold it onto another seed's
+    episode), an episode in a wall or of another kind, a wrong action and states of the wrong size are one-line
+    BadInputs, never the simulator's assertion or a silent draw."""
+    from cdrb_cli.envs.family import Episode
+    from cdrb_cli.envs.registry import family_of, make_spec
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.gym import CdrbEnv
+
+    base = make_spec("maze-tight")
+    official = family_of(base).protocol_spec(base, "official-code")
+    assert official.episode_limit != base.episode_limit  # the protocol changes what the env must follow
+    env = CdrbEnv("maze-tight", protocol="official-code")
+    assert env.unwrapped.cdrb_spec.episode_limit == official.episode_limit
+    assert env.cdrb_spec.success_radius == official.success_radius
+    for kw, needle in [({"protocol": "bogus"}, "not a protocol"), ({"protocol": 5}, "not a protocol"),
+                       ({"stream": "bogus"}, "not a stream"), ({"render_mode": "human"}, "draws nothing")]:  # fmt: skip
+        with pytest.raises(BadInput, match=needle):
+            CdrbEnv("maze-tight", **kw)
+    env = CdrbEnv("maze-tight")
+    with pytest.raises(BadInput, match="before reset"):
+        env.step(np.zeros(2))
+    obs, info = env.reset(seed=7)
+    again, _ = env.reset(seed=np.int64(7))
+    np.testing.assert_array_equal(obs, again)  # a numpy seed is the same seed
+    for seed in (2**32, -1, 2**63, 1.5, True, "3"):
+        with pytest.raises(BadInput, match="not a seed"):
+            env.reset(seed=seed)
+    taken, _ = env.reset(options={"episode": info["episode"]})  # an episode drawn for this id is taken
+    assert taken.shape == obs.shape
+    wall = (0, 0)  # a maze episode names grid cells: the map's corner is wall
+    assert base.scene.maze.rows[0][0] == "#"
+    free_cell = info["episode"].start
+    bad = [(Episode(0, wall, info["episode"].goal), "wall|inside an obstacle"),
+           (Episode(0, free_cell, wall), "wall|inside an obstacle"),
+           (5, "not an Episode"), (Episode(0, (99, 99), (1, 1)), "not an episode of this")]  # fmt: skip
+    for episode, needle in bad:
+        with pytest.raises(BadInput, match=needle):
+            env.reset(options={"episode": episode})
+    with pytest.raises(BadInput, match="not a dict"):
+        env.reset(options=[1, 2])
+    # without the simulator's assertions (python -O) the episode is still checked, by cdrb's own collision test
+    code = (
+        "from cdrb_cli.gym import CdrbEnv; from cdrb_cli.envs.family import Episode\n"
+        "from cdrb_cli.errors import BadInput\n"
+        "env = CdrbEnv('maze-tight'); _, info = env.reset(seed=7)\n"
+        "for ep in (Episode(0, (0, 0), info['episode'].goal), Episode(0, info['episode'].start, (0, 0))):\n"
+        "    try: env.reset(options={'episode': ep}); print('taken')\n"
+        "    except BadInput as e: print(e.line())\n"
+    )
+    lines = subprocess.run([sys.executable, "-O", "-c", code], capture_output=True, text=True, check=True).stdout
+    assert lines.count("inside an obstacle") == 2 and "its start" in lines and "its goal" in lines, lines
+    env.reset(seed=1)
+    for action in (0.0, np.zeros(3), np.zeros((1, 2)), [np.nan, 0.0], "up", None):
+        with pytest.raises(BadInput):
+            env.step(action)
+    for states in ([[0.0, 0.0]], [[np.nan, 0, 0, 0]], None):
+        with pytest.raises(BadInput):
+            env.collides(states)
+    with pytest.raises(BadInput, match="draws nothing"):
+        env.render()
+    env.close()
+    with pytest.raises(BadInput, match="before reset"):
+        env.step(np.zeros(2))

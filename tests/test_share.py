@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from cdrb_cli import artifacts
+from cdrb_cli.errors import BadInput
 from tests.conftest import ROOT
 
 
@@ -122,6 +123,27 @@ def test_arrays_that_disagree_with_the_manifest_are_refused(folder, tmp_path, cd
     _resum(copy)
     r = cdrb("import", "model", copy, "--out", tmp_path / "m.h5")
     assert r.returncode == 2 and "buffer/points" in r.stderr and not (tmp_path / "m.h5").exists(), r.stderr
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_weights_no_artifact_may_hold_are_the_folders_fault(folder, tmp_path, cdrb, value):
+    """A weight made NaN, infinite or huge with consistent checksums: refused by name as the folder's (the CLI and
+    the API alike), not a ValueError from writing the artifact."""
+    from safetensors.numpy import load_file, save_file
+
+    from cdrb_cli import api
+
+    copy = _copy(folder, tmp_path)
+    arrays = load_file(str(copy / "model.safetensors"))
+    name = next(k for k, v in arrays.items() if k.startswith("ema/") and v.dtype.kind == "f")
+    arrays[name] = arrays[name].copy()
+    arrays[name].flat[0] = value
+    save_file(arrays, str(copy / "model.safetensors"))
+    _resum(copy)
+    r = cdrb("import", "model", copy, "--out", tmp_path / "m.h5")
+    assert r.returncode == 2 and f"tensor {name} holds non-finite" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    with pytest.raises(BadInput, match="non-finite or out-of-range"):
+        api.Planner(copy)
 
 
 def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models, folder, tmp_path, cdrb):

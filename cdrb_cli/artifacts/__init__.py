@@ -22,6 +22,7 @@ import numpy as np
 
 from cdrb_cli import __version__
 from cdrb_cli.artifacts.core import (
+    MAX_MAGNITUDE,
     ArtifactBase,
     atomic_path,
     check_shapes,
@@ -64,6 +65,7 @@ from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc, text
 
 __all__ = [
+    "MAX_MAGNITUDE",
     "load",
     "unfinished_model",
     "save",

@@ -256,13 +256,8 @@ PartialOpt = typer.Option(
 
 
 def trained_model(path: Path, allow_partial: bool):
+    from cdrb_cli.stages.share import check_finished
+
     m = load_artifact(path, "model")
-    st = m.manifest.state
-    if not st.finished and not allow_partial:
-        raise BadInput(
-            f"{path}: training stopped at step {st.step} of {m.manifest.config.steps} (an unfinished checkpoint)",
-            hint="finish it with `cdrb train ... --resume`, or pass --allow-partial",
-        )
-    if not st.finished:
-        ui.warn(f"{path}: an unfinished training, used at its checkpoint (step {st.step} of {m.manifest.config.steps})")
+    check_finished(m, allow_partial)
     return m

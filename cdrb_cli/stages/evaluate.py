@@ -242,7 +242,7 @@ def evaluate(
     if keep_plans:
         arrays["plans"] = plans
     summary = summarize(
-        method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
+        method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), trained_steps(model)
     )
     summary = summary.model_copy(update={"masked": mask_counts(method, avoid), "variant": method.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
@@ -436,7 +436,7 @@ def evaluate_policy(
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
     close_all([env, *pool])
     summary = summarize(
-        policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), model.manifest.config.steps
+        policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), trained_steps(model)
     ).model_copy(update={"variant": policy.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
@@ -448,6 +448,13 @@ def evaluate_policy(
 
         rollout_gifs(spec, executed, video_dir, label=policy.name)
     return artifacts.load(out, "eval")
+
+
+def trained_steps(model) -> int:
+    """The training steps of the model evaluated: its config's (a snapshot's is its step), or the step an
+    unfinished training stopped at."""
+    st = model.manifest.state
+    return model.manifest.config.steps if st.finished else int(st.step)
 
 
 def _no_route_buffer(name: str) -> BadInput:

@@ -198,6 +198,10 @@ def read_folder(folder: Path):
     except (SafetensorError, OSError, ValueError) as exc:
         raise BadInput(f"{folder / WEIGHTS}: not a safetensors file ({clip(str(exc), 80)})",
                        hint="export the model again") from None  # fmt: skip
+    for name, arr in arrays.items():  # what every artifact refuses to hold, named here as the folder's fault
+        if arr.dtype.kind == "f" and not bool((np.abs(arr) <= artifacts.MAX_MAGNITUDE).all()):
+            raise BadInput(f"{folder / WEIGHTS}: tensor {clip(name, 60)} holds non-finite or out-of-range values",
+                           hint="export the model again")  # fmt: skip
     return manifest, arrays
 
 
@@ -210,6 +214,22 @@ def import_folder(folder: Path, out: Path, force: bool = False):
         model = artifacts.load(tmp, "model")
     model.path = Path(out)  # the same bytes, renamed into place
     return model
+
+
+def check_finished(model, allow_partial: bool, flag: str = "--allow-partial") -> None:
+    """Refuse a model whose training stopped before its last step (a checkpoint), unless ``allow_partial``; then
+    only warn. ``flag`` names how the caller allows it (the CLI's flag, the API's argument)."""
+    from cdrb_cli import ui
+
+    st, steps = model.manifest.state, model.manifest.config.steps
+    if st.finished:
+        return
+    if not allow_partial:
+        raise BadInput(
+            f"{model.path}: training stopped at step {st.step} of {steps} (an unfinished checkpoint)",
+            hint=f"finish it with `cdrb train ... --resume`, or pass {flag}",
+        )
+    ui.warn(f"{model.path}: an unfinished training, used at its checkpoint (step {st.step} of {steps})")
 
 
 def load_model(path: Path):
