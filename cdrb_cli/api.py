@@ -189,6 +189,9 @@ class Planner:
         # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
         given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
         given_once(self._given, given, sep=" and ")
+        if steps is not None and getattr(self.model.manifest.config.method, "diffusion_steps", None) is None:
+            raise BadInput(f"steps={steps!r}: a {self.method.name} model plans in one pass (no denoising steps)",
+                           hint="leave steps out")  # fmt: skip
         seed = plain(seed)
         s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
         config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)

@@ -128,3 +128,19 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         assert needle in err.value.line() and "\n" not in err.value.line(), err.value.line()
     assert artifacts.load(tmp_path / "e.h5", "eval").manifest.summary.per_seed[0].episodes == 1  # not overwritten
     assert api.Planner(model.path, settings={"n": 3}).plan([0, 0], [6, 6]).states.shape[0] == 3
+
+
+def test_a_planner_keeps_the_callers_torch_stream_and_refuses_steps_a_model_cannot_use(model, tiny_models):
+    """Building a planner draws initial weights before loading the trained ones: the caller's global torch stream
+    is kept as it was; denoising ``steps`` for a model that plans in one pass are refused, not ignored."""
+    import torch
+
+    torch.manual_seed(5)
+    expected = torch.rand(4)
+    torch.manual_seed(5)
+    api.Planner(model.path)
+    assert torch.equal(torch.rand(4), expected)
+    mlp = api.Planner(tiny_models["mlp"].path)
+    with pytest.raises(BadInput, match="plans in one pass"):
+        mlp.plan([0.0, 0.0], [6.0, 6.0], steps=5)
+    assert mlp.plan([0.0, 0.0], [6.0, 6.0]).states.shape[0] == 1

@@ -471,7 +471,10 @@ def load_planner(model, device="cpu", ema: bool = True) -> Planner:
             f"{model.path}: {entry.name} is a policy (it acts step by step and makes no plans)",
             hint="evaluate it closed loop with `cdrb eval MODEL`",
         )
-    return load_method(model, device=device, ema=ema)
+    from cdrb_cli.lazy import torch
+
+    with torch.random.fork_rng(devices=[]):  # building the nets draws initial weights: the caller's stream is kept
+        return load_method(model, device=device, ema=ema)
 
 
 def check_sample_steps(model, sample_steps: int | None, where: str | None = None) -> None:
