@@ -72,6 +72,13 @@ def _resum(path):
     (path / "SHA256SUMS").write_text("".join(f"{sha256_file(path / n)}  {n}\n" for n in names))
 
 
+def _link_outside(folder, name):
+    """``name`` moved out of the folder and linked back (same bytes, same checksum)."""
+    outside = folder.parent / f"outside-{name}"
+    (folder / name).rename(outside)
+    (folder / name).symlink_to(outside)
+
+
 def _flip_byte(path, offset):
     data = bytearray(path.read_bytes())
     data[offset] ^= 0x01
@@ -85,6 +92,7 @@ def _flip_byte(path, offset):
         (lambda p: (p / "README.md").unlink(), "README.md: missing"),
         (lambda p: (p / "SHA256SUMS").write_text("0" * 64 + "  ../etc/passwd\n"), "is not a line it writes"),
         (lambda p: (p / "SHA256SUMS").unlink(), "SHA256SUMS"),
+        (lambda p: _link_outside(p, "model.safetensors"), "model.safetensors: a symbolic link"),
         # consistent checksums over damaged content: the schema and the artifact's own checks refuse it
         (lambda p: (_flip_byte(p / "model.safetensors", 2), _resum(p)), "not a safetensors file"),
         (

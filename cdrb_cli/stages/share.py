@@ -164,6 +164,8 @@ def _checked_files(folder: Path) -> None:
         raise BadInput(f"{folder / SUMS}: does not list {missing[0]}", hint="export the model again")
     for name, sha in listed.items():
         path = folder / name
+        if path.is_symlink():  # a folder is shared whole: a link would read a file from outside it
+            raise BadInput(f"{path}: a symbolic link", hint="copy the file itself into the folder")
         if not path.is_file():
             raise BadInput(f"{path}: missing", hint="copy the whole folder `cdrb export` wrote")
         if sha256_file(path) != sha:
