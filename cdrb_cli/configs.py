@@ -506,6 +506,11 @@ class EvalSummary(Record):
         "tells a run's final model apart from the same file before its training was extended; None in evals before "
         "schema 2.10",
     )
+    model_training: str | None = Field(
+        None,
+        description="sha256 of the evaluated model's training settings less its seed, checkpoints and step count: "
+        "models trained alike share it (seeds of one method); None in evals before schema 2.20",
+    )
     variant: str | None = Field(
         None,
         description="what sets the evaluated model apart from its method as the paper defines it (e.g. 'geodesic "

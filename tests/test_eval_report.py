@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 
 import numpy as np
@@ -13,6 +15,7 @@ from cdrb_cli.envs.pointmaze.controllers import DEFAULT_MAX_LAG, PDController
 from cdrb_cli.envs.pointmaze.env import PointMaze
 from cdrb_cli.envs.pointmaze.expert import MazeExpert
 from cdrb_cli.envs.registry import CONTROLLERS, family_of, make_spec
+from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.config import train_config
 from cdrb_cli.seeding import STREAM_EVAL
 from cdrb_cli.stages.collect import rollout
@@ -316,6 +319,58 @@ def test_report_pools_one_eval_per_training_seed(evals, tmp_path, cdrb):
         per = evals[method].manifest.summary.per_seed
         assert by[method]["seeds"] == 2
         assert np.isclose(by[method]["success_mean"], 100 * np.mean([p.success_rate for p in per]))
+
+
+def _one_seed(ev, seed: int, path, config=None, summary=None, env=None):
+    """``ev``'s episodes of evaluation ``seed`` as an eval file of their own, with manifest fields changed."""
+    summ = ev.manifest.summary
+    summ = summ.model_copy(update={"per_seed": [p for p in summ.per_seed if p.seed == seed], **(summary or {})})
+    cfg = ev.manifest.config.model_copy(update={"seeds": [seed], **(config or {})})
+    update = {"config": cfg, "summary": summ, **({"env": env} if env is not None else {})}
+    keep = ev.arrays["episodes/seed"] == seed
+    arrays = {k: (v[keep] if k.startswith("episodes/") or k == "plans" else v) for k, v in ev.arrays.items()}
+    artifacts.save(path, "eval", ev.manifest.model_copy(update=update), arrays)
+    return artifacts.load(path, "eval")
+
+
+def test_report_pools_only_evals_that_ran_alike_and_says_what_its_spread_is_over(evals, tmp_path, cdrb):
+    """Seeds pooled into one row must have run alike: any setting (re-planning's minimum gap, a route buffer...),
+    the training length of the model evaluated, and the scene an environment's name stands for (a map is named
+    after its file). Two evaluation seeds of one model are pooled, but the summary says its spread is over
+    evaluation seeds; a one-seed row has no spread in CSV/JSON (null, not 0); the same eval twice is refused in
+    the per-seed table too."""
+    from cdrb_cli.stages.report import collect_rows
+    from cdrb_cli.stages.report_summary import render_summary
+
+    ev = evals["cdrb"]
+    a, b = _one_seed(ev, 0, tmp_path / "a.h5"), _one_seed(ev, 1, tmp_path / "b.h5")
+    (row,) = collect_rows([a, b])
+    assert row["seeds"] == 2 and row["models"] == 1
+    assert "std over seeds (a model's evaluation seeds" in render_summary([row])
+    replan = ev.manifest.config.replan.model_copy(update={"min_gap": ev.manifest.config.replan.min_gap + 7})
+    c = _one_seed(ev, 1, tmp_path / "c.h5", config={"replan": replan})
+    d = _one_seed(ev, 1, tmp_path / "d.h5", summary={"model_steps": 10})
+    maze = ev.manifest.env.scene.maze
+    rows = list(maze.rows)
+    col = rows[1].index(".")
+    rows[1] = rows[1][:col] + "#" + rows[1][col + 1 :]  # one more wall cell, the same name
+    scene = ev.manifest.env.scene.model_copy(update={"maze": maze.model_copy(update={"rows": rows})})
+    e = _one_seed(ev, 1, tmp_path / "e.h5", env=ev.manifest.env.model_copy(update={"scene": scene}))
+    f = _one_seed(ev, 1, tmp_path / "f.h5", summary={"model_training": "0" * 64})
+    assert a.manifest.summary.model_training not in (None, "0" * 64)
+    for other, needle in [(c, "a.h5 and c.h5 differ in replan.min_gap"), (d, "a.h5 and d.h5 differ in model_steps"),
+                          (e, "a.h5 and e.h5: both name the environment"),
+                          (f, "a.h5 and f.h5 evaluate models trained with other settings")]:  # fmt: skip
+        with pytest.raises(BadInput, match=needle):
+            collect_rows([a, other])
+    older = _one_seed(ev, 1, tmp_path / "g.h5", summary={"model_training": None})  # unknown: not compared
+    assert collect_rows([a, older])[0]["seeds"] == 2
+    r = cdrb("report", tmp_path / "a.h5", "--format", "csv")
+    (cells,) = list(csv.DictReader(io.StringIO(r.stdout)))
+    assert cells["success_std"] == "" and cells["success_ci95"] == "" and cells["success_mean"] != ""
+    (tmp_path / "copy.h5").write_bytes((tmp_path / "a.h5").read_bytes())
+    r = cdrb("report", tmp_path / "a.h5", tmp_path / "copy.h5", "--per-seed")
+    assert r.returncode == 2 and "a.h5 and copy.h5: the same eval twice" in r.stderr, r.stderr
 
 
 def test_eval_cli_bad_inputs(evals, small_data, tmp_path, cdrb):

@@ -242,7 +242,12 @@ def evaluate(
     if keep_plans:
         arrays["plans"] = plans
     summary = summarize(
-        method.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), trained_steps(model)
+        method.name,
+        model.manifest.config.preset,
+        per_seed,
+        round(time.time() - t0, 3),
+        trained_steps(model),
+        training_digest(model),
     )
     summary = summary.model_copy(update={"masked": mask_counts(method, avoid), "variant": method.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
@@ -436,7 +441,12 @@ def evaluate_policy(
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
     close_all([env, *pool])
     summary = summarize(
-        policy.name, model.manifest.config.preset, per_seed, round(time.time() - t0, 3), trained_steps(model)
+        policy.name,
+        model.manifest.config.preset,
+        per_seed,
+        round(time.time() - t0, 3),
+        trained_steps(model),
+        training_digest(model),
     ).model_copy(update={"variant": policy.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
@@ -455,6 +465,20 @@ def trained_steps(model) -> int:
     unfinished training stopped at."""
     st = model.manifest.state
     return model.manifest.config.steps if st.finished else int(st.step)
+
+
+#: training settings that do not change what a model learns: left out of :func:`training_digest`
+NOT_TRAINING = ("seed", "steps", "checkpoint_every", "checkpoint_seconds")
+
+
+def training_digest(model) -> str:
+    """sha256 of the model's training settings less its seed and bookkeeping: equal for the seeds of one method."""
+    import hashlib
+    import json
+
+    config = model.manifest.config.model_dump(mode="json")
+    kept = {k: v for k, v in config.items() if k not in NOT_TRAINING}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
 
 
 def _no_route_buffer(name: str) -> BadInput:

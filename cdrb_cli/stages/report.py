@@ -164,6 +164,61 @@ def _settings(ev) -> list[str]:
     return how
 
 
+def _scene(ev) -> str:
+    """What an environment's name stands for: its walls and obstacles (a map's name is its file's name)."""
+    spec = ev.manifest.env
+    return json.dumps([spec.scene.model_dump(mode="json"), spec.obstacles.model_dump(mode="json")], sort_keys=True)
+
+
+def _flat(data, prefix: str = "") -> dict:
+    if not isinstance(data, dict):
+        return {prefix: data}
+    return {k: v for key, val in data.items() for k, v in _flat(val, f"{prefix}{key}.").items()} if data else {}
+
+
+def _run(ev) -> dict:
+    """Everything about how an eval ran its model that seeds pooled into one row must share (dotted keys): its
+    settings less the evaluation seeds, the sampling seed and the scene file's path (its content is the
+    environment's), the route buffer by its content, and the training length of the model evaluated."""
+    config = ev.manifest.config.model_dump(mode="json")
+    for key in ("seeds", "seed", "scene"):
+        config.pop(key, None)
+    if (config.get("avoid") or {}).get("route_buffer") is not None:
+        shas = [p.data_sha256 or p.sha256 for p in ev.manifest.parents if p.kind == "buffer"]
+        config["avoid"]["route_buffer"] = shas[0] if shas else config["avoid"]["route_buffer"]
+    config["model_steps"] = ev.manifest.summary.model_steps
+    if ev.manifest.summary.model_training is not None:  # unknown in older evals: not compared
+        config["model_training"] = ev.manifest.summary.model_training
+    return {k.rstrip("."): v for k, v in _flat(config).items()}
+
+
+def _same_runs(label: str, env_id: str, group: list) -> None:
+    """Refuse, naming both files and the first setting that differs, evals pooled into one row that ran otherwise."""
+    first, a = group[0], _run(group[0])
+    for ev in group[1:]:
+        b = _run(ev)
+        keys = (a.keys() | b.keys()) - ({"model_training"} - (a.keys() & b.keys()))
+        diff = next((k for k in sorted(keys) if a.get(k) != b.get(k)), None)
+        if diff == "model_training":
+            raise BadInput(
+                f"{label} on {env_id}: {first.path.name} and {ev.path.name} evaluate models trained with other "
+                "settings (net, learning rate, method parameters...)",
+                hint="pool as seeds only models trained alike: report the others as their own method (`cdrb report`"
+                " of each set)",
+            )
+        if diff is not None:
+            raise BadInput(
+                f"{label} on {env_id}: {first.path.name} and {ev.path.name} differ in {diff} "
+                f"({clip(repr(a.get(diff)), 40)} vs {clip(repr(b.get(diff)), 40)})",
+                hint="evaluate every seed of a method with the same settings, on models of the same training length",
+            )
+
+
+def models_of(group: list) -> int:
+    """How many models the evals of a row evaluated (their model parents' content)."""
+    return len({p.data_sha256 or p.sha256 for ev in group for p in ev.manifest.parents if p.kind == "model"})
+
+
 def _knows_map(controller: str) -> bool:
     """Whether the controller reads the map to steer (its rows are not the planner's own)."""
     from cdrb_cli.envs.registry import CONTROLLERS
@@ -190,6 +245,14 @@ def collect_rows(evals) -> list[dict]:
                 f"eval files for {env_id} use different protocols ({_describe(first)} vs {_describe(second)})",
                 hint="evaluate every model with the same --episodes, --protocol and --stream",
             )
+        every = [ev for group in methods.values() for ev in group]
+        for ev in every[1:]:
+            if _scene(ev) != _scene(every[0]):
+                raise BadInput(
+                    f"{every[0].path.name} and {ev.path.name}: both name the environment {env_id} but hold other "
+                    "walls or obstacles",
+                    hint="give each map file its own name (the environment is named after it)",
+                )
         seed_sets, pooled = {}, {}
         for label, group in methods.items():
             settings = sorted({_planning(ev) for ev in group}, key=str)
@@ -201,12 +264,15 @@ def collect_rows(evals) -> list[dict]:
                     f"{label} on {env_id}: its eval files use different {what} ({shown[0]} vs {shown[1]})",
                     hint="evaluate every seed of a method with the same settings",
                 )
+            _same_runs(label, env_id, group)
             pooled[label] = [r for ev in group for r in per_seed(ev)]
             seeds = [r.seed for r in pooled[label]]
             if len(seeds) != len(set(seeds)):
                 dup = sorted({x for x in seeds if seeds.count(x) > 1})
+                files = [ev.path.name for ev in group if dup[0] in {r.seed for r in per_seed(ev)}]
                 raise BadInput(
-                    f"{label} on {env_id}: evaluation seed(s) {dup} appear in more than one eval file",
+                    f"{label} on {env_id}: evaluation seed(s) {dup} appear in more than one eval file "
+                    f"({', '.join(clip(f, 40) for f in files[:2])})",
                     hint="pass one eval per method and seed",
                 )
             seed_sets[label] = tuple(sorted(seeds))
@@ -235,6 +301,7 @@ def collect_rows(evals) -> list[dict]:
                     "protocol": ui.plain(first.manifest.config.protocol),
                     "controller": ui.plain(controller_name(first)),
                     "seeds": len(per),
+                    "models": models_of(group),
                     "episodes": first.manifest.config.episodes,
                     "success_mean": 100 * float(succ.mean()),
                     "success_std": 100 * sample_std(succ),
@@ -277,9 +344,13 @@ def _rate(name: str, values: list) -> dict:
 
 
 def seed_rows(evals) -> list[dict]:
-    """One row per eval file and evaluation seed (the per-seed table the docs keep beside each grouped row)."""
-    rows = []
+    """One row per eval file and evaluation seed (the per-seed table the docs keep beside each grouped row); the
+    same eval given twice (or a copy of it) is refused, as in the grouped rows."""
+    rows, seen = [], {}
     for ev in evals:
+        other = seen.setdefault(ev.data_sha256 or ev.sha256, ev)
+        if other is not ev:
+            raise BadInput(f"{other.path.name} and {ev.path.name}: the same eval twice", hint="pass each eval once")
         c = ev.manifest.config
         new_rates, bodies, states = new_crossing_rates(ev), body_crossing_rates(ev), body_state_rates(ev)
         walls = wall_crossing_rates(ev)
@@ -350,8 +421,24 @@ def method_order(methods) -> list[str]:
     return sorted(methods, key=method_rank)
 
 
+def measured_here(rows: list[dict]) -> str:
+    """The pairs and protocol of ``rows``, for a note set beside figures measured otherwise."""
+    streams = ", ".join(sorted({str(r["pairs"]) for r in rows if r.get("pairs")}))
+    protocols = ", ".join(sorted({str(r["protocol"]) for r in rows if r.get("protocol")}))
+    return f" (the rows here: {streams} pairs, protocol {protocols})" if streams and protocols else ""
+
+
+def _spread_known(row: dict) -> dict:
+    """``row`` for a machine reader: a row of one seed has no spread (null), not a spread of 0."""
+    if row.get("seeds", 2) > 1:
+        return row
+    return {k: None if k.endswith(("_std", "_ci95")) else v for k, v in row.items()}
+
+
 def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
     figures = (paper if isinstance(paper, dict) else paper_figures()) if paper else {}
+    if fmt in ("json", "csv"):
+        rows = [_spread_known(r) for r in rows]
     if fmt == "json":
         return json.dumps(rows, indent=2)
     if fmt == "csv":
@@ -389,7 +476,7 @@ def render(rows: list[dict], fmt: str, paper: bool | dict = False) -> str:
     if paper:
         lines.append(
             "\n(paper) rows are the paper's figures, measured with other experts, controllers, success radius, "
-            "horizon/stride and training budgets: see docs/benchmarks.md before comparing."
+            f"horizon/stride and training budgets{measured_here(rows)}: see docs/benchmarks.md before comparing."
         )
     lines += [
         "",

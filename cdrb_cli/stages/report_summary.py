@@ -4,7 +4,7 @@ run with other settings, and the published figures beside them."""
 
 from __future__ import annotations
 
-from cdrb_cli.stages.report import markdown_safe, method_order, paper_figures
+from cdrb_cli.stages.report import markdown_safe, measured_here, method_order, paper_figures
 
 
 def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
@@ -57,8 +57,11 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
             known = figures.get(env, {})
             vals.append(" / ".join(f"{known[m][0]:.{places}f}" if m in known else "–" for m in paper_methods))
         lines.append("| " + " | ".join(vals) + " |")
+    over = "training seeds"
+    if any(0 < r.get("models", 0) < r["seeds"] for r in rows):  # 0: evals that name no model
+        over = "seeds (a model's evaluation seeds where a row has fewer models than seeds: `models`, --format csv)"
     notes = [
-        "Cells: success (%) ± sample std over training seeds, then (in brackets) weighted success: successful "
+        f"Cells: success (%) ± sample std over {over}, then (in brackets) weighted success: successful "
         "episodes whose plan has no state in an obstacle (a policy makes no plan: n/a)."
     ]
     if below:
@@ -83,7 +86,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     if figures:
         notes.append(
             "The paper's figures were measured with other experts, controllers, success radius, horizon/stride and "
-            "training budgets: see docs/benchmarks.md before comparing."
+            f"training budgets{measured_here(rows)}: see docs/benchmarks.md before comparing."
         )
     return "\n".join(lines) + "\n\n" + " ".join(notes) + "\n"
 

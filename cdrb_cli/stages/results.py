@@ -121,10 +121,15 @@ def seed_result(seed: int, results: Sequence[EpisodeResult], policy: bool = Fals
 
 
 def summarize(
-    method: str, preset: str, per_seed: Sequence[SeedResult], wall_time_s: float, model_steps: int | None = None
+    method: str,
+    preset: str,
+    per_seed: Sequence[SeedResult],
+    wall_time_s: float,
+    model_steps: int | None = None,
+    model_training: str | None = None,
 ) -> EvalSummary:
     """Means and sample standard deviations over seeds of the per-seed results (``model_steps``: the training steps
-    of the model evaluated)."""
+    of the model evaluated; ``model_training``: the digest of its training settings)."""
 
     def mean(name):
         return mean_or_none(getattr(p, name) for p in per_seed)
@@ -140,6 +145,7 @@ def summarize(
         method=method,
         model_preset=preset,
         model_steps=model_steps,
+        model_training=model_training,
         success_mean=float(np.mean(succ)),
         success_std=sample_std(succ),
         weighted_success_mean=mean("weighted_success_rate"),
