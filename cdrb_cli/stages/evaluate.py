@@ -241,14 +241,7 @@ def evaluate(
     arrays.update(plan_measures(spec, plans))  # what report takes from the plans, kept without them too
     if keep_plans:
         arrays["plans"] = plans
-    summary = summarize(
-        method.name,
-        model.manifest.config.preset,
-        per_seed,
-        round(time.time() - t0, 3),
-        trained_steps(model),
-        training_digest(model),
-    )
+    summary = _summary(method.name, model, per_seed, t0)
     summary = summary.model_copy(update={"masked": mask_counts(method, avoid), "variant": method.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
@@ -440,14 +433,7 @@ def evaluate_policy(
                 bar.update(task, advance=len(batch), info=f"success {np.mean([r.success for r in results]):.1%}")
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
     close_all([env, *pool])
-    summary = summarize(
-        policy.name,
-        model.manifest.config.preset,
-        per_seed,
-        round(time.time() - t0, 3),
-        trained_steps(model),
-        training_digest(model),
-    ).model_copy(update={"variant": policy.variant()})
+    summary = _summary(policy.name, model, per_seed, t0).model_copy(update={"variant": policy.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
         "eval", env=spec, config=config, seed=config.seed, parents=parents, summary=summary
@@ -458,6 +444,12 @@ def evaluate_policy(
 
         rollout_gifs(spec, executed, video_dir, label=policy.name)
     return artifacts.load(out, "eval")
+
+
+def _summary(name: str, model, per_seed, t0: float) -> EvalSummary:
+    """The eval's summary: the per-seed results pooled, and what tells the model evaluated apart."""
+    preset, seconds = model.manifest.config.preset, round(time.time() - t0, 3)
+    return summarize(name, preset, per_seed, seconds, trained_steps(model), training_digest(model))
 
 
 def trained_steps(model) -> int:
