@@ -158,7 +158,8 @@ class Planner:
         return self._spec
 
     def state(self, point: Sequence[float] | np.ndarray, flag: str = "--start") -> np.ndarray:
-        """A full state from a point written as ``cdrb plan`` takes it (``flag``: ``--start`` or ``--goal``): goal
+        """A full state from a point written as ``cdrb plan`` takes it (``flag``: ``start`` or ``goal``, or the CLI's
+        ``--start``/``--goal``, which its errors name): goal
         coordinates at rest, a full state, or the family's own start form (Fetch: the block's x,y); checked to be
         free, with the CLI's one-line errors."""
         name = flag.lstrip("-")
@@ -193,7 +194,7 @@ class Planner:
             raise BadInput(f"steps={steps!r}: a {self.method.name} model plans in one pass (no denoising steps)",
                            hint="leave steps out")  # fmt: skip
         seed = plain(seed)
-        s, g = self.state(start, "--start")[None], self.state(goal, "--goal")[None]
+        s, g = self.state(start, "start")[None], self.state(goal, "goal")[None]  # errors name the arguments
         config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)
         # a start away from the data's starts may take a larger best-of and a second try from a buffer route (the
         # family's choice for plans from anywhere); otherwise the prepared avoidance itself, whose counters (e.g.

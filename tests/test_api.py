@@ -144,3 +144,18 @@ def test_a_planner_keeps_the_callers_torch_stream_and_refuses_steps_a_model_cann
     with pytest.raises(BadInput, match="plans in one pass"):
         mlp.plan([0.0, 0.0], [6.0, 6.0], steps=5)
     assert mlp.plan([0.0, 0.0], [6.0, 6.0]).states.shape[0] == 1
+
+
+def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
+    """The API's start and goal take the CLI's forms (Fetch: a start as the block's x,y) and its errors name the
+    Python argument (``start``), not the CLI's flag."""
+    from cdrb_cli.envs.registry import family_of, make_spec
+
+    spec = make_spec("fetch-push-obstacle")
+    fam = family_of(spec)
+    block = fam.parse_point(spec, "1.25,0.65", "start")
+    np.testing.assert_array_equal(block, fam.parse_point(spec, "1.25,0.65", "--start"))
+    assert block.shape == (spec.obs_dim,) and block[3] == 1.25  # the block's x, the gripper at home
+    with pytest.raises(BadInput) as err:
+        api.Planner(model.path).plan([0.0, 10.0], [6.0, 6.0])
+    assert err.value.line().startswith("start ") and "--start" not in err.value.line()

@@ -310,7 +310,7 @@ class FetchFamily(EnvFamily):
     def parse_point(self, spec: EnvSpec, text: str, flag: str) -> np.ndarray:
         """``--goal x,y,z``; ``--start bx,by`` (Push, Pick & Place: the block there at rest, the gripper at home,
         the state the env resets to) or ``--start x,y,z`` (Reach: the gripper there at rest); or a full state."""
-        if flag != "--start" or not has_object(spec):
+        if flag.lstrip("-") != "start" or not has_object(spec):  # the CLI's --start, the API's start
             return super().parse_point(spec, text, flag)
         values = self.numbers(text, flag)
         if len(values) == spec.obs_dim:
