@@ -613,6 +613,9 @@ def test_published_figures_of_methods_outside_the_registry_print_as_their_source
     assert lines[0].endswith("| 86 / 58 |") and lines[1].endswith("| 68 / – |")
     decimals = render_summary(rows, {**figures, "maze": {"QRL": (86.5, 9.0), "HIQL": (58.0, 5.0)}})
     assert "| 86.50 / 58.00 |" in decimals
+    # rows the figures do not cover (a scene of one's own): no column of dashes, and a note that says so
+    unknown = render_summary([{**r, "env": f"{r['env']}+mine"} for r in rows], figures)
+    assert "paper" not in unknown.splitlines()[0] and "The paper gives no figures for these rows." in unknown
     path.write_text('["maze"]\nQRL = [86, 9]\n')
     with pytest.raises(BadInput, match="others"):
         paper_figures(path)

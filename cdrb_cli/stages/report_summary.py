@@ -24,7 +24,8 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
     paper_methods = [m for m in dict.fromkeys(m for env in envs for m in figures.get(env, {}))]
     # published figures as their source gives them: whole per cents (OGBench) or two decimals (the paper's Table 1)
     places = 0 if all(v[0].is_integer() for by in figures.values() for v in by.values()) else 2
-    if figures:
+    shown = bool(figures) and bool(paper_methods)  # no column of dashes where the paper has none of these rows
+    if shown:
         head.append("paper: " + " / ".join(paper_methods))
     lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
     below = level = ceiling = False
@@ -53,7 +54,7 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
                 text += " ≈ floor"
                 level = True
             vals.append(text)
-        if figures:
+        if shown:
             known = figures.get(env, {})
             vals.append(" / ".join(f"{known[m][0]:.{places}f}" if m in known else "–" for m in paper_methods))
         lines.append("| " + " | ".join(vals) + " |")
@@ -83,11 +84,13 @@ def render_summary(rows: list[dict], paper: bool | dict = False) -> str:
         notes.append(preset_note)
     if settings_note:
         notes.append(settings_note)
-    if figures:
+    if shown:
         notes.append(
             "The paper's figures were measured with other experts, controllers, success radius, horizon/stride and "
             f"training budgets{measured_here(rows)}: see docs/benchmarks.md before comparing."
         )
+    elif figures:
+        notes.append("The paper gives no figures for these rows.")
     return "\n".join(lines) + "\n\n" + " ".join(notes) + "\n"
 
 
