@@ -363,6 +363,10 @@ def test_report_pools_only_evals_that_ran_alike_and_says_what_its_spread_is_over
                           (f, "a.h5 and f.h5 evaluate models trained with other settings")]:  # fmt: skip
         with pytest.raises(BadInput, match=needle):
             collect_rows([a, other])
+    (tmp_path / "other").mkdir()  # one name in two folders: the error gives the paths
+    twin = _one_seed(ev, 1, tmp_path / "other" / "a.h5", config={"replan": replan})
+    with pytest.raises(BadInput, match=f"{tmp_path / 'a.h5'} and {tmp_path / 'other' / 'a.h5'} differ"):
+        collect_rows([a, twin])
     older = _one_seed(ev, 1, tmp_path / "g.h5", summary={"model_training": None})  # unknown: not compared
     assert collect_rows([a, older])[0]["seeds"] == 2
     r = cdrb("report", tmp_path / "a.h5", "--format", "csv")

@@ -179,7 +179,8 @@ def _flat(data, prefix: str = "") -> dict:
 def _run(ev) -> dict:
     """Everything about how an eval ran its model that seeds pooled into one row must share (dotted keys): its
     settings less the evaluation seeds, the sampling seed and the scene file's path (its content is the
-    environment's), the route buffer by its content, and the training length of the model evaluated."""
+    environment's), the route buffer by its content, the training length of the model evaluated and the digest of
+    its training settings (where the eval records one)."""
     config = ev.manifest.config.model_dump(mode="json")
     for key in ("seeds", "seed", "scene"):
         config.pop(key, None)
@@ -192,23 +193,30 @@ def _run(ev) -> dict:
     return {k.rstrip("."): v for k, v in _flat(config).items()}
 
 
+def two_names(a, b) -> tuple[str, str]:
+    """How an error names two files: by name, or by path where the names are the same (two grids' folders)."""
+    na, nb = a.path.name, b.path.name
+    return (na, nb) if na != nb else (clip(str(a.path), 200), clip(str(b.path), 200))
+
+
 def _same_runs(label: str, env_id: str, group: list) -> None:
     """Refuse, naming both files and the first setting that differs, evals pooled into one row that ran otherwise."""
     first, a = group[0], _run(group[0])
     for ev in group[1:]:
         b = _run(ev)
+        one, other = two_names(first, ev)
         keys = (a.keys() | b.keys()) - ({"model_training"} - (a.keys() & b.keys()))
         diff = next((k for k in sorted(keys) if a.get(k) != b.get(k)), None)
         if diff == "model_training":
             raise BadInput(
-                f"{label} on {env_id}: {first.path.name} and {ev.path.name} evaluate models trained with other "
+                f"{label} on {env_id}: {one} and {other} evaluate models trained with other "
                 "settings (net, learning rate, method parameters...)",
                 hint="pool as seeds only models trained alike: report the others as their own method (`cdrb report`"
                 " of each set)",
             )
         if diff is not None:
             raise BadInput(
-                f"{label} on {env_id}: {first.path.name} and {ev.path.name} differ in {diff} "
+                f"{label} on {env_id}: {one} and {other} differ in {diff} "
                 f"({clip(repr(a.get(diff)), 40)} vs {clip(repr(b.get(diff)), 40)})",
                 hint="evaluate every seed of a method with the same settings, on models of the same training length",
             )
@@ -248,9 +256,9 @@ def collect_rows(evals) -> list[dict]:
         every = [ev for group in methods.values() for ev in group]
         for ev in every[1:]:
             if _scene(ev) != _scene(every[0]):
+                one, other = two_names(every[0], ev)
                 raise BadInput(
-                    f"{every[0].path.name} and {ev.path.name}: both name the environment {env_id} but hold other "
-                    "walls or obstacles",
+                    f"{one} and {other}: both name the environment {env_id} but hold other walls or obstacles",
                     hint="give each map file its own name (the environment is named after it)",
                 )
         seed_sets, pooled = {}, {}
@@ -350,7 +358,8 @@ def seed_rows(evals) -> list[dict]:
     for ev in evals:
         other = seen.setdefault(ev.data_sha256 or ev.sha256, ev)
         if other is not ev:
-            raise BadInput(f"{other.path.name} and {ev.path.name}: the same eval twice", hint="pass each eval once")
+            one, two = two_names(other, ev)
+            raise BadInput(f"{one} and {two}: the same eval twice", hint="pass each eval once")
         c = ev.manifest.config
         new_rates, bodies, states = new_crossing_rates(ev), body_crossing_rates(ev), body_state_rates(ev)
         walls = wall_crossing_rates(ev)
