@@ -145,7 +145,7 @@ class Planner:
         scene = None if scene is None else _path(scene, "scene")
         self._spec = scene_spec(self.model, scene)
         #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
-        self._given, self._scene_file = given, None if scene is None else Path(scene)
+        self._given, self._scene_file = given, scene
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
         self.device = setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
@@ -284,7 +284,7 @@ def evaluate(
     config = eval_config(m, given, seed=plain(seed), scene_file=map_path, scene=where)
     route = load_route_buffer(route_buffer_path(given))
     inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
-    check_output(Path(out), True, "out", inputs)  # an existing file: up to date, or refused without force below
+    check_output(out, True, "out", inputs)  # an existing file: up to date, or refused without force below
     device = setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False)
     result = eval_artifact(m, config, out, force=force, device=device, scene=where, route_buffer=route)
     return result.manifest.summary

@@ -79,7 +79,8 @@ class CdrbEnv(gymnasium.Env):
             raise BadInput(f"options = {clip(repr(options), 40)}: not a dict", hint="pass options={'episode': EPISODE}")
         super().reset(seed=seed)
         episode = (options or {}).get("episode")
-        if episode is None:
+        given = episode is not None
+        if not given:
             draw = int(self.np_random.integers(2**31)) if seed is None else seed
             episode = self.family.draw_protocol_episodes(self.cdrb_spec, 1, draw, self._stream, self.protocol)[0]
         elif not isinstance(episode, Episode):
@@ -96,7 +97,7 @@ class CdrbEnv(gymnasium.Env):
                 hint="draw it for this id",
             ) from None
         state = np.asarray(state, np.float64)
-        if options and options.get("episode") is not None:  # a given episode: its start, and the goal reached from it
+        if given:  # a given episode: its start, and the goal reached from it
             at_goal = state.copy()
             at_goal[list(self.cdrb_spec.goal_dims)] = goal
             inside = self.family.in_collision(self.cdrb_spec, np.stack([state, at_goal]))
@@ -110,13 +111,8 @@ class CdrbEnv(gymnasium.Env):
     def step(self, action):
         if self._sim is None:
             raise BadInput("step before reset (or after close)", hint="call env.reset() first")
-        try:
-            action = np.asarray(action, np.float64)
-        except (TypeError, ValueError):
-            raise BadInput(
-                f"action = {clip(repr(action), 40)}: not numbers", hint="an array of the action space's shape"
-            ) from None
-        if action.shape != self.action_space.shape or not np.isfinite(action).all():
+        action = _numbers(action, "action", "an array of the action space's shape")
+        if action.shape != self.action_space.shape:
             raise BadInput(f"action of shape {action.shape}: {self.action_space.shape} finite numbers expected",
                            hint="an array of the action space's shape")  # fmt: skip
         state = np.asarray(self._sim.step(action), np.float64)
@@ -132,11 +128,8 @@ class CdrbEnv(gymnasium.Env):
 
     def collides(self, states) -> np.ndarray:
         """Per state (..., obs_dim): inside an obstacle of the environment?"""
-        try:
-            states = np.asarray(states, np.float64)
-        except (TypeError, ValueError):
-            raise BadInput(f"states = {clip(repr(states), 40)}: not numbers", hint="an array (..., obs_dim)") from None
-        if states.ndim < 1 or states.shape[-1] != self.cdrb_spec.obs_dim or not np.isfinite(states).all():
+        states = _numbers(states, "states", "an array (..., obs_dim)")
+        if states.ndim < 1 or states.shape[-1] != self.cdrb_spec.obs_dim:
             n = self.cdrb_spec.obs_dim
             raise BadInput(f"states of shape {states.shape}: finite states of {n} numbers expected",
                            hint="an array (..., obs_dim)")  # fmt: skip
@@ -149,6 +142,17 @@ class CdrbEnv(gymnasium.Env):
         if self._sim is not None:
             self._sim.close()
             self._sim = None
+
+
+def _numbers(value, name: str, hint: str) -> np.ndarray:
+    """``value`` as a float64 array of finite numbers, or a one-line BadInput naming ``name``."""
+    try:
+        array = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise BadInput(f"{name} = {clip(repr(value), 40)}: not numbers", hint=hint) from None
+    if not np.isfinite(array).all():
+        raise BadInput(f"{name} of shape {array.shape}: a NaN or infinite number", hint=hint)
+    return array
 
 
 def register_envs() -> list[str]:

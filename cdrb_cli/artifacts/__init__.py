@@ -22,10 +22,10 @@ import numpy as np
 
 from cdrb_cli import __version__
 from cdrb_cli.artifacts.core import (
-    MAX_MAGNITUDE,
     ArtifactBase,
     atomic_path,
     check_shapes,
+    in_bounds,
     known_safe,
     load_arrays,
     mark_safe,
@@ -65,7 +65,8 @@ from cdrb_cli.errors import ArtifactError, BadInput, CdrbError
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc, text
 
 __all__ = [
-    "MAX_MAGNITUDE",
+    "in_bounds",
+    "differences",
     "load",
     "unfinished_model",
     "save",
@@ -334,14 +335,14 @@ def existing(
                 return Existing("different", art, f"it is already at step {state.step}, past --steps")
             what = "a finished model" if state.finished else "a checkpoint"
             return Existing("resumable", art, f"it is {what} at step {state.step}")
-    keys = _differences(art.manifest.config.model_dump(mode="json"), config.model_dump(mode="json"))
+    keys = differences(art.manifest.config.model_dump(mode="json"), config.model_dump(mode="json"))
     return Existing("different", art, f"it was made with other settings: {', '.join(keys[:4]) or 'config'}")
 
 
-def _differences(a, b, prefix: str = "") -> list[str]:
+def differences(a, b, prefix: str = "") -> list[str]:
     """Dotted keys whose values differ between two config dumps."""
     if isinstance(a, dict) and isinstance(b, dict):
-        return [k for key in dict.fromkeys([*a, *b]) for k in _differences(a.get(key), b.get(key), f"{prefix}{key}.")]
+        return [k for key in dict.fromkeys([*a, *b]) for k in differences(a.get(key), b.get(key), f"{prefix}{key}.")]
     return [] if a == b else [prefix.rstrip(".")]
 
 

@@ -134,7 +134,7 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
                 arr = np.asarray(value)
                 if arr.dtype.kind not in _ALLOWED_KINDS:
                     raise TypeError(f"dataset {name}: dtype {arr.dtype} is not numeric")
-                if arr.dtype.kind == "f" and not _in_bounds(arr):
+                if arr.dtype.kind == "f" and not in_bounds(arr):
                     what = "non-finite values" if not np.isfinite(arr).all() else f"values beyond +-{MAX_MAGNITUDE:g}"
                     raise ValueError(f"dataset {name}: refusing to write {what}")
                 parent, _, leaf = name.rpartition("/")
@@ -145,7 +145,7 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
     return path
 
 
-def _in_bounds(arr: np.ndarray) -> bool:
+def in_bounds(arr: np.ndarray) -> bool:
     """Every value finite and within +-MAX_MAGNITUDE: one pass over the array (NaN and inf fail the comparison)."""
     return bool((np.abs(arr) <= MAX_MAGNITUDE).all())
 
@@ -420,7 +420,7 @@ def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, n
                 f"{path}: dataset /{name} cannot be read ({type(exc).__name__}); the file is corrupt"
             ) from None
         arr = np.asarray(arr)
-        if arr.dtype.kind == "f" and not _in_bounds(arr):
+        if arr.dtype.kind == "f" and not in_bounds(arr):
             if not np.isfinite(arr).all():
                 raise ArtifactError(f"{path}: dataset /{name} contains NaN or inf", hint="re-create the artifact")
             raise ArtifactError(

@@ -34,6 +34,13 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
+def names_a_folder(path: str | os.PathLike) -> bool:
+    """Whether ``path`` as typed names a folder (``x.h5/``, ``x/.``, ``.``): ``Path`` drops a trailing slash, and
+    writing the file ``x.h5`` would not be what was asked."""
+    text = os.fsdecode(os.fspath(path))
+    return text.endswith((os.sep, os.sep + ".")) or text in (".", "..")
+
+
 #: the longest output file name: 255 bytes (most file systems) less the marks of its temp and lock files
 MAX_NAME_BYTES = 200
 
@@ -46,11 +53,10 @@ def check_output(
     suffixes: tuple[str, ...] = (),
 ) -> Path:
     """Validate an output path before any work starts (see the module docstring); returns it as a Path."""
-    text = os.fspath(path)
-    if isinstance(text, str) and text.endswith((os.sep, os.sep + ".")) or text in (".", ".."):
-        # Path() drops a trailing slash: 'x.h5/' names a folder, and writing the file x.h5 would not be what was asked
+    if names_a_folder(path):
         raise BadInput(
-            f"{flag} {text}: names a folder (it ends with {os.sep!r})", hint="give a file name such as model.h5"
+            f"{flag} {os.fsdecode(os.fspath(path))}: names a folder (it ends with {os.sep!r})",
+            hint="give a file name such as model.h5",
         )
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")

@@ -84,10 +84,12 @@ DeviceOpt = typer.Option("auto", "--device", help="auto (CUDA when present), cpu
 
 # ------------------------------------------------------------------------------------------------ choices
 def file_path(value) -> Path:
-    """A typer ``parser`` for an option naming a file to write: ``x.h5/`` names a folder, and ``Path`` would drop
-    the slash and write the file ``x.h5`` instead."""
+    """A typer ``parser`` for an option naming a file to write: refused here when it names a folder
+    (:func:`~cdrb_cli.artifacts.outputs.names_a_folder`), before ``Path`` drops its trailing slash."""
+    from cdrb_cli.artifacts.outputs import names_a_folder
+
     text = os.fspath(value)
-    if text.endswith((os.sep, os.sep + ".")) or text in (".", ".."):
+    if names_a_folder(text):
         raise ValueError(f"{text!r} names a folder (it ends with {os.sep!r}); give a file name")
     return Path(text)
 

@@ -459,8 +459,9 @@ def trained_steps(model) -> int:
     return model.manifest.config.steps if st.finished else int(st.step)
 
 
-#: training settings that do not change what a model learns: left out of :func:`training_digest`
-NOT_TRAINING = ("seed", "steps", "checkpoint_every", "checkpoint_seconds")
+#: training settings that do not change what a model learns, beside its config's ``bookkeeping``: left out of
+#: :func:`training_digest` (the step count is ``model_steps``'s)
+NOT_TRAINING = ("seed", "steps", "checkpoint_every")
 
 
 def training_digest(model) -> str:
@@ -468,8 +469,9 @@ def training_digest(model) -> str:
     import hashlib
     import json
 
-    config = model.manifest.config.model_dump(mode="json")
-    kept = {k: v for k, v in config.items() if k not in NOT_TRAINING}
+    config = model.manifest.config
+    left_out = {*NOT_TRAINING, *config.bookkeeping}
+    kept = {k: v for k, v in config.model_dump(mode="json").items() if k not in left_out}
     return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdrb_cli import ui
+from cdrb_cli import artifacts, ui
 from cdrb_cli.errors import BadInput
 from cdrb_cli.settings import clip
 from cdrb_cli.stages.metrics import ci95, mean_or_none, sample_std, std_or_none, sum_failures
@@ -170,27 +170,33 @@ def _scene(ev) -> str:
     return json.dumps([spec.scene.model_dump(mode="json"), spec.obstacles.model_dump(mode="json")], sort_keys=True)
 
 
-def _flat(data, prefix: str = "") -> dict:
-    if not isinstance(data, dict):
-        return {prefix: data}
-    return {k: v for key, val in data.items() for k, v in _flat(val, f"{prefix}{key}.").items()} if data else {}
+def _content(item) -> str:
+    """What an artifact (or a manifest's parent reference) holds, as a hash: its data's, else its bytes'."""
+    return item.data_sha256 or item.sha256
 
 
-def _run(ev) -> dict:
-    """Everything about how an eval ran its model that seeds pooled into one row must share (dotted keys): its
-    settings less the evaluation seeds, the sampling seed and the scene file's path (its content is the
-    environment's), the route buffer by its content, the training length of the model evaluated and the digest of
-    its training settings (where the eval records one)."""
+def _run(ev, training: bool) -> dict:
+    """Everything about how an eval ran its model that seeds pooled into one row must share: its settings less the
+    evaluation seeds, the sampling seed and the scene file's path (its content is the environment's), the route
+    buffer by its content, the training length of the model evaluated and, with ``training``, the digest of its
+    training settings."""
     config = ev.manifest.config.model_dump(mode="json")
     for key in ("seeds", "seed", "scene"):
         config.pop(key, None)
     if (config.get("avoid") or {}).get("route_buffer") is not None:
-        shas = [p.data_sha256 or p.sha256 for p in ev.manifest.parents if p.kind == "buffer"]
+        shas = [_content(p) for p in ev.manifest.parents if p.kind == "buffer"]
         config["avoid"]["route_buffer"] = shas[0] if shas else config["avoid"]["route_buffer"]
     config["model_steps"] = ev.manifest.summary.model_steps
-    if ev.manifest.summary.model_training is not None:  # unknown in older evals: not compared
+    if training:
         config["model_training"] = ev.manifest.summary.model_training
-    return {k.rstrip("."): v for k, v in _flat(config).items()}
+    return config
+
+
+def _at(data: dict, key: str):
+    """The value of a dotted ``key`` in nested dicts (None where a part is missing)."""
+    for part in key.split("."):
+        data = data.get(part) if isinstance(data, dict) else None
+    return data
 
 
 def two_names(a, b) -> tuple[str, str]:
@@ -201,12 +207,13 @@ def two_names(a, b) -> tuple[str, str]:
 
 def _same_runs(label: str, env_id: str, group: list) -> None:
     """Refuse, naming both files and the first setting that differs, evals pooled into one row that ran otherwise."""
-    first, a = group[0], _run(group[0])
+    first = group[0]
     for ev in group[1:]:
-        b = _run(ev)
+        # the training digest is compared where both evals record it (older evals do not)
+        training = None not in (first.manifest.summary.model_training, ev.manifest.summary.model_training)
+        a, b = _run(first, training), _run(ev, training)
         one, other = two_names(first, ev)
-        keys = (a.keys() | b.keys()) - ({"model_training"} - (a.keys() & b.keys()))
-        diff = next((k for k in sorted(keys) if a.get(k) != b.get(k)), None)
+        diff = next(iter(artifacts.differences(a, b)), None)
         if diff == "model_training":
             raise BadInput(
                 f"{label} on {env_id}: {one} and {other} evaluate models trained with other "
@@ -217,14 +224,14 @@ def _same_runs(label: str, env_id: str, group: list) -> None:
         if diff is not None:
             raise BadInput(
                 f"{label} on {env_id}: {one} and {other} differ in {diff} "
-                f"({clip(repr(a.get(diff)), 40)} vs {clip(repr(b.get(diff)), 40)})",
+                f"({clip(repr(_at(a, diff)), 40)} vs {clip(repr(_at(b, diff)), 40)})",
                 hint="evaluate every seed of a method with the same settings, on models of the same training length",
             )
 
 
 def models_of(group: list) -> int:
     """How many models the evals of a row evaluated (their model parents' content)."""
-    return len({p.data_sha256 or p.sha256 for ev in group for p in ev.manifest.parents if p.kind == "model"})
+    return len({_content(p) for ev in group for p in ev.manifest.parents if p.kind == "model"})
 
 
 def _knows_map(controller: str) -> bool:
@@ -254,8 +261,9 @@ def collect_rows(evals) -> list[dict]:
                 hint="evaluate every model with the same --episodes, --protocol and --stream",
             )
         every = [ev for group in methods.values() for ev in group]
+        scene = _scene(every[0])
         for ev in every[1:]:
-            if _scene(ev) != _scene(every[0]):
+            if _scene(ev) != scene:
                 one, other = two_names(every[0], ev)
                 raise BadInput(
                     f"{one} and {other}: both name the environment {env_id} but hold other walls or obstacles",
@@ -356,7 +364,7 @@ def seed_rows(evals) -> list[dict]:
     same eval given twice (or a copy of it) is refused, as in the grouped rows."""
     rows, seen = [], {}
     for ev in evals:
-        other = seen.setdefault(ev.data_sha256 or ev.sha256, ev)
+        other = seen.setdefault(_content(ev), ev)
         if other is not ev:
             one, two = two_names(other, ev)
             raise BadInput(f"{one} and {two}: the same eval twice", hint="pass each eval once")

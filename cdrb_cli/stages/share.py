@@ -201,7 +201,7 @@ def read_folder(folder: Path):
         raise BadInput(f"{folder / WEIGHTS}: not a safetensors file ({clip(str(exc), 80)})",
                        hint="export the model again") from None  # fmt: skip
     for name, arr in arrays.items():  # what every artifact refuses to hold, named here as the folder's fault
-        if arr.dtype.kind == "f" and not bool((np.abs(arr) <= artifacts.MAX_MAGNITUDE).all()):
+        if arr.dtype.kind == "f" and not artifacts.in_bounds(arr):
             raise BadInput(f"{folder / WEIGHTS}: tensor {clip(name, 60)} holds non-finite or out-of-range values",
                            hint="export the model again")  # fmt: skip
     return manifest, arrays
