@@ -92,6 +92,13 @@ def _mapping(value, name: str = "settings") -> dict | None:
     return value
 
 
+def _device(device):
+    """The torch device of an API call, its threads set as the CLI sets them (the caller's allocator left alone)."""
+    from cdrb_cli.torch_utils import setup_torch
+
+    return setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False, flag="device")
+
+
 def _avoid(**fields) -> dict:
     """The avoidance keyword arguments of :class:`Planner` and :func:`evaluate` as ``avoid.*`` settings."""
     return {f"avoid.{k}": v for k, v in fields.items()}
@@ -127,7 +134,6 @@ class Planner:
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
         from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
         from cdrb_cli.stages.share import check_finished, load_model
-        from cdrb_cli.torch_utils import setup_torch
 
         given = _settings(
             _mapping(settings),
@@ -143,11 +149,11 @@ class Planner:
         self.model = load_model(_path(model, "model"))
         check_finished(self.model, _switch(allow_partial, "allow_partial"), "allow_partial=True")
         scene = None if scene is None else _path(scene, "scene")
-        self._spec = scene_spec(self.model, scene)
+        self._spec = scene_spec(self.model, scene, "scene")
         #: the plan settings every :meth:`plan` uses (n, seed and the sampler are its arguments)
         self._given, self._scene_file = given, scene
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
-        self.device = setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False)
+        self.device = _device(device)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
         self._route = load_route_buffer(route_buffer_path(given))
         self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, self._route)
@@ -255,7 +261,6 @@ def evaluate(
     from cdrb_cli.stages.evaluate import eval_artifact
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
     from cdrb_cli.stages.share import check_finished
-    from cdrb_cli.torch_utils import setup_torch
 
     if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
         raise BadInput(f"seeds = {clip(repr(seeds), 40)}: not a list of seeds", hint="e.g. seeds=[0, 1, 2]")
@@ -280,11 +285,11 @@ def evaluate(
     check_finished(m, _switch(allow_partial, "allow_partial"), "allow_partial=True")
     out = _path(out, "out")
     map_path = None if scene is None else _path(scene, "scene")
-    where = scene_spec(m, map_path)
+    where = scene_spec(m, map_path, "scene")
     config = eval_config(m, given, seed=plain(seed), scene_file=map_path, scene=where)
     route = load_route_buffer(route_buffer_path(given))
     inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
     check_output(out, True, "out", inputs)  # an existing file: up to date, or refused without force below
-    device = setup_torch(_text(device, "device", 'pass "cpu", "cuda" or "auto"'), allocator=False)
-    result = eval_artifact(m, config, out, force=force, device=device, scene=where, route_buffer=route)
+    device = _device(device)
+    result = eval_artifact(m, config, out, force=force, device=device, scene=where, route_buffer=route, flag="out")
     return result.manifest.summary

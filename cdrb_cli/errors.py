@@ -12,6 +12,20 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # Ctrl-C or SIGTERM
 
 
+def option(flag: str, value: object = True) -> str:
+    """An option as its caller writes it, the dialect read from ``flag``: a command-line flag (``--force``,
+    ``--device cpu``) or a Python keyword argument (``force=True``, ``device='cpu'``), so one message serves the CLI
+    and the API."""
+    if flag.startswith("-"):
+        return flag if value is True else f"{flag} {value}"
+    return f"{flag}={value!r}"
+
+
+def force_option(flag: str) -> str:
+    """How to overwrite the output named by ``flag`` in the same dialect: ``--force`` or ``force=True``."""
+    return option("--force" if flag.startswith("-") else "force")
+
+
 class CdrbError(Exception):
     """Base class of every error cdrb reports to a user. ``str(err)`` is a single line."""
 

@@ -7,7 +7,7 @@ import os
 import sys
 import time
 
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, option
 
 #: seconds of CPU accounting sampled to judge how many cores other work keeps busy right now
 BUSY_SAMPLE_SECONDS = 0.2
@@ -115,9 +115,10 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(_M_MMAP_THRESHOLD, HEAP_BLOCK_MAX)) and bool(mallopt(_M_TRIM_THRESHOLD, 2 * HEAP_BLOCK_MAX))
 
 
-def setup_torch(device: str = "auto", threads: int | None = None, allocator: bool = True):
+def setup_torch(device: str = "auto", threads: int | None = None, allocator: bool = True, flag: str = "--device"):
     """Threads and device for a stage; ``allocator``: also let the heap keep freed blocks (:func:`keep_freed_memory`),
-    which a command does for its own process and a library caller's process is left without."""
+    which a command does for its own process and a library caller's process is left without; ``flag``: the option
+    its errors name (the CLI's ``--device``, the API's ``device``)."""
     import torch
 
     if allocator:
@@ -127,9 +128,9 @@ def setup_torch(device: str = "auto", threads: int | None = None, allocator: boo
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise BadInput("--device cuda: no CUDA device is available", hint="use --device cpu")
+        raise BadInput(f"{option(flag, device)}: no CUDA device is available", hint=f"use {option(flag, 'cpu')}")
     if device not in ("cpu",) and not device.startswith("cuda"):
-        raise BadInput(f"--device {device!r}: unknown device", hint="use auto, cpu or cuda")
+        raise BadInput(f"{option(flag, device)}: unknown device", hint="use auto, cpu or cuda")
     return torch.device(device)
 
 

@@ -46,8 +46,9 @@ def test_evaluate_writes_the_eval_artifact_and_returns_its_summary(model, tmp_pa
     before = (tmp_path / "e.h5").stat().st_mtime_ns
     again = api.evaluate(model.path, tmp_path / "e.h5", episodes=2, seeds=[0], stream="tune")
     assert again == summary and (tmp_path / "e.h5").stat().st_mtime_ns == before
-    with pytest.raises(BadInput, match="not made by this exact command"):
+    with pytest.raises(BadInput, match="not made by this exact command") as err:
         api.evaluate(model.path, tmp_path / "e.h5", episodes=3, seeds=[0], stream="tune")
+    assert "force=True" in err.value.line() and "--" not in err.value.line()  # the argument, not the CLI's flag
     redone = api.evaluate(model.path, tmp_path / "e.h5", episodes=3, seeds=[0], stream="tune", force=True)
     assert redone.per_seed[0].episodes == 3
 
@@ -159,3 +160,25 @@ def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
     with pytest.raises(BadInput) as err:
         api.Planner(model.path).plan([0.0, 10.0], [6.0, 6.0])
     assert err.value.line().startswith("start ") and "--start" not in err.value.line()
+
+
+def test_api_errors_name_python_arguments_where_the_cli_names_flags(model, tmp_path, monkeypatch):
+    """The device, the scene file and the output are named as the caller gave them (``device='cuda'``, ``scene``),
+    with the fix in the same dialect; the CLI's messages keep their flags."""
+    import torch
+
+    from cdrb_cli.torch_utils import setup_torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(BadInput) as err:
+        api.Planner(model.path, device="cuda")
+    assert err.value.line() == "device='cuda': no CUDA device is available (use device='cpu')"
+    with pytest.raises(BadInput, match="--device cuda: no CUDA device is available \\(use --device cpu\\)"):
+        setup_torch("cuda", allocator=False)
+    with pytest.raises(BadInput) as err:
+        api.Planner(model.path, scene=tmp_path / "missing.txt")
+    assert err.value.line().startswith("scene ") and "--" not in err.value.line()
+    (tmp_path / "taken.h5").write_bytes(b"not an eval")
+    with pytest.raises(BadInput) as err:
+        api.evaluate(model.path, tmp_path / "taken.h5", episodes=1, seeds=[0], stream="tune")
+    assert err.value.line().startswith("out ") and "force=True" in err.value.line()

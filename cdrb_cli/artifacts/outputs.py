@@ -19,7 +19,7 @@ import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, force_option
 
 try:
     import fcntl
@@ -85,7 +85,9 @@ def check_output(
             if _same(path, Path(item)):
                 raise BadInput(f"{flag} {path}: is an input of this command", hint="write to another path")
         if not force:
-            raise BadInput(f"{flag} {path}: file exists", hint="pass --force to overwrite it, or choose another path")
+            raise BadInput(
+                f"{flag} {path}: file exists", hint=f"pass {force_option(flag)} to overwrite it, or choose another path"
+            )
     _check_writable(folder, flag, path)
     return path
 

@@ -569,10 +569,12 @@ def summary_line(s: EvalSummary, config: EvalConfig, env_id: str) -> str:
     return text
 
 
-def eval_artifact(model, config: EvalConfig, out, *, force: bool, device, scene: EnvSpec, route_buffer=None, **kw):
+def eval_artifact(
+    model, config: EvalConfig, out, *, force: bool, device, scene: EnvSpec, route_buffer=None, flag="--out", **kw
+):
     """The eval artifact of ``config`` at ``out``, evaluated in ``scene`` under the config's protocol, unless the
     file there is already up to date (same config and parents); ``kw``: :func:`evaluate`'s outputs (plans, videos,
-    the re-planning picture). What `cdrb eval` and the Python API both run."""
+    the re-planning picture); ``flag``: how errors name ``out``. What `cdrb eval` and the Python API both run."""
     spec = family_of(model.manifest.env).protocol_spec(scene, config.protocol)
     return artifacts.produce(
         out,
@@ -582,4 +584,5 @@ def eval_artifact(model, config: EvalConfig, out, *, force: bool, device, scene:
         lambda: evaluate(model, config, out, device=device, spec=spec, route_buffer=route_buffer, **kw),
         parents=[model] if route_buffer is None else [model, route_buffer],
         env=spec,
+        flag=flag,
     )
