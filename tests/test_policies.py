@@ -289,14 +289,24 @@ def test_bfloat16_runs_the_forward_passes_of_an_update_and_keeps_the_weights_flo
     assert runs[precision] == pytest.approx(runs["float32"], rel=0.05)
 
 
-def test_bfloat16_is_refused_on_a_gpu_without_it(monkeypatch):
+def test_bfloat16_is_refused_on_a_gpu_without_it_and_said_to_be_emulated_on_a_cpu(monkeypatch):
     import torch
 
+    from cdrb_cli import ui
     from cdrb_cli.errors import BadInput
+    from cdrb_cli.stages import train as train_stage
     from cdrb_cli.stages.train import check_precision
 
     cfg = types.SimpleNamespace(precision="bfloat16")
-    check_precision(cfg, "cpu")  # a CPU runs it, natively or emulated
+    warned = []
+    monkeypatch.setattr(ui, "warn", warned.append)
+    for native in (True, False):  # a CPU runs it, natively or emulated: the emulated case is said
+        monkeypatch.setattr(train_stage, "native_cpu_bfloat16", lambda native=native: native)
+        check_precision(cfg, "cpu")
+        assert len(warned) == (0 if native else 1)
+    assert "no native bfloat16" in warned[0] and "precision=float32" in warned[0]
+    check_precision(types.SimpleNamespace(precision="float32"), "cpu")
+    assert len(warned) == 1
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda: False)
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "Tesla V100")
     with pytest.raises(BadInput, match="precision=bfloat16: Tesla V100 has no bfloat16"):

@@ -53,11 +53,33 @@ def check_inputs(demos, buffer, features: str) -> Normalizer:
     return bnorm
 
 
-def check_precision(config: TrainConfig, device) -> None:
-    """Refuse bfloat16 arithmetic on a GPU that has none (a CPU always runs it, natively or emulated)."""
+def native_cpu_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 matrices natively (AVX-512 BF16 or AMX, as oneDNN sees it); elsewhere
+    torch emulates them, far slower than float32 (on an AVX2-only CPU a (2,560 x 256) x (256 x 256) product took
+    ~60x float32's time)."""
     import torch
 
-    if config.precision != "bfloat16" or torch.device(device).type != "cuda" or torch.cuda.is_bf16_supported():
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # a build without oneDNN: nothing native to use
+        return False
+
+
+def check_precision(config: TrainConfig, device) -> None:
+    """Refuse bfloat16 arithmetic on a GPU that has none; on a CPU without native bfloat16 warn that it is
+    emulated (it runs, slower than float32)."""
+    import torch
+
+    if config.precision != "bfloat16":
+        return
+    if torch.device(device).type != "cuda":
+        if not native_cpu_bfloat16():
+            ui.warn(
+                "--set precision=bfloat16: this CPU has no native bfloat16 arithmetic (AVX-512 BF16 or AMX), so "
+                "torch emulates it, many times slower than float32: train with --set precision=float32 (the default)"
+            )
+        return
+    if torch.cuda.is_bf16_supported():
         return
     raise BadInput(
         f"--set precision=bfloat16: {torch.cuda.get_device_name(device)} has no bfloat16 arithmetic",
