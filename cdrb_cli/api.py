@@ -168,6 +168,8 @@ class Planner:
         ``--start``/``--goal``, which its errors name): goal
         coordinates at rest, a full state, or the family's own start form (Fetch: the block's x,y); checked to be
         free, with the CLI's one-line errors."""
+        if flag not in ("start", "goal", "--start", "--goal"):
+            raise BadInput(f"flag = {clip(repr(flag), 40)}: not a point's name", hint='pass "start" or "goal"')
         name = flag.lstrip("-")
         try:
             values = np.asarray(point, dtype=np.float64)

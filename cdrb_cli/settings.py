@@ -63,7 +63,10 @@ def _key(text: str, source: str) -> Path_:
     if not text.strip() or any(not p.isidentifier() for p in parts):
         raise BadInput(
             f"{clip(source)}: {clip(repr(text), 60)} is not a setting name",
-            hint="write KEY=VALUE, e.g. --set net.dim=32",
+            # the API's settings dict (its source "settings KEY") takes dotted keys; the CLI KEY=VALUE
+            hint='use a dotted key, e.g. {"avoid.best_of": 4}'
+            if source.startswith("settings ")
+            else "write KEY=VALUE, e.g. --set net.dim=32",
         )
     return parts
 

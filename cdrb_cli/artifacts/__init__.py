@@ -107,7 +107,12 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     process wrote, or has read so before, skip the probe (:func:`~cdrb_cli.artifacts.core.known_safe`: by their
     sha256, which the artifact records anyway); a fork costs 30-60 ms in a process that has imported torch."""
     path = Path(path)
-    sha = sha256_file(path) if path.is_file() else None  # a non-file: the reader's checks say what it is
+    try:
+        is_file = path.is_file()
+    except OSError as exc:  # e.g. a name too long for the file system: no file there to read
+        shown = str(path) if len(str(path)) <= 80 else str(path)[:77] + "..."
+        raise ArtifactError(f"{shown}: cannot be read ({exc.strerror})", hint="check the path") from None
+    sha = sha256_file(path) if is_file else None  # a non-file: the reader's checks say what it is
     if not known_safe(sha) and _guarded_probe(path, kind, sha) and sha is not None:
         mark_safe(sha)
     return _load(path, kind, sha)

@@ -33,11 +33,19 @@ from cdrb_cli.settings import Setting, apply, from_mapping, lookup, validate
 AVOID_MODES = ("plain", "tuned")
 #: the eval defaults a setting may change (the CLI's flags have these defaults too)
 EVAL_DEFAULTS: dict[str, Any] = {"episodes": 100, "seeds": [0, 1, 2, 3, 4], "stream": "test"}
-#: fields given by their own argument (a file the stage reads and hashes; the seed of every command)
+#: fields given by their own argument (a file the stage reads and hashes; the seed of every command): the value it
+#: takes, and what it is
 _NOT_SETTINGS = {
-    "scene": "pass --scene FILE, the scene file itself (a maze map with walls added, or a Fetch TOML file of boxes)",
-    "seed": "pass --seed N",
+    "scene": ("FILE", ", the scene file itself (a maze map with walls added, or a Fetch TOML file of boxes)"),
+    "seed": ("N", ""),
 }
+
+
+def _own_argument(field: str, source: str) -> str:
+    """How to give ``field`` in the dialect of the setting's ``source``: the API's ``settings`` dict names its
+    keyword argument (``seed=N``), the CLI's ``--set`` and config files the flag (``--seed N``)."""
+    value, what = _NOT_SETTINGS[field]
+    return f"pass {field}={value}{what}" if source.startswith("settings ") else f"pass --{field} {value}{what}"
 
 
 def named(settings: Sequence[Setting], path: tuple[str, ...], value: Any) -> str:
@@ -55,7 +63,7 @@ def expand(settings: Sequence[Setting]) -> list[Setting]:
     out: list[Setting] = []
     for s in settings:
         if s.path[0] in _NOT_SETTINGS:
-            raise BadInput(f"{s.source}: {s.path[0]} is not a setting", hint=_NOT_SETTINGS[s.path[0]])
+            raise BadInput(f"{s.source}: {s.path[0]} is not a setting", hint=_own_argument(s.path[0], s.source))
         if s.path == ("replan",) and isinstance(s.value, str):
             try:
                 fields = ReplanConfig.parse(s.value)

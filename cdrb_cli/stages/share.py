@@ -238,7 +238,11 @@ def load_model(path: Path):
     """The model artifact at ``path``: a model file, or a folder of `cdrb export --dir` (read through a checked
     temporary artifact)."""
     path = Path(path)
-    if not path.is_dir():
+    try:
+        folder = path.is_dir()
+    except OSError:  # e.g. a name too long: the artifact reader says so in its words
+        folder = False
+    if not folder:
         return artifacts.load(path, "model")
     with tempfile.TemporaryDirectory(prefix="cdrb-model-") as tmp:
         model = import_folder(path, Path(tmp) / "model.h5")
