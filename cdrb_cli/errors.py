@@ -32,7 +32,8 @@ class CdrbError(Exception):
     exit_code = EXIT_FAILED
 
     def __init__(self, message: str, hint: str | None = None):
-        self.message = " ".join(str(message).split())
+        # pydantic prefixes a validator's own message with "Value error, ": the message is the user's, not pydantic's
+        self.message = " ".join(str(message).split()).replace("Value error, ", "")
         self.hint = " ".join(hint.split()) if hint else None
         super().__init__(self.line())
 

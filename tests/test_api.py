@@ -191,6 +191,7 @@ def test_api_errors_name_python_arguments_where_the_cli_names_flags(model, tmp_p
         (lambda m: api.Planner(m, settings={"scene": "x.txt"}), "pass scene=FILE"),
         (lambda m: api.Planner(m, settings={"n=3": 2}), '{"avoid.best_of": 4}'),
         (lambda m: api.Planner(m).state([0.0, 0.0], None), 'pass "start" or "goal"'),
+        (lambda m: api.evaluate(m, "/tmp/x.h5", seeds=[0, 0]), "repeated seeds"),
         (lambda m: api.Planner("/tmp/" + "a" * 5000), "cannot be read (File name too long)"),
         (lambda m: api.evaluate("/tmp/" + "a" * 5000, "/tmp/x.h5", episodes=1), "cannot be read (File name too long)"),
     ],
@@ -200,4 +201,4 @@ def test_settings_that_are_arguments_and_unreadable_paths_are_named_in_python(mo
     file system cannot even look up: one BadInput each, in the API's words (no flag, no OSError)."""
     with pytest.raises(BadInput) as err:
         call(model.path)
-    assert needle in err.value.line() and "--" not in err.value.line()
+    assert needle in err.value.line() and "--" not in err.value.line() and "Value error" not in err.value.line()
