@@ -64,6 +64,10 @@ def expand(settings: Sequence[Setting]) -> list[Setting]:
     for s in settings:
         if s.path[0] in _NOT_SETTINGS:
             raise BadInput(f"{s.source}: {s.path[0]} is not a setting", hint=_own_argument(s.path[0], s.source))
+        if s.path == ("replan",) and not isinstance(s.value, (str, dict)):
+            raise BadInput(
+                f"{s.source}: not never, every:N or deviation:D", hint="e.g. replan=every:20 or replan=deviation:0.5"
+            )
         if s.path == ("replan",) and isinstance(s.value, str):
             try:
                 fields = ReplanConfig.parse(s.value)
