@@ -59,7 +59,7 @@ def _settings(settings: dict | None, **fields) -> list:
     from cdrb_cli.settings import from_mapping, given_once
     from cdrb_cli.stages.configure import keyword_settings
 
-    given, extra = keyword_settings(fields), from_mapping(dict(settings or {}), "settings")
+    given, extra = keyword_settings(fields), from_mapping(dict(settings or {}))
     given_once(given, extra, sep=" and ")
     return given + extra
 

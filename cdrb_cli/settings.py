@@ -34,6 +34,16 @@ MAX_KEY_PARTS = 8
 ECHO_CHARS = 120
 
 
+#: how the Python API's ``settings`` dict names its settings in errors (``settings KEY=VALUE``), so a message can
+#: name the caller's keyword arguments where the CLI names its flags
+API_SOURCE = "settings"
+
+
+def from_api(source: str) -> bool:
+    """Whether a setting's ``source`` is the Python API's ``settings`` dict (else a ``--set`` or a config file)."""
+    return source.startswith(API_SOURCE + " ")
+
+
 def clip(text: str, n: int = ECHO_CHARS) -> str:
     """``text`` cut to ``n`` characters for an error line (a 5 KB key is named, not echoed)."""
     text = str(text)
@@ -63,9 +73,8 @@ def _key(text: str, source: str) -> Path_:
     if not text.strip() or any(not p.isidentifier() for p in parts):
         raise BadInput(
             f"{clip(source)}: {clip(repr(text), 60)} is not a setting name",
-            # the API's settings dict (its source "settings KEY") takes dotted keys; the CLI KEY=VALUE
             hint='use a dotted key, e.g. {"avoid.best_of": 4}'
-            if source.startswith("settings ")
+            if from_api(source)
             else "write KEY=VALUE, e.g. --set net.dim=32",
         )
     return parts
@@ -114,7 +123,7 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
     return out
 
 
-def from_mapping(values: dict[str, Any], source: str = "settings") -> list[Setting]:
+def from_mapping(values: dict[str, Any], source: str = API_SOURCE) -> list[Setting]:
     """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API; numpy numbers
     and arrays are taken as the Python numbers and lists they hold."""
     return [Setting(_key(str(k), f"{source} {k}"), plain(v), f"{source} {k}={v}") for k, v in values.items()]

@@ -110,8 +110,9 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     try:
         is_file = path.is_file()
     except OSError as exc:  # e.g. a name too long for the file system: no file there to read
-        shown = str(path) if len(str(path)) <= 80 else str(path)[:77] + "..."
-        raise ArtifactError(f"{shown}: cannot be read ({exc.strerror})", hint="check the path") from None
+        from cdrb_cli.settings import clip
+
+        raise ArtifactError(f"{clip(path, 80)}: cannot be read ({exc.strerror})", hint="check the path") from None
     sha = sha256_file(path) if is_file else None  # a non-file: the reader's checks say what it is
     if not known_safe(sha) and _guarded_probe(path, kind, sha) and sha is not None:
         mark_safe(sha)

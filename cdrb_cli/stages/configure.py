@@ -27,7 +27,7 @@ from cdrb_cli.configs import ROUTE_STEPS, AvoidConfig, EvalConfig, PlanConfig, R
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.settings import Setting, apply, from_mapping, lookup, validate
+from cdrb_cli.settings import Setting, apply, from_api, from_mapping, lookup, validate
 
 #: ``avoid = ...`` values
 AVOID_MODES = ("plain", "tuned")
@@ -45,7 +45,7 @@ def _own_argument(field: str, source: str) -> str:
     """How to give ``field`` in the dialect of the setting's ``source``: the API's ``settings`` dict names its
     keyword argument (``seed=N``), the CLI's ``--set`` and config files the flag (``--seed N``)."""
     value, what = _NOT_SETTINGS[field]
-    return f"pass {field}={value}{what}" if source.startswith("settings ") else f"pass --{field} {value}{what}"
+    return f"pass {field}={value}{what}" if from_api(source) else f"pass --{field} {value}{what}"
 
 
 def named(settings: Sequence[Setting], path: tuple[str, ...], value: Any) -> str:
