@@ -954,7 +954,7 @@ def test_grid_set_variants_runs_the_named_arms_only(tmp_path):
         ("demos = 1000000000", "demos: Input should be less than or equal to 1000000"),
         ('methods = ["mlp", "mlp"]', "envs, methods and seeds must each be listed once"),
         ("report = 1", "report: Input should be a valid boolean"),
-        ("eval_seeds = [0, 0]", "eval_seeds: Value error, list each evaluation seed once"),
+        ("eval_seeds = [0, 0]", "eval_seeds: list each evaluation seed once"),
         ("eval_seeds = []", "eval_seeds: List should have at least 1 item"),
         ("eval_episodes = 200000", "eval_episodes: Input should be less than or equal to 100000"),  # eval's cap
         ("snapshot_at = [10]", "snapshot_at: 10 is not a multiple of 50"),  # where a quick training records
