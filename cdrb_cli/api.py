@@ -18,6 +18,7 @@ state. Every call is deterministic given ``seed`` (and the torch thread count, s
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -270,7 +271,7 @@ def evaluate(
     given = _settings(
         _mapping(settings),
         episodes=episodes,
-        seeds=list(seeds),
+        seeds=list(itertools.islice(seeds, 1001)),  # an endless iterable is refused as too long
         stream=stream,
         protocol=protocol,
         replan=replan,

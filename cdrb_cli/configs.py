@@ -427,7 +427,9 @@ class ReplanConfig(Record):
 
 class EvalConfig(Record):
     episodes: int = Field(gt=0, le=100_000, description="episodes per seed")
-    seeds: list[Seed] = Field(min_length=1, description="evaluation seeds (each draws its own start/goal pairs)")
+    seeds: list[Seed] = Field(
+        min_length=1, max_length=1000, description="evaluation seeds (each draws its own start/goal pairs)"
+    )
     controller: Annotated[ControllerConfig, Dispatch(CONTROLLERS, key="name", attr="config")] = Field(
         description="the controller that executes each plan, and its settings"
     )

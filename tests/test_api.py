@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -192,6 +194,7 @@ def test_api_errors_name_python_arguments_where_the_cli_names_flags(model, tmp_p
         (lambda m: api.Planner(m, settings={"n=3": 2}), '{"avoid.best_of": 4}'),
         (lambda m: api.Planner(m).state([0.0, 0.0], None), 'pass "start" or "goal"'),
         (lambda m: api.evaluate(m, "/tmp/x.h5", seeds=[0, 0]), "repeated seeds"),
+        (lambda m: api.evaluate(m, "/tmp/x.h5", seeds=itertools.count()), "at most 1000 items"),
         (lambda m: api.evaluate(m, "/tmp/x.h5", replan=5), "replan=5: not never, every:N or deviation:D"),
         (lambda m: api.Planner("/tmp/" + "a" * 5000), "cannot be read (File name too long)"),
         (lambda m: api.evaluate("/tmp/" + "a" * 5000, "/tmp/x.h5", episodes=1), "cannot be read (File name too long)"),
