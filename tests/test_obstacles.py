@@ -236,7 +236,7 @@ def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_p
     assert r.returncode == 2 and "--mask-buffer is deprecated: write --set avoid.mask_buffer=true" in r.stderr
     assert "--mask-buffer: diffuser samples from no replay buffer" in r.stderr
     r = cdrb("eval", tiny_models["cdrb"].path, "--protocol", "detour", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "add --maze-map" in r.stderr
+    assert r.returncode == 2 and "--maze-map FILE" in r.stderr
     assert not out.exists() and len(r.stderr.strip().splitlines()) == 1
 
 

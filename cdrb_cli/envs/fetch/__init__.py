@@ -247,8 +247,8 @@ class FetchFamily(EnvFamily):
 
         if not spec.scene.extra_boxes:
             raise BadInput(
-                f"--protocol {DETOUR}: {spec.id} runs in the scene it was trained in, so no pair needs a detour",
-                hint="add --scene FILE, a TOML file of the boxes put down",
+                f"protocol {DETOUR}: {spec.id} runs in the scene it was trained in, so no pair needs a detour",
+                hint="give a TOML file of the boxes put down: --scene FILE (in Python: scene=FILE)",
             )
         out: list[Episode] = []
         candidates = self.draw_episodes(spec, DETOUR_SCAN * n, seed, stream)  # a prefix of the same stream
@@ -259,7 +259,7 @@ class FetchFamily(EnvFamily):
                 if len(out) == n:
                     return out
         raise BadInput(
-            f"--protocol {DETOUR}: the boxes of {spec.scene.change} block the shortest route of {len(out)} of "
+            f"protocol {DETOUR}: the boxes of {spec.scene.change} block the shortest route of {len(out)} of "
             f"{len(candidates)} drawn pairs, fewer than the {n} asked for",
             hint="put the boxes where the data's routes go, or ask for fewer episodes",
         )
@@ -281,8 +281,7 @@ class FetchFamily(EnvFamily):
                         grip = draw_gripper_start(spec.scene, rng, ep.start, ep.goal)
                     except RuntimeError:
                         raise BadInput(
-                            f"--protocol {ANYWHERE}: the walls and boxes of {spec.id} leave no room to start the "
-                            "gripper",
+                            f"protocol {ANYWHERE}: the walls and boxes of {spec.id} leave no room to start the gripper",
                             hint="use fewer or smaller boxes, or the stock protocol",
                         ) from None
                     trial = Episode(ep.seed, (*ep.start, *grip), ep.goal)
@@ -295,7 +294,7 @@ class FetchFamily(EnvFamily):
         finally:
             env.close()
         raise BadInput(
-            f"--protocol {ANYWHERE}: the arm reaches {len(out)} of {4 * n} drawn pairs' gripper starts in "
+            f"protocol {ANYWHERE}: the arm reaches {len(out)} of {4 * n} drawn pairs' gripper starts in "
             f"{spec.id} without touching a wall, fewer than the {n} asked for",
             hint="ask for fewer episodes",
         )

@@ -319,13 +319,13 @@ class PointMazeFamily(EnvFamily):
         """Episodes whose start/goal pair is drawn uniformly from the pairs the new map makes longer."""
         if spec.scene.trained_maze is None:
             raise BadInput(
-                f"--protocol {DETOUR}: {spec.id} runs in the map it was trained in, so no pair needs a detour",
-                hint="add --maze-map NEW_MAP, the training map with walls added",
+                f"protocol {DETOUR}: {spec.id} runs in the map it was trained in, so no pair needs a detour",
+                hint="give the training map with walls added: --maze-map FILE (in Python: scene=FILE)",
             )
         pairs = geom.detour_pairs(MazeGeometry(spec.scene.trained_maze))
         if not len(pairs):
             raise BadInput(
-                f"--protocol {DETOUR}: the walls of {spec.scene.maze.name} lengthen no start-to-goal path",
+                f"protocol {DETOUR}: the walls of {spec.scene.maze.name} lengthen no start-to-goal path",
                 hint="close a passage the protocol's pairs use, or use the stock protocol",
             )
         out = []
