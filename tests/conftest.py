@@ -106,3 +106,59 @@ def tiny_models(small_data, tmp_path_factory):
         cfg = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=30))
         out[method] = train(demos, b, cfg, root / f"{method}.h5")
     return out
+
+
+class _SharedWarmServer:
+    """The test worker's one warm grid server as a grid's backend sees it: every grid this process runs forks its
+    tasks from it (each request carries its task's argv, folder and environment), and a backend's ``close`` or
+    ``retire`` leaves it running for the next test; it is closed when the session ends."""
+
+    def __init__(self, server):
+        self.server = server
+
+    def __getattr__(self, name):
+        return getattr(self.server, name)
+
+    def close(self) -> None:
+        pass
+
+    def retire(self) -> None:
+        pass
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_warm_server():
+    """One warm grid server per test worker instead of one per grid: the server imports torch, MuJoCo and the rest
+    (~5 s of CPU here) before its first fork, which dozens of tests' grids would each pay. It is started here, in
+    the main thread, because the kernel ends it (PR_SET_PDEATHSIG) when the thread that started it ends, and a
+    grid's pool thread ends with its grid. A test of the server's own life (``own_warm_servers``) gets fresh ones;
+    a server made stale by an edit of the package's code is replaced as a grid would replace it.
+    CDRB_TEST_SHARED_WARM=0 turns the sharing off."""
+    if not sys.platform.startswith("linux") or os.environ.get("CDRB_TEST_SHARED_WARM") == "0":
+        yield
+        return
+    from cdrb_cli.orchestration.grid import warm
+
+    real = warm.WarmServer
+    shared = _SharedWarmServer(real())
+
+    def server():
+        if shared.server.proc.poll() is not None or shared.server.stale():
+            return real()  # a server of its own, which the backend closes as usual
+        return shared
+
+    server.__wrapped__ = real
+    warm.WarmServer = server
+    try:
+        yield
+    finally:
+        warm.WarmServer = real
+        shared.server.close()
+
+
+@pytest.fixture
+def own_warm_servers(monkeypatch):
+    """Grids in this test start servers of their own (a test of a server's start, retirement or end)."""
+    from cdrb_cli.orchestration.grid import warm
+
+    monkeypatch.setattr(warm, "WarmServer", getattr(warm.WarmServer, "__wrapped__", warm.WarmServer))

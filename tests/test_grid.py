@@ -1177,7 +1177,7 @@ def test_warm_tasks_write_what_fresh_processes_write(tmp_path):
         assert np.array_equal(value, arrays[True][key]), key
 
 
-def test_a_warm_server_of_older_code_is_replaced_and_finishes_its_tasks(tmp_path):
+def test_a_warm_server_of_older_code_is_replaced_and_finishes_its_tasks(tmp_path, own_warm_servers):
     """Code edited while a grid runs: the server that imported the old code takes no new task (a fork would mix old
     modules with new ones it imports later); the next task gets a new server."""
     import cdrb_cli.errors as module
