@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import artifacts
-from cdrb_cli.configs import EvalSummary
+from cdrb_cli.configs import MAX_EVAL_SEEDS, EvalSummary
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
@@ -271,7 +271,7 @@ def evaluate(
     given = _settings(
         _mapping(settings),
         episodes=episodes,
-        seeds=list(itertools.islice(seeds, 1001)),  # an endless iterable is refused as too long
+        seeds=list(itertools.islice(seeds, MAX_EVAL_SEEDS + 1)),  # an endless iterable: refused as too long
         stream=stream,
         protocol=protocol,
         replan=replan,

@@ -425,10 +425,14 @@ class ReplanConfig(Record):
         return base[self.mode] + repair + ahead
 
 
+#: the most evaluation seeds one eval takes (each runs up to 100,000 episodes)
+MAX_EVAL_SEEDS = 1000
+
+
 class EvalConfig(Record):
     episodes: int = Field(gt=0, le=100_000, description="episodes per seed")
     seeds: list[Seed] = Field(
-        min_length=1, max_length=1000, description="evaluation seeds (each draws its own start/goal pairs)"
+        min_length=1, max_length=MAX_EVAL_SEEDS, description="evaluation seeds (each draws its own start/goal pairs)"
     )
     controller: Annotated[ControllerConfig, Dispatch(CONTROLLERS, key="name", attr="config")] = Field(
         description="the controller that executes each plan, and its settings"
