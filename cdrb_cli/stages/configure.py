@@ -57,6 +57,10 @@ def named(settings: Sequence[Setting], path: tuple[str, ...], value: Any) -> str
     return f"{'.'.join(path)} = {shown} (the default)"
 
 
+#: the forms a ``replan`` setting takes, for its refusals
+_REPLAN_HINT = "e.g. replan=every:20 or replan=deviation:0.5"
+
+
 def expand(settings: Sequence[Setting]) -> list[Setting]:
     """``settings`` with the shortcuts written out (``replan``, ``controller``; ``avoid`` is kept for
     :func:`avoid_base`), and the fields that are not settings refused."""
@@ -65,14 +69,12 @@ def expand(settings: Sequence[Setting]) -> list[Setting]:
         if s.path[0] in _NOT_SETTINGS:
             raise BadInput(f"{s.source}: {s.path[0]} is not a setting", hint=_own_argument(s.path[0], s.source))
         if s.path == ("replan",) and not isinstance(s.value, (str, dict)):
-            raise BadInput(
-                f"{s.source}: not never, every:N or deviation:D", hint="e.g. replan=every:20 or replan=deviation:0.5"
-            )
+            raise BadInput(f"{s.source}: not never, every:N or deviation:D", hint=_REPLAN_HINT)
         if s.path == ("replan",) and isinstance(s.value, str):
             try:
                 fields = ReplanConfig.parse(s.value)
             except ValueError as exc:
-                raise BadInput(f"{s.source}: {exc}", hint="e.g. replan=every:20 or replan=deviation:0.5") from None
+                raise BadInput(f"{s.source}: {exc}", hint=_REPLAN_HINT) from None
             out += [Setting(("replan", k), v, s.source) for k, v in fields.items()]
         elif s.path == ("controller",) and isinstance(s.value, str):
             out.append(Setting(("controller", "name"), s.value, s.source))
