@@ -233,6 +233,51 @@ def test_diffusion_ql_reward_and_critic_target_follow_their_definition(small_dat
     assert int(method.targets.updates) == 1
 
 
+@pytest.mark.parametrize("reward_tune", ["none", "cql-antmaze"])
+@pytest.mark.parametrize("gamma", [0.5, 0.9, 0.99])
+def test_return_bounds_are_the_least_and_greatest_discounted_return(reward_tune, gamma):
+    """Every episode of the sparse reward (n failures, then success or never) has its return inside the bounds,
+    and the bounds are reached (never, or success at once)."""
+    from cdrb_cli.methods.diffusion_ql import return_bounds, reward_values
+
+    r_s, r_f = reward_values(reward_tune)
+    returns = [sum(r_f * gamma**i for i in range(n)) + gamma**n * r_s for n in range(3000)]
+    returns.append(sum(r_f * gamma**i for i in range(3000)))  # never succeeds (the tail is below 1e-9 here)
+    lo, hi = return_bounds(reward_tune, gamma)
+    assert lo <= min(returns) + 1e-9 and max(returns) <= hi + 1e-9
+    assert min(returns) == pytest.approx(lo, abs=1e-6) and max(returns) == pytest.approx(hi, abs=1e-6)
+
+
+@pytest.mark.parametrize("bias", [1e4, -1e4])
+def test_target_clip_keeps_the_critic_target_inside_the_return_bounds(small_data, bias):
+    """A target critic that overestimates (or underestimates) without bound gives bootstrap targets outside the
+    returns the reward allows; with target_clip they are clipped to the bounds, terminal targets untouched."""
+    import torch
+
+    from cdrb_cli.methods.diffusion_ql import return_bounds
+    from cdrb_cli.seeding import torch_generator
+
+    demos, _ = small_data
+    targets = {}
+    for clip in (False, True):
+        torch.manual_seed(0)
+        method, cfg = _ql(demos, **{"method.target_clip": clip})
+        with torch.no_grad():
+            for head in (method.targets.critic.q1, method.targets.critic.q2):
+                head[-1].bias.fill_(bias)
+        batch = torch.from_numpy(method.data(demos, method.normalizer, "train").sample(64, np.random.default_rng(3)))
+        batch[:5, -1] = batch[:5, 1]  # five goals at their next state: success, terminal
+        r, done = method.reward(batch)
+        _, _, nxt = method._parts(batch)
+        targets[clip] = method.critic_target(nxt, r, done, torch_generator(np.random.default_rng(9)))
+    lo, hi = return_bounds(cfg.method.reward_tune, cfg.method.gamma)
+    live = done[:, 0] == 0
+    raw, clipped = targets[False][live], targets[True][live]
+    assert ((raw > hi) if bias > 0 else (raw < lo)).all()  # the unclipped target leaves the bounds
+    torch.testing.assert_close(clipped, raw.clamp(lo, hi))
+    assert torch.equal(targets[True][~live], r[~live]) and torch.equal(targets[False][~live], r[~live])
+
+
 def test_resume_of_diffusion_ql_is_exact_with_both_optimizers_and_targets(small_data, tmp_path):
     demos, _ = small_data
     flags = {**TINY_QL, "checkpoint_every": 10, "method.ema_start": 5, "method.ema_every": 2}

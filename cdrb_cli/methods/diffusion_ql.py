@@ -14,6 +14,8 @@ Read top to bottom:
   predicted action to [-1, 1]; diffusers' DDPMScheduler with these betas does the steps;
 * critic loss: twin Q heads (3 x 256, Mish) regress on r + gamma * (1 - done) * min(Q1', Q2')(s', a'), a' drawn
   from the EMA actor; with ``max_q_backup`` 10 actions are drawn per s', the max taken per head, then the min;
+  with ``target_clip`` the target is clipped to the returns the reward allows (``return_bounds``), as HER clips
+  its targets: a critic that bootstraps from its own overestimates cannot then climb past the best return;
 * actor loss: BC (the DDPM loss) + eta * q, q = -Q_i(s, a_new).mean() / |Q_j(s, a_new)|.mean() (detached; the head
   i picked at random, j the other), a_new sampled with gradients through the T-step chain;
 * targets: critic targets by Polyak averaging (tau = 0.005) every step; the EMA actor (decay 0.995) copies the actor
@@ -56,9 +58,28 @@ class DiffusionQLParams(MethodParams):
     reward: Literal["success"] = Field(
         "success", description="r = 1 when the next state passes the env's success test for the goal; terminal then"
     )
+    target_clip: bool = Field(
+        False,
+        description="clip the critic's target to the returns the sparse reward allows (HER's clip; off in the "
+        "reference)",
+    )
     reward_tune: Literal["none", "cql-antmaze"] = Field("cql-antmaze", description="cql-antmaze: r -> (r - 0.5) * 4")
     relabel: float = Field(0.5, ge=0, le=1, description="share of training goals relabelled to a later state")
     candidates: int = Field(50, gt=0, le=10_000, description="actions drawn per state when acting (q-softmax)")
+
+
+def reward_values(reward_tune: str) -> tuple[float, float]:
+    """(success reward, failure reward): 1 and 0, or (r - 0.5) * 4 of them with ``cql-antmaze``."""
+    return (2.0, -2.0) if reward_tune == "cql-antmaze" else (1.0, 0.0)
+
+
+def return_bounds(reward_tune: str, gamma: float) -> tuple[float, float]:
+    """The lowest and highest discounted return of the sparse reward: an episode pays the failure reward r_f on n
+    steps and then, maybe, the terminal success reward r_s, so its return (1 - gamma^n) r_f / (1 - gamma) +
+    gamma^n r_s is a convex mix of r_f / (1 - gamma) (never succeeding) and r_s (succeeding at once)."""
+    r_s, r_f = reward_values(reward_tune)
+    never = r_f / (1 - gamma)
+    return min(never, r_s), max(never, r_s)
 
 
 def _vp_betas(T: int, b_min: float = 0.1, b_max: float = 10.0) -> np.ndarray:
@@ -127,9 +148,7 @@ class DiffusionQL(Policy):
         """(r, done) per transition: the environment's success test on the raw next state and goal."""
         raw = self.normalizer.unnormalize(batch.detach().cpu().numpy().astype(np.float64))
         done = self.family.success(self.spec, raw[:, 1, : self.obs_dim], raw[:, -1, self.goal_dims])
-        r = done.astype(np.float64)
-        if self.config.method.reward_tune == "cql-antmaze":
-            r = (r - 0.5) * 4
+        r = np.where(done, *reward_values(self.config.method.reward_tune))
         as_t = lambda v: torch.as_tensor(v, dtype=batch.dtype, device=batch.device)[:, None]  # noqa: E731
         return as_t(r), as_t(done.astype(np.float64))
 
@@ -147,14 +166,16 @@ class DiffusionQL(Policy):
         return torch.mean((self.actor(self.sched.add_noise(a, noise, t), t, cond) - noise) ** 2)
 
     def critic_target(self, nxt, r, done, gen) -> torch.Tensor:
-        """r + gamma (1 - done) min(Q1', Q2')(s', a'), a' from the EMA actor (max over 10 draws per head first)."""
+        """r + gamma (1 - done) min(Q1', Q2')(s', a'), a' from the EMA actor (max over 10 draws per head first),
+        clipped to the reward's return bounds with ``target_clip``."""
         p = self.config.method
         with torch.no_grad():
             n = 10 if p.max_q_backup else 1
             rep = nxt.repeat_interleave(n, dim=0)
             q1, q2 = self.targets.critic(rep, self._sample(self.targets.actor, rep, gen))
             q1, q2 = q1.view(-1, n).max(dim=1, keepdim=True)[0], q2.view(-1, n).max(dim=1, keepdim=True)[0]
-            return r + p.gamma * (1 - done) * torch.min(q1, q2)
+            target = r + p.gamma * (1 - done) * torch.min(q1, q2)
+            return target.clamp(*return_bounds(p.reward_tune, p.gamma)) if p.target_clip else target
 
     # -------------------------------------------------------------- training
     def loss(self, batch, rng):
