@@ -896,6 +896,12 @@ def test_an_extension_runs_some_curves_further_and_keeps_the_rest(tmp_path):
     # given with --set, as TOML inline tables
     spec = load_grid(_grid(tmp_path, TINY.replace("steps = 20", "steps = 100")), ["extend=[{steps=200}]"])
     assert spec.curve("maze-tight", "mlp") == (200, [100])
+    # a later stage resumes the runs again: each earlier stage's end stays a point of the curve
+    staged = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\nreport = false")
+    staged += "\n[[extend]]\nsteps = 200\n\n[[extend]]\nsteps = 400\n"
+    spec = load_grid(_grid(tmp_path, staged))
+    assert spec.curve("maze-tight", "mlp") == (400, [50, 100, 200])
+    assert "eval maze-tight/mlp-s0.step200" in {t.id for t in expand(spec)}
 
 
 def test_eval_seed_offset_gives_each_model_fresh_pairs_of_its_own(tmp_path):

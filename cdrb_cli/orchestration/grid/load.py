@@ -332,7 +332,7 @@ def _check_lengths_and_seeds(spec: GridSpec, path: Path, overrides: list[str], s
             hint="use smaller seeds or a smaller offset",
         )
     runs = len(spec.envs) * len(spec.methods) * len(spec.seeds) * max(1, len(spec.variants))
-    per_run = 2 + len(spec.snapshot_at) + bool(spec.extend)
+    per_run = 2 + len(spec.snapshot_at) + len(spec.extend)
     if runs * per_run > MAX_TASKS:
         raise BadInput(
             f"{path}: the grid expands to about {runs * per_run:,} tasks (at most {MAX_TASKS:,})",

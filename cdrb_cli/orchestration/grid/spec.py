@@ -247,11 +247,15 @@ class GridSpec(_Strict):
 
     def curve(self, env: str, method: str) -> tuple[int | None, list[int]]:
         """The training length and the snapshot steps (sorted) of ``method``'s runs on ``env``: the grid's, or those
-        of the last :class:`Extension` that applies (its steps, with the grid's steps one more snapshot)."""
-        ext = next((e for e in reversed(self.extend) if e.applies(env, method)), None)
-        if ext is None:
+        of the last :class:`Extension` that applies, whose steps end the curve; the grid's steps and those of the
+        earlier extensions that stop short of it are snapshots, so each stage's final model stays a point of the
+        curve when a later stage resumes it."""
+        exts = [e for e in self.extend if e.applies(env, method)]
+        if not exts:
             return self.steps, sorted(self.snapshot_at)
-        return ext.steps, sorted([*self.snapshot_at, self.steps])
+        last = exts[-1].steps
+        stages = {self.steps, *(e.steps for e in exts[:-1] if e.steps < last)}
+        return last, sorted({*self.snapshot_at, *stages})
 
     def demos_of(self, env: str) -> int:
         """The demonstrations collected for ``env``."""
