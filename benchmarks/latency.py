@@ -9,8 +9,9 @@ For each tree a fresh process loads the model and measures, on the same protocol
   crossing one), over ``--pairs`` pairs, so a faster setting that plans less safely shows it.
 
 The trees run alternately, ``--rounds`` times (the median of the rounds is kept), so a machine that slows down
-for a while slows both. ``variant`` runs one tree twice: as it is, and with its fast paths off where it has them
-(the traced network, CUDA graphs), to show what each adds.
+for a while slows both. ``--variants`` runs one tree twice: as it is, and with its fast paths off where it has them
+(the traced network, CUDA graphs), to show what each adds; ``--onnx`` once more with the network in ONNX Runtime
+(``runtime="onnx"``).
 
 Usage:
   git worktree add /tmp/before 9a30df8
@@ -30,7 +31,15 @@ from pathlib import Path
 
 
 def measure(
-    model_path: str, device: str, pairs: int, plans: int, batches: list[int], seed: int, fast: bool, steps=None
+    model_path: str,
+    device: str,
+    pairs: int,
+    plans: int,
+    batches: list[int],
+    seed: int,
+    fast: bool,
+    steps=None,
+    runtime: str | None = None,
 ) -> dict:
     """In a worker process: the figures of one tree (imported from PYTHONPATH)."""
     import numpy as np
@@ -49,6 +58,8 @@ def measure(
         type(method).trace_sampling = False
         if hasattr(method, "cuda_graphs"):
             type(method).cuda_graphs = False
+    if runtime:  # the network in another runtime (ONNX Runtime), from the first call
+        method.use_runtime(runtime)
     starts, goals = family.reset_states(spec, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
     goals = family.goal_state(spec, goals)
 
@@ -87,6 +98,7 @@ def main() -> None:
     ap.add_argument("model")
     ap.add_argument("--tree", action="append", default=[], help="NAME=DIR of a checkout (default: this one)")
     ap.add_argument("--variants", action="store_true", help="also run each tree with its fast paths off")
+    ap.add_argument("--onnx", action="store_true", help="also run each tree with runtime onnx (ONNX Runtime)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--pairs", type=int, default=200)
@@ -103,8 +115,10 @@ def main() -> None:
         import torch
 
         torch.set_num_threads(args.threads)
-        fast = args.worker == "fast"
-        fig = measure(args.model, args.device, args.pairs, args.plans, batches, args.seed, fast, args.sample_steps)
+        fast, runtime = args.worker != "plain", "onnx" if args.worker == "onnx" else None
+        fig = measure(
+            args.model, args.device, args.pairs, args.plans, batches, args.seed, fast, args.sample_steps, runtime
+        )
         print(json.dumps(fig))
         return
     here = Path(__file__).resolve().parent.parent
@@ -112,6 +126,8 @@ def main() -> None:
     runs = [(name, path, "fast") for name, path in trees]
     if args.variants:
         runs += [(f"{name}, fast paths off", path, "plain") for name, path in trees]
+    if args.onnx:
+        runs += [(f"{name}, onnx runtime", path, "onnx") for name, path in trees]
     figures: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
     for r in range(args.rounds):
         for name, path, mode in runs:

@@ -126,12 +126,16 @@ class Planner:
         route_clearance: float | None = None,
         settings: dict | None = None,
         allow_partial: bool = False,
+        runtime: str = "torch",
     ):
         """``scene``: plan among obstacles the data never saw (`cdrb plan --scene`: a maze map with walls added, a
         Fetch TOML file of boxes put down), avoiding them as `cdrb plan` does by default (``settings={"avoid":
         "plain"}``: as the model is); ``mask_buffer``, ``best_of``, ``route_k``, ``route_clearance``,
         ``guide_scale``: the ``avoid.*`` settings of those names; ``settings``: any plan setting by its dotted key
-        (`cdrb config plan`); ``allow_partial``: plan with an unfinished training's checkpoint (a warning)."""
+        (`cdrb config plan`); ``allow_partial``: plan with an unfinished training's checkpoint (a warning);
+        ``runtime``: ``"onnx"`` runs the network in ONNX Runtime on the CPU (the ``onnx`` extra): faster for plans
+        made one at a time, slower in large batches, its plans equal to torch's to float rounding
+        (:mod:`cdrb_cli.nets.runtime`)."""
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
         from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
         from cdrb_cli.stages.share import check_finished, load_model
@@ -156,6 +160,7 @@ class Planner:
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
         self.device = _device(device)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
+        self.method.use_runtime(_text(runtime, "runtime", 'pass "torch" or "onnx"'), "runtime")
         self._route = load_route_buffer(route_buffer_path(given))
         self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, self._route)
 

@@ -150,6 +150,38 @@ def test_a_planner_keeps_the_callers_torch_stream_and_refuses_steps_a_model_cann
     assert mlp.plan([0.0, 0.0], [6.0, 6.0]).states.shape[0] == 1
 
 
+def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(model, tiny_models, monkeypatch):
+    """runtime="onnx" runs the U-Net in ONNX Runtime from the first call: CDRB's and Diffuser's plans equal torch's
+    to float rounding, the same seed gives the same plans; a model without a U-Net, a GPU, an unknown runtime and a
+    missing onnxruntime are refused in one line."""
+    import sys
+
+    for m in (model, tiny_models["diffuser"]):
+        reference = api.Planner(m.path).plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
+        planner = api.Planner(m.path, runtime="onnx")
+        first, again = (planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3) for _ in range(2))
+        assert "_onnx" in planner.method.__dict__  # the session ran the network
+        np.testing.assert_array_equal(first.features, again.features)
+        np.testing.assert_allclose(first.features, reference.features, atol=1e-4)
+        assert np.abs(first.features - reference.features).max() > 0 or m is model  # not torch under another name
+    for kw, needle in (
+        ({"runtime": "tensorrt"}, "runtime = 'tensorrt': not a runtime (pass one of 'torch', 'onnx')"),
+        ({"runtime": None}, "runtime = None: not a string"),
+    ):
+        with pytest.raises(BadInput, match=re.escape(needle)):
+            api.Planner(model.path, **kw)
+    with pytest.raises(BadInput, match="runtime = 'onnx': the mlp method's network does not run in ONNX Runtime"):
+        api.Planner(tiny_models["mlp"].path, runtime="onnx")
+    from cdrb_cli.nets.runtime import check_runtime
+
+    net = api.Planner(model.path).method.net
+    with pytest.raises(BadInput, match=r"runs on the CPU, not cuda \(pass device='cpu'"):
+        check_runtime("onnx", net, "cuda", "cdrb")
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # as if it were not installed
+    with pytest.raises(BadInput, match=re.escape("onnx and onnxruntime are not installed (pip install 'cdrb[onnx]')")):
+        api.Planner(model.path, runtime="onnx")
+
+
 def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
     """The API's start and goal take the CLI's forms (Fetch: a start as the block's x,y) and its errors name the
     Python argument (``start``), not the CLI's flag."""

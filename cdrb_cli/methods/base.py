@@ -144,6 +144,9 @@ class Method:
 
     #: whether :meth:`sample_net` may run a trace of the network (off: the module itself; benchmarks compare both)
     trace_sampling: ClassVar[bool] = True
+    #: where :meth:`sample_net` runs the network: ``torch``, or ``onnx`` (ONNX Runtime on the CPU, see
+    #: :mod:`cdrb_cli.nets.runtime`; set by :meth:`use_runtime`)
+    runtime: str = "torch"
     #: network calls made before :meth:`sample_net` traces it: the first trace in a process costs ~0.5 s of
     #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
     TRACE_AFTER: ClassVar[int] = 96
@@ -155,9 +158,19 @@ class Method:
         Python's cost per module call, which is most of a small network's time at batch 1 on a CPU (a re-planning
         robot, the Python API, closed-loop evals). Networks that declare ``traceable`` are traced. TorchScript is
         deprecated from torch 2.13 (FX graphs and torch.export keep the Python calls, so they do not help here):
-        where tracing fails, the module itself runs, the same bits more slowly."""
+        where tracing fails, the module itself runs, the same bits more slowly. With :attr:`runtime` ``onnx`` every
+        call runs in ONNX Runtime instead (:class:`~cdrb_cli.nets.runtime.OnnxNet`)."""
         net = self.net
-        if net.training or torch.is_grad_enabled() or not self.trace_sampling or not getattr(net, "traceable", False):
+        if net.training or torch.is_grad_enabled():
+            return net(x, k)
+        if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
+            onnx = self.__dict__.get("_onnx")
+            if onnx is None or onnx[0] is not net:
+                from cdrb_cli.nets.runtime import OnnxNet
+
+                self._onnx = onnx = (net, OnnxNet(net, x, k))
+            return onnx[1](x, k)
+        if not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
         cache = self.__dict__.setdefault("_traces", {})
         key = (id(net), x.device, x.dtype)
@@ -179,6 +192,12 @@ class Method:
                     cache[key] = None
         traced = cache[key]
         return net(x, k) if traced is None else traced(x, k)
+
+    def use_runtime(self, runtime: str, flag: str = "runtime") -> None:
+        """Run sampling's network calls in ``runtime`` (checked: one-line errors name ``flag``)."""
+        from cdrb_cli.nets.runtime import check_runtime
+
+        self.runtime = check_runtime(runtime, getattr(self, "net", None), self.device, self.name, flag)
 
     # -------------------------------------------------------------- pinning
     def pin(self, x: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,81 @@
+"""Where sampling's network calls run: torch (the default), or ONNX Runtime on the CPU.
+
+At batch 1 a small temporal U-Net costs torch ~400 operator dispatches per pass, and that per-operation cost, not
+arithmetic, is most of a plan's time on a CPU (a robot re-planning one plan at a time, the Python API).
+ONNX Runtime runs the same network, exported once to memory, through its own CPU kernels at a fraction of that cost
+per operation. It is the same network in another library's kernels: outputs agree with torch's to float rounding,
+not bit for bit, and a ball sampler that meets a state on a ball's edge may then draw another buffer state, so the
+runtime is a setting the caller chooses (``api.Planner(runtime="onnx")``), never a silent switch. Within one
+runtime, plans are as reproducible as torch's: the same seed gives the same plans.
+
+Needs the ``onnx`` extra (``pip install 'cdrb[onnx]'``: onnx for the export, onnxruntime to run it).
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+
+from cdrb_cli.errors import BadInput
+from cdrb_cli.lazy import torch
+from cdrb_cli.settings import clip
+
+#: the runtimes sampling's network calls may use
+RUNTIMES = ("torch", "onnx")
+
+
+def check_runtime(runtime: object, net, device, method: str, flag: str = "runtime") -> str:
+    """``runtime`` checked for ``method``'s network and device, with one-line errors naming ``flag``."""
+    if runtime not in RUNTIMES:
+        raise BadInput(
+            f"{flag} = {clip(repr(runtime), 40)}: not a runtime", hint=f"pass one of {', '.join(map(repr, RUNTIMES))}"
+        )
+    if runtime == "torch":
+        return runtime
+    if not getattr(net, "traceable", False):
+        raise BadInput(
+            f"{flag} = 'onnx': the {method} method's network does not run in ONNX Runtime (the temporal U-Net of the "
+            "diffusion planners does)",
+            hint="leave runtime out",
+        )
+    if torch.device(device).type != "cpu":
+        raise BadInput(
+            f"{flag} = 'onnx': runs on the CPU, not {device}", hint="pass device='cpu', or leave runtime out"
+        )
+    try:
+        import onnx  # noqa: F401  (torch's exporter writes through it)
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        raise BadInput(
+            f"{flag} = 'onnx': onnx and onnxruntime are not installed", hint="pip install 'cdrb[onnx]'"
+        ) from None
+    return runtime
+
+
+class OnnxNet:
+    """A network exported to ONNX (in memory) and run by ONNX Runtime on the CPU with torch's thread count, one
+    operator after another; called as the network is, ``(x, k) -> tensor``, for any batch size."""
+
+    def __init__(self, net, x, k):
+        import onnxruntime as ort
+
+        buf = io.BytesIO()
+        with warnings.catch_warnings():  # the exporter's notes on its own future are not the user's business
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                net, (x, k), buf, input_names=["x", "k"], output_names=["y"],
+                dynamic_axes={"x": {0: "batch"}, "k": {0: "batch"}}, opset_version=17, dynamo=False,
+            )  # fmt: skip
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = torch.get_num_threads()
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.log_severity_level = 3  # errors only: its notes on unused initializers are not the user's business
+        self.session = ort.InferenceSession(buf.getvalue(), options, providers=["CPUExecutionProvider"])
+
+    def __call__(self, x, k):
+        import numpy as np
+
+        x, k = np.ascontiguousarray(x.numpy(), dtype=np.float32), np.ascontiguousarray(k.numpy(), dtype=np.int64)
+        feed = {"x": x, "k": k}
+        return torch.from_numpy(self.session.run(None, feed)[0])
