@@ -29,7 +29,7 @@ from cdrb_cli import artifacts
 from cdrb_cli.configs import MAX_EVAL_SEEDS, EvalSummary
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.envs.spec import EnvSpec
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, NeedsScene
 from cdrb_cli.settings import clip
 
 __all__ = ["Plans", "Planner", "evaluate"]
@@ -294,7 +294,10 @@ def evaluate(
     out = _path(out, "out")
     map_path = None if scene is None else _path(scene, "scene")
     where = scene_spec(m, map_path, "scene")
-    config = eval_config(m, given, seed=plain(seed), scene_file=map_path, scene=where)
+    try:
+        config = eval_config(m, given, seed=plain(seed), scene_file=map_path, scene=where)
+    except NeedsScene as exc:
+        raise exc.in_python() from None
     route = load_route_buffer(route_buffer_path(given))
     inputs = [m.path, *([] if map_path is None else [map_path]), *([] if route is None else [route.path])]
     check_output(out, True, "out", inputs)  # an existing file: up to date, or refused without force below

@@ -47,6 +47,19 @@ class BadInput(CdrbError):
     exit_code = EXIT_BAD_INPUT
 
 
+class NeedsScene(BadInput):
+    """A protocol that runs among obstacles the training scene lacks (``detour``) was asked for without a scene:
+    ``need`` says what to give, ``flag`` the command line's option for it; :meth:`in_python` says the same to a
+    caller of the Python API, whose argument is ``scene``."""
+
+    def __init__(self, message: str, need: str, flag: str):
+        self.need = need
+        super().__init__(message, hint=f"give {need}: {flag} FILE")
+
+    def in_python(self) -> BadInput:
+        return BadInput(self.message, hint=f"give {self.need}: scene=FILE")
+
+
 class ArtifactError(BadInput):
     """A file is not a valid cdrb artifact of the expected kind and version."""
 

@@ -13,7 +13,7 @@ from cdrb_cli import artifacts
 from cdrb_cli.configs import AvoidConfig
 from cdrb_cli.envs.pointmaze.maze import MazeGeometry
 from cdrb_cli.envs.registry import family_of, make_spec
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, NeedsScene
 
 MAPS = Path(__file__).resolve().parent.parent / "experiments" / "maps"
 NORTH = MAPS / "maze-tight-closed-north.txt"
@@ -236,7 +236,7 @@ def test_mask_and_route_refused_where_they_do_not_apply(tiny_models, cdrb, tmp_p
     assert r.returncode == 2 and "--mask-buffer is deprecated: write --set avoid.mask_buffer=true" in r.stderr
     assert "--mask-buffer: diffuser samples from no replay buffer" in r.stderr
     r = cdrb("eval", tiny_models["cdrb"].path, "--protocol", "detour", "-n", "2", "--seeds", "0", "--out", out)
-    assert r.returncode == 2 and "--maze-map FILE" in r.stderr
+    assert r.returncode == 2 and "(give the training map with walls added: --maze-map FILE)" in r.stderr
     assert not out.exists() and len(r.stderr.strip().splitlines()) == 1
 
 
@@ -742,8 +742,10 @@ def test_fetch_detour_pairs_have_their_shortest_route_blocked():
 def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
     spec = make_spec("fetch-reach-obstacle")
     fam = family_of(spec)
-    with pytest.raises(BadInput, match="runs in the scene it was trained in"):
+    with pytest.raises(NeedsScene, match="runs in the scene it was trained in") as err:
         fam.draw_protocol_episodes(spec, 3, 0, 1, "detour")
+    assert err.value.hint == "give a TOML file of the boxes put down: --scene FILE"
+    assert err.value.in_python().hint == "give a TOML file of the boxes put down: scene=FILE"
     corner = _scene_file(tmp_path, "[[boxes]]\ncenter = [1.10, 1.05, 0.45]\nhalf = [0.02, 0.02, 0.02]\n", "corner")
     with pytest.raises(BadInput, match=r"block the shortest route of 0 of \d+ drawn pairs"):
         fam.draw_protocol_episodes(fam.with_map(spec, corner), 3, 0, 1, "detour")

@@ -28,7 +28,7 @@ from cdrb_cli.envs.fetch.tasks import BLOCK_Z, FetchScene, draw_gripper_start, d
 from cdrb_cli.envs.geometry import path_crosses_boxes
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.envs.spec import EnvSpec
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, NeedsScene
 from cdrb_cli.seeding import episode_seeds
 
 #: the protocol of a changed scene: pairs whose shortest route the boxes put down block
@@ -246,9 +246,10 @@ class FetchFamily(EnvFamily):
         from cdrb_cli.envs.fetch.scenes import blocks_shortest_route
 
         if not spec.scene.extra_boxes:
-            raise BadInput(
+            raise NeedsScene(
                 f"protocol {DETOUR}: {spec.id} runs in the scene it was trained in, so no pair needs a detour",
-                hint="give a TOML file of the boxes put down: --scene FILE (in Python: scene=FILE)",
+                need="a TOML file of the boxes put down",
+                flag="--scene",
             )
         out: list[Episode] = []
         candidates = self.draw_episodes(spec, DETOUR_SCAN * n, seed, stream)  # a prefix of the same stream

@@ -26,7 +26,7 @@ from cdrb_cli.envs.pointmaze.maze import (
 )
 from cdrb_cli.envs.registry import FAMILIES
 from cdrb_cli.envs.spec import EnvSpec, Scene
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, NeedsScene
 from cdrb_cli.seeding import episode_seeds
 
 # PointMaze physics (gymnasium-robotics): 100 Hz, ball radius 0.1 m, stock success radius 0.45 m.
@@ -318,9 +318,10 @@ class PointMazeFamily(EnvFamily):
     def _detour_episodes(self, spec: EnvSpec, geom: MazeGeometry, n: int, seed: int, stream: int) -> list[Episode]:
         """Episodes whose start/goal pair is drawn uniformly from the pairs the new map makes longer."""
         if spec.scene.trained_maze is None:
-            raise BadInput(
+            raise NeedsScene(
                 f"protocol {DETOUR}: {spec.id} runs in the map it was trained in, so no pair needs a detour",
-                hint="give the training map with walls added: --maze-map FILE (in Python: scene=FILE)",
+                need="the training map with walls added",
+                flag="--maze-map",
             )
         pairs = geom.detour_pairs(MazeGeometry(spec.scene.trained_maze))
         if not len(pairs):
