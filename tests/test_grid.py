@@ -896,6 +896,20 @@ def test_an_extension_runs_some_curves_further_and_keeps_the_rest(tmp_path):
     # given with --set, as TOML inline tables
     spec = load_grid(_grid(tmp_path, TINY.replace("steps = 20", "steps = 100")), ["extend=[{steps=200}]"])
     assert spec.curve("maze-tight", "mlp") == (200, [100])
+    # an entry may extend some variants' runs: an eval-only variant's name stands for the base models it evaluates
+    scoped = TINY.replace("steps = 20", "steps = 100\nreport = false").replace('["mlp", "cdrb"]', '["mlp"]')
+    scoped += '\n[[variants]]\nname = "ref"\neval = []\n\n[[variants]]\nname = "wide"\ntrain = { lr = 0.01 }\n'
+    for names, base, wide in ((["wide"], 100, 200), (["ref"], 200, 100), (None, 200, 200)):
+        extra = "" if names is None else f"variants = {json.dumps(names)}\n"
+        spec = load_grid(_grid(tmp_path, scoped + f"\n[[extend]]\n{extra}steps = 200\n"))
+        assert spec.curve("maze-tight", "mlp", "")[0] == base and spec.curve("maze-tight", "mlp", "wide")[0] == wide
+        tasks = {t.id: t for t in expand(spec)}
+        argv = tasks["train maze-tight/wide/mlp-s0"].argv
+        assert argv[argv.index("--steps") + 1] == str(wide)
+        assert ("eval maze-tight/ref/mlp-s0.step100" in tasks) == (base == 200)
+    for names, words in ((["nope"], "variants: nope: no such variant in grid.toml"), ([], "applies to nothing")):
+        with pytest.raises(BadInput, match=re.escape(words)):
+            load_grid(_grid(tmp_path, scoped + f"\n[[extend]]\nvariants = {json.dumps(names)}\nsteps = 200\n"))
     # a later stage resumes the runs again: each earlier stage's end stays a point of the curve
     staged = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\nreport = false")
     staged += "\n[[extend]]\nsteps = 200\n\n[[extend]]\nsteps = 400\n"

@@ -209,6 +209,8 @@ def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_exten
     assert warnings[0].endswith("steps = 10000)")  # doubling would pass the cap
     line, warnings = rising_notes(rising, None)  # no cap: each is asked to be extended, to twice its length
     assert line is None and [w.rsplit("steps = ", 1)[1] for w in warnings] == ["20000)", "10000)"]
+    # the curve that rises is one variant's: the entry extends its runs alone; a shared budget names none
+    assert 'methods = ["cdrb"], variants = ["k2"], steps = 20000)' in warnings[0] and "variants" not in warnings[1]
     grid = tmp_path / "tune.toml"
     grid.write_text(
         'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\nsteps_cap = 200\n'

@@ -297,11 +297,12 @@ def rising_notes(rising: dict[tuple[str, str], Rise], cap: int | None) -> tuple[
         if (env, method) in capped:
             continue
         c = r.best
+        variant = f"variants = [{toml_string(c.variant)}], " if c.variant and r.by != "shared" else ""
         warnings.append(
             f"{env} / {method}: the curve still rises at {c.steps} steps ({c.name}: {r.text()}): extend it before "
             f"choosing from it (the same runs, resumed: an "
             f"[[extend]] entry in the grid file with envs = [{toml_string(env)}], methods = [{toml_string(method)}], "
-            f"steps = {2 * c.steps if cap is None else min(2 * c.steps, cap)})"
+            f"{variant}steps = {2 * c.steps if cap is None else min(2 * c.steps, cap)})"
         )
     return line, warnings
 

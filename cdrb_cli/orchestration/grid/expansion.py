@@ -124,7 +124,7 @@ def expand(spec: GridSpec) -> list[Task]:
                 vtag = f"{v.name}/" if own_model else ""
                 train_extra, eval_extra = flags_for(spec, env, method, model_v)[0], flags_for(spec, env, method, v)[1]
                 eval_extra, read_ids, read_files = _placeholders(spec, env, method, eval_extra, buffers, tasks)
-                length, snaps = spec.curve(env, method)
+                length, snaps = spec.curve(env, method, model_v.name)
                 for seed in spec.seeds:
                     model = mfolder / f"{method}-s{seed}.h5"
                     train_id = f"train {env}/{vtag}{method}-s{seed}"

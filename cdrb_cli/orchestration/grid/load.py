@@ -316,6 +316,15 @@ def _check_lengths_and_seeds(spec: GridSpec, path: Path, overrides: list[str], s
             )
         _check_names(where, ext.methods, ext.envs)
         _check_scope(where, ext, spec, bool({"envs", "methods"} & set_keys))
+        # (a grid narrowed with --set variants=[...] may leave an entry's variants out on purpose)
+        known = {v.name for v in spec.variants} if "variants" not in set_keys else set(ext.variants or ())
+        unknown = sorted(set(ext.variants or ()) - known)
+        if ext.variants == [] or unknown:
+            raise BadInput(
+                f"{where}: variants: {clip(', '.join(unknown), 80) or '[]'}: "
+                + (f"no such variant in {path.name}" if unknown else "applies to nothing"),
+                hint="name the grid's [[variants]], or leave variants out to mean all",
+            )
     if spec.extend:
         _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
     if spec.eval_seeds is not None and "eval_seed_offset" in spec.model_fields_set:
@@ -417,8 +426,8 @@ def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:
     would fail in every training fails when it is read; ``origin`` names where snapshot_at came from."""
     for env in spec.envs:
         for method in spec.methods:
-            snaps = spec.curve(env, method)[1]
             for v in model_variants(spec, env, method):
+                snaps = spec.curve(env, method, v.name)[1]
                 step = _snapshot_step(spec, env, method, v)
                 bad = [s for s in snaps if step and s % step]
                 if bad:

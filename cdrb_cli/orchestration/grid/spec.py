@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -148,7 +149,21 @@ class Extension(Scoped):
 
     envs: list[str] | None = Field(None, description="the environments whose curves run further (default: all)")
     methods: list[str] | None = Field(None, description="the methods whose curves run further (default: all)")
+    variants: list[str] | None = Field(
+        None,
+        description="the variants whose curves run further (default: all; an eval-only variant's name means the "
+        "base models it evaluates)",
+    )
     steps: Steps = Field(description="the curve's new last point (more than the grid's `steps`)")
+
+    def extends(self, env: str, method: str, model_variant: str, base_names: Collection[str]) -> bool:
+        """Whether the entry extends the runs of ``model_variant`` (the name of a variant with its own models, or
+        "" for the base models, which ``base_names``, the eval-only variants of ``env`` x ``method``, stand for)."""
+        if not self.applies(env, method):
+            return False
+        if self.variants is None:
+            return True
+        return model_variant in self.variants if model_variant else bool(set(base_names) & set(self.variants))
 
 
 class Resources(_Strict):
@@ -245,12 +260,14 @@ class GridSpec(_Strict):
     #: sha256 of the files read, by (path, size, mtime): shared by reuse at expansion and the run's memo checks
     _shas: dict = PrivateAttr(default_factory=dict)
 
-    def curve(self, env: str, method: str) -> tuple[int | None, list[int]]:
-        """The training length and the snapshot steps (sorted) of ``method``'s runs on ``env``: the grid's, or those
-        of the last :class:`Extension` that applies, whose steps end the curve; the grid's steps and those of the
-        earlier extensions that stop short of it are snapshots, so each stage's final model stays a point of the
-        curve when a later stage resumes it."""
-        exts = [e for e in self.extend if e.applies(env, method)]
+    def curve(self, env: str, method: str, model_variant: str = "") -> tuple[int | None, list[int]]:
+        """The training length and the snapshot steps (sorted) of ``method``'s runs on ``env`` in ``model_variant``
+        (a variant with its own models; "": the base models): the grid's, or those of the last :class:`Extension`
+        that applies, whose steps end the curve; the grid's steps and those of the earlier extensions that stop
+        short of it are snapshots, so each stage's final model stays a point of the curve when a later stage
+        resumes it."""
+        base_names = [v.name for v in self.variants if not v.own_model and v.applies(env, method)]
+        exts = [e for e in self.extend if e.extends(env, method, model_variant, base_names)]
         if not exts:
             return self.steps, sorted(self.snapshot_at)
         last = exts[-1].steps
