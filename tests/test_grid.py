@@ -861,9 +861,9 @@ def test_learning_curve_snapshots_are_evaluated_and_eval_seeds_are_shared(tmp_pa
 
 def test_an_extension_runs_some_curves_further_and_keeps_the_rest(tmp_path):
     """An [[extend]] entry resumes the matching runs to its steps, with the grid's steps one more snapshot point;
-    runs it does not name keep the grid's curve; the last entry that applies wins."""
+    runs it does not name keep the grid's curve; entries that resume the same runs go in increasing steps."""
     text = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\nreport = false")
-    text += '\n[[extend]]\nsteps = 300\n\n[[extend]]\nmethods = ["cdrb"]\nsteps = 200\n'
+    text += '\n[[extend]]\nmethods = ["cdrb"]\nsteps = 200\n\n[[extend]]\nmethods = ["mlp"]\nsteps = 300\n'
     spec = load_grid(_grid(tmp_path, text))
     tasks = {t.id: t for t in expand(spec)}
     cdrb, mlp = tasks["train maze-tight/cdrb-s0"], tasks["train maze-tight/mlp-s0"]
@@ -910,6 +910,31 @@ def test_an_extension_runs_some_curves_further_and_keeps_the_rest(tmp_path):
     for names, words in ((["nope"], "variants: nope: no such variant in grid.toml"), ([], "applies to nothing")):
         with pytest.raises(BadInput, match=re.escape(words)):
             load_grid(_grid(tmp_path, scoped + f"\n[[extend]]\nvariants = {json.dumps(names)}\nsteps = 200\n"))
+    # the entry's names mean the file's variants, whichever arms --set variants=[...] runs: narrowed to the
+    # eval-only arm, the base models still train to the entry's steps (not back to the grid's), and a typo is a typo
+    spec = load_grid(_grid(tmp_path, scoped + '\n[[extend]]\nvariants = ["ref"]\nsteps = 200\n'), ['variants=["ref"]'])
+    assert [v.name for v in spec.variants] == ["ref"] and spec.curve("maze-tight", "mlp", "") == (200, [100])
+    train = {t.id: t for t in expand(spec)}["train maze-tight/mlp-s0"].argv
+    assert train[train.index("--steps") + 1] == "200"
+    with pytest.raises(BadInput, match="variants: rfe: no such variant in grid.toml"):
+        load_grid(_grid(tmp_path, scoped + '\n[[extend]]\nvariants = ["rfe"]\nsteps = 200\n'), ['variants=["ref"]'])
+    # a variant the entry's own scope never reaches would extend nothing
+    out_of_scope = scoped.replace('name = "wide"', 'name = "wide"\nenvs = ["maze-tight"]').replace(
+        'envs = ["maze-tight"]\nmethods', 'envs = ["maze-tight", "maze"]\nmethods'
+    )
+    with pytest.raises(BadInput, match="variants: wide has no runs in this entry's envs and methods"):
+        load_grid(_grid(tmp_path, out_of_scope + '\n[[extend]]\nenvs = ["maze"]\nvariants = ["wide"]\nsteps = 200\n'))
+    # a later entry with fewer steps for the same runs would cut the curve short: refused, naming both
+    with pytest.raises(
+        BadInput, match=re.escape("extend[1]: steps 200 is fewer than extend[0]'s 300 for maze-tight x cdrb")
+    ):
+        load_grid(
+            _grid(
+                tmp_path,
+                text.split("\n[[extend]]")[0]
+                + '\n[[extend]]\nsteps = 300\n\n[[extend]]\nmethods = ["cdrb"]\nsteps = 200\n',
+            )
+        )
     # a later stage resumes the runs again: each earlier stage's end stays a point of the curve
     staged = TINY.replace("steps = 20", "steps = 100\nsnapshot_at = [50]\nreport = false")
     staged += "\n[[extend]]\nsteps = 200\n\n[[extend]]\nsteps = 400\n"

@@ -165,7 +165,8 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         + anchor_all(spec.settings, path.parent)
         + _included_settings(list(extra_includes), Path.cwd(), (path,), read, seen)
     )
-    spec.variants = anchor_all(_pick_variants(spec.variants, variant_names, path, overrides), path.parent)
+    spec._file_variants = anchor_all(spec.variants, path.parent)
+    spec.variants = _pick_variants(spec._file_variants, variant_names, path, overrides)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
     check_flags(spec, path)
@@ -316,16 +317,9 @@ def _check_lengths_and_seeds(spec: GridSpec, path: Path, overrides: list[str], s
             )
         _check_names(where, ext.methods, ext.envs)
         _check_scope(where, ext, spec, bool({"envs", "methods"} & set_keys))
-        # (a grid narrowed with --set variants=[...] may leave an entry's variants out on purpose)
-        known = {v.name for v in spec.variants} if "variants" not in set_keys else set(ext.variants or ())
-        unknown = sorted(set(ext.variants or ()) - known)
-        if ext.variants == [] or unknown:
-            raise BadInput(
-                f"{where}: variants: {clip(', '.join(unknown), 80) or '[]'}: "
-                + (f"no such variant in {path.name}" if unknown else "applies to nothing"),
-                hint="name the grid's [[variants]], or leave variants out to mean all",
-            )
+        _check_extension_variants(where, ext, spec, path.name, narrowed=bool({"envs", "methods"} & set_keys))
     if spec.extend:
+        _check_extension_order(spec, _origin(path, overrides, "extend", "steps"))
         _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
     if spec.eval_seeds is not None and "eval_seed_offset" in spec.model_fields_set:
         raise BadInput(
@@ -353,6 +347,51 @@ def _check_lengths_and_seeds(spec: GridSpec, path: Path, overrides: list[str], s
             "a report would pool the same evaluation seeds twice",
             hint="set report = false and compare with `cdrb select`, or drop eval_seeds",
         )
+
+
+def _check_extension_variants(where: str, ext, spec: GridSpec, file: str, narrowed: bool) -> None:
+    """An [[extend]] entry's ``variants`` name variants of the file (also when --set variants=[...] runs only some
+    of them), not an empty list, and, unless the run was narrowed with --set envs/methods, each names runs the
+    entry's own envs and methods reach (else it would extend nothing, silently)."""
+    declared = spec._file_variants if spec._file_variants is not None else spec.variants
+    by_name = {v.name: v for v in declared}
+    unknown = sorted(set(ext.variants or ()) - by_name.keys())
+    if ext.variants == [] or unknown:
+        raise BadInput(
+            f"{where}: variants: {clip(', '.join(unknown), 80) or '[]'}: "
+            + (f"no such variant in {file}" if unknown else "applies to nothing"),
+            hint="name the grid's [[variants]], or leave variants out to mean all",
+        )
+    if narrowed:
+        return
+    for name in ext.variants or ():
+        if not any(ext.applies(e, m) and by_name[name].applies(e, m) for e in spec.envs for m in spec.methods):
+            raise BadInput(
+                f"{where}: variants: {clip(name, 60)} has no runs in this entry's envs and methods, so it would "
+                "extend nothing",
+                hint="widen the entry's envs/methods to the variant's, or drop the name",
+            )
+
+
+def _check_extension_order(spec: GridSpec, where: str) -> None:
+    """The [[extend]] entries that resume the same runs go in increasing steps: the last one ends the curve, so a
+    later entry with fewer steps than an earlier one would cut off the points the earlier one paid for."""
+    from cdrb_cli.orchestration.grid.expansion import BASE
+
+    declared = spec._file_variants if spec._file_variants is not None else spec.variants
+    for env in spec.envs:
+        for method in spec.methods:
+            for variant in [BASE, *(v for v in declared if v.own_model and v.applies(env, method))]:
+                exts = spec.extensions_of(env, method, variant.name if variant is not BASE else "")
+                for earlier, later in zip(exts, exts[1:]):
+                    if later.steps < earlier.steps:
+                        i, j = spec.extend.index(earlier), spec.extend.index(later)
+                        run = f"{env} x {method}" + (f" ({variant.name})" if variant is not BASE else "")
+                        raise BadInput(
+                            f"{where}: extend[{j}]: steps {later.steps} is fewer than extend[{i}]'s {earlier.steps} "
+                            f"for {run}: the last entry ends the curve, so it would drop the longer runs",
+                            hint="list the entries in increasing steps, or remove the shorter one",
+                        )
 
 
 def _check_scope(where: str, item: Scoped, spec: GridSpec, narrowed: bool) -> None:

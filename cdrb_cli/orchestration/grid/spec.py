@@ -144,8 +144,10 @@ class Variant(Scoped):
 
 class Extension(Scoped):
     """A learning curve run past the grid's ``steps`` for some environments and methods (where `cdrb select` finds
-    it still rising): the same runs, resumed to ``steps``, with the grid's own ``steps`` one more snapshot. It is
-    written in the grid file, so the curve's length is part of the study it belongs to."""
+    it still rising): the same runs, resumed to ``steps``; the grid's own ``steps`` and every earlier entry that
+    applies to the same runs become snapshots, so each stage's final model stays a point of the curve. Entries that
+    apply to the same runs go in increasing steps. It is written in the grid file, so the curve's length is part of
+    the study it belongs to."""
 
     envs: list[str] | None = Field(None, description="the environments whose curves run further (default: all)")
     methods: list[str] | None = Field(None, description="the methods whose curves run further (default: all)")
@@ -257,6 +259,9 @@ class GridSpec(_Strict):
     _sources: list[Path] = PrivateAttr(default_factory=list)
     #: the tasks taken from the grids of ``reuse`` (task id -> the file read instead), set by :func:`expand`
     _reused: dict[str, str] = PrivateAttr(default_factory=dict)
+    #: every variant the file declares, before `--set variants=[...]` narrows ``variants``: an [[extend]] entry's
+    #: variant names mean the same runs whichever arms a run selects
+    _file_variants: list[Variant] | None = PrivateAttr(default=None)
     #: sha256 of the files read, by (path, size, mtime): shared by reuse at expansion and the run's memo checks
     _shas: dict = PrivateAttr(default_factory=dict)
 
@@ -266,13 +271,19 @@ class GridSpec(_Strict):
         that applies, whose steps end the curve; the grid's steps and those of the earlier extensions that stop
         short of it are snapshots, so each stage's final model stays a point of the curve when a later stage
         resumes it."""
-        base_names = [v.name for v in self.variants if not v.own_model and v.applies(env, method)]
-        exts = [e for e in self.extend if e.extends(env, method, model_variant, base_names)]
+        exts = self.extensions_of(env, method, model_variant)
         if not exts:
             return self.steps, sorted(self.snapshot_at)
         last = exts[-1].steps
         stages = {self.steps, *(e.steps for e in exts[:-1] if e.steps < last)}
         return last, sorted({*self.snapshot_at, *stages})
+
+    def extensions_of(self, env: str, method: str, model_variant: str = "") -> list[Extension]:
+        """The [[extend]] entries that resume ``method``'s runs on ``env`` in ``model_variant`` (see :meth:`curve`),
+        judged on the file's variants, not only those a narrowed run selected."""
+        variants = self.variants if self._file_variants is None else self._file_variants
+        base_names = [v.name for v in variants if not v.own_model and v.applies(env, method)]
+        return [e for e in self.extend if e.extends(env, method, model_variant, base_names)]
 
     def demos_of(self, env: str) -> int:
         """The demonstrations collected for ``env``."""
