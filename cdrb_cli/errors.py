@@ -40,6 +40,10 @@ class CdrbError(Exception):
     def line(self) -> str:
         return f"{self.message} ({self.hint})" if self.hint else self.message
 
+    def __reduce__(self):
+        # pickled by its parts, not its one line: an error raised in a worker process reaches the parent whole
+        return type(self), (self.message, self.hint)
+
 
 class BadInput(CdrbError):
     """A flag, argument or input file is wrong; nothing was written. Exit code 2."""
@@ -53,8 +57,11 @@ class NeedsScene(BadInput):
     caller of the Python API, whose argument is ``scene``."""
 
     def __init__(self, message: str, need: str, flag: str):
-        self.need = need
+        self.need, self.flag = need, flag
         super().__init__(message, hint=f"give {need}: {flag} FILE")
+
+    def __reduce__(self):
+        return type(self), (self.message, self.need, self.flag)
 
     def in_python(self) -> BadInput:
         return BadInput(self.message, hint=f"give {self.need}: scene=FILE")

@@ -746,6 +746,18 @@ def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
         fam.draw_protocol_episodes(spec, 3, 0, 1, "detour")
     assert err.value.hint == "give a TOML file of the boxes put down: --scene FILE"
     assert err.value.in_python().hint == "give a TOML file of the boxes put down: scene=FILE"
+    # raised in a worker process, it reaches the parent whole (pickled by its parts)
+    import pickle
+
+    back = pickle.loads(pickle.dumps(err.value))
+    assert type(back) is NeedsScene and (back.message, back.hint) == (err.value.message, err.value.hint)
+    assert back.in_python().hint == err.value.in_python().hint
+    plain = pickle.loads(pickle.dumps(BadInput("x.h5: not an artifact", hint="run cdrb collect")))
+    assert (plain.message, plain.hint, str(plain)) == (
+        "x.h5: not an artifact",
+        "run cdrb collect",
+        "x.h5: not an artifact (run cdrb collect)",
+    )
     corner = _scene_file(tmp_path, "[[boxes]]\ncenter = [1.10, 1.05, 0.45]\nhalf = [0.02, 0.02, 0.02]\n", "corner")
     with pytest.raises(BadInput, match=r"block the shortest route of 0 of \d+ drawn pairs"):
         fam.draw_protocol_episodes(fam.with_map(spec, corner), 3, 0, 1, "detour")
