@@ -59,6 +59,8 @@ def measure(
         if hasattr(method, "cuda_graphs"):
             type(method).cuda_graphs = False
     if runtime:  # the network in another runtime (ONNX Runtime), from the first call
+        if not hasattr(method, "use_runtime"):
+            return {"skipped": "this tree has no runtime setting"}
         method.use_runtime(runtime)
     starts, goals = family.reset_states(spec, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
     goals = family.goal_state(spec, goals)
@@ -126,7 +128,9 @@ def main() -> None:
     runs = [(name, path, "fast") for name, path in trees]
     if args.variants:
         runs += [(f"{name}, fast paths off", path, "plain") for name, path in trees]
-    if args.onnx:
+    if args.onnx and args.device != "cpu":
+        print(f"--onnx: ONNX Runtime runs on the CPU, not {args.device}: no onnx rows", file=sys.stderr)
+    elif args.onnx:
         runs += [(f"{name}, onnx runtime", path, "onnx") for name, path in trees]
     figures: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
     for r in range(args.rounds):
@@ -142,8 +146,11 @@ def main() -> None:
             done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=path)
             if done.returncode:
                 sys.exit(f"{name}: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else 'failed'}")
-            figures[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
-            print(f"round {r + 1}: {name}: {figures[name][-1]}", file=sys.stderr)
+            fig = json.loads(done.stdout.strip().splitlines()[-1])
+            print(f"round {r + 1}: {name}: {fig}", file=sys.stderr)
+            if "skipped" not in fig:
+                figures[name].append(fig)
+    runs = [run for run in runs if figures[run[0]]]  # a row skipped (said above) in every round has no figures
     header = ["code", "device", "threads", *[f"ms/plan batch {b}" for b in batches], "states in obstacles (%)",
               "plans through an obstacle (%)"]  # fmt: skip
     rows = []

@@ -177,6 +177,27 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     net = api.Planner(model.path).method.net
     with pytest.raises(BadInput, match=r"runs on the CPU, not cuda \(pass device='cpu'"):
         check_runtime("onnx", net, "cuda", "cdrb")
+    # weights changed in place after the session was built: the next plan runs the new ones, as torch would
+    import torch
+
+    onnx_planner, torch_planner = api.Planner(model.path, runtime="onnx"), api.Planner(model.path)
+    onnx_planner.plan([0.0, 0.0], [6.0, 6.0], seed=1)
+    for p in (onnx_planner, torch_planner):
+        with torch.no_grad():
+            for w in p.method.net.parameters():
+                w.mul_(0.9)
+    scaled = (p.plan([0.0, 0.0], [6.0, 6.0], n=4, seed=3).features for p in (onnx_planner, torch_planner))
+    np.testing.assert_allclose(*scaled, atol=1e-4)
+    from cdrb_cli.nets.runtime import OnnxNet
+
+    session = onnx_planner.method.__dict__["_onnx"][2]
+    x, k = torch.zeros(1, *session.session.get_inputs()[0].shape[1:]), torch.zeros(1, dtype=torch.long)
+    with pytest.raises(BadInput, match=re.escape("runs the network in float32, not torch.float64")):
+        session(x.double(), k)
+    # an exporter that fails (another torch version): one line, not its traceback
+    monkeypatch.setattr(torch.onnx, "export", lambda *a, **kw: (_ for _ in ()).throw(TypeError("unexpected 'dynamo'")))
+    with pytest.raises(BadInput, match=r"could not export and load the network: unexpected 'dynamo' \(leave runtime"):
+        OnnxNet(onnx_planner.method.net, x, k)
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # as if it were not installed
     with pytest.raises(BadInput, match=re.escape("onnx and onnxruntime are not installed (pip install 'cdrb[onnx]')")):
         api.Planner(model.path, runtime="onnx")

@@ -164,12 +164,12 @@ class Method:
         if net.training or torch.is_grad_enabled():
             return net(x, k)
         if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
-            onnx = self.__dict__.get("_onnx")
-            if onnx is None or onnx[0] is not net:
-                from cdrb_cli.nets.runtime import OnnxNet
+            from cdrb_cli.nets.runtime import OnnxNet, weights_version
 
-                self._onnx = onnx = (net, OnnxNet(net, x, k))
-            return onnx[1](x, k)
+            onnx, version = self.__dict__.get("_onnx"), weights_version(net)
+            if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
+                self._onnx = onnx = (net, version, OnnxNet(net, x, k))
+            return onnx[2](x, k)
         if not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
         cache = self.__dict__.setdefault("_traces", {})

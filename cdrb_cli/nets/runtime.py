@@ -53,29 +53,55 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
 
 
 class OnnxNet:
-    """A network exported to ONNX (in memory) and run by ONNX Runtime on the CPU with torch's thread count, one
-    operator after another; called as the network is, ``(x, k) -> tensor``, for any batch size."""
+    """A network exported to ONNX (in memory) and run by ONNX Runtime on the CPU, one operator after another;
+    called as the network is, ``(x, k) -> tensor``, for any batch size, in float32 (the export's dtype).
+
+    The session is built once: it holds a copy of the weights as they were then, and torch's thread count of that
+    moment (changing ``torch.set_num_threads`` later does not reach it). :func:`weights_version` tells whether the
+    weights changed since (the caller then builds a new one)."""
 
     def __init__(self, net, x, k):
+        import inspect
+
         import onnxruntime as ort
 
         buf = io.BytesIO()
-        with warnings.catch_warnings():  # the exporter's notes on its own future are not the user's business
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                net, (x, k), buf, input_names=["x", "k"], output_names=["y"],
-                dynamic_axes={"x": {0: "batch"}, "k": {0: "batch"}}, opset_version=17, dynamo=False,
-            )  # fmt: skip
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = torch.get_num_threads()
-        options.inter_op_num_threads = 1
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.log_severity_level = 3  # errors only: its notes on unused initializers are not the user's business
-        self.session = ort.InferenceSession(buf.getvalue(), options, providers=["CPUExecutionProvider"])
+        # the TorchScript-based exporter: torch >= 2.9 defaults to the dynamo one, which needs onnxscript; older
+        # torch has no `dynamo` argument and only that exporter
+        legacy = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
+        try:
+            with warnings.catch_warnings():  # the exporter's notes on its own future are not the user's business
+                warnings.simplefilter("ignore")
+                torch.onnx.export(
+                    net, (x, k), buf, input_names=["x", "k"], output_names=["y"],
+                    dynamic_axes={"x": {0: "batch"}, "k": {0: "batch"}}, opset_version=17, **legacy,
+                )  # fmt: skip
+            options = ort.SessionOptions()
+            options.intra_op_num_threads = torch.get_num_threads()
+            options.inter_op_num_threads = 1
+            options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            options.log_severity_level = 3  # errors only: its notes on unused initializers are not the user's business
+            self.session = ort.InferenceSession(buf.getvalue(), options, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # noqa: BLE001 - an exporter or runtime of another version: one line, not a trace
+            raise BadInput(
+                f"runtime = 'onnx': this torch ({torch.__version__}) and onnxruntime could not export and load the "
+                f"network: {clip(' '.join(str(exc).split()), 160)}",
+                hint="leave runtime out (torch runs the same network)",
+            ) from None
 
     def __call__(self, x, k):
         import numpy as np
 
-        x, k = np.ascontiguousarray(x.numpy(), dtype=np.float32), np.ascontiguousarray(k.numpy(), dtype=np.int64)
-        feed = {"x": x, "k": k}
-        return torch.from_numpy(self.session.run(None, feed)[0])
+        if x.dtype != torch.float32:
+            raise BadInput(
+                f"runtime = 'onnx': runs the network in float32, not {x.dtype}",
+                hint="leave runtime out for other dtypes",
+            )
+        x, k = np.ascontiguousarray(x.numpy()), np.ascontiguousarray(k.numpy(), dtype=np.int64)
+        return torch.from_numpy(self.session.run(None, {"x": x, "k": k})[0])
+
+
+def weights_version(net) -> tuple[int, ...]:
+    """The version counters of ``net``'s parameters and buffers: every in-place change (an optimizer step,
+    ``load_state_dict``) bumps one, so a session built at another version runs stale weights."""
+    return tuple(t._version for t in (*net.parameters(), *net.buffers()))
