@@ -167,7 +167,9 @@ class DiffusionQL(Policy):
 
     def critic_target(self, nxt, r, done, gen) -> torch.Tensor:
         """r + gamma (1 - done) min(Q1', Q2')(s', a'), a' from the EMA actor (max over 10 draws per head first),
-        clipped to the reward's return bounds with ``target_clip``."""
+        clipped to the reward's return bounds with ``target_clip``: the whole target, as HER clips it, so a bound
+        that holds for every state's value (clipping the bootstrap value alone would bound a failing step's target
+        tighter, by r_f + gamma r_s; that is another method)."""
         p = self.config.method
         with torch.no_grad():
             n = 10 if p.max_q_backup else 1
