@@ -297,6 +297,33 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
     assert r.returncode == 2 and "new.step20.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
 
 
+def test_a_snapshot_asked_for_after_the_run_passed_it_is_a_run_of_that_length(small_data, tmp_path, cdrb):
+    """An earlier point added to a finished curve: the run is left as it is and the snapshot is trained from the
+    start for just its steps, the same model `--steps N` writes; asked again, nothing is trained."""
+    demos, buffer = small_data
+    args = ["train", demos.path, "--buffer", buffer.path, "--set", "checkpoint_every=40", *TINY_FLAGS]
+    out, ref = tmp_path / "long.h5", tmp_path / "ref20.h5"
+    assert cdrb(*args, "--steps", "80", "--out", out).returncode == 0
+    assert cdrb(*args, "--steps", "20", "--out", ref).returncode == 0
+    before = artifacts.sha256_file(out)
+
+    def check(extra: list[str], snaps: str, trained: bool) -> None:
+        r = cdrb(*args, "--steps", "80", "--snapshot-at", snaps, *extra, "--out", out)
+        assert r.returncode == 0, r.stderr
+        assert ("training the 20 steps from the start" in r.stderr) == trained, r.stderr
+        assert artifacts.sha256_file(out) == before
+        snap = artifacts.load(tmp_path / "long.step20.h5", "model")
+        assert snap.manifest.config == artifacts.load(ref, "model").manifest.config and snap.manifest.state.finished
+        for k, v in _weights(artifacts.load(ref, "model")).items():
+            np.testing.assert_array_equal(v, _weights(snap)[k], err_msg=k)
+
+    check(["--resume"], "20,60", True)  # as a grid asks: its model is there
+    assert artifacts.load(tmp_path / "long.step60.h5", "model").manifest.state.step == 60
+    check(["--resume"], "20,60", False)  # asked again: both are there
+    (tmp_path / "long.step20.h5").unlink()
+    check([], "20", True)  # as a user asks, the run up to date
+
+
 def test_a_bad_snapshot_step_gets_a_hint_that_would_work(small_data):
     """The hint names a snapshot step that passes the same check, or, when no step below --steps can, the setting
     that moves where snapshots fall."""

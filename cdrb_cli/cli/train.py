@@ -54,7 +54,8 @@ def train(
         "--snapshot-at",
         metavar="STEPS",
         help="Also write the model after these steps (e.g. 1000,3000) to OUT.step<N>.h5, each exactly what "
-        "`--steps N` writes: a learning curve from one run.",
+        "`--steps N` writes: a learning curve from one run. A step OUT is already past is trained for from the "
+        "start (N steps, not the whole run).",
     ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
@@ -110,11 +111,6 @@ def train(
     )
     if done == "up to date":
         ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")
-        from cdrb_cli.stages.train import snapshot_path
-
-        missing = [s for s in snapshots if not snapshot_path(out, s).exists()]
-        if missing:
-            ui.log(f"warning: --snapshot-at {','.join(map(str, missing))}: not written (nothing was trained)")
     st = model.manifest.state
     ui.log(
         f"{config.method.name}: {st.step} steps, loss {st.loss:.4f}"

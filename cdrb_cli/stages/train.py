@@ -154,7 +154,23 @@ def train_or_resume(
             path = snapshot_path(out, s)
             stack.enter_context(artifacts.claim_output(path, replace_snapshots, "--snapshot-at", inputs))
         run = dict(device=device, snapshots=snapshots, profile=profile, log_dir=log_dir)
-        return _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
+        model, what = _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
+        _earlier_snapshots(demos, buffer, config, Path(out), parents, snapshots, run)
+        return model, what
+
+
+def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run: dict) -> None:
+    """The snapshots ``out`` was already past when they were asked for (a learning curve given an earlier point
+    after its runs finished): each is made by a run of that many steps from the start, which is exactly that
+    snapshot (the learning rate is constant, so nothing depends on ``steps``) and costs only those steps, not the
+    whole run again. A snapshot file already holding that run is kept; an interrupted one is resumed."""
+    for s in snapshots:
+        path = snapshot_path(out, s)
+        cfg = config.model_copy(update={"steps": s})
+        if artifacts.existing(path, "model", cfg, parents).up_to_date:
+            continue
+        ui.log(f"--snapshot-at {s}: {out.name} was past it; training the {s} steps from the start for it")
+        _train_or_resume(demos, buffer, cfg, path, parents, False, False, True, dict(run, snapshots=(), log_dir=None))
 
 
 def _train_or_resume(demos, buffer, config, out, parents, force, resume, auto, run: dict):
@@ -305,14 +321,11 @@ def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
 
 def _resumed_snapshots(resume, out: Path, step: int, snapshots: Sequence[int]) -> None:
     """On resuming ``out`` at ``step``: a finished run of ``step`` steps is kept as the snapshot a longer run writes
-    there; snapshots already past and never written are warned of."""
+    there; snapshots already past and never written are made after the run (:func:`_earlier_snapshots`)."""
     ui.log(f"resuming {out} from step {step}")
     if step in snapshots and resume.manifest.state.finished and not snapshot_path(out, step).exists():
         with artifacts.atomic_path(snapshot_path(out, step)) as tmp:
             shutil.copyfile(resume.path, tmp)
-    lost = [s for s in snapshots if s <= step and not snapshot_path(out, s).exists()]
-    if lost:
-        ui.log(f"warning: --snapshot-at {','.join(map(str, lost))}: already past, not written by this run")
 
 
 def _ema_updater(ema: dict, modules: dict, config: TrainConfig):
