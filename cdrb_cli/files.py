@@ -66,6 +66,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def replace_file(new: str | Path, final: str | Path) -> None:
+    """Rename the finished file ``new`` over ``final`` (the same folder) and make the rename durable."""
+    os.replace(new, final)
+    _fsync_dir(Path(final).parent)
+
+
 def replace_folder(new: str | Path, final: str | Path) -> None:
     """Put the finished folder ``new`` (beside ``final``) at ``final``. A folder already there is first renamed
     aside to ``.NAME.old-*`` and removed only after the new one is in place, so a crash at any point leaves one

@@ -297,31 +297,98 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
     assert r.returncode == 2 and "new.step20.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
 
 
-def test_a_snapshot_asked_for_after_the_run_passed_it_is_a_run_of_that_length(small_data, tmp_path, cdrb):
-    """An earlier point added to a finished curve: the run is left as it is and the snapshot is trained from the
-    start for just its steps, the same model `--steps N` writes; asked again, nothing is trained."""
+def test_snapshots_asked_for_after_the_run_passed_them_are_one_run_of_that_length(small_data, tmp_path, cdrb):
+    """Earlier points added to a finished curve: the run is left as it is and one run from the start to the last
+    of them writes them all, each the model `--steps N` writes; asked again, nothing is trained."""
     demos, buffer = small_data
     args = ["train", demos.path, "--buffer", buffer.path, "--set", "checkpoint_every=40", *TINY_FLAGS]
-    out, ref = tmp_path / "long.h5", tmp_path / "ref20.h5"
+    out = tmp_path / "long.h5"
     assert cdrb(*args, "--steps", "80", "--out", out).returncode == 0
-    assert cdrb(*args, "--steps", "20", "--out", ref).returncode == 0
+    refs = {s: tmp_path / f"ref{s}.h5" for s in (20, 60)}
+    for s, ref in refs.items():
+        assert cdrb(*args, "--steps", str(s), "--out", ref).returncode == 0
     before = artifacts.sha256_file(out)
 
-    def check(extra: list[str], snaps: str, trained: bool) -> None:
+    def check(extra: list[str], snaps: str, trained: str | None) -> None:
         r = cdrb(*args, "--steps", "80", "--snapshot-at", snaps, *extra, "--out", out)
         assert r.returncode == 0, r.stderr
-        assert ("training the 20 steps from the start" in r.stderr) == trained, r.stderr
+        if trained is None:
+            assert "from the start" not in r.stderr and "snapshots trained" not in r.stderr, r.stderr
+        else:
+            assert f"--snapshot-at {trained}: long.h5 was past" in r.stderr and "from the start" in r.stderr, r.stderr
+            assert r.stderr.count("from the start") == 1  # one run for all of them
         assert artifacts.sha256_file(out) == before
-        snap = artifacts.load(tmp_path / "long.step20.h5", "model")
-        assert snap.manifest.config == artifacts.load(ref, "model").manifest.config and snap.manifest.state.finished
-        for k, v in _weights(artifacts.load(ref, "model")).items():
-            np.testing.assert_array_equal(v, _weights(snap)[k], err_msg=k)
+        for s in map(int, snaps.split(",")):
+            snap, ref = artifacts.load(tmp_path / f"long.step{s}.h5", "model"), artifacts.load(refs[s], "model")
+            assert snap.manifest.config == ref.manifest.config and snap.manifest.state.finished
+            assert snap.manifest.state.step == s
+            for k, v in _weights(ref).items():
+                np.testing.assert_array_equal(v, _weights(snap)[k], err_msg=(s, k))
+        assert not (tmp_path / ".long.earlier.h5").exists()
 
-    check(["--resume"], "20,60", True)  # as a grid asks: its model is there
-    assert artifacts.load(tmp_path / "long.step60.h5", "model").manifest.state.step == 60
-    check(["--resume"], "20,60", False)  # asked again: both are there
+    check(["--resume"], "20,60", "20,60")  # as a grid asks: its model is there
+    check(["--resume"], "20,60", None)  # asked again: both are there
     (tmp_path / "long.step20.h5").unlink()
-    check([], "20", True)  # as a user asks, the run up to date
+    check([], "20,60", "20")  # as a user asks, the run up to date: only the missing one
+    # a file at a snapshot path that is not this run's snapshot: refused, with --resume too, before any work
+    (tmp_path / "long.step20.h5").unlink()
+    ref20 = artifacts.sha256_file(refs[20])
+    for extra in ([], ["--resume"]):
+        (tmp_path / "long.step20.h5").write_bytes(b"mine")
+        r = cdrb(*args, "--steps", "80", "--snapshot-at", "20", *extra, "--out", out)
+        assert r.returncode == 2 and "long.step20.h5: file exists" in r.stderr and "--force" in r.stderr, r.stderr
+        assert (tmp_path / "long.step20.h5").read_bytes() == b"mine"
+    assert artifacts.sha256_file(refs[20]) == ref20
+
+
+def test_an_interrupted_run_for_earlier_snapshots_leaves_no_snapshot_and_resumes(small_data, tmp_path, monkeypatch):
+    """The run making snapshots the model was past checkpoints into a hidden file, never under a snapshot's name,
+    and the next call continues it to the same models."""
+    from cdrb_cli.stages import train as stage
+    from cdrb_cli.stages.train import earlier_path, train_or_resume
+
+    demos, buffer = small_data
+
+    def config(steps: int):
+        return train_config(demos, buffer, "cdrb", tiny("cdrb", steps=steps, checkpoint_every=40, checkpoint_seconds=0))
+
+    out = tmp_path / "long.h5"
+    train(demos, buffer, config(80), out)
+    ref20, ref60 = (
+        train(demos, buffer, config(20), tmp_path / "r20.h5"),
+        train(demos, buffer, config(60), tmp_path / "r60.h5"),
+    )
+    real, calls = stage._update, {"n": 0}
+
+    def stopped_at_50(*a, **k):
+        calls["n"] += 1
+        if calls["n"] > 50:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(stage, "_update", stopped_at_50)
+    with pytest.raises(KeyboardInterrupt):
+        train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20, 60])
+    counted = {"n": 0}
+
+    def counting(*a, **k):
+        counted["n"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(stage, "_update", counting)
+    assert not (tmp_path / "long.step60.h5").exists()  # nothing unfinished where an eval would take it
+    side = artifacts.load(earlier_path(out), "model").manifest.state
+    assert side.step == 40 and not side.finished
+    written = artifacts.load(tmp_path / "long.step20.h5", "model")  # written when the interrupted run passed it
+    for k, v in _weights(ref20).items():
+        np.testing.assert_array_equal(v, _weights(written)[k], err_msg=k)
+    _, what = train_or_resume(demos, buffer, config(80), out, snapshots=[20, 60])
+    assert what == "up to date, snapshots trained" and not earlier_path(out).exists()
+    assert counted["n"] == 60 - 40  # continued from the hidden checkpoint, not started over
+    snap = artifacts.load(tmp_path / "long.step60.h5", "model")
+    assert snap.manifest.config == ref60.manifest.config and snap.manifest.state.finished
+    for k, v in _weights(ref60).items():
+        np.testing.assert_array_equal(v, _weights(snap)[k], err_msg=k)
 
 
 def test_a_bad_snapshot_step_gets_a_hint_that_would_work(small_data):

@@ -53,9 +53,10 @@ def train(
         None,
         "--snapshot-at",
         metavar="STEPS",
-        help="Also write the model after these steps (e.g. 1000,3000) to OUT.step<N>.h5, each exactly what "
-        "`--steps N` writes: a learning curve from one run. A step OUT is already past is trained for from the "
-        "start (N steps, not the whole run).",
+        help="Also write the model after these steps (e.g. 1000,3000) to OUT.step<N>.h5, each what `--steps N` "
+        "writes: a learning curve from one run. Steps that OUT is already past are made by one run from the start "
+        "to the last of them, not the whole run again. A file there that is not this run's snapshot is refused "
+        "without --force.",
     ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
@@ -109,8 +110,9 @@ def train(
         profile=profile,
         log_dir=log_dir,
     )
-    if done == "up to date":
-        ui.log(f"{out} is up to date (same config and inputs): skipped; --force redoes it")
+    if done.startswith("up to date"):
+        also = ", its missing snapshots trained" if done != "up to date" else ""
+        ui.log(f"{out} is up to date (same config and inputs): skipped{also}; --force redoes it")
     st = model.manifest.state
     ui.log(
         f"{config.method.name}: {st.step} steps, loss {st.loss:.4f}"

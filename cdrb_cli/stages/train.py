@@ -13,13 +13,14 @@ import contextlib
 import math
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, feature_dim, split_rows
 from cdrb_cli.configs import TrainConfig, TrainState
 from cdrb_cli.errors import BadInput, RunFailed
+from cdrb_cli.files import replace_file
 from cdrb_cli.methods.base import NonFiniteLoss, build_method
 from cdrb_cli.methods.checkpoint import checkpoint_arrays, make_ema, restore
 from cdrb_cli.methods.registry import METHODS
@@ -140,37 +141,79 @@ def train_or_resume(
     """Train into ``out`` according to what it holds (:func:`cdrb_cli.artifacts.existing`): reuse it when up to
     date, continue it with ``resume`` (or ``auto``) when it is a checkpoint of this run, start over with ``force``
     (or ``auto``, for a file of another run); refuse anything else. Returns the model and what was done:
-    ``up to date``, ``resumed`` or ``trained``. ``profile``: the :class:`~cdrb_cli.configs.SettingsProfile` the
+    ``up to date``, ``up to date, snapshots trained`` (snapshots it was past, :func:`_earlier_snapshots`),
+    ``resumed`` or ``trained``. ``profile``: the :class:`~cdrb_cli.configs.SettingsProfile` the
     model records (the selection its settings came from); ``log_dir``: a folder for TensorBoard event files."""
     if resume and force:
         raise BadInput("--resume and --force together", hint="--resume continues --out; --force starts over")
     parents = [demos] + ([buffer] if buffer is not None else [])
     snapshots = check_snapshots(config, snapshots)
     inputs = [p.path for p in parents]
-    replace_snapshots = force or resume or auto  # a resumed run may find the snapshots it wrote before
     with contextlib.ExitStack() as stack:
         stack.enter_context(artifacts.claim_output(out, force=True, inputs=inputs))
         for s in snapshots:
-            path = snapshot_path(out, s)
-            stack.enter_context(artifacts.claim_output(path, replace_snapshots, "--snapshot-at", inputs))
+            stack.enter_context(artifacts.claim_output(snapshot_path(out, s), True, "--snapshot-at", inputs))
+        side = earlier_path(Path(out))
+        stack.enter_context(artifacts.claim_output(side, True, "--snapshot-at", inputs))
+        _check_snapshot_files(config, Path(out), parents, snapshots, replace=force or auto)
         run = dict(device=device, snapshots=snapshots, profile=profile, log_dir=log_dir)
         model, what = _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
-        _earlier_snapshots(demos, buffer, config, Path(out), parents, snapshots, run)
+        made = _earlier_snapshots(demos, buffer, config, Path(out), parents, snapshots, run)
+        if made and what == "up to date":
+            what = "up to date, snapshots trained"
         return model, what
 
 
-def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run: dict) -> None:
-    """The snapshots ``out`` was already past when they were asked for (a learning curve given an earlier point
-    after its runs finished): each is made by a run of that many steps from the start, which is exactly that
-    snapshot (the learning rate is constant, so nothing depends on ``steps``) and costs only those steps, not the
-    whole run again. A snapshot file already holding that run is kept; an interrupted one is resumed."""
+def earlier_path(out: Path) -> Path:
+    """The hidden checkpoint of the run that makes the snapshots ``out`` was already past (:func:`_earlier_snapshots`):
+    renamed to the last of them once finished, so an interrupted run never leaves a snapshot-named file unfinished."""
+    return out.with_name(f".{out.stem}.earlier{out.suffix or '.h5'}")
+
+
+def _check_snapshot_files(config, out: Path, parents, snapshots, replace: bool) -> None:
+    """Refuse, before any work, a snapshot path holding anything but this run's snapshot there (which is kept, as
+    a rerun would write the same), unless ``replace`` (``--force``, or a grid's own outputs)."""
+    if replace:
+        return
     for s in snapshots:
         path = snapshot_path(out, s)
-        cfg = config.model_copy(update={"steps": s})
-        if artifacts.existing(path, "model", cfg, parents).up_to_date:
-            continue
-        ui.log(f"--snapshot-at {s}: {out.name} was past it; training the {s} steps from the start for it")
-        _train_or_resume(demos, buffer, cfg, path, parents, False, False, True, dict(run, snapshots=(), log_dir=None))
+        found = artifacts.existing(path, "model", config.model_copy(update={"steps": s}), parents)
+        if found.status not in ("missing", "up-to-date"):
+            raise BadInput(
+                f"--snapshot-at {s}: {path}: file exists ({found.reason})",
+                hint="pass --force to overwrite it, or choose another --out",
+            )
+
+
+def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run: dict) -> list[int]:
+    """Make the snapshots ``out`` was already past when they were asked for (a learning curve given earlier points
+    after its runs finished), returning their steps. One run from the start to the last of them writes them all,
+    the same computation as the runs of those lengths (the learning rate is constant, so nothing before a step
+    depends on ``steps``), and costs only those steps, not the whole run again. It checkpoints into
+    :func:`earlier_path`, which an interrupted call resumes."""
+
+    def config_at(s: int):
+        return config.model_copy(update={"steps": s})
+
+    missing = [
+        s for s in snapshots if not artifacts.existing(snapshot_path(out, s), "model", config_at(s), parents).up_to_date
+    ]
+    if not missing:
+        return []
+    top, side = max(missing), earlier_path(out)
+    found = artifacts.existing(side, "model", config_at(top), parents)
+    if found.up_to_date:  # finished, not yet renamed
+        replace_file(side, snapshot_path(out, top))
+        return missing
+    # a checkpoint of this run that has not passed a snapshot still to write continues; anything else starts over
+    resume = found.status == "resumable" and found.artifact.manifest.state.step < min(missing)
+    what = f"continuing from step {found.artifact.manifest.state.step}" if resume else "training from the start"
+    listed = ",".join(map(str, missing))
+    ui.log(f"--snapshot-at {listed}: {out.name} was past {'it' if len(missing) == 1 else 'them'}; {what} to step {top}")
+    run = dict(run, snapshots=missing[:-1], log_dir=None, snapshot_to=lambda s: snapshot_path(out, s))
+    train(demos, buffer, config_at(top), side, resume=found.artifact if resume else False, **run)
+    replace_file(side, snapshot_path(out, top))
+    return missing
 
 
 def _train_or_resume(demos, buffer, config, out, parents, force, resume, auto, run: dict):
@@ -199,13 +242,17 @@ def train(
     snapshots: Sequence[int] = (),
     profile=None,
     log_dir: Path | None = None,
+    snapshot_to: Callable[[int], Path] | None = None,
 ) -> artifacts.Model:
     """Train ``config`` on the demos (and buffer), checkpointing into ``out``. ``resume``: True continues the
     checkpoint in ``out`` (same inputs and config, up to ``steps``); or pass that checkpoint's artifact.
     ``snapshots``: steps at which the model is also written, finished, to :func:`snapshot_path` exactly as a run of
     that many steps writes it (the learning rate is constant, so nothing else depends on ``steps``); ``profile``:
-    the settings profile the model records; ``log_dir``: a folder for TensorBoard event files (:class:`TrainLog`)."""
+    the settings profile the model records; ``log_dir``: a folder for TensorBoard event files (:class:`TrainLog`);
+    ``snapshot_to``: where the snapshot at a step goes, if not beside ``out``."""
     import torch
+
+    snapshot_to = snapshot_to or (lambda s: snapshot_path(out, s))
 
     spec = demos.manifest.env
     normalizer = check_inputs(demos, buffer, config.features)
@@ -226,7 +273,7 @@ def train(
     resume = _checkpoint(out, config, parents) if resume is True else resume
     if resume:
         step, curve, wall = restore(resume, method, ema, optimizers, device)
-        _resumed_snapshots(resume, out, step, snapshots)
+        _resumed_snapshots(resume, out, step, snapshots, snapshot_to)
 
     def save(finished: bool, loss_value, valid_value, path=out, cfg=config, points=None) -> None:
         state = TrainState(
@@ -283,7 +330,7 @@ def train(
                     wall = time.time() - t0
                 if snap:  # what a run of `step` steps writes at its end
                     cfg = config.model_copy(update={"steps": step})
-                    save(True, last_loss, valid, snapshot_path(out, step), cfg, curve[:-1] + [(step, last_loss, valid)])
+                    save(True, last_loss, valid, snapshot_to(step), cfg, curve[:-1] + [(step, last_loss, valid)])
                 if ckpt or timed:
                     save(step == config.steps, last_loss, curve[-1][2])
                     last_save = time.time()
@@ -319,12 +366,12 @@ def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
         ) from None
 
 
-def _resumed_snapshots(resume, out: Path, step: int, snapshots: Sequence[int]) -> None:
+def _resumed_snapshots(resume, out: Path, step: int, snapshots: Sequence[int], snapshot_to) -> None:
     """On resuming ``out`` at ``step``: a finished run of ``step`` steps is kept as the snapshot a longer run writes
     there; snapshots already past and never written are made after the run (:func:`_earlier_snapshots`)."""
     ui.log(f"resuming {out} from step {step}")
-    if step in snapshots and resume.manifest.state.finished and not snapshot_path(out, step).exists():
-        with artifacts.atomic_path(snapshot_path(out, step)) as tmp:
+    if step in snapshots and resume.manifest.state.finished and not snapshot_to(step).exists():
+        with artifacts.atomic_path(snapshot_to(step)) as tmp:
             shutil.copyfile(resume.path, tmp)
 
 
