@@ -294,7 +294,8 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
         assert r.returncode == 2 and "--snapshot-at" in r.stderr and len(r.stderr.strip().splitlines()) <= 2, bad
     (tmp_path / "new.step20.h5").write_bytes(b"mine")
     r = cdrb(*args, "--steps", "80", "--snapshot-at", "20", "--out", tmp_path / "new.h5")
-    assert r.returncode == 2 and "new.step20.h5: file exists" in r.stderr and not (tmp_path / "new.h5").exists()
+    assert r.returncode == 2 and "new.step20.h5 exists and is not this run's snapshot" in r.stderr
+    assert not (tmp_path / "new.h5").exists()
 
 
 def test_snapshots_asked_for_after_the_run_passed_them_are_one_run_of_that_length(small_data, tmp_path, cdrb):
@@ -336,7 +337,8 @@ def test_snapshots_asked_for_after_the_run_passed_them_are_one_run_of_that_lengt
     for extra in ([], ["--resume"]):
         (tmp_path / "long.step20.h5").write_bytes(b"mine")
         r = cdrb(*args, "--steps", "80", "--snapshot-at", "20", *extra, "--out", out)
-        assert r.returncode == 2 and "long.step20.h5: file exists" in r.stderr and "--force" in r.stderr, r.stderr
+        assert r.returncode == 2 and "long.step20.h5 exists and is not this run's snapshot" in r.stderr, r.stderr
+        assert "--force" in r.stderr
         assert (tmp_path / "long.step20.h5").read_bytes() == b"mine"
     assert artifacts.sha256_file(refs[20]) == ref20
 
@@ -389,6 +391,115 @@ def test_an_interrupted_run_for_earlier_snapshots_leaves_no_snapshot_and_resumes
     assert snap.manifest.config == ref60.manifest.config and snap.manifest.state.finished
     for k, v in _weights(ref60).items():
         np.testing.assert_array_equal(v, _weights(snap)[k], err_msg=k)
+
+
+def _counting_updates(monkeypatch, stop_after: int | None = None) -> dict:
+    """Count the training updates from here on (interrupting after ``stop_after`` of them, if given)."""
+    from cdrb_cli.stages import train as stage
+
+    real, calls = getattr(stage._update, "real", stage._update), {"n": 0}  # not an earlier counter
+
+    def counted(*a, **k):
+        calls["n"] += 1
+        if stop_after is not None and calls["n"] > stop_after:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    counted.real = real
+    monkeypatch.setattr(stage, "_update", counted)
+    return calls
+
+
+def _same_weights(a, b) -> None:
+    for k, v in _weights(a).items():
+        np.testing.assert_array_equal(v, _weights(b)[k], err_msg=k)
+
+
+def test_earlier_snapshots_recover_from_every_leftover_and_keep_what_is_done(small_data, tmp_path, monkeypatch):
+    """What a killed or older run leaves is finished or continued, never trusted blindly: a finished hidden run
+    killed before its rename becomes its snapshot (and a wider request still makes the rest); a hidden checkpoint
+    of other settings is trained over from the start; an unfinished checkpoint under a snapshot's own name (where
+    an older version trained it) is continued; a snapshot already there is not rewritten; another model under a
+    snapshot's name is refused, --resume or not."""
+    from cdrb_cli.stages import train as stage
+    from cdrb_cli.stages.train import earlier_path, snapshot_path, train_or_resume
+
+    demos, buffer = small_data
+
+    def config(steps: int, seed: int = 0):
+        settings = tiny("cdrb", steps=steps, checkpoint_every=40, checkpoint_seconds=0)
+        return train_config(demos, buffer, "cdrb", settings, seed=seed)
+
+    out, side = tmp_path / "long.h5", earlier_path(tmp_path / "long.h5")
+    train(demos, buffer, config(80), out)
+    refs = {s: train(demos, buffer, config(s), tmp_path / f"r{s}.h5") for s in (20, 60)}
+
+    def check(*steps: int) -> None:
+        for s in steps:
+            snap = artifacts.load(snapshot_path(out, s), "model")
+            assert snap.manifest.config == refs[s].manifest.config and snap.manifest.state.finished
+            _same_weights(refs[s], snap)
+
+    # killed between finishing and renaming, then asked for more
+    real_replace = stage.replace_file
+
+    def killed(*a):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage, "replace_file", killed)
+    with pytest.raises(KeyboardInterrupt):
+        train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[60])
+    monkeypatch.setattr(stage, "replace_file", real_replace)
+    assert artifacts.load(side, "model").manifest.state.finished and not snapshot_path(out, 60).exists()
+    calls = _counting_updates(monkeypatch)
+    _, what = train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20, 60])
+    assert what == "up to date, snapshots trained" and calls["n"] == 20 and not side.exists()
+    check(20, 60)
+    kept = {s: artifacts.sha256_file(snapshot_path(out, s)) for s in (20, 60)}
+
+    # a hidden checkpoint of another seed: not continued
+    snapshot_path(out, 60).unlink()
+    _counting_updates(monkeypatch, stop_after=50)
+    with pytest.raises(KeyboardInterrupt):
+        train(demos, buffer, config(60, seed=1), side)
+    calls = _counting_updates(monkeypatch)
+    _, what = train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20, 60])
+    assert what == "up to date, snapshots trained" and calls["n"] == 60 and not side.exists()
+    check(60)
+    assert artifacts.sha256_file(snapshot_path(out, 20)) == kept[20]  # up to date: not rewritten
+
+    # an unfinished checkpoint under the snapshot's own name, of this run: continued from where it stopped
+    snapshot_path(out, 60).unlink()
+    _counting_updates(monkeypatch, stop_after=50)
+    with pytest.raises(KeyboardInterrupt):
+        train(demos, buffer, config(60), snapshot_path(out, 60))
+    assert artifacts.load(snapshot_path(out, 60), "model").manifest.state.step == 40
+    calls = _counting_updates(monkeypatch)
+    _, what = train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20, 60])
+    assert what == "up to date, snapshots trained" and calls["n"] == 60 - 40 and not side.exists()
+    check(60)
+
+    # a readable model of other settings under a snapshot's name: refused before any work, left as it is
+    other = train(demos, buffer, config(20, seed=1), tmp_path / "other.h5")
+    snapshot_path(out, 20).write_bytes(other.path.read_bytes())
+    for resume in (False, True):
+        with pytest.raises(BadInput) as err:
+            train_or_resume(demos, buffer, config(80), out, resume=resume, snapshots=[20, 60])
+        assert "long.step20.h5 exists and is not this run's snapshot" in err.value.message
+        assert err.value.message.count(str(snapshot_path(out, 20))) == 1 and "retrains long.h5" in err.value.hint
+    assert artifacts.sha256_file(snapshot_path(out, 20)) == artifacts.sha256_file(other.path)
+
+
+def test_a_long_out_name_needs_no_room_for_snapshots_it_does_not_ask_for(small_data, tmp_path):
+    """The hidden checkpoint of earlier snapshots is a longer name than OUT's: it is claimed only when snapshots
+    are asked for, so an --out name near the file system's limit trains without them."""
+    from cdrb_cli.stages.train import train_or_resume
+
+    demos, buffer = small_data
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2))
+    out = tmp_path / ("m" * 197 + ".h5")  # the longest name an output may have
+    _, what = train_or_resume(demos, buffer, cfg, out)
+    assert what == "trained" and artifacts.load(out, "model").manifest.state.finished
 
 
 def test_a_bad_snapshot_step_gets_a_hint_that_would_work(small_data):

@@ -56,7 +56,7 @@ def train(
         help="Also write the model after these steps (e.g. 1000,3000) to OUT.step<N>.h5, each what `--steps N` "
         "writes: a learning curve from one run. Steps that OUT is already past are made by one run from the start "
         "to the last of them, not the whole run again. A file there that is not this run's snapshot is refused "
-        "without --force.",
+        "(--force overwrites it, and retrains OUT too).",
     ),
     seed: int = SeedOpt,
     force: bool = ForceOpt,

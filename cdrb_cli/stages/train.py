@@ -153,8 +153,8 @@ def train_or_resume(
         stack.enter_context(artifacts.claim_output(out, force=True, inputs=inputs))
         for s in snapshots:
             stack.enter_context(artifacts.claim_output(snapshot_path(out, s), True, "--snapshot-at", inputs))
-        side = earlier_path(Path(out))
-        stack.enter_context(artifacts.claim_output(side, True, "--snapshot-at", inputs))
+        if snapshots:
+            stack.enter_context(artifacts.claim_output(earlier_path(Path(out)), True, "--snapshot-at", inputs))
         _check_snapshot_files(config, Path(out), parents, snapshots, replace=force or auto)
         run = dict(device=device, snapshots=snapshots, profile=profile, log_dir=log_dir)
         model, what = _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
@@ -171,18 +171,26 @@ def earlier_path(out: Path) -> Path:
 
 
 def _check_snapshot_files(config, out: Path, parents, snapshots, replace: bool) -> None:
-    """Refuse, before any work, a snapshot path holding anything but this run's snapshot there (which is kept, as
-    a rerun would write the same), unless ``replace`` (``--force``, or a grid's own outputs)."""
+    """Refuse, before any work, a snapshot path holding anything but this run's own work there: its finished
+    snapshot (kept, as a rerun would write the same) or an unfinished checkpoint of it (trained over), unless
+    ``replace`` (``--force``, or quickstart's own outputs)."""
     if replace:
         return
     for s in snapshots:
         path = snapshot_path(out, s)
         found = artifacts.existing(path, "model", config.model_copy(update={"steps": s}), parents)
-        if found.status not in ("missing", "up-to-date"):
-            raise BadInput(
-                f"--snapshot-at {s}: {path}: file exists ({found.reason})",
-                hint="pass --force to overwrite it, or choose another --out",
-            )
+        if found.status in ("missing", "up-to-date") or _unfinished(found):
+            continue
+        reason = found.reason.removeprefix(f"{path}: ")
+        raise BadInput(
+            f"--snapshot-at {s}: {path} exists and is not this run's snapshot ({reason})",
+            hint=f"remove it or choose another --out (--force overwrites it, and retrains {out.name} too)",
+        )
+
+
+def _unfinished(found: artifacts.Existing) -> bool:
+    """Whether ``found`` is an unfinished checkpoint of the run asked for (same inputs and settings)."""
+    return found.status == "resumable" and not found.artifact.manifest.state.finished
 
 
 def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run: dict) -> list[int]:
@@ -190,30 +198,56 @@ def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run
     after its runs finished), returning their steps. One run from the start to the last of them writes them all,
     the same computation as the runs of those lengths (the learning rate is constant, so nothing before a step
     depends on ``steps``), and costs only those steps, not the whole run again. It checkpoints into
-    :func:`earlier_path`, which an interrupted call resumes."""
+    :func:`earlier_path`, which an interrupted call resumes, and which is renamed to the last snapshot once
+    finished (so no snapshot-named file is ever unfinished)."""
 
     def config_at(s: int):
         return config.model_copy(update={"steps": s})
 
-    missing = [
-        s for s in snapshots if not artifacts.existing(snapshot_path(out, s), "model", config_at(s), parents).up_to_date
-    ]
-    if not missing:
-        return []
-    top, side = max(missing), earlier_path(out)
-    found = artifacts.existing(side, "model", config_at(top), parents)
-    if found.up_to_date:  # finished, not yet renamed
+    side, made, trained = earlier_path(out), [], False
+    while True:
+        missing = [
+            s
+            for s in snapshots
+            if not artifacts.existing(snapshot_path(out, s), "model", config_at(s), parents).up_to_date
+        ]
+        if not missing:
+            if snapshots:  # a hidden checkpoint left by a run whose snapshots are all there now: nothing uses it
+                side.unlink(missing_ok=True)
+            return sorted(set(made))
+        # a finished run left unrenamed (killed between the two) is one of the snapshots: rename it, then look again
+        done = next((s for s in missing if artifacts.existing(side, "model", config_at(s), parents).up_to_date), None)
+        if done is not None:
+            replace_file(side, snapshot_path(out, done))
+            made.append(done)
+            continue
+        if trained:  # pragma: no cover - a snapshot this run wrote does not read as up to date: a bug, not input
+            raise RunFailed(f"--snapshot-at: {snapshot_path(out, missing[0])} was written but is not up to date")
+        top = max(missing)
+        _adopt_checkpoint(snapshot_path(out, top), side, config_at(top), parents)
+        found = artifacts.existing(side, "model", config_at(top), parents)
+        # an unfinished checkpoint of this run that has not passed a snapshot still to write continues (the
+        # snapshot at the step it stopped at may not have been written); anything else starts over
+        resume = _unfinished(found) and found.artifact.manifest.state.step < min(missing)
+        what = f"continuing from step {found.artifact.manifest.state.step}" if resume else "training from the start"
+        listed = ",".join(map(str, missing))
+        them = "it" if len(missing) == 1 else "them"
+        ui.log(f"--snapshot-at {listed}: {out.name} was past {them}; {what} to step {top}")
+        at = dict(run, snapshots=missing[:-1], log_dir=None, snapshot_to=lambda s: snapshot_path(out, s))
+        train(demos, buffer, config_at(top), side, resume=found.artifact if resume else False, **at)
         replace_file(side, snapshot_path(out, top))
-        return missing
-    # a checkpoint of this run that has not passed a snapshot still to write continues; anything else starts over
-    resume = found.status == "resumable" and found.artifact.manifest.state.step < min(missing)
-    what = f"continuing from step {found.artifact.manifest.state.step}" if resume else "training from the start"
-    listed = ",".join(map(str, missing))
-    ui.log(f"--snapshot-at {listed}: {out.name} was past {'it' if len(missing) == 1 else 'them'}; {what} to step {top}")
-    run = dict(run, snapshots=missing[:-1], log_dir=None, snapshot_to=lambda s: snapshot_path(out, s))
-    train(demos, buffer, config_at(top), side, resume=found.artifact if resume else False, **run)
-    replace_file(side, snapshot_path(out, top))
-    return missing
+        made.extend(missing)
+        trained = True
+
+
+def _adopt_checkpoint(path: Path, side: Path, config, parents) -> None:
+    """An unfinished checkpoint of this run under the last snapshot's own name (where an earlier version of this
+    command trained it) moves to the hidden checkpoint, when that holds no unfinished checkpoint of its own, so the
+    work is continued, not lost, and the snapshot's name never holds an unfinished model."""
+    if not _unfinished(artifacts.existing(path, "model", config, parents)):
+        return
+    if not _unfinished(artifacts.existing(side, "model", config, parents)):
+        replace_file(path, side)
 
 
 def _train_or_resume(demos, buffer, config, out, parents, force, resume, auto, run: dict):
