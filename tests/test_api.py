@@ -188,6 +188,17 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
                 w.mul_(0.9)
     scaled = (p.plan([0.0, 0.0], [6.0, 6.0], n=4, seed=3).features for p in (onnx_planner, torch_planner))
     np.testing.assert_allclose(*scaled, atol=1e-4)
+    # and between two repairs (a closed loop's re-plans), which look at the weights as plans do
+    methods = onnx_planner.method, torch_planner.method
+    start, goal = torch.full((2, methods[0].obs_dim), -0.5), torch.full((2, methods[0].obs_dim), 0.5)
+    previous = methods[1].sample(start, goal, np.random.default_rng(0)).plans
+    for m in methods:
+        m.repair(start, goal, previous, 5, np.random.default_rng(1))
+        with torch.no_grad():
+            for w in m.net.parameters():
+                w.mul_(0.9)
+    repaired = (m.repair(start, goal, previous, 5, np.random.default_rng(2)).plans.numpy() for m in methods)
+    np.testing.assert_allclose(*repaired, atol=1e-4)
     from cdrb_cli.nets.runtime import OnnxNet
 
     session = onnx_planner.method.__dict__["_onnx"][2]

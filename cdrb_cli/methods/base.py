@@ -151,6 +151,11 @@ class Method:
     #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
     TRACE_AFTER: ClassVar[int] = 96
 
+    def weights_may_have_changed(self) -> None:
+        """Called as each sampling call starts: the network's weights may have changed since the last one, so
+        :meth:`sample_net` looks at them again before its next call (within one sampling call it does not)."""
+        self._onnx_checked = False
+
     def sample_net(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, once it
         has been called :data:`TRACE_AFTER` times, a trace of it (``torch.jit.trace``, made per device and dtype)
@@ -166,9 +171,14 @@ class Method:
         if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
             from cdrb_cli.nets.runtime import OnnxNet, weights_version
 
-            onnx, version = self.__dict__.get("_onnx"), weights_version(net)
-            if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
-                self._onnx = onnx = (net, version, OnnxNet(net, x, k))
+            onnx = self.__dict__.get("_onnx")
+            # weights are looked at once per sampling call (walking every parameter costs about a tenth of a plan
+            # at batch 1 if done for each of its network calls): they cannot change while it runs
+            if onnx is None or onnx[0] is not net or not self.__dict__.get("_onnx_checked"):
+                version = weights_version(net)
+                if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
+                    self._onnx = onnx = (net, version, OnnxNet(net, x, k))
+                self._onnx_checked = True
             return onnx[2](x, k)
         if not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
@@ -249,6 +259,7 @@ class Planner(Method):
         keep_iterates: int = 0,
     ) -> SampleResult:
         """Plans for normalized start and goal states (P, obs_dim), with the current weights."""
+        self.weights_may_have_changed()
         with torch.no_grad():
             return self._sample(start, goal, rng, sampler or self.config.method.sampler, steps, keep_iterates)
 

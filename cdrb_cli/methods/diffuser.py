@@ -148,6 +148,7 @@ class Diffuser(Planner):
         sched = self._ddpm()
         sched.set_timesteps(timesteps=[int(t) for t in timesteps])
         gen = torch_generator(rng)
+        self.weights_may_have_changed()
         with torch.no_grad():
             x0 = self.pin(previous, start, goal)
             noise = torch.randn(x0.shape, generator=gen).to(x0.device)
