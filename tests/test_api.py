@@ -199,6 +199,15 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
                 w.mul_(0.9)
     repaired = (m.repair(start, goal, previous, 5, np.random.default_rng(2)).plans.numpy() for m in methods)
     np.testing.assert_allclose(*repaired, atol=1e-4)
+    # and a network call outside any sampling call looks at the weights each time
+    x, k = previous, torch.full((2,), 3)
+    with torch.no_grad():
+        for m in methods:
+            m.sample_net(x, k)
+            for w in m.net.parameters():
+                w.mul_(0.5)
+        direct = [m.sample_net(x, k).numpy() for m in methods]
+    np.testing.assert_allclose(*direct, atol=1e-4)
     from cdrb_cli.nets.runtime import OnnxNet
 
     session = onnx_planner.method.__dict__["_onnx"][2]

@@ -325,7 +325,7 @@ def test_snapshots_asked_for_after_the_run_passed_them_are_one_run_of_that_lengt
             assert snap.manifest.state.step == s
             for k, v in _weights(ref).items():
                 np.testing.assert_array_equal(v, _weights(snap)[k], err_msg=(s, k))
-        assert not (tmp_path / ".long.earlier.h5").exists()
+        assert not list(tmp_path.glob(".long.e*.h5"))  # no hidden checkpoint left
 
     check(["--resume"], "20,60", "20,60")  # as a grid asks: its model is there
     check(["--resume"], "20,60", None)  # asked again: both are there
@@ -379,13 +379,13 @@ def test_an_interrupted_run_for_earlier_snapshots_leaves_no_snapshot_and_resumes
 
     monkeypatch.setattr(stage, "_update", counting)
     assert not (tmp_path / "long.step60.h5").exists()  # nothing unfinished where an eval would take it
-    side = artifacts.load(earlier_path(out), "model").manifest.state
+    side = artifacts.load(earlier_path(out, 60), "model").manifest.state
     assert side.step == 40 and not side.finished
     written = artifacts.load(tmp_path / "long.step20.h5", "model")  # written when the interrupted run passed it
     for k, v in _weights(ref20).items():
         np.testing.assert_array_equal(v, _weights(written)[k], err_msg=k)
     _, what = train_or_resume(demos, buffer, config(80), out, snapshots=[20, 60])
-    assert what == "up to date, snapshots trained" and not earlier_path(out).exists()
+    assert what == "up to date, snapshots trained" and not earlier_path(out, 60).exists()
     assert counted["n"] == 60 - 40  # continued from the hidden checkpoint, not started over
     snap = artifacts.load(tmp_path / "long.step60.h5", "model")
     assert snap.manifest.config == ref60.manifest.config and snap.manifest.state.finished
@@ -430,7 +430,7 @@ def test_earlier_snapshots_recover_from_every_leftover_and_keep_what_is_done(sma
         settings = tiny("cdrb", steps=steps, checkpoint_every=40, checkpoint_seconds=0)
         return train_config(demos, buffer, "cdrb", settings, seed=seed)
 
-    out, side = tmp_path / "long.h5", earlier_path(tmp_path / "long.h5")
+    out, side = tmp_path / "long.h5", earlier_path(tmp_path / "long.h5", 60)
     train(demos, buffer, config(80), out)
     refs = {s: train(demos, buffer, config(s), tmp_path / f"r{s}.h5") for s in (20, 60)}
 
@@ -490,16 +490,47 @@ def test_earlier_snapshots_recover_from_every_leftover_and_keep_what_is_done(sma
     assert artifacts.sha256_file(snapshot_path(out, 20)) == artifacts.sha256_file(other.path)
 
 
-def test_a_long_out_name_needs_no_room_for_snapshots_it_does_not_ask_for(small_data, tmp_path):
-    """The hidden checkpoint of earlier snapshots is a longer name than OUT's: it is claimed only when snapshots
-    are asked for, so an --out name near the file system's limit trains without them."""
+def test_a_request_for_fewer_snapshots_keeps_the_hidden_work_of_one_for_more(small_data, tmp_path, monkeypatch):
+    """Interrupted on its way to 60, a run for snapshots 20 and 60 leaves its checkpoint; asking for 20 alone
+    trains 20 steps beside it, and asking for 60 again continues that checkpoint instead of starting over."""
+    from cdrb_cli.stages.train import earlier_path, snapshot_path, train_or_resume
+
+    demos, buffer = small_data
+
+    def config(steps: int):
+        return train_config(demos, buffer, "cdrb", tiny("cdrb", steps=steps, checkpoint_every=40, checkpoint_seconds=0))
+
+    out = tmp_path / "long.h5"
+    train(demos, buffer, config(80), out)
+    _counting_updates(monkeypatch, stop_after=50)
+    with pytest.raises(KeyboardInterrupt):
+        train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20, 60])
+    snapshot_path(out, 20).unlink()  # e.g. removed by hand, then asked for again
+    calls = _counting_updates(monkeypatch)
+    train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20])
+    assert calls["n"] == 20 and artifacts.load(earlier_path(out, 60), "model").manifest.state.step == 40
+    calls = _counting_updates(monkeypatch)
+    _, what = train_or_resume(demos, buffer, config(80), out, resume=True, snapshots=[20, 60])
+    assert what == "up to date, snapshots trained" and calls["n"] == 60 - 40
+    assert not list(tmp_path.glob(".long.e*.h5"))
+    ref = train(demos, buffer, config(60), tmp_path / "r60.h5")
+    _same_weights(ref, artifacts.load(snapshot_path(out, 60), "model"))
+
+
+def test_out_names_up_to_the_limit_train_with_and_without_snapshots(small_data, tmp_path):
+    """The hidden checkpoint of earlier snapshots is claimed only when snapshots are asked for, and its name is
+    shorter than its snapshot's, so any --out whose snapshot names fit trains."""
     from cdrb_cli.stages.train import train_or_resume
 
     demos, buffer = small_data
-    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=2))
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=4))
     out = tmp_path / ("m" * 197 + ".h5")  # the longest name an output may have
     _, what = train_or_resume(demos, buffer, cfg, out)
     assert what == "trained" and artifacts.load(out, "model").manifest.state.finished
+    out = tmp_path / ("n" * 190 + ".h5")  # its snapshot's name, n...n.step2.h5, is 199 bytes
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=4, checkpoint_every=2))
+    _, what = train_or_resume(demos, buffer, cfg, out, snapshots=[2])
+    assert what == "trained" and artifacts.load(tmp_path / ("n" * 190 + ".step2.h5"), "model").manifest.state.finished
 
 
 def test_a_bad_snapshot_step_gets_a_hint_that_would_work(small_data):

@@ -15,6 +15,7 @@ first in a feature vector, then the action when ``features == "state-action"``.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -151,10 +152,16 @@ class Method:
     #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
     TRACE_AFTER: ClassVar[int] = 96
 
-    def weights_may_have_changed(self) -> None:
-        """Called as each sampling call starts: the network's weights may have changed since the last one, so
-        :meth:`sample_net` looks at them again before its next call (within one sampling call it does not)."""
-        self._onnx_checked = False
+    @contextlib.contextmanager
+    def sampling_call(self):
+        """The span of one sampling call (a plan, a repair): :meth:`sample_net` looks at the network's weights at its
+        first network call within it and trusts that answer until it ends (weights cannot change mid-call); outside
+        one, every network call looks again."""
+        self._onnx_checked, self._in_sampling_call = False, True
+        try:
+            yield
+        finally:
+            self._onnx_checked, self._in_sampling_call = False, False
 
     def sample_net(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, once it
@@ -178,7 +185,7 @@ class Method:
                 version = weights_version(net)
                 if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
                     self._onnx = onnx = (net, version, OnnxNet(net, x, k))
-                self._onnx_checked = True
+                self._onnx_checked = self.__dict__.get("_in_sampling_call", False)
             return onnx[2](x, k)
         if not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
@@ -259,8 +266,7 @@ class Planner(Method):
         keep_iterates: int = 0,
     ) -> SampleResult:
         """Plans for normalized start and goal states (P, obs_dim), with the current weights."""
-        self.weights_may_have_changed()
-        with torch.no_grad():
+        with self.sampling_call(), torch.no_grad():
             return self._sample(start, goal, rng, sampler or self.config.method.sampler, steps, keep_iterates)
 
     def _sample(self, start, goal, rng, sampler: str, steps: int | None, keep_iterates: int) -> SampleResult:

@@ -339,8 +339,7 @@ class CDRB(Planner):
         k down to 1 (a partly wrong plan is itself a degraded trajectory)."""
         if not 1 <= k <= self.T - 1:
             raise ValueError(f"repair step k = {k} outside 1..{self.T - 1}")
-        self.weights_may_have_changed()
-        with torch.no_grad():
+        with self.sampling_call(), torch.no_grad():
             x = self.pin(self._degrade(self.pin(previous, start, goal), int(k), rng), start, goal)
             ks = self._schedule(int(k), steps)
             return self._restore(x, start, goal, ks, rng, sampler or self.config.method.sampler, 0)

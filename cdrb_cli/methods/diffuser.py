@@ -148,8 +148,7 @@ class Diffuser(Planner):
         sched = self._ddpm()
         sched.set_timesteps(timesteps=[int(t) for t in timesteps])
         gen = torch_generator(rng)
-        self.weights_may_have_changed()
-        with torch.no_grad():
+        with self.sampling_call(), torch.no_grad():
             x0 = self.pin(previous, start, goal)
             noise = torch.randn(x0.shape, generator=gen).to(x0.device)
             t0 = torch.full((x0.shape[0],), int(timesteps[0]), dtype=torch.long)

@@ -153,8 +153,8 @@ def train_or_resume(
         stack.enter_context(artifacts.claim_output(out, force=True, inputs=inputs))
         for s in snapshots:
             stack.enter_context(artifacts.claim_output(snapshot_path(out, s), True, "--snapshot-at", inputs))
-        if snapshots:
-            stack.enter_context(artifacts.claim_output(earlier_path(Path(out)), True, "--snapshot-at", inputs))
+        for s in snapshots:  # the hidden checkpoint of a run that makes snapshots up to s, never longer a name
+            stack.enter_context(artifacts.claim_output(earlier_path(Path(out), s), True, "--snapshot-at", inputs))
         _check_snapshot_files(config, Path(out), parents, snapshots, replace=force or auto)
         run = dict(device=device, snapshots=snapshots, profile=profile, log_dir=log_dir)
         model, what = _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
@@ -164,10 +164,12 @@ def train_or_resume(
         return model, what
 
 
-def earlier_path(out: Path) -> Path:
-    """The hidden checkpoint of the run that makes the snapshots ``out`` was already past (:func:`_earlier_snapshots`):
-    renamed to the last of them once finished, so an interrupted run never leaves a snapshot-named file unfinished."""
-    return out.with_name(f".{out.stem}.earlier{out.suffix or '.h5'}")
+def earlier_path(out: Path, step: int) -> Path:
+    """The hidden checkpoint of the run that makes the snapshots ``out`` was already past, up to ``step``
+    (:func:`_earlier_snapshots`): renamed to that snapshot once finished, so an interrupted run never leaves a
+    snapshot-named file unfinished. One per last step, so a request for fewer snapshots never trains over the work of
+    one for more; its name is shorter than the snapshot's."""
+    return out.with_name(f".{out.stem}.e{step}{out.suffix or '.h5'}")
 
 
 def _check_snapshot_files(config, out: Path, parents, snapshots, replace: bool) -> None:
@@ -199,31 +201,36 @@ def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run
     the same computation as the runs of those lengths (the learning rate is constant, so nothing before a step
     depends on ``steps``), and costs only those steps, not the whole run again. It checkpoints into
     :func:`earlier_path`, which an interrupted call resumes, and which is renamed to the last snapshot once
-    finished (so no snapshot-named file is ever unfinished)."""
+    finished (so no snapshot-named file is ever unfinished). A hidden checkpoint is removed only once its own
+    snapshot is there."""
 
     def config_at(s: int):
         return config.model_copy(update={"steps": s})
 
-    side, made, trained = earlier_path(out), [], False
+    made, trained = [], False
     while True:
         missing = [
             s
             for s in snapshots
             if not artifacts.existing(snapshot_path(out, s), "model", config_at(s), parents).up_to_date
         ]
+        for s in set(snapshots) - set(missing):  # the hidden run to a snapshot that is there: nothing needs it
+            earlier_path(out, s).unlink(missing_ok=True)
         if not missing:
-            if snapshots:  # a hidden checkpoint left by a run whose snapshots are all there now: nothing uses it
-                side.unlink(missing_ok=True)
             return sorted(set(made))
-        # a finished run left unrenamed (killed between the two) is one of the snapshots: rename it, then look again
-        done = next((s for s in missing if artifacts.existing(side, "model", config_at(s), parents).up_to_date), None)
+        # a finished run left unrenamed (killed between the two) is its snapshot: rename it, then look again
+        done = next(
+            (s for s in missing if artifacts.existing(earlier_path(out, s), "model", config_at(s), parents).up_to_date),
+            None,
+        )
         if done is not None:
-            replace_file(side, snapshot_path(out, done))
+            replace_file(earlier_path(out, done), snapshot_path(out, done))
             made.append(done)
             continue
         if trained:  # pragma: no cover - a snapshot this run wrote does not read as up to date: a bug, not input
             raise RunFailed(f"--snapshot-at: {snapshot_path(out, missing[0])} was written but is not up to date")
         top = max(missing)
+        side = earlier_path(out, top)
         _adopt_checkpoint(snapshot_path(out, top), side, config_at(top), parents)
         found = artifacts.existing(side, "model", config_at(top), parents)
         # an unfinished checkpoint of this run that has not passed a snapshot still to write continues (the
@@ -232,7 +239,7 @@ def _earlier_snapshots(demos, buffer, config, out: Path, parents, snapshots, run
         what = f"continuing from step {found.artifact.manifest.state.step}" if resume else "training from the start"
         listed = ",".join(map(str, missing))
         them = "it" if len(missing) == 1 else "them"
-        ui.log(f"--snapshot-at {listed}: {out.name} was past {them}; {what} to step {top}")
+        ui.log(f"--snapshot-at {listed}: {out.name} was past {them}; {what} to step {top} (checkpoints in {side.name})")
         at = dict(run, snapshots=missing[:-1], log_dir=None, snapshot_to=lambda s: snapshot_path(out, s))
         train(demos, buffer, config_at(top), side, resume=found.artifact if resume else False, **at)
         replace_file(side, snapshot_path(out, top))
