@@ -179,8 +179,8 @@ class Method:
             from cdrb_cli.nets.runtime import OnnxNet, weights_version
 
             onnx = self.__dict__.get("_onnx")
-            # weights are looked at once per sampling call (walking every parameter costs about a tenth of a plan
-            # at batch 1 if done for each of its network calls): they cannot change while it runs
+            # weights are looked at once per sampling call (walking every parameter before each of its network
+            # calls cost about a quarter of a plan at batch 1): they cannot change while it runs
             if onnx is None or onnx[0] is not net or not self.__dict__.get("_onnx_checked"):
                 version = weights_version(net)
                 if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights

@@ -151,10 +151,9 @@ def train_or_resume(
     inputs = [p.path for p in parents]
     with contextlib.ExitStack() as stack:
         stack.enter_context(artifacts.claim_output(out, force=True, inputs=inputs))
-        for s in snapshots:
-            stack.enter_context(artifacts.claim_output(snapshot_path(out, s), True, "--snapshot-at", inputs))
-        for s in snapshots:  # the hidden checkpoint of a run that makes snapshots up to s, never longer a name
-            stack.enter_context(artifacts.claim_output(earlier_path(Path(out), s), True, "--snapshot-at", inputs))
+        for s in snapshots:  # each snapshot, and the hidden checkpoint of a run that makes snapshots up to it
+            for path in (snapshot_path(out, s), earlier_path(Path(out), s)):
+                stack.enter_context(artifacts.claim_output(path, True, "--snapshot-at", inputs))
         _check_snapshot_files(config, Path(out), parents, snapshots, replace=force or auto)
         run = dict(device=device, snapshots=snapshots, profile=profile, log_dir=log_dir)
         model, what = _train_or_resume(demos, buffer, config, Path(out), parents, force, resume, auto, run)
