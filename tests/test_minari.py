@@ -280,6 +280,12 @@ def test_export_never_deletes_or_races_another_dataset(tmp_path, datasets):
     (tmp_path / "afile").write_text("x")
     r = _cli("export", tmp_path / "d.h5", "--minari", "ok", "--root", tmp_path / "afile")
     assert r.returncode == 2 and "--root" in r.stderr and (tmp_path / "afile").read_text() == "x"
+    # --force on the dataset folder that holds the demos being exported would delete them
+    os.makedirs(datasets / "mine-v0")
+    (datasets / "mine-v0" / "d.h5").write_bytes((tmp_path / "d.h5").read_bytes())
+    r = _cli("export", datasets / "mine-v0" / "d.h5", "--minari", "mine", "--force")
+    assert r.returncode == 2 and "an input of this command" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert (datasets / "mine-v0" / "d.h5").read_bytes() == (tmp_path / "d.h5").read_bytes()
 
 
 def test_a_relative_root_is_the_current_folders(tmp_path, datasets, monkeypatch):

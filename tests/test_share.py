@@ -176,6 +176,36 @@ def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".m.")) == []
 
 
+def test_export_never_replaces_a_folder_holding_its_inputs_or_the_working_folder(tiny_models, tmp_path, cdrb):
+    """--force replaces the folder whole, so a folder holding the model or an eval given, the working folder or one
+    above it, a link, a path through a file and a name with a newline are refused first, with nothing removed."""
+    import shutil
+
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    model = runs / "model.h5"
+    shutil.copy(tiny_models["cdrb"].path, model)
+    (runs / "notes.txt").write_text("mine")
+    before = sorted(p.name for p in runs.iterdir())
+    r = cdrb("export", model, "--dir", runs, "--force")
+    assert r.returncode == 2 and "an input of this command" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert sorted(p.name for p in runs.iterdir()) == before
+    (tmp_path / "link").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    (tmp_path / "afile").write_text("")
+    cases = {
+        ".": "is the working folder or holds it",
+        "..": "is the working folder or holds it",
+        "link": "is a symbolic link",
+        "afile/sub": "is not a folder",
+        "nl\ndir": "a control character",
+    }
+    for folder, message in cases.items():
+        r = cdrb("export", model, "--dir", folder, "--force", cwd=runs if folder in (".", "..") else tmp_path)
+        assert r.returncode == 2 and message in r.stderr and r.stderr.count("\n") == 1, (folder, r.stderr)
+    assert sorted(p.name for p in runs.iterdir()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "link", "runs"]
+
+
 def test_replace_folder_keeps_one_whole_folder_at_every_step(tmp_path, monkeypatch):
     """A crash between the two renames leaves the old folder whole under its aside name, never no folder."""
     from cdrb_cli import files

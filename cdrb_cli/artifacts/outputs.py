@@ -201,3 +201,33 @@ def _remove_stale_temps(path: Path) -> None:
             if entry.name.startswith(prefix) and _TEMP_SUFFIX.fullmatch(entry.name[len(prefix) :]):
                 with contextlib.suppress(OSError):
                     os.unlink(entry.path)
+
+
+def check_output_folder(folder: str | Path, flag: str, inputs: Iterable[str | Path] = ()) -> Path:
+    """Validate a folder an export replaces whole (``--force`` removes what was there): a plain folder or a new
+    name, with no control character in its path, inside a folder; never the working folder or one above it, nor a
+    folder holding one of the command's inputs (replacing it would delete them). Returns it as a Path."""
+    text = os.fsdecode(os.fspath(folder))
+    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+        raise BadInput(f"{flag} {text!r}: a control character (a newline?) in the path", hint="rename it")
+    folder = Path(folder)
+    if folder.is_symlink():
+        raise BadInput(f"{flag} {folder}: is a symbolic link", hint="name a plain folder, or a new one")
+    if folder.exists() and not folder.is_dir():
+        raise BadInput(f"{flag} {folder}: is a file", hint="name a folder to write into")
+    parent = folder.absolute().parent
+    if parent.exists() and not parent.is_dir():
+        raise BadInput(f"{flag} {folder}: {parent} is not a folder", hint="choose a path inside a folder")
+    where = folder.resolve()
+    here = Path.cwd().resolve()
+    if where == here or where in here.parents:
+        raise BadInput(
+            f"{flag} {text}: is the working folder or holds it", hint="name a folder of its own, e.g. exports/NAME"
+        )
+    for item in inputs:
+        if item is not None and where in Path(item).resolve().parents:
+            raise BadInput(
+                f"{flag} {folder}: holds {item}, an input of this command (replacing the folder would delete it)",
+                hint="write to another folder",
+            )
+    return folder

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import __version__, artifacts, ui
-from cdrb_cli.artifacts.outputs import locked
+from cdrb_cli.artifacts.outputs import check_output_folder, locked
 from cdrb_cli.errors import BadInput
 from cdrb_cli.files import new_folder, replace_folder, temp_folder_at
 
@@ -279,6 +279,7 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
     if root.exists() and not root.is_dir():
         raise BadInput(f"--root {root}: not a folder", hint="give the folder Minari datasets live in")
     final = root / dataset_id
+    check_output_folder(final, f"--minari {dataset_id}", [getattr(demos, "path", None)])
     _check_export_target(final, root, dataset_id, force)
     spec = demos.manifest.env
     family = family_of(spec)

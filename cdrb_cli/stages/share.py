@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import artifacts
+from cdrb_cli.artifacts.outputs import check_output_folder
 from cdrb_cli.errors import BadInput
 from cdrb_cli.files import read_input_text, replace_folder, sha256_file
 from cdrb_cli.settings import clip
@@ -63,9 +64,7 @@ def compact_eval(ev, out: Path) -> Path:
 def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False) -> Path:
     """Write ``model`` (a model artifact) as the folder ``folder``, whole or not at all (written beside it, then
     renamed); ``evals``: eval artifacts of this model whose figures the model card lists."""
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise BadInput(f"--dir {folder}: is a file", hint="name a folder to write the model into")
+    folder = check_output_folder(folder, "--dir", [getattr(model, "path", None), *(ev.path for ev in evals)])
     if folder.is_dir() and any(folder.iterdir()) and not force:
         raise BadInput(f"--dir {folder}: exists and is not empty", hint="pass --force to replace it, or another --dir")
     for ev in evals:
