@@ -197,6 +197,8 @@ def test_video_folders_are_checked_before_the_run_and_reported_truthfully(tiny_m
     gifs.mkdir()
     r = cdrb("collect", "maze-tight", "-n", "2", "--out", gifs / "demo_00_success.gif", "--video", gifs)
     assert r.returncode == 2 and "inside the --video folder" in r.stderr and not any(gifs.iterdir())
+    r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", ev, "--out", ev)
+    assert r.returncode == 2 and "the same path as --out" in r.stderr and r.stderr.count("\n") == 1 and not ev.exists()
     r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", gifs, "--videos", "1", "--out", ev)
     assert r.returncode == 0 and "1 GIF(s) in" in r.stderr, r.stderr[-500:]
     r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", tmp_path / "gifs2", "--out", ev)

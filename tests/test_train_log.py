@@ -3,6 +3,7 @@ curve, continued (not repeated) by a resumed training, and a one-line error when
 
 from __future__ import annotations
 
+import os
 import sys
 
 import pytest
@@ -58,6 +59,33 @@ def test_a_missing_tensorboard_is_one_line(monkeypatch, small_data, tmp_path, ca
     err = capsys.readouterr().err
     assert code == 2 and "pip install 'cdrb-cli[tensorboard]'" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "m.h5").exists() and not (tmp_path / "tb").exists()
+
+
+def test_a_log_dir_that_cannot_be_a_folder_is_one_line_before_training(small_data, tmp_path, capsys):
+    """--log-dir is TensorBoard's folder: a file, a FIFO, a link to nothing, a path under a file or the model's own
+    --out path is refused before any work, and no model is written."""
+    pytest.importorskip("torch.utils.tensorboard")
+    from cdrb_cli.cli import main
+
+    demos, _ = small_data
+    out = tmp_path / "m.h5"
+    (tmp_path / "afile").write_text("x")
+    os.mkfifo(tmp_path / "fifo")
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    cases = {
+        "afile": "exists and is not a folder",
+        "fifo": "exists and is not a folder",
+        "dangling": "a link to nothing",
+        "afile/sub": "is not a folder",
+        "m.h5": "the same path as --out",
+    }
+    for name, message in cases.items():
+        capsys.readouterr()
+        code = main(["train", str(demos.path), "--method", "mlp", "--steps", "5", "--log-dir", str(tmp_path / name),
+                     "--out", str(out)])  # fmt: skip
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1, (name, err)
+        assert not out.exists()
 
 
 def test_a_grid_with_tensorboard_gives_each_training_its_folder_and_keeps_its_memo_keys(tmp_path):

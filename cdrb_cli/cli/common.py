@@ -228,6 +228,8 @@ def check_video_folder(video: Path, out: Path | None = None) -> None:
     """--video names a folder (made if missing), checked before any work: not an existing file, under a folder
     that can be made and written (not under a file), and not the folder of the run's own --out (a GIF could take
     the artifact's name)."""
+    if out is not None and video.resolve() == Path(out).resolve():
+        raise BadInput(f"--video {video}: the same path as --out", hint="give the GIFs a folder of their own")
     if video.exists() and not video.is_dir():
         raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
     first = video
@@ -240,6 +242,23 @@ def check_video_folder(video: Path, out: Path | None = None) -> None:
         raise BadInput(
             f"--out {out}: inside the --video folder {video}", hint="keep the artifact outside the GIFs' folder"
         )
+
+
+def check_log_dir(log_dir: Path, out: Path) -> None:
+    """--log-dir names a folder TensorBoard writes into (made if missing), checked before any work: not a file, a
+    device or a dangling link, under a folder, and not the model's own --out path."""
+    if log_dir.resolve() == Path(out).resolve():
+        raise BadInput(f"--log-dir {log_dir}: the same path as --out", hint="give the logs a folder of their own")
+    if log_dir.is_symlink() and not log_dir.exists():
+        raise BadInput(f"--log-dir {log_dir}: a link to nothing", hint="pass a folder path")
+    if log_dir.exists() and not log_dir.is_dir():
+        raise BadInput(f"--log-dir {log_dir}: exists and is not a folder", hint="pass a folder path")
+    first = log_dir
+    while not first.exists() and first != first.parent:
+        first = first.parent
+    if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
+        what = "is not a folder" if not first.is_dir() else "is not writable"
+        raise BadInput(f"--log-dir {log_dir}: {first} {what}", hint="pass a folder that can be made and written")
 
 
 def report_gifs(video: Path, since: float, out: Path) -> None:

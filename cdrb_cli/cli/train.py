@@ -13,6 +13,7 @@ from cdrb_cli.cli.common import (
     JsonOpt,
     SeedOpt,
     app,
+    check_log_dir,
     check_outputs,
     check_positive,
     file_path,
@@ -83,6 +84,8 @@ def train(
     selection = read_selection(config_file)
     settings = user_settings(method, net, preset, steps, None if selection else config_file, sets)
     check_outputs(force, [demos, buffer, config_file], out=out)
+    if log_dir is not None:
+        check_log_dir(log_dir, out)
     d = load_artifact(demos, "demos")
     profile = None
     if selection is not None:  # the choice of `cdrb select` for this env and method, under this command line's
