@@ -224,6 +224,16 @@ def check_positive(flag: str, value) -> None:
         raise BadInput(f"{flag} {value}: must be positive", hint=f"pass {flag} N with N > 0")
 
 
+def _check_can_make(folder: Path, flag: str) -> None:
+    """``folder`` exists or can be made: its nearest existing ancestor is a writable folder (not a file)."""
+    first = folder
+    while not first.exists() and first != first.parent:
+        first = first.parent
+    if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
+        what = "is not a folder" if not first.is_dir() else "is not writable"
+        raise BadInput(f"{flag} {folder}: {first} {what}", hint="pass a folder that can be made and written")
+
+
 def check_video_folder(video: Path, out: Path | None = None) -> None:
     """--video names a folder (made if missing), checked before any work: not an existing file, under a folder
     that can be made and written (not under a file), and not the folder of the run's own --out (a GIF could take
@@ -232,12 +242,7 @@ def check_video_folder(video: Path, out: Path | None = None) -> None:
         raise BadInput(f"--video {video}: the same path as --out", hint="give the GIFs a folder of their own")
     if video.exists() and not video.is_dir():
         raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
-    first = video
-    while not first.exists() and first != first.parent:
-        first = first.parent
-    if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
-        what = "is not a folder" if not first.is_dir() else "is not writable"
-        raise BadInput(f"--video {video}: {first} {what}", hint="pass a folder that can be made and written")
+    _check_can_make(video, "--video")
     if out is not None and Path(out).resolve().parent == video.resolve():
         raise BadInput(
             f"--out {out}: inside the --video folder {video}", hint="keep the artifact outside the GIFs' folder"
@@ -253,12 +258,7 @@ def check_log_dir(log_dir: Path, out: Path) -> None:
         raise BadInput(f"--log-dir {log_dir}: a link to nothing", hint="pass a folder path")
     if log_dir.exists() and not log_dir.is_dir():
         raise BadInput(f"--log-dir {log_dir}: exists and is not a folder", hint="pass a folder path")
-    first = log_dir
-    while not first.exists() and first != first.parent:
-        first = first.parent
-    if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
-        what = "is not a folder" if not first.is_dir() else "is not writable"
-        raise BadInput(f"--log-dir {log_dir}: {first} {what}", hint="pass a folder that can be made and written")
+    _check_can_make(log_dir, "--log-dir")
 
 
 def report_gifs(video: Path, since: float, out: Path) -> None:
