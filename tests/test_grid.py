@@ -145,6 +145,8 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + '\n[[settings]]\nenv = "mazee"\n', "settings[2].env"),
         (TINY + '\n[[settings]]\nmethod = "mlp"\ncollect = ["--workers", "1"]\n', "every method shares"),
         (TINY + "\n[resources.training]\ncpus = 2\n", "training"),
+        (TINY + "\n[resources.collect]\ncpus = inf\n", "resources.collect.cpus"),
+        (TINY + "\n[resources.eval]\ngpus = nan\n", "resources.eval.gpus"),
         (TINY + '\n[[variants]]\nname = "a/b"\n', "variants.0.name"),
         (TINY + '\n[[settings]]\ntrain = ["--stepz", "5"]\n', "'--stepz' is not a `cdrb train` option"),
         (TINY + '\n[[variants]]\nname = "v"\neval = ["--max-lagg=0.6"]\n', "is not a `cdrb eval` option"),

@@ -169,8 +169,12 @@ class Extension(Scoped):
 
 
 class Resources(_Strict):
-    cpus: float = Field(1.0, gt=0, description="CPU cores a task of this kind asks Ray for (and its torch threads)")
-    gpus: float = Field(0.0, ge=0, description="GPUs a task of this kind asks Ray for (fractions share one GPU)")
+    cpus: float = Field(
+        1.0, gt=0, allow_inf_nan=False, description="CPU cores a task of this kind asks Ray for (and its torch threads)"
+    )
+    gpus: float = Field(
+        0.0, ge=0, allow_inf_nan=False, description="GPUs a task of this kind asks Ray for (fractions share one GPU)"
+    )
 
 
 def _default_resources() -> dict[str, Resources]:
