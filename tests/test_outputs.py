@@ -266,3 +266,16 @@ def test_a_failed_run_leaves_no_empty_folders_it_made(tmp_path):
     with new_folder(tmp_path / "e") as folder:
         pass
     assert folder.is_dir()
+
+
+def test_an_output_path_past_the_systems_limit_is_one_line(tmp_path):
+    """A path longer than the system allows makes stat itself fail (ENAMETOOLONG): a one-line refusal with the path
+    clipped, not an OSError traceback."""
+    from cdrb_cli.artifacts.outputs import check_output
+
+    deep = tmp_path
+    for _ in range(os.pathconf(tmp_path, "PC_PATH_MAX") // 200 + 1):
+        deep = deep / ("d" * 200)
+    with pytest.raises(BadInput, match="choose a shorter path") as caught:
+        check_output(deep / "r.md", False, "--out")
+    assert len(str(caught.value)) < 200

@@ -70,7 +70,13 @@ def check_output(
         )
     if suffixes and path.suffix.lower() not in suffixes:
         raise BadInput(f"{flag} {path}: unsupported file type", hint=f"use {', '.join(suffixes)}")
-    if not folder.is_dir():
+    try:  # a path past the system's limit (ENAMETOOLONG) makes stat itself fail: one line, not a traceback
+        is_folder = folder.is_dir()
+        path.exists()
+    except OSError as exc:
+        shown = str(path) if len(str(path)) <= 80 else f"{str(path)[:40]}...{str(path)[-36:]}"
+        raise BadInput(f"{flag} {shown}: {exc.strerror or type(exc).__name__}", hint="choose a shorter path") from None
+    if not is_folder:
         raise BadInput(f"{flag} {path}: folder {folder} does not exist", hint="create it or choose another path")
     if path.is_symlink():
         raise BadInput(f"{flag} {path}: is a symbolic link", hint="pass the path of a regular file")
