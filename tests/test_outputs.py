@@ -188,6 +188,11 @@ def test_select_docs_may_not_be_another_output(tmp_path, cdrb):
         r = cdrb("select", tmp_path / "tune.toml", *args, other, notes, "--docs", notes, "--block", "x", "--force")
         assert r.returncode == 2 and "the same file as" in r.stderr, r.stderr
     assert notes.read_text() == "my notes\n"
+    (tmp_path / "tune.toml").write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\neval_stream = "tune"\n'
+    )
+    r = cdrb("select", tmp_path / "tune.toml", "--out", tmp_path / "s.json")
+    assert r.returncode == 2 and "writes a TOML settings file" in r.stderr and not (tmp_path / "s.json").exists()
 
 
 def test_an_output_may_not_overwrite_a_text_input(tiny_models, tmp_path, cdrb):

@@ -507,6 +507,8 @@ def select(
     tasks = expand(spec)
     inputs += [p for task in tasks for p in (*task.inputs, *task.outputs)]
     artifacts.check_output(out, force, "--out", inputs)
+    if Path(out).suffix.lower() != ".toml":  # the settings file test grids `include` and --config reads as TOML
+        raise BadInput(f"--out {out}: select writes a TOML settings file", hint="name it with .toml, e.g. tuned.toml")
     for path, flag in ((table, "--table"), (curves, "--curves")):
         if path is not None:
             artifacts.check_output(path, force, flag, inputs)
