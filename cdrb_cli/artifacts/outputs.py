@@ -20,6 +20,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from cdrb_cli.errors import BadInput, force_option
+from cdrb_cli.settings import clip
 
 try:
     import fcntl
@@ -60,9 +61,7 @@ def check_output(
         )
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
-    if any(ord(c) < 32 or ord(c) == 127 for c in str(path)):
-        # stdout names the file written, a line per path: a newline inside one would read as two
-        raise BadInput(f"{flag} {str(path)!r}: a control character (a newline?) in the path", hint="rename it")
+    _refuse_control_characters(str(path), flag)
     if len(os.fsencode(path.name)) > MAX_NAME_BYTES:
         raise BadInput(
             f"{flag} {path.name[:40]}...: a file name of {len(os.fsencode(path.name))} bytes",
@@ -74,8 +73,9 @@ def check_output(
         is_folder = folder.is_dir()
         path.exists()
     except OSError as exc:
-        shown = str(path) if len(str(path)) <= 80 else f"{str(path)[:40]}...{str(path)[-36:]}"
-        raise BadInput(f"{flag} {shown}: {exc.strerror or type(exc).__name__}", hint="choose a shorter path") from None
+        raise BadInput(
+            f"{flag} {clip(path, 80)}: {exc.strerror or type(exc).__name__}", hint="choose a shorter path"
+        ) from None
     if not is_folder:
         raise BadInput(f"{flag} {path}: folder {folder} does not exist", hint="create it or choose another path")
     if path.is_symlink():
@@ -96,6 +96,12 @@ def check_output(
             )
     _check_writable(folder, flag, path)
     return path
+
+
+def _refuse_control_characters(text: str, flag: str) -> None:
+    # stdout names the file written, a line per path: a newline inside one would read as two
+    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+        raise BadInput(f"{flag} {text!r}: a control character (a newline?) in the path", hint="rename it")
 
 
 def distinct_outputs(**outputs: Path | None) -> None:
@@ -214,8 +220,7 @@ def check_output_folder(folder: str | Path, flag: str, inputs: Iterable[str | Pa
     name, with no control character in its path, inside a folder; never the working folder or one above it, nor a
     folder holding one of the command's inputs (replacing it would delete them). Returns it as a Path."""
     text = os.fsdecode(os.fspath(folder))
-    if any(ord(c) < 32 or ord(c) == 127 for c in text):
-        raise BadInput(f"{flag} {text!r}: a control character (a newline?) in the path", hint="rename it")
+    _refuse_control_characters(text, flag)
     folder = Path(folder)
     if folder.is_symlink():
         raise BadInput(f"{flag} {folder}: is a symbolic link", hint="name a plain folder, or a new one")

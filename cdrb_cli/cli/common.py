@@ -225,7 +225,12 @@ def check_positive(flag: str, value) -> None:
 
 
 def _check_can_make(folder: Path, flag: str) -> None:
-    """``folder`` exists or can be made: its nearest existing ancestor is a writable folder (not a file)."""
+    """``folder`` is a folder, or can be made: not a file, a device or a link to nothing, and its nearest existing
+    ancestor is a writable folder."""
+    if folder.is_symlink() and not folder.exists():
+        raise BadInput(f"{flag} {folder}: a link to nothing", hint="pass a folder path")
+    if folder.exists() and not folder.is_dir():
+        raise BadInput(f"{flag} {folder}: exists and is not a folder", hint="pass a folder path")
     first = folder
     while not first.exists() and first != first.parent:
         first = first.parent
@@ -240,8 +245,6 @@ def check_video_folder(video: Path, out: Path | None = None) -> None:
     the artifact's name)."""
     if out is not None and video.resolve() == Path(out).resolve():
         raise BadInput(f"--video {video}: the same path as --out", hint="give the GIFs a folder of their own")
-    if video.exists() and not video.is_dir():
-        raise BadInput(f"--video {video}: exists and is not a folder", hint="pass a folder path")
     _check_can_make(video, "--video")
     if out is not None and Path(out).resolve().parent == video.resolve():
         raise BadInput(
@@ -254,10 +257,6 @@ def check_log_dir(log_dir: Path, out: Path) -> None:
     device or a dangling link, under a folder, and not the model's own --out path."""
     if log_dir.resolve() == Path(out).resolve():
         raise BadInput(f"--log-dir {log_dir}: the same path as --out", hint="give the logs a folder of their own")
-    if log_dir.is_symlink() and not log_dir.exists():
-        raise BadInput(f"--log-dir {log_dir}: a link to nothing", hint="pass a folder path")
-    if log_dir.exists() and not log_dir.is_dir():
-        raise BadInput(f"--log-dir {log_dir}: exists and is not a folder", hint="pass a folder path")
     _check_can_make(log_dir, "--log-dir")
 
 
