@@ -305,6 +305,19 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path, monkeypatch
     ran = sorted(r.id for r in third.results if r.status == "done")
     assert ran == ["eval maze-tight/cdrb-s1", "report"]
 
+    # a report the grid did not write (the user's own notes under its name) is refused, never written over
+    (spec.out / "report.md").write_text("my notes\n")
+    Path(run.results[[r.id for r in run.results].index("eval maze-tight/cdrb-s1")].outputs[0]).unlink()
+    backend = PoolBackend(1)
+    try:
+        fourth = run_grid(spec, backend)
+    finally:
+        backend.close()
+    status = {r.id: r for r in fourth.results}
+    assert status["eval maze-tight/cdrb-s1"].status == "done" and status["report"].status == "failed"
+    assert "--force" in " ".join(status["report"].stderr)
+    assert (spec.out / "report.md").read_text() == "my notes\n"
+
 
 def test_a_task_log_gives_its_last_progress_line_and_is_never_written_through_a_link(tmp_path):
     from cdrb_cli.orchestration.grid.memo import fresh_log, last_line, open_log, read_log

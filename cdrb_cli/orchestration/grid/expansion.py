@@ -181,7 +181,7 @@ def _reports(out: Path, evals: dict[str, list[tuple[str, Path]]]) -> list[Task]:
         if not items:
             continue
         report = out / ("report.md" if not name else f"report-{name}.md")
-        argv = ["report", *[str(p) for _, p in items], "--out", str(report), "--force"]
+        argv = ["report", *[str(p) for _, p in items], "--out", str(report)]
         tasks.append(
             Task(
                 "report" if not name else f"report {name}",

@@ -346,7 +346,7 @@ def run_grid(
             return
         res = spec.resources[task.kind]
         argv = task.argv
-        if task.kind in ("collect", "cluster", "eval") and written_here(spec, task, cache):
+        if task.kind in ("collect", "cluster", "eval", "report") and written_here(spec, task, cache):
             argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
         payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
         payload |= {"cpus": res.cpus, "gpus": res.gpus}
