@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from cdrb_cli import interrupts
 from cdrb_cli.errors import BadInput
 
 
@@ -83,13 +84,24 @@ def replace_folder(new: str | Path, final: str | Path) -> None:
         if not path.is_symlink():
             path.chmod((0o777 if path.is_dir() else 0o666) & ~mask)
     aside = None
-    if final.exists():
-        aside = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))
-        os.replace(final, aside)  # an empty folder is replaced by the rename
-    os.replace(new, final)
-    _fsync_dir(final.parent)
-    if aside is not None:
-        shutil.rmtree(aside, ignore_errors=True)
+    try:
+        # Ctrl-C between the two renames would leave the folder only under its aside name: within them a signal is
+        # recorded and answered after the second
+        with interrupts.polled():
+            if final.exists():
+                aside = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=final.parent))
+                os.replace(final, aside)  # an empty folder is replaced by the rename
+            try:
+                os.replace(new, final)
+            except BaseException:
+                if aside is not None:  # the old folder back in its place
+                    os.replace(aside, final)
+                    aside = None
+                raise
+            _fsync_dir(final.parent)
+    finally:
+        if aside is not None and final.exists():
+            shutil.rmtree(aside, ignore_errors=True)
 
 
 @contextmanager

@@ -207,8 +207,11 @@ def test_export_never_replaces_a_folder_holding_its_inputs_or_the_working_folder
 
 
 def test_replace_folder_keeps_one_whole_folder_at_every_step(tmp_path, monkeypatch):
-    """A crash between the two renames leaves the old folder whole under its aside name, never no folder."""
-    from cdrb_cli import files
+    """A failed second rename puts the old folder back in its place; Ctrl-C between the two renames is answered
+    after the second, so the folder is never left only under its aside name."""
+    import signal
+
+    from cdrb_cli import files, interrupts
 
     final, new = tmp_path / "out", tmp_path / ".out.new"
     final.mkdir()
@@ -227,13 +230,29 @@ def test_replace_folder_keeps_one_whole_folder_at_every_step(tmp_path, monkeypat
     monkeypatch.setattr(files.os, "replace", crash_on_second)
     with pytest.raises(OSError):
         files.replace_folder(new, final)
-    aside = [p for p in tmp_path.iterdir() if p.name.startswith(".out.old-")]
-    assert len(aside) == 1 and (aside[0] / "a").read_text() == "old" and (new / "a").read_text() == "new"
+    assert (final / "a").read_text() == "old" and (new / "a").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.new", "out"]
+
+    def interrupt_on_first(src, dst):  # the signal arrives just after the old folder was moved aside
+        real(src, dst)
+        if os.path.basename(dst).startswith(".out.old-"):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(files.os, "replace", interrupt_on_first)
+    restore = interrupts.install()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            files.replace_folder(new, final)
+    finally:
+        restore()
+    assert (final / "a").read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     monkeypatch.setattr(files.os, "replace", real)
-    final2 = tmp_path / "out2"
+    final2, new2 = tmp_path / "out2", tmp_path / ".out2.new"
     final2.mkdir()
     (final2 / "b").write_text("old")
-    files.replace_folder(new, final2)
+    new2.mkdir()
+    (new2 / "a").write_text("new")
+    files.replace_folder(new2, final2)
     assert (final2 / "a").read_text() == "new" and not (final2 / "b").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out2.old-")]
 
