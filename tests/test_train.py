@@ -95,6 +95,26 @@ def test_resume_continues_to_the_same_result(small_data, tmp_path, method):
     np.testing.assert_array_equal(full.arrays["curve/loss"], resumed.arrays["curve/loss"])
 
 
+def test_resume_refuses_an_optimizer_tensor_of_the_wrong_shape(small_data, tmp_path):
+    """A checkpoint whose Adam moment no longer has its parameter's shape is refused, naming the tensor, before
+    the optimizer is handed it (PyTorch would index past the tensor's memory at the next step)."""
+    demos, buffer = small_data
+    train(
+        demos,
+        buffer,
+        train_config(demos, buffer, "cdrb", tiny("cdrb", steps=20, checkpoint_every=10)),
+        tmp_path / "m.h5",
+    )
+    model = artifacts.load(tmp_path / "m.h5")
+    arrays = dict(model.arrays)
+    key = next(k for k in arrays if k.startswith("optim/") and k.endswith("/exp_avg") and arrays[k].size > 1)
+    arrays[key] = arrays[key].reshape(-1)[:-1].copy()
+    artifacts.save(tmp_path / "m.h5", "model", model.manifest, arrays)
+    rest = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=40, checkpoint_every=10))
+    with pytest.raises(BadInput, match=f"optimizer tensor /{key} has shape"):
+        train(demos, buffer, rest, tmp_path / "m.h5", resume=True)
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(small_data, tmp_path_factory):
     """The 300-step training the kill-and-resume cases must reproduce, run once and never checkpointed: weights do

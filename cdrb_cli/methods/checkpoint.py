@@ -107,6 +107,13 @@ def restore(model, method: Method, ema: dict, optimizers: dict, device) -> tuple
             for p in group["params"]:
                 prefix = names[id(p)] + "/"
                 entry = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
+                for k, v in entry.items():  # per-parameter tensors (Adam's moments) or scalars (its step)
+                    if np.shape(v) not in ((), tuple(p.shape)):
+                        raise BadInput(
+                            f"{model.path}: optimizer tensor /optim/{o}/{prefix}{k} has shape {np.shape(v)}, but its "
+                            f"parameter has {tuple(p.shape)}",
+                            hint="the checkpoint is damaged: train again with --force",
+                        )
                 if entry:  # a parameter that never had a gradient has no state
                     state[index] = {k: torch.from_numpy(np.array(v)).to(device) for k, v in entry.items()}
                     if "step" in state[index]:  # optimizers keep their step count on the CPU
