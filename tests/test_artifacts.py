@@ -356,7 +356,12 @@ def test_virtual_and_external_storage_are_refused(tmp_path):
         ("demos", "episodes/start", lambda a: a - 1, "do not tile the steps"),
         ("demos", "episodes/length", lambda a: a + 1, "do not tile the steps"),
         ("buffer", "source_index", lambda a: a - 10**6, "negative rows"),
+        ("buffer", "points", lambda a: a + 1e17, "far outside the normalized range"),
+        ("buffer", "normalizer/low", lambda a: a + 1e6, "normalizer/low exceeds"),
+        ("model", "buffer/points", lambda a: a - 1e17, "far outside the normalized range"),
+        ("model", "normalizer/high", lambda a: a - 1e6, "normalizer/low exceeds"),
         ("plans", "pair_index", lambda a: a + 100, "pair_index must lie"),
+        ("plans", "plans", lambda a: a[..., :-1].copy(), "features per state"),
         ("model", "curve/step", lambda a: a[::-1].copy(), "curve/step must increase"),
         ("eval", "episodes/seed", lambda a: a + 7, "per seed of"),
         ("eval", "episodes/failure", lambda a: a + 9, "codes outside -1..4"),
@@ -364,12 +369,39 @@ def test_virtual_and_external_storage_are_refused(tmp_path):
     ],
 )
 def test_indices_that_point_outside_the_data_are_refused(tmp_path, kind, name, value, needle):
-    """Shapes can be right while the indices are wrong (negative episode starts trained silently on wrong
+    """Shapes can be right while the indices or values are wrong (negative episode starts trained silently on wrong
     windows): each kind checks its arrays against each other and the manifest."""
     manifest, arrays = build(kind)
     arrays[name] = value(arrays[name])
     path = artifacts.save(tmp_path / f"{kind}.h5", kind, manifest, arrays)
     assert needle in _err(path)
+
+
+def test_episode_lengths_whose_sums_wrap_around_are_refused(tmp_path):
+    """Lengths near 2**62 whose int64 sums wrap back to the number of steps tile the steps as far as wrapped
+    arithmetic can tell; each length must lie within the steps, or `cluster` reads far outside the arrays."""
+    manifest, arrays = build("demos")
+    length = arrays["episodes/length"].astype(np.int64)
+    length[1:] += 2**62  # four extra 2**62: the total wraps by 2**64 back to the true count
+    with np.errstate(over="ignore"):
+        start = np.concatenate([[0], np.cumsum(length)[:-1]])
+    assert int(np.sum(length)) == len(arrays["steps/observations"])  # the wrapped total fits
+    arrays["episodes/length"], arrays["episodes/start"] = length, start
+    path = artifacts.save(tmp_path / "demos.h5", "demos", manifest, arrays)
+    assert "episodes/length must lie in 1.." in _err(path)
+
+
+def test_an_evals_plans_must_have_the_environments_width(tmp_path):
+    manifest, arrays = build("eval")
+    e, env = len(arrays["episodes/seed"]), manifest.env
+    for width, ok in [(env.obs_dim, True), (env.obs_dim + env.action_dim, True), (env.obs_dim + 1, False)]:
+        path = artifacts.save(
+            tmp_path / f"eval{width}.h5", "eval", manifest, arrays | {"plans": np.zeros((e, 6, width))}
+        )
+        if ok:
+            assert artifacts.load(path).arrays["plans"].shape[-1] == width
+        else:
+            assert "features per state" in _err(path)
 
 
 def test_content_checksum_rules(tmp_path):

@@ -147,7 +147,9 @@ class Demos(ArtifactBase):
     def check_data(cls, manifest, arrays):
         start, length = arrays["episodes/start"], arrays["episodes/length"]
         n = arrays["steps/observations"].shape[0]
-        if (length < 1).any() or start[0] != 0 or (start[1:] != np.cumsum(length)[:-1]).any():
+        if (length < 1).any() or (length > n).any():  # (bounded first, so the sums below cannot overflow)
+            return f"episodes/length must lie in 1..{n} (the number of steps)"
+        if start[0] != 0 or (start[1:] != np.cumsum(length)[:-1]).any():
             return "episodes/start and episodes/length do not tile the steps (episodes must follow each other)"
         if int(length.sum()) != n:
             return f"the episodes cover {int(length.sum())} steps, but there are {n}"
@@ -166,6 +168,35 @@ class Demos(ArtifactBase):
             return np.arange(self.n_episodes)
         mask = self.episode_valid if split == "valid" else ~self.episode_valid
         return np.flatnonzero(mask)
+
+
+#: how far outside the normalizer's [-1, 1] a stored buffer point may lie (a buffer of other demos than the model's
+#: normalizer was fit on lies a little outside); beyond it the points were not normalized, and planning would
+#: overflow turning them back into states
+MAX_NORMALIZED = 1e3
+
+
+def points_problem(points, name: str) -> str | None:
+    """What is wrong with normalized buffer points ``points`` stored as ``name``, or None."""
+    if len(points) and float(np.abs(points).max()) > MAX_NORMALIZED:
+        return f"{name} lie far outside the normalized range [-1, 1] (up to {float(np.abs(points).max()):.3g})"
+    return None
+
+
+def normalizer_problem(arrays) -> str | None:
+    low, high = arrays["normalizer/low"], arrays["normalizer/high"]
+    if (low > high).any():
+        return "normalizer/low exceeds normalizer/high"
+    return None
+
+
+def plan_width_problem(manifest, width: int) -> str | None:
+    """Plans of ``width`` features: a planner's features are its states, or states and actions."""
+    e = manifest.env
+    if width not in (e.obs_dim, e.obs_dim + e.action_dim):
+        both = e.obs_dim + e.action_dim
+        return f"plans have {width} features per state; {e.id} plans {e.obs_dim} (states) or {both} (with actions)"
+    return None
 
 
 def graph_problem(arrays, prefix: str, k: int) -> str | None:
@@ -208,7 +239,11 @@ class Buffer(ArtifactBase):
     def check_data(cls, manifest, arrays):
         if (arrays["source_index"] < 0).any():
             return "source_index holds negative rows"
-        return graph_problem(arrays, "graph/", len(arrays["points"]))
+        return (
+            normalizer_problem(arrays)
+            or points_problem(arrays["points"], "points")
+            or graph_problem(arrays, "graph/", len(arrays["points"]))
+        )
 
     def graph(self) -> tuple[np.ndarray, np.ndarray]:
         """The buffer's transition graph (:func:`~cdrb_cli.geodesic.transition_graph`): (edges, weights). A buffer
@@ -263,6 +298,9 @@ class Model(ArtifactBase):
 
     @classmethod
     def check_data(cls, manifest, arrays):
+        problem = normalizer_problem(arrays) or points_problem(arrays.get("buffer/points", ()), "buffer/points")
+        if problem:
+            return problem
         if "buffer/graph/edges" in arrays or "buffer/graph/weights" in arrays:
             problem = graph_problem(arrays, "buffer/graph/", len(arrays.get("buffer/points", ())))
             if problem:
@@ -303,7 +341,7 @@ class Plans(ArtifactBase):
         index, pairs = arrays["pair_index"], arrays["starts"].shape[0]
         if (index < 0).any() or (index >= pairs).any():
             return f"pair_index must lie in [0, {pairs})"
-        return None
+        return plan_width_problem(manifest, arrays["plans"].shape[-1])
 
     plans = property(lambda self: self.arrays["plans"])
     starts = property(lambda self: self.arrays["starts"])
@@ -360,6 +398,8 @@ class Eval(ArtifactBase):
             return f"episodes/failure holds codes outside -1..{top}"
         if failure is not None and (failure >= 0).all() and ((failure == 0) != arrays["episodes/success"]).any():
             return f"episodes/failure disagrees with episodes/success (code 0 is a success, 1..{top} a failure's cause)"
+        if "plans" in arrays and (problem := plan_width_problem(manifest, arrays["plans"].shape[-1])):
+            return problem
         episodes, states = len(arrays["episodes/seed"]), arrays.get("episodes/plan_states")
         if states is not None and (np.asarray(states) <= 0).any():
             return "episodes/plan_states holds a plan of no states"
