@@ -164,6 +164,15 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + '\n[[settings]]\neval = ["--controller", "nope"]\n', "unknown controller"),
         (TINY + '\n[[settings]]\ntrain = ["--config", "missing.toml"]\n', "missing.toml: no such file"),
         (TINY + '\n[[settings]]\ntrain = ["4000"]\n', "'4000' is not the value of an option"),
+        # values the option's own parser refuses (its range, its choices), for every command
+        (TINY + '\n[[settings]]\ncollect = ["--valid-fraction", "2"]\n', "--valid-fraction '2': Input should be"),
+        (TINY + '\n[[settings]]\ncluster = ["--k=-1"]\n', "--k '-1': Input should be greater than"),
+        (TINY + '\n[[settings]]\ncluster = ["--features", "pixels"]\n', "not a known feature space"),
+        (TINY + '\n[[settings]]\ntrain = ["--net", "resnet"]\n', "not a known network"),
+        # how each task runs is the grid's: a dry run would be recorded done without its model, a resume fails fresh
+        (TINY + '\n[[settings]]\ntrain = ["--dry-run"]\n', "the grid decides this for each task itself"),
+        (TINY + '\n[[settings]]\ntrain = ["--resume"]\n', "the grid decides this for each task itself"),
+        (TINY + '\n[[variants]]\nname = "v"\neval = ["--force"]\n', "the grid decides this for each task itself"),
         # train settings resolved as `cdrb train` resolves them: a key, a value, a net, a buffer's features, a horizon
         (
             TINY + '\n[[settings]]\nmethod = "cdrb"\ntrain = ["--set", "net.dimm=8"]\n',
@@ -204,6 +213,19 @@ def test_bad_grid_files_are_one_line_errors_naming_the_file(tmp_path, text, word
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and words in lines[0]
     assert not (tmp_path / "runs").exists(), "a refused grid writes nothing"
+
+
+def test_grid_eval_settings_take_dashes_as_the_command_does(tmp_path):
+    """`cdrb eval --set avoid.best-of=2` is avoid.best_of; the grid's check reads the key the same way."""
+    path = _grid(
+        tmp_path, TINY + '\n[[variants]]\nname = "v"\nmethods = ["cdrb"]\neval = ["--set", "avoid.best-of=2"]\n'
+    )
+    assert load_grid(path).variants[0].eval == ["--set", "avoid.best-of=2"]
+    bad = _grid(
+        tmp_path, TINY + '\n[[variants]]\nname = "v"\nmethods = ["cdrb"]\neval = ["--set", "avoid.best-of=0"]\n'
+    )
+    with pytest.raises(BadInput, match="avoid.best-of=0"):
+        load_grid(bad)
 
 
 def test_an_entry_that_applies_to_none_of_the_grids_runs_is_said_unless_the_grid_was_narrowed(tmp_path):

@@ -67,6 +67,20 @@ def setting_options() -> dict[str, dict[str, Callable[[object], tuple[str, objec
     }
 
 
+def _checker(command, param) -> Callable[[str], str | None]:
+    """Why ``command`` refuses a value of ``param`` as typed (its type, range or choices: the option's own
+    parser), or None."""
+
+    def check(text: str) -> str | None:
+        try:
+            param.process_value(command.context_class(command), text)
+        except Exception as exc:  # the parser's refusal, whatever its class
+            return str(getattr(exc, "message", exc)).splitlines()[0]
+        return None
+
+    return check
+
+
 def describe(app: typer.Typer) -> Catalogue:
     """The options of :data:`GRID_COMMANDS` in ``app``, as the grid reads them."""
     group = typer.main.get_command(app)
@@ -88,6 +102,8 @@ def describe(app: typer.Typer) -> Catalogue:
                 keyed=p.name not in OUTPUTS | BOOKKEEPING,
                 to_setting=settings.get(name, {}).get(p.name),
             )
+            if info.takes_value and not info.reads_file and p.name not in OUTPUTS and not p.multiple:
+                info = dataclasses.replace(info, check=_checker(command, p))
             table.update(dict.fromkeys(p.opts, info))
             table.update(dict.fromkeys(p.secondary_opts, dataclasses.replace(info, flag_value=False)))
         catalogue[name] = table

@@ -74,7 +74,7 @@ def _check_eval(spec: GridSpec, env_spec, env: str, method: str, v: Variant, con
     """``v``'s eval flags for ``method`` on ``env`` resolve as `cdrb eval` resolves them on a model trained with
     ``config`` (a stand-in with the model's environment and settings: no model exists yet)."""
     from cdrb_cli.envs.registry import family_of
-    from cdrb_cli.settings import Setting
+    from cdrb_cli.settings import Setting, setting_key
     from cdrb_cli.stages.configure import eval_config
 
     flags = flags_for(spec, env, method, v)[1]
@@ -90,7 +90,11 @@ def _check_eval(spec: GridSpec, env_spec, env: str, method: str, v: Variant, con
             value = json.loads(text)
         except ValueError:
             raise BadInput(f"{where}: --set {key}={text}: not a value", hint="e.g. --set avoid.best_of=4") from None
-        settings.append(Setting(tuple(key.split(".")), value, f"--set {key}={text}"))
+        source = f"--set {key}={text}"
+        try:
+            settings.append(Setting(setting_key(key, source), value, source))  # avoid.best-of is avoid.best_of
+        except BadInput as exc:
+            raise BadInput(f"{where}: {exc.message}", hint=exc.hint) from None
     model = SimpleNamespace(manifest=SimpleNamespace(env=env_spec, config=config, profile=None))
     scene_file = options.get("maze_map")
     try:

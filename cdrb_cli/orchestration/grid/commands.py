@@ -29,6 +29,8 @@ class OptionInfo:
     #: for an option that fills a setting (``--max-lag`` is ``controller.max_lag``): its value as typed (the text,
     #: or the flag's value) -> (the settings key, the value), as the command itself reads it; None for the others
     to_setting: Callable[[object], tuple[str, object]] | None = field(default=None, compare=False)
+    #: the value as typed -> why the command refuses it (its range or choices), or None where it takes it
+    check: Callable[[str], str | None] | None = field(default=None, compare=False)
 
 
 #: command name -> option string -> its record

@@ -20,6 +20,10 @@ GRID_OPTIONS = {
     "train": {"method", "preset", "seed", "buffer", "snapshot_at", "out", "device", "log_dir"},
     "eval": {"seeds", "stream", "episodes", "out", "device"},
 }
+#: the options by which the grid runs its tasks (it resumes a training whose model is there, replaces only its own
+#: out-of-date artifacts, and lists its commands with its own ``--dry-run``): in a flag list they would make a task
+#: overwrite a user's file, fail on a fresh start, or be recorded done without its artifact
+RUN_OPTIONS = {"force", "resume", "dry_run"}
 #: the settings (``--set KEY``) behind those options
 GRID_SETTINGS = {"train": {"method", "method.name", "preset", "seed"}, "eval": {"episodes", "seeds", "stream", "seed"}}
 
@@ -43,6 +47,12 @@ def _check_flag_list(flags: list[str], command: str, where: str, out: Path) -> N
                 hint='give each value right after its option, e.g. ["--steps", "4000"]',
             )
         pname = entry.param
+        if pname in RUN_OPTIONS:
+            raise BadInput(
+                f"{where}: {clip(repr(token), 60)}: the grid decides this for each task itself",
+                hint="drop it: the grid resumes trainings, replaces only its own out-of-date artifacts, and "
+                "`cdrb grid --dry-run` lists its commands",
+            )
         if pname in GRID_OPTIONS.get(command, ()):
             raise BadInput(
                 f"{where}: {clip(repr(token), 60)}: the grid sets this `cdrb {command}` option itself",
@@ -71,6 +81,10 @@ def _check_flag_list(flags: list[str], command: str, where: str, out: Path) -> N
                                hint=f"`cdrb {command} --help` says what it takes") from None  # fmt: skip
         if pname == "controller":
             CONTROLLERS.get(inline, f"{where}: --controller")
+        problem = entry.check(inline) if entry.check is not None else None
+        if problem:
+            raise BadInput(f"{where}: {token.partition('=')[0]} {clip(repr(inline), 40)}: {problem}",
+                           hint=f"`cdrb {command} --help` says what it takes")  # fmt: skip
         option = token.partition("=")[0]
         if entry.reads_file and not Path(inline).exists() and not Path(inline).resolve().is_relative_to(out.resolve()):
             raise BadInput(f"{where}: {option} {clip(inline, 300)}: no such file", hint="fix the path (relative to the "
