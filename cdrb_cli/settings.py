@@ -13,6 +13,7 @@ declaration (``cdrb config`` lists them).
 from __future__ import annotations
 
 import json
+import re
 import types
 import typing
 from collections.abc import Iterable, Sequence
@@ -63,7 +64,9 @@ class Setting:
         return ".".join(self.path)
 
 
-def _key(text: str, source: str) -> Path_:
+def setting_key(text: str, source: str) -> Path_:
+    """A dotted setting name as its parts, dashes read as underscores (``avoid.best-of`` is ``avoid.best_of``);
+    a name that is not one is refused naming ``source``."""
     parts = tuple(p.strip().replace("-", "_") for p in text.split(".", MAX_KEY_PARTS))
     if len(parts) > MAX_KEY_PARTS:
         raise BadInput(
@@ -99,6 +102,10 @@ def loads_json(text: str) -> Any:
     return json.loads(text, object_pairs_hook=_unique_keys)
 
 
+#: a decimal number with a dot or an exponent, in the forms JSON refuses (no digit before or after the dot)
+_DECIMAL = re.compile(r"[+-]?(\d+\.\d*|\.\d+)([eE][+-]?\d+)?")
+
+
 def parse_value(text: str) -> Any:
     """``--set`` value text -> a Python value (JSON first, then a comma list, then the text itself)."""
     try:
@@ -107,6 +114,8 @@ def parse_value(text: str) -> Any:
         raise BadInput(f"--set value {clip(repr(text))}: {exc}", hint="give each key once") from None
     except ValueError:
         pass
+    if _DECIMAL.fullmatch(text.strip()):  # what JSON refuses but a person writes: .001, 1., -.5e-3
+        return float(text)
     if "," in text:
         return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
     return text
@@ -119,14 +128,14 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
             raise BadInput(f"{flag} {clip(repr(item))}: expected KEY=VALUE", hint=f"e.g. {flag} net.dim=32")
         key, text = item.split("=", 1)
         source = f"{flag} {clip(item)}"
-        out.append(Setting(_key(key, source), parse_value(text.strip()), source))
+        out.append(Setting(setting_key(key, source), parse_value(text.strip()), source))
     return out
 
 
 def from_mapping(values: dict[str, Any], source: str = API_SOURCE) -> list[Setting]:
     """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API; numpy numbers
     and arrays are taken as the Python numbers and lists they hold."""
-    return [Setting(_key(str(k), f"{source} {k}"), plain(v), f"{source} {k}={v}") for k, v in values.items()]
+    return [Setting(setting_key(str(k), f"{source} {k}"), plain(v), f"{source} {k}={v}") for k, v in values.items()]
 
 
 def plain(value: Any) -> Any:
@@ -150,9 +159,10 @@ def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
     out = []
     for k, v in data.items():
         if k == NULL_KEY and isinstance(v, list) and all(isinstance(x, str) for x in v):
-            out += [Setting(prefix + _key(x, source), None, f"{source}: {'.'.join(prefix + (x,))}=null") for x in v]
+            for x in v:
+                out.append(Setting(prefix + setting_key(x, source), None, f"{source}: {'.'.join(prefix + (x,))}=null"))
             continue
-        path = prefix + _key(str(k), source)
+        path = prefix + setting_key(str(k), source)
         if len(path) > MAX_KEY_PARTS:
             raise BadInput(
                 f"{clip(source)}: {clip('.'.join(path), 60)}: a setting name has at most {MAX_KEY_PARTS} parts",
@@ -189,7 +199,13 @@ def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
         ) from None
     if not isinstance(data, dict):
         raise BadInput(f"{source}: expected a table of settings", hint="write KEY = VALUE lines")
-    return _flatten(data, (), source)
+    settings = _flatten(data, (), source)
+    seen: set[Path_] = set()
+    for s in settings:  # {"net": {"dim": 8}, "net.dim": 16}: two spellings of one key, one of them silently lost
+        if s.path in seen:
+            raise BadInput(f"{source}: {clip(s.key, 60)} is given twice", hint="give each setting once")
+        seen.add(s.path)
+    return settings
 
 
 def lookup(settings: Sequence[Setting], path: Path_) -> Setting | None:

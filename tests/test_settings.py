@@ -24,6 +24,10 @@ from tests.conftest import run_cdrb
         ("1,4,8", [1, 4, 8]),
         ("[1, 4]", [1, 4]),
         ("log", "log"),
+        (".001", 0.001),  # decimals as people write them, which JSON refuses
+        ("1.", 1.0),
+        ("-.5e-3", -0.0005),
+        ("007", "007"),
     ],
 )
 def test_values_parse_as_json_then_lists_then_text(text, value):
@@ -55,6 +59,10 @@ def test_config_files(tmp_path):
     js = tmp_path / "run.json"
     js.write_text(json.dumps({"net": {"dim": 8}}))
     assert read_config_file(js) == [Setting(("net", "dim"), 8, f"--config {js}: net.dim")]
+    twice = tmp_path / "twice.json"  # one key in two spellings: one value would be lost without a word
+    twice.write_text(json.dumps({"net": {"dim": 8}, "net.dim": 16}))
+    with pytest.raises(BadInput, match="net.dim is given twice"):
+        read_config_file(twice)
     bad = tmp_path / "bad.toml"
     bad.write_text("steps = = 3\n")
     with pytest.raises(BadInput, match="not valid TOML"):
