@@ -326,3 +326,27 @@ def test_a_model_trained_with_a_selection_records_it_and_starts_from_its_eval_se
     r = cdrb("train", demos.path, "--method", "mlp", "--config", other, "--out", tmp_path / "x.h5")
     assert r.returncode == 2 and "chooses nothing for mlp on maze-tight" in r.stderr
     assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize(
+    "entry, words",
+    [
+        ('eval = ["--help"]', "eval flags --help: ask for help"),
+        ('eval = ["--config", "more.toml"]', "name another settings file with --config"),
+        ('eval = "best_of"', "settings.0.eval"),
+        ("chosen = 3", "settings.0.chosen"),
+    ],
+)
+def test_a_selection_that_cannot_be_read_whole_is_one_line(tiny_models, tmp_path, cdrb, entry, words):
+    """A selection file's entry is read as the command reads its own line: flags asking for help (which printed
+    it and stopped), naming another settings file (whose settings were dropped) or of the wrong type are refused,
+    naming the file."""
+    model = tiny_models["cdrb"]
+    (tmp_path / "more.toml").write_text("sample_steps = 4\n")
+    chosen = tmp_path / "tuned.toml"
+    chosen.write_text(
+        f'[meta]\nrule = "r"\n\n[[settings]]\nenv = "{model.manifest.env.id}"\nmethod = "cdrb"\n{entry}\n'
+    )
+    r = cdrb("eval", model.path, "-n", "1", "--seeds", "0", "--config", chosen, "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and r.stdout == "" and str(chosen) in r.stderr and words in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1 and not (tmp_path / "e.h5").exists()

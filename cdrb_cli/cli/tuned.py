@@ -19,11 +19,12 @@ def read_selection(path: Path | None):
     if path is None or path.suffix.lower() != ".toml":
         return None
     from cdrb_cli.orchestration.grid import SettingsFile, read_toml
+    from cdrb_cli.orchestration.grid.spec import validated
 
     raw = read_toml(path, "settings file")
     if not (isinstance(raw.get("settings"), list) and isinstance(raw.get("meta"), dict)):
         return None
-    return SettingsFile.model_validate(raw)
+    return validated(SettingsFile, raw, path)
 
 
 def _entries(sfile, path: Path, env: str, method: str, what: str = "the model's") -> list:
@@ -39,16 +40,24 @@ def _entries(sfile, path: Path, env: str, method: str, what: str = "the model's"
 
 
 def _context(command: str, argv: list[str], path: Path, flags: list[str]):
-    """``cdrb command argv`` parsed as the command itself parses it (click's context)."""
+    """``cdrb command argv`` parsed as the command itself parses it (click's context). A file's flags may not ask
+    for help (which would print it and stop) or name another settings file (whose settings would be dropped)."""
     import typer
 
     from cdrb_cli.cli.common import app
 
+    where = f"--config {path}: {command} flags {clip(' '.join(flags), 200)}"
+    cmd = typer.main.get_command(app).commands[command]
+    if any(f in ("--help", "-h") for f in flags):
+        raise BadInput(f"{where}: ask for help", hint=f"drop it; `cdrb {command} --help` prints it")
     try:
-        return typer.main.get_command(app).commands[command].make_context(command, argv)
+        ctx = cmd.make_context(command, argv)
     except Exception as exc:  # click's own usage errors: the flags are not a valid command line
-        raise BadInput(f"--config {path}: {command} flags {clip(' '.join(flags), 200)}: {exc}",
-                       hint="re-run `cdrb select` to rewrite the file") from None  # fmt: skip
+        raise BadInput(f"{where}: {exc}", hint="re-run `cdrb select` to rewrite the file") from None
+    if ctx.params.get("config_file") is not None:
+        raise BadInput(f"{where}: name another settings file with --config",
+                       hint="a selection holds its settings itself: write them into its entry")  # fmt: skip
+    return ctx
 
 
 def _eval_settings(entries: list, path: Path) -> tuple[list[Setting], dict]:
