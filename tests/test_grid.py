@@ -673,6 +673,15 @@ def test_a_selection_that_misses_a_run_its_tuning_grid_tunes_is_refused(tmp_path
         "train maze-tight/cdrb-s0",
         "train maze-tight/straight-s0",
     }
+    # a tuning grid that names no runs, or a name no file can have: provenance only, never a crash
+    for text in ["envs = 5\nmethods = 3\n", 'envs = ["maze-tight"]\nmethods = "mlp"\n']:
+        (tmp_path / "tune" / "t.toml").write_text(text)
+        load_grid(grid)
+    for name in ["tune/t\\u0000.toml", "x" * 5000]:
+        (tmp_path / "tuned.toml").write_text(
+            f'[meta]\nrule = "x"\ntuning_grid = "{name}"\n[[settings]]\nenv = "maze-tight"\nmethod = "cdrb"\n'
+        )
+        load_grid(grid)
     (tmp_path / "tune" / "t.toml").unlink()  # the tuning grid gone: the selection is provenance only
     load_grid(grid)
 

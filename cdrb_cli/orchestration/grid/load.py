@@ -110,7 +110,10 @@ def _check_selections(spec: GridSpec, path: Path, files: dict[Path, SettingsFile
             raw = read_toml(tuning, "grid file")
         except BadInput:
             continue  # provenance only: a tuning grid moved away is not this grid's error
-        tuned = {(e, m) for e in raw.get("envs", []) for m in raw.get("methods", [])}
+        envs, methods = raw.get("envs"), raw.get("methods")
+        if not all(isinstance(x, list) and all(isinstance(i, str) for i in x) for x in (envs, methods)):
+            continue  # not a grid that names its runs: nothing to hold the selection to
+        tuned = {(e, m) for e in envs for m in methods}
         chosen = {(s.env, s.method) for s in sfile.settings}
         out = where.relative_to(Path.cwd()) if where.is_relative_to(Path.cwd()) else where
         for env in spec.envs:
@@ -127,14 +130,17 @@ def _check_selections(spec: GridSpec, path: Path, files: dict[Path, SettingsFile
 def _tuning_grid(selection: Path, name: str | None) -> Path | None:
     """The tuning grid a selection names (as `cdrb select` was given it: relative to where it ran, the checkout's
     root for the shipped files), looked for beside the selection and up its folders; None when not found."""
-    if not name:
+    if not name or "\0" in name:
         return None
     given = Path(name)
-    if given.is_absolute():
-        return given if given.is_file() else None
-    for folder in [Path.cwd(), *selection.parents]:
-        if (folder / given).is_file():
-            return folder / given
+    try:
+        if given.is_absolute():
+            return given if given.is_file() else None
+        for folder in [Path.cwd(), *selection.parents]:
+            if (folder / given).is_file():
+                return folder / given
+    except OSError:  # a name past the system's limits: no file
+        return None
     return None
 
 
