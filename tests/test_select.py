@@ -256,6 +256,45 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     assert unchecked == [tmp_path / "eval-None.h5"]
 
 
+def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_path):
+    """select run without the --include or --set the grid ran with sees the same eval commands, but the models
+    beside them record other training flags: those evals are not this grid's to score. A curve's stages differ in
+    training length (and a resume) alone, which is no difference."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.select import _checked_eval
+    from tests import factories
+
+    grid = tmp_path / "tune.toml"
+    grid.write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\neval_stream = "tune"\n'
+    )
+    spec = load_grid(grid)
+    tasks = expand(spec)
+    trains = {o: t for t in tasks if t.kind == "train" for o in t.outputs}
+    task = next(t for t in tasks if t.id == "eval maze-tight/mlp-s0")
+    train = next(t for t in tasks if t.id == "train maze-tight/mlp-s0")
+    manifest, arrays = factories.build("eval")
+    ev = tmp_path / "eval.h5"
+    artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
+    m_manifest, m_arrays = factories.build("model")
+    model = task.inputs[0]
+    model.parent.mkdir(parents=True, exist_ok=True)
+    steps = train.argv.index("--steps")
+    for argv, ok in [
+        (train.argv, True),
+        ([*train.argv[:steps], "--steps", "50", *train.argv[steps + 2 :], "--resume"], True),
+        ([*train.argv, "--set", "lr=0.5"], False),
+    ]:
+        artifacts.save(model, "model", m_manifest.model_copy(update={"argv": ["cdrb", *argv]}), m_arrays)
+        spec._shas.clear()
+        if ok:
+            _checked_eval(spec, task, ev, [], trains)
+        else:
+            with pytest.raises(BadInput, match=r"not trained as this grid's task .*setting lr: 0.5 there, \(not set\)"):
+                _checked_eval(spec, task, ev, [], trains)
+
+
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
     obstacle (none for a policy), and * where its curve still rises."""

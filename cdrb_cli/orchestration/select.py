@@ -81,8 +81,10 @@ def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
     order = {v.name: i for i, v in enumerate(spec.variants or [BASE])}
     found: dict[tuple, Candidate] = {}
     missing = []
-    by_output = {}
+    by_output, trains = {}, {}
     for task in expand(spec) if tasks is None else tasks:
+        if task.kind == "train":
+            trains |= dict.fromkeys(task.outputs, task)
         if task.kind != "eval":
             continue
         by_output[task.outputs[0]] = task
@@ -103,7 +105,7 @@ def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
         )
     unchecked: list[Path] = []
     for cand in found.values():
-        evals = [_checked_eval(spec, by_output[p], p, unchecked) for p in cand.evals]
+        evals = [_checked_eval(spec, by_output[p], p, unchecked, trains) for p in cand.evals]
         cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
         cand.success_std = seed_spread(cand.models)
         per = [r for ev in evals for r in per_seed(ev)]
@@ -135,12 +137,29 @@ def seed_spread(models: list[dict]) -> float | None:
     return std_or_none(m["success"] for m in models) if len(models) > 1 else None
 
 
-def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None = None):
+def _without_length(argv: list[str]) -> list[str]:
+    """A training's command line without how long it trains and where it keeps snapshots (a curve's stages differ
+    in these alone; the eval's record of its model's steps is checked on its own)."""
+    from cdrb_cli.orchestration.grid.commands import options
+    from cdrb_cli.orchestration.grid.flags import walk_options
+
+    kept = [argv[0]]
+    for token, entry, value in walk_options(argv[1:], options("train")):
+        if entry is not None and entry.param in ("steps", "snapshot_at"):
+            continue
+        if entry is not None and entry.param == "sets" and str(value).partition("=")[0].strip() == "steps":
+            continue
+        kept += [token] if entry is None or not entry.takes_value or "=" in token or value is None else [token, value]
+    return kept
+
+
+def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None = None, trains: dict | None = None):
     """The eval artifact at a task's output, refused unless it is what the task measures: the same command but for
     where files lie (:func:`grid.measure_difference`), a model of the task's training length (a run's final model
     keeps its name when a curve is extended), and, where the model it evaluated is here, that same model (the same
-    bytes or, as every stage judges an input, the same data). An eval that records no training length, of a model
-    that is not here, is appended to ``unchecked``."""
+    bytes or, as every stage judges an input, the same data) trained as the grid's training task (``trains``: task
+    by output) trains it. An eval that records no training length, of a model that is not here, is appended to
+    ``unchecked``."""
     from cdrb_cli.orchestration.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
@@ -172,6 +191,17 @@ def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None
             raise BadInput(
                 f"{path}: evaluates another {model.name} than the one in {model.parent}",
                 hint="run `cdrb grid` on the same file (same --set/--include): it measures the model there again",
+            )
+    train = (trains or {}).get(model)
+    if train is not None and here is not None:  # the model here, trained with other flags than the grid's now
+        trained_by = list(artifacts.load(model, "model").manifest.argv[1:])
+        while trained_by and trained_by[0].startswith("-"):
+            trained_by.pop(0)
+        why = measure_difference(_without_length(trained_by), _without_length(train.argv)) if trained_by else None
+        if why is not None:
+            raise BadInput(
+                f"{path}: its model {model.name} was not trained as this grid's task ({train.id}) trains it: {why}",
+                hint="run `cdrb select` with the --set/--include the grid ran with",
             )
     return ev
 
