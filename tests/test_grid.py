@@ -142,6 +142,7 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY.replace("seeds = [0, 1]", "seeds = []"), "seeds"),
         (TINY.replace("seeds = [0, 1]", "seeds = [0, 0]"), "once"),
         (TINY + '\n[[settings]]\nmethod = "diffuserr"\n', "settings[2].method"),
+        (TINY + "\n[demos_for]\nmazee = 5\n", "demos_for: unknown environment 'mazee' (choose one of maze,"),
         (TINY + '\n[[settings]]\nenv = "mazee"\n', "settings[2].env"),
         (TINY + '\n[[settings]]\nmethod = "mlp"\ncollect = ["--workers", "1"]\n', "every method shares"),
         (TINY + "\n[resources.training]\ncpus = 2\n", "training"),

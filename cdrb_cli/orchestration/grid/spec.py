@@ -299,7 +299,10 @@ class GridSpec(_Strict):
         from cdrb_cli.envs.registry import make_spec
 
         for env in value:
-            make_spec(env)  # an unknown id: one line naming it
+            try:
+                make_spec(env)
+            except BadInput as exc:  # as pydantic's error, so the message names the file and the key
+                raise ValueError(f"{exc.message} ({exc.hint})" if exc.hint else exc.message) from None
         return value
 
     @field_validator("extend")
