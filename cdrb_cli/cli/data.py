@@ -39,7 +39,7 @@ def collect(
     ),
     policy: Path | None = typer.Option(None, "--policy", help="A policy file for experts that need one (SB3 SAC zip)."),
     valid_fraction: float | None = typer.Option(
-        None, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation (default 0.1)."
+        None, "--valid-fraction", min=0.0, help="Share of episodes held out for validation, below 1 (default 0.1)."
     ),
     starts: str = typer.Option(
         "protocol",
@@ -157,7 +157,7 @@ def import_minari(
         None, "--env", help="The cdrb environment (default: from the dataset's env_spec; `cdrb envs`)."
     ),
     valid_fraction: float = typer.Option(
-        0.1, "--valid-fraction", min=0.0, max=0.9, help="Share of episodes held out for validation."
+        0.1, "--valid-fraction", min=0.0, help="Share of episodes held out for validation, below 1."
     ),
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     seed: int = SeedOpt,
@@ -186,7 +186,7 @@ def import_minari(
 def import_npz(
     file: Path = typer.Argument(..., help="A dataset file, e.g. OGBench's pointmaze-medium-navigate-v0.npz."),
     env: str | None = typer.Option(None, "--env", help="The cdrb environment (default: from the file's name)."),
-    valid_fraction: float = typer.Option(0.1, "--valid-fraction", min=0.0, max=0.9, help="Share held out."),
+    valid_fraction: float = typer.Option(0.1, "--valid-fraction", min=0.0, help="Share held out, below 1."),
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     seed: int = SeedOpt,
     force: bool = ForceOpt,

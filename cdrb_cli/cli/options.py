@@ -200,7 +200,8 @@ NetOpt = typer.Option(
     "--net",
     parser=choice(net_names, "network"),
     metavar="NET",
-    help="The network: unet, transformer or mlp (default: the method's).",
+    help="The network: unet, transformer, mlp, sieve or a plugin's (default: the method's; `cdrb methods` lists "
+    "the networks of each method).",
 )
 PresetOpt = typer.Option(
     None,

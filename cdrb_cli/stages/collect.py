@@ -82,8 +82,9 @@ def collect_config(
             f"--starts {starts!r}: not a start distribution of the {family.name} environments",
             hint=f"use {choices}, or several joined by + (episodes alternate between them)",
         )
-    split = {"valid_fraction": valid_fraction} if valid_fraction is not None else {}
-    base = {"env": spec.id, "episodes": episodes, "expert": expert_cfg.model_dump(mode="json"), "seed": seed, **split}
+    if valid_fraction is not None:  # as a setting, so a value the config refuses is said with the flag's name
+        settings = [Setting(("valid_fraction",), valid_fraction, f"--valid-fraction {valid_fraction}"), *settings]
+    base = {"env": spec.id, "episodes": episodes, "expert": expert_cfg.model_dump(mode="json"), "seed": seed}
     if starts != "protocol":  # recorded only when it differs, so the demos of the default stay what they were
         base["starts"] = starts
     config = validate(CollectConfig, apply(base, settings), settings, "collect")
