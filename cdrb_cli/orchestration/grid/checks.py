@@ -32,6 +32,7 @@ def check_commands(spec: GridSpec, path: Path) -> None:
             env_spec = make_spec(None if maze_map else env, maze_map)
         except BadInput:
             continue  # the collection says what is wrong with its map
+        _check_collect(spec, env_spec, env, path)
         for method in spec.methods:
             configs = {}
             for v in model_variants(spec, env, method):
@@ -42,6 +43,30 @@ def check_commands(spec: GridSpec, path: Path) -> None:
                 config = configs.get(v.name if v.own_model else BASE.name)
                 if config is not None:
                     _check_eval(spec, env_spec, env, method, v, config, path)
+
+
+def _check_collect(spec: GridSpec, env_spec, env: str, path: Path) -> None:
+    """The collection's flags for ``env`` resolve as `cdrb collect` resolves them (its expert, split, starts and
+    expert settings); one that reads a policy file is left to the command."""
+    from cdrb_cli.settings import parse_set
+    from cdrb_cli.stages.collect import collect_config
+
+    _, options, sets = parse_command(["collect", env, *collect_flags_for(spec, env)], fold=False)
+    if options.get("policy") is not None:
+        return
+    fraction = options.get("valid_fraction")
+    try:
+        collect_config(
+            env_spec,
+            spec.demos_of(env),
+            seed=spec.data_seed,
+            expert=options.get("expert"),
+            valid_fraction=None if fraction is None else float(fraction),
+            settings=parse_set([f"{k}={v}" for k, v in sets]),
+            starts=options.get("starts") or "protocol",
+        )
+    except BadInput as exc:
+        raise BadInput(f"{path}: collect on {env}: {exc.message}", hint=exc.hint) from None
 
 
 def _where(path: Path, env: str, method: str, v: Variant) -> str:
