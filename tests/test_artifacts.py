@@ -468,3 +468,27 @@ def test_a_read_that_hangs_is_stopped_at_the_time_limit(tmp_path, monkeypatch):
     if pid == 0:
         os._exit(2)
     assert os.WEXITSTATUS(artifacts._wait_child(pid, 10.0)) == 2
+
+
+def test_a_file_another_process_holds_open_for_writing_is_said_so_not_called_corrupt(tmp_path):
+    path = write(tmp_path / "d.h5", "demos")
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"import h5py, time; f = h5py.File({str(path)!r}, 'a'); print(1, flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "HDF5_USE_FILE_LOCKING": "TRUE"},
+    )
+    try:
+        assert holder.stdout.readline().strip() == "1"
+        if os.environ.get("HDF5_USE_FILE_LOCKING", "").upper() == "FALSE":
+            pytest.skip("HDF5 file locking is off in this environment")
+        with pytest.raises(BadInput, match="another process is writing this file"):
+            artifacts.load(path)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert artifacts.load(path).manifest.kind == "demos"  # released: it reads

@@ -168,6 +168,11 @@ def _open(path: Path) -> h5py.File:
         return h5py.File(path, "r")
     except ArtifactError:
         raise
+    except BlockingIOError:  # HDF5's lock: another process holds the file open for writing
+        raise BadInput(
+            f"{path}: another process is writing this file (HDF5 holds it locked)",
+            hint="wait for that command to finish (a training checkpoints into its --out), then read it",
+        ) from None
     except Exception as exc:  # h5py raises OSError and friends for truncated / corrupt files
         raise ArtifactError(
             f"{path}: HDF5 file is truncated or corrupt ({type(exc).__name__})",
