@@ -34,9 +34,9 @@ def test_parse_good_map():
         ("#####\n#..G#\n#####\n", "no start cell"),
         ("#####\n#S..#\n#####\n", "no goal cell"),
         ("", "empty"),
-        ("#####\n#S#G#\n#####\n", "no goal cell other than the start can be reached"),
+        ("#####\n#S#G#\n#####\n", "no start cell can reach a goal cell other than itself"),
         ("##\n#S\n", "at least 3x3"),
-        ("###\n#C#\n###\n", "no goal cell other than the start"),  # one cell, both start and goal
+        ("###\n#C#\n###\n", "no start cell can reach a goal cell other"),  # one cell, both start and goal
     ],
 )
 def test_parse_bad_maps(text, needle):
@@ -136,3 +136,17 @@ def test_making_a_maze_env_leaves_no_file_in_the_temp_folder(tmp_path, monkeypat
     env.close()
     training_env(spec, seed=0).close()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_start_goal_pairs_are_drawn_when_most_start_cells_are_sealed_off():
+    """A map whose start region is mostly a sealed pocket: rejection sampling alone fails (1 valid start in
+    2,401), and the exact draw that follows it gives the same distribution, uniform over the valid pairs."""
+    pocket = ["#" + "S" * 60 + "#...#" for _ in range(40)]
+    rows = ["#" * 66, *pocket[:-2], "#" + "S" * 60 + "#.S.#", "#" + "S" * 60 + "#G.G#", "#" * 66]
+    geom = MazeGeometry(parse_map("\n".join(rows), "pocket"))
+    assert len(geom.start_cells) == 2401 and len(geom.goal_cells) == 2
+    draws = [geom.draw_start_goal(np.random.default_rng(seed)) for seed in range(40)]
+    for s, g in draws:
+        assert tuple(s) == (39, 63) and geom.bfs(g)[tuple(s)] >= 0
+    goals = [tuple(g) for _, g in draws]
+    assert 8 <= goals.count((40, 62)) <= 32  # both goals, about evenly (p = 1/2 each; 40 draws)

@@ -110,19 +110,10 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
         raise BadInput(f"{source}: map has no goal cell", hint="mark at least one free cell with G (or C)")
     layout = MazeLayout(name=name, rows=[r for _, r in rows])
     geom = MazeGeometry(layout)
-    starts, goals = geom.start_cells, geom.goal_cells
-    # the protocol draws a start cell and a different goal cell reachable from it (only the first 50 start cells
-    # are tried: enough to find one on any map whose start region is connected)
-    pair = False
-    for s in starts[:50]:
-        reachable = geom.reachable_from(s)
-        if any(tuple(g) in reachable and tuple(g) != tuple(s) for g in goals):
-            pair = True
-            break
-    if not pair:
-        first = tuple(int(v) for v in starts[0])
+    # the protocol draws a start cell and a different goal cell reachable from it
+    if not geom.has_start_goal_pair():
         raise BadInput(
-            f"{source}: no goal cell other than the start can be reached from start cell {first}",
+            f"{source}: no start cell can reach a goal cell other than itself",
             hint="open a path, or mark another goal cell",
         )
     return layout
@@ -201,6 +192,33 @@ class MazeGeometry:
                     queue.append(n)
         return dist
 
+    def components(self) -> np.ndarray:
+        """A label per cell of the free cell's 4-connected region (0, 1, ...); -1 on walls."""
+        label = np.full(self.grid.shape, -1, dtype=np.int64)
+        n = 0
+        for cell in map(tuple, np.argwhere(self.free)):
+            if label[cell] >= 0:
+                continue
+            label[cell] = n
+            queue = deque([cell])
+            while queue:
+                for nb in self.neighbours(queue.popleft()):
+                    if label[nb] < 0:
+                        label[nb] = n
+                        queue.append(nb)
+            n += 1
+        return label
+
+    def has_start_goal_pair(self) -> bool:
+        """Whether some start cell reaches a goal cell other than itself."""
+        label = self.components()
+        for c in np.unique(label[tuple(self.start_cells.T)]):
+            starts = self.start_cells[label[tuple(self.start_cells.T)] == c]
+            goals = self.goal_cells[label[tuple(self.goal_cells.T)] == c]
+            if len(goals) and (len(starts) > 1 or len(goals) > 1 or (starts[0] != goals[0]).any()):
+                return True
+        return False
+
     def reachable_from(self, cell) -> set[tuple[int, int]]:
         d = self.bfs(cell)
         return {(int(a), int(b)) for a, b in np.argwhere(d >= 0)}
@@ -259,13 +277,22 @@ class MazeGeometry:
         cells (the protocol shared by collect and eval) or, ``anywhere``, from every free cell (plans from wherever
         the robot may be, to the protocol's goals)."""
         starts, goals = (np.argwhere(self.free) if anywhere else self.start_cells), self.goal_cells
-        for _ in range(1000):
+        for _ in range(1000):  # rejection: uniform over the valid pairs, quick where most pairs are
             s = starts[int(rng.integers(len(starts)))]
             g = goals[int(rng.integers(len(goals)))]
             if (s != g).any() and self.bfs(g)[tuple(s)] >= 0:
                 return s, g
-        where = "free" if anywhere else "start"
-        raise RunFailed(f"could not draw a start/goal pair: no goal cell is reachable from the {where} cells")
+        # few valid pairs (most start cells sealed off from the goals): the same distribution, drawn exactly
+        valid = [
+            (self.bfs(g)[starts[:, 0], starts[:, 1]] >= 0) & (starts != g).any(axis=1) for g in goals
+        ]  # per goal, which starts reach it
+        counts = np.array([v.sum() for v in valid], dtype=np.float64)
+        if counts.sum() == 0:
+            where = "free" if anywhere else "start"
+            raise RunFailed(f"could not draw a start/goal pair: no goal cell is reachable from the {where} cells")
+        gi = int(rng.choice(len(goals), p=counts / counts.sum()))
+        s = starts[np.flatnonzero(valid[gi])[int(rng.integers(int(counts[gi])))]]
+        return s, goals[gi]
 
     def detour_pairs(self, trained: MazeGeometry) -> np.ndarray:
         """Every (start cell, goal cell) pair of this map's protocol whose shortest path here is longer than in the
