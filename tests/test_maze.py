@@ -150,3 +150,9 @@ def test_start_goal_pairs_are_drawn_when_most_start_cells_are_sealed_off():
         assert tuple(s) == (39, 63) and geom.bfs(g)[tuple(s)] >= 0
     goals = [tuple(g) for _, g in draws]
     assert 8 <= goals.count((40, 62)) <= 32  # both goals, about evenly (p = 1/2 each; 40 draws)
+
+
+def test_a_map_name_with_a_control_character_is_refused():
+    with pytest.raises(BadInput, match="has a control character"):
+        parse_map("#####\n#S.G#\n#####\n", "two\nlines")
+    assert parse_map("#####\n#S.G#\n#####\n", "ünïcode name").name == "ünïcode name"

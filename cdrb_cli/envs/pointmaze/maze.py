@@ -34,6 +34,13 @@ class MazeLayout(Record):
     rows: list[str] = Field(min_length=3, max_length=MAX_MAP_SIDE)
     cell_size: float = Field(1.0, gt=0, le=100)
 
+    @field_validator("name")
+    @classmethod
+    def _printable(cls, name: str) -> str:
+        if not name.isprintable():
+            raise ValueError("a map's name may not hold control characters (it is printed in log lines)")
+        return name
+
     @field_validator("rows")
     @classmethod
     def _check_rows(cls, rows: list[str]) -> list[str]:
@@ -98,6 +105,11 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
         raise BadInput(
             f"{source}: the map's name has {len(name)} characters, more than {MAX_MAP_NAME}",
             hint=f"a map is named after its file: rename the file to at most {MAX_MAP_NAME} characters",
+        )
+    if not name.isprintable():  # a name is printed in log lines and reports: a newline there splits them
+        raise BadInput(
+            f"{source}: the map's name {name!r} has a control character",
+            hint="a map is named after its file: rename the file without newlines or tabs",
         )
     if len(rows) * width > MAX_CELLS:
         raise BadInput(f"{source}: map has {len(rows) * width} cells, more than {MAX_CELLS}", hint="use a smaller map")
