@@ -273,12 +273,23 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
             msg += " (a list: write 1,4,8, or [512] for a single value)"
         setting = source_of(settings, loc)
         where = clip(setting.source if setting is not None else f"{what} {key}")
-        if err.get("type") == "value_error":  # a check across several fields of a record: name every one given
-            given = list(dict.fromkeys(s.source for s in settings if tuple(s.path[: len(loc)]) == tuple(map(str, loc))))
+        if err.get("type") == "value_error":  # a check across several fields of a record: name those it names
+            inside = [s for s in settings if tuple(s.path[: len(loc)]) == tuple(map(str, loc))]
+            named = [s for s in inside if _names(msg, s.path[len(loc) :])]
+            given = list(dict.fromkeys(s.source for s in named or (inside if len(loc) else [])))
             if len(given) > 1:
                 where = clip(" with ".join(given), 200)
+            elif not given and setting is None and not loc:
+                where = f"{what} settings"
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         raise BadInput(f"{where}: {msg}{more}", hint=f"`cdrb config {what}` lists every setting") from None
+
+
+def _names(message: str, path: Sequence[str]) -> bool:
+    """Whether an error ``message`` names the setting at ``path`` (below the record it checks), by its dotted
+    name or its last part as a word."""
+    keys = {".".join(path), path[-1]} if path else set()
+    return any(re.search(rf"(?<![\w.]){re.escape(k)}(?![\w])", message) for k in keys)
 
 
 def _field_loc(model: type[BaseModel], loc: Sequence[Any]) -> list[Any]:

@@ -250,6 +250,11 @@ def test_eval_cli_closed_loop(models, tmp_path, cdrb):
             ["--replan", "deviation:0.05", "--set", "replan.every=3"],
             "--replan deviation:0.05 with --set replan.every=3",
         ),
+        # and only the settings its message names, not others of the same record
+        (
+            ["--set", "avoid.best_of=2", "--set", "avoid.route_clearance=0.1"],
+            "error: --set avoid.route_clearance=0.1: route_clearance keeps routes",
+        ),
     ],
 )
 def test_eval_cli_closed_loop_bad_inputs(models, tmp_path, cdrb, args, needle):
