@@ -38,6 +38,12 @@ class PlannerExpertConfig(ExpertConfig):
     settle_speed: float = Field(0.1, gt=0, description="...and slower than this, m/s")
 
 
+#: how many path points ahead a shortcut may reach: beyond the longest shortest path of every built-in map (31
+#: cells), and a bound on the smoothing's work on large maps (a straight run longer than this keeps a waypoint on
+#: the way, which the pursuit passes at full speed)
+SHORTCUT_WINDOW = 64
+
+
 def random_shortest_path(geom: MazeGeometry, start_cell, goal_cell, rng: np.random.Generator) -> list[tuple[int, int]]:
     dist = geom.bfs(goal_cell)
     cell = (int(start_cell[0]), int(start_cell[1]))
@@ -66,16 +72,28 @@ class MazeExpert:
 
     # ----------------------------------------------------------------- route
     def _segment_clear(self, a: np.ndarray, b: np.ndarray, clearance: float | None = None) -> bool:
+        """Whether every point of the segment a-b (sampled every 5 cm) keeps ``clearance`` from the wall boxes."""
         n = max(2, int(np.ceil(np.linalg.norm(b - a) / 0.05)) + 1)
         pts = a[None] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None]
         need = self.cfg.clearance if clearance is None else clearance
-        return bool(box_distance(pts, self.centers, self.halves).min() >= need)
+        if need <= 0:  # distances are never negative
+            return True
+        # a sample inside a wall cell is at distance 0: refused without measuring (most long segments are)
+        cells = self.geom.xy_to_cell(pts)
+        rows, cols = self.geom.free.shape
+        on_map = (cells[:, 0] >= 0) & (cells[:, 0] < rows) & (cells[:, 1] >= 0) & (cells[:, 1] < cols)
+        if not self.geom.free[cells[on_map, 0], cells[on_map, 1]].all():
+            return False
+        # only the boxes within `need` of the segment's bounding box can come closer than `need`
+        lo, hi = pts.min(axis=0) - need, pts.max(axis=0) + need
+        near = ((self.centers + self.halves > lo) & (self.centers - self.halves < hi)).all(axis=1)
+        return not near.any() or bool(box_distance(pts, self.centers[near], self.halves[near]).min() >= need)
 
     def _smooth(self, pts: np.ndarray) -> np.ndarray:
         out = [pts[0]]
         i = 0
         while i < len(pts) - 1:
-            j = len(pts) - 1
+            j = min(len(pts) - 1, i + SHORTCUT_WINDOW)
             while j > i + 1 and not self._segment_clear(pts[i], pts[j]):
                 j -= 1
             out.append(pts[j])
