@@ -152,10 +152,14 @@ def test_start_goal_pairs_are_drawn_when_most_start_cells_are_sealed_off():
     assert 8 <= goals.count((40, 62)) <= 32  # both goals, about evenly (p = 1/2 each; 40 draws)
 
 
-def test_a_map_name_with_a_control_character_is_refused():
-    with pytest.raises(BadInput, match="has a control character"):
-        parse_map("#####\n#S.G#\n#####\n", "two\nlines")
-    assert parse_map("#####\n#S.G#\n#####\n", "ünïcode name").name == "ünïcode name"
+def test_a_map_name_with_a_line_break_is_refused():
+    """A map's name is printed in log lines: a line break would split them (other control characters are shown
+    as ?, by the printer)."""
+    for name in ["two\nlines", "a\rb", "a\u2028b"]:
+        with pytest.raises(BadInput, match="has a line break"):
+            parse_map("#####\n#S.G#\n#####\n", name)
+    for name in ["ünïcode name", "x\x1b[31m"]:
+        assert parse_map("#####\n#S.G#\n#####\n", name).name == name
 
 
 def test_the_experts_clearance_test_equals_measuring_every_wall_and_large_maps_smooth_quickly(tmp_path):

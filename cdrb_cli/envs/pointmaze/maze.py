@@ -27,6 +27,11 @@ MAX_CELLS = MAX_MAP_SIDE * MAX_MAP_SIDE
 MAX_MAP_NAME = 200
 
 
+def _breaks_lines(text: str) -> bool:
+    """Whether ``text`` holds a character that starts a new line (newline, carriage return, U+2028...)."""
+    return len(f"x{text}x".splitlines()) > 1
+
+
 class MazeLayout(Record):
     """A grid maze: ``rows`` of ``#`` wall, ``.`` free, ``S`` start cell, ``G`` goal cell, ``C`` start+goal cell."""
 
@@ -36,9 +41,9 @@ class MazeLayout(Record):
 
     @field_validator("name")
     @classmethod
-    def _printable(cls, name: str) -> str:
-        if not name.isprintable():
-            raise ValueError("a map's name may not hold control characters (it is printed in log lines)")
+    def _one_line(cls, name: str) -> str:
+        if _breaks_lines(name):
+            raise ValueError("a map's name may not hold a line break (it is printed in log lines)")
         return name
 
     @field_validator("rows")
@@ -106,10 +111,10 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
             f"{source}: the map's name has {len(name)} characters, more than {MAX_MAP_NAME}",
             hint=f"a map is named after its file: rename the file to at most {MAX_MAP_NAME} characters",
         )
-    if not name.isprintable():  # a name is printed in log lines and reports: a newline there splits them
+    if _breaks_lines(name):  # printed in log lines and reports (other control characters are shown as ?)
         raise BadInput(
-            f"{source}: the map's name {name!r} has a control character",
-            hint="a map is named after its file: rename the file without newlines or tabs",
+            f"{source}: the map's name {name!r} has a line break",
+            hint="a map is named after its file: rename the file without newlines",
         )
     if len(rows) * width > MAX_CELLS:
         raise BadInput(f"{source}: map has {len(rows) * width} cells, more than {MAX_CELLS}", hint="use a smaller map")
