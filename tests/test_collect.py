@@ -94,7 +94,7 @@ def test_cli_collect_bad_inputs(tmp_path, cdrb):
         (("collect", "maze", "--expert", "sac", "--policy", fifo, "-n", "2"), "--policy"),  # a FIFO: no read, no hang
         (("collect", "maze", "--expert", "sac", "--policy", bad, "-n", "2"), "not a stable-baselines3"),
         (("collect", "maze", "-n", "2", "--valid-fraction", "0.9"), "none is left to train on"),
-        (("collect", "maze", "-n", "40", "--valid-fraction", "1"), "--valid-fraction 1.0: Input should be less than 1"),
+        (("collect", "maze", "-n", "40", "--valid-fraction", "1"), "'--valid-fraction': 1 is not a share in [0, 1)"),
     ]
     for args, needle in cases:
         r = cdrb(*args, cwd=tmp_path)

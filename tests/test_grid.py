@@ -166,8 +166,8 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + '\n[[settings]]\ntrain = ["--config", "missing.toml"]\n', "missing.toml: no such file"),
         (TINY + '\n[[settings]]\ntrain = ["4000"]\n', "'4000' is not the value of an option"),
         # values the option's own parser refuses (its range, its choices), for every command
-        (TINY + '\n[[settings]]\ncollect = ["--valid-fraction", "-1"]\n', "--valid-fraction '-1': Input should be"),
-        (TINY + '\n[[settings]]\ncollect = ["--valid-fraction", "1"]\n', "collect on maze-tight: --valid-fraction 1.0"),
+        (TINY + '\n[[settings]]\ncollect = ["--valid-fraction", "-1"]\n', "'-1': -1 is not a share in [0, 1)"),
+        (TINY + '\n[[settings]]\ncollect = ["--valid-fraction", "1"]\n', "'1': 1 is not a share in [0, 1)"),
         (TINY + '\n[[settings]]\ncollect = ["--starts", "nowhere"]\n', "--starts 'nowhere': not a start distribution"),
         (TINY + '\n[[settings]]\ncluster = ["--k=-1"]\n', "--k '-1': Input should be greater than"),
         (TINY + '\n[[settings]]\ncluster = ["--features", "pixels"]\n', "not a known feature space"),

@@ -106,6 +106,14 @@ def choice(values: Callable[[], list[str]], what: str) -> Callable[[str], str]:
     return parse
 
 
+def share_below_one(text: str) -> float:
+    """A typer ``parser`` for a share of episodes held out: a number in [0, 1) (1 would hold out every one)."""
+    value = float(text)
+    if not 0 <= value < 1:
+        raise ValueError(f"{text} is not a share in [0, 1)")
+    return value
+
+
 def registered(registry: Callable, what: str) -> Callable[[str], str]:
     """A typer ``parser`` accepting the names of a registry (plugins included)."""
     return choice(lambda: registry().names(), what)

@@ -21,6 +21,7 @@ from cdrb_cli.cli.common import (
     literal_values,
     load_artifact,
     registered,
+    share_below_one,
 )
 from cdrb_cli.cli.options import EnvArg, MapOpt, env_spec
 
@@ -39,7 +40,11 @@ def collect(
     ),
     policy: Path | None = typer.Option(None, "--policy", help="A policy file for experts that need one (SB3 SAC zip)."),
     valid_fraction: float | None = typer.Option(
-        None, "--valid-fraction", min=0.0, help="Share of episodes held out for validation, below 1 (default 0.1)."
+        None,
+        "--valid-fraction",
+        parser=share_below_one,
+        metavar="SHARE",
+        help="Share of episodes held out for validation, in [0, 1) (default 0.1).",
     ),
     starts: str = typer.Option(
         "protocol",
@@ -157,7 +162,11 @@ def import_minari(
         None, "--env", help="The cdrb environment (default: from the dataset's env_spec; `cdrb envs`)."
     ),
     valid_fraction: float = typer.Option(
-        0.1, "--valid-fraction", min=0.0, help="Share of episodes held out for validation, below 1."
+        0.1,
+        "--valid-fraction",
+        parser=share_below_one,
+        metavar="SHARE",
+        help="Share held out for validation, in [0, 1).",
     ),
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     seed: int = SeedOpt,
@@ -186,7 +195,9 @@ def import_minari(
 def import_npz(
     file: Path = typer.Argument(..., help="A dataset file, e.g. OGBench's pointmaze-medium-navigate-v0.npz."),
     env: str | None = typer.Option(None, "--env", help="The cdrb environment (default: from the file's name)."),
-    valid_fraction: float = typer.Option(0.1, "--valid-fraction", min=0.0, help="Share held out, below 1."),
+    valid_fraction: float = typer.Option(
+        0.1, "--valid-fraction", parser=share_below_one, metavar="SHARE", help="Share held out, in [0, 1)."
+    ),
     out: Path = typer.Option(Path("demos.h5"), "--out", "-o", help="Demos artifact to write.", parser=file_path),
     seed: int = SeedOpt,
     force: bool = ForceOpt,
