@@ -167,17 +167,26 @@ def test_the_experts_clearance_test_equals_measuring_every_wall_and_large_maps_s
     same answer as the distance to every wall box, on random segments; so a 99 x 99 serpentine map (a 4,801-cell
     route) is smoothed into waypoints joined by clear segments (it took hours measuring every box everywhere)."""
     from cdrb_cli.envs.geometry import box_distance
-    from cdrb_cli.envs.pointmaze.expert import MazeExpert
+    from cdrb_cli.envs.pointmaze.expert import MazeExpert, PlannerExpertConfig
+    from cdrb_cli.envs.pointmaze.maze import MazeLayout
 
-    ex = MazeExpert(make_spec("maze-tight"))
     rng = np.random.default_rng(0)
-    half = ex.geom.n_rows * ex.geom.s / 2
-    for _ in range(300):
-        a, b = rng.uniform(-half - 1, half + 1, (2, 2))  # off the map too
-        clearance = float(rng.choice([0.0, 0.1, 0.3]))
-        n = max(2, int(np.ceil(np.linalg.norm(b - a) / 0.05)) + 1)
-        pts = a[None] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None]
-        assert ex._segment_clear(a, b, clearance) == bool(box_distance(pts, ex.centers, ex.halves).min() >= clearance)
+    maps = [["...#", "...#", "..S.", "..G#", "...#"], ["#####", "#S..#", "#.#.#", "#..G#", "#####"]]
+    for rows, size in [(m, s) for m in maps for s in (1.0, 0.3, 0.7, 1.1)]:  # one without a wall border
+        ex = MazeExpert.__new__(MazeExpert)  # the route tests on a layout of its own cell size
+        ex.cfg, ex.geom = PlannerExpertConfig(), MazeGeometry(MazeLayout(name="m", rows=rows, cell_size=size))
+        ex.centers, ex.halves = ex.geom.wall_boxes
+        cells = np.argwhere(np.ones((len(rows) + 1, len(rows[0]) + 1), bool)) - 0.5  # corners, off the map too
+        spots = np.concatenate(
+            [ex.geom.cell_to_xy(cells), ex.geom.cell_to_xy(cells + 0.5), ex.geom.cell_to_xy(cells + [0, 0.5])]
+        )
+        for _ in range(400):
+            a, b = spots[rng.integers(len(spots), size=2)]  # on cell centres, corners and edges: the ties
+            clearance = float(rng.choice([0.0, 1e-12, size / 2, size, 0.3]))
+            n = max(2, int(np.ceil(np.linalg.norm(b - a) / 0.05)) + 1)
+            pts = a[None] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None]
+            truth = bool(box_distance(pts, ex.centers, ex.halves).min() >= clearance)
+            assert ex._segment_clear(a, b, clearance) == truth, (rows, size, a, b, clearance)
     n = 99
     rows = ["#" * n]
     for i in range(1, n - 1):
@@ -188,7 +197,11 @@ def test_the_experts_clearance_test_equals_measuring_every_wall_and_large_maps_s
     path = tmp_path / "serpent.txt"
     path.write_text("\n".join(rows) + "\n")
     ex = MazeExpert(make_spec(None, path))
-    s, g = ex.geom.start_cells[0], ex.geom.goal_cells[0]
+    s, g = ex.geom.start_cells[0], ex.geom.goal_cells[0]  # the route's waypoints, each joined by a clear segment
     ex.reset(np.r_[ex.geom.cell_to_xy(s), 0, 0], ex.geom.cell_to_xy(g), rng)
     assert len(ex.cells) > 4000 and 50 < len(ex.waypoints) < 400
-    assert all(ex._segment_clear(p, q) for p, q in zip(ex.waypoints[:-1], ex.waypoints[1:]))
+    clear = [
+        box_distance(np.linspace(p, q, 200), ex.centers, ex.halves).min() >= 0.3
+        for p, q in zip(ex.waypoints[:-1], ex.waypoints[1:])
+    ]
+    assert all(clear)

@@ -78,15 +78,20 @@ class MazeExpert:
         need = self.cfg.clearance if clearance is None else clearance
         if need <= 0:  # distances are never negative
             return True
-        # a sample inside a wall cell is at distance 0: refused without measuring (most long segments are)
+        if need < 1e-9 * self.geom.s:  # within rounding of a wall's face: measured against every box, as defined
+            return bool(box_distance(pts, self.centers, self.halves).min() >= need)
+        # a sample inside a wall cell is at distance 0 (or within rounding of it, far below `need`): refused
+        # without measuring (most long segments are)
         cells = self.geom.xy_to_cell(pts)
         rows, cols = self.geom.free.shape
         on_map = (cells[:, 0] >= 0) & (cells[:, 0] < rows) & (cells[:, 1] >= 0) & (cells[:, 1] < cols)
         if not self.geom.free[cells[on_map, 0], cells[on_map, 1]].all():
             return False
-        # only the boxes within `need` of the segment's bounding box can come closer than `need`
-        lo, hi = pts.min(axis=0) - need, pts.max(axis=0) + need
-        near = ((self.centers + self.halves > lo) & (self.centers - self.halves < hi)).all(axis=1)
+        # only the boxes within `need` of the segment's bounding box can come closer than `need` (the margin is
+        # widened past rounding: a box kept in excess never changes the minimum)
+        pad = need * (1 + 1e-9) + 1e-9 * (1 + float(np.abs(pts).max()))
+        lo, hi = pts.min(axis=0) - pad, pts.max(axis=0) + pad
+        near = ((self.centers + self.halves >= lo) & (self.centers - self.halves <= hi)).all(axis=1)
         return not near.any() or bool(box_distance(pts, self.centers[near], self.halves[near]).min() >= need)
 
     def _smooth(self, pts: np.ndarray) -> np.ndarray:
