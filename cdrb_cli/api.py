@@ -178,6 +178,13 @@ class Planner:
             raise BadInput(f"flag = {clip(repr(flag), 40)}: not a point's name", hint='pass "start" or "goal"')
         name = flag.lstrip("-")
         try:
+            kind = np.asarray(point).dtype.kind if isinstance(point, (np.ndarray, list, tuple)) else None
+        except (TypeError, ValueError):  # a ragged list: the cast below refuses it
+            kind = None
+        if kind in ("b", "c"):  # a cast would drop the imaginary part, or read True as 1.0, without a word
+            what = "booleans" if kind == "b" else "complex numbers"
+            raise BadInput(f"{name}: {what}, not real numbers", hint="e.g. [0.0, 0.0]")
+        try:
             values = np.asarray(point, dtype=np.float64)
         except (TypeError, ValueError, OverflowError):
             raise BadInput(f"{name} = {clip(repr(point), 60)}: not a list of numbers", hint="e.g. [0.0, 0.0]") from None
