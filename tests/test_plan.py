@@ -94,6 +94,8 @@ def test_the_batch_size_is_a_recorded_setting_and_the_memo_tells_sizes_apart(tin
         (["--start", "0x1,0", "--goal", "6,6"], "not a list of numbers"),
         (["--start", "0,0", "--goal", "6,6", "-n", "1e9"], "--num-plans"),
         (["--start", "0,0", "--goal", "6,6", "--num-plans", "2000000"], "--num-plans"),
+        # each within its bound, together past what one run plans (it died of memory in numpy)
+        (["--pairs", "100", "-n", "10000", "--set", "avoid.best_of=64"], "planned states in one run"),
         (["--start", "a,b", "--goal", "6,6"], "not a list of numbers"),
         (["--start", "0,0"], "no start/goal"),
         (["--start", "0,0", "--goal", "6,6", "--set", "sampler=ddpm"], "--set sampler=ddpm"),
