@@ -319,3 +319,20 @@ def test_every_documented_command_parses():
             raise AssertionError(f"{where}: `{text}`: {e}") from None
         seen += 1
     assert seen >= 50
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("0,1", [0, 1]), (" 3 ", [3]), ("0,1,", [0, 1]), ("-2", [-2]), ("0,,1", None), ("1_0", None), ("٣", None)],
+)
+def test_integer_lists_take_ascii_digits_and_no_empty_items(text, expected):
+    """An empty item or Python int()'s extras (underscores, other scripts' digits) are typos in a seed list, not
+    seeds to drop or read; one trailing comma is how lists are often written."""
+    from cdrb_cli.cli.common import int_values
+    from cdrb_cli.errors import BadInput
+
+    if expected is None:
+        with pytest.raises(BadInput, match="not a comma-separated list"):
+            int_values(text, "--seeds", "integers", "0,1")
+    else:
+        assert int_values(text, "--seeds", "integers", "0,1") == expected

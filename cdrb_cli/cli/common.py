@@ -4,6 +4,7 @@ and the checks of inputs and outputs made before any work."""
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -185,14 +186,16 @@ def load_artifact(path: Path, kind: str):
 
 
 def int_values(text: str, flag: str, what: str, example: str) -> list[int]:
-    """A non-empty comma-separated list of integers (``what`` and ``example`` word the errors)."""
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise BadInput(f"{flag} {text!r}: not a comma-separated list of {what}", hint=f"e.g. {example}") from None
-    if not values:
+    """A non-empty comma-separated list of integers, each written in ASCII digits (``what`` and ``example`` word the
+    errors): an empty item (``0,,1``), ``1_0`` or other scripts' digits, which Python's int() reads, are typos."""
+    items = [v.strip() for v in text.split(",")]
+    if items and not items[-1] and len(items) > 1:
+        items.pop()  # one trailing comma, as a list is often written
+    if items == [""]:
         raise BadInput(f"{flag} is empty", hint=f"e.g. {example}")
-    return values
+    if not all(re.fullmatch(r"[+-]?[0-9]+", v) for v in items):
+        raise BadInput(f"{flag} {text!r}: not a comma-separated list of {what}", hint=f"e.g. {example}")
+    return [int(v) for v in items]
 
 
 def parse_seeds(text: str, flag: str) -> list[int]:
