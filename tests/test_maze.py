@@ -205,3 +205,12 @@ def test_the_experts_clearance_test_equals_measuring_every_wall_and_large_maps_s
         for p, q in zip(ex.waypoints[:-1], ex.waypoints[1:])
     ]
     assert all(clear)
+
+
+def test_a_map_saved_by_a_windows_editor_reads_as_the_same_map(tmp_path):
+    from cdrb_cli.envs.pointmaze.maze import load_map_file
+
+    text = "#####\n#S.G#\n#####\n"
+    (tmp_path / "unix.txt").write_text(text)
+    (tmp_path / "win.txt").write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    assert load_map_file(tmp_path / "win.txt").rows == load_map_file(tmp_path / "unix.txt").rows

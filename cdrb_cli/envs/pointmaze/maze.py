@@ -146,7 +146,8 @@ def load_map_file(path: str | Path, flag: str = "--maze-map") -> MazeLayout:
 
     path = Path(path)
     text = read_input_text(path, flag, MAX_MAP_BYTES, "map file", "pass a text file of rows of # . S G")
-    return parse_map(text, name=path.stem, source=str(path))
+    # the byte-order mark some Windows editors put first is not a map character (their \r\n ends lines as \n does)
+    return parse_map(text.removeprefix("\ufeff"), name=path.stem, source=str(path))
 
 
 def stock_layout(name: str) -> MazeLayout:
