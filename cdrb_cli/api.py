@@ -76,6 +76,8 @@ def _path(value, name: str) -> Path:
     """A file or folder argument: a str or os.PathLike, as a Path."""
     if not isinstance(value, (str, Path)) and not hasattr(value, "__fspath__"):
         raise BadInput(f"{name} = {clip(repr(value), 40)}: not a path", hint=f"pass {name} as a str or a Path")
+    if isinstance(value, str) and not value.strip():  # Path("") is ".", the working folder: never what was meant
+        raise BadInput(f"{name} = {value!r}: an empty path", hint=f"pass {name} as a file's path")
     return Path(value)
 
 

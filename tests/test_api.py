@@ -270,6 +270,7 @@ def test_api_errors_name_python_arguments_where_the_cli_names_flags(model, tmp_p
         (lambda m: api.Planner(m, settings={"n=3": 2}), '{"avoid.best_of": 4}'),
         (lambda m: api.Planner(m).state([0.0, 0.0], None), 'pass "start" or "goal"'),
         (lambda m: api.evaluate(m, "/tmp/x.h5", seeds=[0, 0]), "repeated seeds"),
+        (lambda m: api.evaluate(m, "", episodes=1), "out = '': an empty path"),  # Path("") is the working folder
         (lambda m: api.evaluate(m, "/tmp/x.h5", seeds=itertools.count()), "at most 1000 items"),
         (lambda m: api.evaluate(m, "/tmp/x.h5", protocol="detour"), "walls added: scene=FILE)"),
         (lambda m: api.evaluate(m, "/tmp/x.h5", replan=5), "replan=5: not never, every:N or deviation:D"),
