@@ -192,6 +192,8 @@ class Planner:
             raise BadInput(f"{name} = {clip(repr(point), 60)}: not a list of numbers", hint="e.g. [0.0, 0.0]") from None
         if values.ndim != 1 or not len(values):
             raise BadInput(f"{name}: a flat list of numbers, not shape {values.shape}", hint="e.g. [0.0, 0.0]")
+        if not np.isfinite(values).all():
+            raise BadInput(f"{name} = {clip(repr(values.tolist()), 60)}: not finite", hint="e.g. [0.0, 0.0]")
         return family_of(self.spec).parse_point(self.spec, ",".join(repr(float(v)) for v in values), flag)
 
     def plan(

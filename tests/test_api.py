@@ -63,6 +63,7 @@ def test_evaluate_writes_the_eval_artifact_and_returns_its_summary(model, tmp_pa
         (dict(start=[[0.0, 0.0]]), "a flat list of numbers"),
         (dict(start=np.array([1j, 0])), "start: complex numbers"),  # a cast would drop the imaginary part
         (dict(start=[True, False]), "start: booleans"),  # or read True as 1.0
+        (dict(start=[float("nan"), 0.0]), "start = [nan, 0.0]: not finite"),
         (dict(steps=-3), "sample_steps=-3"),
         (dict(steps=0), "sample_steps=0"),
         (dict(n=2.5), "n=2.5"),
