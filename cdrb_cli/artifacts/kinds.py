@@ -178,8 +178,9 @@ MAX_NORMALIZED = 1e3
 
 def points_problem(points, name: str) -> str | None:
     """What is wrong with normalized buffer points ``points`` stored as ``name``, or None."""
-    if len(points) and float(np.abs(points).max()) > MAX_NORMALIZED:
-        return f"{name} lie far outside the normalized range [-1, 1] (up to {float(np.abs(points).max()):.3g})"
+    largest = float(np.abs(points).max()) if len(points) else 0.0
+    if largest > MAX_NORMALIZED:
+        return f"{name} lie far outside the normalized range [-1, 1] (up to {largest:.3g})"
     return None
 
 

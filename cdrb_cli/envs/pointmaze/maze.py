@@ -230,16 +230,12 @@ class MazeGeometry:
     def has_start_goal_pair(self) -> bool:
         """Whether some start cell reaches a goal cell other than itself."""
         label = self.components()
-        for c in np.unique(label[tuple(self.start_cells.T)]):
-            starts = self.start_cells[label[tuple(self.start_cells.T)] == c]
-            goals = self.goal_cells[label[tuple(self.goal_cells.T)] == c]
+        start_region, goal_region = label[tuple(self.start_cells.T)], label[tuple(self.goal_cells.T)]
+        for c in np.unique(start_region):
+            starts, goals = self.start_cells[start_region == c], self.goal_cells[goal_region == c]
             if len(goals) and (len(starts) > 1 or len(goals) > 1 or (starts[0] != goals[0]).any()):
                 return True
         return False
-
-    def reachable_from(self, cell) -> set[tuple[int, int]]:
-        d = self.bfs(cell)
-        return {(int(a), int(b)) for a, b in np.argwhere(d >= 0)}
 
     def longest_start_goal_path(self) -> int:
         """The largest grid distance (cells) from any start cell to any goal cell reachable from it."""
