@@ -10,6 +10,7 @@ variant's, and the chosen training length) are written as ``[[settings]]`` of a 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from datetime import date
 from pathlib import Path
@@ -186,15 +187,16 @@ def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None
     here = file_sha(model, spec._shas)
     if steps is not None and trained is None and here is None and unchecked is not None:
         unchecked.append(path)
+    train = (trains or {}).get(model)
+    model_here = functools.cache(lambda: artifacts.load(model, "model"))  # read once, and only where it is asked for
     if parent is not None and here is not None and parent.sha256 != here:
-        if not artifacts.same_inputs([parent], [artifacts.load(model, "model")]):
+        if not artifacts.same_inputs([parent], [model_here()]):
             raise BadInput(
                 f"{path}: evaluates another {model.name} than the one in {model.parent}",
                 hint="run `cdrb grid` on the same file (same --set/--include): it measures the model there again",
             )
-    train = (trains or {}).get(model)
     if train is not None and here is not None:  # the model here, trained with other flags than the grid's now
-        trained_by = list(artifacts.load(model, "model").manifest.argv[1:])
+        trained_by = list(model_here().manifest.argv[1:])
         while trained_by and trained_by[0].startswith("-"):
             trained_by.pop(0)
         why = measure_difference(_without_length(trained_by), _without_length(train.argv)) if trained_by else None

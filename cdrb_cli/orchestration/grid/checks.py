@@ -27,12 +27,13 @@ def check_commands(spec: GridSpec, path: Path) -> None:
     from cdrb_cli.envs.registry import make_spec
 
     for env in spec.envs:
-        maze_map = parse_command(["collect", env, *collect_flags_for(spec, env)])[1].get("maze_map")
+        _, collect, collect_sets = parse_command(["collect", env, *collect_flags_for(spec, env)], fold=False)
+        maze_map = collect.get("maze_map")
         try:
             env_spec = make_spec(None if maze_map else env, maze_map)
         except BadInput:
             continue  # the collection says what is wrong with its map
-        _check_collect(spec, env_spec, env, path)
+        _check_collect(spec, env_spec, env, collect, collect_sets, path)
         for method in spec.methods:
             configs = {}
             for v in model_variants(spec, env, method):
@@ -45,13 +46,13 @@ def check_commands(spec: GridSpec, path: Path) -> None:
                     _check_eval(spec, env_spec, env, method, v, config, path)
 
 
-def _check_collect(spec: GridSpec, env_spec, env: str, path: Path) -> None:
-    """The collection's flags for ``env`` resolve as `cdrb collect` resolves them (its expert, split, starts and
-    expert settings); one that reads a policy file is left to the command."""
+def _check_collect(spec: GridSpec, env_spec, env: str, options: dict, sets: list, path: Path) -> None:
+    """The collection's flags for ``env`` (``options`` and ``sets`` as :func:`parse_command` reads them, as typed)
+    resolve as `cdrb collect` resolves them (its expert, split, starts and expert settings); one that reads a policy
+    file is left to the command."""
     from cdrb_cli.settings import parse_set
     from cdrb_cli.stages.collect import collect_config
 
-    _, options, sets = parse_command(["collect", env, *collect_flags_for(spec, env)], fold=False)
     if options.get("policy") is not None:
         return
     fraction = options.get("valid_fraction")
