@@ -266,6 +266,23 @@ def plan_config(
 
 
 # ------------------------------------------------------------------------------------------------ eval
+#: the most planned states one `cdrb plan` writes (pairs x n x horizon; 8 GB of float64 features at 4 features): more
+#: is a typo of --pairs or -n, refused before the sampler allocates for it
+MAX_PLANNED_STATES = 250_000_000
+
+
+def check_plan_count(model, pairs: int, config: PlanConfig) -> None:
+    """Refuse a plan whose pairs x n (x best-of, sampled) x horizon states exceed :data:`MAX_PLANNED_STATES`."""
+    samples = pairs * config.n * config.avoid.best_of
+    states = samples * model.manifest.config.horizon
+    if states > MAX_PLANNED_STATES:
+        raise BadInput(
+            f"{pairs} pairs x -n {config.n} x best_of {config.avoid.best_of} = {samples:,} plans of "
+            f"{model.manifest.config.horizon} states: more than {MAX_PLANNED_STATES:,} planned states in one run",
+            hint="plan fewer pairs (--pairs) or fewer plans per pair (-n), in several runs",
+        )
+
+
 def _controller_name(model, family, protocol: str, settings: Sequence[Setting]) -> str:
     s_name = lookup(settings, ("controller", "name"))
     prescribed = family.protocol_controller(protocol)

@@ -18,6 +18,7 @@ from cdrb_cli.methods.base import Planner, SampleResult
 from cdrb_cli.methods.checkpoint import load_method
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import STREAM_PLAN, step_rng
+from cdrb_cli.stages.configure import check_plan_count
 from cdrb_cli.stages.routes import BufferGraph
 
 
@@ -489,23 +490,6 @@ def check_sample_steps(model, sample_steps: int | None, where: str | None = None
         )
 
 
-#: the most planned states one `cdrb plan` writes (pairs x n x horizon; 8 GB of float64 features at 4 features): more
-#: is a typo of --pairs or -n, refused before the sampler allocates for it
-MAX_PLANNED_STATES = 250_000_000
-
-
-def check_plan_count(model, pairs: int, config: PlanConfig) -> None:
-    """Refuse a plan whose pairs x n (x best-of, sampled) x horizon states exceed :data:`MAX_PLANNED_STATES`."""
-    samples = pairs * config.n * config.avoid.best_of
-    states = samples * model.manifest.config.horizon
-    if states > MAX_PLANNED_STATES:
-        raise BadInput(
-            f"{pairs} pairs x -n {config.n} x best_of {config.avoid.best_of} = {samples:,} plans of "
-            f"{model.manifest.config.horizon} states: more than {MAX_PLANNED_STATES:,} planned states in one run",
-            hint="plan fewer pairs (--pairs) or fewer plans per pair (-n), in several runs",
-        )
-
-
 def make_plans(
     model,
     starts,
@@ -520,7 +504,7 @@ def make_plans(
     ``out``; ``route_buffer``: the buffer artifact of ``config.avoid.route_buffer`` (a parent of the plans)."""
     spec = spec or model.manifest.env
     check_sample_steps(model, config.sample_steps)
-    check_plan_count(model, len(starts), config)
+    check_plan_count(model, len(starts), config)  # before the sampler allocates for them
     method = load_planner(model, device=device, ema=config.use_ema)
     METHODS.get(method.name).check_sampler(config.sampler)
     avoid = prepare_planner(method, spec, config.avoid, route_buffer)
