@@ -87,6 +87,25 @@ def _text(value, name: str, hint: str) -> str:
     return value
 
 
+def _seed(value, name: str = "seed") -> int:
+    """A seed argument: a whole number in 0..2**32-1 (numpy's too); not a setting, so its error names the argument."""
+    from cdrb_cli.configs import MAX_SEED
+    from cdrb_cli.settings import plain
+
+    value = plain(value)
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
+        raise BadInput(f"{name} = {clip(repr(value), 40)}: not a seed", hint="pass a whole number in 0..2**32-1")
+    return value
+
+
+def _seed_list(value) -> list[int]:
+    """The ``seeds`` of an evaluation: an ordered collection (a list, tuple, range, array or iterator), not a str, a
+    dict (whose keys would silently be taken) or a set (whose order is not the caller's)."""
+    if isinstance(value, (str, bytes, dict, set, frozenset)) or not hasattr(value, "__iter__"):
+        raise BadInput(f"seeds = {clip(repr(value), 40)}: not a list of seeds", hint="e.g. seeds=[0, 1, 2]")
+    return list(itertools.islice(value, MAX_EVAL_SEEDS + 1))  # an endless iterable: refused as too long
+
+
 def _mapping(value, name: str = "settings") -> dict | None:
     if value is not None and not isinstance(value, dict):
         raise BadInput(
@@ -208,7 +227,7 @@ class Planner:
         """``n`` plans from ``start`` to ``goal`` (1, or the ``n`` of the planner's settings; ``sampler`` and
         denoising ``steps``: the model's by default). A setting given here and in the planner's ``settings`` is
         refused (neither would silently win)."""
-        from cdrb_cli.settings import given_once, plain
+        from cdrb_cli.settings import given_once
         from cdrb_cli.stages.configure import plan_config
         from cdrb_cli.stages.plan import buffer_graph, sample_plans
 
@@ -218,7 +237,7 @@ class Planner:
         if steps is not None and getattr(self.model.manifest.config.method, "diffusion_steps", None) is None:
             raise BadInput(f"steps={steps!r}: a {self.method.name} model plans in one pass (no denoising steps)",
                            hint="leave steps out")  # fmt: skip
-        seed = plain(seed)
+        seed = _seed(seed)
         s, g = self.state(start, "start")[None], self.state(goal, "goal")[None]  # errors name the arguments
         config = plan_config(self.model, [*self._given, *given], seed=seed, scene_file=self._scene_file, starts=s)
         # a start away from the data's starts may take a larger best-of and a second try from a buffer route (the
@@ -275,19 +294,20 @@ def evaluate(
     ``protocol="detour"`` for the pairs new obstacles lengthen; ``allow_partial``: evaluate an unfinished training's
     checkpoint (a warning; the eval records the step it stopped at)."""
     from cdrb_cli.artifacts import check_output
-    from cdrb_cli.settings import plain
     from cdrb_cli.stages.configure import eval_config, route_buffer_path
     from cdrb_cli.stages.evaluate import eval_artifact
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
     from cdrb_cli.stages.share import check_finished
 
-    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
-        raise BadInput(f"seeds = {clip(repr(seeds), 40)}: not a list of seeds", hint="e.g. seeds=[0, 1, 2]")
+    for name, value in (("episodes", episodes), ("seeds", seeds), ("stream", stream)):
+        if value is None:  # None elsewhere means the model's or config's default; these have their own
+            raise BadInput(f"{name} = None: not a value", hint=f"leave {name} out for its default")
+    seeds = _seed_list(seeds)
     force = _switch(force, "force")
     given = _settings(
         _mapping(settings),
         episodes=episodes,
-        seeds=list(itertools.islice(seeds, MAX_EVAL_SEEDS + 1)),  # an endless iterable: refused as too long
+        seeds=seeds,
         stream=stream,
         protocol=protocol,
         replan=replan,
@@ -306,7 +326,7 @@ def evaluate(
     map_path = None if scene is None else _path(scene, "scene")
     where = scene_spec(m, map_path, "scene")
     try:
-        config = eval_config(m, given, seed=plain(seed), scene_file=map_path, scene=where)
+        config = eval_config(m, given, seed=_seed(seed), scene_file=map_path, scene=where)
     except NeedsScene as exc:
         raise exc.in_python() from None
     route = load_route_buffer(route_buffer_path(given))

@@ -135,7 +135,11 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
 def from_mapping(values: dict[str, Any], source: str = API_SOURCE) -> list[Setting]:
     """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API; numpy numbers
     and arrays are taken as the Python numbers and lists they hold."""
-    return [Setting(setting_key(str(k), f"{source} {k}"), plain(v), f"{source} {k}={v}") for k, v in values.items()]
+    out = []
+    for k, v in values.items():
+        v = plain(v)  # named by its repr: the string "2" is not the number 2, and an error says which it was given
+        out.append(Setting(setting_key(str(k), f"{source} {k}"), v, f"{source} {k}={clip(repr(v), 60)}"))
+    return out
 
 
 def plain(value: Any) -> Any:

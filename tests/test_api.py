@@ -128,6 +128,15 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         (lambda: api.evaluate(model.path, tmp_path / "e.h5", episodes=1, force="no"), "force = 'no'"),
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds=5), "seeds = 5: not a list of seeds"),
         (lambda: api.evaluate(model.path, None), "out = None: not a path"),
+        # a dict's keys or a set's order would be run silently; None would silently mean the default stream
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds={0: 1}), "seeds = {0: 1}: not a list"),
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds={0, 1}), "seeds = {0, 1}: not a list"),
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", stream=None), "stream = None: not a value"),
+        # the seed is an argument, not a setting: its error names it (not `cdrb config plan`)
+        (lambda: planner.plan([0, 0], [6, 6], seed=-1), "seed = -1: not a seed"),
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", seed=2**32), "seed = 4294967296: not a seed"),
+        # a string where a number belongs is shown as the string it is
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", settings={"avoid.best_of": "2"}), "best_of='2'"),
     ]
     for call, needle in bad:
         with pytest.raises(BadInput) as err:
@@ -236,6 +245,11 @@ def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
     block = fam.parse_point(spec, "1.25,0.65", "start")
     np.testing.assert_array_equal(block, fam.parse_point(spec, "1.25,0.65", "--start"))
     assert block.shape == (spec.obs_dim,) and block[3] == 1.25  # the block's x, the gripper at home
+    maze = make_spec("maze")
+    for text in ("1.25,0.65,", ",1.25,0.65", "1.25,,0.65"):  # a number left out is not a separator to skip
+        for s in (spec, maze):
+            with pytest.raises(BadInput, match="an empty value between commas"):
+                family_of(s).parse_point(s, text, "--start")
     with pytest.raises(BadInput) as err:
         api.Planner(model.path).plan([0.0, 10.0], [6.0, 6.0])
     assert err.value.line().startswith("start ") and "--start" not in err.value.line()

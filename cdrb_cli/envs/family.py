@@ -298,7 +298,12 @@ class EnvFamily(ABC):
         are not read as numbers, though Python's ``float`` would), each within +-10,000 (one-line error otherwise)."""
         import re
 
-        parts = [v for v in text.replace(" ", "").split(",") if v != ""]
+        parts = text.replace(" ", "").split(",")
+        if parts != [""] and "" in parts:  # "0,0," or "0,,0": a number left out, not a separator to skip
+            raise BadInput(
+                f"{flag} {clip(repr(text), 80)}: an empty value between commas", hint=f"write {self.point_format}"
+            )
+        parts = [v for v in parts if v != ""]
         number = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d{1,3})?")
         if not parts or len(parts) > 1000 or not all(number.fullmatch(v) for v in parts):
             raise BadInput(
