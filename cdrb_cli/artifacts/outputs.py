@@ -98,9 +98,15 @@ def check_output(
     return path
 
 
+def has_control_character(text: str) -> bool:
+    """Whether ``text`` holds a control character (a newline, a tab, DEL...): a path printed one per line, or named
+    on a command line a task reads back, must not."""
+    return any(ord(c) < 32 or ord(c) == 127 for c in text)
+
+
 def _refuse_control_characters(text: str, flag: str) -> None:
     # stdout names the file written, a line per path: a newline inside one would read as two
-    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+    if has_control_character(text):
         raise BadInput(f"{flag} {text!r}: a control character (a newline?) in the path", hint="rename it")
 
 

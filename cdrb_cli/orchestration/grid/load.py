@@ -414,7 +414,9 @@ def _check_scope(where: str, item: Scoped, spec: GridSpec, narrowed: bool) -> No
 def _check_out(out: Path, where: str) -> None:
     """The grid's ``out`` is a folder or can become one (no file on its path), and its name has no control
     characters (every task's command line names files under it, one line per task)."""
-    if any(ord(c) < 32 or ord(c) == 127 for c in str(out)):
+    from cdrb_cli.artifacts.outputs import has_control_character
+
+    if has_control_character(str(out)):
         raise BadInput(f"{where}: out {clip(repr(str(out)), 80)}: has a control character", hint="rename the folder")
     for folder in (out, *out.parents):
         if folder.exists():
