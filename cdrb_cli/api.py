@@ -51,6 +51,10 @@ class Plans:
     through_obstacle: np.ndarray
     #: seconds per sampled batch
     seconds: float
+    #: (P, S, H, F) intermediate iterates of each plan, raw units, with the ``keep_iterates`` setting (else None)
+    iterates: np.ndarray | None = None
+    #: the diffusion step of each kept iterate (None without them)
+    iterate_steps: list[int] | None = None
 
 
 def _settings(settings: dict | None, **fields) -> list:
@@ -58,10 +62,15 @@ def _settings(settings: dict | None, **fields) -> list:
     8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None); a field both give is
     refused."""
     from cdrb_cli.settings import from_mapping, given_once
-    from cdrb_cli.stages.configure import keyword_settings
+    from cdrb_cli.stages.configure import expand, keyword_settings
 
     given, extra = keyword_settings(fields), from_mapping(dict(settings or {}))
-    given_once(given, extra, sep=" and ")
+    # compared with the shortcuts written out, so that no spelling slips past: "best_of" and "best-of", or
+    # "controller" and "controller.name", are one setting
+    wide = expand(extra)
+    for i, s in enumerate(wide):
+        given_once(wide[:i], [s], sep=" and ")
+    given_once(expand(given), wide, sep=" and ")
     return given + extra
 
 
@@ -99,9 +108,11 @@ def _seed(value, name: str = "seed") -> int:
 
 
 def _seed_list(value) -> list[int]:
-    """The ``seeds`` of an evaluation: an ordered collection (a list, tuple, range, array or iterator), not a str, a
-    dict (whose keys would silently be taken) or a set (whose order is not the caller's)."""
-    if isinstance(value, (str, bytes, dict, set, frozenset)) or not hasattr(value, "__iter__"):
+    """The ``seeds`` of an evaluation: an ordered collection (a list, tuple, range, 1-D array or iterator), not a
+    str, a single number (a 0-d array too), a dict (whose keys would silently be taken) or a set (whose order is not
+    the caller's)."""
+    ordered = hasattr(value, "__iter__") and getattr(value, "ndim", 1) != 0
+    if isinstance(value, (str, bytes, dict, set, frozenset)) or not ordered:
         raise BadInput(f"seeds = {clip(repr(value), 40)}: not a list of seeds", hint="e.g. seeds=[0, 1, 2]")
     return list(itertools.islice(value, MAX_EVAL_SEEDS + 1))  # an endless iterable: refused as too long
 
@@ -190,7 +201,7 @@ class Planner:
         """The environment plans are made in: the model's, or its task in ``scene``."""
         return self._spec
 
-    def state(self, point: Sequence[float] | np.ndarray, flag: str = "--start") -> np.ndarray:
+    def state(self, point: Sequence[float] | np.ndarray, flag: str = "start") -> np.ndarray:
         """A full state from a point written as ``cdrb plan`` takes it (``flag``: ``start`` or ``goal``, or the CLI's
         ``--start``/``--goal``, which its errors name): goal
         coordinates at rest, a full state, or the family's own start form (Fetch: the block's x,y); checked to be
@@ -198,13 +209,20 @@ class Planner:
         if flag not in ("start", "goal", "--start", "--goal"):
             raise BadInput(f"flag = {clip(repr(flag), 40)}: not a point's name", hint='pass "start" or "goal"')
         name = flag.lstrip("-")
+        # a cast would read True as 1.0 or "1" as 1.0, or drop an imaginary part, without a word: the array's kind
+        # and, in a list or an object array, each element's
+        kinds = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "strings"}
+        items = point.ravel().tolist() if isinstance(point, np.ndarray) and point.dtype.kind == "O" else point
         try:
             kind = np.asarray(point).dtype.kind if isinstance(point, (np.ndarray, list, tuple)) else None
         except (TypeError, ValueError):  # a ragged list: the cast below refuses it
             kind = None
-        if kind in ("b", "c"):  # a cast would drop the imaginary part, or read True as 1.0, without a word
-            what = "booleans" if kind == "b" else "complex numbers"
-            raise BadInput(f"{name}: {what}, not real numbers", hint="e.g. [0.0, 0.0]")
+        if isinstance(items, (list, tuple)):
+            odd = [v for v in items if isinstance(v, (bool, np.bool_, str, bytes, complex, np.complexfloating))]
+            if odd:
+                kind = np.asarray(odd[:1]).dtype.kind
+        if kind in kinds:
+            raise BadInput(f"{name}: {kinds[kind]}, not real numbers", hint="e.g. [0.0, 0.0]")
         try:
             values = np.asarray(point, dtype=np.float64)
         except (TypeError, ValueError, OverflowError):
@@ -251,8 +269,8 @@ class Planner:
                 avoid.graph = buffer_graph(self.method, self.spec, config.avoid, self._route)
                 self.avoidance.graph = avoid.graph  # built once: the same buffer and scene for every call
         out = sample_plans(
-            self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, batch_size=config.batch,
-            device=self.device, avoid=avoid,
+            self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, config.keep_iterates,
+            batch_size=config.batch, device=self.device, avoid=avoid,
         )  # fmt: skip
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]
@@ -263,15 +281,17 @@ class Planner:
             in_obstacle=fam.in_collision(self.spec, states).mean(axis=-1),
             through_obstacle=fam.path_in_collision(self.spec, states),
             seconds=out.seconds,
+            iterates=out.iterates,
+            iterate_steps=out.iterate_steps,
         )
 
 
 def evaluate(
     model: str | Path,
     out: str | Path,
-    episodes: int = 100,
-    seeds: Sequence[int] = (0,),
-    stream: str = "test",
+    episodes: int | None = None,
+    seeds: Sequence[int] | None = None,
+    stream: str | None = None,
     controller: str | None = None,
     protocol: str | None = None,
     device: str = "cpu",
@@ -290,7 +310,8 @@ def evaluate(
     """``cdrb eval``: plan once per episode, execute, write the eval artifact ``out``, return its summary. The
     arguments are the eval settings of those names (``controller``: ``controller.name``; the avoidance ones
     ``avoid.*``, as in :class:`Planner`; ``replan``: ``never``, ``every:N`` or ``deviation:D``), checked as the
-    CLI checks them; ``settings``: any other by its dotted key (`cdrb config eval`); ``scene`` with
+    CLI checks them, None for the CLI's default (``episodes``, ``seeds``, ``stream``: 100 episodes on seeds 0-4 from
+    the test stream, as `cdrb config eval` lists); ``settings``: any other by its dotted key; ``scene`` with
     ``protocol="detour"`` for the pairs new obstacles lengthen; ``allow_partial``: evaluate an unfinished training's
     checkpoint (a warning; the eval records the step it stopped at)."""
     from cdrb_cli.artifacts import check_output
@@ -299,10 +320,7 @@ def evaluate(
     from cdrb_cli.stages.plan import load_route_buffer, scene_spec
     from cdrb_cli.stages.share import check_finished
 
-    for name, value in (("episodes", episodes), ("seeds", seeds), ("stream", stream)):
-        if value is None:  # None elsewhere means the model's or config's default; these have their own
-            raise BadInput(f"{name} = None: not a value", hint=f"leave {name} out for its default")
-    seeds = _seed_list(seeds)
+    seeds = None if seeds is None else _seed_list(seeds)
     force = _switch(force, "force")
     given = _settings(
         _mapping(settings),

@@ -127,11 +127,17 @@ def setup_torch(device: str = "auto", threads: int | None = None, allocator: boo
     torch.set_num_threads(n)
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
+    check_device_name(device, flag)
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise BadInput(f"{option(flag, device)}: no CUDA device is available", hint=f"use {option(flag, 'cpu')}")
-    if device not in ("cpu",) and not device.startswith("cuda"):
-        raise BadInput(f"{option(flag, device)}: unknown device", hint="use auto, cpu or cuda")
     return torch.device(device)
+
+
+def check_device_name(device: str, flag: str = "--device") -> None:
+    """Refuse a device that is not auto, cpu or cuda[...] by its name alone (no torch import: a command whose output
+    is already up to date checks it too, without starting torch)."""
+    if device not in ("auto", "cpu") and not device.startswith("cuda"):
+        raise BadInput(f"{option(flag, device)}: unknown device", hint="use auto, cpu or cuda")
 
 
 def adam(params, lr: float):

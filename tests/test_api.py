@@ -98,12 +98,12 @@ def test_an_unfinished_model_is_refused_unless_allowed_and_its_eval_says_its_ste
     with pytest.raises(BadInput, match="stopped at step 6 of 20.*allow_partial=True"):
         api.Planner(part)
     with pytest.raises(BadInput, match="stopped at step 6 of 20"):
-        api.evaluate(part, tmp_path / "e.h5", episodes=1, stream="tune")
+        api.evaluate(part, tmp_path / "e.h5", episodes=1, seeds=[0], stream="tune")
     assert not (tmp_path / "e.h5").exists()
     assert api.Planner(part, allow_partial=True).plan([0.0, 0.0], [6.0, 6.0]).states.shape[0] == 1
-    summary = api.evaluate(part, tmp_path / "e.h5", episodes=1, stream="tune", allow_partial=True)
+    summary = api.evaluate(part, tmp_path / "e.h5", episodes=1, seeds=[0], stream="tune", allow_partial=True)
     assert summary.model_steps == 6
-    assert api.evaluate(model.path, tmp_path / "f.h5", episodes=1, stream="tune").model_steps == 20
+    assert api.evaluate(model.path, tmp_path / "f.h5", episodes=1, seeds=[0], stream="tune").model_steps == 20
 
 
 def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_path):
@@ -131,7 +131,20 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         # a dict's keys or a set's order would be run silently; None would silently mean the default stream
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds={0: 1}), "seeds = {0: 1}: not a list"),
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds={0, 1}), "seeds = {0, 1}: not a list"),
-        (lambda: api.evaluate(model.path, tmp_path / "g.h5", stream=None), "stream = None: not a value"),
+        (lambda: api.evaluate(model.path, tmp_path / "g.h5", seeds=np.array(0)), "seeds = array(0): not a list"),
+        # one setting in two spellings, or twice in the dict, is given twice
+        (
+            lambda: api.evaluate(model.path, tmp_path / "g.h5", controller="pd", settings={"controller": "waypoint"}),
+            "controller.name='pd' and settings controller='waypoint' (give it once)",
+        ),
+        (
+            lambda: api.Planner(model.path, settings={"avoid.best_of": 2, "avoid.best-of": 3}),
+            "settings avoid.best_of=2 and settings avoid.best-of=3",
+        ),
+        (lambda: api.Planner(model.path, settings={"batch": None}), "settings batch=None: null is not a batch size"),
+        # a cast would read True as 1.0 and "1" as 1.0
+        (lambda: planner.plan([True, 1.0], [6.0, 6.0]), "start: booleans, not real numbers"),
+        (lambda: planner.plan([1.0, 1.0], ["6", "6"]), "goal: strings, not real numbers"),
         # the seed is an argument, not a setting: its error names it (not `cdrb config plan`)
         (lambda: planner.plan([0, 0], [6, 6], seed=-1), "seed = -1: not a seed"),
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", seed=2**32), "seed = 4294967296: not a seed"),
@@ -144,6 +157,24 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         assert needle in err.value.line() and "\n" not in err.value.line(), err.value.line()
     assert artifacts.load(tmp_path / "e.h5", "eval").manifest.summary.per_seed[0].episodes == 1  # not overwritten
     assert api.Planner(model.path, settings={"n": 3}).plan([0, 0], [6, 6]).states.shape[0] == 3
+    # episodes, seeds and the stream left out are the CLI's defaults, so a settings dict may give them
+    ev = api.evaluate(model.path, tmp_path / "s.h5", settings={"episodes": 1, "seeds": [3], "stream": "tune"})
+    assert [(r.seed, r.episodes) for r in ev.per_seed] == [(3, 1)]
+    assert artifacts.load(tmp_path / "s.h5", "eval").manifest.config.stream == "tune"
+
+
+def test_a_planner_returns_the_iterates_it_is_asked_to_keep(model):
+    """``keep_iterates`` (as `cdrb plan --set keep_iterates=N`) returns the intermediate iterates, in raw units,
+    with their diffusion steps; keeping them changes no plan."""
+    kept = api.Planner(model.path, settings={"keep_iterates": 3}).plan([0.0, 0.0], [6.0, 6.0], n=2, seed=1)
+    plain = api.Planner(model.path).plan([0.0, 0.0], [6.0, 6.0], n=2, seed=1)
+    np.testing.assert_array_equal(kept.features, plain.features)
+    assert plain.iterates is None and plain.iterate_steps is None
+    assert kept.iterates.shape == (2, 3, *kept.features.shape[1:]) and len(kept.iterate_steps) == 3
+    assert kept.iterate_steps == sorted(kept.iterate_steps, reverse=True)  # from noisiest to cleanest
+    np.testing.assert_allclose(
+        kept.iterates[:, :, 0], np.repeat(kept.features[:, None, 0], 3, 1), atol=1e-5
+    )  # pinned start, raw units
 
 
 def test_a_planner_keeps_the_callers_torch_stream_and_refuses_steps_a_model_cannot_use(model, tiny_models):

@@ -438,7 +438,7 @@ def test_a_plugins_eval_knob_is_one_config_field(toy_family, toy_method, tmp_pat
         "eval", model, "--seeds", "0", "--episodes", "2", "--set", "controller.gain=0.5", "--out", tmp_path / "e.h5"
     )
     assert code == 0 and artifacts.load(tmp_path / "e.h5", "eval").manifest.config.controller.gain == 0.5
-    summary = api.evaluate(model, tmp_path / "a.h5", episodes=2, settings={"controller.gain": 0.25})
+    summary = api.evaluate(model, tmp_path / "a.h5", episodes=2, seeds=[0], settings={"controller.gain": 0.25})
     assert artifacts.load(tmp_path / "a.h5", "eval").manifest.config.controller.gain == 0.25
     assert summary.per_seed[0].episodes == 2
     code, _ = cdrb_in_process("eval", model, "--set", "controller.gain=99", "--out", tmp_path / "bad.h5")

@@ -78,6 +78,13 @@ def test_the_batch_size_is_a_recorded_setting_and_the_memo_tells_sizes_apart(tin
     assert not np.array_equal(one.arrays["plans"], whole.arrays["plans"])
     r = cdrb(*args, "--out", tmp_path / "c.h5", "--batch-size", "1", "--set", "batch=2")
     assert r.returncode == 2 and "batch" in r.stderr, r.stderr
+    # null marks files from before the size was recorded: not a size to plan with
+    r = cdrb(*args, "--out", tmp_path / "c.h5", "--set", "batch=null")
+    assert r.returncode == 2 and "--set batch=null: null is not a batch size" in r.stderr, r.stderr
+    assert not (tmp_path / "c.h5").exists()
+    # an unknown device is refused even where the output is up to date and nothing would be planned
+    r = cdrb(*args, "--out", out, "--device", "tpu")
+    assert r.returncode == 2 and "--device tpu: unknown device" in r.stderr, r.stderr
 
 
 @pytest.mark.parametrize(

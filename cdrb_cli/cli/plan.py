@@ -78,7 +78,7 @@ def plan(
     from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.configure import plan_config, route_buffer_path
     from cdrb_cli.stages.plan import load_route_buffer, make_plans, plan_points, scene_spec
-    from cdrb_cli.torch_utils import setup_torch
+    from cdrb_cli.torch_utils import check_device_name, setup_torch
 
     flags = [] if n is None else [(f"--num-plans {n}", "n", n)]
     flags += [] if batch_size is None else [(f"--batch-size {batch_size}", "batch", batch_size)]
@@ -90,6 +90,7 @@ def plan(
     rb_path = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, rb_path) if p is not None)]
     check_outputs(force, read, out=out, plot=plot)
+    check_device_name(device)  # before an up-to-date output returns without planning
     spec = scene_spec(m, maze_map, typed_flag(SCENE_FLAGS))
     s_arr, g_arr = plan_points(spec, start, goal, pairs, seed)
     config = plan_config(m, settings, seed=seed, scene_file=maze_map, starts=s_arr)

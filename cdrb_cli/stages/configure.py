@@ -260,6 +260,10 @@ def plan_config(
         settings = [*start_base(model, settings, base["avoid"]), *settings]
     given = [s for s in settings if s.path not in (("avoid",), ("sampler",))]
     config = _avoid_record(validate(PlanConfig, apply(base, given), settings, "plan"))
+    if config.batch is None:  # null marks a plan file written before the size was recorded, not a size to plan with
+        s = lookup(settings, ("batch",))
+        raise BadInput(f"{s.source if s else 'plan batch'}: null is not a batch size",
+                       hint="give the plans sampled together, e.g. batch=256")  # fmt: skip
     check_avoid(model, config.avoid, settings)
     _check_steps(model, settings, config.sample_steps)
     return config
