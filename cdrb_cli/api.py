@@ -250,7 +250,10 @@ class Planner:
         from cdrb_cli.stages.plan import buffer_graph, sample_plans
 
         # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
-        given = _settings(None, n=n, sampler=sampler, sample_steps=steps)
+        given = [  # errors name the argument: steps=..., not the setting's key
+            replace(s, source=f"steps={steps!r}") if s.path == ("sample_steps",) else s
+            for s in _settings(None, n=n, sampler=sampler, sample_steps=steps)
+        ]
         given_once(self._given, given, sep=" and ")
         if steps is not None and getattr(self.model.manifest.config.method, "diffusion_steps", None) is None:
             raise BadInput(f"steps={steps!r}: a {self.method.name} model plans in one pass (no denoising steps)",

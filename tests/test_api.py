@@ -147,6 +147,7 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         (lambda: planner.plan([1.0, 1.0], ["6", "6"]), "goal: strings, not real numbers"),
         # the seed is an argument, not a setting: its error names it (not `cdrb config plan`)
         (lambda: planner.plan([0, 0], [6, 6], seed=-1), "seed = -1: not a seed"),
+        (lambda: planner.plan([0, 0], [6, 6], steps=10**6), "steps=1000000: the model has T = "),
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", seed=2**32), "seed = 4294967296: not a seed"),
         # a string where a number belongs is shown as the string it is
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", settings={"avoid.best_of": "2"}), "best_of='2'"),

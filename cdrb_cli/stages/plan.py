@@ -486,7 +486,7 @@ def check_sample_steps(model, sample_steps: int | None, where: str | None = None
         raise BadInput(
             f"{where or f'sample_steps = {sample_steps}'}: the model has T = {steps} diffusion steps, so at most "
             f"{steps}",
-            hint=f"use sample_steps={steps} (all of them) or fewer",
+            hint="leave it out for all of them, or give fewer",
         )
 
 
