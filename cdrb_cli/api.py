@@ -59,18 +59,16 @@ class Plans:
 
 def _settings(settings: dict | None, **fields) -> list:
     """The plan/eval settings of an API call: ``settings`` (dotted keys, as ``--set`` takes them: ``{"avoid.best_of":
-    8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None); a field both give is
-    refused."""
-    from cdrb_cli.settings import from_mapping, given_once
-    from cdrb_cli.stages.configure import expand, keyword_settings
+    8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None). A field both give is
+    refused, and so is a field the dict gives twice: a dict cannot repeat a key, so two of its keys that reach one
+    field are two spellings of it (``best_of`` and ``best-of``, ``controller`` and ``controller.name``)."""
+    from cdrb_cli.settings import from_mapping
+    from cdrb_cli.stages.configure import given_once_anyhow, keyword_settings
 
     given, extra = keyword_settings(fields), from_mapping(dict(settings or {}))
-    # compared with the shortcuts written out, so that no spelling slips past: "best_of" and "best-of", or
-    # "controller" and "controller.name", are one setting
-    wide = expand(extra)
-    for i, s in enumerate(wide):
-        given_once(wide[:i], [s], sep=" and ")
-    given_once(expand(given), wide, sep=" and ")
+    for i, s in enumerate(extra):
+        given_once_anyhow(extra[:i], [s], sep=" and ")
+    given_once_anyhow(given, extra, sep=" and ")
     return given + extra
 
 

@@ -64,8 +64,8 @@ def test_evaluate_writes_the_eval_artifact_and_returns_its_summary(model, tmp_pa
         (dict(start=np.array([1j, 0])), "start: complex numbers"),  # a cast would drop the imaginary part
         (dict(start=[True, False]), "start: booleans"),  # or read True as 1.0
         (dict(start=[float("nan"), 0.0]), "start = [nan, 0.0]: not finite"),
-        (dict(steps=-3), "sample_steps=-3"),
-        (dict(steps=0), "sample_steps=0"),
+        (dict(steps=-3), "^steps=-3: "),
+        (dict(steps=0), "^steps=0: "),
         (dict(n=2.5), "n=2.5"),
         (dict(n=True), "n=True"),
         (dict(n=10**6), "n=1000000"),
@@ -75,12 +75,14 @@ def test_evaluate_writes_the_eval_artifact_and_returns_its_summary(model, tmp_pa
     ],
 )
 def test_plan_arguments_are_checked_as_the_cli_checks_them(model, kw, needle):
-    """One typed, one-line error per bad argument (never numpy's, never a silent wrap or truncation)."""
+    """One typed, one-line error per bad argument (never numpy's, never a silent wrap or truncation); a needle
+    starting with ^ is how the line starts (the argument's name, not the setting's key it becomes)."""
     planner = api.Planner(model.path)
     args = dict(start=[0.0, 0.0], goal=[6.0, 6.0]) | kw
     with pytest.raises(BadInput) as err:
         planner.plan(**args)
-    assert needle in err.value.line() and "\n" not in err.value.line()
+    line = err.value.line()
+    assert (line.startswith(needle[1:]) if needle[0] == "^" else needle in line) and "\n" not in line, line
 
 
 def test_an_unfinished_model_is_refused_unless_allowed_and_its_eval_says_its_step(small_data, model, tmp_path):
@@ -278,10 +280,14 @@ def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
     np.testing.assert_array_equal(block, fam.parse_point(spec, "1.25,0.65", "--start"))
     assert block.shape == (spec.obs_dim,) and block[3] == 1.25  # the block's x, the gripper at home
     maze = make_spec("maze")
-    for text in ("1.25,0.65,", ",1.25,0.65", "1.25,,0.65"):  # a number left out is not a separator to skip
+    for text in ("1.25,0.65,,", ",1.25,0.65", "1.25,,0.65"):  # a number left out is not a separator to skip
         for s in (spec, maze):
             with pytest.raises(BadInput, match="an empty value between commas"):
                 family_of(s).parse_point(s, text, "--start")
+    with pytest.raises(BadInput, match="not a list of numbers"):  # a space inside a number is a typo, not 1.5
+        family_of(maze).parse_point(maze, "1 .5,0", "--start")
+    # one trailing comma is how a list is often written, as --seeds takes it
+    np.testing.assert_array_equal(fam.parse_point(spec, "1.25,0.65,", "start"), block)
     with pytest.raises(BadInput) as err:
         api.Planner(model.path).plan([0.0, 10.0], [6.0, 6.0])
     assert err.value.line().startswith("start ") and "--start" not in err.value.line()

@@ -333,3 +333,21 @@ def test_a_toml_table_lists_its_null_settings_and_tables_round_trip(tmp_path):
     # flags that are more than settings (a file, a scene) stay flags
     assert as_table(["--scene", "x.txt", "--best-of", "4"], "eval") is None
     assert as_table(["--route-buffer", "b.h5"], "eval") is None
+
+
+def test_a_flag_and_a_set_that_reach_one_field_in_other_spellings_are_refused():
+    """A shortcut written out or a table's fields count as the fields they write: ``--replan every:20`` with ``--set
+    replan.every=30``, or a controller flag with a controller table, is one field given twice; a shortcut with a
+    field it does not write, or an ``avoid`` mode with an avoid field, is not."""
+    from cdrb_cli.cli.options import run_settings
+
+    replan = [("--replan every:20", "replan", "every:20")]
+    with pytest.raises(BadInput, match=re.escape("--replan every:20 with --set replan.every=30 (give it once)")):
+        run_settings(None, ["replan.every=30"], replan, {})
+    with pytest.raises(BadInput, match="--controller pd with --set controller="):
+        run_settings(None, ['controller={name = "waypoint"}'], [("--controller pd", "controller.name", "pd")], {})
+    assert [s.path for s in run_settings(None, ["replan.repair_k=3"], replan, {})] == [
+        ("replan",),
+        ("replan", "repair_k"),
+    ]
+    assert len(run_settings(None, ["avoid.best_of=4"], [("--avoid tuned", "avoid", "tuned")], {})) == 2

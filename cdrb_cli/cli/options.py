@@ -124,15 +124,16 @@ RunConfigOpt = typer.Option(
 
 def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[str, str, object]], moved: dict):
     """The settings of a plan or an eval in priority order: the ``--config`` file, the flags, then ``--set``
-    (a field given both by a flag and by ``--set`` is refused). ``flags``: (source text, key, value) of the
-    everyday flags given; ``moved``: moved flag -> value given (None: not given), each noted once."""
-    from cdrb_cli.settings import Setting, given_once, parse_set, read_config_file
+    (a field given both by a flag and by ``--set`` is refused, in any spelling). ``flags``: (source text, key,
+    value) of the everyday flags given; ``moved``: moved flag -> value given (None: not given), each noted once."""
+    from cdrb_cli.settings import Setting, parse_set, read_config_file
+    from cdrb_cli.stages.configure import given_once_anyhow
 
     items = read_config_file(config_file) if config_file is not None else []
     given = [Setting(tuple(key.split(".")), value, source) for source, key, value in flags]
     given += moved_settings(moved)
     sets_ = parse_set(sets)
-    given_once(given, sets_)
+    given_once_anyhow(given, sets_)
     return items + given + sets_
 
 

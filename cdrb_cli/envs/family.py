@@ -298,8 +298,10 @@ class EnvFamily(ABC):
         are not read as numbers, though Python's ``float`` would), each within +-10,000 (one-line error otherwise)."""
         import re
 
-        parts = text.replace(" ", "").split(",")
-        if parts != [""] and "" in parts:  # "0,0," or "0,,0": a number left out, not a separator to skip
+        parts = [v.strip() for v in text.split(",")]  # spaces around a number, not inside it ("1 .5" is a typo)
+        if len(parts) > 1 and not parts[-1]:
+            parts.pop()  # one trailing comma, as a list is often written (and --seeds takes it)
+        if parts != [""] and "" in parts:  # "0,,0" or ",0,0": a number left out, not a separator to skip
             raise BadInput(
                 f"{flag} {clip(repr(text), 80)}: an empty value between commas", hint=f"write {self.point_format}"
             )

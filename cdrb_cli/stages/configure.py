@@ -27,7 +27,7 @@ from cdrb_cli.configs import ROUTE_STEPS, AvoidConfig, EvalConfig, PlanConfig, R
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.settings import Setting, apply, from_api, from_mapping, lookup, validate
+from cdrb_cli.settings import Setting, apply, from_api, from_mapping, given_once, lookup, validate
 
 #: ``avoid = ...`` values
 AVOID_MODES = ("plain", "tuned")
@@ -81,6 +81,28 @@ def expand(settings: Sequence[Setting]) -> list[Setting]:
         else:
             out.append(s)
     return out
+
+
+def fields_of(settings: Sequence[Setting]) -> list[Setting]:
+    """``settings`` as the fields they write: shortcuts written out (:func:`expand`) and tables as one setting per
+    field inside them (``replan={"mode": "every", "every": 5}`` is ``replan.mode`` and ``replan.every``), each named
+    as it was given. ``avoid`` modes stay one setting: they choose a base, not a field."""
+    out: list[Setting] = []
+    todo = list(expand(settings))
+    while todo:
+        s = todo.pop(0)
+        if isinstance(s.value, dict) and s.value:
+            todo[:0] = [Setting((*s.path, str(k)), v, s.source) for k, v in s.value.items()]
+        else:
+            out.append(s)
+    return out
+
+
+def given_once_anyhow(first: Sequence[Setting], then: Sequence[Setting], sep: str = " with ") -> None:
+    """:func:`~cdrb_cli.settings.given_once` over the fields written (:func:`fields_of`): a flag or keyword and a
+    ``--set`` or settings entry that reach one field in different spellings (``--replan every:20`` and ``--set
+    replan.every=30``, ``controller="pd"`` and ``{"controller": {"name": "waypoint"}}``) are refused too."""
+    given_once(fields_of(first), fields_of(then), sep=sep)
 
 
 def avoid_base(model, settings: Sequence[Setting], in_scene: bool) -> dict:
