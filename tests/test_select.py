@@ -384,6 +384,16 @@ def test_maze_tuning_select_and_table1_files_run_end_to_end_at_a_tiny_budget(tmp
     shutil.copy(copy / "maze-tight" / "T64" / "cdrb-s0.h5", model)  # another model under its name
     r = _cdrb(*again, "--out", tmp_path / "y.toml", cwd=tmp_path, check=False)
     assert r.returncode == 2 and "evaluates another cdrb-s0.h5" in r.stderr and not (tmp_path / "y.toml").exists()
+    shutil.copy(tmp_path / "runs" / "mazes-sweep" / "maze-tight" / "cdrb-s0.h5", model)
+    # an eval copied from another variant's folder reads as the same command (files compared by name), even with
+    # no model here to compare: it is refused by the place it was written for
+    (copy / "maze-tight" / "dim32" / "cdrb-s0.h5").unlink()
+    shutil.copy(copy / "maze-tight" / "T64" / "eval-cdrb-s0.h5", copy / "maze-tight" / "dim32" / "eval-cdrb-s0.h5")
+    r = _cdrb(*again, "--out", tmp_path / "y.toml", cwd=tmp_path, check=False)
+    assert r.returncode == 2 and "T64/eval-cdrb-s0.h5, for another place in a grid than maze-tight/dim32/" in r.stderr
+    shutil.copy(
+        tmp_path / "runs" / "mazes-sweep" / "maze-tight" / "dim32" / "eval-cdrb-s0.h5", copy / "maze-tight" / "dim32"
+    )
 
     # the later grids take the sweep's demos and buffer (`reuse`) instead of collecting and clustering again
     reuse = ["--set", f'reuse=["{tmp_path / "runs" / "mazes-sweep"}"]']

@@ -27,7 +27,7 @@ from cdrb_cli.orchestration.grid import (
     flags_for,
     without_setting,
 )
-from cdrb_cli.settings import toml_string, toml_value
+from cdrb_cli.settings import clip, toml_string, toml_value
 from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
 RULE = (
@@ -174,6 +174,21 @@ def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None
             hint="run `cdrb select` with the --set/--include the grid ran with; if they are the same, the grid "
             "measures this eval again once it is moved away",
         )
+    # the command compares files by name: an eval copied from another env's, variant's or grid's folder reads the
+    # same there, so the environment it ran and the place it was written for in its grid are compared too
+    env = task.meta.get("env")
+    if env is not None and ev.manifest.env.id != env:
+        raise BadInput(
+            f"{path}: an eval on {clip(ev.manifest.env.id, 60)}, where this grid's task ({task.id}) measures {env}",
+            hint="move it away and run `cdrb grid` on the same file, which measures the model there",
+        )
+    written, place = _out_of(made), _place(spec, path)
+    if written is not None and place is not None and Path(written).parts[-len(place.parts) :] != place.parts:
+        raise BadInput(
+            f"{path}: written as {clip(written, 120)}, for another place in a grid than {place}",
+            hint="an eval copied from another variant's or seed's folder: move it away and run `cdrb grid` on the "
+            "same file, which measures the model there",
+        )
     model = task.inputs[0]
     steps, trained = task.meta.get("steps"), ev.manifest.summary.model_steps
     if steps is not None and trained is not None and trained != steps:
@@ -206,6 +221,24 @@ def _checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None
                 hint="run `cdrb select` with the --set/--include the grid ran with",
             )
     return ev
+
+
+def _out_of(argv: list[str]) -> str | None:
+    """The ``--out``/``-o`` value of a recorded command line (None: none given)."""
+    for i, arg in enumerate(argv):
+        if arg in ("--out", "-o") and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith("--out="):
+            return arg.split("=", 1)[1]
+    return None
+
+
+def _place(spec: GridSpec, path: Path) -> Path | None:
+    """``path`` relative to the grid's ``out`` (ENV/[VARIANT/]eval-...h5), or None outside it."""
+    try:
+        return Path(path).resolve().relative_to(Path(spec.out).resolve())
+    except ValueError:
+        return None
 
 
 def _model_scores(seed: int, per: list) -> dict:
