@@ -254,6 +254,15 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     assert _checked_eval(spec, task, made(100), unchecked).manifest.summary.model_steps == 100 and unchecked == []
     _checked_eval(spec, task, made(None), unchecked)  # an eval from before evals recorded it, its model not here
     assert unchecked == [tmp_path / "eval-None.h5"]
+    # the same command on another env's model of the same name (a file copied from another env's folder)
+    from cdrb_cli.envs.registry import make_spec
+
+    other = tmp_path / "eval-maze.h5"
+    summary = manifest.summary.model_copy(update={"model_steps": 100})
+    update = {"argv": ["cdrb", *task.argv], "summary": summary, "env": make_spec("maze")}
+    artifacts.save(other, "eval", manifest.model_copy(update=update), arrays)
+    with pytest.raises(BadInput, match=r"an eval on maze, where this grid's task \(eval maze-tight/mlp-s0\) measures"):
+        _checked_eval(spec, task, other)
 
 
 def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_path):
