@@ -132,6 +132,16 @@ def parse_set(items: Iterable[str], flag: str = "--set") -> list[Setting]:
     return out
 
 
+def comma_items(text: str) -> list[str]:
+    """The items of a comma-separated list as written on a command line, each stripped, one trailing comma dropped
+    (as a list is often written): ``"0, 1,"`` is ``["0", "1"]``. An empty item elsewhere stays ``""`` for the caller
+    to refuse (``"0,,1"``, ``",0"``); an empty text is ``[""]``."""
+    items = [v.strip() for v in text.split(",")]
+    if len(items) > 1 and not items[-1]:
+        items.pop()
+    return items
+
+
 def from_mapping(values: dict[str, Any], source: str = API_SOURCE) -> list[Setting]:
     """Settings from a dict of dotted keys (``{"steps": 40, "net.dim": 8}``), for the Python API; numpy numbers
     and arrays are taken as the Python numbers and lists they hold."""

@@ -188,9 +188,9 @@ def load_artifact(path: Path, kind: str):
 def int_values(text: str, flag: str, what: str, example: str) -> list[int]:
     """A non-empty comma-separated list of integers, each written in ASCII digits (``what`` and ``example`` word the
     errors): an empty item (``0,,1``), ``1_0`` or other scripts' digits, which Python's int() reads, are typos."""
-    items = [v.strip() for v in text.split(",")]
-    if items and not items[-1] and len(items) > 1:
-        items.pop()  # one trailing comma, as a list is often written
+    from cdrb_cli.settings import comma_items
+
+    items = comma_items(text)
     if items == [""]:
         raise BadInput(f"{flag} is empty", hint=f"e.g. {example}")
     if not all(re.fullmatch(r"[+-]?[0-9]+", v) for v in items):

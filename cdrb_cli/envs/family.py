@@ -24,7 +24,7 @@ import numpy as np
 from cdrb_cli.envs.spec import EnvSpec, Scene
 from cdrb_cli.errors import BadInput
 from cdrb_cli.schema_base import Record
-from cdrb_cli.settings import clip
+from cdrb_cli.settings import clip, comma_items
 
 #: why a failed evaluation episode failed, in the order they are tested: a plan that went through an obstacle; the
 #: object never moved (never grasped or pushed); the executed path hit an obstacle the plan avoided; the rest (the
@@ -298,14 +298,11 @@ class EnvFamily(ABC):
         are not read as numbers, though Python's ``float`` would), each within +-10,000 (one-line error otherwise)."""
         import re
 
-        parts = [v.strip() for v in text.split(",")]  # spaces around a number, not inside it ("1 .5" is a typo)
-        if len(parts) > 1 and not parts[-1]:
-            parts.pop()  # one trailing comma, as a list is often written (and --seeds takes it)
+        parts = comma_items(text)  # spaces around a number, not inside it ("1 .5" is a typo)
         if parts != [""] and "" in parts:  # "0,,0" or ",0,0": a number left out, not a separator to skip
             raise BadInput(
                 f"{flag} {clip(repr(text), 80)}: an empty value between commas", hint=f"write {self.point_format}"
             )
-        parts = [v for v in parts if v != ""]
         number = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d{1,3})?")
         if not parts or len(parts) > 1000 or not all(number.fullmatch(v) for v in parts):
             raise BadInput(
