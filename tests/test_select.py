@@ -228,7 +228,7 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     tells the two apart."""
     from cdrb_cli.errors import BadInput
     from cdrb_cli.orchestration.grid import expand, load_grid
-    from cdrb_cli.orchestration.select import _checked_eval
+    from cdrb_cli.orchestration.select_evals import checked_eval
     from tests import factories
 
     grid = tmp_path / "tune.toml"
@@ -249,10 +249,10 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
         return path
 
     with pytest.raises(BadInput, match=r"after 50 training steps; this grid's task \(eval maze-tight/mlp-s0\) meas"):
-        _checked_eval(spec, task, made(50))
+        checked_eval(spec, task, made(50))
     unchecked = []
-    assert _checked_eval(spec, task, made(100), unchecked).manifest.summary.model_steps == 100 and unchecked == []
-    _checked_eval(spec, task, made(None), unchecked)  # an eval from before evals recorded it, its model not here
+    assert checked_eval(spec, task, made(100), unchecked).manifest.summary.model_steps == 100 and unchecked == []
+    checked_eval(spec, task, made(None), unchecked)  # an eval from before evals recorded it, its model not here
     assert unchecked == [tmp_path / "eval-None.h5"]
     # the same command on another env's model of the same name (a file copied from another env's folder)
     from cdrb_cli.envs.registry import make_spec
@@ -262,7 +262,7 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     update = {"argv": ["cdrb", *task.argv], "summary": summary, "env": make_spec("maze")}
     artifacts.save(other, "eval", manifest.model_copy(update=update), arrays)
     with pytest.raises(BadInput, match=r"an eval on maze, where this grid's task \(eval maze-tight/mlp-s0\) measures"):
-        _checked_eval(spec, task, other)
+        checked_eval(spec, task, other)
 
 
 def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_path):
@@ -271,7 +271,7 @@ def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_pa
     training length (and a resume) alone, which is no difference."""
     from cdrb_cli.errors import BadInput
     from cdrb_cli.orchestration.grid import expand, load_grid
-    from cdrb_cli.orchestration.select import _checked_eval
+    from cdrb_cli.orchestration.select_evals import checked_eval
     from tests import factories
 
     grid = tmp_path / "tune.toml"
@@ -298,10 +298,10 @@ def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_pa
         artifacts.save(model, "model", m_manifest.model_copy(update={"argv": ["cdrb", *argv]}), m_arrays)
         spec._shas.clear()
         if ok:
-            _checked_eval(spec, task, ev, [], trains)
+            checked_eval(spec, task, ev, [], trains)
         else:
             with pytest.raises(BadInput, match=r"not trained as this grid's task .*setting lr: 0.5 there, \(not set\)"):
-                _checked_eval(spec, task, ev, [], trains)
+                checked_eval(spec, task, ev, [], trains)
 
 
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():

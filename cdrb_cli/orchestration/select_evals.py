@@ -1,0 +1,107 @@
+"""Which evals `cdrb select` may score for a tuning grid's task: the eval the task's command makes, on the task's
+environment, written for the task's place in the grid, of a model of the task's training length, and (where the
+model is here) that model, trained as the grid trains it. Evals are read on machines other than the one that made
+them, so files are compared by name and place, not by where they lie."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+from cdrb_cli import artifacts
+from cdrb_cli.errors import BadInput
+from cdrb_cli.orchestration.grid import GridSpec, parse_command
+from cdrb_cli.settings import clip
+
+
+def _without_length(argv: list[str]) -> list[str]:
+    """A training's command line without how long it trains and where it keeps snapshots (a curve's stages differ
+    in these alone; the eval's record of its model's steps is checked on its own)."""
+    from cdrb_cli.orchestration.grid.commands import options
+    from cdrb_cli.orchestration.grid.flags import walk_options
+
+    kept = [argv[0]]
+    for token, entry, value in walk_options(argv[1:], options("train")):
+        if entry is not None and entry.param in ("steps", "snapshot_at"):
+            continue
+        if entry is not None and entry.param == "sets" and str(value).partition("=")[0].strip() == "steps":
+            continue
+        kept += [token] if entry is None or not entry.takes_value or "=" in token or value is None else [token, value]
+    return kept
+
+
+def checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None = None, trains: dict | None = None):
+    """The eval artifact at a task's output, refused unless it is what the task measures: the same command but for
+    where files lie (:func:`grid.measure_difference`), a model of the task's training length (a run's final model
+    keeps its name when a curve is extended), and, where the model it evaluated is here, that same model (the same
+    bytes or, as every stage judges an input, the same data) trained as the grid's training task (``trains``: task
+    by output) trains it. An eval that records no training length, of a model that is not here, is appended to
+    ``unchecked``."""
+    from cdrb_cli.orchestration.grid import file_sha, measure_difference
+
+    ev = artifacts.load(path, "eval")
+    made = list(ev.manifest.argv[1:])
+    while made and made[0].startswith("-"):  # cdrb's own options (-q, --debug) before the command
+        made.pop(0)
+    why = measure_difference(made, task.argv)
+    if why is not None:
+        raise BadInput(
+            f"{path}: not this grid's eval ({task.id}): {why}",
+            hint="run `cdrb select` with the --set/--include the grid ran with; if they are the same, the grid "
+            "measures this eval again once it is moved away",
+        )
+    # the command compares files by name: an eval copied from another env's, variant's or grid's folder reads the
+    # same there, so the environment it ran and the place it was written for in its grid are compared too
+    env = task.meta.get("env")
+    if env is not None and ev.manifest.env.id != env:
+        raise BadInput(
+            f"{path}: an eval on {clip(ev.manifest.env.id, 60)}, where this grid's task ({task.id}) measures {env}",
+            hint="move it away and run `cdrb grid` on the same file, which measures the model there",
+        )
+    written, place = parse_command(made)[1].get("out"), _place(spec, path)
+    if written is not None and place is not None and Path(written).parts[-len(place.parts) :] != place.parts:
+        raise BadInput(
+            f"{path}: written as {clip(written, 120)}, for another place in a grid than {place}",
+            hint="an eval copied from another variant's or seed's folder: move it away and run `cdrb grid` on the "
+            "same file, which measures the model there",
+        )
+    model = task.inputs[0]
+    steps, trained = task.meta.get("steps"), ev.manifest.summary.model_steps
+    if steps is not None and trained is not None and trained != steps:
+        raise BadInput(
+            f"{path}: evaluates {model.name} after {trained} training steps; this grid's task ({task.id}) measures "
+            f"it after {steps}",
+            hint="an eval from before the run was extended: move it away and run `cdrb grid` on the same file, which "
+            "measures the model at its length",
+        )
+    parent = next((p for p in ev.manifest.parents if p.kind == "model"), None)
+    here = file_sha(model, spec._shas)
+    if steps is not None and trained is None and here is None and unchecked is not None:
+        unchecked.append(path)
+    train = (trains or {}).get(model)
+    model_here = functools.cache(lambda: artifacts.load(model, "model"))  # read once, and only where it is asked for
+    if parent is not None and here is not None and parent.sha256 != here:
+        if not artifacts.same_inputs([parent], [model_here()]):
+            raise BadInput(
+                f"{path}: evaluates another {model.name} than the one in {model.parent}",
+                hint="run `cdrb grid` on the same file (same --set/--include): it measures the model there again",
+            )
+    if train is not None and here is not None:  # the model here, trained with other flags than the grid's now
+        trained_by = list(model_here().manifest.argv[1:])
+        while trained_by and trained_by[0].startswith("-"):
+            trained_by.pop(0)
+        why = measure_difference(_without_length(trained_by), _without_length(train.argv)) if trained_by else None
+        if why is not None:
+            raise BadInput(
+                f"{path}: its model {model.name} was not trained as this grid's task ({train.id}) trains it: {why}",
+                hint="run `cdrb select` with the --set/--include the grid ran with",
+            )
+    return ev
+
+
+def _place(spec: GridSpec, path: Path) -> Path | None:
+    """``path`` relative to the grid's ``out`` (ENV/[VARIANT/]eval-...h5), or None outside it."""
+    try:
+        return Path(path).resolve().relative_to(Path(spec.out).resolve())
+    except ValueError:
+        return None
