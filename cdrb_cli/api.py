@@ -62,13 +62,14 @@ def _settings(settings: dict | None, **fields) -> list:
     8, "controller.look_ahead": 2}``) after the keyword arguments that were given (not None). A field both give is
     refused, and so is a field the dict gives twice: a dict cannot repeat a key, so two of its keys that reach one
     field are two spellings of it (``best_of`` and ``best-of``, ``controller`` and ``controller.name``)."""
-    from cdrb_cli.settings import from_mapping
-    from cdrb_cli.stages.configure import given_once_anyhow, keyword_settings
+    from cdrb_cli.settings import from_mapping, given_once
+    from cdrb_cli.stages.configure import fields_of, keyword_settings
 
     given, extra = keyword_settings(fields), from_mapping(dict(settings or {}))
-    for i, s in enumerate(extra):
-        given_once_anyhow(extra[:i], [s], sep=" and ")
-    given_once_anyhow(given, extra, sep=" and ")
+    written = fields_of(extra)  # the fields each entry reaches (a table's fields share its entry's name)
+    for i, s in enumerate(written):
+        given_once(written[:i], [s], sep=" and ")
+    given_once(fields_of(given), written, sep=" and ")
     return given + extra
 
 
