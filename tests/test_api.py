@@ -211,7 +211,7 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
         np.testing.assert_allclose(first.features, reference.features, atol=1e-4)
         assert np.abs(first.features - reference.features).max() > 0 or m is model  # not torch under another name
     for kw, needle in (
-        ({"runtime": "tensorrt"}, "runtime = 'tensorrt': not a runtime (pass one of 'torch', 'onnx')"),
+        ({"runtime": "tensorrt"}, "runtime = 'tensorrt': not a runtime (pass one of 'torch', 'onnx', 'compile')"),
         ({"runtime": None}, "runtime = None: not a string"),
     ):
         with pytest.raises(BadInput, match=re.escape(needle)):
@@ -267,6 +267,43 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # as if it were not installed
     with pytest.raises(BadInput, match=re.escape("onnx and onnxruntime are not installed (pip install 'cdrb[onnx]')")):
         api.Planner(model.path, runtime="onnx")
+
+
+def test_the_compile_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(model, tiny_models, monkeypatch):
+    """runtime="compile" runs the U-Net through torch.compile from the first call: plans equal torch's to float
+    rounding, the same seed gives the same plans, new weights are used at once; a model without a U-Net and a
+    machine without a C++ compiler are refused in one line."""
+    import shutil
+
+    import torch
+
+    reference = api.Planner(model.path).plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
+    planner = api.Planner(model.path, runtime="compile")
+    first, again = (planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3) for _ in range(2))
+    assert isinstance(planner.method.__dict__["_compiled"][1], torch._dynamo.eval_frame.OptimizedModule)
+    np.testing.assert_array_equal(first.features, again.features)
+    np.testing.assert_allclose(first.features, reference.features, atol=1e-4)
+    x, k = torch.as_tensor(first.features, dtype=torch.float32), torch.full((8,), 3)  # the plans' batch: no recompile
+    with torch.no_grad():
+        before = planner.method.sample_net(x, k)
+        for w in planner.method.net.parameters():
+            w.mul_(0.5)
+        after, eager = planner.method.sample_net(x, k), planner.method.net(x, k)
+    assert (before - after).abs().max() > 1e-3  # the new weights ran, as torch runs them
+    np.testing.assert_allclose(after.numpy(), eager.numpy(), atol=1e-4)
+    with pytest.raises(BadInput, match="runtime = 'compile': the mlp method's network does not run compiled"):
+        api.Planner(tiny_models["mlp"].path, runtime="compile")
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    with pytest.raises(BadInput, match=re.escape("runtime = 'compile': no C++ compiler (g++ or clang++) on the PATH")):
+        api.Planner(model.path, runtime="compile")
+    import importlib.util
+
+    from cdrb_cli.nets.runtime import check_runtime
+
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
+    with pytest.raises(BadInput, match=re.escape("runtime = 'compile': Triton is not installed (pip install triton")):
+        check_runtime("compile", planner.method.net, "cuda", "cdrb")
 
 
 def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):

@@ -145,8 +145,8 @@ class Method:
 
     #: whether :meth:`sample_net` may run a trace of the network (off: the module itself; benchmarks compare both)
     trace_sampling: ClassVar[bool] = True
-    #: where :meth:`sample_net` runs the network: ``torch``, or ``onnx`` (ONNX Runtime on the CPU, see
-    #: :mod:`cdrb_cli.nets.runtime`; set by :meth:`use_runtime`)
+    #: where :meth:`sample_net` runs the network: ``torch``, ``onnx`` (ONNX Runtime on the CPU) or ``compile``
+    #: (``torch.compile``; see :mod:`cdrb_cli.nets.runtime`; set by :meth:`use_runtime`)
     runtime: str = "torch"
     #: network calls made before :meth:`sample_net` traces it: the first trace in a process costs ~0.5 s of
     #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
@@ -171,10 +171,16 @@ class Method:
         robot, the Python API, closed-loop evals). Networks that declare ``traceable`` are traced. TorchScript is
         deprecated from torch 2.13 (FX graphs and torch.export keep the Python calls, so they do not help here):
         where tracing fails, the module itself runs, the same bits more slowly. With :attr:`runtime` ``onnx`` every
-        call runs in ONNX Runtime instead (:class:`~cdrb_cli.nets.runtime.OnnxNet`)."""
+        call runs in ONNX Runtime instead (:class:`~cdrb_cli.nets.runtime.OnnxNet`), with ``compile`` through
+        ``torch.compile`` (the module's parameters are read at every call, so new weights need no check)."""
         net = self.net
         if net.training or torch.is_grad_enabled():
             return net(x, k)
+        if self.runtime == "compile":  # from the first call, as onnx
+            compiled = self.__dict__.get("_compiled")
+            if compiled is None or compiled[0] is not net:
+                self._compiled = compiled = (net, torch.compile(net))
+            return compiled[1](x, k)
         if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
             from cdrb_cli.nets.runtime import OnnxNet, weights_version
 

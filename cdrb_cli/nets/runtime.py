@@ -1,4 +1,4 @@
-"""Where sampling's network calls run: torch (the default), or ONNX Runtime on the CPU.
+"""Where sampling's network calls run: torch (the default), ONNX Runtime on the CPU, or torch's compiler.
 
 At batch 1 a small temporal U-Net costs torch ~400 operator dispatches per pass, and that per-operation cost, not
 arithmetic, is most of a plan's time on a CPU (a robot re-planning one plan at a time, the Python API).
@@ -9,6 +9,13 @@ runtime is a setting the caller chooses (``api.Planner(runtime="onnx")``), never
 runtime, plans are as reproducible as torch's: the same seed gives the same plans.
 
 Needs the ``onnx`` extra (``pip install 'cdrb[onnx]'``: onnx for the export, onnxruntime to run it).
+
+``compile`` runs the network through ``torch.compile`` (TorchInductor), on the CPU or a GPU: it fuses the U-Net's
+normalisations, activations and additions into a few generated kernels, which pays where the number of kernels, not
+arithmetic, sets the time (a GPU at any batch up to a few hundred plans; the CPU in large batches). Its first call in
+a process compiles for a while (tens of seconds; a cache under the temporary folder shortens later ones), so it serves
+long runs and servers, not one `cdrb plan`. Like ``onnx`` it is other kernels for the same network: plans agree with
+torch's to float rounding, and the same seed gives the same plans. Needs a C++ compiler on the CPU, Triton on a GPU.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from cdrb_cli.lazy import torch
 from cdrb_cli.settings import clip
 
 #: the runtimes sampling's network calls may use
-RUNTIMES = ("torch", "onnx")
+RUNTIMES = ("torch", "onnx", "compile")
 
 
 def check_runtime(runtime: object, net, device, method: str, flag: str = "runtime") -> str:
@@ -33,11 +40,14 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
     if runtime == "torch":
         return runtime
     if not getattr(net, "traceable", False):
+        where = "in ONNX Runtime" if runtime == "onnx" else "compiled"
         raise BadInput(
-            f"{flag} = 'onnx': the {method} method's network does not run in ONNX Runtime (the temporal U-Net of the "
+            f"{flag} = {runtime!r}: the {method} method's network does not run {where} (the temporal U-Net of the "
             "diffusion planners does)",
             hint="leave runtime out",
         )
+    if runtime == "compile":
+        return _check_compiler(device, flag)
     if torch.device(device).type != "cpu":
         raise BadInput(
             f"{flag} = 'onnx': runs on the CPU, not {device}", hint="pass device='cpu', or leave runtime out"
@@ -50,6 +60,28 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
             f"{flag} = 'onnx': onnx and onnxruntime are not installed", hint="pip install 'cdrb[onnx]'"
         ) from None
     return runtime
+
+
+def _check_compiler(device, flag: str) -> str:
+    """``compile`` on ``device``: TorchInductor's code generator is there (a C++ compiler for the CPU, Triton for a
+    GPU), so a missing one is named now, not as a compiler's traceback at the first plan."""
+    import importlib.util
+    import os
+    import shutil
+
+    if torch.device(device).type == "cuda":
+        if importlib.util.find_spec("triton") is None:
+            raise BadInput(
+                f"{flag} = 'compile': Triton is not installed", hint="pip install triton, or leave runtime out"
+            )
+        return "compile"
+    cxx = os.environ.get("CXX")
+    if not any(shutil.which(c) for c in ([cxx] if cxx else ["g++", "clang++"])):
+        raise BadInput(
+            f"{flag} = 'compile': no C++ compiler ({cxx or 'g++ or clang++'}) on the PATH",
+            hint="install one (e.g. apt install g++), or leave runtime out",
+        )
+    return "compile"
 
 
 class OnnxNet:
