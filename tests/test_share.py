@@ -283,6 +283,8 @@ def test_a_compact_eval_drops_the_plans_and_reports_the_same(tiny_models, tmp_pa
         return r.stdout.replace(str(path), "EVAL")
 
     assert report(compact) == report(full)
+    r = cdrb("report", full, compact, "--per-seed")  # an eval and its compact copy: one evaluation, refused
+    assert r.returncode == 2 and "one evaluation of one model on seed(s) [0, 1]" in r.stderr, r.stderr
     # an eval of an older schema (plans, no stored measures) gives the same compact eval's measures
     older = {name: a for name, a in ev.arrays.items() if name not in (FIRST_STEP, NEW_CROSSING, PLAN_STATES)}
     artifacts.save(tmp_path / "older.h5", "eval", ev.manifest, older)
