@@ -59,9 +59,13 @@ def measure(
         type(method).trace_sampling = False
         if hasattr(method, "cuda_graphs"):
             type(method).cuda_graphs = False
-    if runtime:  # the network in another runtime (ONNX Runtime), from the first call
-        if not hasattr(method, "use_runtime"):
-            return {"skipped": "this tree has no runtime setting"}
+    if runtime:  # the network in another runtime (ONNX Runtime, torch.compile), from the first call
+        try:
+            from cdrb_cli.nets.runtime import RUNTIMES
+        except ImportError:
+            RUNTIMES = ()
+        if not hasattr(method, "use_runtime") or runtime not in RUNTIMES:
+            return {"skipped": f"this tree has no runtime {runtime!r}"}
         method.use_runtime(runtime)
     starts, goals = family.reset_states(spec, family.draw_episodes(spec, pairs, seed, STREAM_PLAN))
     goals = family.goal_state(spec, goals)

@@ -166,8 +166,8 @@ class Planner:
         (`cdrb config plan`); ``allow_partial``: plan with an unfinished training's checkpoint (a warning);
         ``runtime``: ``"onnx"`` runs the network in ONNX Runtime on the CPU (the ``onnx`` extra): faster for plans
         made one at a time, slower in large batches, its plans equal to torch's to float rounding; ``"compile"``
-        runs it through ``torch.compile`` on any device: faster on a GPU and in large batches on a CPU, after a
-        first call that compiles for tens of seconds (:mod:`cdrb_cli.nets.runtime`)."""
+        runs it through ``torch.compile`` on any device: faster on a GPU, after tens of seconds of compiling at the
+        first plan of each batch size (:mod:`cdrb_cli.nets.runtime`)."""
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
         from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
         from cdrb_cli.stages.share import check_finished, load_model

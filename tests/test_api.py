@@ -216,7 +216,7 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     ):
         with pytest.raises(BadInput, match=re.escape(needle)):
             api.Planner(model.path, **kw)
-    with pytest.raises(BadInput, match="runtime = 'onnx': the mlp method's network does not run in ONNX Runtime"):
+    with pytest.raises(BadInput, match="runtime = 'onnx': is for the diffusion planners' temporal U-Net, and the mlp"):
         api.Planner(tiny_models["mlp"].path, runtime="onnx")
     from cdrb_cli.nets.runtime import check_runtime
 
@@ -270,40 +270,56 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
 
 
 def test_the_compile_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(model, tiny_models, monkeypatch):
-    """runtime="compile" runs the U-Net through torch.compile from the first call: plans equal torch's to float
-    rounding, the same seed gives the same plans, new weights are used at once; a model without a U-Net and a
-    machine without a C++ compiler are refused in one line."""
+    """runtime="compile" runs the U-Net through torch.compile from the first call, whole: plans equal torch's to
+    float rounding, the same seed and batch size give the same plans whatever was planned before, new weights are
+    used at once; a model without a U-Net, a machine without a C++ compiler or Python's headers, and a compile that
+    fails are refused in one line."""
+    import importlib.util
     import shutil
+    import sysconfig
 
     import torch
+    from torch._dynamo.utils import counters
+
+    from cdrb_cli.nets.runtime import check_runtime
 
     reference = api.Planner(model.path).plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
+    graphs = counters["stats"]["unique_graphs"]
     planner = api.Planner(model.path, runtime="compile")
-    first, again = (planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3) for _ in range(2))
-    assert isinstance(planner.method.__dict__["_compiled"][1], torch._dynamo.eval_frame.OptimizedModule)
-    np.testing.assert_array_equal(first.features, again.features)
+    first = planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
+    assert counters["stats"]["unique_graphs"] > graphs  # dynamo compiled a graph (fullgraph: the whole network)
+    planner.plan([0.0, 0.0], [6.0, 6.0], n=4, seed=3)  # another batch size: its own graph, the first one kept
+    np.testing.assert_array_equal(planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3).features, first.features)
     np.testing.assert_allclose(first.features, reference.features, atol=1e-4)
     x, k = torch.as_tensor(first.features, dtype=torch.float32), torch.full((8,), 3)  # the plans' batch: no recompile
-    with torch.no_grad():
+    with torch.inference_mode():
         before = planner.method.sample_net(x, k)
         for w in planner.method.net.parameters():
             w.mul_(0.5)
         after, eager = planner.method.sample_net(x, k), planner.method.net(x, k)
     assert (before - after).abs().max() > 1e-3  # the new weights ran, as torch runs them
     np.testing.assert_allclose(after.numpy(), eager.numpy(), atol=1e-4)
-    with pytest.raises(BadInput, match="runtime = 'compile': the mlp method's network does not run compiled"):
+    with pytest.raises(BadInput, match="'compile': is for the diffusion planners' temporal U-Net, and the mlp method"):
         api.Planner(tiny_models["mlp"].path, runtime="compile")
-    monkeypatch.delenv("CXX", raising=False)
+    # a compile that fails at the first plan: one line naming the runtime
+    failing = lambda *a, **kw: (_ for _ in ()).throw(torch._dynamo.exc.TorchDynamoException("no working compiler\nx"))
+    broken = api.Planner(model.path, runtime="compile")
+    broken.method._compiled = (broken.method.net, failing)  # as torch.compile's module would raise it
+    with pytest.raises(BadInput, match=re.escape("could not compile the network: no working compiler (leave runtime")):
+        broken.plan([0.0, 0.0], [6.0, 6.0])
+    net = planner.method.net
+    from torch._inductor import config
+
+    monkeypatch.setattr(config.cpp, "cxx", (None, "g++"))  # what Inductor calls without $CXX
     monkeypatch.setattr(shutil, "which", lambda name: None)
-    with pytest.raises(BadInput, match=re.escape("runtime = 'compile': no C++ compiler (g++ or clang++) on the PATH")):
-        api.Planner(model.path, runtime="compile")
-    import importlib.util
-
-    from cdrb_cli.nets.runtime import check_runtime
-
+    with pytest.raises(BadInput, match=re.escape("runtime = 'compile': no C++ compiler 'g++' on the PATH")):
+        check_runtime("compile", net, "cpu", "cdrb")
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
-    with pytest.raises(BadInput, match=re.escape("runtime = 'compile': Triton is not installed (pip install triton")):
-        check_runtime("compile", planner.method.net, "cuda", "cdrb")
+    with pytest.raises(BadInput, match=re.escape("runtime = 'compile': Triton is not installed (install the Triton")):
+        check_runtime("compile", net, "cuda", "cdrb")
+    monkeypatch.setattr(sysconfig, "get_path", lambda name, *a, **kw: "/nonexistent")
+    with pytest.raises(BadInput, match=re.escape("Python's C headers (Python.h) are not installed")):
+        check_runtime("compile", net, "cpu", "cdrb")
 
 
 def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):

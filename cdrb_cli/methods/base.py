@@ -177,10 +177,21 @@ class Method:
         if net.training or torch.is_grad_enabled():
             return net(x, k)
         if self.runtime == "compile":  # from the first call, as onnx
+            from cdrb_cli.errors import BadInput
+            from cdrb_cli.nets.runtime import compile_errors
+            from cdrb_cli.settings import clip
+
             compiled = self.__dict__.get("_compiled")
             if compiled is None or compiled[0] is not net:
-                self._compiled = compiled = (net, torch.compile(net))
-            return compiled[1](x, k)
+                # one static graph per batch size (a plan never depends on the sizes planned before it), whole
+                # (a graph break would run part of the network uncompiled)
+                self._compiled = compiled = (net, torch.compile(net, dynamic=False, fullgraph=True))
+            try:
+                return compiled[1](x, k)
+            except compile_errors() as exc:
+                first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+                raise BadInput(f"runtime = 'compile': could not compile the network: {clip(first, 160)}",
+                               hint="leave runtime out") from None  # fmt: skip
         if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
             from cdrb_cli.nets.runtime import OnnxNet, weights_version
 

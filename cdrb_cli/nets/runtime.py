@@ -14,14 +14,18 @@ Needs the ``onnx`` extra (``pip install 'cdrb[onnx]'``: onnx for the export, onn
 normalisations, activations and additions into a few generated kernels, which pays where the number of kernels, not
 arithmetic, sets the time (a GPU at any batch up to a few hundred plans; the CPU in large batches). Its first call in
 a process compiles for a while (tens of seconds; a cache under the temporary folder shortens later ones), so it serves
-long runs and servers, not one `cdrb plan`. Like ``onnx`` it is other kernels for the same network: plans agree with
-torch's to float rounding, and the same seed gives the same plans. Needs a C++ compiler on the CPU, Triton on a GPU.
+long runs and servers, not one `cdrb plan`. Each batch size gets its own compiled graph (the first call at a size
+compiles it). Like ``onnx`` it is other kernels for the same network: plans agree with torch's to float rounding, and
+in one process the same seed and batch size give the same plans (on a GPU Inductor may time kernel variants on the
+device, so two processes may differ by rounding). Needs a C++ compiler and Python's headers on the CPU, Triton and a C
+compiler on a GPU.
 """
 
 from __future__ import annotations
 
 import io
 import warnings
+from pathlib import Path
 
 from cdrb_cli.errors import BadInput
 from cdrb_cli.lazy import torch
@@ -40,10 +44,9 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
     if runtime == "torch":
         return runtime
     if not getattr(net, "traceable", False):
-        where = "in ONNX Runtime" if runtime == "onnx" else "compiled"
         raise BadInput(
-            f"{flag} = {runtime!r}: the {method} method's network does not run {where} (the temporal U-Net of the "
-            "diffusion planners does)",
+            f"{flag} = {runtime!r}: is for the diffusion planners' temporal U-Net, and the {method} method's network "
+            "is not one",
             hint="leave runtime out",
         )
     if runtime == "compile":
@@ -63,25 +66,40 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
 
 
 def _check_compiler(device, flag: str) -> str:
-    """``compile`` on ``device``: TorchInductor's code generator is there (a C++ compiler for the CPU, Triton for a
-    GPU), so a missing one is named now, not as a compiler's traceback at the first plan."""
+    """``compile`` on ``device``: what TorchInductor builds its kernels with is there (the C++ compiler it calls and
+    Python's headers on the CPU; Triton, a C compiler and Python's headers on a GPU), so a missing one is named now,
+    not as a compiler's traceback at the first plan."""
     import importlib.util
     import os
     import shutil
+    import sysconfig
 
+    def missing(what: str, hint: str):
+        raise BadInput(f"{flag} = 'compile': {what}", hint=f"{hint}, or leave runtime out")
+
+    if not (Path(sysconfig.get_path("include")) / "Python.h").is_file():
+        missing("Python's C headers (Python.h) are not installed", "install them (e.g. apt install python3-dev)")
     if torch.device(device).type == "cuda":
         if importlib.util.find_spec("triton") is None:
-            raise BadInput(
-                f"{flag} = 'compile': Triton is not installed", hint="pip install triton, or leave runtime out"
-            )
+            missing("Triton is not installed", "install the Triton your torch was built with")
+        cc = os.environ.get("CC")
+        if not any(shutil.which(c) for c in ([cc] if cc else ["gcc", "clang", "cc"])):
+            missing(f"no C compiler ({cc or 'gcc, clang or cc'}) on the PATH for Triton", "install one (e.g. gcc)")
         return "compile"
-    cxx = os.environ.get("CXX")
-    if not any(shutil.which(c) for c in ([cxx] if cxx else ["g++", "clang++"])):
-        raise BadInput(
-            f"{flag} = 'compile': no C++ compiler ({cxx or 'g++ or clang++'}) on the PATH",
-            hint="install one (e.g. apt install g++), or leave runtime out",
-        )
+    from torch._inductor import config  # the compiler Inductor calls: $CXX, else g++
+
+    cxx = config.cpp.cxx[-1]
+    if not shutil.which(cxx):
+        missing(f"no C++ compiler {cxx!r} on the PATH (Inductor calls $CXX, else g++)", "install g++ or set CXX")
     return "compile"
+
+
+def compile_errors() -> tuple:
+    """The exceptions by which torch.compile says it could not compile a network (on its first call)."""
+    from torch._dynamo.exc import TorchDynamoException
+    from torch._inductor.exc import InductorError
+
+    return TorchDynamoException, InductorError
 
 
 class OnnxNet:
