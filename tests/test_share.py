@@ -284,7 +284,13 @@ def test_a_compact_eval_drops_the_plans_and_reports_the_same(tiny_models, tmp_pa
 
     assert report(compact) == report(full)
     r = cdrb("report", full, compact, "--per-seed")  # an eval and its compact copy: one evaluation, refused
-    assert r.returncode == 2 and "one evaluation of one model on seed(s) [0, 1]" in r.stderr, r.stderr
+    assert r.returncode == 2 and "the same eval twice (pass each eval once" in r.stderr, r.stderr
+    again = tmp_path / "again.h5"  # the same model, settings and seeds evaluated again: another run, listed
+    r = cdrb("eval", tiny_models["cdrb"].path, "--maze-map", closed, "--episodes", "6", "--seeds", "0,1", "--out",
+             again)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    r = cdrb("report", full, again, "--per-seed", "--format", "csv")
+    assert r.returncode == 0 and len(r.stdout.strip().splitlines()) == 5, r.stderr
     # an eval of an older schema (plans, no stored measures) gives the same compact eval's measures
     older = {name: a for name, a in ev.arrays.items() if name not in (FIRST_STEP, NEW_CROSSING, PLAN_STATES)}
     artifacts.save(tmp_path / "older.h5", "eval", ev.manifest, older)

@@ -360,34 +360,24 @@ def _rate(name: str, values: list) -> dict:
 
 
 def _evaluation(ev) -> str:
-    """What makes two evals one evaluation on a seed they share: the model's content and every setting but the
-    evaluation seeds and the scene file's path (a compact copy, `cdrb export --compact`, has them all; so would the
-    same eval run again)."""
-    config = ev.manifest.config.model_dump(mode="json")
-    for key in ("seeds", "scene"):
-        config.pop(key, None)
-    models = sorted(_content(p) for p in ev.manifest.parents if p.kind == "model")
-    return json.dumps([config, models, _scene(ev)], sort_keys=True, default=str)
+    """An eval's whole provenance (when and by what it ran, its settings, its parents by content) less its layout's
+    version: what an eval and its compact copy (`cdrb export --compact`) share, and no other two runs."""
+    manifest = ev.manifest.model_dump(mode="json")
+    manifest.pop("schema_version", None)
+    return json.dumps(manifest, sort_keys=True, default=str)
 
 
 def seed_rows(evals) -> list[dict]:
     """One row per eval file and evaluation seed (the per-seed table the docs keep beside each grouped row); the
-    same eval given twice (or a copy of it, compact or not) is refused, as in the grouped rows."""
+    same eval given twice (a copy of its file, or its compact copy) is refused, as in the grouped rows."""
     rows, seen, runs = [], {}, {}
     for ev in evals:
         other = seen.setdefault(_content(ev), ev)
+        if other is ev:
+            other = runs.setdefault(_evaluation(ev), ev)
         if other is not ev:
             one, two = two_names(other, ev)
-            raise BadInput(f"{one} and {two}: the same eval twice", hint="pass each eval once")
-        seeds = {r.seed for r in per_seed(ev)}
-        for earlier, their_seeds in runs.setdefault(_evaluation(ev), []):
-            if seeds & their_seeds:
-                one, two = two_names(earlier, ev)
-                raise BadInput(
-                    f"{one} and {two}: one evaluation of one model on seed(s) {sorted(seeds & their_seeds)}",
-                    hint="pass each eval once (a compact copy holds the same results)",
-                )
-        runs[_evaluation(ev)].append((ev, seeds))
+            raise BadInput(f"{one} and {two}: the same eval twice", hint="pass each eval once (a compact copy is one)")
         c = ev.manifest.config
         new_rates, bodies, states = new_crossing_rates(ev), body_crossing_rates(ev), body_state_rates(ev)
         walls = wall_crossing_rates(ev)
