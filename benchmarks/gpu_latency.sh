@@ -7,6 +7,7 @@
 #   cp MODEL.h5 .bench/
 # then run on the device, carrying [".site.tar.xz", ".bench"]:
 #   bash benchmarks/gpu_latency.sh .bench/MODEL.h5 [...]
+# COMPILE=1 adds rows with runtime="compile" (torch.compile; each batch size compiles first, ~30 s on an H200).
 set -u
 rm -rf /tmp/site && mkdir -p /tmp/site && tar -xJf .site.tar.xz -C /tmp/site || exit 3
 unset MUJOCO_GL  # no renderer is needed here
@@ -18,7 +19,7 @@ echo "tests/test_cuda.py: exit $?"; tail -3 "$OUT/test_cuda.log"
 for model in "$@"; do
   name=$(basename "$model" .h5)
   timeout "${BENCH_SECONDS:-200}" python3 benchmarks/latency.py "$model" --device cuda --tree after=. \
-    --tree before=.bench/before --variants --rounds "${ROUNDS:-2}" --markdown \
+    --tree before=.bench/before --variants ${COMPILE:+--compile} --rounds "${ROUNDS:-2}" --markdown \
     >"$OUT/latency-$name.md" 2>"$OUT/latency-$name.log"
   echo "latency $name: exit $?"; cat "$OUT/latency-$name.md"; tail -2 "$OUT/latency-$name.log"
 done
