@@ -303,8 +303,12 @@ def test_the_compile_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly
         api.Planner(tiny_models["mlp"].path, runtime="compile")
     # a compile that fails at the first plan: one line naming the runtime
     failing = lambda *a, **kw: (_ for _ in ()).throw(torch._dynamo.exc.TorchDynamoException("no working compiler\nx"))
+    from cdrb_cli.nets.runtime import CompiledNet
+
     broken = api.Planner(model.path, runtime="compile")
-    broken.method._compiled = (broken.method.net, failing)  # as torch.compile's module would raise it
+    wrapped = CompiledNet(broken.method.net)
+    wrapped.module = failing  # as torch.compile's module would raise it
+    broken.method._compiled = (broken.method.net, wrapped)
     with pytest.raises(BadInput, match=re.escape("could not compile the network: no working compiler (leave runtime")):
         broken.plan([0.0, 0.0], [6.0, 6.0])
     net = planner.method.net

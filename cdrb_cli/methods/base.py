@@ -172,26 +172,18 @@ class Method:
         deprecated from torch 2.13 (FX graphs and torch.export keep the Python calls, so they do not help here):
         where tracing fails, the module itself runs, the same bits more slowly. With :attr:`runtime` ``onnx`` every
         call runs in ONNX Runtime instead (:class:`~cdrb_cli.nets.runtime.OnnxNet`), with ``compile`` through
-        ``torch.compile`` (the module's parameters are read at every call, so new weights need no check)."""
+        ``torch.compile`` (:class:`~cdrb_cli.nets.runtime.CompiledNet`; it reads the module's parameters at every
+        call, so new weights need no check)."""
         net = self.net
         if net.training or torch.is_grad_enabled():
             return net(x, k)
         if self.runtime == "compile":  # from the first call, as onnx
-            from cdrb_cli.errors import BadInput
-            from cdrb_cli.nets.runtime import compile_errors
-            from cdrb_cli.settings import clip
-
             compiled = self.__dict__.get("_compiled")
             if compiled is None or compiled[0] is not net:
-                # one static graph per batch size (a plan never depends on the sizes planned before it), whole
-                # (a graph break would run part of the network uncompiled)
-                self._compiled = compiled = (net, torch.compile(net, dynamic=False, fullgraph=True))
-            try:
-                return compiled[1](x, k)
-            except compile_errors() as exc:
-                first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-                raise BadInput(f"runtime = 'compile': could not compile the network: {clip(first, 160)}",
-                               hint="leave runtime out") from None  # fmt: skip
+                from cdrb_cli.nets.runtime import CompiledNet
+
+                self._compiled = compiled = (net, CompiledNet(net))
+            return compiled[1](x, k)
         if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
             from cdrb_cli.nets.runtime import OnnxNet, weights_version
 

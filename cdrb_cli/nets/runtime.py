@@ -94,12 +94,26 @@ def _check_compiler(device, flag: str) -> str:
     return "compile"
 
 
-def compile_errors() -> tuple:
-    """The exceptions by which torch.compile says it could not compile a network (on its first call)."""
-    from torch._dynamo.exc import TorchDynamoException
-    from torch._inductor.exc import InductorError
+class CompiledNet:
+    """A network through ``torch.compile``, called as the network is, ``(x, k) -> tensor``: one whole graph
+    (``fullgraph``: a graph break would leave part of it uncompiled) and one static graph per batch size, so a plan
+    never depends on the sizes planned before it in the process. A compile that fails is one line, not dynamo's
+    traceback."""
 
-    return TorchDynamoException, InductorError
+    def __init__(self, net):
+        self.module = torch.compile(net, dynamic=False, fullgraph=True)
+
+    def __call__(self, x, k):
+        from torch._dynamo.exc import TorchDynamoException
+        from torch._inductor.exc import InductorError
+
+        try:
+            return self.module(x, k)
+        except (TorchDynamoException, InductorError) as exc:
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise BadInput(
+                f"runtime = 'compile': could not compile the network: {clip(first, 160)}", hint="leave runtime out"
+            ) from None
 
 
 class OnnxNet:

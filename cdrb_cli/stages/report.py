@@ -370,14 +370,15 @@ def _evaluation(ev) -> str:
 def seed_rows(evals) -> list[dict]:
     """One row per eval file and evaluation seed (the per-seed table the docs keep beside each grouped row); the
     same eval given twice (a copy of its file, or its compact copy) is refused, as in the grouped rows."""
-    rows, seen, runs = [], {}, {}
+    rows, seen = [], {}
     for ev in evals:
-        other = seen.setdefault(_content(ev), ev)
-        if other is ev:
-            other = runs.setdefault(_evaluation(ev), ev)
-        if other is not ev:
-            one, two = two_names(other, ev)
-            raise BadInput(f"{one} and {two}: the same eval twice", hint="pass each eval once (a compact copy is one)")
+        for key in (_content(ev), _evaluation(ev)):  # a hash and a JSON text: the two never meet
+            other = seen.setdefault(key, ev)
+            if other is not ev:
+                one, two = two_names(other, ev)
+                raise BadInput(
+                    f"{one} and {two}: the same eval twice", hint="pass each eval once (a compact copy is one)"
+                )
         c = ev.manifest.config
         new_rates, bodies, states = new_crossing_rates(ev), body_crossing_rates(ev), body_state_rates(ev)
         walls = wall_crossing_rates(ev)
