@@ -5,6 +5,7 @@ Artifacts, settings files, maps, scenes and pictures all use these."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import shutil
@@ -48,7 +49,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.exists():
         raise BadInput(f"{path}: folder {folder} does not exist", hint="create it first or choose another --out")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=folder)
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=folder)
+    except OSError as exc:
+        _raise_if_full(exc, path)
+        raise
     os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a written file honours the umask like any other
     os.close(fd)
     tmp = Path(tmp_name)
@@ -59,12 +64,30 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         _before_rename_hook(tmp, path)
         os.replace(tmp, path)
         _fsync_dir(folder)
-    except BaseException:
+    except BaseException as exc:
         try:
             tmp.unlink()
         except FileNotFoundError:
             pass
+        if isinstance(exc, OSError):
+            _raise_if_full(exc, path)
         raise
+
+
+#: write errors that say the file does not fit (a full disk, a quota, the process's file-size limit), with the fix
+_NO_ROOM = {
+    errno.ENOSPC: "free some space there or write it to another folder",
+    errno.EDQUOT: "free some of your quota there or write it to another folder",
+    errno.EFBIG: "raise this shell's file-size limit (ulimit -f) or write a smaller file",
+}
+
+
+def _raise_if_full(exc: OSError, path: Path) -> None:
+    """A write of ``path`` that did not fit (:data:`_NO_ROOM`), as one line; anything else is left to the caller."""
+    if exc.errno in _NO_ROOM:
+        raise BadInput(
+            f"{path}: {os.strerror(exc.errno).lower()} while writing it; nothing was written", hint=_NO_ROOM[exc.errno]
+        ) from None
 
 
 def replace_file(new: str | Path, final: str | Path) -> None:

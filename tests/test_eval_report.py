@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -220,6 +221,7 @@ def test_an_eval_without_plans(evals, tmp_path, cdrb):
     assert len(rows) == 1 and rows[0]["method"] == "cdrb" and rows[0]["first_step_ratio"] > 0
     r = cdrb("report", tmp_path / "bare.h5", "--plans-plot", tmp_path / "p.png")
     assert r.returncode == 2 and "--no-plans" in r.stderr and not (tmp_path / "p.png").exists()
+    assert "export --compact" in r.stderr  # a compact copy holds no plans either: its original does
     # the plans are checked before any picture is drawn: the bar chart is not left behind either
     r = cdrb("report", tmp_path / "bare.h5", "--plot", tmp_path / "bars.png", "--plans-plot", tmp_path / "p.png")
     assert r.returncode == 2 and not (tmp_path / "bars.png").exists() and not (tmp_path / "p.png").exists()
@@ -296,6 +298,14 @@ def test_report_refuses_mixed_protocols(evals, tmp_path, cdrb):
     # the same seeds twice for one method
     r = cdrb("report", ev.path, ev.path)
     assert r.returncode == 2 and "more than one eval file" in r.stderr
+    # two files of one name in two folders are told apart by their paths
+    (tmp_path / "again").mkdir()
+    shutil.copy(ev.path, tmp_path / "again" / ev.path.name)
+    r = cdrb("report", ev.path, tmp_path / "again" / ev.path.name)
+    assert r.returncode == 2 and f"again/{ev.path.name}" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    # --paper's rows are the grouped report's: refused beside --per-seed, not silently dropped
+    r = cdrb("report", ev.path, "--per-seed", "--paper")
+    assert r.returncode == 2 and "--per-seed" in r.stderr and "--paper" in r.stderr, r.stderr
 
 
 def test_report_pools_one_eval_per_training_seed(evals, tmp_path, cdrb):

@@ -504,3 +504,43 @@ def test_every_text_input_goes_through_the_guarded_reader(tmp_path, cdrb):
     from cdrb_cli.envs.pointmaze.maze import load_map_file
 
     assert load_map_file(maps / "alias.txt").rows == ["#####", "#S.G#", "#####"]
+
+
+def test_a_write_that_does_not_fit_is_one_line_and_leaves_nothing(tmp_path):
+    """A disk that fills up mid-write (here the process's file-size limit: for HDF5 the same failure as a full disk,
+    a write refused partway) is one line naming the file, and neither the output nor a temporary file is left. HDF5
+    writing to the disk itself fails in its own flush and can crash the interpreter as it closes the file."""
+    import resource
+
+    src = write(tmp_path / "eval.h5", "eval", n=40)
+    limit = src.stat().st_size // 2
+
+    def limited():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead of a signal
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "out"
+    out.mkdir()
+    # an artifact written by the library (a model: HDF5 datasets), a copied file (an eval without plans), a text file
+    library = (
+        "import sys\nfrom cdrb_cli.errors import BadInput\nfrom tests.factories import write\n"
+        "try:\n    write(sys.argv[1], 'model', n=40)\n"
+        "except BadInput as e:\n    print(f'error: {e}', file=sys.stderr)\n    sys.exit(2)\n"
+    )
+    runs = [
+        ["-c", library, out / "model.h5"],
+        ["-m", "cdrb_cli", "export", src, "--compact", out / "copy.h5"],
+        ["-m", "cdrb_cli", "report", src, "--per-seed", "--out", out / "report.md"],
+    ]
+    for args in runs:
+        r = subprocess.run(
+            [sys.executable, *map(str, args)], capture_output=True, text=True, preexec_fn=limited, timeout=300,
+            cwd=Path(__file__).resolve().parent.parent, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )  # fmt: skip
+        if args[-1].name == "report.md" and r.returncode == 0:
+            continue  # the report fit under the limit: nothing to check
+        assert r.returncode == 2, (args[-1], r.returncode, r.stderr[-2000:])
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and "file too large while writing it; nothing was written" in lines[0], r.stderr
+        assert str(args[-1]) in lines[0] and "ulimit -f" in lines[0]
+        assert list(out.iterdir()) == [], list(out.iterdir())

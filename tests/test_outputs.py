@@ -253,6 +253,10 @@ def test_output_names_too_long_or_with_control_characters_are_one_line(tmp_path,
     r = cdrb("collect", "maze-tight", "-n", "1", "--out", f"{tmp_path}/c.h5/")
     assert r.returncode == 2 and "names a folder" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert not (tmp_path / "c.h5").exists()
+    ev = write(tmp_path / "ev.h5", "eval")
+    r = cdrb("export", ev, "--compact", f"{tmp_path}/e.h5/")
+    assert r.returncode == 2 and "names a folder" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "e.h5").exists()
 
 
 def test_a_failed_run_leaves_no_empty_folders_it_made(tmp_path):

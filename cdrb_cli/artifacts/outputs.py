@@ -54,10 +54,11 @@ def check_output(
     suffixes: tuple[str, ...] = (),
 ) -> Path:
     """Validate an output path before any work starts (see the module docstring); returns it as a Path."""
+    name = f"a file name such as plot{suffixes[0]}" if suffixes else "a file name"
     if names_a_folder(path):
         raise BadInput(
-            f"{flag} {os.fsdecode(os.fspath(path))}: names a folder (it ends with {os.sep!r})",
-            hint="give a file name such as model.h5",
+            f"{flag} {os.fsdecode(os.fspath(path)) or repr('')}: names a folder, not a file",
+            hint=f"give {name}",
         )
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -77,12 +78,13 @@ def check_output(
             f"{flag} {clip(path, 80)}: {exc.strerror or type(exc).__name__}", hint="choose a shorter path"
         ) from None
     if not is_folder:
+        if folder.exists():
+            raise BadInput(f"{flag} {path}: {folder} is a file, not a folder", hint="choose another path")
         raise BadInput(f"{flag} {path}: folder {folder} does not exist", hint="create it or choose another path")
     if path.is_symlink():
         raise BadInput(f"{flag} {path}: is a symbolic link", hint="pass the path of a regular file")
     if path.is_dir():
-        example = f"plot{suffixes[0]}" if suffixes else "model.h5"
-        raise BadInput(f"{flag} {path}: is a folder", hint=f"give a file name such as {example}")
+        raise BadInput(f"{flag} {path}: is a folder", hint=f"give {name} (in it, or elsewhere)")
     if path.exists():
         mode = path.stat().st_mode
         if not stat.S_ISREG(mode):
@@ -197,7 +199,9 @@ def _locked(path: Path, flag: str) -> Iterator[None]:
         os.close(fd)
     try:
         os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        # the holder's pid, for the message another run gets; a full disk leaves it out (the lock is the flock)
+        with contextlib.suppress(OSError):
+            os.write(fd, str(os.getpid()).encode())
         yield
     finally:
         with contextlib.suppress(FileNotFoundError):

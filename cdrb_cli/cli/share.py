@@ -31,7 +31,10 @@ def export_cmd(
         None, "--root", help="With --minari: the datasets folder (default: MINARI_DATASETS_PATH, else ~/.minari)."
     ),
     compact: Path | None = typer.Option(
-        None, "--compact", help="An eval: the file to write it to without its plans, every figure of them kept."
+        None,
+        "--compact",
+        help="An eval: the file to write it to without its plans, every figure of them kept.",
+        parser=file_path,
     ),
     force: bool = typer.Option(False, "--force", help="Replace a dataset of the same name, a folder or a file."),
 ) -> None:

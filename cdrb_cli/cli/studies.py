@@ -79,6 +79,11 @@ def report(
         raise BadInput(f"--docs writes markdown, not --format {fmt}", hint="drop --format or write it with --out")
     if paper_figures is not None and not paper:
         raise BadInput("--paper-figures goes with --paper", hint="add --paper, or drop --paper-figures")
+    if paper and per_seed:
+        raise BadInput(
+            "--paper adds the paper's rows to the grouped report, and --per-seed lists one row per file and seed",
+            hint="drop one of them (the paper's figures are means over seeds)",
+        )
     read = [*evals, *([] if paper_figures is None else [paper_figures])]
     check_outputs(force, read, docs=docs, out=out, plot=plot, plans_plot=plans_plot)
     if out is not None:

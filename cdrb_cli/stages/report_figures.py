@@ -67,7 +67,11 @@ def with_plans(evals) -> list:
     """The evals that :func:`plot_side_by_side` draws (those holding plans, of one environment), or why not."""
     evals = [ev for ev in evals if "plans" in ev.arrays]
     if not evals:
-        raise BadInput("--plans-plot: none of the eval files holds plans", hint="run `cdrb eval` without --no-plans")
+        raise BadInput(
+            "--plans-plot: none of the eval files holds plans",
+            hint="pass the evals a compact copy was made from (`cdrb export --compact` drops the plans), or run "
+            "`cdrb eval` again without --no-plans",
+        )
     envs = list(dict.fromkeys(ev.manifest.env.id for ev in evals))
     if len(envs) > 1:
         raise BadInput("--plans-plot needs evals of a single environment", hint=f"got {', '.join(envs)}")
