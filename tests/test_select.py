@@ -102,6 +102,18 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     # of it still rises
     assert not still_rising([_point("k2", 0, 5000, [98.0, 97.0, 96.0]), _point("k2", 0, 10000, [100.0, 100.0, 100.0])])
     assert still_rising([_point("k2", 0, 5000, [98.0, 97.0, 96.0]), _point("k2", 0, 10000, [100.0, 100.0, 99.0])])
+    # variants whose curves stop at different lengths: the best is judged against its own previous point (k2 at
+    # 2k), not the grid's second-longest length (3k, where only s8 has a point)
+    staggered = [
+        _point("k2", 0, 1000, [5.0, 8.0, 6.0]),
+        _point("k2", 0, 2000, [20.0, 25.0, 18.0]),
+        _point("k2", 0, 4000, [60.0, 66.0, 58.0]),
+        _point("s8", 1, 1000, [5.0, 6.0, 7.0]),
+        _point("s8", 1, 2000, [10.0, 12.0, 11.0]),
+        _point("s8", 1, 3000, [12.0, 12.0, 13.0]),
+    ]
+    rise = still_rising(staggered)[("maze", "cdrb")]
+    assert rise.best.variant == "k2" and rise.best.steps == 4000 and abs(rise.gain - 40.33) < 0.01
 
 
 def test_the_curve_judged_still_rising_is_the_one_the_rule_can_choose():

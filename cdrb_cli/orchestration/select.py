@@ -281,9 +281,11 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
         if len(lengths) < 2:
             continue
         last = min((c for c in mine if c.steps == lengths[-1]), key=Candidate.rank)
-        prev = next((c for c in mine if c.steps == lengths[-2] and c.variant == last.variant), None)
-        if prev is None:
+        # the same variant's previous point: variants' curves may stop at different lengths
+        shorter = [c for c in mine if c.variant == last.variant and c.steps < last.steps]
+        if not shorter:
             continue
+        prev = max(shorter, key=lambda c: c.steps)
         success = _paired_change(prev, last, "success")
         crossing = _paired_change(prev, last, "plans_through_obstacle")
         gains = success is not None and success[0] > success[1] and not all(v >= 100.0 for v in success[2])
