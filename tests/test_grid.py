@@ -1613,3 +1613,31 @@ def test_a_memo_records_the_defaults_an_eval_takes_from_its_protocol(flags, mean
     if meant:
         monkeypatch.setattr(PointMazeFamily, "start_tuned", {"cdrb": {"avoid.best_of": 2}})
         assert _meaning(task) != meant
+
+
+def test_a_grid_trains_over_its_own_models_when_a_setting_or_the_data_change(tmp_path):
+    """A model the grid wrote is its own: after a training setting (or the data) changes it is trained again with
+    the new one, where resuming would refuse a file of other settings; a model the memo does not vouch for is
+    still never trained over."""
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
+    text = text.replace("steps = 20\n", "steps = 20\nsnapshot_at = [10]\n")
+    path = _grid(tmp_path, text.replace('"batch_size=8"]', '"batch_size=8", "--set", "checkpoint_every=10"]'))
+    assert _cli("grid", str(path), "-j", "1").returncode == 0
+    model = tmp_path / "runs" / "maze-tight" / "mlp-s0.h5"
+    assert artifacts.load(model, "model").manifest.config.lr != 0.01
+    path.write_text(path.read_text() + '[[settings]]\ntrain = ["--set", "lr=0.01"]\n')
+    for change, check in (
+        ([], lambda m: m.manifest.config.lr == 0.01),
+        (["--set", "demos=41"], lambda m: m.manifest.parents[0].data_sha256
+         == artifacts.load(tmp_path / "runs" / "maze-tight" / "demos.h5", "demos").data_sha256),
+    ):  # fmt: skip
+        r = _cli("grid", str(path), "-j", "1", *change)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert check(artifacts.load(model, "model"))
+        snap = artifacts.load(model.with_name("mlp-s0.step10.h5"), "model")
+        assert snap.manifest.parents == artifacts.load(model, "model").manifest.parents
+    # a file of the same name the grid did not write is refused, not trained over
+    shutil.copy(model.with_name("mlp-s0.step10.h5"), model)  # another file: not the memo's
+    r = _cli("grid", str(path), "-j", "1", "--set", "steps=30")
+    assert r.returncode != 0 and "train maze-tight/mlp-s0" in r.stderr
+    assert artifacts.load(model, "model").manifest.state.step == 10

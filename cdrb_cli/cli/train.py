@@ -22,6 +22,7 @@ from cdrb_cli.cli.common import (
 )
 from cdrb_cli.cli.options import ConfigOpt, MethodOpt, NetOpt, PresetOpt, SetOpt
 from cdrb_cli.cli.tuned import read_selection, selection_train
+from cdrb_cli.errors import BadInput
 
 
 @app.command()
@@ -44,6 +45,13 @@ def train(
         Path("model.h5"), "--out", "-o", help="Model artifact to write (also the checkpoint).", parser=file_path
     ),
     resume: bool = typer.Option(False, "--resume", help="Continue the checkpoint in --out (same settings and inputs)."),
+    own: bool = typer.Option(
+        False,
+        "--continue-or-replace",
+        hidden=True,
+        help="Continue --out when it is a checkpoint of this run, else train over it: how `cdrb grid` trains into a "
+        "model file it wrote itself (a run of other settings is out of date there, never a user's file).",
+    ),
     log_dir: Path | None = typer.Option(
         None,
         "--log-dir",
@@ -77,6 +85,9 @@ def train(
     from cdrb_cli.torch_utils import setup_torch
 
     check_positive("--steps", steps)
+    if own and (resume or force):
+        raise BadInput("--continue-or-replace decides itself whether to resume or start over",
+                       hint="drop --resume and --force")  # fmt: skip
     if log_dir is not None:
         from cdrb_cli.stages.train_log import summary_writer
 
@@ -108,6 +119,7 @@ def train(
         out,
         force=force,
         resume=resume,
+        auto=own,
         device=setup_torch(device),
         snapshots=snapshots,
         profile=profile,

@@ -23,7 +23,7 @@ GRID_OPTIONS = {
 #: the options by which the grid runs its tasks (it resumes a training whose model is there, replaces only its own
 #: out-of-date artifacts, and lists its commands with its own ``--dry-run``): in a flag list they would make a task
 #: overwrite a user's file, fail on a fresh start, or be recorded done without its artifact
-RUN_OPTIONS = {"force", "resume", "dry_run"}
+RUN_OPTIONS = {"force", "resume", "own", "dry_run"}
 #: the settings (``--set KEY``) behind those options
 GRID_SETTINGS = {"train": {"method", "method.name", "preset", "seed"}, "eval": {"episodes", "seeds", "stream", "seed"}}
 

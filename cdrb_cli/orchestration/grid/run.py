@@ -39,18 +39,22 @@ from cdrb_cli.orchestration.grid.reuse import REUSABLE, regular_sha
 from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task
 from cdrb_cli.settings import clip
 
-
 # ------------------------------------------------------------------------------------------------ execution
+#: `cdrb train`'s hidden option for a model file the grid wrote itself: resume it if it is this run, else start over
+OWN_MODEL = "--continue-or-replace"
+
+
 def execute(payload: dict, server=None) -> dict:
     """Run one task's `cdrb` command in a process of its own (on this machine or a Ray worker): forked by the local
     pool's warm ``server`` (:mod:`~cdrb_cli.orchestration.grid.warm`) where there is one, else a fresh `python -m
     cdrb_cli`. A training whose model file is there is continued with ``--resume``: a checkpoint an earlier attempt
     left unfinished, or a finished shorter run of the same settings that the grid now trains longer (a curve
-    extended to more steps); the command itself refuses a file of other settings."""
+    extended to more steps); the command itself refuses a file of other settings, unless the grid wrote that file
+    itself (:data:`OWN_MODEL`: then a run of other settings or data is out of date and trained over)."""
     from cdrb_cli.orchestration.grid.warm import cold_only, parent_death_hook, run_task
 
     argv = list(payload["argv"])
-    if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file():
+    if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file() and OWN_MODEL not in argv:
         argv.append("--resume")
     for out in payload["outputs"]:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
@@ -348,6 +352,10 @@ def run_grid(
         argv = task.argv
         if task.kind in ("collect", "cluster", "eval", "report") and written_here(spec, task, cache):
             argv = [*argv, "--force"]  # this grid's own artifact, now out of date (its model was trained on)
+        elif task.kind == "train" and written_here(spec, task, cache):
+            # its own model: continued when the run is the same (a curve extended), else trained over (a setting
+            # or the data changed since)
+            argv = [*argv, OWN_MODEL]
         payload = {"argv": argv, "kind": task.kind, "outputs": [str(p) for p in task.outputs]}
         payload |= {"cpus": res.cpus, "gpus": res.gpus}
         if logs:  # made here, before the task is handed over, so no poll reads an earlier attempt's lines
