@@ -232,6 +232,9 @@ def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_exten
         load_grid(grid)
     grid.write_text(grid.read_text().replace("steps = 400", "steps = 200"))
     assert load_grid(grid).steps_cap == 200
+    grid.write_text(grid.read_text().replace("steps_cap = 200", "steps_cap = 50"))  # below the first stage
+    with pytest.raises(BadInput, match="steps_cap = 50 is below the grid's steps = 100"):
+        load_grid(grid)
 
 
 def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path):

@@ -305,6 +305,14 @@ class GridSpec(_Strict):
                 raise ValueError(f"{exc.message} ({exc.hint})" if exc.hint else exc.message) from None
         return value
 
+    @field_validator("steps_cap")
+    @classmethod
+    def _cap_at_least_steps(cls, value: int | None, info) -> int | None:
+        steps = info.data.get("steps")
+        if value is not None and steps is not None and value < steps:
+            raise ValueError(f"steps_cap = {value} is below the grid's steps = {steps}: no run may pass the cap")
+        return value
+
     @field_validator("extend")
     @classmethod
     def _under_the_cap(cls, value: list[Extension], info) -> list[Extension]:
