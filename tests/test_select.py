@@ -319,6 +319,55 @@ def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_pa
                 checked_eval(spec, task, ev, [], trains)
 
 
+def test_an_eval_whose_model_was_trained_on_other_data_than_the_grid_makes_is_refused(tmp_path):
+    """The data chain: the demos the grid's collect task writes must be what its command makes (`--set demos=41`
+    at select time, where the grid collected 40), and the model must have been trained on what that file holds now
+    (the data made again since)."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.select_evals import checked_eval
+    from tests import factories
+
+    grid = tmp_path / "tune.toml"
+    grid.write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\neval_stream = "tune"\n'
+    )
+    spec = load_grid(grid)
+    tasks = expand(spec)
+    trains = {o: t for t in tasks if t.kind == "train" for o in t.outputs}
+    makers = {o: t for t in tasks if t.kind in ("collect", "cluster") for o in t.outputs}
+    task = next(t for t in tasks if t.id == "eval maze-tight/mlp-s0")
+    train = next(t for t in tasks if t.id == "train maze-tight/mlp-s0")
+    collect = next(t for t in tasks if t.kind == "collect")
+    manifest, arrays = factories.build("eval")
+    ev = tmp_path / "eval.h5"
+    artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
+    demos_path, model = collect.outputs[0], task.inputs[0]
+    model.parent.mkdir(parents=True, exist_ok=True)
+
+    def data(argv, seed=0):
+        d_manifest, d_arrays = factories.build("demos", seed=seed)
+        artifacts.save(demos_path, "demos", d_manifest.model_copy(update={"argv": ["cdrb", *argv]}), d_arrays)
+        return artifacts.load(demos_path, "demos")
+
+    m_manifest, m_arrays = factories.build("model")
+    trained_on = data(collect.argv)
+    parents = [artifacts.parent_ref(trained_on)]
+    artifacts.save(model, "model", m_manifest.model_copy(update={"argv": ["cdrb", *train.argv], "parents": parents}),
+                   m_arrays)  # fmt: skip
+    spec._shas.clear()
+    checked_eval(spec, task, ev, [], trains, makers)
+    n = collect.argv.index("-n")
+    data([*collect.argv[: n + 1], "41", *collect.argv[n + 2 :]])
+    spec._shas.clear()
+    with pytest.raises(BadInput, match=r"trained on .*demos.h5, which was not made as this grid's task"):
+        checked_eval(spec, task, ev, [], trains, makers)
+    data(collect.argv, seed=1)  # the same command, other data in the file than the model was trained on
+    spec._shas.clear()
+    with pytest.raises(BadInput, match="its model was trained on other demos than"):
+        checked_eval(spec, task, ev, [], trains, makers)
+
+
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
     obstacle (none for a policy), and * where its curve still rises."""

@@ -82,10 +82,12 @@ def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
     order = {v.name: i for i, v in enumerate(spec.variants or [BASE])}
     found: dict[tuple, Candidate] = {}
     missing = []
-    by_output, trains = {}, {}
+    by_output, trains, makers = {}, {}, {}
     for task in expand(spec) if tasks is None else tasks:
         if task.kind == "train":
             trains |= dict.fromkeys(task.outputs, task)
+        if task.kind in ("collect", "cluster"):
+            makers |= dict.fromkeys(task.outputs, task)
         if task.kind != "eval":
             continue
         by_output[task.outputs[0]] = task
@@ -106,7 +108,7 @@ def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
         )
     unchecked: list[Path] = []
     for cand in found.values():
-        evals = [checked_eval(spec, by_output[p], p, unchecked, trains) for p in cand.evals]
+        evals = [checked_eval(spec, by_output[p], p, unchecked, trains, makers) for p in cand.evals]
         cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
         cand.success_std = seed_spread(cand.models)
         per = [r for ev in evals for r in per_seed(ev)]

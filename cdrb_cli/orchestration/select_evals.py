@@ -30,13 +30,21 @@ def _without_length(argv: list[str]) -> list[str]:
     return kept
 
 
-def checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None = None, trains: dict | None = None):
+def checked_eval(
+    spec: GridSpec,
+    task,
+    path: Path,
+    unchecked: list[Path] | None = None,
+    trains: dict | None = None,
+    makers: dict | None = None,
+):
     """The eval artifact at a task's output, refused unless it is what the task measures: the same command but for
     where files lie (:func:`grid.measure_difference`), a model of the task's training length (a run's final model
     keeps its name when a curve is extended), and, where the model it evaluated is here, that same model (the same
     bytes or, as every stage judges an input, the same data) trained as the grid's training task (``trains``: task
-    by output) trains it. An eval that records no training length, of a model that is not here, is appended to
-    ``unchecked``."""
+    by output) trains it, on the data the grid's collect and cluster tasks (``makers``: task by output) make, where
+    those files are here (:func:`_check_data`). An eval that records no training length, of a model that is not
+    here, is appended to ``unchecked``."""
     from cdrb_cli.orchestration.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
@@ -96,7 +104,50 @@ def checked_eval(spec: GridSpec, task, path: Path, unchecked: list[Path] | None 
                 f"{path}: its model {model.name} was not trained as this grid's task ({train.id}) trains it: {why}",
                 hint="run `cdrb select` with the --set/--include the grid ran with",
             )
+    if train is not None and here is not None:
+        for data in train.inputs:
+            if data in (makers or {}):
+                _check_data(spec, path, model_here(), data, makers[data])
     return ev
+
+
+#: the artifact kind each data-making task writes
+_MADE = {"collect": "demos", "cluster": "buffer"}
+
+
+def _check_data(spec: GridSpec, path: Path, model, data: Path, maker) -> None:
+    """A file the grid's ``maker`` task writes (demos, a buffer) and the eval's ``model`` was trained on, where it
+    is here: the model was trained on what it holds now, and it holds what the task's command makes (a setting of
+    the data changed, as `--set demos=...`, makes both the data and the models out of date)."""
+    from cdrb_cli.orchestration.grid import file_sha, measure_difference
+
+    kind, sha = _MADE.get(maker.kind), file_sha(data, spec._shas)
+    if kind is None or sha is None:
+        return
+    held = _data(data, kind, sha)
+    made = list(held.manifest.argv[1:])
+    while made and made[0].startswith("-"):
+        made.pop(0)
+    why = measure_difference(made, maker.argv) if made else None
+    if why is not None:
+        raise BadInput(
+            f"{path}: its model was trained on {data}, which was not made as this grid's task ({maker.id}) makes "
+            f"it: {why}",
+            hint="run `cdrb select` with the --set/--include the grid ran with, or run `cdrb grid` on it first",
+        )
+    recorded = [p for p in model.manifest.parents if p.kind == kind]
+    if recorded and not artifacts.same_inputs(recorded[:1], [held]):
+        raise BadInput(
+            f"{path}: its model was trained on other {kind} than {data} holds now",
+            hint="run `cdrb grid` on the same file: it trains and measures the models on the data there again",
+        )
+
+
+@functools.lru_cache(maxsize=8)
+def _data(path: Path, kind: str, sha: str):
+    """A data artifact (``sha``: its file's, so a file rewritten since is read again), read once for all the evals
+    whose models were trained on it."""
+    return artifacts.load(path, kind)
 
 
 def _place(spec: GridSpec, path: Path) -> Path | None:
