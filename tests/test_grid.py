@@ -1451,6 +1451,9 @@ def test_a_grid_reuses_the_finished_runs_of_another_down_to_a_snapshot(tmp_path)
     assert "train maze-tight/cdrb-s0" in {t.id for t in expand(load_grid(grid))}
     with pytest.raises(BadInput, match="reuse: names the grid's own"):
         load_grid(_grid(tmp_path, table.replace('reuse = ["curves"]', 'reuse = ["runs"]'), "self.toml"))
+    for reuse, needle in (('[""]', "an empty path"), ('["curves", "curves/"]', "names a folder twice")):
+        with pytest.raises(BadInput, match=needle):
+            load_grid(_grid(tmp_path, table.replace('reuse = ["curves"]', f"reuse = {reuse}"), "bad.toml"))
 
 
 def test_a_finished_curve_is_extended_by_resuming_its_runs(tmp_path):

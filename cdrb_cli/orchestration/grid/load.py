@@ -239,7 +239,13 @@ def _pick_variants(variants: list, names, path: Path, overrides: list[str]) -> l
 
 def _check_reuse(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
     """The ``reuse`` folders, made absolute: never the grid's own `out`, never a file; a missing one warned of."""
+    if any(not str(r).strip() or str(r) == "." for r in spec.reuse):
+        raise BadInput(f"{_origin(path, overrides, 'reuse')}: reuse: an empty path (it would name the grid file's "
+                       "own folder)", hint="list other grids' `out` folders")  # fmt: skip
     spec.reuse = [(Path.cwd() if "reuse" in set_keys else path.parent).joinpath(r).resolve() for r in spec.reuse]
+    if len(set(spec.reuse)) != len(spec.reuse):
+        raise BadInput(f"{_origin(path, overrides, 'reuse')}: reuse: names a folder twice",
+                       hint="list each folder once")  # fmt: skip
     if spec.out in spec.reuse:
         raise BadInput(f"{_origin(path, overrides, 'reuse', 'out')}: reuse: names the grid's own `out` folder",
                        hint="list other grids' `out` folders")  # fmt: skip
@@ -251,6 +257,8 @@ def _check_reuse(spec: GridSpec, path: Path, overrides: list[str], set_keys: set
             )
         if not folder.exists():  # a grid may name the folder of one not run yet (Table 1 before its curves)
             ui.warn(f"reuse: {folder}: no such folder yet, so nothing is reused from it (a typo?)")
+        elif not (folder / ".grid").is_dir():
+            ui.warn(f"reuse: {folder}: no grid has run there (it has no .grid/), so nothing is reused from it")
 
 
 def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
