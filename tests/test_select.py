@@ -280,13 +280,10 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
         checked_eval(spec, task, other)
 
 
-def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_path):
-    """select run without the --include or --set the grid ran with sees the same eval commands, but the models
-    beside them record other training flags: those evals are not this grid's to score. A curve's stages differ in
-    training length (and a resume) alone, which is no difference."""
-    from cdrb_cli.errors import BadInput
+def _one_mlp_tuning_grid(tmp_path):
+    """A tuning grid of one MLP run (100 steps), expanded: its spec, tasks, trainings by output, its eval task, its
+    training task, and an eval file recording that eval task's command."""
     from cdrb_cli.orchestration.grid import expand, load_grid
-    from cdrb_cli.orchestration.select_evals import checked_eval
     from tests import factories
 
     grid = tmp_path / "tune.toml"
@@ -301,6 +298,18 @@ def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_pa
     manifest, arrays = factories.build("eval")
     ev = tmp_path / "eval.h5"
     artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
+    return spec, tasks, trains, task, train, ev
+
+
+def test_an_eval_whose_model_here_was_trained_with_other_flags_is_refused(tmp_path):
+    """select run without the --include or --set the grid ran with sees the same eval commands, but the models
+    beside them record other training flags: those evals are not this grid's to score. A curve's stages differ in
+    training length (and a resume) alone, which is no difference."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.select_evals import checked_eval
+    from tests import factories
+
+    spec, tasks, trains, task, train, ev = _one_mlp_tuning_grid(tmp_path)
     m_manifest, m_arrays = factories.build("model")
     model = task.inputs[0]
     model.parent.mkdir(parents=True, exist_ok=True)
@@ -324,24 +333,12 @@ def test_an_eval_whose_model_was_trained_on_other_data_than_the_grid_makes_is_re
     at select time, where the grid collected 40), and the model must have been trained on what that file holds now
     (the data made again since)."""
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.orchestration.grid import expand, load_grid
     from cdrb_cli.orchestration.select_evals import checked_eval
     from tests import factories
 
-    grid = tmp_path / "tune.toml"
-    grid.write_text(
-        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\neval_stream = "tune"\n'
-    )
-    spec = load_grid(grid)
-    tasks = expand(spec)
-    trains = {o: t for t in tasks if t.kind == "train" for o in t.outputs}
+    spec, tasks, trains, task, train, ev = _one_mlp_tuning_grid(tmp_path)
     makers = {o: t for t in tasks if t.kind in ("collect", "cluster") for o in t.outputs}
-    task = next(t for t in tasks if t.id == "eval maze-tight/mlp-s0")
-    train = next(t for t in tasks if t.id == "train maze-tight/mlp-s0")
     collect = next(t for t in tasks if t.kind == "collect")
-    manifest, arrays = factories.build("eval")
-    ev = tmp_path / "eval.h5"
-    artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
     demos_path, model = collect.outputs[0], task.inputs[0]
     model.parent.mkdir(parents=True, exist_ok=True)
 

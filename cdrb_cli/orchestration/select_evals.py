@@ -14,6 +14,15 @@ from cdrb_cli.orchestration.grid import GridSpec, parse_command
 from cdrb_cli.settings import clip
 
 
+def _command(artifact) -> list[str]:
+    """The `cdrb` command line an artifact records, from its command on: cdrb's own options (-q, --debug) before
+    the command left out."""
+    argv = list(artifact.manifest.argv[1:])
+    while argv and argv[0].startswith("-"):
+        argv.pop(0)
+    return argv
+
+
 def _without_length(argv: list[str]) -> list[str]:
     """A training's command line without how long it trains and where it keeps snapshots (a curve's stages differ
     in these alone; the eval's record of its model's steps is checked on its own)."""
@@ -48,9 +57,7 @@ def checked_eval(
     from cdrb_cli.orchestration.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
-    made = list(ev.manifest.argv[1:])
-    while made and made[0].startswith("-"):  # cdrb's own options (-q, --debug) before the command
-        made.pop(0)
+    made = _command(ev)
     why = measure_difference(made, task.argv)
     if why is not None:
         raise BadInput(
@@ -95,9 +102,7 @@ def checked_eval(
                 hint="run `cdrb grid` on the same file (same --set/--include): it measures the model there again",
             )
     if train is not None and here is not None:  # the model here, trained with other flags than the grid's now
-        trained_by = list(model_here().manifest.argv[1:])
-        while trained_by and trained_by[0].startswith("-"):
-            trained_by.pop(0)
+        trained_by = _command(model_here())
         why = measure_difference(_without_length(trained_by), _without_length(train.argv)) if trained_by else None
         if why is not None:
             raise BadInput(
@@ -125,9 +130,7 @@ def _check_data(spec: GridSpec, path: Path, model, data: Path, maker) -> None:
     if kind is None or sha is None:
         return
     held = _data(data, kind, sha)
-    made = list(held.manifest.argv[1:])
-    while made and made[0].startswith("-"):
-        made.pop(0)
+    made = _command(held)
     why = measure_difference(made, maker.argv) if made else None
     if why is not None:
         raise BadInput(

@@ -285,10 +285,8 @@ def collect_rows(evals) -> list[dict]:
             seeds = [r.seed for r in pooled[label]]
             if len(seeds) != len(set(seeds)):
                 dup = sorted({x for x in seeds if seeds.count(x) > 1})
-                paths = [ev.path for ev in group if dup[0] in {r.seed for r in per_seed(ev)}][:2]
-                # by name, or by path where the two share a name (the same file name in two folders)
-                files = [clip(p.name, 40) for p in paths] if len({p.name for p in paths}) == 2 else [
-                    f"...{str(p)[-57:]}" if len(str(p)) > 60 else str(p) for p in paths]  # fmt: skip
+                holding = [ev for ev in group if dup[0] in {r.seed for r in per_seed(ev)}]
+                files = two_names(*holding[:2]) if len(holding) > 1 else [clip(holding[0].path.name, 40)]
                 raise BadInput(
                     f"{label} on {env_id}: evaluation seed(s) {dup} appear in more than one eval file "
                     f"({', '.join(files)})",
