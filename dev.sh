@@ -12,9 +12,9 @@ setup() {
   fi
   # torch first, pinned: 2.13.0 is a local CPU build here; a bare `torch` requirement would pull CUDA wheels.
   "$VENV/bin/python" -m pip install -q torch==2.13.0
-  # the tests also run `cdrb grid` on a local Ray instance, Minari round trips, TensorBoard logs and the planners'
-  # ONNX runtime: the optional [ray], [minari], [tensorboard] and [onnx] extras are part of the dev set-up
-  "$VENV/bin/python" -m pip install -q -e ".[dev,ray,minari,tensorboard,onnx]"
+  # the tests also run `cdrb grid` on a local Ray instance, Minari round trips and TensorBoard logs: the optional
+  # [ray], [minari] and [tensorboard] extras are part of the dev set-up
+  "$VENV/bin/python" -m pip install -q -e ".[dev,ray,minari,tensorboard]"
 }
 
 case "${1:-}" in

@@ -11,8 +11,10 @@ For each tree a fresh process loads the model and measures, on the same protocol
 The trees run alternately, ``--rounds`` times (the median of the rounds is kept), so a machine that slows down
 for a while slows both. ``--variants`` runs one tree twice: as it is, and with its fast paths off where it has them
 (the traced network, CUDA graphs), to show what each adds; ``--onnx`` once more with the network in ONNX Runtime
-(``runtime="onnx"``), ``--compile`` with it through ``torch.compile`` (``runtime="compile"``; its compile time is
-spent in the warm-up, outside the timings).
+(``runtime="onnx"``), ``--auto`` with the Python API's default rule (``runtime="auto"``: ONNX Runtime for small
+batches, torch for large ones; its safety columns are then torch's, measured at batch 64), ``--compile`` with the
+network through ``torch.compile`` (``runtime="compile"``; its compile time is spent in the warm-up, outside the
+timings).
 
 Usage:
   git worktree add /tmp/before 9a30df8
@@ -107,6 +109,7 @@ def main() -> None:
     ap.add_argument("--variants", action="store_true", help="also run each tree with its fast paths off")
     ap.add_argument("--onnx", action="store_true", help="also run each tree with runtime onnx (ONNX Runtime)")
     ap.add_argument("--compile", action="store_true", help="also run each tree with runtime compile (torch.compile)")
+    ap.add_argument("--auto", action="store_true", help="also run each tree with runtime auto (the API's default)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--pairs", type=int, default=200)
@@ -123,7 +126,7 @@ def main() -> None:
         import torch
 
         torch.set_num_threads(args.threads)
-        fast, runtime = args.worker != "plain", args.worker if args.worker in ("onnx", "compile") else None
+        fast, runtime = args.worker != "plain", args.worker if args.worker in ("onnx", "compile", "auto") else None
         fig = measure(
             args.model, args.device, args.pairs, args.plans, batches, args.seed, fast, args.sample_steps, runtime
         )
@@ -140,6 +143,8 @@ def main() -> None:
         runs += [(f"{name}, onnx runtime", path, "onnx") for name, path in trees]
     if args.compile:
         runs += [(f"{name}, compile runtime", path, "compile") for name, path in trees]
+    if args.auto:
+        runs += [(f"{name}, auto runtime", path, "auto") for name, path in trees]
     figures: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
     for r in range(args.rounds):
         for name, path, mode in runs:

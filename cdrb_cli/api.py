@@ -55,6 +55,9 @@ class Plans:
     iterates: np.ndarray | None = None
     #: the diffusion step of each kept iterate (None without them)
     iterate_steps: list[int] | None = None
+    #: where the network ran: ``torch``, ``onnx``, ``compile``, or ``onnx+torch`` when the batches of a call split
+    #: between them (``runtime="auto"``)
+    runtime: str = "torch"
 
 
 def _settings(settings: dict | None, **fields) -> list:
@@ -157,17 +160,19 @@ class Planner:
         route_clearance: float | None = None,
         settings: dict | None = None,
         allow_partial: bool = False,
-        runtime: str = "torch",
+        runtime: str = "auto",
     ):
         """``scene``: plan among obstacles the data never saw (`cdrb plan --scene`: a maze map with walls added, a
         Fetch TOML file of boxes put down), avoiding them as `cdrb plan` does by default (``settings={"avoid":
         "plain"}``: as the model is); ``mask_buffer``, ``best_of``, ``route_k``, ``route_clearance``,
         ``guide_scale``: the ``avoid.*`` settings of those names; ``settings``: any plan setting by its dotted key
         (`cdrb config plan`); ``allow_partial``: plan with an unfinished training's checkpoint (a warning);
-        ``runtime``: ``"onnx"`` runs the network in ONNX Runtime on the CPU (the ``onnx`` extra): faster for plans
-        made one at a time, slower in large batches, its plans equal to torch's to float rounding; ``"compile"``
-        runs it through ``torch.compile`` on any device: faster on a GPU, after tens of seconds of compiling at the
-        first plan of each batch size (:mod:`cdrb_cli.nets.runtime`)."""
+        ``runtime``: where the diffusion planners' network runs. ``"auto"`` (the default): in ONNX Runtime for a
+        call of up to 16 plans on the CPU, where it is faster, else in torch; ``"torch"``: always torch, as `cdrb
+        plan` and `cdrb eval` run it; ``"onnx"``: always ONNX Runtime (CPU only; slower in large batches);
+        ``"compile"``: through ``torch.compile`` on any device, faster on a GPU after tens of seconds of compiling
+        at the first plan of each batch size. Plans in ONNX Runtime equal torch's to float rounding, not bit for
+        bit; :attr:`Plans.runtime` says which ran (:mod:`cdrb_cli.nets.runtime`)."""
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
         from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
         from cdrb_cli.stages.share import check_finished, load_model
@@ -192,7 +197,7 @@ class Planner:
         self.config = plan_config(self.model, given, scene_file=self._scene_file)
         self.device = _device(device)
         self.method = load_planner(self.model, device=self.device, ema=self.config.use_ema)
-        self.method.use_runtime(_text(runtime, "runtime", 'pass "torch", "onnx" or "compile"'), "runtime")
+        self.method.use_runtime(_text(runtime, "runtime", 'pass "auto", "torch", "onnx" or "compile"'), "runtime")
         self._route = load_route_buffer(route_buffer_path(given))
         self.avoidance = prepare_planner(self.method, self._spec, self.config.avoid, self._route)
 
@@ -271,6 +276,7 @@ class Planner:
             if avoid.fallback_route_k is not None and avoid.graph is None:
                 avoid.graph = buffer_graph(self.method, self.spec, config.avoid, self._route)
                 self.avoidance.graph = avoid.graph  # built once: the same buffer and scene for every call
+        self.method.runtimes_used = set()
         out = sample_plans(
             self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, config.keep_iterates,
             batch_size=config.batch, device=self.device, avoid=avoid,
@@ -286,6 +292,7 @@ class Planner:
             seconds=out.seconds,
             iterates=out.iterates,
             iterate_steps=out.iterate_steps,
+            runtime="+".join(sorted(self.method.runtimes_used)) or "torch",
         )
 
 

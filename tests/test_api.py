@@ -203,7 +203,7 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     import sys
 
     for m in (model, tiny_models["diffuser"]):
-        reference = api.Planner(m.path).plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
+        reference = api.Planner(m.path, runtime="torch").plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
         planner = api.Planner(m.path, runtime="onnx")
         first, again = (planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3) for _ in range(2))
         assert "_onnx" in planner.method.__dict__  # the session ran the network
@@ -211,7 +211,10 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
         np.testing.assert_allclose(first.features, reference.features, atol=1e-4)
         assert np.abs(first.features - reference.features).max() > 0 or m is model  # not torch under another name
     for kw, needle in (
-        ({"runtime": "tensorrt"}, "runtime = 'tensorrt': not a runtime (pass one of 'torch', 'onnx', 'compile')"),
+        (
+            {"runtime": "tensorrt"},
+            "runtime = 'tensorrt': not a runtime (pass one of 'torch', 'onnx', 'compile', 'auto')",
+        ),
         ({"runtime": None}, "runtime = None: not a string"),
     ):
         with pytest.raises(BadInput, match=re.escape(needle)):
@@ -226,7 +229,7 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     # weights changed in place after the session was built: the next plan runs the new ones, as torch would
     import torch
 
-    onnx_planner, torch_planner = api.Planner(model.path, runtime="onnx"), api.Planner(model.path)
+    onnx_planner, torch_planner = api.Planner(model.path, runtime="onnx"), api.Planner(model.path, runtime="torch")
     onnx_planner.plan([0.0, 0.0], [6.0, 6.0], seed=1)
     for p in (onnx_planner, torch_planner):
         with torch.no_grad():
@@ -265,8 +268,46 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     with pytest.raises(BadInput, match=r"could not export and load the network: unexpected 'dynamo' \(leave runtime"):
         OnnxNet(onnx_planner.method.net, x, k)
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # as if it were not installed
-    with pytest.raises(BadInput, match=re.escape("onnx and onnxruntime are not installed (pip install 'cdrb[onnx]')")):
+    with pytest.raises(
+        BadInput, match=re.escape("onnx and onnxruntime are not installed (pip install onnx onnxruntime)")
+    ):
         api.Planner(model.path, runtime="onnx")
+
+
+def test_the_auto_runtime_plans_small_batches_in_onnx_and_large_ones_in_torch(model, tiny_models, monkeypatch):
+    """The API's default runtime "auto" runs a call of up to AUTO_ONNX_BATCH plans in ONNX Runtime and a larger one
+    in torch, bit for bit as those runtimes do, and says which ran; where ONNX Runtime cannot run (no U-Net, not
+    installed, an exporter that fails) it plans with torch instead of refusing."""
+    import sys
+
+    import torch
+
+    from cdrb_cli.nets.runtime import AUTO_ONNX_BATCH
+
+    auto = api.Planner(model.path)
+    explicit = {r: api.Planner(model.path, runtime=r) for r in ("onnx", "torch")}
+    for n, runtime in ((1, "onnx"), (AUTO_ONNX_BATCH, "onnx"), (AUTO_ONNX_BATCH + 1, "torch")):
+        plans = auto.plan([0.0, 0.0], [6.0, 6.0], n=n, seed=5)
+        assert plans.runtime == runtime, n
+        same = explicit[runtime].plan([0.0, 0.0], [6.0, 6.0], n=n, seed=5)
+        assert same.runtime == runtime
+        np.testing.assert_array_equal(plans.features, same.features)
+    # a call whose batches split (n above the batch size, the last batch small) names both
+    split = api.Planner(model.path, settings={"batch": AUTO_ONNX_BATCH + 2}).plan([0.0, 0.0], [6.0, 6.0], n=20, seed=0)
+    assert split.runtime == "onnx+torch"
+    assert api.Planner(tiny_models["mlp"].path).plan([0.0, 0.0], [6.0, 6.0], seed=0).runtime == "torch"
+    # an exporter that fails: a warning naming the failure, and torch's plans
+    monkeypatch.setattr(torch.onnx, "export", lambda *a, **kw: (_ for _ in ()).throw(TypeError("unexpected 'dynamo'")))
+    broken = api.Planner(model.path)
+    with pytest.warns(UserWarning, match=r"could not export and load the network: unexpected 'dynamo'; planning with"):
+        fallback = broken.plan([0.0, 0.0], [6.0, 6.0], n=1, seed=5)
+    assert fallback.runtime == "torch"
+    np.testing.assert_array_equal(
+        fallback.features, explicit["torch"].plan([0.0, 0.0], [6.0, 6.0], n=1, seed=5).features
+    )
+    monkeypatch.undo()
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # as if it were not installed
+    assert api.Planner(model.path).plan([0.0, 0.0], [6.0, 6.0], n=1, seed=5).runtime == "torch"
 
 
 def test_the_compile_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(model, tiny_models, monkeypatch):
@@ -283,7 +324,7 @@ def test_the_compile_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly
 
     from cdrb_cli.nets.runtime import check_runtime
 
-    reference = api.Planner(model.path).plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
+    reference = api.Planner(model.path, runtime="torch").plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)
     graphs = counters["stats"]["unique_graphs"]
     planner = api.Planner(model.path, runtime="compile")
     first = planner.plan([0.0, 0.0], [6.0, 6.0], n=8, seed=3)

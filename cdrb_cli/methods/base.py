@@ -24,6 +24,7 @@ import numpy as np
 from cdrb_cli.buffer import Normalizer, feature_dim
 from cdrb_cli.configs import TrainConfig
 from cdrb_cli.envs.spec import EnvSpec
+from cdrb_cli.errors import BadInput
 from cdrb_cli.lazy import torch
 from cdrb_cli.nets import build_net
 from cdrb_cli.torch_utils import adam
@@ -145,8 +146,9 @@ class Method:
 
     #: whether :meth:`sample_net` may run a trace of the network (off: the module itself; benchmarks compare both)
     trace_sampling: ClassVar[bool] = True
-    #: where :meth:`sample_net` runs the network: ``torch``, ``onnx`` (ONNX Runtime on the CPU) or ``compile``
-    #: (``torch.compile``; see :mod:`cdrb_cli.nets.runtime`; set by :meth:`use_runtime`)
+    #: where :meth:`sample_net` runs the network: ``torch``, ``onnx`` (ONNX Runtime on the CPU), ``compile``
+    #: (``torch.compile``) or ``auto`` (ONNX Runtime for small batches on the CPU, else torch; see
+    #: :mod:`cdrb_cli.nets.runtime`; set by :meth:`use_runtime`)
     runtime: str = "torch"
     #: network calls made before :meth:`sample_net` traces it: the first trace in a process costs ~0.5 s of
     #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
@@ -157,11 +159,11 @@ class Method:
         """The span of one sampling call (a plan, a repair): :meth:`sample_net` looks at the network's weights at its
         first network call within it and trusts that answer until it ends (weights cannot change mid-call); outside
         one, every network call looks again."""
-        self._onnx_checked, self._in_sampling_call = False, True
+        self._onnx_checked, self._in_sampling_call, self._auto_pick = False, True, None
         try:
             yield
         finally:
-            self._onnx_checked, self._in_sampling_call = False, False
+            self._onnx_checked, self._in_sampling_call, self._auto_pick = False, False, None
 
     def sample_net(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, once it
@@ -173,29 +175,33 @@ class Method:
         where tracing fails, the module itself runs, the same bits more slowly. With :attr:`runtime` ``onnx`` every
         call runs in ONNX Runtime instead (:class:`~cdrb_cli.nets.runtime.OnnxNet`), with ``compile`` through
         ``torch.compile`` (:class:`~cdrb_cli.nets.runtime.CompiledNet`; it reads the module's parameters at every
-        call, so new weights need no check)."""
+        call, so new weights need no check). With ``auto``, :meth:`_auto_runtime` picks one of ``onnx`` and
+        ``torch`` per sampling call; :attr:`runtimes_used` collects the runtimes that ran."""
         net = self.net
         if net.training or torch.is_grad_enabled():
             return net(x, k)
-        if self.runtime == "compile":  # from the first call, as onnx
+        runtime = self._auto_runtime(x) if self.runtime == "auto" else self.runtime
+        self.__dict__.setdefault("runtimes_used", set()).add(runtime)
+        if runtime == "onnx" and self.runtime == "auto":
+            try:
+                return self._onnx_call(net, x, k)
+            except BadInput as exc:  # an exporter or runtime that cannot take this network: torch runs it
+                import warnings
+
+                warnings.warn(f"{exc.message}; planning with torch", stacklevel=2)
+                self._auto_onnx, self._auto_pick = False, "torch"
+                self.runtimes_used.discard("onnx")
+                self.runtimes_used.add("torch")
+                runtime = "torch"
+        if runtime == "compile":  # from the first call, as onnx
             compiled = self.__dict__.get("_compiled")
             if compiled is None or compiled[0] is not net:
                 from cdrb_cli.nets.runtime import CompiledNet
 
                 self._compiled = compiled = (net, CompiledNet(net))
             return compiled[1](x, k)
-        if self.runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
-            from cdrb_cli.nets.runtime import OnnxNet, weights_version
-
-            onnx = self.__dict__.get("_onnx")
-            # weights are looked at once per sampling call (walking every parameter before each of its network
-            # calls cost about a quarter of a plan at batch 1): they cannot change while it runs
-            if onnx is None or onnx[0] is not net or not self.__dict__.get("_onnx_checked"):
-                version = weights_version(net)
-                if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
-                    self._onnx = onnx = (net, version, OnnxNet(net, x, k))
-                self._onnx_checked = self.__dict__.get("_in_sampling_call", False)
-            return onnx[2](x, k)
+        if runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
+            return self._onnx_call(net, x, k)
         if not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
         cache = self.__dict__.setdefault("_traces", {})
@@ -219,11 +225,41 @@ class Method:
         traced = cache[key]
         return net(x, k) if traced is None else traced(x, k)
 
+    def _onnx_call(self, net, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        from cdrb_cli.nets.runtime import OnnxNet, weights_version
+
+        onnx = self.__dict__.get("_onnx")
+        # weights are looked at once per sampling call (walking every parameter before each of its network calls
+        # cost about a quarter of a plan at batch 1): they cannot change while it runs
+        if onnx is None or onnx[0] is not net or not self.__dict__.get("_onnx_checked"):
+            version = weights_version(net)
+            if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
+                self._onnx = onnx = (net, version, OnnxNet(net, x, k))
+            self._onnx_checked = self.__dict__.get("_in_sampling_call", False)
+        return onnx[2](x, k)
+
+    def _auto_runtime(self, x: torch.Tensor) -> str:
+        """``auto``'s pick for a network call: ``onnx`` where it is installed and the call is on the CPU in float32
+        at a batch of at most :data:`~cdrb_cli.nets.runtime.AUTO_ONNX_BATCH`, else ``torch``; decided at the first
+        network call of a sampling call and kept for all of its calls, so one plan runs in one runtime and the same
+        seed and batch give the same plans."""
+        from cdrb_cli.nets.runtime import AUTO_ONNX_BATCH
+
+        pick = self.__dict__.get("_auto_pick")
+        if pick is None:
+            small = x.device.type == "cpu" and x.dtype == torch.float32 and x.shape[0] <= AUTO_ONNX_BATCH
+            pick = "onnx" if small and self.__dict__.get("_auto_onnx", False) else "torch"
+            if self.__dict__.get("_in_sampling_call", False):
+                self._auto_pick = pick
+        return pick
+
     def use_runtime(self, runtime: str, flag: str = "runtime") -> None:
         """Run sampling's network calls in ``runtime`` (checked: one-line errors name ``flag``)."""
-        from cdrb_cli.nets.runtime import check_runtime
+        from cdrb_cli.nets.runtime import check_runtime, onnx_available
 
-        self.runtime = check_runtime(runtime, getattr(self, "net", None), self.device, self.name, flag)
+        net = getattr(self, "net", None)
+        self.runtime = check_runtime(runtime, net, self.device, self.name, flag)
+        self._auto_onnx = self.runtime == "auto" and onnx_available(net, self.device)
 
     # -------------------------------------------------------------- pinning
     def pin(self, x: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:

@@ -1,14 +1,21 @@
-"""Where sampling's network calls run: torch (the default), ONNX Runtime on the CPU, or torch's compiler.
+"""Where sampling's network calls run: torch (the default), ONNX Runtime on the CPU, torch's compiler, or ``auto``
+(the Python API's default: ONNX Runtime for small batches on the CPU, torch otherwise).
 
 At batch 1 a small temporal U-Net costs torch ~400 operator dispatches per pass, and that per-operation cost, not
 arithmetic, is most of a plan's time on a CPU (a robot re-planning one plan at a time, the Python API).
 ONNX Runtime runs the same network, exported once to memory, through its own CPU kernels at a fraction of that cost
 per operation. It is the same network in another library's kernels: outputs agree with torch's to float rounding,
 not bit for bit, and a ball sampler that meets a state on a ball's edge may then draw another buffer state, so the
-runtime is a setting the caller chooses (``api.Planner(runtime="onnx")``), never a silent switch. Within one
-runtime, plans are as reproducible as torch's: the same seed gives the same plans.
+runtime is a setting the caller chooses (``api.Planner(runtime="onnx")``). Within one runtime, plans are as
+reproducible as torch's: the same seed gives the same plans.
 
-Needs the ``onnx`` extra (``pip install 'cdrb[onnx]'``: onnx for the export, onnxruntime to run it).
+``auto`` is a rule, not a guess: each sampling call runs in ONNX Runtime when it is on the CPU, in float32, at a
+batch of at most :data:`AUTO_ONNX_BATCH` plans, and ONNX Runtime is installed; otherwise in torch (ONNX Runtime is
+slower in large batches: its convolutions lose to torch's there). The same seed, batch and installation give the same
+plans, and the runtimes that ran are reported with them (``api.Plans.runtime``). An exporter that cannot take the
+network leaves ``auto`` on torch, with a warning.
+
+Needs onnx (the export) and onnxruntime, both dependencies of cdrb.
 
 ``compile`` runs the network through ``torch.compile`` (TorchInductor), on the CPU or a GPU: it fuses the U-Net's
 normalisations, activations and additions into a few generated kernels, which pays where the number of kernels, not
@@ -32,7 +39,10 @@ from cdrb_cli.lazy import torch
 from cdrb_cli.settings import clip
 
 #: the runtimes sampling's network calls may use
-RUNTIMES = ("torch", "onnx", "compile")
+RUNTIMES = ("torch", "onnx", "compile", "auto")
+#: the largest batch ``auto`` runs in ONNX Runtime: its lower cost per operator wins while operators, not
+#: arithmetic, set a call's time, and torch's convolutions win from about 32 plans (docs/benchmarks.md §11)
+AUTO_ONNX_BATCH = 16
 
 
 def check_runtime(runtime: object, net, device, method: str, flag: str = "runtime") -> str:
@@ -41,7 +51,7 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
         raise BadInput(
             f"{flag} = {clip(repr(runtime), 40)}: not a runtime", hint=f"pass one of {', '.join(map(repr, RUNTIMES))}"
         )
-    if runtime == "torch":
+    if runtime in ("torch", "auto"):  # auto: whatever the network, device and installation allow
         return runtime
     if not getattr(net, "traceable", False):
         raise BadInput(
@@ -60,9 +70,22 @@ def check_runtime(runtime: object, net, device, method: str, flag: str = "runtim
         import onnxruntime  # noqa: F401
     except ImportError:
         raise BadInput(
-            f"{flag} = 'onnx': onnx and onnxruntime are not installed", hint="pip install 'cdrb[onnx]'"
+            f"{flag} = 'onnx': onnx and onnxruntime are not installed", hint="pip install onnx onnxruntime"
         ) from None
     return runtime
+
+
+def onnx_available(net, device) -> bool:
+    """Whether ``auto`` may run ``net`` in ONNX Runtime: a traceable network on the CPU, with onnx and onnxruntime
+    importable."""
+    if net is None or not getattr(net, "traceable", False) or torch.device(device).type != "cpu":
+        return False
+    try:
+        import onnx  # noqa: F401
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def _check_compiler(device, flag: str) -> str:
