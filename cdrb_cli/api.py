@@ -55,8 +55,8 @@ class Plans:
     iterates: np.ndarray | None = None
     #: the diffusion step of each kept iterate (None without them)
     iterate_steps: list[int] | None = None
-    #: where the network ran: ``torch``, ``onnx``, ``compile``, or ``onnx+torch`` when the batches of a call split
-    #: between them (``runtime="auto"``)
+    #: where the network ran: ``torch``, ``onnx`` or ``compile`` (``torch`` too for a method without a network
+    #: call in sampling, such as the MLP planner)
     runtime: str = "torch"
 
 
@@ -167,9 +167,11 @@ class Planner:
         "plain"}``: as the model is); ``mask_buffer``, ``best_of``, ``route_k``, ``route_clearance``,
         ``guide_scale``: the ``avoid.*`` settings of those names; ``settings``: any plan setting by its dotted key
         (`cdrb config plan`); ``allow_partial``: plan with an unfinished training's checkpoint (a warning);
-        ``runtime``: where the diffusion planners' network runs. ``"auto"`` (the default): in ONNX Runtime for a
-        call of up to 16 plans on the CPU, where it is faster, else in torch; ``"torch"``: always torch, as `cdrb
-        plan` and `cdrb eval` run it; ``"onnx"``: always ONNX Runtime (CPU only; slower in large batches);
+        ``runtime``: where the diffusion planners' network runs. ``"auto"`` (the default): a :meth:`plan` call
+        whose first batch samples at most 16 plans on the CPU (``n``, times ``best_of`` where each plan is the best
+        of several, at most the ``batch`` setting at once) runs in ONNX Runtime, faster there, and a larger one in
+        torch, its retries and repairs included; ``"torch"``: always torch, as `cdrb plan` and `cdrb eval` run it;
+        ``"onnx"``: always ONNX Runtime (CPU only; slower in large batches);
         ``"compile"``: through ``torch.compile`` on any device, faster on a GPU after tens of seconds of compiling
         at the first plan of each batch size. Plans in ONNX Runtime equal torch's to float rounding, not bit for
         bit; :attr:`Plans.runtime` says which ran (:mod:`cdrb_cli.nets.runtime`)."""
@@ -276,11 +278,11 @@ class Planner:
             if avoid.fallback_route_k is not None and avoid.graph is None:
                 avoid.graph = buffer_graph(self.method, self.spec, config.avoid, self._route)
                 self.avoidance.graph = avoid.graph  # built once: the same buffer and scene for every call
-        self.method.runtimes_used = set()
-        out = sample_plans(
-            self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, config.keep_iterates,
-            batch_size=config.batch, device=self.device, avoid=avoid,
-        )  # fmt: skip
+        with self.method.runtime_scope() as runtimes:  # one runtime for the whole call, its retries included
+            out = sample_plans(
+                self.method, s, g, config.n, config.seed, config.sampler, config.sample_steps, config.keep_iterates,
+                batch_size=config.batch, device=self.device, avoid=avoid,
+            )  # fmt: skip
         fam = family_of(self.spec)
         states = out.plans[..., : self.spec.obs_dim]
         return Plans(
@@ -292,7 +294,7 @@ class Planner:
             seconds=out.seconds,
             iterates=out.iterates,
             iterate_steps=out.iterate_steps,
-            runtime="+".join(sorted(self.method.runtimes_used)) or "torch",
+            runtime="+".join(sorted(runtimes)) or "torch",
         )
 
 

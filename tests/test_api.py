@@ -259,7 +259,7 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
     np.testing.assert_allclose(*direct, atol=1e-4)
     from cdrb_cli.nets.runtime import OnnxNet
 
-    session = onnx_planner.method.__dict__["_onnx"][2]
+    session = onnx_planner.method.__dict__["_onnx"][1]
     x, k = torch.zeros(1, *session.session.get_inputs()[0].shape[1:]), torch.zeros(1, dtype=torch.long)
     with pytest.raises(BadInput, match=re.escape("runs the network in float32, not torch.float64")):
         session(x.double(), k)
@@ -275,39 +275,82 @@ def test_the_onnx_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(mo
 
 
 def test_the_auto_runtime_plans_small_batches_in_onnx_and_large_ones_in_torch(model, tiny_models, monkeypatch):
-    """The API's default runtime "auto" runs a call of up to AUTO_ONNX_BATCH plans in ONNX Runtime and a larger one
-    in torch, bit for bit as those runtimes do, and says which ran; where ONNX Runtime cannot run (no U-Net, not
-    installed, an exporter that fails) it plans with torch instead of refusing."""
+    """The API's default runtime "auto" runs a plan call whose first batch has up to AUTO_ONNX_BATCH rows in ONNX
+    Runtime and a larger one in torch, the whole call in one runtime (its later batches and a route retry of some
+    plans too), bit for bit as that runtime alone, and says which ran; weights written in place, even through
+    ``.data``, are planned with; two threads planning with one planner get what each gets alone; where ONNX Runtime
+    cannot run (no U-Net, not installed, an exporter that fails) it plans with torch instead of refusing."""
     import sys
+    import threading
 
     import torch
 
     from cdrb_cli.nets.runtime import AUTO_ONNX_BATCH
 
+    a, b = [0.0, 0.0], [6.0, 6.0]
     auto = api.Planner(model.path)
     explicit = {r: api.Planner(model.path, runtime=r) for r in ("onnx", "torch")}
     for n, runtime in ((1, "onnx"), (AUTO_ONNX_BATCH, "onnx"), (AUTO_ONNX_BATCH + 1, "torch")):
-        plans = auto.plan([0.0, 0.0], [6.0, 6.0], n=n, seed=5)
+        plans = auto.plan(a, b, n=n, seed=5)
         assert plans.runtime == runtime, n
-        same = explicit[runtime].plan([0.0, 0.0], [6.0, 6.0], n=n, seed=5)
+        same = explicit[runtime].plan(a, b, n=n, seed=5)
         assert same.runtime == runtime
         np.testing.assert_array_equal(plans.features, same.features)
-    # a call whose batches split (n above the batch size, the last batch small) names both
-    split = api.Planner(model.path, settings={"batch": AUTO_ONNX_BATCH + 2}).plan([0.0, 0.0], [6.0, 6.0], n=20, seed=0)
-    assert split.runtime == "onnx+torch"
-    assert api.Planner(tiny_models["mlp"].path).plan([0.0, 0.0], [6.0, 6.0], seed=0).runtime == "torch"
-    # an exporter that fails: a warning naming the failure, and torch's plans
+    # the whole call in the first batch's runtime: a small last batch, and a buffer-route retry of a few plans
+    for settings, n in (({"batch": AUTO_ONNX_BATCH + 2}, AUTO_ONNX_BATCH + 4), ({"avoid.fallback_route_k": 4}, 32)):
+        plans = api.Planner(model.path, settings=settings).plan(a, b, n=n, seed=0)
+        assert plans.runtime == "torch", settings
+        torch_plans = api.Planner(model.path, runtime="torch", settings=settings).plan(a, b, n=n, seed=0)
+        np.testing.assert_array_equal(plans.features, torch_plans.features)
+    assert api.Planner(tiny_models["mlp"].path).plan(a, b, seed=0).runtime == "torch"
+    # weights written through .data (which autograd's version counters miss) after the session was built
+    before = auto.plan(a, b, n=1, seed=1).features
+    with torch.no_grad():
+        for planner in (auto, explicit["onnx"]):
+            for w in planner.method.net.parameters():
+                w.data.mul_(0.9)
+    after = auto.plan(a, b, n=1, seed=1).features
+    assert np.abs(after - before).max() > 1e-3
+    np.testing.assert_array_equal(after, explicit["onnx"].plan(a, b, n=1, seed=1).features)
+    # two threads on one planner: each call keeps its own runtime and plans
+    shared = api.Planner(model.path)
+    alone = {n: shared.plan(a, b, n=n, seed=2) for n in (1, AUTO_ONNX_BATCH + 4)}
+    got: dict[int, list] = {1: [], AUTO_ONNX_BATCH + 4: []}
+
+    def planning(n: int, times: int) -> None:
+        for _ in range(times):
+            got[n].append(shared.plan(a, b, n=n, seed=2))
+
+    threads = [
+        threading.Thread(target=planning, args=(1, 12)),
+        threading.Thread(target=planning, args=(AUTO_ONNX_BATCH + 4, 3)),
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for n, results in got.items():
+        assert results and all(r.runtime == alone[n].runtime for r in results), n
+        for r in results:
+            np.testing.assert_array_equal(r.features, alone[n].features)
+    # an exporter that fails: one warning line naming the failure, and torch's plans
+    warned: list[str] = []
+    monkeypatch.setattr("cdrb_cli.ui.warn", warned.append)
     monkeypatch.setattr(torch.onnx, "export", lambda *a, **kw: (_ for _ in ()).throw(TypeError("unexpected 'dynamo'")))
     broken = api.Planner(model.path)
-    with pytest.warns(UserWarning, match=r"could not export and load the network: unexpected 'dynamo'; planning with"):
-        fallback = broken.plan([0.0, 0.0], [6.0, 6.0], n=1, seed=5)
-    assert fallback.runtime == "torch"
+    fallback = broken.plan(a, b, n=1, seed=5)
+    assert fallback.runtime == "torch" and broken.plan(a, b, n=1, seed=5).runtime == "torch"
+    assert (
+        len(warned) == 1
+        and warned[0].startswith("runtime 'auto': this torch (")
+        and warned[0].endswith("could not export and load the network: unexpected 'dynamo'; planning with torch")
+    )
     np.testing.assert_array_equal(
-        fallback.features, explicit["torch"].plan([0.0, 0.0], [6.0, 6.0], n=1, seed=5).features
+        fallback.features, api.Planner(model.path, runtime="torch").plan(a, b, n=1, seed=5).features
     )
     monkeypatch.undo()
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # as if it were not installed
-    assert api.Planner(model.path).plan([0.0, 0.0], [6.0, 6.0], n=1, seed=5).runtime == "torch"
+    assert api.Planner(model.path).plan(a, b, n=1, seed=5).runtime == "torch"
 
 
 def test_the_compile_runtime_plans_as_torch_does_to_rounding_and_repeats_exactly(model, tiny_models, monkeypatch):

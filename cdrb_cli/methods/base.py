@@ -16,11 +16,13 @@ first in a feature vector, then the action when ``features == "state-action"``.
 from __future__ import annotations
 
 import contextlib
+import threading
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 
+from cdrb_cli import ui
 from cdrb_cli.buffer import Normalizer, feature_dim
 from cdrb_cli.configs import TrainConfig
 from cdrb_cli.envs.spec import EnvSpec
@@ -154,16 +156,41 @@ class Method:
     #: imports and tracing, which a few plans (one `cdrb plan`, one eval batch) would not earn back
     TRACE_AFTER: ClassVar[int] = 96
 
+    def _call_state(self) -> threading.local:
+        """This thread's view of the sampling call it is in (two threads may plan with one method at once): whether
+        it is in one (``in_call``), whether ONNX Runtime's weights were checked in it (``checked``), ``auto``'s pick
+        (``pick``), and inside :meth:`runtime_scope` (``scoped``) the runtimes that ran (``used``)."""
+        state = self.__dict__.get("_call_local")
+        return state if state is not None else self.__dict__.setdefault("_call_local", threading.local())
+
     @contextlib.contextmanager
     def sampling_call(self):
         """The span of one sampling call (a plan, a repair): :meth:`sample_net` looks at the network's weights at its
         first network call within it and trusts that answer until it ends (weights cannot change mid-call); outside
-        one, every network call looks again."""
-        self._onnx_checked, self._in_sampling_call, self._auto_pick = False, True, None
+        one, every network call looks again. Outside a :meth:`runtime_scope`, ``auto`` picks its runtime anew for
+        each sampling call."""
+        state = self._call_state()
+        state.in_call, state.checked = True, False
+        if not getattr(state, "scoped", False):
+            state.pick = None
         try:
             yield
         finally:
-            self._onnx_checked, self._in_sampling_call, self._auto_pick = False, False, None
+            state.in_call, state.checked = False, False
+            if not getattr(state, "scoped", False):
+                state.pick = None
+
+    @contextlib.contextmanager
+    def runtime_scope(self):
+        """A span of sampling calls that ``auto`` runs in one runtime, picked at its first network call (an API
+        plan: its batches, and the repairs and retries of some of its plans). Yields the set of runtimes that ran
+        in it, filled as it runs."""
+        state = self._call_state()
+        state.scoped, state.pick, state.used = True, None, set()
+        try:
+            yield state.used
+        finally:
+            state.scoped, state.pick, state.used = False, None, None
 
     def sample_net(self, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``self.net(x, k)`` as sampling calls it. With the network in eval mode and no gradient wanted, once it
@@ -175,24 +202,28 @@ class Method:
         where tracing fails, the module itself runs, the same bits more slowly. With :attr:`runtime` ``onnx`` every
         call runs in ONNX Runtime instead (:class:`~cdrb_cli.nets.runtime.OnnxNet`), with ``compile`` through
         ``torch.compile`` (:class:`~cdrb_cli.nets.runtime.CompiledNet`; it reads the module's parameters at every
-        call, so new weights need no check). With ``auto``, :meth:`_auto_runtime` picks one of ``onnx`` and
-        ``torch`` per sampling call; :attr:`runtimes_used` collects the runtimes that ran."""
+        call, so new weights need no check); with ``auto`` in the one :meth:`_auto_runtime` picks."""
         net = self.net
         if net.training or torch.is_grad_enabled():
             return net(x, k)
-        runtime = self._auto_runtime(x) if self.runtime == "auto" else self.runtime
-        self.__dict__.setdefault("runtimes_used", set()).add(runtime)
-        if runtime == "onnx" and self.runtime == "auto":
-            try:
-                return self._onnx_call(net, x, k)
-            except BadInput as exc:  # an exporter or runtime that cannot take this network: torch runs it
-                import warnings
-
-                warnings.warn(f"{exc.message}; planning with torch", stacklevel=2)
-                self._auto_onnx, self._auto_pick = False, "torch"
-                self.runtimes_used.discard("onnx")
-                self.runtimes_used.add("torch")
-                runtime = "torch"
+        state = self._call_state()
+        used = getattr(state, "used", None)
+        runtime = self.runtime
+        if runtime == "auto":
+            runtime = self._auto_runtime(x, state)
+            if runtime == "onnx":
+                try:
+                    out = self._onnx_call(net, x, k, state)
+                except BadInput as exc:  # an exporter or runtime that cannot take this network: torch runs it
+                    reason = exc.message.removeprefix("runtime = 'onnx': ")
+                    ui.warn(f"runtime 'auto': {reason}; planning with torch")
+                    self._auto_onnx, state.pick, runtime = False, "torch", "torch"
+                else:
+                    if used is not None:
+                        used.add(runtime)
+                    return out
+        if used is not None:
+            used.add(runtime)
         if runtime == "compile":  # from the first call, as onnx
             compiled = self.__dict__.get("_compiled")
             if compiled is None or compiled[0] is not net:
@@ -201,7 +232,7 @@ class Method:
                 self._compiled = compiled = (net, CompiledNet(net))
             return compiled[1](x, k)
         if runtime == "onnx":  # from the first call, so a plan never depends on how many came before it
-            return self._onnx_call(net, x, k)
+            return self._onnx_call(net, x, k, state)
         if not self.trace_sampling or not getattr(net, "traceable", False):
             return net(x, k)
         cache = self.__dict__.setdefault("_traces", {})
@@ -225,32 +256,31 @@ class Method:
         traced = cache[key]
         return net(x, k) if traced is None else traced(x, k)
 
-    def _onnx_call(self, net, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-        from cdrb_cli.nets.runtime import OnnxNet, weights_version
+    def _onnx_call(self, net, x: torch.Tensor, k: torch.Tensor, state) -> torch.Tensor:
+        """``net(x, k)`` in ONNX Runtime, through a session rebuilt when the network or its weights changed; the
+        weights are compared with the session's copy once per sampling call (they cannot change while it runs)."""
+        from cdrb_cli.nets.runtime import OnnxNet
 
         onnx = self.__dict__.get("_onnx")
-        # weights are looked at once per sampling call (walking every parameter before each of its network calls
-        # cost about a quarter of a plan at batch 1): they cannot change while it runs
-        if onnx is None or onnx[0] is not net or not self.__dict__.get("_onnx_checked"):
-            version = weights_version(net)
-            if onnx is None or onnx[0] is not net or onnx[1] != version:  # a new network, or new weights
-                self._onnx = onnx = (net, version, OnnxNet(net, x, k))
-            self._onnx_checked = self.__dict__.get("_in_sampling_call", False)
-        return onnx[2](x, k)
+        if onnx is None or onnx[0] is not net or not getattr(state, "checked", False):
+            if onnx is None or onnx[0] is not net or not onnx[1].holds(net):  # a new network, or new weights
+                self._onnx = onnx = (net, OnnxNet(net, x, k))
+            state.checked = getattr(state, "in_call", False)
+        return onnx[1](x, k)
 
-    def _auto_runtime(self, x: torch.Tensor) -> str:
-        """``auto``'s pick for a network call: ``onnx`` where it is installed and the call is on the CPU in float32
-        at a batch of at most :data:`~cdrb_cli.nets.runtime.AUTO_ONNX_BATCH`, else ``torch``; decided at the first
-        network call of a sampling call and kept for all of its calls, so one plan runs in one runtime and the same
-        seed and batch give the same plans."""
+    def _auto_runtime(self, x: torch.Tensor, state) -> str:
+        """``auto``'s pick: ``onnx`` where it is installed and the first network call of the sampling call (or of
+        the :meth:`runtime_scope`) is on the CPU in float32 at a batch of at most
+        :data:`~cdrb_cli.nets.runtime.AUTO_ONNX_BATCH`, else ``torch``; kept for the rest of the call or scope, so
+        the same seed and batch give the same plans."""
         from cdrb_cli.nets.runtime import AUTO_ONNX_BATCH
 
-        pick = self.__dict__.get("_auto_pick")
+        pick = getattr(state, "pick", None)
         if pick is None:
             small = x.device.type == "cpu" and x.dtype == torch.float32 and x.shape[0] <= AUTO_ONNX_BATCH
             pick = "onnx" if small and self.__dict__.get("_auto_onnx", False) else "torch"
-            if self.__dict__.get("_in_sampling_call", False):
-                self._auto_pick = pick
+            if getattr(state, "in_call", False) or getattr(state, "scoped", False):
+                state.pick = pick
         return pick
 
     def use_runtime(self, runtime: str, flag: str = "runtime") -> None:

@@ -9,11 +9,12 @@ not bit for bit, and a ball sampler that meets a state on a ball's edge may then
 runtime is a setting the caller chooses (``api.Planner(runtime="onnx")``). Within one runtime, plans are as
 reproducible as torch's: the same seed gives the same plans.
 
-``auto`` is a rule, not a guess: each sampling call runs in ONNX Runtime when it is on the CPU, in float32, at a
-batch of at most :data:`AUTO_ONNX_BATCH` plans, and ONNX Runtime is installed; otherwise in torch (ONNX Runtime is
-slower in large batches: its convolutions lose to torch's there). The same seed, batch and installation give the same
-plans, and the runtimes that ran are reported with them (``api.Plans.runtime``). An exporter that cannot take the
-network leaves ``auto`` on torch, with a warning.
+``auto`` is a rule, not a guess: a sampling call (an API plan with its retries and repairs: ``runtime_scope``) runs
+in ONNX Runtime when its first network call is on the CPU, in float32, at a batch of at most :data:`AUTO_ONNX_BATCH`
+rows (plans, times best-of candidates), and ONNX Runtime is installed; otherwise in torch (ONNX Runtime is slower in
+large batches: its convolutions lose to torch's there). The same seed, batch and installation give the same plans,
+and the runtime that ran is reported with them (``api.Plans.runtime``). An exporter that cannot take the network
+leaves ``auto`` on torch, with a warning.
 
 Needs onnx (the export) and onnxruntime, both dependencies of cdrb.
 
@@ -144,14 +145,15 @@ class OnnxNet:
     called as the network is, ``(x, k) -> tensor``, for any batch size, in float32 (the export's dtype).
 
     The session is built once: it holds a copy of the weights as they were then, and torch's thread count of that
-    moment (changing ``torch.set_num_threads`` later does not reach it). :func:`weights_version` tells whether the
-    weights changed since (the caller then builds a new one)."""
+    moment (changing ``torch.set_num_threads`` later does not reach it). :meth:`holds` tells whether the network's
+    weights are still those (else the caller builds a new one)."""
 
     def __init__(self, net, x, k):
         import inspect
 
         import onnxruntime as ort
 
+        self.weights = [t.detach().clone() for t in _tensors(net)]
         buf = io.BytesIO()
         # the TorchScript-based exporter: torch >= 2.9 defaults to the dynamo one, which needs onnxscript; older
         # torch has no `dynamo` argument and only that exporter
@@ -187,8 +189,15 @@ class OnnxNet:
         x, k = np.ascontiguousarray(x.numpy()), np.ascontiguousarray(k.numpy(), dtype=np.int64)
         return torch.from_numpy(self.session.run(None, {"x": x, "k": k})[0])
 
+    def holds(self, net) -> bool:
+        """Whether ``net``'s parameters and buffers still equal the copy the session was built from, compared by
+        value: autograd's version counters miss writes through ``.data`` and ``vector_to_parameters``. About a
+        millisecond for a million weights, made once per sampling call."""
+        now = _tensors(net)
+        return len(now) == len(self.weights) and all(
+            a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b) for a, b in zip(now, self.weights)
+        )
 
-def weights_version(net) -> tuple[int, ...]:
-    """The version counters of ``net``'s parameters and buffers: every in-place change (an optimizer step,
-    ``load_state_dict``) bumps one, so a session built at another version runs stale weights."""
-    return tuple(t._version for t in (*net.parameters(), *net.buffers()))
+
+def _tensors(net) -> list:
+    return [*net.parameters(), *net.buffers()]
