@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -278,6 +279,23 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
     artifacts.save(other, "eval", manifest.model_copy(update=update), arrays)
     with pytest.raises(BadInput, match=r"an eval on maze, where this grid's task \(eval maze-tight/mlp-s0\) measures"):
         checked_eval(spec, task, other)
+    # an eval variant among obstacles of its own: its env is the task's env with the scene's name
+    (tmp_path / "closed.txt").write_text((ROOT / "experiments" / "maps" / "maze-tight-closed-north.txt").read_text())
+    grid.write_text(
+        grid.read_text() + '[[variants]]\nname = "scened"\neval = ["--scene", "closed.txt", "--protocol", "detour"]\n'
+    )
+    spec = load_grid(grid)
+    task = next(t for t in expand(spec) if t.id == "eval maze-tight/scened/mlp-s0")
+    for ran, ok in (("maze-tight+closed", True), ("maze+closed", False)):
+        path = tmp_path / f"eval-{ran}.h5"
+        env = make_spec("maze-tight").model_copy(update={"id": ran})
+        update = {"argv": ["cdrb", *task.argv], "summary": summary, "env": env}
+        artifacts.save(path, "eval", manifest.model_copy(update=update), arrays)
+        if ok:
+            assert checked_eval(spec, task, path).manifest.env.id == ran
+        else:
+            with pytest.raises(BadInput, match=rf"an eval on {re.escape(ran)}, where this grid's task"):
+                checked_eval(spec, task, path)
 
 
 def _one_mlp_tuning_grid(tmp_path):

@@ -67,10 +67,12 @@ def checked_eval(
         )
     # the command compares files by name: an eval copied from another env's, variant's or grid's folder reads the
     # same there, so the environment it ran and the place it was written for in its grid are compared too
-    env = task.meta.get("env")
-    if env is not None and ev.manifest.env.id != env:
+    env, ran = task.meta.get("env"), ev.manifest.env.id
+    # an eval among obstacles of its own (--scene) names the env it ran "<env>+<the scene's name>"
+    in_scene = ran.startswith(f"{env}+") and parse_command(task.argv)[1].get("maze_map") is not None
+    if env is not None and ran != env and not in_scene:
         raise BadInput(
-            f"{path}: an eval on {clip(ev.manifest.env.id, 60)}, where this grid's task ({task.id}) measures {env}",
+            f"{path}: an eval on {clip(ran, 60)}, where this grid's task ({task.id}) measures {env}",
             hint="move it away and run `cdrb grid` on the same file, which measures the model there",
         )
     written, place = parse_command(made)[1].get("out"), _place(spec, path)
