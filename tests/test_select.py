@@ -383,6 +383,51 @@ def test_an_eval_whose_model_was_trained_on_other_data_than_the_grid_makes_is_re
         checked_eval(spec, task, ev, [], trains, makers)
 
 
+def test_a_model_and_data_read_from_elsewhere_are_checked_where_the_eval_records_them(tmp_path):
+    """A grid that reuses another grid's runs, or runs whose files were moved, has no model or data at its own paths:
+    the model the eval read and the data that model read, at the paths they record and with the bytes they record,
+    are checked as the grid's own would be (another lr, or demos made with another -n, are refused)."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.select_evals import checked_eval
+    from tests import factories
+
+    spec, tasks, trains, task, train, _ = _one_mlp_tuning_grid(tmp_path)
+    makers = {o: t for t in tasks if t.kind in ("collect", "cluster") for o in t.outputs}
+    collect = next(t for t in tasks if t.kind == "collect")
+    elsewhere = tmp_path / "other"
+    elsewhere.mkdir()
+    assert not task.inputs[0].exists() and not collect.outputs[0].exists()
+    n = collect.argv.index("-n")
+    e_manifest, e_arrays = factories.build("eval")
+
+    def eval_of(train_argv, collect_argv):
+        d_manifest, d_arrays = factories.build("demos")
+        demos = elsewhere / "demos.h5"
+        artifacts.save(demos, "demos", d_manifest.model_copy(update={"argv": ["cdrb", *collect_argv]}), d_arrays)
+        m_manifest, m_arrays = factories.build("model")
+        model = elsewhere / "mlp-s0.h5"
+        update = {"argv": ["cdrb", *train_argv], "parents": [artifacts.parent_ref(artifacts.load(demos, "demos"))]}
+        artifacts.save(model, "model", m_manifest.model_copy(update=update), m_arrays)
+        ev = elsewhere / "eval.h5"
+        update = {"argv": ["cdrb", *task.argv], "parents": [artifacts.parent_ref(artifacts.load(model, "model"))]}
+        artifacts.save(ev, "eval", e_manifest.model_copy(update=update), e_arrays)
+        spec._shas.clear()
+        return ev
+
+    checked_eval(spec, task, eval_of(train.argv, collect.argv), [], trains, makers)
+    with pytest.raises(BadInput, match=r"not trained as this grid's task .*setting lr: 0.5 there, \(not set\)"):
+        checked_eval(spec, task, eval_of([*train.argv, "--set", "lr=0.5"], collect.argv), [], trains, makers)
+    other_n = [*collect.argv[: n + 1], "41", *collect.argv[n + 2 :]]
+    with pytest.raises(BadInput, match=r"trained on .*other/demos.h5, which was not made as this grid's task"):
+        checked_eval(spec, task, eval_of(train.argv, other_n), [], trains, makers)
+    # a recorded file whose bytes changed since is not the one the eval read: nothing to check it against
+    ev = eval_of([*train.argv, "--set", "lr=0.5"], collect.argv)
+    with open(elsewhere / "mlp-s0.h5", "ab") as f:
+        f.write(b"\0")
+    spec._shas.clear()
+    checked_eval(spec, task, ev, [], trains, makers)
+
+
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
     obstacle (none for a policy), and * where its curve still rises."""

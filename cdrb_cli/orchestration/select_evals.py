@@ -52,8 +52,9 @@ def checked_eval(
     keeps its name when a curve is extended), and, where the model it evaluated is here, that same model (the same
     bytes or, as every stage judges an input, the same data) trained as the grid's training task (``trains``: task
     by output) trains it, on the data the grid's collect and cluster tasks (``makers``: task by output) make, where
-    those files are here (:func:`_check_data`). An eval that records no training length, of a model that is not
-    here, is appended to ``unchecked``."""
+    those files are here (:func:`_check_data`). "Here" is the grid's own path, else the path the eval (or the
+    model) records with the bytes it records: a model reused from another grid, or moved. An eval that records no
+    training length, of a model that is not here, is appended to ``unchecked``."""
     from cdrb_cli.orchestration.grid import file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
@@ -82,7 +83,7 @@ def checked_eval(
             hint="an eval copied from another variant's or seed's folder: move it away and run `cdrb grid` on the "
             "same file, which measures the model there",
         )
-    model = task.inputs[0]
+    model = own = task.inputs[0]
     steps, trained = task.meta.get("steps"), ev.manifest.summary.model_steps
     if steps is not None and trained is not None and trained != steps:
         raise BadInput(
@@ -93,9 +94,11 @@ def checked_eval(
         )
     parent = next((p for p in ev.manifest.parents if p.kind == "model"), None)
     here = file_sha(model, spec._shas)
+    if here is None and parent is not None:  # none at the grid's path: the model the eval read, if it is here
+        model, here = _recorded(parent, spec._shas) or (model, None)
     if steps is not None and trained is None and here is None and unchecked is not None:
         unchecked.append(path)
-    train = (trains or {}).get(model)
+    train = (trains or {}).get(own)
     model_here = functools.cache(lambda: artifacts.load(model, "model"))  # read once, and only where it is asked for
     if parent is not None and here is not None and parent.sha256 != here:
         if not artifacts.same_inputs([parent], [model_here()]):
@@ -129,6 +132,9 @@ def _check_data(spec: GridSpec, path: Path, model, data: Path, maker) -> None:
     from cdrb_cli.orchestration.grid import file_sha, measure_difference
 
     kind, sha = _MADE.get(maker.kind), file_sha(data, spec._shas)
+    recorded = [p for p in model.manifest.parents if p.kind == kind]
+    if kind is not None and sha is None and recorded:  # none at the grid's path: what the model read, if here
+        data, sha = _recorded(recorded[0], spec._shas) or (data, None)
     if kind is None or sha is None:
         return
     held = _data(data, kind, sha)
@@ -140,12 +146,20 @@ def _check_data(spec: GridSpec, path: Path, model, data: Path, maker) -> None:
             f"it: {why}",
             hint="run `cdrb select` with the --set/--include the grid ran with, or run `cdrb grid` on it first",
         )
-    recorded = [p for p in model.manifest.parents if p.kind == kind]
     if recorded and not artifacts.same_inputs(recorded[:1], [held]):
         raise BadInput(
             f"{path}: its model was trained on other {kind} than {data} holds now",
             hint="run `cdrb grid` on the same file: it trains and measures the models on the data there again",
         )
+
+
+def _recorded(parent, cache: dict) -> tuple[Path, str] | None:
+    """(path, sha256) of the input an artifact records, where that file is here with the bytes it read: the file a
+    reused or moved artifact was made from when the grid's own path holds none."""
+    from cdrb_cli.orchestration.grid import file_sha
+
+    there = Path(parent.path)
+    return (there, parent.sha256) if file_sha(there, cache) == parent.sha256 else None
 
 
 @functools.lru_cache(maxsize=8)
