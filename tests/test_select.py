@@ -428,6 +428,44 @@ def test_a_model_and_data_read_from_elsewhere_are_checked_where_the_eval_records
     checked_eval(spec, task, ev, [], trains, makers)
 
 
+def test_an_eval_whose_settings_file_changed_since_the_grid_ran_it_is_refused(tmp_path):
+    """Commands name a --config file, and compare it by name: an edit of it since the grid ran the training (or the
+    eval) changed what the task asks for, and the grid's memo of the task, which hashed the file, tells."""
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.grid import expand, load_grid
+    from cdrb_cli.orchestration.grid.memo import write_memo
+    from cdrb_cli.orchestration.select_evals import checked_eval
+    from tests import factories
+
+    (tmp_path / "tc.toml").write_text("lr = 0.01\n")
+    (tmp_path / "ev.toml").write_text("[controller]\nmax_lag = 0.3\n")
+    grid = tmp_path / "tune.toml"
+    grid.write_text(
+        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\neval_stream = "tune"\n'
+        '[[variants]]\nname = "cfg"\ntrain = ["--config", "tc.toml"]\neval = ["--config", "ev.toml"]\n'
+    )
+    spec = load_grid(grid)
+    tasks = expand(spec)
+    trains = {o: t for t in tasks if t.kind == "train" for o in t.outputs}
+    task = next(t for t in tasks if t.id == "eval maze-tight/cfg/mlp-s0")
+    train = next(t for t in tasks if t.id == "train maze-tight/cfg/mlp-s0")
+    manifest, arrays = factories.build("eval")
+    ev = tmp_path / "eval.h5"
+    artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
+    for t in (train, task):
+        write_memo(spec, t, spec._shas)
+    checked_eval(spec, task, ev, [], trains)
+    for name, edit, ran in (("tc.toml", "lr = 0.5\n", train), ("ev.toml", "[controller]\nmax_lag = 0.9\n", task)):
+        before = (tmp_path / name).read_text()
+        (tmp_path / name).write_text(edit)
+        spec._shas.clear()
+        with pytest.raises(BadInput, match=rf"{name} changed since the grid ran {re.escape(ran.id)} with it"):
+            checked_eval(spec, task, ev, [], trains)
+        (tmp_path / name).write_text(before)
+    spec._shas.clear()
+    checked_eval(spec, task, ev, [], trains)
+
+
 def test_the_summary_shows_each_chosen_setting_in_a_column_per_method():
     """One line per environment: the chosen candidate's success ± std at its training length, its plans through an
     obstacle (none for a policy), and * where its curve still rises."""

@@ -55,7 +55,7 @@ def checked_eval(
     those files are here (:func:`_check_data`). "Here" is the grid's own path, else the path the eval (or the
     model) records with the bytes it records: a model reused from another grid, or moved. An eval that records no
     training length, of a model that is not here, is appended to ``unchecked``."""
-    from cdrb_cli.orchestration.grid import file_sha, measure_difference
+    from cdrb_cli.orchestration.grid import changed_input, file_sha, measure_difference
 
     ev = artifacts.load(path, "eval")
     made = _command(ev)
@@ -118,6 +118,15 @@ def checked_eval(
         for data in train.inputs:
             if data in (makers or {}):
                 _check_data(spec, path, model_here(), data, makers[data])
+    # the command compares a settings file (--config) by name: one edited since the grid ran the task changed
+    # what the task asks for, as the grid's own memo of it tells
+    for t in filter(None, (task, train)):
+        edited = changed_input(spec, t, spec._shas)
+        if edited is not None:
+            raise BadInput(
+                f"{path}: {clip(edited, 120)} changed since the grid ran {t.id} with it",
+                hint="run `cdrb grid` on the same file first: it runs again what the change makes out of date",
+            )
     return ev
 
 

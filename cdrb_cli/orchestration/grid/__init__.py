@@ -31,7 +31,7 @@ _EXPORTS = {
     ),
     **dict.fromkeys(["as_table", "parse_command", "walk_options", "without_setting"], "flags"),
     **dict.fromkeys(["load_grid", "parse_override"], "load"),
-    **dict.fromkeys(["check_outputs", "is_done", "memo_path", "written_here"], "memo"),
+    **dict.fromkeys(["changed_input", "check_outputs", "is_done", "memo_path", "written_here"], "memo"),
     **dict.fromkeys(["file_sha", "measure_difference", "reuse_finished"], "reuse"),
     **dict.fromkeys(
         [

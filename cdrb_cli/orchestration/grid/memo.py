@@ -184,6 +184,19 @@ def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
     return _matches(memo, now) and all(now["outputs"].values())
 
 
+def changed_input(spec: GridSpec, task: Task, cache: dict) -> str | None:
+    """An input file the task's memo recorded that is here now with other bytes (a settings file edited since the
+    grid ran the task, data made again), or None; files not here, and tasks without a memo, are not judged."""
+    memo = _memo(spec, task)
+    recorded = memo.get("inputs") if memo is not None else None
+    for path, sha in recorded.items() if isinstance(recorded, dict) else ():
+        ok = isinstance(path, str) and isinstance(sha, str) and Path(path).is_file()
+        now = cached_sha(Path(path), cache) if ok else None
+        if now is not None and now != sha:
+            return path
+    return None
+
+
 def up_to_date(spec: GridSpec, tasks: list[Task], cache: dict) -> dict[str, bool]:
     """Which tasks a run would skip: those whose memo is current and whose dependencies would all be skipped too (a
     dependency that runs again may rewrite what the task read, so the task runs after it, as the run decides)."""
