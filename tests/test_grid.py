@@ -1639,6 +1639,11 @@ def test_a_grid_trains_over_its_own_models_when_a_setting_or_the_data_change(tmp
         assert check(artifacts.load(model, "model"))
         snap = artifacts.load(model.with_name("mlp-s0.step10.h5"), "model")
         assert snap.manifest.parents == artifacts.load(model, "model").manifest.parents
+    # the data and the list of snapshots changed together: still its own model, trained over
+    r = _cli("grid", str(path), "-j", "1", "--set", "demos=42", "--set", "snapshot_at=[]")
+    assert r.returncode == 0, r.stderr[-2000:]
+    demos = artifacts.load(tmp_path / "runs" / "maze-tight" / "demos.h5", "demos")
+    assert artifacts.load(model, "model").manifest.parents[0].data_sha256 == demos.data_sha256
     # a file of the same name the grid did not write is refused, not trained over
     shutil.copy(model.with_name("mlp-s0.step10.h5"), model)  # another file: not the memo's
     r = _cli("grid", str(path), "-j", "1", "--set", "steps=30")

@@ -215,12 +215,17 @@ def up_to_date(spec: GridSpec, tasks: list[Task], cache: dict) -> dict[str, bool
 
 
 def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:
-    """Whether every output of ``task`` is the file this grid's memo says the task wrote: the grid's own artifact,
-    which it may replace when the task is out of date (a file the memo does not vouch for is never overwritten)."""
+    """Whether the task's main output, and every other output that is here, is the file this grid's memo says the
+    task wrote: the grid's own artifact, which it may replace when the task is out of date (a file the memo does
+    not vouch for is never overwritten). The memo may list more or fewer outputs than the task has now (a training's
+    snapshots asked for or dropped with another change)."""
     memo = _memo(spec, task)
     recorded = memo.get("outputs") if memo is not None else None
+    if not isinstance(recorded, dict) or not task.outputs:
+        return False
     now = {str(p): cached_sha(p, cache) for p in task.outputs}
-    return isinstance(recorded, dict) and recorded == now and all(now.values())
+    here = {p: sha for p, sha in now.items() if sha is not None}
+    return str(task.outputs[0]) in here and all(recorded.get(p) == sha for p, sha in here.items())
 
 
 def write_memo(spec: GridSpec, task: Task, cache: dict) -> None:
