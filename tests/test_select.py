@@ -202,7 +202,7 @@ def test_a_curve_whose_plans_through_obstacles_still_fall_is_extended_with_its_e
     assert not still_rising(done)
 
 
-def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_extension_passes_it(tmp_path):
+def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_extension_passes_it(tmp_path, monkeypatch):
     """`steps_cap`: `cdrb select` sums up in one line the curves that still rise at the cap (they stop there by the
     grid's rule) and asks to extend only those below it, never past it; a grid whose [[extend]] entry goes past its
     own cap is refused in one line."""
@@ -236,6 +236,27 @@ def test_curves_still_rising_at_the_grids_cap_are_named_in_one_line_and_no_exten
     grid.write_text(grid.read_text().replace("steps_cap = 200", "steps_cap = 50"))  # below the first stage
     with pytest.raises(BadInput, match="steps_cap = 50 is below the grid's steps = 100"):
         load_grid(grid)
+    # without the grid's steps, each training's own length is held to the cap: the preset's, or its flags'
+    base = 'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\neval_stream = "tune"\n'
+    for text, needle in (
+        (base + "steps_cap = 10\n", r"on maze-tight runs 3000 steps \(the quick preset\), beyond steps_cap = 10"),
+        (base + 'steps_cap = 100\n[[settings]]\nmethod = "mlp"\ntrain = ["--steps", "500"]\n',
+         r"runs 500 steps \(its train flags\), beyond steps_cap = 100"),
+    ):  # fmt: skip
+        grid.write_text(text)
+        with pytest.raises(BadInput, match=needle):
+            load_grid(grid)
+    grid.write_text(base + 'steps_cap = 3000\n[[variants]]\nname = "same"\ntrain = { lr = 0.01 }\n')
+    assert load_grid(grid).steps_cap == 3000
+    # with them, a variant's own length is replaced by the grid's, and a warning says so (the same length: nothing)
+    warned: list[str] = []
+    monkeypatch.setattr("cdrb_cli.ui.warn", warned.append)
+    grid.write_text(base + 'steps = 100\n[[variants]]\nname = "long"\ntrain = { steps = 500 }\n')
+    assert load_grid(grid).steps == 100 and len(warned) == 1
+    assert "the grid's steps = 100 replaces the steps its train flags set (mlp's training on maze-tight" in warned[0]
+    assert "in variant long: 500)" in warned[0]
+    grid.write_text(base + 'steps = 100\n[[settings]]\nmethod = "mlp"\ntrain = { steps = 100 }\n')
+    assert load_grid(grid).steps == 100 and len(warned) == 1
 
 
 def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path):

@@ -335,6 +335,7 @@ def _check_lengths_and_seeds(spec: GridSpec, path: Path, overrides: list[str], s
     if spec.extend:
         _check_extension_order(spec, _origin(path, overrides, "extend", "steps"))
         _check_snapshot_steps(spec, _origin(path, overrides, "extend", "steps"))
+    _check_train_steps(spec, _origin(path, overrides, "steps_cap", "steps"))
     if spec.eval_seeds is not None and "eval_seed_offset" in spec.model_fields_set:
         raise BadInput(
             f"{_origin(path, overrides, 'eval_seed_offset', 'eval_seeds')}: eval_seeds and eval_seed_offset: the "
@@ -474,6 +475,58 @@ def _snapshot_step(spec: GridSpec, env: str, method: str, variant: Variant) -> i
         return None
     every = str(dict(sets).get("checkpoint_every", preset_training(METHODS.get(method), preset)["checkpoint_every"]))
     return snapshot_step(int(every)) if every.isascii() and every.isdigit() and int(every) > 0 else None
+
+
+def _train_steps(spec: GridSpec, env: str, method: str, variant: Variant) -> tuple[int | None, str]:
+    """How many steps ``method``'s training in ``variant`` runs when the grid sets no ``steps``, and what says so:
+    its train flags' last ``--steps``/``--set steps=N``, else the preset's; None when a ``--config`` file may set it
+    or the value is not a positive integer (`cdrb train` then says so)."""
+    from cdrb_cli.methods.config import preset_training
+    from cdrb_cli.methods.registry import METHODS
+    from cdrb_cli.presets import PRESETS
+
+    _, options, sets = parse_command(["train", *flags_for(spec, env, method, variant)[0]])
+    if options.get("config_file") is not None:
+        return None, ""
+    given = dict(sets).get("steps")
+    if given is not None:
+        value, source = _text(given), "its train flags"
+    else:
+        preset = _text(dict(sets).get("preset", json.dumps(spec.preset)))
+        if preset not in PRESETS:
+            return None, ""
+        value, source = str(preset_training(METHODS.get(method), preset)["steps"]), f"the {preset} preset"
+    return (int(value), source) if value.isascii() and value.isdigit() and int(value) > 0 else (None, "")
+
+
+def _check_train_steps(spec: GridSpec, origin: str) -> None:
+    """Where the grid sets ``steps``, it replaces the training length a variant or a settings file gives (a tuned
+    file's chosen length, a budget shrunk with ``--set steps=N``): said in one warning, not dropped silently. Where
+    it sets none, each training's own length (its flags', else the preset's) is held to ``steps_cap``."""
+    replaced = []
+    for env in spec.envs:
+        for method in spec.methods:
+            for v in model_variants(spec, env, method):
+                where = f"{method}'s training on {env}" + (f" in variant {v.name}" if v.name else "")
+                if spec.steps is not None:
+                    own = dict(parse_command(["train", *flags_for(spec, env, method, v)[0]])[2]).get("steps")
+                    if own is not None and _text(own) != str(spec.steps):
+                        replaced.append(f"{where}: {clip(_text(own), 20)}")
+                    continue
+                steps, source = _train_steps(spec, env, method, v)
+                if spec.steps_cap is not None and steps is not None and steps > spec.steps_cap:
+                    raise BadInput(
+                        f"{origin}: {where} runs {steps} steps ({source}), beyond steps_cap = {spec.steps_cap}",
+                        hint="set the grid's steps (at most the cap), or raise steps_cap",
+                    )
+    if replaced:
+        more = f" and {len(replaced) - 2} more" if len(replaced) > 2 else ""
+        ui.warn(
+            f"{origin}: the grid's steps = {spec.steps} replaces the steps its train flags set ("
+            + "; ".join(replaced[:2])
+            + more
+            + "); a longer curve for some runs is an [[extend]] entry"
+        )
 
 
 def _check_snapshot_steps(spec: GridSpec, origin: str) -> None:

@@ -228,8 +228,9 @@ class GridSpec(_Strict):
     )
     steps_cap: Steps | None = Field(
         None,
-        description="tuning grids: the longest any curve runs ([[extend]] entries stop here); `cdrb select` sums up "
-        "in one line the curves that still rise at it instead of asking to extend each",
+        description="tuning grids: the longest any curve runs ([[extend]] entries stop here; without `steps`, each "
+        "training's own length, its flags' or its preset's); `cdrb select` sums up in one line the curves that still "
+        "rise at it instead of asking to extend each",
     )
     extend: list[Extension] = Field(
         default_factory=list,
