@@ -115,6 +115,17 @@ def test_a_curve_still_rises_when_its_best_candidate_gains_more_than_the_standar
     ]
     rise = still_rising(staggered)[("maze", "cdrb")]
     assert rise.best.variant == "k2" and rise.best.steps == 4000 and abs(rise.gain - 40.33) < 0.01
+    # the variant the rule chooses stops short of a longer, losing one: its own rise is not hidden by the other's
+    # level curve (nor flagged when it had levelled off)
+    short = [_point("a", 0, 50, [10.0, 20.0, 30.0]), _point("a", 0, 100, [60.0, 70.0, 80.0])]
+    long = [_point("b", 1, n, [5.0, 5.0, 5.0]) for n in (50, 100, 200)]
+    rise = still_rising(short + long)[("maze", "cdrb")]
+    assert rise.best.variant == "a" and rise.best.steps == 100 and abs(rise.gain - 50.0) < 0.01
+    level = [_point("a", 0, 50, [60.0, 70.0, 80.0]), _point("a", 0, 100, [61.0, 69.0, 80.0])]
+    assert not still_rising(level + long)
+    # a choice at an earlier point of its own curve (it fell later) is not the end of a rising curve
+    fell = [*short, _point("a", 0, 150, [40.0, 40.0, 40.0])]
+    assert not still_rising(fell + long)
 
 
 def test_the_curve_judged_still_rising_is_the_one_the_rule_can_choose():

@@ -272,9 +272,11 @@ def rising_notes(rising: dict[tuple[str, str], Rise], cap: int | None) -> tuple[
 
 
 def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tuple[str, str], Rise]:
-    """Per (env, method) whose curve still rises by :data:`RISING`, its :class:`Rise`. A method with one length or
-    one training seed has no curve to judge. A candidate the rule never chooses (executed by a controller that
-    reads the map) is not the curve judged either."""
+    """Per (env, method) whose curve still rises by :data:`RISING`, its :class:`Rise`: the curve of the best
+    candidate at the method's longest length, or else of the candidate the rule chooses where that is its own
+    curve's last point (a variant whose curve stops shorter, chosen over the longer ones, may still rise). A method
+    with one length or one training seed has no curve to judge. A candidate the rule never chooses (executed by a
+    controller that reads the map) is not the curve judged either."""
     out = {}
     cands = choosable(cands)
     for key in dict.fromkeys((c.env, c.method) for c in cands):
@@ -283,18 +285,12 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
         if len(lengths) < 2:
             continue
         last = min((c for c in mine if c.steps == lengths[-1]), key=Candidate.rank)
-        # the same variant's previous point: variants' curves may stop at different lengths
-        shorter = [c for c in mine if c.variant == last.variant and c.steps < last.steps]
-        if not shorter:
-            continue
-        prev = max(shorter, key=lambda c: c.steps)
-        success = _paired_change(prev, last, "success")
-        crossing = _paired_change(prev, last, "plans_through_obstacle")
-        gains = success is not None and success[0] > success[1] and not all(v >= 100.0 for v in success[2])
-        falls = crossing is not None and -crossing[0] > crossing[1] and not all(v <= 0.0 for v in crossing[2])
-        if gains or falls:
-            gain, se = success[:2] if success is not None else (0.0, 0.0)
-            out[key] = Rise(last, gain, se, "success" if gains else "crossings")
+        chosen = min(mine, key=Candidate.rank)
+        for judged in [last] if chosen is last else [last, chosen]:
+            rise = _rise(judged, mine)
+            if rise is not None:
+                out[key] = rise
+                break
     if shared_budget:  # one planner that rises extends its environment's others with it
         for env in {env for env, method in out if METHODS.get(method).kind == "planner"}:
             trained = [c for c in cands if c.env == env and c.planner and c.steps is not None]
@@ -305,6 +301,24 @@ def still_rising(cands: list[Candidate], shared_budget: bool = False) -> dict[tu
                 if last is not None:
                     out[(env, method)] = Rise(last, 0.0, 0.0, "shared")
     return out
+
+
+def _rise(last: Candidate, mine: list[Candidate]) -> Rise | None:
+    """How ``last`` gained on the previous point of its own variant's curve (variants' curves may stop at different
+    lengths), if by more than its paired standard error; None when it did not, or is not its curve's last point."""
+    same = [c for c in mine if c.variant == last.variant]
+    shorter = [c for c in same if c.steps < last.steps]
+    if not shorter or any(c.steps > last.steps for c in same):
+        return None
+    prev = max(shorter, key=lambda c: c.steps)
+    success = _paired_change(prev, last, "success")
+    crossing = _paired_change(prev, last, "plans_through_obstacle")
+    gains = success is not None and success[0] > success[1] and not all(v >= 100.0 for v in success[2])
+    falls = crossing is not None and -crossing[0] > crossing[1] and not all(v <= 0.0 for v in crossing[2])
+    if not (gains or falls):
+        return None
+    gain, se = success[:2] if success is not None else (0.0, 0.0)
+    return Rise(last, gain, se, "success" if gains else "crossings")
 
 
 def chosen_flags(spec: GridSpec, cand: Candidate) -> tuple[list[str], list[str], list[str]]:
