@@ -239,12 +239,15 @@ def test_replace_folder_keeps_one_whole_folder_at_every_step(tmp_path, monkeypat
             os.kill(os.getpid(), signal.SIGINT)
 
     monkeypatch.setattr(files.os, "replace", interrupt_on_first)
+    # a suite started as a background job inherits SIGINT ignored, and install() leaves an ignored SIGINT alone
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
     restore = interrupts.install()
     try:
         with pytest.raises(KeyboardInterrupt):
             files.replace_folder(new, final)
     finally:
         restore()
+        signal.signal(signal.SIGINT, outer)
     assert (final / "a").read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     monkeypatch.setattr(files.os, "replace", real)
     final2, new2 = tmp_path / "out2", tmp_path / ".out2.new"
