@@ -522,6 +522,9 @@ def make_plans(
         avoid,
     )
     warn_unrouted(avoid)
+    # judged as the file stores them (float32): a state on an obstacle's edge must read the same in the summary, the
+    # warnings and a later look at the file
+    plans = plans.astype(np.float32).astype(np.float64)
     family = family_of(spec)
     in_wall = family.in_collision(spec, plans[..., : spec.obs_dim])
     summary = PlanSummary(
