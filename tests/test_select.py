@@ -330,21 +330,24 @@ def test_an_eval_of_the_same_file_at_another_training_length_is_refused(tmp_path
                 checked_eval(spec, task, path)
 
 
-def _one_mlp_tuning_grid(tmp_path):
-    """A tuning grid of one MLP run (100 steps), expanded: its spec, tasks, trainings by output, its eval task, its
-    training task, and an eval file recording that eval task's command."""
+def _one_mlp_tuning_grid(tmp_path, variants: str = "", variant: str = ""):
+    """A tuning grid of one MLP run (100 steps; ``variants``: more of the file, e.g. [[variants]] entries), expanded:
+    its spec, tasks, trainings by output, the eval and training tasks of ``variant`` (the base by default), and an
+    eval file recording that eval task's command."""
     from cdrb_cli.orchestration.grid import expand, load_grid
     from tests import factories
 
     grid = tmp_path / "tune.toml"
     grid.write_text(
         'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\neval_stream = "tune"\n'
+        + variants
     )
     spec = load_grid(grid)
     tasks = expand(spec)
     trains = {o: t for t in tasks if t.kind == "train" for o in t.outputs}
-    task = next(t for t in tasks if t.id == "eval maze-tight/mlp-s0")
-    train = next(t for t in tasks if t.id == "train maze-tight/mlp-s0")
+    at = f"{variant}/" if variant else ""
+    task = next(t for t in tasks if t.id == f"eval maze-tight/{at}mlp-s0")
+    train = next(t for t in tasks if t.id == f"train maze-tight/{at}mlp-s0")
     manifest, arrays = factories.build("eval")
     ev = tmp_path / "eval.h5"
     artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
@@ -464,26 +467,13 @@ def test_an_eval_whose_settings_file_changed_since_the_grid_ran_it_is_refused(tm
     """Commands name a --config file, and compare it by name: an edit of it since the grid ran the training (or the
     eval) changed what the task asks for, and the grid's memo of the task, which hashed the file, tells."""
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.orchestration.grid import expand, load_grid
     from cdrb_cli.orchestration.grid.memo import write_memo
     from cdrb_cli.orchestration.select_evals import checked_eval
-    from tests import factories
 
     (tmp_path / "tc.toml").write_text("lr = 0.01\n")
     (tmp_path / "ev.toml").write_text("[controller]\nmax_lag = 0.3\n")
-    grid = tmp_path / "tune.toml"
-    grid.write_text(
-        'out = "t"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = 100\neval_stream = "tune"\n'
-        '[[variants]]\nname = "cfg"\ntrain = ["--config", "tc.toml"]\neval = ["--config", "ev.toml"]\n'
-    )
-    spec = load_grid(grid)
-    tasks = expand(spec)
-    trains = {o: t for t in tasks if t.kind == "train" for o in t.outputs}
-    task = next(t for t in tasks if t.id == "eval maze-tight/cfg/mlp-s0")
-    train = next(t for t in tasks if t.id == "train maze-tight/cfg/mlp-s0")
-    manifest, arrays = factories.build("eval")
-    ev = tmp_path / "eval.h5"
-    artifacts.save(ev, "eval", manifest.model_copy(update={"argv": ["cdrb", *task.argv]}), arrays)
+    cfg = '[[variants]]\nname = "cfg"\ntrain = ["--config", "tc.toml"]\neval = ["--config", "ev.toml"]\n'
+    spec, _, trains, task, train, ev = _one_mlp_tuning_grid(tmp_path, cfg, "cfg")
     for t in (train, task):
         write_memo(spec, t, spec._shas)
     checked_eval(spec, task, ev, [], trains)

@@ -187,11 +187,12 @@ def is_done(spec: GridSpec, task: Task, cache: dict) -> bool:
 def changed_input(spec: GridSpec, task: Task, cache: dict) -> str | None:
     """An input file the task's memo recorded that is here now with other bytes (a settings file edited since the
     grid ran the task, data made again), or None; files not here, and tasks without a memo, are not judged."""
+    from cdrb_cli.orchestration.grid.reuse import regular_sha  # it imports this module
+
     memo = _memo(spec, task)
     recorded = memo.get("inputs") if memo is not None else None
     for path, sha in recorded.items() if isinstance(recorded, dict) else ():
-        ok = isinstance(path, str) and isinstance(sha, str) and Path(path).is_file()
-        now = cached_sha(Path(path), cache) if ok else None
+        now = regular_sha(path, cache) if isinstance(path, str) and isinstance(sha, str) else None
         if now is not None and now != sha:
             return path
     return None
