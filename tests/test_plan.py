@@ -275,3 +275,48 @@ def test_the_network_is_traced_only_once_sampling_has_called_it_enough(tiny_mode
     for plans in range(1, 4):
         sample_plans(planner, start, goal, 1, seed=plans, batch_size=1)
         assert any(t is not None for t in planner.__dict__.get("_traces", {}).values()) == (plans == 3)
+
+
+def test_the_summary_judges_the_plans_as_the_file_stores_them(tiny_models, tmp_path, monkeypatch):
+    """A state a hair outside a wall in float64 that float32 rounds into it: the summary, the stored ``in_wall``
+    and a later look at the stored plans must all read it the same way."""
+    from cdrb_cli.configs import PlanConfig
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.stages import plan as plan_stage
+
+    model = tiny_models["cdrb"]
+    spec = model.manifest.env
+    family = family_of(spec)
+    H = 16
+
+    def walled(x: float, y: float) -> bool:
+        return bool(family.in_collision(spec, np.array([[[x, y, 0.0, 0.0]]]))[0, 0])
+
+    # bisect along a row from free space into a wall until the edge falls between two float32 neighbours
+    y, free = 0.0, 0.0
+    assert not walled(free, y)
+    inside = next(x for x in np.arange(0.0, 12.0, 0.05) if walled(x, y))
+    for _ in range(200):
+        mid = 0.5 * (free + inside)
+        free, inside = (mid, inside) if not walled(mid, y) else (free, mid)
+    edge = free
+    while walled(float(np.float32(edge)), y) == walled(edge, y):  # a float64 point float32 carries across the edge
+        edge = np.nextafter(edge, inside)
+    assert walled(edge, y) != walled(float(np.float32(edge)), y)
+
+    plan = np.zeros((1, H, 4))
+    plan[:, :, 0] = free - 0.05  # in free space, but for the one state on the edge
+    assert not family.in_collision(spec, plan[..., :2]).any()
+    plan[0, H // 2, 0] = edge
+    starts, goals = plan[:, 0].copy(), plan[:, -1].copy()
+
+    def fake(method, s, g, n, *a, **k):
+        return plan.copy(), np.zeros(1, dtype=np.int64), None, [], 0.01
+
+    monkeypatch.setattr(plan_stage, "sample_plans", fake)
+    out = plan_stage.make_plans(model, starts, goals, PlanConfig(sampler="paper", n=1, seed=0), tmp_path / "p.h5")
+    stored = out.arrays["plans"].astype(np.float64)[..., :2]
+    judged = family.in_collision(spec, stored)
+    np.testing.assert_array_equal(out.arrays["in_wall"], judged)
+    assert out.manifest.summary.plans_with_wall_states == int(judged.any(axis=1).sum())
+    assert out.manifest.summary.plans_crossing == int(np.asarray(family.path_in_collision(spec, stored)).sum())
