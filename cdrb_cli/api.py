@@ -175,8 +175,9 @@ class Planner:
         ``"compile"``: through ``torch.compile`` on any device, faster on a GPU after tens of seconds of compiling
         at the first plan of each batch size. Plans in ONNX Runtime equal torch's to float rounding, not bit for
         bit; :attr:`Plans.runtime` says which ran (:mod:`cdrb_cli.nets.runtime`)."""
+        from cdrb_cli.stages.avoid import load_route_buffer, prepare_planner
         from cdrb_cli.stages.configure import plan_config, route_buffer_path
-        from cdrb_cli.stages.plan import load_planner, load_route_buffer, prepare_planner, scene_spec
+        from cdrb_cli.stages.plan import load_planner, scene_spec
         from cdrb_cli.stages.share import check_finished, load_model
 
         given = _settings(
@@ -253,8 +254,9 @@ class Planner:
         denoising ``steps``: the model's by default). A setting given here and in the planner's ``settings`` is
         refused (neither would silently win)."""
         from cdrb_cli.settings import given_once
+        from cdrb_cli.stages.avoid import buffer_graph
         from cdrb_cli.stages.configure import plan_config
-        from cdrb_cli.stages.plan import buffer_graph, sample_plans
+        from cdrb_cli.stages.plan import sample_plans
 
         # the same checks as `cdrb plan` (n a whole number in bounds, a 32-bit seed, steps 1..T, a known sampler)
         given = [  # errors name the argument: steps=..., not the setting's key
@@ -327,9 +329,10 @@ def evaluate(
     ``protocol="detour"`` for the pairs new obstacles lengthen; ``allow_partial``: evaluate an unfinished training's
     checkpoint (a warning; the eval records the step it stopped at)."""
     from cdrb_cli.artifacts import check_output
+    from cdrb_cli.stages.avoid import load_route_buffer
     from cdrb_cli.stages.configure import eval_config, route_buffer_path
     from cdrb_cli.stages.evaluate import eval_artifact
-    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
+    from cdrb_cli.stages.plan import scene_spec
     from cdrb_cli.stages.share import check_finished
 
     seeds = None if seeds is None else _seed_list(seeds)

@@ -103,7 +103,7 @@ def test_crossing_counts_count_steps_through_walls():
 
 # ------------------------------------------------------------------------------------------------ best of N
 def test_best_of_keeps_a_free_plan_then_the_shortest():
-    from cdrb_cli.stages.plan import Avoidance
+    from cdrb_cli.stages.avoid import Avoidance
 
     spec = family_of(make_spec("maze-tight")).with_map(make_spec("maze-tight"), NORTH)
     g = MazeGeometry(spec.scene.maze)
@@ -125,7 +125,7 @@ def test_best_of_prefers_a_plan_that_starts_where_the_robot_is():
     """With avoid.first_step, among plans that cross nothing one whose first step is within FIRST_STEP_TOLERANCE x
     the step limit is kept before a shorter one that leaps from its start; crossings still come first (a leap that
     stays clear beats a plan through a wall); without it the shortest clear plan is kept."""
-    from cdrb_cli.stages.plan import FIRST_STEP_TOLERANCE, Avoidance
+    from cdrb_cli.stages.avoid import FIRST_STEP_TOLERANCE, Avoidance
 
     spec = family_of(make_spec("maze-tight")).with_map(make_spec("maze-tight"), NORTH)
     g = MazeGeometry(spec.scene.maze)
@@ -147,7 +147,8 @@ def test_best_of_prefers_a_plan_that_starts_where_the_robot_is():
 
 # ------------------------------------------------------------------------------------------------ masking
 def test_masked_buffer_never_restores_a_state_inside_the_new_wall(tiny_models):
-    from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans
+    from cdrb_cli.stages.avoid import prepare_planner
+    from cdrb_cli.stages.plan import load_planner, sample_plans
 
     model = tiny_models["cdrb"]
     spec = family_of(model.manifest.env).with_map(model.manifest.env, NORTH)
@@ -181,7 +182,8 @@ def test_replans_in_a_new_map_keep_the_masked_buffer_and_the_best_of(tiny_models
     first plan does (a re-plan from where the robot got stuck must not walk back into the new wall)."""
     from cdrb_cli.configs import ReplanConfig
     from cdrb_cli.envs.pointmaze.controllers import CONTROLLERS
-    from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans
+    from cdrb_cli.stages.avoid import prepare_planner
+    from cdrb_cli.stages.plan import load_planner, sample_plans
     from cdrb_cli.stages.replan import run_closed_loop
 
     model = tiny_models["cdrb"]
@@ -355,7 +357,8 @@ class _LinePlanner:
 def test_a_pair_whose_every_plan_crosses_is_tried_again_from_a_buffer_route():
     """``avoid.fallback_route_k``: only the pairs whose kept plan steps through a wall are sampled again, as repairs
     of their buffer route from step k, and the better plan is kept; a pair whose plan is clear is left alone."""
-    from cdrb_cli.stages.plan import Avoidance, sample_plans
+    from cdrb_cli.stages.avoid import Avoidance
+    from cdrb_cli.stages.plan import sample_plans
     from cdrb_cli.stages.routes import BufferGraph
 
     spec, g, states = _north_closed_buffer()
@@ -395,7 +398,8 @@ def test_a_pair_whose_every_plan_leaps_from_its_start_is_tried_again():
     """A clear plan whose first step goes farther than FIRST_STEP_TOLERANCE x the step limit also gets the second
     try: the repair of its buffer route (which walks from the start) is kept instead; a pair whose plan starts
     gently is left alone."""
-    from cdrb_cli.stages.plan import Avoidance, sample_plans
+    from cdrb_cli.stages.avoid import Avoidance
+    from cdrb_cli.stages.plan import sample_plans
     from cdrb_cli.stages.routes import BufferGraph
 
     spec, g, states = _north_closed_buffer()
@@ -428,7 +432,8 @@ def test_a_plan_that_still_leaps_is_retimed_along_its_own_path():
     clear; a plan that starts gently is left alone, so is one through an obstacle (respaced, more of its states could
     fall in the wall), one whose path is too long to respace within the tolerance, and nothing changes without the
     setting. Through the sampler the normalized plans follow."""
-    from cdrb_cli.stages.plan import FIRST_STEP_TOLERANCE, Avoidance, _sampler_call, sample_plans
+    from cdrb_cli.stages.avoid import FIRST_STEP_TOLERANCE, Avoidance
+    from cdrb_cli.stages.plan import _sampler_call, sample_plans
 
     spec, g, _ = _north_closed_buffer()
     family = family_of(spec)
@@ -483,7 +488,8 @@ def test_a_pair_whose_every_repair_crosses_may_keep_the_route_itself(itself, pin
     """``avoid.fallback_route_itself``: when the repairs of the second try cross as well, the buffer route itself
     (free by construction here) replaces the kept plan, pinned to the pair and normalized in the sampler's result
     too; without it the crossing plan stays."""
-    from cdrb_cli.stages.plan import Avoidance, _sampler_call
+    from cdrb_cli.stages.avoid import Avoidance
+    from cdrb_cli.stages.plan import _sampler_call
     from cdrb_cli.stages.routes import BufferGraph
 
     spec, g, states = _north_closed_buffer()
@@ -620,7 +626,8 @@ def test_api_plans_in_a_new_map(tiny_models):
 
 def test_pairs_without_a_buffer_route_are_said(tiny_models, capsys):
     """A start the buffer cannot reach by a free step gets the straight line, and the count is reported."""
-    from cdrb_cli.stages.plan import load_planner, prepare_planner, sample_plans, warn_unrouted
+    from cdrb_cli.stages.avoid import prepare_planner, warn_unrouted
+    from cdrb_cli.stages.plan import load_planner, sample_plans
 
     model = tiny_models["cdrb"]
     spec = family_of(model.manifest.env).with_map(model.manifest.env, NORTH)

@@ -293,7 +293,7 @@ def test_waypoints_lead_plans_toward_a_far_goal_one_reach_at_a_time(models, tmp_
     goal once it is that close), and so does every re-plan, from where the robot is then; the route goes along the
     model's transition graph (the default: no map read) or through buffer states joined by free steps."""
     from cdrb_cli.configs import ReplanConfig
-    from cdrb_cli.stages.plan import buffer_graph
+    from cdrb_cli.stages.avoid import buffer_graph
     from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
 
     model = models["cdrb"]
@@ -342,7 +342,7 @@ def test_a_planner_without_a_buffer_takes_waypoints_through_a_route_buffer(model
     routing through it stays a mistake for `cdrb plan`."""
     from cdrb_cli.configs import AvoidConfig, PlanConfig
     from cdrb_cli.errors import BadInput
-    from cdrb_cli.stages.plan import route_states
+    from cdrb_cli.stages.avoid import route_states
     from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
 
     _, buffer = small_data
@@ -382,8 +382,8 @@ class _Recorder:
 def test_a_policy_acts_toward_waypoints_given_anew_on_a_clock(small_data, tmp_path):
     """A closed-loop policy toward far goals: ``run_policy``'s aims give it the waypoint of the state it is in every
     ``every`` env steps and keep it in between; the waypoint as a goal is the one a planner's plans end at."""
+    from cdrb_cli.stages.avoid import buffer_states
     from cdrb_cli.stages.evaluate import run_policy
-    from cdrb_cli.stages.plan import buffer_states
     from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims, waypoint_goals
 
     _, buffer = small_data

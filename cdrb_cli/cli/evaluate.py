@@ -146,7 +146,8 @@ def eval_cmd(
     route_buffer = route_buffer_path(settings)
     read = [model, *(p for p in (config_file, maze_map, route_buffer) if p is not None)]
     check_outputs(force, read, out=out, replan_plot=replan_plot)
-    from cdrb_cli.stages.plan import load_route_buffer, scene_spec
+    from cdrb_cli.stages.avoid import load_route_buffer
+    from cdrb_cli.stages.plan import scene_spec
     from cdrb_cli.stages.plan_warnings import off_scene_warning
 
     scene = scene_spec(m, maze_map, typed_flag(SCENE_FLAGS))

@@ -76,8 +76,9 @@ def plan(
     Also: [cyan]--batch-size N[/cyan], the setting [cyan]batch[/cyan] (plans sampled together, default 256;
     each batch has a random stream of its own, so another size gives other plans)."""
     from cdrb_cli.artifacts import produce
+    from cdrb_cli.stages.avoid import load_route_buffer
     from cdrb_cli.stages.configure import plan_config, route_buffer_path
-    from cdrb_cli.stages.plan import load_route_buffer, make_plans, plan_points, scene_spec
+    from cdrb_cli.stages.plan import make_plans, plan_points, scene_spec
     from cdrb_cli.torch_utils import check_device_name, setup_torch
 
     flags = [] if n is None else [(f"--num-plans {n}", "n", n)]

@@ -26,17 +26,11 @@ from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
 from cdrb_cli.seeding import EVAL_STREAMS, STREAM_EVAL, step_rng
+from cdrb_cli.stages.avoid import buffer_graph, mask_counts, prepare_planner, warn_unrouted
 from cdrb_cli.stages.metrics import (
     failure_code,
 )
-from cdrb_cli.stages.plan import (
-    buffer_graph,
-    load_planner,
-    mask_counts,
-    prepare_planner,
-    sample_plans,
-    warn_unrouted,
-)
+from cdrb_cli.stages.plan import load_planner, sample_plans
 from cdrb_cli.stages.plan_metrics import plan_measures
 from cdrb_cli.stages.results import EpisodeResult, episode_arrays, failure_text, seed_result, summarize
 
@@ -265,7 +259,7 @@ def _waypoints(method, spec: EnvSpec, config: EvalConfig, avoid, route_buffer=No
     (:func:`~cdrb_cli.stages.routes.waypoint_aims`) along the routes ``replan.waypoint_graph`` names through the
     buffer ``route_buffer`` (``avoid.route_buffer``) or the model's own: its transition graph, or its states joined
     by free steps (the avoidance's graph where it has one); None without it."""
-    from cdrb_cli.stages.plan import route_states
+    from cdrb_cli.stages.avoid import route_states
     from cdrb_cli.stages.routes import TransitionRoutes, waypoint_aims
 
     replan = config.replan
@@ -487,7 +481,7 @@ def _policy_waypoints(model, spec: EnvSpec, config: EvalConfig, route_buffer=Non
     """With ``replan.waypoint_reach``, (the function giving a policy's waypoint goals, env steps between two of them)
     along the routes ``replan.waypoint_graph`` names through ``route_buffer`` (a policy keeps no buffer); None
     without it."""
-    from cdrb_cli.stages.plan import buffer_states
+    from cdrb_cli.stages.avoid import buffer_states
     from cdrb_cli.stages.routes import BufferGraph, TransitionRoutes, waypoint_goals
 
     replan, name = config.replan, model.manifest.config.method.name

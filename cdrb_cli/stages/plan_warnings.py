@@ -8,7 +8,7 @@ import numpy as np
 from cdrb_cli.configs import AvoidConfig
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.envs.spec import EnvSpec
-from cdrb_cli.stages.plan import FIRST_STEP_TOLERANCE
+from cdrb_cli.stages.avoid import FIRST_STEP_TOLERANCE
 
 
 def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfig | None = None) -> str | None:
