@@ -340,7 +340,9 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path, monkeypatch
         backend.close()
     status = {r.id: r for r in fourth.results}
     assert status["eval maze-tight/cdrb-s1"].status == "done" and status["report"].status == "failed"
-    assert "--force" in " ".join(status["report"].stderr)
+    said = status["report"].stderr[-1]
+    assert "file exists" in said and "--force" not in said, said  # grid takes no --force: what to do instead
+    assert "move or remove that one" in said
     assert (spec.out / "report.md").read_text() == "my notes\n"
 
 
@@ -1648,4 +1650,5 @@ def test_a_grid_trains_over_its_own_models_when_a_setting_or_the_data_change(tmp
     shutil.copy(model.with_name("mlp-s0.step10.h5"), model)  # another file: not the memo's
     r = _cli("grid", str(path), "-j", "1", "--set", "steps=30")
     assert r.returncode != 0 and "train maze-tight/mlp-s0" in r.stderr
+    assert "move or remove that one" in r.stderr and "--force" not in r.stderr, r.stderr[-2000:]
     assert artifacts.load(model, "model").manifest.state.step == 10

@@ -406,11 +406,11 @@ def run_grid(
                 _log_eval(task)
                 emit("done", res)
             elif res.attempts <= retries:
-                res.stderr = out["stderr"]
+                res.stderr = _grid_hint(task, out["stderr"])
                 emit("retry", res)
                 submit(task)
             else:
-                state[task.id], res.status, res.stderr = "failed", "failed", out["stderr"]
+                state[task.id], res.status, res.stderr = "failed", "failed", _grid_hint(task, out["stderr"])
                 emit("failed", res)
         if polled:  # the tasks still running, after the finished ones are settled
             on_progress(_progress(spec, running.values()))
@@ -449,6 +449,27 @@ def _log_eval(task) -> None:
         log_eval(Path(task.meta["log_dir"]), task.meta["variant"] or "base", task.meta["steps"], ev.manifest.summary)
     except Exception as exc:  # a view of the record, never a reason to fail the grid
         ui.warn(f"{task.id}: its figures were not logged to {task.meta['log_dir']} ({clip(str(exc), 120)})")
+
+
+def _grid_hint(task: Task, lines: list[str]) -> list[str]:
+    """A failed task's last stderr line as the grid's user can act on it: a command's hint to pass ``--force``
+    (an output is there that it will not write over) becomes what to do here, since a grid passes ``--force``
+    only to its own artifacts and takes no such flag."""
+    if not lines or "--force" in task.argv:  # (its own artifact: the command's hint stands)
+        return lines
+    last = lines[-1]
+    if not last.endswith(")"):
+        return lines
+    depth = 0
+    for i in range(len(last) - 1, -1, -1):  # the hint: the last balanced parenthesis of `message (hint)`
+        depth += {")": 1, "(": -1}.get(last[i], 0)
+        if depth == 0:
+            break
+    hint = last[i + 1 : -1]
+    if depth or "--force" not in hint:
+        return lines
+    grid_hint = "a grid writes over no file it did not write itself: move or remove that one, or choose another `out`"
+    return [*lines[:-1], f"{last[:i].rstrip()} ({grid_hint})"]
 
 
 def _outcome(fut: cf.Future) -> dict:
