@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -202,6 +204,11 @@ def test_video_folders_are_checked_before_the_run_and_reported_truthfully(tiny_m
     ev = tmp_path / "e.h5"
     r = cdrb("eval", model, "--seeds", "0", "--episodes", "1", "--video", tmp_path / "vfile" / "sub", "--out", ev)
     assert r.returncode == 2 and "is not a folder" in r.stderr and r.stderr.count("\n") == 1 and not ev.exists()
+    if Path("/proc").is_dir():  # no folder can be made there, whatever the permission bits tell (root passes them)
+        for cmd in (("eval", model, "--seeds", "0", "--episodes", "1"), ("collect", "maze-tight", "-n", "2")):
+            r = cdrb(*cmd, "--video", "/proc/cdrb-gifs", "--out", ev)
+            assert r.returncode == 2 and "--video /proc/cdrb-gifs" in r.stderr, r.stderr[-500:]
+            assert r.stderr.count("\n") == 1 and not ev.exists()
     gifs = tmp_path / "gifs"
     gifs.mkdir()
     r = cdrb("collect", "maze-tight", "-n", "2", "--out", gifs / "demo_00_success.gif", "--video", gifs)
