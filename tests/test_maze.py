@@ -214,3 +214,21 @@ def test_a_map_saved_by_a_windows_editor_reads_as_the_same_map(tmp_path):
     (tmp_path / "unix.txt").write_text(text)
     (tmp_path / "win.txt").write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
     assert load_map_file(tmp_path / "win.txt").rows == load_map_file(tmp_path / "unix.txt").rows
+
+
+def test_a_map_record_without_a_start_goal_pair_is_refused_however_it_was_made():
+    """A map edited inside an artifact never passed the file parser: the record itself refuses what the protocol
+    cannot draw pairs on (no start, no goal, no start reaching another goal cell)."""
+    from pydantic import ValidationError
+
+    from cdrb_cli.envs.pointmaze.maze import MazeLayout
+
+    for rows, needle in [
+        (["#####", "#..G#", "#####"], "no start cell"),
+        (["#####", "#S..#", "#####"], "no goal cell"),
+        (["#####", "#S#G#", "#####"], "reaches a goal cell"),
+        (["#####", "#C###", "#####"], "reaches a goal cell"),  # its only goal is itself
+    ]:
+        with pytest.raises(ValidationError, match=needle):
+            MazeLayout(name="x", rows=rows)
+    assert MazeLayout(name="x", rows=["#####", "#S.G#", "#####"]).rows[1] == "#S.G#"

@@ -72,6 +72,12 @@ def _resum(path):
     (path / "SHA256SUMS").write_text("".join(f"{sha256_file(path / n)}  {n}\n" for n in names))
 
 
+def _no_start(config: dict) -> str:
+    maze = config["env"]["scene"]["maze"]
+    maze["rows"] = [r.replace("S", ".").replace("C", "G") for r in maze["rows"]]
+    return json.dumps(config)
+
+
 def _link_outside(folder, name):
     """``name`` moved out of the folder and linked back (same bytes, same checksum)."""
     outside = folder.parent / f"outside-{name}"
@@ -110,6 +116,13 @@ def _flip_byte(path, offset):
                 _resum(p),
             ),
             ".horizon: Input should be greater than",
+        ),
+        (  # a map edited to one the protocol cannot draw pairs on (no start cell left)
+            lambda p: (
+                (p / "config.json").write_text(_no_start(json.loads((p / "config.json").read_text()))),
+                _resum(p),
+            ),
+            "the map has no start cell",
         ),
     ],
 )

@@ -8,12 +8,12 @@ x = (j + 0.5) s - W s / 2 and y = H s / 2 - (i + 0.5) s (the gymnasium-robotics 
 from __future__ import annotations
 
 from collections import deque
-from functools import cached_property
+from functools import cached_property, lru_cache
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from cdrb_cli.envs.spec import BoxObstacles
 from cdrb_cli.errors import BadInput, RunFailed
@@ -57,6 +57,20 @@ class MazeLayout(Record):
         if any(ch not in MAP_CHARS for r in rows for ch in r):
             raise ValueError(f"rows may only contain {''.join(MAP_CHARS)}")
         return rows
+
+    @model_validator(mode="after")
+    def _playable(self) -> MazeLayout:
+        """What the protocol needs of any map, held by the record itself (a map file is checked line by line
+        first, by :func:`parse_map`; this catches a map edited inside an artifact): a start cell, a goal cell, and
+        a start cell that reaches a goal cell other than itself."""
+        cells = "".join(self.rows)
+        if not any(c in "SC" for c in cells):
+            raise ValueError("the map has no start cell (S or C)")
+        if not any(c in "GC" for c in cells):
+            raise ValueError("the map has no goal cell (G or C)")
+        if not _has_pair(tuple(self.rows)):
+            raise ValueError("no start cell of the map reaches a goal cell other than itself")
+        return self
 
     @property
     def n_rows(self) -> int:
@@ -125,15 +139,13 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
         raise BadInput(f"{source}: map has no start cell", hint="mark at least one free cell with S (or C)")
     if not any(c in "GC" for c in cells):
         raise BadInput(f"{source}: map has no goal cell", hint="mark at least one free cell with G (or C)")
-    layout = MazeLayout(name=name, rows=[r for _, r in rows])
-    geom = MazeGeometry(layout)
     # the protocol draws a start cell and a different goal cell reachable from it
-    if not geom.has_start_goal_pair():
+    if not _has_pair(tuple(r for _, r in rows)):
         raise BadInput(
             f"{source}: no start cell can reach a goal cell other than itself",
             hint="open a path, or mark another goal cell",
         )
-    return layout
+    return MazeLayout(name=name, rows=[r for _, r in rows])
 
 
 MAX_MAP_BYTES = 1 << 20
@@ -153,6 +165,13 @@ def load_map_file(path: str | Path, flag: str = "--maze-map") -> MazeLayout:
 def stock_layout(name: str) -> MazeLayout:
     text = resources.files("cdrb_cli.envs.pointmaze.maps").joinpath(f"{name}.txt").read_text()
     return parse_map(text, name=name, source=f"stock map {name}")
+
+
+@lru_cache(maxsize=64)
+def _has_pair(rows: tuple[str, ...]) -> bool:
+    """Whether some start cell of ``rows`` reaches a goal cell other than itself (every artifact load of a map
+    asks; the answer is kept per map)."""
+    return MazeGeometry(MazeLayout.model_construct(name="", rows=list(rows))).has_start_goal_pair()
 
 
 class MazeGeometry:
