@@ -807,3 +807,38 @@ def test_scene_files_of_the_other_family_are_refused():
         family_of(make_spec("fetch-reach-obstacle")).with_map(make_spec("fetch-reach-obstacle"), NORTH)
     with pytest.raises(BadInput, match="a scene settings file, but maze-tight is a maze"):
         family_of(make_spec("maze-tight")).with_map(make_spec("maze-tight"), X_PLUS)
+
+
+def test_an_eval_says_when_the_expert_itself_runs_out_of_time_on_its_pairs(tmp_path, cdrb):
+    """A scene whose walls make every route far longer than the training map's timing: the scripted expert cannot
+    reach the goals within the episode limit, so no method can, and the eval says so in one warning line; in the
+    training map the same eval says nothing."""
+    room = ["#########", "#S.....G#", *["#.......#"] * 4, "#########"]
+    serpentine = ["#########", "#S#...#G#", *["#.#.#.#.#"] * 3, "#...#...#", "#########"]
+    (tmp_path / "room.txt").write_text("\n".join(room) + "\n")
+    (tmp_path / "serpentine.txt").write_text("\n".join(serpentine) + "\n")
+    demos, model = tmp_path / "d.h5", tmp_path / "m.h5"
+    assert cdrb("collect", "--maze-map", tmp_path / "room.txt", "-n", "4", "--out", demos).returncode == 0
+    assert cdrb("train", demos, "--method", "straight", "--out", model).returncode == 0
+    runs = {
+        "room": cdrb("eval", model, "--episodes", "3", "--seeds", "0", "--out", tmp_path / "e1.h5"),
+        "scene": cdrb(
+            "eval",
+            model,
+            "--scene",
+            tmp_path / "serpentine.txt",
+            "--protocol",
+            "detour",
+            "--episodes",
+            "3",
+            "--seeds",
+            "0",
+            "--out",
+            tmp_path / "e2.h5",
+        ),  # fmt: skip
+    }
+    assert all(r.returncode == 0 for r in runs.values()), [r.stderr[-500:] for r in runs.values()]
+    assert "expert reaches the goal in only" not in runs["room"].stderr
+    said = [ln for ln in runs["scene"].stderr.splitlines() if "expert reaches the goal in only" in ln]
+    assert len(said) == 1 and "0 of 3 episodes" in said[0] and "extra_steps" in said[0], runs["scene"].stderr
+

@@ -88,24 +88,40 @@ def measure(spec: EnvSpec, S: np.ndarray, goal: np.ndarray, steps: int) -> Rollo
 
 class ExpertReference:
     """The family's default expert, run on an episode's reset, for the normalized path length (0 when that
-    expert cannot run without a file: the ratio is then not reported)."""
+    expert cannot run without a file: the ratio is then not reported). It also counts the episodes the expert
+    itself does not finish within the episode limit: pairs the limit is too short for (a scene or start protocol
+    with longer routes than the map's timing), which cap every method's success (:meth:`warn`)."""
 
     def __init__(self, family: EnvFamily, spec: EnvSpec):
-        entry = EXPERTS.get(family.experts[0])
+        self.name = family.experts[0]
+        entry = EXPERTS.get(self.name)
         try:
             self.expert = entry.build(spec, entry.configure(None))
         except BadInput:
             self.expert = None
         self.spec = spec
+        self.ran = self.missed = 0
 
     def path_length(self, env: Env, episode: Episode) -> float:
         if self.expert is None:
             return 0.0
         obs, goal = env.reset(episode)
         self.expert.reset(obs, goal, np.random.default_rng(episode.seed))
-        return run_episode(
-            env, self.spec, episode, lambda o, t: self.expert.act(o), self.spec.episode_limit
-        ).path_length
+        run = run_episode(env, self.spec, episode, lambda o, t: self.expert.act(o), self.spec.episode_limit)
+        self.ran, self.missed = self.ran + 1, self.missed + (not run.success)
+        return run.path_length
+
+    def warn(self, extra_steps: int) -> None:
+        """One line when the expert missed the goal in more than 1% of the episodes."""
+        if not self.ran or self.missed <= 0.01 * self.ran:
+            return
+        given = f"; this eval gives the methods {extra_steps} more" if extra_steps else ""
+        ui.warn(
+            f"the {self.name} expert reaches the goal in only {self.ran - self.missed} of {self.ran} episodes within "
+            f"the episode limit of {self.spec.episode_limit} env steps{given}: these pairs need more time than the "
+            "limit gives (a scene or start protocol with longer routes), which caps every method's success (--set "
+            "extra_steps=N runs each episode N steps longer)"
+        )
 
 
 #: episodes a policy runs in lockstep (one batched network call per step for all of them)
@@ -230,6 +246,7 @@ def evaluate(
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed]))
     close_all([env, *pool])
     warn_unrouted(avoid)
+    expert.warn(config.extra_steps)
     arrays = episode_arrays(results)
     plans = np.concatenate(all_plans).astype(np.float32)
     arrays.update(plan_measures(spec, plans))  # what report takes from the plans, kept without them too
@@ -427,6 +444,7 @@ def evaluate_policy(
                 bar.update(task, advance=len(batch), info=f"success {np.mean([r.success for r in results]):.1%}")
             per_seed.append(seed_result(seed, [r for r in results if r.seed == seed], policy=True))
     close_all([env, *pool])
+    expert.warn(config.extra_steps)
     summary = _summary(policy.name, model, per_seed, t0).model_copy(update={"variant": policy.variant()})
     parents = [model] if route_buffer is None else [model, route_buffer]
     manifest = artifacts.make_manifest(
