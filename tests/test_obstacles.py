@@ -842,3 +842,17 @@ def test_an_eval_says_when_the_expert_itself_runs_out_of_time_on_its_pairs(tmp_p
     said = [ln for ln in runs["scene"].stderr.splitlines() if "expert reaches the goal in only" in ln]
     assert len(said) == 1 and "0 of 3 episodes" in said[0] and "extra_steps" in said[0], runs["scene"].stderr
 
+
+def test_a_scene_over_the_whole_buffer_is_one_line_that_says_what_to_do(tiny_models, monkeypatch):
+    """Masking removes every buffer state a new obstacle covers; when that is all of them the sampler has nothing
+    to draw from, which is said in one line with the way out (planning without the mask)."""
+    from cdrb_cli.stages.avoid import prepare_planner
+    from cdrb_cli.stages.plan import load_planner
+
+    model = tiny_models["cdrb"]
+    spec = family_of(model.manifest.env).with_map(model.manifest.env, NORTH)
+    family = family_of(spec)
+    monkeypatch.setattr(type(family), "in_collision", lambda self, spec, states: np.ones(states.shape[:-1], bool))
+    with pytest.raises(BadInput) as err:
+        prepare_planner(load_planner(model), spec, AvoidConfig(mask_buffer=True))
+    assert "cover every state" in err.value.message and "avoid.mask_buffer=false" in err.value.hint

@@ -145,7 +145,10 @@ def prepare_planner(method: Planner, spec: EnvSpec, avoid: AvoidConfig, route_bu
         try:
             out.masked = method.mask(collides)
         except ValueError as exc:
-            raise BadInput(f"avoid.mask_buffer: {exc}", hint="the new obstacles cover the whole buffer") from None
+            raise BadInput(
+                f"avoid.mask_buffer: {exc}: the new obstacles cover every state the robot visited",
+                hint="plan without the mask (--set avoid.mask_buffer=false), or open part of the scene",
+            ) from None
     for field in ROUTE_STEPS:
         k, top = getattr(avoid, field), method.repair_steps()
         if k is not None and (top is None or k > top):
