@@ -856,3 +856,14 @@ def test_a_scene_over_the_whole_buffer_is_one_line_that_says_what_to_do(tiny_mod
     with pytest.raises(BadInput) as err:
         prepare_planner(load_planner(model), spec, AvoidConfig(mask_buffer=True))
     assert "cover every state" in err.value.message and "avoid.mask_buffer=false" in err.value.hint
+
+
+def test_a_route_buffer_of_another_task_names_the_setting(small_data):
+    """The route buffer is the setting avoid.route_buffer (--set, a settings file, or the older flag): the error
+    names the setting, whichever way it was given."""
+    from cdrb_cli.stages.avoid import buffer_states
+
+    _, buffer = small_data
+    with pytest.raises(BadInput) as err:
+        buffer_states(buffer, buffer.manifest.env, "maze")
+    assert err.value.message.startswith(f"avoid.route_buffer = {buffer.path}: a buffer of maze-tight")

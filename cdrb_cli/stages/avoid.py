@@ -210,7 +210,7 @@ def buffer_states(route_buffer, spec: EnvSpec, task: str) -> np.ndarray:
     env = route_buffer.manifest.env
     if env.obs_dim != spec.obs_dim or env.id != task:
         raise BadInput(
-            f"--route-buffer {route_buffer.path}: a buffer of {env.id}, but the model plans in {task}",
+            f"avoid.route_buffer = {route_buffer.path}: a buffer of {env.id}, but the model plans in {task}",
             hint="cluster the model's own demos (`cdrb cluster DEMOS`)",
         )
     return Normalizer(route_buffer.low, route_buffer.high).unnormalize(route_buffer.points)[:, : spec.obs_dim]
