@@ -867,3 +867,23 @@ def test_a_route_buffer_of_another_task_names_the_setting(small_data):
     with pytest.raises(BadInput) as err:
         buffer_states(buffer, buffer.manifest.env, "maze")
     assert err.value.message.startswith(f"avoid.route_buffer = {buffer.path}: a buffer of maze-tight")
+
+
+def test_a_plan_between_two_unconnected_regions_is_said_to_be_impossible(tmp_path):
+    """Start and goal in two free regions no route joins: the warning says so (no data or avoidance can help),
+    instead of advice about where the data starts; points in one region, on a wall or off the map are not judged
+    unconnected."""
+    from cdrb_cli.stages.plan_warnings import disconnected_warning
+
+    (tmp_path / "two.txt").write_text("#######\n#S.G#S#\n#...#G#\n#######\n")
+    family = family_of(make_spec("maze"))
+    spec = family.spec_from_file(tmp_path / "two.txt")
+    g = MazeGeometry(spec.scene.maze)
+    left, left2, right, wall = (g.cell_to_xy(c) for c in ([1, 1], [2, 3], [1, 5], [1, 4]))
+    starts = np.array([left, left, wall, [50.0, 50.0]])
+    goals = np.array([right, left2, right, right])
+    np.testing.assert_array_equal(family.unconnected(spec, starts, goals), [True, False, False, False])
+    plan = np.stack([np.linspace(left, right, 8), np.linspace(left, left2, 8)])  # the first jumps the wall
+    plans = np.concatenate([plan, np.zeros((2, 8, 2))], axis=-1)
+    said = disconnected_warning(spec, plans, stride=1)
+    assert "1 of 2 plans join a start and a goal that no free route connects" in said and "--starts" not in said

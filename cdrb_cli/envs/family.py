@@ -237,6 +237,11 @@ class EnvFamily(ABC):
         model has no data there); None otherwise."""
         return None
 
+    def unconnected(self, spec: EnvSpec, starts: np.ndarray, goals: np.ndarray) -> np.ndarray | None:
+        """Boolean per (start, goal) state pair: no free route joins them in ``spec``'s scene (no plan can, without
+        crossing an obstacle); None where the family cannot tell."""
+        return None
+
     # -------------------------------------------------------------- protocol
     def protocols(self) -> list[str]:
         """Every protocol name, the default first."""

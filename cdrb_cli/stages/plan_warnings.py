@@ -34,6 +34,12 @@ def disconnected_warning(spec, plans: np.ndarray, stride: int, avoid: AvoidConfi
             )
     if not problems:
         return None
+    apart = family.unconnected(spec, states[:, 0], states[:, -1])
+    if apart is not None and apart.any():  # then no avoidance or data can help: say the cause
+        return "; ".join(problems) + (
+            f": {int(apart.sum())} of {len(states)} plans join a start and a goal that no free route connects in "
+            f"{spec.id} (choose points in one connected region)"
+        )
     if family.scene_changed(spec):
         if avoid is None or avoid.label() == "plain":
             advice = "`--set avoid=tuned` avoids the new obstacles with the settings chosen for them"

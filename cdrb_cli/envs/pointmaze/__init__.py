@@ -225,6 +225,18 @@ class PointMazeFamily(EnvFamily):
             "the model has no data there, so plans will not use them"
         )
 
+    def unconnected(self, spec: EnvSpec, starts: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """Pairs whose cells lie in different free regions of the map (a point on a wall cell is not judged)."""
+        geom = MazeGeometry(spec.scene.maze)
+        label = np.pad(geom.components(), 1, constant_values=-1)  # a point off the map reads as a wall cell
+
+        def region(points):
+            cells = np.clip(geom.xy_to_cell(np.asarray(points)[..., :2]) + 1, 0, np.array(label.shape) - 1)
+            return label[cells[..., 0], cells[..., 1]]
+
+        a, b = region(starts), region(goals)
+        return (a >= 0) & (b >= 0) & (a != b)
+
     def display_name(self, env_id: str) -> str:
         return DISPLAY_NAMES.get(env_id, env_id)
 
