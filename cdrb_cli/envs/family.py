@@ -168,6 +168,9 @@ class EnvFamily(ABC):
     scene_protocols: ClassVar[tuple[str, ...]] = ()
     #: how a --start/--goal point is written, for help and errors
     point_format: ClassVar[str] = "comma-separated numbers"
+    #: whether the default expert reaches every goal it can reach given the time (a maze's path planner): then an
+    #: episode it misses means the episode limit is short for the pair, which an eval says
+    expert_only_times_out: ClassVar[bool] = False
     #: method name -> the avoidance settings (AvoidConfig fields) plan and eval use by default in a scene with
     #: obstacles the data never saw: each the choice of the family's tuning grid for new obstacles, restricted to
     #: what needs no extra input file (a method not named plans as it is)

@@ -88,9 +88,9 @@ def measure(spec: EnvSpec, S: np.ndarray, goal: np.ndarray, steps: int) -> Rollo
 
 class ExpertReference:
     """The family's default expert, run on an episode's reset, for the normalized path length (0 when that
-    expert cannot run without a file: the ratio is then not reported). It also counts the episodes the expert
-    itself does not finish within the episode limit: pairs the limit is too short for (a scene or start protocol
-    with longer routes than the map's timing), which cap every method's success (:meth:`warn`)."""
+    expert cannot run without a file: the ratio is then not reported). Where the expert misses only for lack of
+    time (``EnvFamily.expert_only_times_out``), the episodes it misses are pairs the limit is too short for (a
+    scene or start protocol with longer routes than the map's timing), which cap every method (:meth:`warn`)."""
 
     def __init__(self, family: EnvFamily, spec: EnvSpec):
         self.name = family.experts[0]
@@ -100,7 +100,7 @@ class ExpertReference:
         except BadInput:
             self.expert = None
         self.spec = spec
-        self.ran = self.missed = 0
+        self.ran, self.missed, self.judged = 0, 0, family.expert_only_times_out
 
     def path_length(self, env: Env, episode: Episode) -> float:
         if self.expert is None:
@@ -113,7 +113,7 @@ class ExpertReference:
 
     def warn(self, extra_steps: int) -> None:
         """One line when the expert missed the goal in more than 1% of the episodes."""
-        if not self.ran or self.missed <= 0.01 * self.ran:
+        if not self.judged or not self.ran or self.missed <= 0.01 * self.ran:
             return
         given = f"; this eval gives the methods {extra_steps} more" if extra_steps else ""
         ui.warn(

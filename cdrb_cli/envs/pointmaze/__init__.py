@@ -108,6 +108,7 @@ class PointMazeFamily(EnvFamily):
     name = "pointmaze"
     scene_type = PointMazeScene
     experts = ("planner", "sac")
+    expert_only_times_out = True
     controllers = ("pd", "inverse-dynamics", "waypoint")
     protocol = "centre-start/corner-goal"
     extra_protocols = {
