@@ -288,3 +288,15 @@ def test_an_output_path_past_the_systems_limit_is_one_line(tmp_path):
     with pytest.raises(BadInput, match="choose a shorter path") as caught:
         check_output(deep / "r.md", False, "--out")
     assert len(str(caught.value)) < 200
+
+
+def test_a_probe_file_an_interrupted_run_left_behind_does_not_block_an_output(tmp_path):
+    """The writability probe takes a fresh name each time: a leftover probe (an interrupt between its creation and
+    its removal) under any name a later process might pick does not read as an unwritable folder."""
+    from cdrb_cli.artifacts import check_output
+
+    for pid in range(os.getpid() - 5, os.getpid() + 5):
+        (tmp_path / f".cdrb-probe-{pid}").write_bytes(b"")
+    check_output(tmp_path / "p.h5", False, "--out")
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".cdrb-probe-")) == []
+    assert len(list(tmp_path.iterdir())) == 10  # its own probe removed

@@ -196,11 +196,18 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(small_data, tmp_path, monkeypa
         return loss * torch.tensor(float("nan")) if calls["n"] == 25 else loss
 
     monkeypatch.setattr(CDRB, "loss", poisoned)
-    with pytest.raises(RunFailed, match="diverged at step 25"):
+    with pytest.raises(RunFailed, match="diverged at step 25") as err:
         train(demos, buffer, cfg, out)
+    assert "keeps the last good checkpoint (step 20)" in err.value.message and "--resume" in err.value.hint
     kept = artifacts.load(out, "model")
     assert kept.manifest.state.step == 20 and not kept.manifest.state.finished
     assert all(np.all(np.isfinite(v)) for v in _weights(kept).values())
+    # diverged before the first checkpoint: nothing to resume, and the error says so
+    calls["n"] = 20
+    with pytest.raises(RunFailed, match="diverged at step 5") as err:
+        train(demos, buffer, cfg, tmp_path / "none.h5")
+    assert "no checkpoint was written" in err.value.message and "--resume" not in err.value.hint
+    assert not (tmp_path / "none.h5").exists()
 
 
 def test_refuses_mismatched_buffer(small_data, tmp_path):

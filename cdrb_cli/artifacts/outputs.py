@@ -16,6 +16,7 @@ import contextlib
 import os
 import re
 import stat
+import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -126,9 +127,9 @@ def distinct_outputs(**outputs: Path | None) -> None:
 
 
 def _check_writable(folder: Path, flag: str, path: Path) -> None:
-    probe = folder / f".cdrb-probe-{os.getpid()}"
+    # a fresh random name each time (a probe an interrupted run left behind never collides with a later one)
     try:
-        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+        fd, probe = tempfile.mkstemp(prefix=".cdrb-probe-", dir=folder)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:

@@ -399,11 +399,15 @@ def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
     try:
         return method.update(batch, rng, optimizers)
     except NonFiniteLoss as exc:
-        raise RunFailed(
-            f"training diverged at step {step + 1}: the loss is {exc.value}; "
-            f"{out} keeps the last good checkpoint (step {_saved_step(out)})",
-            hint="lower the learning rate (--set lr=...), then `--resume` or `--force`",
-        ) from None
+        saved = _saved_step(out)
+        if saved is None:
+            kept, hint = "no checkpoint was written", "lower the learning rate (--set lr=...) and run again"
+        else:
+            kept, hint = (
+                f"{out} keeps the last good checkpoint (step {saved})",
+                ("lower the learning rate (--set lr=...), then `--resume` or `--force`"),
+            )
+        raise RunFailed(f"training diverged at step {step + 1}: the loss is {exc.value}; {kept}", hint=hint) from None
 
 
 def _resumed_snapshots(resume, out: Path, step: int, snapshots: Sequence[int], snapshot_to) -> None:
@@ -452,11 +456,12 @@ def _ema_updater(ema: dict, modules: dict, config: TrainConfig):
     return update
 
 
-def _saved_step(out: Path):
+def _saved_step(out: Path) -> int | None:
+    """The step of the checkpoint in ``out``, or None when there is none (or not a readable one)."""
     try:
         return artifacts.load(out, "model").manifest.state.step
     except BadInput:
-        return "none"
+        return None
 
 
 #: bytes a float32 parameter costs in training: the weight, its EMA copy, its gradient and Adam's two moments
