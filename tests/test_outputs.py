@@ -300,3 +300,19 @@ def test_a_probe_file_an_interrupted_run_left_behind_does_not_block_an_output(tm
     check_output(tmp_path / "p.h5", False, "--out")
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".cdrb-probe-")) == []
     assert len(list(tmp_path.iterdir())) == 10  # its own probe removed
+
+
+def test_a_reader_that_stops_reading_is_not_a_failed_run(tiny_models, tmp_path):
+    """`cdrb inspect F | head -1`: stdout's reader goes away before the command writes. The command ends quietly
+    with 141 (128 + SIGPIPE, as a Unix tool stopped by it), not 1 (a failed run), for a plain result line and for
+    rich's output alike; what it made is written."""
+    model = tiny_models["mlp"].path
+    for args in (["inspect", model], ["plan", model, "--pairs", "2", "--out", tmp_path / "p.h5"]):
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cdrb_cli", *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        )
+        proc.stdout.close()  # before the command has imported anything, let alone written
+        err = proc.stderr.read().decode()
+        assert proc.wait(timeout=300) == 141, err
+        assert "Traceback" not in err and "error" not in err and "Exception ignored" not in err, err
+    assert artifacts.load(tmp_path / "p.h5", "plans").plans.shape[0] == 2

@@ -14,13 +14,15 @@ registered plugin is a valid choice too. Training hyper-parameters come from the
 from __future__ import annotations
 
 import contextlib
+import errno
+import os
 import sys
 from pathlib import Path
 
 import typer
 
 from cdrb_cli import PROG, envvars, interrupts, provenance, ui
-from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError
+from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError
 
 try:  # typer >= 0.20 vendors click; older versions use the click package
     from typer._click import exceptions as click_exc
@@ -93,6 +95,19 @@ def _reflow_commands(typer_app: typer.Typer) -> None:
 _reflow_commands(app)
 
 
+def _broken_pipe(exc: BaseException | None) -> bool:
+    return isinstance(exc, BrokenPipeError) or (isinstance(exc, OSError) and exc.errno == errno.EPIPE)
+
+
+def _stdout_to_devnull() -> None:
+    """Point stdout at /dev/null, so that the interpreter's last flush finds no broken pipe to complain about."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout already closed or not a file
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 1 failed run, 2 bad input)."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -108,6 +123,13 @@ def main(argv: list[str] | None = None) -> int:
         return code if isinstance(code, int) else 0
     except typer.Exit as exc:
         return exc.exit_code
+    except SystemExit as exc:
+        # click and rich end a command whose stdout reader went away (`cdrb inspect F | head -1`) with exit(1): the
+        # end of the reader's interest, not a failed run; 141 = 128 + SIGPIPE, what a Unix tool stopped by it says
+        if exc.code == 1 and _broken_pipe(exc.__context__):
+            _stdout_to_devnull()
+            return EXIT_BROKEN_PIPE
+        raise
     except click_exc.UsageError as exc:
         if type(exc).__name__ == "NoArgsIsHelpError":  # the help text was the answer
             if exc.ctx is not None:
