@@ -22,7 +22,13 @@ from rich.progress import (
 )
 from rich.text import Text
 
-err = Console(stderr=True, highlight=False, soft_wrap=True)
+
+def _width_if_unusable() -> int | None:
+    """80 when COLUMNS says 0 (rich would then print nothing at all), else None: rich reads the terminal."""
+    return 80 if os.environ.get("COLUMNS", "").strip() == "0" else None
+
+
+err = Console(stderr=True, highlight=False, soft_wrap=True, width=_width_if_unusable())
 
 _quiet = False
 _forward = None  # in a worker process (cdrb_cli.workers): the queue its progress and log lines go to
@@ -65,7 +71,7 @@ def warn(message: str) -> None:
 
 def stdout_console():
     """A console for human-readable results on stdout (tables); wide when stdout is not a terminal."""
-    return Console(highlight=False, soft_wrap=True, width=None if sys.stdout.isatty() else 200)
+    return Console(highlight=False, soft_wrap=True, width=_width_if_unusable() if sys.stdout.isatty() else 200)
 
 
 def emit(result: Any, as_json: bool = False) -> None:

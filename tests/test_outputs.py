@@ -316,3 +316,11 @@ def test_a_reader_that_stops_reading_is_not_a_failed_run(tiny_models, tmp_path):
         assert proc.wait(timeout=300) == 141, err
         assert "Traceback" not in err and "error" not in err and "Exception ignored" not in err, err
     assert artifacts.load(tmp_path / "p.h5", "plans").plans.shape[0] == 2
+
+
+def test_columns_zero_in_the_environment_still_shows_the_log(tiny_models, tmp_path):
+    """COLUMNS=0 (a terminal that reports no width) made rich print nothing: every log line and warning vanished."""
+    from tests.conftest import run_cdrb
+
+    r = run_cdrb("plan", tiny_models["mlp"].path, "--pairs", "1", "--out", tmp_path / "p.h5", env={"COLUMNS": "0"})
+    assert r.returncode == 0 and "plans for 1 pairs" in r.stderr, r.stderr
