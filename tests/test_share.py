@@ -38,7 +38,7 @@ def test_export_import_and_the_api_give_the_same_model_and_plans(tiny_models, fo
     assert arrays.keys() == model.arrays.keys()
     for k, a in arrays.items():  # the same values (NaN where the curve has none) and types
         np.testing.assert_array_equal(a, model.arrays[k], err_msg=k)
-        assert a.dtype == model.arrays[k].dtype, k
+        assert a.dtype == model.arrays[k].dtype and a.shape == model.arrays[k].shape, k  # an optimizer's 0-d step
     config = json.loads((folder / "config.json").read_text())
     assert config["config"]["method"]["name"] == "cdrb" and config["env"]["id"] == model.manifest.env.id
     card = (folder / "README.md").read_text()
@@ -48,6 +48,7 @@ def test_export_import_and_the_api_give_the_same_model_and_plans(tiny_models, fo
     assert r.returncode == 0, r.stderr
     back = artifacts.load(tmp_path / "back.h5", "model")
     assert back.data_sha256 == model.data_sha256 and back.manifest == model.manifest
+    assert all(back.arrays[k].shape == a.shape for k, a in model.arrays.items())
     plans = {}
     for name, path in (("original", model.path), ("imported", tmp_path / "back.h5")):
         r = cdrb("plan", path, "--pairs", "3", "-n", "2", "--seed", "4", "--out", tmp_path / f"{name}.h5")
@@ -353,3 +354,17 @@ def test_stored_plan_measures_are_checked_when_read(tmp_path):
         {**good, "bodies/block/crossing": np.array([True])},
     ):
         assert Eval.check_data(manifest, bad) is not None
+
+
+def test_an_imported_model_trains_on_where_it_stopped(tiny_models, small_data, folder, tmp_path, cdrb):
+    """A model brought back from its folder is a checkpoint like any other: `--resume` continues it (its
+    optimizers' 0-d step counts came back 0-d)."""
+    from cdrb_cli.methods.config import train_config
+    from cdrb_cli.stages.train import train
+    from tests.test_train import tiny
+
+    demos, buffer = small_data
+    assert cdrb("import", "model", folder, "--out", tmp_path / "back.h5").returncode == 0
+    cfg = train_config(demos, buffer, "cdrb", tiny("cdrb", steps=40, checkpoint_every=30))
+    longer = train(demos, buffer, cfg, tmp_path / "back.h5", resume=True)
+    assert longer.manifest.state.step == 40 and longer.manifest.state.finished

@@ -76,7 +76,8 @@ def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False
         manifest = model.manifest.model_copy(update={"schema_version": artifacts.SCHEMA_VERSIONS["model"]})
         from safetensors.numpy import save_file
 
-        arrays = {name: np.ascontiguousarray(a) for name, a in sorted(model.arrays.items())}
+        # np.require keeps a 0-d array 0-d (an optimizer's step); np.ascontiguousarray would make it (1,)
+        arrays = {name: np.require(a, requirements="C") for name, a in sorted(model.arrays.items())}
         meta = {"format": FORMAT, "schema_version": manifest.schema_version}
         save_file(arrays, str(tmp / WEIGHTS), metadata=meta)
         (tmp / CONFIG).write_text(json.dumps(manifest.model_dump(mode="json"), indent=1, sort_keys=True) + "\n")
