@@ -14,6 +14,7 @@ STREAM_CLUSTER = 5
 STREAM_VALID = 6
 STREAM_TUNE = 7
 STREAM_REPLAN = 8
+STREAM_EVAL_PLAN = 9
 
 #: `cdrb eval --stream`: the start/goal pairs every knob is chosen on ("tune") are drawn from their own stream, so
 #: the pairs of the reported tables ("test") are never seen while choosing anything (docs/design.md)
@@ -29,6 +30,16 @@ def episode_seeds(seed: int, n: int, stream: int) -> np.ndarray:
 def step_rng(seed: int, stream: int, step: int) -> np.random.Generator:
     """A fresh generator for one step (training step, planning batch...), independent of what ran before."""
     return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, stream, int(step)]))
+
+
+def eval_plan_seed(seed: int, eval_seed: int) -> int:
+    """The seed of an eval's first plans for the pairs of ``eval_seed`` under the run's ``seed`` (`--seed`): the pair
+    seed itself at seed 0, the default (so evals made before ``--seed`` reached these plans read the same), else a
+    32-bit word drawn from both."""
+    if int(seed) == 0:
+        return int(eval_seed)
+    words = [int(seed) & 0xFFFFFFFF, STREAM_EVAL_PLAN, int(eval_seed) & 0xFFFFFFFF]
+    return int(np.random.SeedSequence(words).generate_state(1)[0])
 
 
 def replan_rng(seed: int, eval_seed: int, group: int, step: int) -> np.random.Generator:

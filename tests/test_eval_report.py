@@ -746,3 +746,19 @@ def test_a_method_whose_rows_chose_their_own_settings_is_one_summary_column_with
     apart = render_summary(rows + [row("a", "cdrb", "every 20", 50.0)])
     assert "cdrb [every 80, waypoints 10 ahead]" in apart.splitlines()[0] and "cdrb [every 20]" in apart
     assert "as its row chose them" not in apart
+
+
+def test_the_run_seed_reaches_an_open_loop_planners_plans(tiny_models, tmp_path, cdrb):
+    """`--seed` drives every random choice of an eval, the planner's first plans too: two seeds draw other plans
+    on the same pairs; the same seed draws the same; the default seed 0 draws them from the pair seed itself."""
+    from cdrb_cli.seeding import eval_plan_seed
+
+    model = tiny_models["diffuser"].path
+    plans = {}
+    for name, seed in (("a", "0"), ("b", "3"), ("c", "3")):
+        r = cdrb("eval", model, "--episodes", "2", "--seeds", "0", "--seed", seed, "--out", tmp_path / f"{name}.h5")
+        assert r.returncode == 0, r.stderr
+        plans[name] = artifacts.load(tmp_path / f"{name}.h5", "eval").arrays["plans"]
+    assert not np.array_equal(plans["a"], plans["b"])
+    np.testing.assert_array_equal(plans["b"], plans["c"])
+    assert eval_plan_seed(0, 7) == 7 and eval_plan_seed(3, 7) != 7 and eval_plan_seed(3, 7) != eval_plan_seed(3, 8)

@@ -25,7 +25,7 @@ from cdrb_cli.envs.registry import CONTROLLERS, EXPERTS, family_of
 from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.seeding import EVAL_STREAMS, STREAM_EVAL, step_rng
+from cdrb_cli.seeding import EVAL_STREAMS, STREAM_EVAL, eval_plan_seed, step_rng
 from cdrb_cli.stages.avoid import buffer_graph, mask_counts, prepare_planner, warn_unrouted
 from cdrb_cli.stages.metrics import (
     failure_code,
@@ -222,7 +222,7 @@ def evaluate(
                 starts,
                 goal_states if aims is None else aims(starts, goal_states),
                 1,
-                seed,
+                eval_plan_seed(config.seed, seed),
                 config.sampler,
                 config.sample_steps,
                 batch_size=max(1, config.episodes),
