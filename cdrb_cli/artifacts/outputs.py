@@ -97,7 +97,7 @@ def check_output(
             raise BadInput(
                 f"{flag} {path}: file exists", hint=f"pass {force_option(flag)} to overwrite it, or choose another path"
             )
-    _check_writable(folder, flag, path)
+    check_writable(folder, flag, path)
     return path
 
 
@@ -126,8 +126,10 @@ def distinct_outputs(**outputs: Path | None) -> None:
         seen[key] = flag
 
 
-def _check_writable(folder: Path, flag: str, path: Path) -> None:
-    # a fresh random name each time (a probe an interrupted run left behind never collides with a later one)
+def check_writable(folder: Path, flag: str, path: Path) -> None:
+    """A file can be made in the existing ``folder`` (tried and removed: permission bits do not tell everything,
+    root passes them on /proc or a read-only mount), else a one-line error naming ``flag`` and ``path``. A fresh
+    random name each time, so a probe an interrupted run left behind never collides with a later one."""
     try:
         fd, probe = tempfile.mkstemp(prefix=".cdrb-probe-", dir=folder)
         os.close(fd)

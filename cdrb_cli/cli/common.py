@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -238,7 +237,7 @@ def check_positive(flag: str, value) -> None:
 
 def _check_can_make(folder: Path, flag: str) -> None:
     """``folder`` is a folder, or can be made: not a file, a device or a link to nothing, and its nearest existing
-    ancestor is a folder a folder can be made in (tried, and removed)."""
+    ancestor is a folder something can be made in (tried, and removed)."""
     if folder.is_symlink() and not folder.exists():
         raise BadInput(f"{flag} {folder}: a link to nothing", hint="pass a folder path")
     if folder.exists() and not folder.is_dir():
@@ -249,14 +248,9 @@ def _check_can_make(folder: Path, flag: str) -> None:
     if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
         what = "is not a folder" if not first.is_dir() else "is not writable"
         raise BadInput(f"{flag} {folder}: {first} {what}", hint="pass a folder that can be made and written")
-    # the permission bits do not tell everything (root passes them; /proc, a read-only mount): make a folder there
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".cdrb-probe-", dir=first))
-    except OSError as exc:
-        raise BadInput(
-            f"{flag} {folder}: cannot write in {first} ({exc.strerror or type(exc).__name__})",
-            hint="pass a folder that can be made and written",
-        ) from None
+    from cdrb_cli.artifacts.outputs import check_writable
+
+    check_writable(first, flag, folder)
 
 
 def check_video_folder(video: Path, out: Path | None = None) -> None:
