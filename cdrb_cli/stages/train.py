@@ -400,14 +400,12 @@ def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
         return method.update(batch, rng, optimizers)
     except NonFiniteLoss as exc:
         saved = _saved_step(out)
-        if saved is None:
-            kept, hint = "no checkpoint was written", "lower the learning rate (--set lr=...) and run again"
-        else:
-            kept, hint = (
-                f"{out} keeps the last good checkpoint (step {saved})",
-                ("lower the learning rate (--set lr=...), then `--resume` or `--force`"),
-            )
-        raise RunFailed(f"training diverged at step {step + 1}: the loss is {exc.value}; {kept}", hint=hint) from None
+        kept = "no checkpoint was written" if saved is None else f"{out} keeps the last good checkpoint (step {saved})"
+        then = " and run again" if saved is None else ", then `--resume` or `--force`"
+        raise RunFailed(
+            f"training diverged at step {step + 1}: the loss is {exc.value}; {kept}",
+            hint=f"lower the learning rate (--set lr=...){then}",
+        ) from None
 
 
 def _resumed_snapshots(resume, out: Path, step: int, snapshots: Sequence[int], snapshot_to) -> None:
