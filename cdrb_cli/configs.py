@@ -470,6 +470,8 @@ class EvalConfig(Record):
 
 
 class SeedResult(Record):
+    """One training seed's eval. Rates and fractions are in [0, 1] (`cdrb report` shows them as percents)."""
+
     seed: Seed
     episodes: int
     success_rate: float
@@ -504,6 +506,9 @@ class SeedResult(Record):
 
 
 class EvalSummary(Record):
+    """An eval's figures over its training seeds. Rates and fractions are in [0, 1] (`cdrb report` shows them as
+    percents); the std fields are sample stds over seeds."""
+
     method: str
     model_preset: str
     model_steps: int | None = Field(
