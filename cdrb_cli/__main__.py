@@ -1,6 +1,6 @@
 import sys
 
-from cdrb_cli.cli import main
-
 if __name__ == "__main__":  # a spawned worker (cdrb collect --workers) imports this module again: run nothing then
+    from cdrb_cli.launch import main
+
     sys.exit(main())

@@ -11,10 +11,12 @@ caused comes back as its one-line message, re-raised here with the same type.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from multiprocessing import get_context
 from typing import Any
 
@@ -36,6 +38,23 @@ def die_with_parent(parent: int | None = None) -> None:
         return
     if parent is not None and os.getppid() != parent:  # the parent died before the promise was made
         os._exit(1)
+
+
+@contextmanager
+def sigint_ignored() -> Iterator[None]:
+    """Ignore Ctrl-C while worker processes are spawned here: a spawned interpreter starts with the dispositions it
+    inherits, so a worker whose SIGINT is ignored from its first instruction cannot be stopped by a Ctrl-C halfway
+    through its imports (a traceback each). The parent takes the Ctrl-C and ends the pool; the window in which the
+    parent itself ignores it is the fork and exec of the workers, milliseconds. Off the main thread (no handler can
+    be set there): nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def plan(jobs: int, device: str = "cpu") -> tuple[int, int]:

@@ -68,3 +68,41 @@ def test_the_free_cores_are_shared_out(monkeypatch, cores, jobs, device, expecte
 
     monkeypatch.setattr(torch_utils, "cpu_threads", lambda: cores)
     assert workers.plan(jobs, device) == expected
+
+
+def test_workers_spawned_under_sigint_ignored_start_with_it_ignored_and_the_parent_gets_its_handler_back():
+    import signal
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    before = signal.getsignal(signal.SIGINT)
+    with workers.sigint_ignored():
+        pool = ProcessPoolExecutor(1, mp_context=get_context("spawn"))
+        future = pool.submit(signal.getsignal, signal.SIGINT)
+    try:
+        assert future.result(timeout=120) == signal.SIG_IGN  # a Ctrl-C during the worker's imports does nothing there
+    finally:
+        pool.shutdown()
+    assert signal.getsignal(signal.SIGINT) is before
+    control = ProcessPoolExecutor(1, mp_context=get_context("spawn"))  # without it, Python's own handler
+    try:
+        assert control.submit(signal.getsignal, signal.SIGINT).result(timeout=120) is not signal.SIG_IGN
+    finally:
+        control.shutdown()
+
+
+def test_a_ctrl_c_during_the_clis_imports_is_one_line_and_exit_130(monkeypatch, capsys):
+    import sys
+    import types
+
+    from cdrb_cli import launch
+
+    class Interrupted(types.ModuleType):
+        def __getattr__(self, name):  # `from cdrb_cli.cli import main` halfway through its imports
+            raise KeyboardInterrupt
+
+    monkeypatch.setitem(sys.modules, "cdrb_cli.cli", Interrupted("cdrb_cli.cli"))
+    assert launch.main() == 130
+    assert capsys.readouterr().err == "error: interrupted\n"
+    project = (Path(__file__).resolve().parent.parent / "pyproject.toml").read_text()
+    assert '\ncdrb = "cdrb_cli.launch:main"\n' in project  # the console script goes through it

@@ -112,9 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 1 failed run, 2 bad input)."""
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
-    command = typer.main.get_command(app)
     restore_signals = interrupts.install()
     try:
+        command = typer.main.get_command(app)  # a second's work: a Ctrl-C during it is answered as one later
         envvars.check()  # a bad number in the environment stops the command before any work
         with provenance.running([PROG, *args]) if argv is not None else contextlib.nullcontext():
             code = command.main(args=args, prog_name=PROG, standalone_mode=False)

@@ -19,7 +19,7 @@ from cdrb_cli.envs.spec import EnvSpec
 from cdrb_cli.errors import BadInput
 from cdrb_cli.seeding import STREAM_COLLECT
 from cdrb_cli.settings import Setting, apply, validate
-from cdrb_cli.workers import die_with_parent
+from cdrb_cli.workers import die_with_parent, sigint_ignored
 
 
 def rollout(env: Env, expert: Expert, spec: EnvSpec, episode: Episode, limit: int):
@@ -172,10 +172,11 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
             limit = family.collect_limit(spec)
             results = ([rollout(env, agent, spec, ep, limit) for ep in part] for part in parts)
         else:
-            pool = ProcessPoolExecutor(
-                n_workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
-            )
-            results = pool.map(_rollouts, [spec] * len(parts), [config] * len(parts), parts)  # in order
+            with sigint_ignored():  # the workers never take Ctrl-C: this process stops them after their part
+                pool = ProcessPoolExecutor(
+                    n_workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
+                )
+                results = pool.map(_rollouts, [spec] * len(parts), [config] * len(parts), parts)  # in order
         try:
             for part in results:
                 for S, A, goal, ok in part:
