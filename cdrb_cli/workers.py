@@ -70,16 +70,29 @@ def plan(jobs: int, device: str = "cpu") -> tuple[int, int]:
     return processes, max(1, cores // processes)
 
 
-def _init(queue, threads: int, parent: int) -> None:
+_stop = None  # in a worker: the parent's event, set when the parent took a Ctrl-C
+_takes_sigint = False  # in a worker: whether Ctrl-C is to reach it once its job's imports are done
+
+
+def _init(queue, threads: int, parent: int, stop, takes_sigint: bool) -> None:
+    global _stop, _takes_sigint
     die_with_parent(parent)
     os.environ["OMP_NUM_THREADS"] = str(threads)  # cdrb's own set-up reads it; torch is not imported yet
-    from cdrb_cli import interrupts
-
-    interrupts.install()  # Ctrl-C reaches the whole group: a training stops between two steps
+    _stop, _takes_sigint = stop, takes_sigint
     ui.forward_to(queue)
 
 
 def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[str, Any]:
+    """In a worker, once ``fn``'s module is imported (unpickling the job imported it, with Ctrl-C ignored): from
+    here a Ctrl-C stops a training between two steps. A Ctrl-C that came while it was ignored here reached the
+    parent, which set ``_stop``: checked after the handler is in place, so no Ctrl-C falls between the two."""
+    if _takes_sigint and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        from cdrb_cli import interrupts
+
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        interrupts.install()
+    if _stop is not None and _stop.is_set():
+        raise KeyboardInterrupt
     try:
         return "ok", fn(payload)
     except CdrbError as exc:  # the user's error: its one line, not a traceback
@@ -93,16 +106,21 @@ def run(fn: Callable[[Any], Any], payloads: Sequence[Any], processes: int, threa
     if processes <= 1 or len(payloads) <= 1:
         return [fn(p) for p in payloads]
     ctx = get_context("spawn")
-    queue = ctx.Queue()
+    queue, stop = ctx.Queue(), ctx.Event()
+    takes_sigint = signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # not when run as a background job
     with ui.progress() as bar:
         relay = threading.Thread(target=_relay, args=(queue, bar), daemon=True)
         relay.start()
         try:
-            with ProcessPoolExecutor(
-                processes, mp_context=ctx, initializer=_init, initargs=(queue, threads, os.getpid())
-            ) as pool:
-                futures = [pool.submit(_call, fn, p) for p in payloads]
-                outcomes = [f.result() for f in futures]
+            init = (queue, threads, os.getpid(), stop, takes_sigint)
+            with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init, initargs=init) as pool:
+                with sigint_ignored():  # the workers spawn here, at the first submits
+                    futures = [pool.submit(_call, fn, p) for p in payloads]
+                try:
+                    outcomes = [f.result() for f in futures]
+                except KeyboardInterrupt:
+                    stop.set()  # for a worker that had Ctrl-C ignored then, and for the jobs not yet started
+                    raise
         finally:
             queue.put(None)
             relay.join(timeout=5)

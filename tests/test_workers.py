@@ -106,3 +106,63 @@ def test_a_ctrl_c_during_the_clis_imports_is_one_line_and_exit_130(monkeypatch, 
     assert capsys.readouterr().err == "error: interrupted\n"
     project = (Path(__file__).resolve().parent.parent / "pyproject.toml").read_text()
     assert '\ncdrb = "cdrb_cli.launch:main"\n' in project  # the console script goes through it
+
+
+def _slow_load(marker: str, ran: str, seconds: float) -> dict:
+    """Unpickling a :class:`SlowPayload` in a worker: says so in ``marker``, then takes ``seconds`` (a job whose
+    imports are slow, with a Ctrl-C landing in them)."""
+    (Path(marker) / str(os.getpid())).touch()
+    time.sleep(seconds)
+    return {"ran": ran}
+
+
+class SlowPayload:
+    def __init__(self, marker: str, ran: str, seconds: float):
+        self.args = (marker, ran, seconds)
+
+    def __reduce__(self):
+        return _slow_load, self.args
+
+
+def _record(payload: dict) -> int:
+    (Path(payload["ran"]) / str(os.getpid())).touch()
+    return os.getpid()
+
+
+def test_a_ctrl_c_while_the_workers_load_their_jobs_stops_every_job_with_no_traceback(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    marker, ran = tmp_path / "loading", tmp_path / "ran"
+    marker.mkdir()
+    ran.mkdir()
+    script = (
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from cdrb_cli import workers\n"
+        "from test_workers import SlowPayload, _record\n"
+        f"jobs = [SlowPayload({str(marker)!r}, {str(ran)!r}, 2.0) for _ in range(3)]\n"
+        "try:\n"
+        "    workers.run(_record, jobs, 2, 1)\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.stderr.write('stopped\\n')\n"
+        "    sys.exit(130)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # a process group of its own, as a terminal's foreground job
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    deadline = time.monotonic() + 120
+    while not any(marker.iterdir()) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    assert any(marker.iterdir()), proc.communicate()[1]
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group, while a worker unpickles its job
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().endswith("stopped"), err
+    assert not any(ran.iterdir())  # no job ran after the Ctrl-C, the queued third one included
