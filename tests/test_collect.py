@@ -312,3 +312,26 @@ def test_cluster_refuses_demos_without_train_episodes_and_a_one_state_buffer(sma
     r = cdrb("cluster", small_data[0].path, "--k", "1", "--out", tmp_path / "b.h5")
     assert r.returncode == 2 and "--k 1: " in r.stderr and "diameter 0" in r.stderr
     assert not (tmp_path / "b.h5").exists()
+
+
+def test_starts_anywhere_get_the_time_the_farthest_free_cell_needs(tmp_path):
+    """A map whose start cell sits beside its goal at one end of a long corridor: the episode limit sized from its
+    start cells is far too short for a start at the other end. Starting anywhere (collect and the eval protocol)
+    gets the limit of the farthest free cell, so the expert reaches every goal; the stock maps keep the paper's
+    limit; and a run from the start cells keeps the short one."""
+    from cdrb_cli.envs.registry import family_of
+    from cdrb_cli.stages.collect import limit_spec
+
+    row = "#SG" + "." * 20 + "#"
+    path = tmp_path / "corridor.txt"
+    path.write_text("\n".join(["#" * len(row), row, "#" * len(row)]) + "\n")
+    spec = make_spec(None, path)
+    family = family_of(spec)
+    far = family.protocol_spec(spec, "anywhere")
+    assert spec.episode_limit == 150 and far.episode_limit == 700  # 1 cell vs 20, at 28 steps a cell + 120
+    assert limit_spec(spec, "anywhere").episode_limit == limit_spec(spec, "protocol+anywhere").episode_limit == 700
+    assert limit_spec(spec, "protocol") is spec
+    stock = make_spec("maze-tight")
+    assert family.protocol_spec(stock, "anywhere") == stock
+    demos = collect(spec, collect_config(spec, 12, seed=0, starts="anywhere"), tmp_path / "any.h5")
+    assert demos.manifest.summary.success_rate == 1.0 and demos.manifest.summary.max_length > 150

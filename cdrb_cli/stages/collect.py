@@ -127,8 +127,16 @@ def _rollouts(spec: EnvSpec, config: CollectConfig, plan: list[Episode]) -> list
     if key not in _WORKER_ENVS:
         _WORKER_ENVS[key] = _env_and_expert(spec, config)
     env, agent = _WORKER_ENVS[key]
-    limit = family_of(spec).collect_limit(spec)
+    limit = family_of(spec).collect_limit(limit_spec(spec, config.starts))
     return [rollout(env, agent, spec, episode, limit) for episode in plan]
+
+
+def limit_spec(spec: EnvSpec, starts: str) -> EnvSpec:
+    """``spec`` with the longest episode limit its start distributions' protocols give (a start anywhere in a map
+    may need longer than one from its start cells)."""
+    family = family_of(spec)
+    limit = max([spec.episode_limit] + [family.protocol_spec(spec, p).episode_limit for p in starts.split("+")])
+    return spec if limit <= spec.episode_limit else spec.model_copy(update={"episode_limit": limit})
 
 
 def _env_and_expert(spec: EnvSpec, config: CollectConfig) -> tuple[Env, Expert]:
@@ -169,7 +177,7 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
         pool = env = None
         if n_workers == 1:
             env, agent = _env_and_expert(spec, config)
-            limit = family.collect_limit(spec)
+            limit = family.collect_limit(limit_spec(spec, config.starts))
             results = ([rollout(env, agent, spec, ep, limit) for ep in part] for part in parts)
         else:
             with sigint_ignored():  # the workers never take Ctrl-C: this process stops them after their part

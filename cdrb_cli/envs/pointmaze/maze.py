@@ -256,12 +256,14 @@ class MazeGeometry:
                 return True
         return False
 
-    def longest_start_goal_path(self) -> int:
-        """The largest grid distance (cells) from any start cell to any goal cell reachable from it."""
+    def longest_start_goal_path(self, anywhere: bool = False) -> int:
+        """The largest grid distance (cells) from any start cell (``anywhere``: any free cell) to any goal cell
+        reachable from it."""
+        starts = np.argwhere(self.free) if anywhere else self.start_cells
         best = 0
         for g in self.goal_cells:
             d = self.bfs(g)
-            vals = d[tuple(self.start_cells.T)]
+            vals = d[tuple(starts.T)]
             vals = vals[vals >= 0]
             if vals.size:
                 best = max(best, int(vals.max()))
