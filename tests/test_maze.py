@@ -162,6 +162,28 @@ def test_a_map_name_with_a_line_break_is_refused():
         assert parse_map("#####\n#S.G#\n#####\n", name).name == name
 
 
+def test_a_map_name_with_a_plus_is_refused_so_no_map_shares_an_id_with_a_map_in_a_scene(tmp_path):
+    """`map:a+b` names map a in scene b: a map named a+b would share that id (and the folders and rows keyed by
+    it), so the name is refused, in a file's name and in a map record alike."""
+    from pydantic import ValidationError
+
+    from cdrb_cli.envs.pointmaze.maze import MazeLayout
+    from cdrb_cli.envs.registry import family_of, make_spec
+
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    a.write_text("#####\n#S.G#\n#...#\n#####\n")
+    b.write_text("#####\n#S.G#\n#.#.#\n#####\n")
+    spec = make_spec(None, a)
+    assert family_of(spec).with_map(spec, b).id == "map:a+b"
+    plus = tmp_path / "a+b.txt"
+    plus.write_text(a.read_text())
+    with pytest.raises(BadInput, match=r"has a '\+'") as err:
+        make_spec(None, plus)
+    assert "a+b.txt" in str(err.value) and "rename the file" in err.value.hint
+    with pytest.raises(ValidationError, match="may not hold"):
+        MazeLayout(name="a+b", rows=["#####", "#S.G#", "#####"])
+
+
 def test_the_experts_clearance_test_equals_measuring_every_wall_and_large_maps_smooth_quickly(tmp_path):
     """The expert's segment test skips segments with a sample in a wall cell and walls far from the segment: the
     same answer as the distance to every wall box, on random segments; so a 99 x 99 serpentine map (a 4,801-cell

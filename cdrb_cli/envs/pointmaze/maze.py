@@ -44,6 +44,8 @@ class MazeLayout(Record):
     def _one_line(cls, name: str) -> str:
         if _breaks_lines(name):
             raise ValueError("a map's name may not hold a line break (it is printed in log lines)")
+        if "+" in name:
+            raise ValueError("a map's name may not hold '+' (it joins a map's id and its scene's: map:a+b)")
         return name
 
     @field_validator("rows")
@@ -129,6 +131,11 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
         raise BadInput(
             f"{source}: the map's name {name!r} has a line break",
             hint="a map is named after its file: rename the file without newlines",
+        )
+    if "+" in name:  # <id>+<scene> names a task in another map: map a.txt in scene b.txt is map:a+b
+        raise BadInput(
+            f"{source}: the map's name {name!r} has a '+', which joins a map and its scene in ids",
+            hint="a map is named after its file: rename the file without '+'",
         )
     if len(rows) * width > MAX_CELLS:
         raise BadInput(f"{source}: map has {len(rows) * width} cells, more than {MAX_CELLS}", hint="use a smaller map")
