@@ -50,3 +50,25 @@ def test_mujoco_frames_draw_the_plan_into_the_scene(tmp_path, env):
     assert differs.sum() > 50, "the plan's line is not in the picture"
     changed = drawn[-1][differs]
     assert (changed[:, 2] > changed[:, 0]).mean() > 0.5  # in the plan's colour (blue)
+
+
+def test_a_second_run_into_the_same_folder_replaces_its_labels_gifs_and_nothing_else(tmp_path, monkeypatch):
+    """GIFs are named <label>_<episode>_<outcome>.gif: a run that wrote episode 0 as a failure, then one where it
+    succeeds, would leave both files (and episode 5 of a longer run) looking like the second run's. The earlier
+    run's GIFs of that label go; other labels' and other files stay."""
+    from cdrb_cli.envs import render
+    from cdrb_cli.envs.registry import family_of, make_spec
+
+    spec = make_spec("maze-tight")
+    monkeypatch.setattr(type(family_of(spec)), "render_frames", lambda *a, **k: 1 / 0)  # matplotlib frames: quick
+    folder = tmp_path / "gifs"
+    folder.mkdir()
+    stale = [folder / "cdrb_00_fail.gif", folder / "cdrb_05_success.gif", folder / "cdrb_100_fail.gif"]
+    kept = [folder / "cdrbx_00_fail.gif", folder / "diffuser_00_fail.gif", folder / "cdrb_00_fail.gif.txt"]
+    for path in stale + kept:
+        path.write_bytes(b"earlier")
+    states = np.array([[-1.0, -1.0, 0, 0], [-0.5, -1.0, 0, 0], [0.0, -1.0, 0, 0]])
+    written = render.rollout_gifs(spec, [(states, states, np.array([0.0, -1.0]), True)], folder, label="cdrb")
+    assert written == [folder / "cdrb_00_success.gif"] and written[0].read_bytes()[:3] == b"GIF"
+    assert not any(p.exists() for p in stale)
+    assert all(p.read_bytes() == b"earlier" for p in kept)

@@ -277,6 +277,14 @@ def _captioned(frame: np.ndarray, text: str):
     return out
 
 
+def earlier_gifs(folder: Path, name: str) -> list[Path]:
+    """The GIFs :func:`rollout_gifs` names ``<name>_<episode>_<outcome>.gif`` already in ``folder``."""
+    import re
+
+    pattern = re.compile(re.escape(name) + r"_\d{2,}_(success|fail)\.gif")
+    return sorted(p for p in Path(folder).glob("*.gif") if pattern.fullmatch(p.name) and p.is_file())
+
+
 def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 4) -> list[Path]:
     """One GIF per executed episode ``(plan, states, goal, success)``: simulator frames where offscreen rendering
     works, otherwise (with a message saying why) matplotlib frames of the plan and the executed path. Each frame
@@ -291,6 +299,11 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
     written = []
     episodes = list(episodes)
     with new_folder(folder), ui.progress() as bar:
+        stale = earlier_gifs(folder, label or "rollout")
+        for path in stale:  # this label's GIFs of an earlier run: some would be overwritten, the rest left mixed in
+            path.unlink(missing_ok=True)
+        if stale:
+            ui.log(f"replaced {len(stale)} {label or 'rollout'} GIF(s) of an earlier run in {folder}/")
         task = bar.add_task("rollout GIFs", total=len(episodes), info="")
         for i, (plan, states, goal, ok) in enumerate(episodes):
             frames = None
