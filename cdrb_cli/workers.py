@@ -47,10 +47,11 @@ def sigint_ignored() -> Iterator[None]:
     through its imports (a traceback each). The parent takes the Ctrl-C and ends the pool; the window in which the
     parent itself ignores it is the fork and exec of the workers, milliseconds. Off the main thread (no handler can
     be set there): nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous is None:  # None: set outside Python,
+        yield  # so it could not be put back
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
@@ -70,8 +71,10 @@ def plan(jobs: int, device: str = "cpu") -> tuple[int, int]:
     return processes, max(1, cores // processes)
 
 
-_stop = None  # in a worker: the parent's event, set when the parent took a Ctrl-C
-_takes_sigint = False  # in a worker: whether Ctrl-C is to reach it once its job's imports are done
+_stop = None  # in a worker: the parent's event, set when the parent was interrupted
+_takes_sigint = False  # in a worker: whether Ctrl-C is to reach its jobs (not in a background job)
+_watching = False  # in a worker: whether the thread that answers ``_stop`` runs
+_running = False  # in a worker: whether a job runs, with the handlers in place
 
 
 def _init(queue, threads: int, parent: int, stop, takes_sigint: bool) -> None:
@@ -82,21 +85,42 @@ def _init(queue, threads: int, parent: int, stop, takes_sigint: bool) -> None:
     ui.forward_to(queue)
 
 
-def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[str, Any]:
-    """In a worker, once ``fn``'s module is imported (unpickling the job imported it, with Ctrl-C ignored): from
-    here a Ctrl-C stops a training between two steps. A Ctrl-C that came while it was ignored here reached the
-    parent, which set ``_stop``: checked after the handler is in place, so no Ctrl-C falls between the two."""
-    if _takes_sigint and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        from cdrb_cli import interrupts
+def _answer_stop() -> None:
+    """In a worker: once the parent was interrupted, stop the job running here as a SIGTERM does (between two
+    training steps), unless a signal already reached it (the user's Ctrl-C to the whole group)."""
+    from cdrb_cli import interrupts
 
+    _stop.wait()
+    if _running and not interrupts.delivered():  # an idle worker checks `_stop` when its next job comes
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[str, Any]:
+    """In a worker, a job, once ``fn``'s module is imported (unpickling the job imported it, with Ctrl-C ignored).
+    While it runs, Ctrl-C and SIGTERM stop a training between two steps (:mod:`cdrb_cli.interrupts`); between jobs
+    Ctrl-C is ignored again. A Ctrl-C that came while it was ignored reached the parent, which sets ``_stop``: a job
+    not begun does not begin, and a thread here stops the one running (the parent waits for its workers)."""
+    global _watching, _running
+    from cdrb_cli import interrupts
+
+    if _takes_sigint:
         signal.signal(signal.SIGINT, signal.default_int_handler)
-        interrupts.install()
-    if _stop is not None and _stop.is_set():
-        raise KeyboardInterrupt
+    restore = interrupts.install()
+    _running = True  # before the check: the thread either sees it and signals, or the check sees `_stop`
     try:
+        if not _watching and _stop is not None:
+            threading.Thread(target=_answer_stop, daemon=True).start()
+            _watching = True
+        if _stop is not None and _stop.is_set():
+            raise KeyboardInterrupt
         return "ok", fn(payload)
     except CdrbError as exc:  # the user's error: its one line, not a traceback
         return ("bad" if isinstance(exc, BadInput) else "failed"), (exc.message, exc.hint)
+    finally:
+        _running = False
+        restore()
+        if _takes_sigint:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def run(fn: Callable[[Any], Any], payloads: Sequence[Any], processes: int, threads: int) -> list[Any]:
@@ -119,7 +143,7 @@ def run(fn: Callable[[Any], Any], payloads: Sequence[Any], processes: int, threa
                 try:
                     outcomes = [f.result() for f in futures]
                 except KeyboardInterrupt:
-                    stop.set()  # for a worker that had Ctrl-C ignored then, and for the jobs not yet started
+                    stop.set()  # the jobs running stop, those not begun do not begin
                     raise
         finally:
             queue.put(None)

@@ -333,5 +333,9 @@ def test_starts_anywhere_get_the_time_the_farthest_free_cell_needs(tmp_path):
     assert limit_spec(spec, "protocol") is spec
     stock = make_spec("maze-tight")
     assert family.protocol_spec(stock, "anywhere") == stock
+    same = tmp_path / "same.txt"  # the stock map as a scene: maze-tight+same keeps the paper's limit too
+    same.write_text("\n".join(stock.scene.maze.rows) + "\n")
+    in_scene = family.with_map(stock, same)
+    assert in_scene.id == "maze-tight+same" and family.protocol_spec(in_scene, "anywhere").episode_limit == 400
     demos = collect(spec, collect_config(spec, 12, seed=0, starts="anywhere"), tmp_path / "any.h5")
     assert demos.manifest.summary.success_rate == 1.0 and demos.manifest.summary.max_length > 150

@@ -164,9 +164,7 @@ def test_a_map_name_with_a_line_break_is_refused():
 
 def test_a_map_name_with_a_plus_is_refused_so_no_map_shares_an_id_with_a_map_in_a_scene(tmp_path):
     """`map:a+b` names map a in scene b: a map named a+b would share that id (and the folders and rows keyed by
-    it), so the name is refused, in a file's name and in a map record alike."""
-    from pydantic import ValidationError
-
+    it), so a map file with a '+' in its name is refused (artifacts made before from such a file still load)."""
     from cdrb_cli.envs.pointmaze.maze import MazeLayout
     from cdrb_cli.envs.registry import family_of, make_spec
 
@@ -180,8 +178,7 @@ def test_a_map_name_with_a_plus_is_refused_so_no_map_shares_an_id_with_a_map_in_
     with pytest.raises(BadInput, match=r"has a '\+'") as err:
         make_spec(None, plus)
     assert "a+b.txt" in str(err.value) and "rename the file" in err.value.hint
-    with pytest.raises(ValidationError, match="may not hold"):
-        MazeLayout(name="a+b", rows=["#####", "#S.G#", "#####"])
+    assert MazeLayout(name="a+b", rows=["#####", "#S.G#", "#####"]).name == "a+b"
 
 
 def test_the_experts_clearance_test_equals_measuring_every_wall_and_large_maps_smooth_quickly(tmp_path):

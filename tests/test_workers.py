@@ -166,3 +166,47 @@ def test_a_ctrl_c_while_the_workers_load_their_jobs_stops_every_job_with_no_trac
     assert proc.returncode == 130, err
     assert "Traceback" not in err and err.strip().endswith("stopped"), err
     assert not any(ran.iterdir())  # no job ran after the Ctrl-C, the queued third one included
+
+
+def _long_job(payload: dict) -> int:
+    (Path(payload["started"]) / str(os.getpid())).touch()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+    (Path(payload["done"]) / str(os.getpid())).touch()
+    return 0
+
+
+def test_a_parent_stopped_alone_stops_its_workers_jobs(tmp_path):
+    """`kill PID` reaches the parent only (no Ctrl-C to the group): the parent's stop event makes each running job
+    stop as a SIGTERM stops it, so the command ends in seconds, not when its jobs would have finished."""
+    import signal
+    import subprocess
+    import sys
+
+    started, done = tmp_path / "started", tmp_path / "done"
+    started.mkdir()
+    done.mkdir()
+    script = (
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from cdrb_cli import interrupts, workers\n"
+        "from test_workers import _long_job\n"
+        "interrupts.install()\n"
+        f"jobs = [{{'started': {str(started)!r}, 'done': {str(done)!r}}}] * 2\n"
+        "try:\n"
+        "    workers.run(_long_job, jobs, 2, 1)\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.stderr.write('stopped\\n')\n"
+        "    sys.exit(130)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while len(list(started.iterdir())) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    assert len(list(started.iterdir())) == 2, proc.communicate()[1]
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and time.monotonic() - t0 < 30, err
+    assert "Traceback" not in err and not any(done.iterdir()), err

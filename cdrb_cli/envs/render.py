@@ -299,11 +299,7 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
     written = []
     episodes = list(episodes)
     with new_folder(folder), ui.progress() as bar:
-        stale = earlier_gifs(folder, label or "rollout")
-        for path in stale:  # this label's GIFs of an earlier run: some would be overwritten, the rest left mixed in
-            path.unlink(missing_ok=True)
-        if stale:
-            ui.log(f"replaced {len(stale)} {label or 'rollout'} GIF(s) of an earlier run in {folder}/")
+        earlier = earlier_gifs(folder, label or "rollout")  # this label's GIFs of an earlier run
         task = bar.add_task("rollout GIFs", total=len(episodes), info="")
         for i, (plan, states, goal, ok) in enumerate(episodes):
             frames = None
@@ -338,6 +334,10 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
                 images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=durations, loop=0)
             written.append(path)
             bar.update(task, advance=1)
+        for path in set(earlier) - set(written):  # once this run's are written: none of them left mixed in
+            path.unlink(missing_ok=True)
+        if earlier:
+            ui.log(f"replaced {len(earlier)} {label or 'rollout'} GIF(s) of an earlier run in {folder}/")
     if written:
         import os
 

@@ -120,14 +120,13 @@ def draw_starts(family, spec: EnvSpec, episodes: int, seed: int, starts: str) ->
 _WORKER_ENVS: dict[str, tuple] = {}  # a pool worker keeps one env and expert per (spec, config)
 
 
-def _rollouts(spec: EnvSpec, config: CollectConfig, plan: list[Episode]) -> list[tuple]:
+def _rollouts(spec: EnvSpec, config: CollectConfig, plan: list[Episode], limit: int) -> list[tuple]:
     """In a pool worker: roll out ``plan``'s episodes: [(states, actions, goal, success), ...]. Every episode is
     seeded by its own seed and reset from its own draw, so the result does not depend on which process ran it."""
     key = spec.model_dump_json() + config.model_dump_json()
     if key not in _WORKER_ENVS:
         _WORKER_ENVS[key] = _env_and_expert(spec, config)
     env, agent = _WORKER_ENVS[key]
-    limit = family_of(spec).collect_limit(limit_spec(spec, config.starts))
     return [rollout(env, agent, spec, episode, limit) for episode in plan]
 
 
@@ -175,16 +174,16 @@ def collect(spec: EnvSpec, config: CollectConfig, out: Path, workers: int | None
     with ui.progress() as bar:
         task = bar.add_task(ui.plain(f"collect {spec.id}", 60), total=episodes, info="")
         pool = env = None
+        limit = family.collect_limit(limit_spec(spec, config.starts))
         if n_workers == 1:
             env, agent = _env_and_expert(spec, config)
-            limit = family.collect_limit(limit_spec(spec, config.starts))
             results = ([rollout(env, agent, spec, ep, limit) for ep in part] for part in parts)
         else:
             with sigint_ignored():  # the workers never take Ctrl-C: this process stops them after their part
                 pool = ProcessPoolExecutor(
                     n_workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
                 )
-                results = pool.map(_rollouts, [spec] * len(parts), [config] * len(parts), parts)  # in order
+                results = pool.map(_rollouts, [spec] * len(parts), [config] * len(parts), parts, [limit] * len(parts))
         try:
             for part in results:
                 for S, A, goal, ok in part:

@@ -298,9 +298,9 @@ class PointMazeFamily(EnvFamily):
 
     # -------------------------------------------------------------- protocol
     def protocol_spec(self, spec: EnvSpec, protocol: str) -> EnvSpec:
-        if protocol == ANYWHERE and spec.id not in _PAPER:
+        if protocol == ANYWHERE and spec.id.partition("+")[0] not in _PAPER:
             # a limit sized from the map's start cells is short for a start in its farthest free cell; the stock
-            # maps keep the paper's fixed limit, which their starts from anywhere meet
+            # maps keep the paper's fixed limit, which their starts from anywhere meet (in a scene too: <id>+<map>)
             limit = _timing_for(spec.scene.maze, anywhere=True)[1]
             return spec.model_copy(update={"episode_limit": max(spec.episode_limit, limit)})
         if protocol != "official-code":

@@ -44,8 +44,6 @@ class MazeLayout(Record):
     def _one_line(cls, name: str) -> str:
         if _breaks_lines(name):
             raise ValueError("a map's name may not hold a line break (it is printed in log lines)")
-        if "+" in name:
-            raise ValueError("a map's name may not hold '+' (it joins a map's id and its scene's: map:a+b)")
         return name
 
     @field_validator("rows")
