@@ -129,6 +129,16 @@ def _record(payload: dict) -> int:
     return os.getpid()
 
 
+def _run_script(setup: str, jobs: str, fn: str) -> str:
+    """A program that runs ``workers.run(fn, jobs, 2, 1)`` after ``setup`` and, interrupted, says `stopped` and
+    exits 130."""
+    return (
+        f"import sys\nsys.path.insert(0, {str(Path(__file__).parent)!r})\nfrom cdrb_cli import workers\n{setup}\n"
+        f"try:\n    workers.run({fn}, {jobs}, 2, 1)\n"
+        "except KeyboardInterrupt:\n    sys.stderr.write('stopped\\n')\n    sys.exit(130)\n"
+    )
+
+
 def test_a_ctrl_c_while_the_workers_load_their_jobs_stops_every_job_with_no_traceback(tmp_path):
     import signal
     import subprocess
@@ -137,18 +147,8 @@ def test_a_ctrl_c_while_the_workers_load_their_jobs_stops_every_job_with_no_trac
     marker, ran = tmp_path / "loading", tmp_path / "ran"
     marker.mkdir()
     ran.mkdir()
-    script = (
-        "import sys\n"
-        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
-        "from cdrb_cli import workers\n"
-        "from test_workers import SlowPayload, _record\n"
-        f"jobs = [SlowPayload({str(marker)!r}, {str(ran)!r}, 2.0) for _ in range(3)]\n"
-        "try:\n"
-        "    workers.run(_record, jobs, 2, 1)\n"
-        "except KeyboardInterrupt:\n"
-        "    sys.stderr.write('stopped\\n')\n"
-        "    sys.exit(130)\n"
-    )
+    jobs = f"[SlowPayload({str(marker)!r}, {str(ran)!r}, 2.0) for _ in range(3)]"
+    script = _run_script("from test_workers import SlowPayload, _record", jobs, "_record")
     proc = subprocess.Popen(
         [sys.executable, "-c", script],
         stdout=subprocess.PIPE,
@@ -187,19 +187,9 @@ def test_a_parent_stopped_alone_stops_its_workers_jobs(tmp_path):
     started, done = tmp_path / "started", tmp_path / "done"
     started.mkdir()
     done.mkdir()
-    script = (
-        "import sys\n"
-        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
-        "from cdrb_cli import interrupts, workers\n"
-        "from test_workers import _long_job\n"
-        "interrupts.install()\n"
-        f"jobs = [{{'started': {str(started)!r}, 'done': {str(done)!r}}}] * 2\n"
-        "try:\n"
-        "    workers.run(_long_job, jobs, 2, 1)\n"
-        "except KeyboardInterrupt:\n"
-        "    sys.stderr.write('stopped\\n')\n"
-        "    sys.exit(130)\n"
-    )
+    jobs = f"[{{'started': {str(started)!r}, 'done': {str(done)!r}}}] * 2"
+    setup = "from test_workers import _long_job\nfrom cdrb_cli import interrupts\ninterrupts.install()  # as the CLI"
+    script = _run_script(setup, jobs, "_long_job")
     proc = subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 120
     while len(list(started.iterdir())) < 2 and time.monotonic() < deadline and proc.poll() is None:
