@@ -73,7 +73,6 @@ def plan(jobs: int, device: str = "cpu") -> tuple[int, int]:
 
 _stop = None  # in a worker: the parent's event, set when the parent was interrupted
 _takes_sigint = False  # in a worker: whether Ctrl-C is to reach its jobs (not in a background job)
-_watching = False  # in a worker: whether the thread that answers ``_stop`` runs
 _running = False  # in a worker: whether a job runs, with the handlers in place
 
 
@@ -82,6 +81,7 @@ def _init(queue, threads: int, parent: int, stop, takes_sigint: bool) -> None:
     die_with_parent(parent)
     os.environ["OMP_NUM_THREADS"] = str(threads)  # cdrb's own set-up reads it; torch is not imported yet
     _stop, _takes_sigint = stop, takes_sigint
+    threading.Thread(target=_answer_stop, daemon=True).start()
     ui.forward_to(queue)
 
 
@@ -100,7 +100,7 @@ def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[str, Any]:
     While it runs, Ctrl-C and SIGTERM stop a training between two steps (:mod:`cdrb_cli.interrupts`); between jobs
     Ctrl-C is ignored again. A Ctrl-C that came while it was ignored reached the parent, which sets ``_stop``: a job
     not begun does not begin, and a thread here stops the one running (the parent waits for its workers)."""
-    global _watching, _running
+    global _running
     from cdrb_cli import interrupts
 
     if _takes_sigint:
@@ -108,9 +108,6 @@ def _call(fn: Callable[[Any], Any], payload: Any) -> tuple[str, Any]:
     restore = interrupts.install()
     _running = True  # before the check: the thread either sees it and signals, or the check sees `_stop`
     try:
-        if not _watching and _stop is not None:
-            threading.Thread(target=_answer_stop, daemon=True).start()
-            _watching = True
         if _stop is not None and _stop.is_set():
             raise KeyboardInterrupt
         return "ok", fn(payload)

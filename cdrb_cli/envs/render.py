@@ -299,7 +299,8 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
     written = []
     episodes = list(episodes)
     with new_folder(folder), ui.progress() as bar:
-        earlier = earlier_gifs(folder, label or "rollout")  # this label's GIFs of an earlier run
+        name = label or "rollout"
+        earlier = earlier_gifs(folder, name)  # this label's GIFs of an earlier run
         task = bar.add_task("rollout GIFs", total=len(episodes), info="")
         for i, (plan, states, goal, ok) in enumerate(episodes):
             frames = None
@@ -320,7 +321,6 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
             if frames is None:
                 frames = _matplotlib_frames(spec, plan, states, goal, every)
             outcome = "success" if ok else "failure"
-            name = label or "rollout"
             total = len(states) - 1
             images = [
                 _captioned(
@@ -337,7 +337,7 @@ def rollout_gifs(spec: EnvSpec, episodes, folder, label: str = "", every: int = 
         for path in set(earlier) - set(written):  # once this run's are written: none of them left mixed in
             path.unlink(missing_ok=True)
         if earlier:
-            ui.log(f"replaced {len(earlier)} {label or 'rollout'} GIF(s) of an earlier run in {folder}/")
+            ui.log(f"replaced {len(earlier)} {name} GIF(s) of an earlier run in {folder}/")
     if written:
         import os
 
