@@ -6,11 +6,17 @@ Every failure a user can cause is a :class:`BadInput` (exit code 2); a run that 
 
 from __future__ import annotations
 
+import contextlib
+
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # Ctrl-C or SIGTERM
 EXIT_BROKEN_PIPE = 141  # the reader of stdout went away (128 + SIGPIPE)
+
+#: the environment variable naming a file where a command that fails with a :class:`CdrbError` leaves
+#: :meth:`CdrbError.record` as JSON: how a program running `cdrb` (the grid) reads the failure without parsing stderr
+ERROR_FILE = "CDRB_ERROR_FILE"
 
 
 def option(flag: str, value: object = True) -> str:
@@ -45,6 +51,30 @@ class CdrbError(Exception):
         # pickled by its parts, not its one line: an error raised in a worker process reaches the parent whole
         return type(self), (self.message, self.hint)
 
+    def record(self) -> dict:
+        """The error as data, for a program that ran the command (:data:`ERROR_FILE`): its line's parts and exit
+        code, and ``output_exists`` (the path, else None) when an output blocks the run."""
+        return {"message": self.message, "hint": self.hint, "exit_code": self.exit_code, "output_exists": None}
+
+
+def leave_record(exc: CdrbError) -> None:
+    """Write ``exc.record()`` as JSON to the file :data:`ERROR_FILE` names, when it names one (whole or not at all:
+    written beside it, then renamed); a file that cannot be written leaves the failure to stderr alone."""
+    import json
+    import os
+
+    path = os.environ.get(ERROR_FILE, "")
+    if not path:
+        return
+    tmp = f"{path}.{os.getpid()}.tmp"
+    try:
+        with open(tmp, "w") as f:
+            json.dump(exc.record(), f)
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
 
 class BadInput(CdrbError):
     """A flag, argument or input file is wrong; nothing was written. Exit code 2."""
@@ -66,6 +96,22 @@ class NeedsScene(BadInput):
 
     def in_python(self) -> BadInput:
         return BadInput(self.message, hint=f"give {self.need}: scene=FILE")
+
+
+class OutputExists(BadInput):
+    """An output file is there that the command does not write over unless told to (``--force``, ``force=True``):
+    one made otherwise, or a checkpoint it cannot continue. ``path`` names it, so a caller that never passes that
+    flag (a grid, which writes over only its own files) can say what to do instead."""
+
+    def __init__(self, message: str, path: object, hint: str | None = None):
+        self.path = str(path)
+        super().__init__(message, hint)
+
+    def __reduce__(self):
+        return type(self), (self.message, self.path, self.hint)
+
+    def record(self) -> dict:
+        return {**super().record(), "output_exists": self.path}
 
 
 class ArtifactError(BadInput):

@@ -1652,3 +1652,21 @@ def test_a_grid_trains_over_its_own_models_when_a_setting_or_the_data_change(tmp
     assert r.returncode != 0 and "train maze-tight/mlp-s0" in r.stderr
     assert "move or remove that one" in r.stderr and "--force" not in r.stderr, r.stderr[-2000:]
     assert artifacts.load(model, "model").manifest.state.step == 10
+
+
+def test_the_grid_rewrites_a_fix_by_what_a_task_left_as_data_not_by_its_words():
+    """A task's hint to pass --force becomes the grid's own advice only where the task's error record says an output
+    blocked it (the grid takes no --force); a hint that merely mentions --force is left as the command gave it."""
+    from cdrb_cli.orchestration.grid.run import _grid_hint
+    from cdrb_cli.orchestration.grid.spec import Task
+
+    task = Task(id="report", kind="report", argv=["report", "a.h5", "--out", "r.md"], inputs=[], outputs=[Path("r.md")])
+    said = ["loading a.h5", "error: --out r.md: file exists (pass --force to overwrite it, or choose another path)"]
+    blocked = {"message": "--out r.md: file exists", "hint": "pass --force to overwrite it, or choose another path"}
+    got = _grid_hint(task, {"stderr": said, "error": {**blocked, "output_exists": "r.md"}})
+    assert got[0] == "loading a.h5" and got[1].startswith("error: --out r.md: file exists (")
+    assert "--force" not in got[1] and "move or remove that one" in got[1]
+    for error in ({**blocked, "output_exists": None}, None, {}):
+        assert _grid_hint(task, {"stderr": said, "error": error}) == said  # no output named: the words stand
+    own = Task(id="report", kind="report", argv=[*task.argv, "--force"], inputs=[], outputs=[Path("r.md")])
+    assert _grid_hint(own, {"stderr": said, "error": {**blocked, "output_exists": "r.md"}}) == said

@@ -324,3 +324,25 @@ def test_columns_zero_in_the_environment_still_shows_the_log(tiny_models, tmp_pa
 
     r = run_cdrb("plan", tiny_models["mlp"].path, "--pairs", "1", "--out", tmp_path / "p.h5", env={"COLUMNS": "0"})
     assert r.returncode == 0 and "plans for 1 pairs" in r.stderr, r.stderr
+
+
+def test_a_command_blocked_by_an_output_leaves_its_failure_as_data(tmp_path, cdrb):
+    """With CDRB_ERROR_FILE set, a refused command writes its error's parts there; an output that blocks it is
+    named as data (what a grid acts on), any other failure says none."""
+    import json
+
+    demos = write(tmp_path / "d.h5", "demos")
+    taken = tmp_path / "b.h5"
+    taken.write_text("my notes\n")
+    record = tmp_path / "error.json"
+    r = cdrb("cluster", demos, "--k", "2", "--out", taken, env={"CDRB_ERROR_FILE": str(record)})
+    got = json.loads(record.read_text())
+    assert r.returncode == 2 and got["exit_code"] == 2 and got["output_exists"] == str(taken)
+    assert r.stderr.strip() == f"error: {got['message']} ({got['hint']})" and "--force" in got["hint"]
+    record.unlink()
+    r = cdrb(
+        "cluster", tmp_path / "absent.h5", "--k", "2", "--out", tmp_path / "c.h5", env={"CDRB_ERROR_FILE": str(record)}
+    )
+    got = json.loads(record.read_text())
+    assert r.returncode == 2 and got["output_exists"] is None and got["message"] in r.stderr
+    assert taken.read_text() == "my notes\n" and not list(tmp_path.glob("error.json.*"))

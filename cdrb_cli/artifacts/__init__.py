@@ -61,7 +61,7 @@ from cdrb_cli.artifacts.migrations import (
     migrate_minor,
 )
 from cdrb_cli.artifacts.outputs import check_output, claim_output
-from cdrb_cli.errors import ArtifactError, BadInput, CdrbError, force_option
+from cdrb_cli.errors import ArtifactError, BadInput, CdrbError, OutputExists, force_option
 from cdrb_cli.provenance import command_line, git_sha, library_versions, now_utc, text
 
 __all__ = [
@@ -381,8 +381,9 @@ def produce(path: str | Path, kind: str, force: bool, config, build, parents=(),
     if path.exists() and not force and not path.is_dir():
         found = existing(path, kind, config, parents, env)
         if not found.up_to_date:
-            raise BadInput(
+            raise OutputExists(
                 f"{flag} {path}: file exists and was not made by this exact command ({found.reason})",
+                path,
                 hint=f"pass {force_option(flag)} to overwrite it, or choose another path",
             )
         ui.log(f"{path} is up to date (same config and inputs): skipped; {force_option(flag)} redoes it")

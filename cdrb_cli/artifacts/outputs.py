@@ -20,7 +20,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from cdrb_cli.errors import BadInput, force_option
+from cdrb_cli.errors import BadInput, OutputExists, force_option
 from cdrb_cli.settings import clip
 
 try:
@@ -94,8 +94,10 @@ def check_output(
             if _same(path, Path(item)):
                 raise BadInput(f"{flag} {path}: is an input of this command", hint="write to another path")
         if not force:
-            raise BadInput(
-                f"{flag} {path}: file exists", hint=f"pass {force_option(flag)} to overwrite it, or choose another path"
+            raise OutputExists(
+                f"{flag} {path}: file exists",
+                path,
+                hint=f"pass {force_option(flag)} to overwrite it, or choose another path",
             )
     check_writable(folder, flag, path)
     return path

@@ -22,7 +22,7 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import PROG, envvars, interrupts, provenance, ui
-from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError
+from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError, leave_record
 
 try:  # typer >= 0.20 vendors click; older versions use the click package
     from typer._click import exceptions as click_exc
@@ -145,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         _error("aborted")
         return EXIT_INTERRUPTED
     except CdrbError as exc:
+        leave_record(exc)
         if debug:
             raise
         _error(exc.line())

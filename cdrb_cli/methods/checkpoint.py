@@ -17,7 +17,7 @@ import copy
 import numpy as np
 
 from cdrb_cli.buffer import Normalizer
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, OutputExists
 from cdrb_cli.lazy import torch
 from cdrb_cli.methods.base import Method, build_method
 
@@ -109,9 +109,10 @@ def restore(model, method: Method, ema: dict, optimizers: dict, device) -> tuple
                 entry = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
                 for k, v in entry.items():  # per-parameter tensors (Adam's moments) or scalars (its step)
                     if np.shape(v) not in ((), tuple(p.shape)):
-                        raise BadInput(
+                        raise OutputExists(
                             f"{model.path}: optimizer tensor /optim/{o}/{prefix}{k} has shape {np.shape(v)}, but its "
                             f"parameter has {tuple(p.shape)}",
+                            model.path,
                             hint="the checkpoint is damaged: train again with --force",
                         )
                 if entry:  # a parameter that never had a gradient has no state
@@ -121,8 +122,9 @@ def restore(model, method: Method, ema: dict, optimizers: dict, device) -> tuple
                     used += len(entry)
                 index += 1
         if used != len(tensors):  # a stored tensor no parameter of this method claims
-            raise BadInput(
+            raise OutputExists(
                 f"{model.path}: the state of optimizer {o!r} does not fit the method's parameters",
+                model.path,
                 hint="train again with --force",
             )
         sd["state"] = state

@@ -32,7 +32,7 @@ import numpy as np
 
 from cdrb_cli import __version__, artifacts, ui
 from cdrb_cli.artifacts.outputs import check_output_folder, locked
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, OutputExists
 from cdrb_cli.files import new_folder, replace_folder, temp_folder_at
 
 #: the description tag that names a cdrb environment in an exported dataset without a gymnasium env_spec
@@ -336,7 +336,9 @@ def _check_export_target(final: Path, root: Path, dataset_id: str, force: bool) 
         raise BadInput(f"--minari {dataset_id}: {final} is not a folder", hint="remove it or choose another name")
     if final.exists():
         if not force:
-            raise BadInput(f"--minari {dataset_id}: {final} exists", hint="pass --force to replace it, or another name")
+            raise OutputExists(
+                f"--minari {dataset_id}: {final} exists", final, hint="pass --force to replace it, or another name"
+            )
         nested = [m for m in final.rglob("metadata.json") if m.parent != final / "data"]
         if nested:
             raise BadInput(

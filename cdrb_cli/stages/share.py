@@ -18,7 +18,7 @@ import numpy as np
 
 from cdrb_cli import artifacts
 from cdrb_cli.artifacts.outputs import check_output_folder
-from cdrb_cli.errors import BadInput
+from cdrb_cli.errors import BadInput, OutputExists
 from cdrb_cli.files import read_input_text, replace_folder, sha256_file
 from cdrb_cli.settings import clip
 
@@ -66,7 +66,9 @@ def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False
     renamed); ``evals``: eval artifacts of this model whose figures the model card lists."""
     folder = check_output_folder(folder, "--dir", [getattr(model, "path", None), *(ev.path for ev in evals)])
     if folder.is_dir() and any(folder.iterdir()) and not force:
-        raise BadInput(f"--dir {folder}: exists and is not empty", hint="pass --force to replace it, or another --dir")
+        raise OutputExists(
+            f"--dir {folder}: exists and is not empty", folder, hint="pass --force to replace it, or another --dir"
+        )
     for ev in evals:
         if not any(p.kind == "model" and p.data_sha256 == model.data_sha256 for p in ev.manifest.parents):
             raise BadInput(f"--eval {ev.path}: evaluates another model", hint="pass the evals of this model")

@@ -19,7 +19,7 @@ from pathlib import Path
 from cdrb_cli import artifacts, interrupts, ui
 from cdrb_cli.buffer import Normalizer, demo_features, feature_dim, split_rows
 from cdrb_cli.configs import TrainConfig, TrainState
-from cdrb_cli.errors import BadInput, RunFailed
+from cdrb_cli.errors import BadInput, OutputExists, RunFailed
 from cdrb_cli.files import replace_file
 from cdrb_cli.methods.base import NonFiniteLoss, build_method
 from cdrb_cli.methods.checkpoint import checkpoint_arrays, make_ema, restore
@@ -183,8 +183,9 @@ def _check_snapshot_files(config, out: Path, parents, snapshots, replace: bool) 
         if found.status in ("missing", "up-to-date") or _unfinished(found):
             continue
         reason = found.reason.removeprefix(f"{path}: ")
-        raise BadInput(
+        raise OutputExists(
             f"--snapshot-at {s}: {path} exists and is not this run's snapshot ({reason})",
+            path,
             hint=f"remove it or choose another --out (--force overwrites it, and retrains {out.name} too)",
         )
 
@@ -381,7 +382,7 @@ def _checkpoint(out: Path, config: TrainConfig, parents):
     """The checkpoint in ``out`` that ``--resume`` continues: of the same inputs and settings, else a one-line error."""
     found = artifacts.existing(out, "model", config, parents)
     if found.status not in ("resumable", "up-to-date"):
-        raise BadInput(f"--resume: {out}: {found.reason}", hint="use the same inputs and settings, or --force")
+        raise OutputExists(f"--resume: {out}: {found.reason}", out, hint="use the same inputs and settings, or --force")
     return found.artifact
 
 

@@ -4,6 +4,7 @@ cdrb_cli` processes), retried once, with progress, a summary and the report."""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import json
 import logging
 import os
@@ -20,7 +21,7 @@ from pathlib import Path
 from typing import Literal
 
 from cdrb_cli import artifacts, interrupts, ui
-from cdrb_cli.errors import BadInput, RunFailed
+from cdrb_cli.errors import ERROR_FILE, BadInput, RunFailed
 from cdrb_cli.orchestration.grid.expansion import expand
 from cdrb_cli.orchestration.grid.load import load_grid
 from cdrb_cli.orchestration.grid.memo import (
@@ -36,7 +37,7 @@ from cdrb_cli.orchestration.grid.memo import (
     written_here,
 )
 from cdrb_cli.orchestration.grid.reuse import REUSABLE, regular_sha
-from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task
+from cdrb_cli.orchestration.grid.spec import STDERR_LINES, GridSpec, Task, read_small
 from cdrb_cli.settings import clip
 
 # ------------------------------------------------------------------------------------------------ execution
@@ -51,8 +52,6 @@ def execute(payload: dict, server=None) -> dict:
     left unfinished, or a finished shorter run of the same settings that the grid now trains longer (a curve
     extended to more steps); the command itself refuses a file of other settings, unless the grid wrote that file
     itself (:data:`OWN_MODEL`: then a run of other settings or data is out of date and trained over)."""
-    from cdrb_cli.orchestration.grid.warm import cold_only, parent_death_hook, run_task
-
     argv = list(payload["argv"])
     if payload["kind"] == "train" and Path(payload["outputs"][0]).is_file() and OWN_MODEL not in argv:
         argv.append("--resume")
@@ -64,32 +63,58 @@ def execute(payload: dict, server=None) -> dict:
     # progress is plain lines (a live bar's redraws would grow its log by megabytes an hour)
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1", TTY_COMPATIBLE="0")
     log = Path(payload["log"]) if payload.get("log") else None  # the grid's log of the task (local pool), made by it
-    if server is not None and not cold_only(argv):
-        rc, stderr, seconds = run_task(server, argv, env, _register, _unregister, log)
-    else:
-        t = time.time()
-        fd = open_log(log) if log is not None else None
-        try:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "cdrb_cli", *argv],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE if fd is None else fd,
-                text=True,
-                env=env,
-                preexec_fn=parent_death_hook(),
-            )
-        finally:
-            if fd is not None:
-                os.close(fd)
-        _register(proc)
-        try:
-            _, stderr = proc.communicate()
-        finally:
-            _unregister(proc)
-        stderr = read_log(log) if log is not None else stderr
-        rc, seconds = proc.returncode, time.time() - t
+    with _error_record(env) as error:
+        rc, stderr, seconds = _run(server, argv, env, log)
     tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
-    return {"rc": rc, "seconds": seconds, "stderr": tail}
+    return {"rc": rc, "seconds": seconds, "stderr": tail, "error": error if rc else None}
+
+
+@contextlib.contextmanager
+def _error_record(env: dict):
+    """Name a fresh file in ``env`` where the task's command leaves its failure as data (:data:`ERROR_FILE`);
+    yields a dict that holds that record after the block (empty when the command left none), and removes the file."""
+    fd, path = tempfile.mkstemp(prefix="cdrb-task-error-", suffix=".json")
+    os.close(fd)
+    env[ERROR_FILE] = path
+    record: dict = {}
+    try:
+        yield record
+    finally:
+        text = read_small(Path(path))
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        with contextlib.suppress(ValueError, RecursionError, TypeError):
+            found = json.loads(text or "")
+            record.update(found if isinstance(found, dict) else {})
+
+
+def _run(server, argv: list[str], env: dict, log: Path | None) -> tuple[int, str, float]:
+    """The command's exit code, stderr and seconds: forked by the warm ``server``, else a fresh process."""
+    from cdrb_cli.orchestration.grid.warm import cold_only, parent_death_hook, run_task
+
+    if server is not None and not cold_only(argv):
+        return run_task(server, argv, env, _register, _unregister, log)
+    t = time.time()
+    fd = open_log(log) if log is not None else None
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cdrb_cli", *argv],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE if fd is None else fd,
+            text=True,
+            env=env,
+            preexec_fn=parent_death_hook(),
+        )
+    finally:
+        if fd is not None:
+            os.close(fd)
+    _register(proc)
+    try:
+        _, stderr = proc.communicate()
+    finally:
+        _unregister(proc)
+    stderr = read_log(log) if log is not None else stderr
+    return proc.returncode, stderr, time.time() - t
 
 
 def _register(proc) -> None:
@@ -406,11 +431,11 @@ def run_grid(
                 _log_eval(task)
                 emit("done", res)
             elif res.attempts <= retries:
-                res.stderr = _grid_hint(task, out["stderr"])
+                res.stderr = _grid_hint(task, out)
                 emit("retry", res)
                 submit(task)
             else:
-                state[task.id], res.status, res.stderr = "failed", "failed", _grid_hint(task, out["stderr"])
+                state[task.id], res.status, res.stderr = "failed", "failed", _grid_hint(task, out)
                 emit("failed", res)
         if polled:  # the tasks still running, after the finished ones are settled
             on_progress(_progress(spec, running.values()))
@@ -451,25 +476,18 @@ def _log_eval(task) -> None:
         ui.warn(f"{task.id}: its figures were not logged to {task.meta['log_dir']} ({clip(str(exc), 120)})")
 
 
-def _grid_hint(task: Task, lines: list[str]) -> list[str]:
-    """A failed task's last stderr line as the grid's user can act on it: a command's hint to pass ``--force``
-    (an output is there that it will not write over) becomes what to do here, since a grid passes ``--force``
-    only to its own artifacts and takes no such flag."""
-    if not lines or "--force" in task.argv:  # (its own artifact: the command's hint stands)
-        return lines
-    last = lines[-1]
-    if not last.endswith(")"):
-        return lines
-    depth = 0
-    for i in range(len(last) - 1, -1, -1):  # the hint: the last balanced parenthesis of `message (hint)`
-        depth += {")": 1, "(": -1}.get(last[i], 0)
-        if depth == 0:
-            break
-    hint = last[i + 1 : -1]
-    if depth or "--force" not in hint:
+def _grid_hint(task: Task, out: dict) -> list[str]:
+    """A failed task's stderr lines as the grid's user can act on them: where an output blocked the command (its
+    error record names one), the command's own fix (pass ``--force``) becomes what to do here, since a grid passes
+    ``--force`` only to its own artifacts and takes no such flag."""
+    lines, error = list(out["stderr"]), out.get("error") or {}
+    if not error.get("output_exists") or "--force" in task.argv:  # (its own artifact: the command's hint stands)
         return lines
     grid_hint = "a grid writes over no file it did not write itself: move or remove that one, or choose another `out`"
-    return [*lines[:-1], f"{last[:i].rstrip()} ({grid_hint})"]
+    said = f"{error.get('message')} ({error['hint']})" if error.get("hint") else str(error.get("message"))
+    told = [i for i, line in enumerate(lines) if line.endswith(said)]
+    line = f"error: {error.get('message')} ({grid_hint})"
+    return [*lines[: told[-1]], line, *lines[told[-1] + 1 :]] if told else [*lines, line]
 
 
 def _outcome(fut: cf.Future) -> dict:
