@@ -336,3 +336,22 @@ def test_integer_lists_take_ascii_digits_and_no_empty_items(text, expected):
             int_values(text, "--seeds", "integers", "0,1")
     else:
         assert int_values(text, "--seeds", "integers", "0,1") == expected
+
+
+def test_cluster_keeps_every_state_of_a_small_buffer_by_default_and_refuses_a_larger_k(tmp_path, cdrb):
+    """Demos with fewer states than the default number of clusters make a buffer of all of them (nothing to
+    reduce) without a flag; a --k given above the states is still a one-line error."""
+    from cdrb_cli import artifacts
+
+    demos = write(tmp_path / "d.h5", "demos", n=12)
+    states = int(artifacts.load(demos, "demos").arrays["episodes/length"].sum())
+    r = cdrb("cluster", demos, "--seed", "0", "--out", tmp_path / "b.h5")
+    buf = artifacts.load(tmp_path / "b.h5", "buffer")
+    assert r.returncode == 0 and buf.manifest.config.k == 0 and buf.manifest.summary.points == states, r.stderr
+    assert "keeping them all" in r.stderr
+    r = cdrb("cluster", demos, "--k", str(states + 1), "--out", tmp_path / "c.h5")
+    assert (
+        r.returncode == 2 and f"larger than the {states} buffer states" in r.stderr and not (tmp_path / "c.h5").exists()
+    )
+    r = cdrb("cluster", demos, "--k", "3", "--seed", "0", "--out", tmp_path / "e.h5")
+    assert r.returncode == 0 and artifacts.load(tmp_path / "e.h5", "buffer").manifest.summary.points == 3

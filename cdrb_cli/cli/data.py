@@ -247,7 +247,12 @@ def expert_train(
 @app.command()
 def cluster(
     demos: Path = typer.Argument(..., help="Demos artifact from `cdrb collect`."),
-    k: int | None = typer.Option(None, "--k", min=0, help="k-means clusters (default 1000); 0 keeps the full buffer."),
+    k: int | None = typer.Option(
+        None,
+        "--k",
+        min=0,
+        help="k-means clusters (default 1000, or every state where the demos hold fewer); 0 keeps the full buffer.",
+    ),
     features: str = typer.Option(
         "state",
         "--features",
@@ -286,12 +291,14 @@ def cluster(
     from cdrb_cli.artifacts import produce
     from cdrb_cli.configs import ClusterConfig
     from cdrb_cli.stages.cluster import cluster as run_cluster
+    from cdrb_cli.stages.cluster import fit_default_k
 
     check_outputs(force, [demos], out=out, plot=plot)
     d = load_artifact(demos, "demos")
     config = ClusterConfig(
         features=features, split=split, graph_join=graph_join, seed=seed, **({"k": k} if k is not None else {})
     )
+    config = fit_default_k(d, config)
     buf = produce(out, "buffer", force, config, lambda: run_cluster(d, config, out), parents=[d])
     sm = buf.manifest.summary
     ui.log(

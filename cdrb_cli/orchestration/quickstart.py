@@ -133,7 +133,7 @@ def quickstart(
     from cdrb_cli.envs.render import plot_demos
     from cdrb_cli.methods.config import train_config
     from cdrb_cli.methods.registry import METHODS
-    from cdrb_cli.stages.cluster import cluster
+    from cdrb_cli.stages.cluster import cluster, fit_default_k
     from cdrb_cli.stages.collect import collect, collect_config
     from cdrb_cli.stages.configure import eval_config
     from cdrb_cli.stages.report import collect_rows, render
@@ -157,7 +157,7 @@ def quickstart(
         demos = _reuse(demos_path, "demos", ccfg, env=spec) or collect(spec, ccfg, demos_path, workers=None)
 
         step += 1
-        kcfg = ClusterConfig(seed=seed, **({"k": k} if k is not None else {}))
+        kcfg = fit_default_k(demos, ClusterConfig(seed=seed, **({"k": k} if k is not None else {})))
         _stage(step, total, f"cluster the replay buffer (k={kcfg.k})")
         buffer_path = paths["buffer"] = folder / "buffer.h5"
         buffer = _reuse(buffer_path, "buffer", kcfg, [demos]) or cluster(demos, kcfg, buffer_path)

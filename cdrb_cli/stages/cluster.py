@@ -15,6 +15,19 @@ from cdrb_cli.errors import BadInput
 from cdrb_cli.geodesic import graph_diameter, transition_graph
 
 
+def fit_default_k(demos, config: ClusterConfig) -> ClusterConfig:
+    """``config`` as a run on ``demos`` takes it: where ``k`` was left at its default and the demos hold fewer
+    buffer states than that, every state is kept (``k = 0``: there is nothing to reduce); a ``k`` given larger than
+    the states is refused by :func:`cluster`."""
+    if "k" in config.model_fields_set or config.k == 0:
+        return config
+    states = split_rows(demos, "train" if config.split == "train" else "all").size
+    if 0 < states < config.k:
+        ui.log(f"{demos.path}: {states} buffer states, fewer than the default {config.k} clusters: keeping them all")
+        return config.model_copy(update={"k": 0})
+    return config
+
+
 def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
     """Normalize the demos' features (min-max to [-1, 1]), run k-means, snap centroids to real states, and join the
     buffer states consecutive demonstration states map to (the transition graph)."""
