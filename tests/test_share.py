@@ -183,10 +183,15 @@ def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models
     os.umask(mask)
     modes = {p.name: p.stat().st_mode & 0o777 for p in [tmp_path / "m", *(tmp_path / "m").iterdir()]}
     assert modes == {"m": 0o777 & ~mask, **{n: 0o666 & ~mask for n in modes if n != "m"}}, modes  # the umask's
-    # --force replaces the folder whole: the old one is set aside before the new one goes in, then removed
+    # --force replaces a model folder, never one holding other files: they would go with it
     (tmp_path / "m" / "mine.txt").write_text("old")
     r = cdrb("export", tiny_models["mlp"].path, "--dir", tmp_path / "m", "--force")
-    assert r.returncode == 0 and not (tmp_path / "m" / "mine.txt").exists()
+    assert r.returncode == 2 and "holds files a model folder does not (mine.txt)" in r.stderr, r.stderr
+    assert (tmp_path / "m" / "mine.txt").read_text() == "old"
+    # a model folder is replaced whole: the old one is set aside before the new one goes in, then removed
+    (tmp_path / "m" / "mine.txt").unlink()
+    r = cdrb("export", tiny_models["mlp"].path, "--dir", tmp_path / "m", "--force")
+    assert r.returncode == 0 and "mlp" in (tmp_path / "m" / "README.md").read_text().split("\n")[0]
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".m.")) == []
 
 

@@ -69,6 +69,12 @@ def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False
         raise OutputExists(
             f"--dir {folder}: exists and is not empty", folder, hint="pass --force to replace it, or another --dir"
         )
+    others = sorted(p.name for p in folder.iterdir() if p.name not in (*FILES, SUMS)) if folder.is_dir() else []
+    if others:  # --force replaces a model folder, never a folder of other files (they would be deleted with it)
+        raise BadInput(
+            f"--dir {folder}: holds files a model folder does not ({', '.join(others[:3])})",
+            hint="choose an empty or new --dir, or one an earlier export wrote",
+        )
     for ev in evals:
         if not any(p.kind == "model" and p.data_sha256 == model.data_sha256 for p in ev.manifest.parents):
             raise BadInput(f"--eval {ev.path}: evaluates another model", hint="pass the evals of this model")
