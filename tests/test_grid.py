@@ -342,7 +342,7 @@ def test_local_pool_runs_the_grid_and_a_rerun_does_no_work(tmp_path, monkeypatch
     assert status["eval maze-tight/cdrb-s1"].status == "done" and status["report"].status == "failed"
     said = status["report"].stderr[-1]
     assert "file exists" in said and "--force" not in said, said  # grid takes no --force: what to do instead
-    assert "move or remove that one" in said
+    assert "move or remove that one" in said and status["report"].attempts == 1  # a refusal is not retried
     assert (spec.out / "report.md").read_text() == "my notes\n"
 
 

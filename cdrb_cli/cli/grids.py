@@ -97,7 +97,12 @@ def grid(
     address: str | None = typer.Option(
         None, "--address", help="A running Ray cluster, e.g. ray://head:10001 (default: start Ray on this machine)."
     ),
-    retries: int = typer.Option(1, "--retries", min=0, help="Re-runs of a failed task before it is reported."),
+    retries: int = typer.Option(
+        1,
+        "--retries",
+        min=0,
+        help="Re-runs of a failed task before it is reported (one that refused its input, exit 2, is not re-run).",
+    ),
     dry_run: bool = typer.Option(
         False,
         "--dry-run",

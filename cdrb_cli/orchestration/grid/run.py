@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Literal
 
 from cdrb_cli import artifacts, interrupts, ui
-from cdrb_cli.errors import ERROR_FILE, BadInput, RunFailed
+from cdrb_cli.errors import ERROR_FILE, EXIT_BAD_INPUT, BadInput, RunFailed
 from cdrb_cli.orchestration.grid.expansion import expand
 from cdrb_cli.orchestration.grid.load import load_grid
 from cdrb_cli.orchestration.grid.memo import (
@@ -430,7 +430,8 @@ def run_grid(
                 state[task.id], res.status, res.stderr = "done", "done", []
                 _log_eval(task)
                 emit("done", res)
-            elif res.attempts <= retries:
+            elif res.attempts <= retries and (out.get("error") or {}).get("exit_code") != EXIT_BAD_INPUT:
+                # (a refused input is refused again: only a run that failed on its way is retried)
                 res.stderr = _grid_hint(task, out)
                 emit("retry", res)
                 submit(task)
