@@ -291,7 +291,7 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
             inside = [s for s in settings if tuple(s.path[: len(loc)]) == tuple(map(str, loc))]
             named = [s for s in inside if _names(msg, s.path[len(loc) :])]
             given = list(dict.fromkeys(s.source for s in named or (inside if len(loc) else [])))
-            if len(given) > 1:
+            if given:  # (one alone too: with an empty location the last setting applied is no clue)
                 where = clip(" with ".join(given), 200)
             elif not given and setting is None and not loc:
                 where = f"{what} settings"

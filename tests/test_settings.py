@@ -351,3 +351,36 @@ def test_a_flag_and_a_set_that_reach_one_field_in_other_spellings_are_refused():
         ("replan", "repair_k"),
     ]
     assert len(run_settings(None, ["avoid.best_of=4"], [("--avoid tuned", "avoid", "tuned")], {})) == 2
+
+
+def test_a_check_across_fields_names_the_one_setting_it_names_not_the_last_applied():
+    """A record-wide check (empty error location) that names one setting is blamed on that setting's source, not on
+    whichever setting was applied last."""
+    from pydantic import BaseModel, ConfigDict, model_validator
+
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.settings import validate
+
+    class Inner(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        route_buffer: str | None = None
+
+    class Outer(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        episodes: int = 1
+        avoid: Inner = Inner()
+
+        @model_validator(mode="after")
+        def _needs(self):
+            if self.avoid.route_buffer is not None:
+                raise ValueError("avoid.route_buffer needs a route")
+            return self
+
+    given = [
+        Setting(("avoid", "route_buffer"), "b.h5", "--config rb.toml: avoid.route_buffer"),
+        Setting(("episodes",), 2, "--episodes 2"),
+    ]
+    data = {"episodes": 2, "avoid": {"route_buffer": "b.h5"}}
+    with pytest.raises(BadInput) as err:
+        validate(Outer, data, given, "eval")
+    assert str(err.value).startswith("--config rb.toml: avoid.route_buffer: "), str(err.value)
