@@ -222,6 +222,10 @@ def test_export_never_replaces_a_folder_holding_its_inputs_or_the_working_folder
         r = cdrb("export", model, "--dir", folder, "--force", cwd=runs if folder in (".", "..") else tmp_path)
         assert r.returncode == 2 and message in r.stderr and r.stderr.count("\n") == 1, (folder, r.stderr)
     assert sorted(p.name for p in runs.iterdir()) == before
+    r = cdrb("export", model, "--dir", tmp_path / "nodir" / "m")  # its folder must exist, as for every --out
+    assert r.returncode == 2 and "does not exist" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    r = cdrb("export", model, "--dir", "/proc/cdrb-m")  # a folder that takes no new file: said before any work
+    assert r.returncode == 2 and "--dir /proc/cdrb-m: cannot write in /proc" in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "link", "runs"]
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import artifacts
-from cdrb_cli.artifacts.outputs import check_output_folder
+from cdrb_cli.artifacts.outputs import check_output_folder, check_writable
 from cdrb_cli.errors import BadInput, OutputExists
 from cdrb_cli.files import read_input_text, replace_folder, sha256_file
 from cdrb_cli.settings import clip
@@ -78,7 +78,10 @@ def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False
     for ev in evals:
         if not any(p.kind == "model" and p.data_sha256 == model.data_sha256 for p in ev.manifest.parents):
             raise BadInput(f"--eval {ev.path}: evaluates another model", hint="pass the evals of this model")
-    folder.parent.mkdir(parents=True, exist_ok=True)
+    parent = folder.absolute().parent  # as for every --out: its folder exists and takes new files
+    if not parent.is_dir():
+        raise BadInput(f"--dir {folder}: folder {parent} does not exist", hint="create it or choose another path")
+    check_writable(parent, "--dir", folder)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
         manifest = model.manifest.model_copy(update={"schema_version": artifacts.SCHEMA_VERSIONS["model"]})
