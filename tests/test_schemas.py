@@ -57,3 +57,19 @@ def test_cli_export_and_check(tmp_path, cdrb):
     os.mkfifo(tmp_path / "eval.v2.schema.json")
     r = cdrb("schema", "check", tmp_path)
     assert r.returncode == 2 and "not a regular file" in r.stderr
+
+
+def test_schema_commands_refuse_a_file_or_a_missing_folder_in_one_line(tmp_path, cdrb):
+    afile = tmp_path / "f.txt"
+    afile.write_text("mine\n")
+    for args, said in (
+        (["export", afile], "is a file"),
+        (["export", "/proc/cdrb-schemas"], "cannot make the folder"),
+        (["check", tmp_path / "nope"], "no such folder"),
+        (["check", afile], "is not a folder"),
+    ):
+        r = cdrb("schema", *args)
+        assert r.returncode == 2 and said in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
+    assert afile.read_text() == "mine\n" and not (tmp_path / "nope").exists()
+    r = cdrb("schema", "export", tmp_path / "s")
+    assert r.returncode == 0 and cdrb("schema", "check", tmp_path / "s").returncode == 0

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from cdrb_cli.artifacts.core import atomic_path, parse_version
 from cdrb_cli.artifacts.kinds import KINDS, SCHEMA_VERSIONS
+from cdrb_cli.errors import BadInput
 
 
 def schemas() -> dict[str, str]:
@@ -27,8 +28,20 @@ def schemas() -> dict[str, str]:
 
 
 def export(folder: str | Path) -> list[Path]:
+    """Write every schema file into ``folder`` (made where missing), each atomically; a path that is a file or a
+    folder that cannot be made or written is a one-line error."""
+    from cdrb_cli.artifacts.outputs import check_writable
+
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    if folder.exists() and not folder.is_dir():
+        raise BadInput(f"{folder}: is a file", hint="name a folder to write the schema files into")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BadInput(
+            f"{folder}: cannot make the folder ({exc.strerror or type(exc).__name__})", hint="choose a writable folder"
+        ) from None
+    check_writable(folder, "schema export", folder)
     written = []
     for name, text in schemas().items():
         with atomic_path(folder / name) as tmp:
