@@ -316,8 +316,8 @@ def test_snapshots_are_exactly_shorter_runs(small_data, tmp_path, cdrb):
     for k, v in _weights(artifacts.load(tmp_path / "ref60.h5")).items():
         np.testing.assert_array_equal(v, _weights(kept)[k], err_msg=k)
     # bad snapshot steps, and an existing snapshot file without --force
-    for bad in ("80", "0", "35", "x"):
-        r = cdrb(*args, "--steps", "80", "--snapshot-at", bad, "--out", tmp_path / "b.h5")
+    for bad, dry in [(b, d) for b in ("80", "0", "35", "x") for d in ([], ["--dry-run"])]:  # a dry run refuses them too
+        r = cdrb(*args, "--steps", "80", "--snapshot-at", bad, "--out", tmp_path / "b.h5", *dry)
         assert r.returncode == 2 and "--snapshot-at" in r.stderr and len(r.stderr.strip().splitlines()) <= 2, bad
     (tmp_path / "new.step20.h5").write_bytes(b"mine")
     r = cdrb(*args, "--steps", "80", "--snapshot-at", "20", "--out", tmp_path / "new.h5")

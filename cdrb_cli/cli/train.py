@@ -104,14 +104,15 @@ def train(
         settings = chosen + settings
     b = load_artifact(buffer, "buffer") if buffer is not None else None
     config = resolve_train_config(d.manifest.env, buffer_info(b), settings, seed=seed)
-    from cdrb_cli.stages.train import TRAIN_BYTES_PER_PARAMETER, check_size
+    from cdrb_cli.stages.train import TRAIN_BYTES_PER_PARAMETER, check_size, check_snapshots
 
     n_params = check_size(d, b, config)
+    snapshots = int_values(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []
+    check_snapshots(config, snapshots)  # a dry run refuses what the run would
     if dry_run:
         ui.log(f"{n_params:,} parameters (about {n_params * TRAIN_BYTES_PER_PARAMETER / 2**20:,.0f} MiB to train)")
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return
-    snapshots = int_values(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []
     model, done = train_or_resume(
         d,
         b,
