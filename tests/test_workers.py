@@ -84,11 +84,14 @@ def test_workers_spawned_under_sigint_ignored_start_with_it_ignored_and_the_pare
     finally:
         pool.shutdown()
     assert signal.getsignal(signal.SIGINT) is before
-    control = ProcessPoolExecutor(1, mp_context=get_context("spawn"))  # without it, Python's own handler
+    # without it, Python's own handler (the parent handling SIGINT: a shell's background job starts with it ignored)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
+        control = ProcessPoolExecutor(1, mp_context=get_context("spawn"))
         assert control.submit(signal.getsignal, signal.SIGINT).result(timeout=120) is not signal.SIG_IGN
     finally:
         control.shutdown()
+        signal.signal(signal.SIGINT, before)
 
 
 def test_a_ctrl_c_during_the_clis_imports_is_one_line_and_exit_130(monkeypatch, capsys):

@@ -15,6 +15,7 @@ import sys
 import tempfile
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,18 +64,25 @@ def execute(payload: dict, server=None) -> dict:
     # progress is plain lines (a live bar's redraws would grow its log by megabytes an hour)
     env = dict(os.environ, OMP_NUM_THREADS=str(max(1, int(payload["cpus"]))), PYTHONSAFEPATH="1", TTY_COMPATIBLE="0")
     log = Path(payload["log"]) if payload.get("log") else None  # the grid's log of the task (local pool), made by it
-    with _error_record(env) as error:
+    with _error_record(env, log) as error:
         rc, stderr, seconds = _run(server, argv, env, log)
     tail = [ln for ln in stderr.splitlines() if ln.strip()][-STDERR_LINES:]
     return {"rc": rc, "seconds": seconds, "stderr": tail, "error": error if rc else None}
 
 
 @contextlib.contextmanager
-def _error_record(env: dict):
-    """Name a fresh file in ``env`` where the task's command leaves its failure as data (:data:`ERROR_FILE`);
-    yields a dict that holds that record after the block (empty when the command left none), and removes the file."""
-    fd, path = tempfile.mkstemp(prefix="cdrb-task-error-", suffix=".json")
-    os.close(fd)
+def _error_record(env: dict, log: Path | None):
+    """Name a file in ``env`` where the task's command leaves its failure as data (:data:`ERROR_FILE`): beside the
+    task's log where it has one, else a fresh name in the temporary folder, made only by a command that fails (a
+    grid killed mid-task leaves no file behind); yields a dict that holds that record after the block (empty when
+    the command left none), and removes the file."""
+    path = (
+        f"{log}.error.json"
+        if log is not None
+        else os.path.join(tempfile.gettempdir(), f"cdrb-task-error-{uuid.uuid4().hex}.json")
+    )
+    with contextlib.suppress(OSError):
+        os.unlink(path)  # an earlier attempt's
     env[ERROR_FILE] = path
     record: dict = {}
     try:
