@@ -58,22 +58,18 @@ class CdrbError(Exception):
 
 
 def leave_record(exc: CdrbError) -> None:
-    """Write ``exc.record()`` as JSON to the file :data:`ERROR_FILE` names, when it names one (whole or not at all:
-    written beside it, then renamed); a file that cannot be written leaves the failure to stderr alone."""
+    """Write ``exc.record()`` as JSON to the file :data:`ERROR_FILE` names, when it names one (atomically, as every
+    file cdrb writes); a file that cannot be written leaves the failure to stderr alone."""
     import json
     import os
+
+    from cdrb_cli.files import atomic_path  # (it imports this module)
 
     path = os.environ.get(ERROR_FILE, "")
     if not path:
         return
-    tmp = f"{path}.{os.getpid()}.tmp"
-    try:
-        with open(tmp, "w") as f:
-            json.dump(exc.record(), f)
-        os.replace(tmp, path)
-    except OSError:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+    with contextlib.suppress(OSError, CdrbError), atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(exc.record()))
 
 
 class BadInput(CdrbError):
