@@ -348,7 +348,13 @@ def read_h5(
             if ds.shape is None:
                 raise ArtifactError(f"{path}: dataset /{name} has no shape (empty dataspace)", hint="re-create it")
             total += int(np.prod(ds.shape, dtype=np.float64)) * dt.itemsize
-        limit = min(max_artifact_bytes(MAX_TOTAL_BYTES), _expansion_limit(path))
+        cap = max_artifact_bytes(MAX_TOTAL_BYTES)
+        if total > cap and cap != MAX_TOTAL_BYTES:
+            raise ArtifactError(
+                f"{path}: datasets declare {total:,} bytes, more than CDRB_MAX_ARTIFACT_BYTES={cap:,}",
+                hint="raise or unset CDRB_MAX_ARTIFACT_BYTES to read this file",
+            )
+        limit = min(cap, _expansion_limit(path))
         if total > limit:
             raise ArtifactError(
                 f"{path}: datasets declare {total / 2**20:.0f} MiB, "
