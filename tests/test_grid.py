@@ -195,6 +195,9 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY.replace('out = "runs"', 'out = "grid.toml"'), "is a file, not a folder"),
         (TINY.replace('out = "runs"', 'out = "grid.toml/sub"'), "is a file, not a folder"),
         (TINY.replace('out = "runs"', 'out = "ru\\nns"'), "has a control character"),
+        (TINY.replace('out = "runs"', 'out = "/proc/cdrb-grid"'), "out = /proc/cdrb-grid: cannot write in /proc"),
+        # a collection on a map file: the command refuses an env and --maze-map both given, so every one would fail
+        (TINY + '\n[[settings]]\ncollect = ["--maze-map", "grid.toml"]\n', "a grid collects on its `envs` only"),
         # variants and extensions that would collide or apply to nothing; seeds given two ways
         (TINY + '\n[[variants]]\nname = "demos.h5"\n', "cannot end in .h5"),
         (TINY + '\n[[variants]]\nname = "A"\n[[variants]]\nname = "a"\n', "also in case"),

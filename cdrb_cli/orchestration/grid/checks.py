@@ -29,10 +29,13 @@ def check_commands(spec: GridSpec, path: Path) -> None:
     for env in spec.envs:
         _, collect, collect_sets = parse_command(["collect", env, *collect_flags_for(spec, env)], fold=False)
         maze_map = collect.get("maze_map")
-        try:
-            env_spec = make_spec(None if maze_map else env, maze_map)
-        except BadInput:
-            continue  # the collection says what is wrong with its map
+        if maze_map is not None:  # the command would refuse ENV and --maze-map both given, in every collection
+            raise BadInput(
+                f"{path}: collect on {env} is given --maze-map {maze_map}: a grid collects on its `envs` only",
+                hint="drop --maze-map from the collect flags (an eval's unseen scene is its eval flag --maze-map); "
+                "collect on a map file with `cdrb collect --maze-map FILE`",
+            )
+        env_spec = make_spec(env)
         _check_collect(spec, env_spec, env, collect, collect_sets, path)
         for method in spec.methods:
             configs = {}

@@ -421,9 +421,10 @@ def _check_scope(where: str, item: Scoped, spec: GridSpec, narrowed: bool) -> No
 
 
 def _check_out(out: Path, where: str) -> None:
-    """The grid's ``out`` is a folder or can become one (no file on its path), and its name has no control
-    characters (every task's command line names files under it, one line per task)."""
-    from cdrb_cli.artifacts.outputs import has_control_character
+    """The grid's ``out`` is a folder or can become one (no file on its path, files can be made in the nearest
+    folder that exists), and its name has no control characters (every task's command line names files under it,
+    one line per task)."""
+    from cdrb_cli.artifacts.outputs import check_writable, has_control_character
 
     if has_control_character(str(out)):
         raise BadInput(f"{where}: out {clip(repr(str(out)), 80)}: has a control character", hint="rename the folder")
@@ -432,6 +433,7 @@ def _check_out(out: Path, where: str) -> None:
             if not folder.is_dir():
                 raise BadInput(f"{where}: out = {out}: {folder} is a file, not a folder",
                                hint="choose a folder for the grid's artifacts")  # fmt: skip
+            check_writable(folder, f"{where}: out =", out)
             break
 
 

@@ -583,7 +583,8 @@ def grid(
             runner.close()
     failed = [r for r in run.results if r.status == "failed"]
     for r in failed:
-        ui.warn(f"{r.id} failed after {r.attempts} attempts:\n  " + "\n  ".join(r.stderr or ["(no stderr)"]))
+        said = "\n  ".join(r.stderr or ["(no stderr)"])
+        ui.warn(f"{r.id} failed after {r.attempts} attempt{'s' * (r.attempts != 1)}:\n  {said}")
     if failed:
         raise RunFailed(
             f"{len(failed)} of {len(run.results)} grid tasks failed ({', '.join(r.id for r in failed[:3])}"
