@@ -309,22 +309,30 @@ def test_a_relative_root_is_the_current_folders(tmp_path, datasets, monkeypatch)
 
 
 def test_damaged_episodes_are_one_line_naming_the_dataset(tmp_path, datasets):
-    """NaN in the states, or fewer actions than steps, in an otherwise valid dataset: one line naming the dataset
-    and the episode, exit 2, nothing written."""
+    """NaN or values no artifact holds in the states, fewer actions than steps, a missing array, text where
+    numbers belong, in an otherwise valid dataset: one line naming the dataset and the episode, exit 2, nothing
+    written."""
     import shutil
 
     import h5py
 
     _make_dataset("test/good-v0", "PointMaze_UMaze-v3", episodes=1, steps=5)
     good = datasets / "test" / "good-v0"
-    for name, damage in (("nan", "nan"), ("short", "actions")):
+    damages = ("nan", "actions", "huge", "no-actions", "text")
+    for name, damage in zip(("nan", "short", "huge", "noacts", "text"), damages, strict=True):
         folder = datasets / "test" / f"{name}-v0"
         shutil.copytree(good, folder)
         with h5py.File(folder / "data" / "main_data.hdf5", "a") as f:
             ep = f["episode_0"]
-            if damage == "nan":
+            if damage == "no-actions":
+                del ep["actions"]
+            elif damage == "text":
+                n = len(ep["observations/observation"])
+                del ep["observations/observation"]
+                ep["observations"].create_dataset("observation", data=np.array([b"abcd"] * n))
+            elif damage in ("nan", "huge"):
                 obs = ep["observations/observation"][()]
-                obs[2, 0] = np.nan
+                obs[2, 0] = np.nan if damage == "nan" else 1e30
                 ep["observations/observation"][...] = obs
             else:
                 acts = ep["actions"][()]

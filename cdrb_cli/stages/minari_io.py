@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cdrb_cli import __version__, artifacts, ui
+from cdrb_cli.artifacts.core import MAX_MAGNITUDE, in_bounds
 from cdrb_cli.artifacts.outputs import check_output_folder, locked
 from cdrb_cli.errors import BadInput, OutputExists
 from cdrb_cli.files import new_folder, replace_folder, temp_folder_at
@@ -192,45 +193,29 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
         ep_seeds = {}
     _check_spaces(dataset, spec, source)
     states, actions, goals, seeds, success = [], [], [], [], []
-    with ui.progress() as bar:
-        task = bar.add_task(ui.plain(f"import {dataset.spec.dataset_id}", 60), total=dataset.total_episodes, info="")
-        for ep in dataset.iterate_episodes():
-            obs = ep.observations
-            if not isinstance(obs, dict) or not {"observation", "desired_goal"} <= set(obs):
-                raise BadInput(
-                    f"{source}: observations are not a goal dict with 'observation' and 'desired_goal'",
-                    hint="cdrb imports goal-conditioned datasets (dict observations with the goal)",
-                )
-            S, G = np.asarray(obs["observation"], np.float64), np.asarray(obs["desired_goal"], np.float64)
-            A = np.asarray(ep.actions, np.float64)
-            where = f"{source}: episode {ui.plain(str(ep.id), 40)}"
-            if S.ndim != 2 or len(S) < 2:
-                raise BadInput(f"{where}: fewer than 2 states", hint="every episode needs a start and a step")
-            if len(G) != len(S) or len(A) != len(S) - 1:
-                raise BadInput(
-                    f"{where}: {len(S)} observations, {len(G)} goals and {len(A)} actions (expected T, T and T-1)",
-                    hint="the dataset is damaged",
-                )
-            if not (np.isfinite(S).all() and np.isfinite(G).all() and np.isfinite(A).all()):
-                raise BadInput(f"{where}: NaN or infinite values", hint="the dataset is damaged")
-            A = A.reshape(len(S) - 1, -1)
-            for what, arr, want in (("observation", S, spec.obs_dim), ("desired_goal", G, spec.goal_dim)):
-                if arr.ndim != 2 or arr.shape[1] != want:
-                    raise BadInput(
-                        f"{source}: episode {ep.id}: {what} has shape {arr.shape}, {spec.id} states need {want} dims",
-                        hint="name the right environment with --env",
-                    )
-            if A.shape[1] != spec.action_dim:
-                raise BadInput(
-                    f"{source}: actions have {A.shape[1]} dims, {spec.id} takes {spec.action_dim}", hint="--env"
-                )
-            states.append(S)
-            actions.append(np.concatenate([A, np.zeros((1, spec.action_dim))]))
-            goals.append(G)
-            ep_seed = ep_seeds.get(int(ep.id))
-            seeds.append(-1 if ep_seed is None else int(ep_seed))
-            success.append(bool(family.success(spec, S, G).any()))
-            bar.update(task, completed=len(states), info=f"success {np.mean(success):.1%}")
+    ids = [str(i) for i in dataset.episode_indices]  # in the order they are read: names the one a read fails on
+    where = f"{source}: episode {ui.plain(ids[0], 40)}" if ids else source
+    try:  # a missing array, text where numbers belong: Minari and numpy raise their own errors
+        with ui.progress() as bar:
+            task = bar.add_task(
+                ui.plain(f"import {dataset.spec.dataset_id}", 60), total=dataset.total_episodes, info=""
+            )
+            for ep in dataset.iterate_episodes():
+                where = f"{source}: episode {ui.plain(str(ep.id), 40)}"
+                S, A, G = _episode_arrays(ep, where, spec, source)
+                states.append(S)
+                actions.append(np.concatenate([A, np.zeros((1, spec.action_dim))]))
+                goals.append(G)
+                ep_seed = ep_seeds.get(int(ep.id))
+                seeds.append(-1 if ep_seed is None else int(ep_seed))
+                success.append(bool(family.success(spec, S, G).any()))
+                bar.update(task, completed=len(states), info=f"success {np.mean(success):.1%}")
+                where = f"{source}: episode {ui.plain(ids[len(states)], 40)}" if len(states) < len(ids) else source
+    except (KeyError, ValueError, TypeError, IndexError, OSError) as exc:
+        said = " ".join(str(exc).split())[:160]
+        raise BadInput(
+            f"{where}: cannot be read ({type(exc).__name__}: {said})", hint="the dataset is damaged"
+        ) from None
     if not states:
         raise BadInput(f"{source}: the dataset has no episodes", hint="give another dataset")
     meta = dataset.storage.metadata
@@ -244,6 +229,41 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
     E = len(states)
     config = CollectConfig(env=spec.id, episodes=E, expert=source_cfg, valid_fraction=valid_fraction, seed=seed)
     return write_demos(out, spec, config, states, actions, goals, seeds, success, {}, t0)
+
+
+def _episode_arrays(ep, where: str, spec, source: str):
+    """An episode's states (T, obs), actions (T-1, act) and goals (T, goal) as float64, each checked against
+    ``spec``: a one-line error naming the episode for any that does not fit."""
+    obs = ep.observations
+    if not isinstance(obs, dict) or not {"observation", "desired_goal"} <= set(obs):
+        raise BadInput(
+            f"{source}: observations are not a goal dict with 'observation' and 'desired_goal'",
+            hint="cdrb imports goal-conditioned datasets (dict observations with the goal)",
+        )
+    S, G = np.asarray(obs["observation"], np.float64), np.asarray(obs["desired_goal"], np.float64)
+    A = np.asarray(ep.actions, np.float64)
+    if S.ndim != 2 or len(S) < 2:
+        raise BadInput(f"{where}: fewer than 2 states", hint="every episode needs a start and a step")
+    if len(G) != len(S) or len(A) != len(S) - 1:
+        raise BadInput(
+            f"{where}: {len(S)} observations, {len(G)} goals and {len(A)} actions (expected T, T and T-1)",
+            hint="the dataset is damaged",
+        )
+    for arr in (S, G, A):
+        if not np.isfinite(arr).all():
+            raise BadInput(f"{where}: NaN or infinite values", hint="the dataset is damaged")
+        if not in_bounds(arr):
+            raise BadInput(f"{where}: values beyond +-{MAX_MAGNITUDE:g}", hint="the dataset is damaged")
+    A = A.reshape(len(S) - 1, -1)
+    for what, arr, want in (("observation", S, spec.obs_dim), ("desired_goal", G, spec.goal_dim)):
+        if arr.ndim != 2 or arr.shape[1] != want:
+            raise BadInput(
+                f"{where}: {what} has shape {arr.shape}, {spec.id} states need {want} dims",
+                hint="name the right environment with --env",
+            )
+    if A.shape[1] != spec.action_dim:
+        raise BadInput(f"{source}: actions have {A.shape[1]} dims, {spec.id} takes {spec.action_dim}", hint="--env")
+    return S, A, G
 
 
 # ------------------------------------------------------------------------------------------------ export
