@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -176,6 +177,11 @@ def test_export_asks_for_one_target_and_keeps_a_folder_unless_forced(tiny_models
     assert r.returncode == 2 and "exists and is not empty" in r.stderr
     r = cdrb("export", tiny_models["mlp"].path, "--dir", tmp_path / "m", "--eval", folder.parent / "eval.h5")
     assert r.returncode == 2 and "evaluates another model" in r.stderr and not (tmp_path / "m").exists()
+    shutil.copy(folder.parent / "eval.h5", tmp_path / "again.h5")  # the same eval under another name
+    r = cdrb(
+        "export", model, "--dir", tmp_path / "m", "--eval", folder.parent / "eval.h5", "--eval", tmp_path / "again.h5"
+    )
+    assert r.returncode == 2 and "the same eval as --eval" in r.stderr and not (tmp_path / "m").exists(), r.stderr
     r = cdrb("export", model, "--dir", tmp_path / "m")
     assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "m")
     assert "No evaluation was exported" in (tmp_path / "m" / "README.md").read_text()

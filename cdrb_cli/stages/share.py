@@ -75,9 +75,13 @@ def export_folder(model, folder: Path, evals: Sequence = (), force: bool = False
             f"--dir {folder}: holds files a model folder does not ({', '.join(others[:3])})",
             hint="choose an empty or new --dir, or one an earlier export wrote",
         )
+    seen = {}
     for ev in evals:
         if not any(p.kind == "model" and p.data_sha256 == model.data_sha256 for p in ev.manifest.parents):
             raise BadInput(f"--eval {ev.path}: evaluates another model", hint="pass the evals of this model")
+        if ev.data_sha256 in seen:  # the card would list its figures twice, as if two evals agreed
+            raise BadInput(f"--eval {ev.path}: the same eval as --eval {seen[ev.data_sha256]}", hint="pass it once")
+        seen[ev.data_sha256] = ev.path
     parent = folder.absolute().parent  # as for every --out: its folder exists and takes new files
     if not parent.is_dir():
         raise BadInput(f"--dir {folder}: folder {parent} does not exist", hint="create it or choose another path")
