@@ -429,6 +429,19 @@ def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
         family_of(maze).parse_point(maze, "1 .5,0", "--start")
     # one trailing comma is how a list is often written, as --seeds takes it
     np.testing.assert_array_equal(fam.parse_point(spec, "1.25,0.65,", "start"), block)
+    # a full state: the state a reset gives is taken; one with a velocity no arm reaches (a typo) is refused
+    full = ",".join(f"{v!r}" for v in block)
+    np.testing.assert_array_equal(fam.parse_point(spec, full, "--start"), block)
+    fast = block.copy()
+    fast[spec.state_labels.index("grip_vx")] = 9999.0
+    with pytest.raises(BadInput, match="grip_vx = 9999: a velocity beyond"):
+        fam.parse_point(spec, ",".join(map(str, fast)), "--start")
+    reach = make_spec("fetch-reach")
+    at_rest = family_of(reach).parse_point(reach, "1.3,0.75,0.5", "--goal")
+    fast = at_rest.copy()
+    fast[reach.state_labels.index("finger_vl")] = -3.0
+    with pytest.raises(BadInput, match="finger_vl = -3: a velocity beyond"):
+        family_of(reach).parse_point(reach, ",".join(map(str, fast)), "--start")
     with pytest.raises(BadInput) as err:
         api.Planner(model.path).plan([0.0, 10.0], [6.0, 6.0])
     assert err.value.line().startswith("start ") and "--start" not in err.value.line()

@@ -42,6 +42,10 @@ DETOUR_SCAN = 200
 FETCH_DT = 0.04  # 20 substeps x 2 ms
 SUCCESS_RADIUS = 0.05  # stock distance_threshold
 MAX_DELTA = 0.05  # the mocap moves at most this far per axis per step
+#: the most a velocity of a full state may be, per axis: the observation gives a velocity as the motion over one
+#: step (m or rad per :data:`FETCH_DT`), and the arm moves at most :data:`MAX_DELTA` a step; ten times that
+#: leaves room for a knocked block and refuses a typo (9999 m/s)
+MAX_STEP_MOTION = 0.5
 MOVED = 0.02  # a block that never moved this far from its start was never grasped or pushed (failure cause "grasp")
 
 REACH_LABELS = ["grip_x", "grip_y", "grip_z", "finger_l", "finger_r", "grip_vx", "grip_vy", "grip_vz"]
@@ -332,6 +336,13 @@ class FetchFamily(EnvFamily):
         return state
 
     def check_point(self, spec: EnvSpec, state: np.ndarray, flag: str) -> None:
+        for label, value in zip(spec.state_labels, state, strict=True):
+            if label.split("_")[-1][:1] in ("v", "w") and abs(value) > MAX_STEP_MOTION:
+                raise BadInput(
+                    f"{flag}: {label} = {value:g}: a velocity beyond {MAX_STEP_MOTION:g} per {FETCH_DT:g} s step "
+                    f"({MAX_STEP_MOTION / FETCH_DT:g} m/s; a state's velocities are its motion over one step)",
+                    hint="give the position only (then at rest), or velocities within the limit",
+                )
         if self.in_collision(spec, state[None])[0]:
             text = ",".join(f"{v:g}" for v in state[spec.goal_dims])
             raise BadInput(
