@@ -248,6 +248,7 @@ def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
     demos, buffer = small_data
     cases = [
         (["--steps", "-1"], "--steps"),
+        (["--steps", str(10**20)], "--steps 100000000000000000000: Input should be less than or equal to"),
         (["--set", "horizon=30", "--set", "net.dim_mults=1,2,4"], "multiple of 4"),
         (["--method", "magic"], "--method"),
         (["--set", "method.schedule=cubic"], "--set method.schedule=cubic: Input should be"),
