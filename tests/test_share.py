@@ -67,6 +67,16 @@ def _copy(folder, tmp_path):
     return shutil.copytree(folder, tmp_path / "copy")
 
 
+def _edit(path, keys, change) -> str:
+    """The JSON file's text with the value at ``keys`` changed by ``change``."""
+    data = json.loads(path.read_text())
+    inner = data
+    for k in keys[:-1]:
+        inner = inner[k]
+    inner[keys[-1]] = change(inner[keys[-1]])
+    return json.dumps(data)
+
+
 def _resum(path):
     from cdrb_cli.files import sha256_file
 
@@ -118,6 +128,13 @@ def _flip_byte(path, offset):
                 _resum(p),
             ),
             ".horizon: Input should be greater than",
+        ),
+        (  # a network's width edited, the weights left as they were
+            lambda p: (
+                (p / "config.json").write_text(_edit(p / "config.json", ["config", "net", "dim"], lambda d: 2 * d)),
+                _resum(p),
+            ),
+            "config.json: tensor /ema/net/down.0.0.first.0.bias has shape (8,), but its config builds (16,)",
         ),
         (  # a map edited to one the protocol cannot draw pairs on (no start cell left)
             lambda p: (

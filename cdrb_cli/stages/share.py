@@ -224,11 +224,21 @@ def read_folder(folder: Path):
 
 def import_folder(folder: Path, out: Path, force: bool = False):
     """The model folder written as the model artifact ``out`` (checked as every artifact read is: its arrays'
-    shapes and their agreement with the manifest), whole or not at all."""
+    shapes and their agreement with the manifest; and its weights load into the network its config builds, so an
+    edited config is refused here, not at the first plan), whole or not at all."""
+    from cdrb_cli.methods.checkpoint import load_method
+
     manifest, arrays = read_folder(folder)
     with artifacts.atomic_path(out) as tmp:
         artifacts.save(tmp, "model", manifest, arrays)
         model = artifacts.load(tmp, "model")
+        try:
+            load_method(model, "cpu")
+        except BadInput as exc:
+            said = exc.message.removeprefix(f"{model.path}: ")  # the temporary file's name means nothing here
+            raise BadInput(
+                f"{Path(folder) / CONFIG}: {said}", hint="export the model again: its config and weights disagree"
+            ) from None
     model.path = Path(out)  # the same bytes, renamed into place
     return model
 
