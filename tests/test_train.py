@@ -82,17 +82,20 @@ def test_resume_continues_to_the_same_result(small_data, tmp_path, method):
     demos, buffer = small_data
     b = buffer if method == "cdrb" else None
     full = train(
-        demos, b, train_config(demos, b, method, tiny(method, steps=40, checkpoint_every=10)), tmp_path / "a.h5"
+        demos, b, train_config(demos, b, method, tiny(method, steps=40, checkpoint_every=20)), tmp_path / "a.h5"
     )
-    half = train_config(demos, b, method, tiny(method, steps=20, checkpoint_every=10))
+    # a finished shorter run, ended between two checkpoints of the longer one (on its loss curve: every 10 steps)
+    half = train_config(demos, b, method, tiny(method, steps=30, checkpoint_every=20))
     train(demos, b, half, tmp_path / "b.h5")
-    rest = train_config(demos, b, method, tiny(method, steps=40, checkpoint_every=10))
+    rest = train_config(demos, b, method, tiny(method, steps=40, checkpoint_every=20))
     resumed = train(demos, b, rest, tmp_path / "b.h5", resume=True)
     wa, wb = _weights(full), _weights(resumed)
     assert wa.keys() == wb.keys()
     for k in wa:
         np.testing.assert_array_equal(wa[k], wb[k], err_msg=k)
-    np.testing.assert_array_equal(full.arrays["curve/loss"], resumed.arrays["curve/loss"])
+    for name in ("curve/step", "curve/loss", "curve/valid_step", "curve/valid_loss"):
+        np.testing.assert_array_equal(full.arrays[name], resumed.arrays[name], err_msg=name)
+    assert list(full.arrays["curve/valid_step"]) == [20, 40]
 
 
 def test_resume_refuses_an_optimizer_tensor_of_the_wrong_shape(small_data, tmp_path):

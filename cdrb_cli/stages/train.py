@@ -315,6 +315,9 @@ def train(
     if resume:
         step, curve, wall = restore(resume, method, ema, optimizers, device)
         _resumed_snapshots(resume, out, step, snapshots, snapshot_to)
+        if curve and curve[-1][0] == step and step % config.checkpoint_every:
+            # a shorter run's last step: its validation point is not one this longer run makes
+            curve[-1] = (*curve[-1][:2], None)
 
     def save(finished: bool, loss_value, valid_value, path=out, cfg=config, points=None) -> None:
         state = TrainState(
