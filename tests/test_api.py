@@ -430,7 +430,7 @@ def test_points_read_as_the_cli_reads_them_and_errors_name_the_argument(model):
     # one trailing comma is how a list is often written, as --seeds takes it
     np.testing.assert_array_equal(fam.parse_point(spec, "1.25,0.65,", "start"), block)
     # a full state: the state a reset gives is taken; one with a velocity no arm reaches (a typo) is refused
-    full = ",".join(f"{v!r}" for v in block)
+    full = ",".join(repr(float(v)) for v in block)
     np.testing.assert_array_equal(fam.parse_point(spec, full, "--start"), block)
     fast = block.copy()
     fast[spec.state_labels.index("grip_vx")] = 9999.0
