@@ -89,6 +89,27 @@ def test_the_batch_size_is_a_recorded_setting_and_the_memo_tells_sizes_apart(tin
     assert r.returncode == 2 and "--device tpu: unknown device" in r.stderr, r.stderr
 
 
+def test_a_plan_file_for_other_points_is_never_up_to_date(tiny_models, tmp_path, cdrb):
+    """The start/goal points are what a plans file answers: the same command with other points, or another number
+    of protocol pairs, must not pass off the old file as its own."""
+    model, out = tiny_models["cdrb"].path, tmp_path / "p.h5"
+    base = ("plan", model, "-n", "2", "--seed", "5", "--out", out)
+    assert cdrb(*base, "--start", "0,0", "--goal", "6,6").returncode == 0
+    first = artifacts.load(out).arrays["plans"][:]
+    r = cdrb(*base, "--start", "0,0", "--goal", "6,6")  # the same points: skipped
+    assert r.returncode == 0 and "up to date" in r.stderr, r.stderr
+    for other in (["--start", "0,0", "--goal", "4,6"], ["--start", "2,0", "--goal", "6,6"], ["--pairs", "2"]):
+        r = cdrb(*base, *other)
+        assert r.returncode == 2 and "made for other" in r.stderr and "--force" in r.stderr, (other, r.stderr)
+        np.testing.assert_array_equal(artifacts.load(out).arrays["plans"][:], first)  # the file is kept
+    assert cdrb(*base, "--start", "0,0", "--goal", "4,6", "--force").returncode == 0
+    np.testing.assert_allclose(artifacts.load(out).arrays["goals"][0, :2], [4, 6])
+    pairs = ("plan", model, "-n", "2", "--seed", "5", "--out", tmp_path / "q.h5")
+    assert cdrb(*pairs, "--pairs", "2").returncode == 0
+    r = cdrb(*pairs, "--pairs", "3")
+    assert r.returncode == 2 and "made for other starts and goals" in r.stderr, r.stderr
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [

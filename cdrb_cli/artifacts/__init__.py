@@ -291,6 +291,16 @@ class Existing:
 RECOMPUTE_BEFORE = {"eval": (2, 2)}
 
 
+def _same_array(art: ArtifactBase, name: str, value: np.ndarray) -> bool:
+    """Whether ``art``'s array ``name`` holds ``value`` as it would be stored (in the array's own dtype)."""
+    try:
+        stored = np.asarray(art.arrays[name])
+    except KeyError:
+        return False
+    value = np.asarray(value)
+    return stored.shape == value.shape and np.array_equal(stored, value.astype(stored.dtype), equal_nan=True)
+
+
 def same_inputs(recorded: Sequence[ParentRef], parents: Sequence[ArtifactBase]) -> bool:
     """Whether ``parents`` are the inputs ``recorded``: each the same bytes, or (recorded from schema 2.7 on) the
     same data, so an input deleted and made again by the same command still counts as the same."""
@@ -309,9 +319,12 @@ def existing(
     parents: Sequence[ArtifactBase] = (),
     env=None,
     resumable: Sequence[str] = ("steps",),
+    inputs: Mapping[str, np.ndarray] | None = None,
 ) -> Existing:
     """The one rule for "can this stage be skipped, or continued?", used by every command, quickstart and
-    ``--resume``: same kind, config (and env), same parents (by sha256) and, for training, finished."""
+    ``--resume``: same kind, config (and env), same parents (by sha256), the same ``inputs`` (arrays the command
+    was given, such as the start states of a plan, compared with the file's arrays of those names as stored) and,
+    for training, finished."""
     path = Path(path)
     if not path.is_file():
         return Existing("missing", reason="it does not exist")
@@ -333,6 +346,9 @@ def existing(
     same = {f: getattr(art.manifest.config, f) for f in getattr(config, "bookkeeping", ()) if hasattr(config, f)}
     config = config.model_copy(update=same) if same else config
     if art.manifest.config == config and (state is None or state.finished):
+        other = [k for k, v in (inputs or {}).items() if not _same_array(art, k, v)]
+        if other:
+            return Existing("different", art, f"it was made for other {' and '.join(other)}")
         return Existing("up-to-date", art)
     if state is not None:
         mine = {f: getattr(config, f) for f in resumable}
@@ -372,14 +388,17 @@ def find_up_to_date(
     return found.artifact if found.up_to_date else None
 
 
-def produce(path: str | Path, kind: str, force: bool, config, build, parents=(), env=None, flag: str = "--out"):
-    """Run ``build()`` (which writes ``path`` and returns its artifact) unless ``path`` is already up to date;
-    return the artifact either way. An existing file made differently is an error unless ``force``."""
+def produce(
+    path: str | Path, kind: str, force: bool, config, build, parents=(), env=None, flag: str = "--out", inputs=None
+):
+    """Run ``build()`` (which writes ``path`` and returns its artifact) unless ``path`` is already up to date
+    (:func:`existing`, ``inputs`` included); return the artifact either way. An existing file made differently is
+    an error unless ``force``."""
     from cdrb_cli import ui
 
     path = Path(path)
     if path.exists() and not force and not path.is_dir():
-        found = existing(path, kind, config, parents, env)
+        found = existing(path, kind, config, parents, env, inputs=inputs)
         if not found.up_to_date:
             raise OutputExists(
                 f"{flag} {path}: file exists and was not made by this exact command ({found.reason})",

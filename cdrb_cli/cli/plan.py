@@ -113,6 +113,7 @@ def plan(
         ),
         parents=[m] if route_art is None else [m, route_art],
         env=spec,
+        inputs={"starts": s_arr, "goals": g_arr},
     )
     _tell(result, spec, m, config, plot)
     summary = result.manifest.summary.model_dump()
