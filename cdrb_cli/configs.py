@@ -99,7 +99,7 @@ class TrainConfig(Record):
     horizon: int = Field(
         ge=1, le=100_000, description="planned states per trajectory (a policy: actions per sampled chunk)"
     )
-    stride: int = Field(gt=0, description="environment steps per planned state")
+    stride: int = Field(gt=0, le=100_000, description="environment steps per planned state")
     steps: int = Field(gt=0, le=10**12, description="gradient steps (at most 1e12: far past any run)")
     batch_size: int = Field(gt=0, le=65536, description="training windows per gradient step")
     lr: float = Field(gt=0, description="Adam learning rate")

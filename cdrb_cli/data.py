@@ -23,6 +23,25 @@ def window_index(lengths, horizon: int, stride: int, offsets=0) -> np.ndarray:
     return np.minimum(idx, (lengths - 1)[:, None])
 
 
+#: the most a window may span, in multiples of the longest demonstration: past it, over three quarters of every
+#: window repeats an episode's last state, and a horizon or stride that large is a typo
+MAX_SPAN_EPISODES = 4
+
+
+def check_window_span(demos, horizon: int, stride: int) -> None:
+    """Refuse a window of ``horizon`` states every ``stride`` steps that spans more than :data:`MAX_SPAN_EPISODES`
+    times the longest episode of ``demos`` (before a network is sized for the horizon)."""
+    longest = int(np.max(demos.episode_length, initial=0))
+    span = (horizon - 1) * stride
+    if longest >= 2 and span > MAX_SPAN_EPISODES * (longest - 1):
+        spec = demos.manifest.env
+        raise BadInput(
+            f"horizon {horizon} x stride {stride}: a window spans {span} steps, over {MAX_SPAN_EPISODES} times the "
+            f"longest demonstration in {demos.path} ({longest} states), so most of every window would repeat the goal",
+            hint=f"lower horizon or stride; this env's defaults are horizon={spec.horizon}, stride={spec.plan_stride}",
+        )
+
+
 def first_window(states: np.ndarray, horizon: int, stride: int) -> np.ndarray:
     """The window of one episode's states (T, D) from its first state: what a plan from the episode's start spans."""
     return np.asarray(states)[window_index([len(states)], horizon, stride)[0]]

@@ -260,6 +260,10 @@ def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
         (["--horizon", "30"], "--set horizon=VALUE"),  # the pre-0.2 flags point to their config field
         (["--set", "net.kernel_size=4"], "must be odd"),
         (["--set", "horizon=100000000000000000000000"], "less than or equal to 100000"),
+        (["--set", "stride=1000000000000000000"], "--set stride=1000000000000000000: Input should be less than"),
+        # a window far past the longest demonstration: refused before a network is sized for it
+        (["--set", "horizon=96000"], "most of every window would repeat the goal"),
+        (["--set", "stride=100000"], "stride 100000: a window spans"),
         (["--seed", str(2**70)], "--seed"),
         (["--seed", "-1"], "--seed"),
         (["--buffer", demos.path], "'demos' artifact"),

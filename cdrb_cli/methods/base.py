@@ -91,6 +91,14 @@ class Method:
         self.net = build_net(self.config.net, self.feature_dim, self.horizon, cond_dim=self.obs_dim).to(self.device)
 
     # -------------------------------------------------------------- training
+    @staticmethod
+    def check_data(demos, config) -> None:
+        """Refuse ``demos`` that ``config``'s training windows cannot be drawn from sensibly (before any network
+        is built): a planner's window spanning far more than the longest demonstration."""
+        from cdrb_cli.data import check_window_span
+
+        check_window_span(demos, config.horizon, config.stride)
+
     def data(self, demos, normalizer: Normalizer, split: str):
         """What training batches are drawn from (``.sample(n, rng)``, ``.validation_batch()``): plan windows."""
         from cdrb_cli.data import WindowSampler
@@ -394,6 +402,10 @@ class Policy(Method):
     ``act`` with the current raw states and goals (n, obs_dim) / (n, goal_dim); returns raw actions."""
 
     kind = "policy"
+
+    @staticmethod
+    def check_data(demos, config) -> None:
+        """Policies learn from transitions, never a plan's window: nothing to refuse here."""
 
     def reset(self, n: int, rng: np.random.Generator) -> None:
         """Start ``n`` episodes (clears any action chunk or history)."""

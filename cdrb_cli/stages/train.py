@@ -299,6 +299,7 @@ def train(
     normalizer = check_inputs(demos, buffer, config.features)
     check_precision(config, device)
     entry = METHODS.get(config.method.name)
+    entry.method.check_data(demos, config)
     points = buffer.points if (buffer is not None and entry.needs_buffer) else None
     torch.manual_seed(config.seed)  # network initialization
     method = build_method(config, spec, normalizer, points, device=device, buffer_graph=_graph(buffer, config))
