@@ -264,6 +264,8 @@ def test_cli_train_bad_flags(small_data, tmp_path, cdrb):
         # a window far past the longest demonstration: refused before a network is sized for it
         (["--set", "horizon=96000"], "most of every window would repeat the goal"),
         (["--set", "stride=100000"], "stride 100000: a window spans"),
+        (["--set", "method.loss_weight_power=1000"], "--set method.loss_weight_power=1000: Input should be less"),
+        (["--set", "method.d_max=1e300"], "--set method.d_max=1e300: Input should be less"),
         (["--seed", str(2**70)], "--seed"),
         (["--seed", "-1"], "--seed"),
         (["--buffer", demos.path], "'demos' artifact"),

@@ -40,8 +40,9 @@ class CDRBParams(StartWeightParams):
     )
     d_max: float = Field(
         gt=0,
+        le=1e6,
         description="largest ball radius, in normalized feature space (default: the buffer's diameter; for geodesic "
-        "balls its diameter along the transition graph)",
+        "balls its diameter along the transition graph; at most 1e6, far past any buffer's)",
     )
     d_max_from: Literal["buffer", "data-box"] = Field(
         "buffer",
@@ -61,7 +62,11 @@ class CDRBParams(StartWeightParams):
         "(only the state is pinned, as at sampling), or kept (models before schema 2.2)",
     )
     loss_weight_power: float = Field(
-        0.0, ge=0, description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off)"
+        0.0,
+        ge=0,
+        le=16,
+        description="weight each sample's loss by (eps_1 / eps_k)^p (the official code's option; 0 = off; at most 16, "
+        "past which every weight but step 1's is zero)",
     )
     ball_candidates: Literal["adaptive", "fixed"] = Field(
         "adaptive",
