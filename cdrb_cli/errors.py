@@ -57,19 +57,52 @@ class CdrbError(Exception):
         return {"message": self.message, "hint": self.hint, "exit_code": self.exit_code, "output_exists": None}
 
 
-def leave_record(exc: CdrbError) -> None:
-    """Write ``exc.record()`` as JSON to the file :data:`ERROR_FILE` names, when it names one (atomically, as every
-    file cdrb writes); a file that cannot be written leaves the failure to stderr alone."""
+def leave_record(exc: CdrbError | dict) -> None:
+    """Write the failure ``exc`` (a :class:`CdrbError` or its :meth:`~CdrbError.record`) as JSON to the file
+    :data:`ERROR_FILE` names, when it names one, atomically as every file cdrb writes. Only a path that is free, or
+    a regular file holding an earlier record (or nothing), is written: the variable is never a way to overwrite a
+    device, a link or a file of the user's; a file that cannot be written leaves the failure to stderr alone."""
     import json
     import os
+    import stat
+    import sys
 
     from cdrb_cli.files import atomic_path  # (it imports this module)
 
     path = os.environ.get(ERROR_FILE, "")
     if not path:
         return
+    record = exc.record() if isinstance(exc, CdrbError) else exc
+    try:
+        mode = os.lstat(path).st_mode
+    except OSError:
+        mode = None
+    if mode is not None and not (stat.S_ISREG(mode) and _is_record(path)):
+        sys.stderr.write(
+            f"warning: {ERROR_FILE} {path}: not written, it is not an error record left by cdrb "
+            "(name a new file, e.g. one in a temporary folder)\n"
+        )
+        return
     with contextlib.suppress(OSError, CdrbError), atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(exc.record()))
+        tmp.write_text(json.dumps(record))
+
+
+def _is_record(path: str) -> bool:
+    """Whether the regular file ``path`` is empty or holds an error record (a JSON object with an exit code)."""
+    import json
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65537)
+    except OSError:
+        return False
+    if not head.strip():
+        return True
+    try:
+        found = json.loads(head) if len(head) <= 65536 else None
+    except (ValueError, RecursionError):
+        return False
+    return isinstance(found, dict) and "exit_code" in found and "message" in found
 
 
 class BadInput(CdrbError):

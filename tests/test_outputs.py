@@ -346,3 +346,29 @@ def test_a_command_blocked_by_an_output_leaves_its_failure_as_data(tmp_path, cdr
     got = json.loads(record.read_text())
     assert r.returncode == 2 and got["output_exists"] is None and got["message"] in r.stderr
     assert taken.read_text() == "my notes\n" and not list(tmp_path.glob("error.json.*"))
+
+
+def test_the_error_file_is_never_a_way_to_overwrite_a_file_and_covers_every_failure(tmp_path, cdrb):
+    """CDRB_ERROR_FILE names where a record goes, not a file to clobber: a file of the user's, a link or a device
+    is left as it is (a warning says so); a usage error and a run's own failure leave their record too."""
+    import json
+
+    demos = write(tmp_path / "d.h5", "demos")
+    mine, target = tmp_path / "notes.txt", tmp_path / "target.txt"
+    mine.write_text("my notes\n")
+    target.write_text("kept\n")
+    link = tmp_path / "link.json"
+    os.symlink(target, link)
+    for path in (mine, link, demos):
+        before = Path(path).read_bytes()
+        r = cdrb("cluster", tmp_path / "absent.h5", "--out", tmp_path / "c.h5", env={"CDRB_ERROR_FILE": str(path)})
+        assert r.returncode == 2 and "not written, it is not an error record" in r.stderr, r.stderr
+        assert Path(path).read_bytes() == before and os.path.islink(link) and target.read_text() == "kept\n"
+    record = tmp_path / "error.json"
+    r = cdrb("cluster", demos, "--no-such-flag", env={"CDRB_ERROR_FILE": str(record)})  # a usage error
+    got = json.loads(record.read_text())
+    assert r.returncode == 2 and got["exit_code"] == 2 and "--no-such-flag" in got["message"]
+    assert "--help" in got["hint"]
+    # an earlier record is written over by the next failure
+    r = cdrb("cluster", tmp_path / "absent.h5", "--out", tmp_path / "c.h5", env={"CDRB_ERROR_FILE": str(record)})
+    assert r.returncode == 2 and "absent.h5" in json.loads(record.read_text())["message"], r.stderr

@@ -50,6 +50,12 @@ def _error(text: str) -> None:
     sys.stderr.flush()
 
 
+def _fail(message: str, hint: str | None, code: int) -> None:
+    """Say a failure that is no :class:`CdrbError` (a usage error, a bug) on stderr, and leave its record too."""
+    _error(f"{message} ({hint})" if hint else message)
+    leave_record({"message": ui.plain(_one_line(message)), "hint": hint, "exit_code": code, "output_exists": None})
+
+
 def _moved_flag(exc) -> str:
     """For an unknown option of `cdrb train` that names a config field: how to set it now."""
     name = getattr(exc, "option_name", "") or ""
@@ -136,10 +142,10 @@ def main(argv: list[str] | None = None) -> int:
                 sys.stdout.write(exc.ctx.get_help() + "\n")
             return EXIT_BAD_INPUT
         where = exc.ctx.command_path if exc.ctx else PROG
-        _error(f"{exc.format_message()}{_moved_flag(exc)} (see `{where} --help`)")
+        _fail(f"{exc.format_message()}{_moved_flag(exc)}", f"see `{where} --help`", EXIT_BAD_INPUT)
         return EXIT_BAD_INPUT
     except click_exc.ClickException as exc:
-        _error(exc.format_message())
+        _fail(exc.format_message(), None, EXIT_BAD_INPUT)
         return EXIT_BAD_INPUT
     except typer.Abort:
         _error("aborted")
@@ -156,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a bug or an environment failure: still one line unless --debug
         if debug:
             raise
-        _error(f"{type(exc).__name__}: {_one_line(str(exc))[:300]} (re-run with `cdrb --debug ...` for a traceback)")
+        _fail(f"{type(exc).__name__}: {_one_line(str(exc))[:300]}", "re-run with `cdrb --debug ...` for a traceback",
+              EXIT_FAILED)  # fmt: skip
         return EXIT_FAILED
     finally:
         restore_signals()
