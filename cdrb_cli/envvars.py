@@ -77,3 +77,42 @@ def check() -> None:
     progress_seconds(1.0)
     max_artifact_bytes(1)
     read_timeout()
+    mujoco_gl()
+
+
+#: MuJoCo's own values of MUJOCO_GL that turn rendering off, and those it takes on every system
+_GL_OFF = ("disable", "disabled", "off", "false", "0")
+_GL_ANY = ("enable", "enabled", "on", "true", "1", "glfw", "")
+#: the backends MuJoCo offers by system, with the library each needs (None: nothing beyond MuJoCo's own)
+_GL_SYSTEM = {
+    "Linux": {"glx": None, "egl": "EGL", "osmesa": "OSMesa"},
+    "Windows": {"wgl": None},
+    "Darwin": {"cgl": None},
+}
+
+
+def mujoco_gl() -> str | None:
+    """``MUJOCO_GL`` when set, checked as MuJoCo reads it on import (which fails with a bare error on a value it does
+    not know, or on osmesa/egl when that library is absent), so a typo is one line before any work."""
+    import ctypes.util
+    import platform
+
+    raw = os.environ.get("MUJOCO_GL")
+    if raw is None:
+        return None
+    value = raw.lower().strip()
+    system = _GL_SYSTEM.get(platform.system(), {})
+    if value not in (*_GL_OFF, *_GL_ANY, *system):
+        choices = ", ".join([*system, "glfw", "disable"])
+        raise BadInput(
+            f"MUJOCO_GL={raw[:40]!r}: not a MuJoCo rendering backend",
+            hint=f"unset it, and cdrb picks one; or give one of {choices}",
+        )
+    library = system.get(value)
+    if library is not None and ctypes.util.find_library(library) is None:
+        raise BadInput(
+            f"MUJOCO_GL={value}: the {library} library is not installed, so MuJoCo cannot start",
+            hint="unset it, and cdrb picks a backend that is there"
+            + ("; or install it: apt install libosmesa6" if library == "OSMesa" else ""),
+        )
+    return value

@@ -251,6 +251,7 @@ def test_sigterm_stops_a_grid_on_ray_with_exit_130_and_one_line(tmp_path):
         ("CDRB_MAX_ARTIFACT_BYTES", "1e9"),
         ("CDRB_READ_TIMEOUT", "inf"),
         ("CDRB_MAX_ARTIFACT_BYTES", "9" * 30),  # beyond any C library's integer
+        ("MUJOCO_GL", "bogus"),  # MuJoCo's import raises a bare RuntimeError on it
     ],
 )
 def test_bad_numbers_in_the_environment_are_one_line_before_any_work(small_data, tmp_path, cdrb, name, value):
@@ -269,6 +270,25 @@ def test_good_numbers_in_the_environment_are_taken(small_data, tmp_path, cdrb):
     r = cdrb("inspect", tmp_path / "b.h5", env={"CDRB_MAX_ARTIFACT_BYTES": "64"})  # its arrays declare more
     assert r.returncode == 2 and "more than CDRB_MAX_ARTIFACT_BYTES=64" in r.stderr, r.stderr
     assert "corrupt" not in r.stderr, r.stderr  # the file is sound; the variable is what refuses it
+
+
+def test_a_rendering_backend_whose_library_is_absent_is_one_line(monkeypatch):
+    """MUJOCO_GL=osmesa without libOSMesa makes MuJoCo's import fail (an AttributeError from PyOpenGL): refused,
+    naming the variable and the library; MuJoCo's own spellings are taken as it takes them."""
+    import ctypes.util
+
+    from cdrb_cli import envvars
+
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    with pytest.raises(BadInput, match="MUJOCO_GL=osmesa: the OSMesa library is not installed"):
+        envvars.mujoco_gl()
+    for value in ("EGL ", "disable", "glfw", ""):
+        monkeypatch.setattr(ctypes.util, "find_library", lambda name: f"lib{name}.so")
+        monkeypatch.setenv("MUJOCO_GL", value)
+        assert envvars.mujoco_gl() == value.lower().strip()
+    monkeypatch.delenv("MUJOCO_GL")
+    assert envvars.mujoco_gl() is None
 
 
 @pytest.mark.parametrize("methods", ["", ",", " , "])
