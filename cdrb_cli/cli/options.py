@@ -127,12 +127,14 @@ def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[st
     (a field given both by a flag and by ``--set`` is refused, in any spelling). ``flags``: (source text, key,
     value) of the everyday flags given; ``moved``: moved flag -> value given (None: not given), each noted once."""
     from cdrb_cli.settings import Setting, parse_set, read_config_file
-    from cdrb_cli.stages.configure import given_once_anyhow
+    from cdrb_cli.stages.configure import each_field_once, given_once_anyhow
 
     items = read_config_file(config_file) if config_file is not None else []
     given = [Setting(tuple(key.split(".")), value, source) for source, key, value in flags]
     given += moved_settings(moved)
     sets_ = parse_set(sets)
+    for one_source in (items, sets_):
+        each_field_once(one_source)
     given_once_anyhow(given, sets_)
     return items + given + sets_
 

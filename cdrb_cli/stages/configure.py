@@ -19,6 +19,7 @@ that start away from the demonstrations' starts its choice for plans from anywhe
 
 from __future__ import annotations
 
+import os
 from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
@@ -96,6 +97,20 @@ def fields_of(settings: Sequence[Setting]) -> list[Setting]:
         else:
             out.append(s)
     return out
+
+
+def each_field_once(settings: Sequence[Setting]) -> None:
+    """Refuse one source (a config file, the ``--set`` flags) that reaches a field twice in different spellings
+    (``controller = "pd"`` and ``controller.name = "waypoint"``, ``replan = "every:20"`` and ``replan.every = 30``):
+    which would win is not what either says."""
+    seen: dict[tuple[str, ...], Setting] = {}
+    for s in fields_of(settings):
+        if s.path in seen:
+            a, b, field = seen[s.path].source, s.source, ".".join(s.path)
+            cut = a.rfind(": ", 0, len(os.path.commonprefix([a, b]))) + 2  # one file named once: "F: x and x.y"
+            where = f"{a} and {b[cut:]}" if cut > 1 else f"{a} with {b}"
+            raise BadInput(f"{where} both set {field}", hint="give each setting once")
+        seen[s.path] = s
 
 
 def given_once_anyhow(first: Sequence[Setting], then: Sequence[Setting], sep: str = " with ") -> None:
