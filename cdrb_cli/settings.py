@@ -270,8 +270,14 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
     it."""
     try:
         text = json.dumps(data)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, RecursionError) as exc:
         hint = "values are numbers, booleans, strings or lists of them"
+        for s in settings:  # name the setting whose value is no JSON value (a TOML date, a Python set or Path)
+            try:
+                json.dumps(s.value)
+            except (TypeError, ValueError, RecursionError):
+                shown = type(s.value).__name__
+                raise BadInput(f"{clip(s.source)}: a {shown} is not a setting value", hint=hint) from None
         raise BadInput(f"{what} settings: {exc}", hint=hint) from None
     try:
         return model.model_validate_json(text, strict=True, context={"strict": True})

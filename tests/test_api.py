@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -153,6 +154,9 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", seed=2**32), "seed = 4294967296: not a seed"),
         # a string where a number belongs is shown as the string it is
         (lambda: api.evaluate(model.path, tmp_path / "g.h5", settings={"avoid.best_of": "2"}), "best_of='2'"),
+        # a value JSON has no form for is named with its setting
+        (lambda: api.Planner(model.path, settings={"n": {1, 2}}), "settings n={1, 2}: a set is not a setting value"),
+        (lambda: api.Planner(model.path, settings={"n": Path("3")}), "settings n=PosixPath('3'): a PosixPath is"),
     ]
     for call, needle in bad:
         with pytest.raises(BadInput) as err:

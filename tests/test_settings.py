@@ -372,6 +372,17 @@ def test_one_file_or_the_set_flags_reaching_a_field_twice_is_refused(tmp_path):
     assert len(run_settings(fine, [], [], {})) == 4
 
 
+def test_a_toml_date_is_named_with_its_file_and_key(small_data, tmp_path):
+    """TOML has dates and times, JSON (what settings are validated as) has not: the error names the key."""
+    from cdrb_cli.methods.config import buffer_info, resolve_train_config, user_settings
+
+    demos, buffer = small_data
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[net]\ndim = 1979-05-27T07:32:00\n")
+    with pytest.raises(BadInput, match=re.escape(f"--config {cfg}: net.dim: a datetime is not a setting value")):
+        resolve_train_config(demos.manifest.env, buffer_info(buffer), user_settings(config_file=cfg))
+
+
 def test_a_check_across_fields_names_the_one_setting_it_names_not_the_last_applied():
     """A record-wide check (empty error location) that names one setting is blamed on that setting's source, not on
     whichever setting was applied last."""
