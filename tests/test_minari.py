@@ -280,6 +280,22 @@ def test_export_never_deletes_or_races_another_dataset(tmp_path, datasets):
     (tmp_path / "afile").write_text("x")
     r = _cli("export", tmp_path / "d.h5", "--minari", "ok", "--root", tmp_path / "afile")
     assert r.returncode == 2 and "--root" in r.stderr and (tmp_path / "afile").read_text() == "x"
+    # a folder below a file, a link loop, a folder no file can be made in: one line naming --root or the variable
+    os.symlink(tmp_path / "loop-b", tmp_path / "loop-a")
+    os.symlink(tmp_path / "loop-a", tmp_path / "loop-b")
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    for root, needle in (
+        (tmp_path / "afile" / "x", "is not a folder"),
+        (tmp_path / "loop-a", "cannot be followed"),
+        *([(locked / "x", "cannot write in")] if os.geteuid() != 0 else []),
+        ("/proc/no-such", "cannot write in"),
+    ):
+        r = _cli("export", tmp_path / "d.h5", "--minari", "ok", "--root", root)
+        assert r.returncode == 2 and f"--root {root}" in r.stderr and needle in r.stderr, (root, r.stderr)
+        assert r.stderr.count("\n") == 1
+    r = call_cdrb("export", tmp_path / "d.h5", "--minari", "ok", env={"MINARI_DATASETS_PATH": str(tmp_path / "loop-b")})
+    assert r.returncode == 2 and r.stderr.startswith("error: MINARI_DATASETS_PATH"), r.stderr
     # --force on the dataset folder that holds the demos being exported would delete them
     os.makedirs(datasets / "mine-v0")
     (datasets / "mine-v0" / "d.h5").write_bytes((tmp_path / "d.h5").read_bytes())

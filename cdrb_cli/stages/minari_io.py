@@ -295,9 +295,7 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
 
     dataset_id = dataset_id_for(name)
     # absolute: the env's files are written under it, and gymnasium reads a relative XML path as one in its assets
-    root = (Path(root) if root is not None else _root()).absolute()
-    if root.exists() and not root.is_dir():
-        raise BadInput(f"--root {root}: not a folder", hint="give the folder Minari datasets live in")
+    root = _export_root(root, dataset_id)
     final = root / dataset_id
     check_output_folder(final, f"--minari {dataset_id}", [getattr(demos, "path", None)])
     _check_export_target(final, root, dataset_id, force)
@@ -342,6 +340,31 @@ def export_minari(demos, name: str, root: Path | None = None, force: bool = Fals
     with new_folder(final.parent), locked(final, "--minari"):
         _check_export_target(final, root, dataset_id, force)  # again, now that no other export can be writing it
         return _write_dataset(final, root, dataset_id, episodes, env_spec, expert, obs_space, act_space, description)
+
+
+def _export_root(root: Path | None, dataset_id: str) -> Path:
+    """The absolute datasets folder an export writes under (``--root``, else ``MINARI_DATASETS_PATH`` or Minari's
+    default), checked before any work: no link loop on the way to the dataset's folder, and the nearest folder
+    that exists on that way is a folder a file can be made in (one-line errors naming the flag or variable)."""
+    from cdrb_cli.artifacts.outputs import check_writable
+
+    given = "--root" if root is not None else ("MINARI_DATASETS_PATH" if os.environ.get("MINARI_DATASETS_PATH")
+                                               else "Minari's datasets folder")  # fmt: skip
+    root = (Path(root) if root is not None else _root()).absolute()
+    hint = "give the folder Minari datasets live in" + (": --root DIR" if given != "--root" else "")
+    try:
+        (root / dataset_id).resolve()
+    except (RuntimeError, OSError) as exc:  # a link loop (RuntimeError before Python 3.13), a name too long
+        raise BadInput(f"{given} {root}: cannot be followed ({exc})", hint=hint) from None
+    if root.exists() and not root.is_dir():
+        raise BadInput(f"{given} {root}: not a folder", hint=hint)
+    nearest = root / dataset_id
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        raise BadInput(f"{given} {root}: {nearest} is not a folder", hint=hint)
+    check_writable(nearest, given, root)
+    return root
 
 
 def _check_export_target(final: Path, root: Path, dataset_id: str, force: bool) -> None:
