@@ -297,3 +297,16 @@ def test_quickstart_refuses_an_empty_method_list(tmp_path, cdrb, methods):
     methods' several-minute run."""
     r = cdrb("quickstart", "--methods", methods, "--out", tmp_path / "qs")
     assert r.returncode == 2 and "--methods" in r.stderr and not (tmp_path / "qs").exists(), r.stderr
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_stdout_that_cannot_be_written_is_one_line(small_data):
+    """Output sent to a full device: the error says stdout is what failed, not a bare OSError."""
+    demos, _ = small_data
+    for args in (["inspect", str(demos.path)], ["inspect", str(demos.path), "--json"], ["config", "train"]):
+        with open("/dev/full", "w") as full:
+            r = subprocess.run(
+                [sys.executable, "-m", "cdrb_cli", *args], stdout=full, stderr=subprocess.PIPE, text=True, timeout=120
+            )
+        assert r.returncode == 1 and r.stderr.startswith("error: cannot write the output to stdout"), r.stderr
+        assert r.stderr.count("\n") == 1, r.stderr

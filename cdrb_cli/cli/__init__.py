@@ -50,6 +50,23 @@ def _error(text: str) -> None:
     sys.stderr.flush()
 
 
+def _stdout_failed(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised writing to stdout: the innermost Python frame's line writes to it, or the frame
+    belongs to an object that prints to it (rich's console)."""
+    import linecache
+
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is None:
+        return False
+    frame = tb.tb_frame
+    if "stdout" in linecache.getline(frame.f_code.co_filename, tb.tb_lineno):
+        return True
+    me = frame.f_locals.get("self")
+    return me is sys.stdout or (type(me).__name__ == "Console" and getattr(me, "file", None) is sys.stdout)
+
+
 def _fail(message: str, hint: str | None, code: int) -> None:
     """Say a failure that is no :class:`CdrbError` (a usage error, a bug) on stderr, and leave its record too."""
     _error(f"{message} ({hint})" if hint else message)
@@ -162,6 +179,11 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a bug or an environment failure: still one line unless --debug
         if debug:
             raise
+        if isinstance(exc, OSError) and _stdout_failed(exc):  # `cdrb inspect F > /dev/full`, a full disk
+            _stdout_to_devnull()
+            _fail(f"cannot write the output to stdout ({exc.strerror or exc})", "free space where stdout goes, "
+                  "or send it elsewhere", EXIT_FAILED)  # fmt: skip
+            return EXIT_FAILED
         _fail(f"{type(exc).__name__}: {_one_line(str(exc))[:300]}", "re-run with `cdrb --debug ...` for a traceback",
               EXIT_FAILED)  # fmt: skip
         return EXIT_FAILED
