@@ -171,6 +171,26 @@ def test_a_crlf_docs_file_stays_crlf(tmp_path, cdrb):
     doc.write_bytes(b"intro\n<!-- T:begin -->\nold\n<!-- T:end -->\n")
     assert cdrb("report", ev, "--docs", doc, "--block", "T").returncode == 0
     assert b"\r" not in doc.read_bytes()
+    # mixed endings: the text around the block is kept byte for byte, the block takes the file's main ending
+    head, tail = b"a\r\nb\n<!-- T:begin -->\n", b"\n<!-- T:end -->\r\nc\rd\n"
+    doc.write_bytes(head + b"old" + tail)
+    assert cdrb("report", ev, "--docs", doc, "--block", "T").returncode == 0
+    data = doc.read_bytes()
+    assert data.startswith(b"a\r\nb\n<!-- T:begin -->") and data.endswith(b"<!-- T:end -->\r\nc\rd\n"), data
+
+
+def test_a_docs_block_never_deletes_another_blocks_marker(tmp_path, cdrb):
+    """Blocks that nest or overlap: replacing one would delete the other's marker, so the file is left as it is."""
+    ev = write(tmp_path / "ev.h5", "eval")
+    doc = tmp_path / "doc.md"
+    for text in (
+        "<!-- T:begin -->\nx\n<!-- U:begin -->\ny\n<!-- T:end -->\nz\n<!-- U:end -->\n",  # overlapping
+        "<!-- T:begin -->\nx\n<!-- U:begin -->\ny\n<!-- U:end -->\n<!-- T:end -->\n",  # nested
+    ):
+        doc.write_text(text)
+        r = cdrb("report", ev, "--docs", doc, "--block", "T")
+        assert r.returncode == 2 and "holds another block's marker (<!-- U:begin -->)" in r.stderr, r.stderr
+        assert doc.read_text() == text
 
 
 # ------------------------------------------------------------------------------------------------ guidance

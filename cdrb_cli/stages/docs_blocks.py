@@ -15,6 +15,10 @@ from cdrb_cli.settings import clip
 BLOCK_NAME = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9._]|-(?!-)){0,63}")
 
 
+#: any block's begin or end marker
+MARKER = re.compile(r"<!-- [A-Za-z0-9][A-Za-z0-9._-]{0,63}:(?:begin|end) -->")
+
+
 def check_block_name(name: str) -> None:
     """Refuse a ``--block`` name that cannot be put in a marker line: empty, blank, or with a character outside
     :data:`BLOCK_NAME` (a space, ``>``, ``--``, a line break would break the markers or match other text)."""
@@ -33,8 +37,8 @@ def newline_of(text: str) -> str:
 
 
 def replace_block(text: str, name: str, block: str, where: str) -> str:
-    """``text`` with the part between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` replaced by ``block``,
-    every line ending the one ``text`` mostly uses (a CRLF file stays CRLF throughout, the new block too)."""
+    """``text`` with the part between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` replaced by ``block``, whose
+    lines end as ``text``'s mostly do (a CRLF file stays CRLF); the text around the block is kept as it is."""
     check_block_name(name)
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
@@ -50,8 +54,16 @@ def replace_block(text: str, name: str, block: str, where: str) -> str:
         )
     if begin in block or end in block:
         raise BadInput(f"--docs {where}: the report itself holds a {name} marker", hint="check the evals' names")
-    out = pattern.sub(lambda _: f"{begin}\n{block.rstrip()}\n{end}", text, count=1)
-    return out.replace("\r\n", "\n").replace("\n", newline_of(text))
+    found = pattern.search(text)
+    inner = MARKER.search(text, found.start() + len(begin), found.end() - len(end))
+    if inner is not None:  # replacing this block would delete the other's marker, and break it
+        raise BadInput(
+            f"--docs {where}: the {name} block holds another block's marker ({inner.group(0)}): blocks nest or overlap",
+            hint="keep each block's markers outside every other block",
+        )
+    nl = newline_of(text)  # the new lines end as the file's mostly do; the text around the block is kept byte for byte
+    new = f"{begin}\n{block.rstrip()}\n{end}".replace("\r\n", "\n").replace("\n", nl)
+    return text[: found.start()] + new + text[found.end() :]
 
 
 def check_docs_block(docs: Path, block: str, text: str, inputs) -> None:
