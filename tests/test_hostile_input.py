@@ -330,3 +330,19 @@ def test_stdout_that_cannot_be_written_is_one_line(small_data):
             )
         assert r.returncode == 1 and r.stderr.startswith("error: cannot write the output to stdout"), r.stderr
         assert r.stderr.count("\n") == 1, r.stderr
+
+
+def test_an_empty_path_option_is_refused_not_read_as_the_current_folder(small_data, tmp_path, cdrb):
+    """``Path("")`` is ".": an unset shell variable in ``--video "$DIR"`` would write GIFs into the current folder."""
+    demos, _ = small_data
+    for args in (
+        ["cluster", demos.path, "--out", ""],
+        ["cluster", demos.path, "-o", ""],
+        ["cluster", demos.path, "--out="],
+        ["collect", "maze", "-n", "1", "--video", "", "--out", tmp_path / "d.h5"],
+    ):
+        r = cdrb(*args, cwd=tmp_path)
+        assert r.returncode == 2 and "an empty path" in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
+    assert not list(tmp_path.iterdir())
+    r = cdrb("cluster", demos.path, "--k", "2", "--out", tmp_path / "b.h5", "--plot", tmp_path / "b.png")
+    assert r.returncode == 0, r.stderr  # a given path is untouched by the check

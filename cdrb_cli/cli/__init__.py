@@ -22,7 +22,15 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import PROG, envvars, interrupts, provenance, ui
-from cdrb_cli.errors import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_FAILED, EXIT_INTERRUPTED, CdrbError, leave_record
+from cdrb_cli.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_BROKEN_PIPE,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    BadInput,
+    CdrbError,
+    leave_record,
+)
 
 try:  # typer >= 0.20 vendors click; older versions use the click package
     from typer._click import exceptions as click_exc
@@ -48,6 +56,27 @@ def _one_line(text: str) -> str:
 def _error(text: str) -> None:
     sys.stderr.write(f"error: {ui.plain(_one_line(text))}\n")
     sys.stderr.flush()
+
+
+def _refuse_empty_paths(command, args: list[str]) -> None:
+    """Refuse an empty value of a path option (``--video ''``, ``--out=``): ``Path("")`` is the current folder, so
+    a shell variable that was never set would write there."""
+    from pathlib import Path
+
+    cmd, rest = command, list(args)
+    while rest and hasattr(cmd, "commands") and rest[0] in cmd.commands:
+        cmd, rest = cmd.commands[rest[0]], rest[1:]
+    paths = set()
+    for param in getattr(cmd, "params", ()):
+        described = getattr(param, "type_descriptor", None)
+        if getattr(described, "annotation", None) is Path and getattr(param, "opts", None):
+            paths.update(o for o in param.opts if o.startswith("-"))
+    for i, arg in enumerate(rest):
+        if arg == "--":
+            return
+        flag, eq, value = arg.partition("=")
+        if flag in paths and (value if eq else (rest[i + 1] if i + 1 < len(rest) else None)) == "":
+            raise BadInput(f"{flag} '': an empty path (it would name the current folder)", hint="give a path")
 
 
 def _stdout_failed(exc: BaseException) -> bool:
@@ -139,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         command = typer.main.get_command(app)  # a second's work: a Ctrl-C during it is answered as one later
         envvars.check()  # a bad number in the environment stops the command before any work
+        _refuse_empty_paths(command, args)
         with provenance.running([PROG, *args]) if argv is not None else contextlib.nullcontext():
             code = command.main(args=args, prog_name=PROG, standalone_mode=False)
         if code == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into a returned exit code 130
