@@ -268,6 +268,18 @@ def test_an_interrupt_before_the_first_checkpoint_does_not_advertise_resume(smal
     assert last.startswith("error: interrupted") and "--resume" not in last and "no checkpoint of" in last, last
 
 
+def test_an_interrupt_after_the_model_was_written_does_not_say_none_was(tmp_path):
+    """Ctrl-C between a finished model's write and the command's end: the advice names the file that is there,
+    not "no checkpoint was written"."""
+    from cdrb_cli.cli import _how_to_continue
+    from tests.factories import write
+
+    out = write(tmp_path / "m.h5", "model")
+    said = _how_to_continue(["train", "d.h5", "--out", str(out)])
+    assert "no checkpoint" not in said and str(out) in said and "--resume" not in said, said
+    assert "no checkpoint of" in _how_to_continue(["train", "d.h5", "--out", str(tmp_path / "absent.h5")])
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_interrupts_exit_130_with_one_line_and_partial_models_are_refused(small_data, tmp_path, cdrb, sig):
     """Ctrl-C (or SIGTERM) during training: exit 130, one line saying how to continue, no temp file; the unfinished

@@ -241,4 +241,6 @@ def _how_to_continue(args: list[str]) -> str:
 
     if unfinished_model(out):
         return "; continue the training with --resume"
+    if out.is_file():  # a finished model (or a file the next run will judge): nothing was lost to continue
+        return f"; {out} is there: the same command again skips it if it is this run's finished model"
     return f"; no checkpoint of {out} was written yet: run the same command again to start over"
