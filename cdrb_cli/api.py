@@ -217,16 +217,30 @@ class Planner:
         if flag not in ("start", "goal", "--start", "--goal"):
             raise BadInput(f"flag = {clip(repr(flag), 40)}: not a point's name", hint='pass "start" or "goal"')
         name = flag.lstrip("-")
-        # a cast would read True as 1.0 or "1" as 1.0, or drop an imaginary part, without a word: the array's kind
-        # and, in a list or an object array, each element's
-        kinds = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "strings"}
+        if type(point).__module__.split(".")[0] == "torch" and hasattr(point, "detach"):  # a tensor, maybe with grad
+            point = point.detach().cpu().numpy()
+        if np.ma.isMaskedArray(point):  # the cast would take a masked entry's hidden value
+            if np.ma.getmaskarray(point).any():
+                raise BadInput(f"{name}: masked values, not numbers", hint="fill them first, e.g. point.filled(0.0)")
+            point = np.ma.getdata(point)
+        # a cast would read True as 1.0 or "1" as 1.0, drop an imaginary part, or a date's unit, without a word: the
+        # array's kind and, in a list or an object array, each element's
+        kinds = {
+            "b": "booleans",
+            "c": "complex numbers",
+            "U": "strings",
+            "S": "strings",
+            "M": "dates",
+            "m": "time spans",
+        }
         items = point.ravel().tolist() if isinstance(point, np.ndarray) and point.dtype.kind == "O" else point
         try:
             kind = np.asarray(point).dtype.kind if isinstance(point, (np.ndarray, list, tuple)) else None
         except (TypeError, ValueError):  # a ragged list: the cast below refuses it
             kind = None
         if isinstance(items, (list, tuple)):
-            odd = [v for v in items if isinstance(v, (bool, np.bool_, str, bytes, complex, np.complexfloating))]
+            odd = [v for v in items if isinstance(v, (bool, np.bool_, str, bytes, complex, np.complexfloating,
+                                                      np.datetime64, np.timedelta64))]  # fmt: skip
             if odd:
                 kind = np.asarray(odd[:1]).dtype.kind
         if kind in kinds:

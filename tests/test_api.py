@@ -148,6 +148,9 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         # a cast would read True as 1.0 and "1" as 1.0
         (lambda: planner.plan([True, 1.0], [6.0, 6.0]), "start: booleans, not real numbers"),
         (lambda: planner.plan([1.0, 1.0], ["6", "6"]), "goal: strings, not real numbers"),
+        (lambda: planner.plan(np.array([0, 0], "datetime64[s]"), [6, 6]), "start: dates, not real numbers"),
+        (lambda: planner.plan([np.timedelta64(1, "s"), 0.0], [6, 6]), "start: time spans, not real numbers"),
+        (lambda: planner.plan(np.ma.masked_array([0.0, 9.0], [False, True]), [6, 6]), "start: masked values"),
         # the seed is an argument, not a setting: its error names it (not `cdrb config plan`)
         (lambda: planner.plan([0, 0], [6, 6], seed=-1), "seed = -1: not a seed"),
         (lambda: planner.plan([0, 0], [6, 6], steps=10**6), "steps=1000000: the model has T = "),
@@ -162,6 +165,11 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         with pytest.raises(BadInput) as err:
             call()
         assert needle in err.value.line() and "\n" not in err.value.line(), err.value.line()
+    import torch
+
+    # a tensor that takes part in autograd is its values, as a list of them is
+    tensor = planner.plan(torch.tensor([0.0, 0.0], requires_grad=True), [6.0, 6.0], seed=1)
+    np.testing.assert_array_equal(tensor.features, planner.plan([0.0, 0.0], [6.0, 6.0], seed=1).features)
     assert artifacts.load(tmp_path / "e.h5", "eval").manifest.summary.per_seed[0].episodes == 1  # not overwritten
     assert api.Planner(model.path, settings={"n": 3}).plan([0, 0], [6, 6]).states.shape[0] == 3
     # episodes, seeds and the stream left out are the CLI's defaults, so a settings dict may give them
