@@ -211,6 +211,12 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(small_data, tmp_path, monkeypa
         train(demos, buffer, cfg, tmp_path / "none.h5")
     assert "no checkpoint was written" in err.value.message and "--resume" not in err.value.hint
     assert not (tmp_path / "none.h5").exists()
+    # a run that writes over another model (--force) and diverges before its own first checkpoint: the file is
+    # still the other model, not a checkpoint of this run to resume
+    calls["n"] = 20
+    with pytest.raises(RunFailed, match="diverged at step 5") as err:
+        train(demos, buffer, cfg, out)
+    assert "no checkpoint was written" in err.value.message and "--resume" not in err.value.hint, err.value.line()
 
 
 def test_refuses_mismatched_buffer(small_data, tmp_path):

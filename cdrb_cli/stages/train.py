@@ -344,6 +344,7 @@ def train(
     update_ema = _ema_updater(ema, modules, config)
     t0 = time.time() - wall
     last_save = time.time()
+    saved = step if resume else None  # the step of this run's checkpoint in ``out`` (a --force run's old file: none)
     running, count = 0.0, 0
     last_loss = curve[-1][1] if curve else None
     for m in modules.values():
@@ -355,7 +356,7 @@ def train(
             interrupts.check()
             rng = step_rng(config.seed, STREAM_TRAIN, step)
             batch = torch.from_numpy(windows.sample(config.batch_size, rng)).to(device)
-            loss = _update(method, batch, rng, optimizers, step, out)
+            loss = _update(method, batch, rng, optimizers, step, out, saved)
             step += 1
             update_ema(step)
             running += loss
@@ -378,7 +379,7 @@ def train(
                     save(True, last_loss, valid, snapshot_to(step), cfg, curve[:-1] + [(step, last_loss, valid)])
                 if ckpt or timed:
                     save(step == config.steps, last_loss, curve[-1][2])
-                    last_save = time.time()
+                    last_save, saved = time.time(), step
     return artifacts.load(out, "model")
 
 
@@ -399,12 +400,12 @@ def _validation_batch(method, demos, normalizer, config: TrainConfig, device):
     return torch.from_numpy(method.data(demos, normalizer, "valid").validation_batch()).to(device)
 
 
-def _update(method, batch, rng, optimizers, step: int, out: Path) -> float:
-    """One gradient step's loss; a loss that is not finite stops the run, naming the checkpoint ``out`` keeps."""
+def _update(method, batch, rng, optimizers, step: int, out: Path, saved: int | None) -> float:
+    """One gradient step's loss; a loss that is not finite stops the run, naming the checkpoint of this run that
+    ``out`` keeps (``saved``: its step, None when this run wrote none)."""
     try:
         return method.update(batch, rng, optimizers)
     except NonFiniteLoss as exc:
-        saved = _saved_step(out)
         kept = "no checkpoint was written" if saved is None else f"{out} keeps the last good checkpoint (step {saved})"
         then = " and run again" if saved is None else ", then `--resume` or `--force`"
         raise RunFailed(
@@ -457,14 +458,6 @@ def _ema_updater(ema: dict, modules: dict, config: TrainConfig):
                     torch._foreach_add_(avg_params, live_params, alpha=1 - config.ema_decay)
 
     return update
-
-
-def _saved_step(out: Path) -> int | None:
-    """The step of the checkpoint in ``out``, or None when there is none (or not a readable one)."""
-    try:
-        return artifacts.load(out, "model").manifest.state.step
-    except BadInput:
-        return None
 
 
 #: bytes a float32 parameter costs in training: the weight, its EMA copy, its gradient and Adam's two moments
