@@ -28,6 +28,19 @@ def _width_if_unusable() -> int | None:
     return 80 if os.environ.get("COLUMNS", "").strip() == "0" else None
 
 
+#: the widest terminal taken from COLUMNS: rich lays a help page out for the width it is told, and 20,000,000
+#: columns took it half a minute and gigabytes
+MAX_COLUMNS = 1000
+
+
+def _bound_columns() -> None:
+    """Bound COLUMNS (read by rich, and by typer's help pages) to :data:`MAX_COLUMNS` for this process."""
+    text = os.environ.get("COLUMNS", "").strip()
+    if text.isdigit() and int(text) > MAX_COLUMNS:
+        os.environ["COLUMNS"] = str(MAX_COLUMNS)
+
+
+_bound_columns()
 err = Console(stderr=True, highlight=False, soft_wrap=True, width=_width_if_unusable())
 
 _quiet = False

@@ -372,3 +372,12 @@ def test_the_error_file_is_never_a_way_to_overwrite_a_file_and_covers_every_fail
     # an earlier record is written over by the next failure
     r = cdrb("cluster", tmp_path / "absent.h5", "--out", tmp_path / "c.h5", env={"CDRB_ERROR_FILE": str(record)})
     assert r.returncode == 2 and "absent.h5" in json.loads(record.read_text())["message"], r.stderr
+
+
+def test_a_huge_columns_is_bounded(tmp_path):
+    """COLUMNS=20000000 once made a help page take half a minute and gigabytes: it is read as at most 1000."""
+    from tests.conftest import run_cdrb
+
+    r = run_cdrb("train", "--help", env={"COLUMNS": "20000000"})
+    assert r.returncode == 0 and "--config" in r.stdout, r.stderr
+    assert max(len(line) for line in r.stdout.splitlines()) <= 1000
