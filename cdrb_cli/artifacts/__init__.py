@@ -181,6 +181,12 @@ def _guarded_probe(path: Path, kind: str | None, sha: str | None = None) -> bool
     if status is None:
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
+        if os.environ.get("CDRB_READ_TIMEOUT", "").strip():  # the user's limit may be what is too short
+            raise ArtifactError(
+                f"{path}: reading it did not finish in {limit:.3g} s, the limit CDRB_READ_TIMEOUT sets",
+                hint="unset CDRB_READ_TIMEOUT for the default (30 s), or give the read more time; if it still does "
+                "not finish, the file is corrupt or hostile",
+            )
         raise ArtifactError(
             f"{path}: reading it did not finish in {limit:.3g} s; the file is corrupt or hostile",
             hint="re-create it with the command that wrote it",
