@@ -153,6 +153,7 @@ def test_toml_template_nests_records_and_keeps_descriptions_to_one_comment_line(
         "tag": "(v2)",
     }
     assert text.index("[method]") < text.index("[method.sub]") and "\x07" not in text
+    assert "# (seed: give --seed, not a key here)" in text  # a flag's field is no key to uncomment
     commented = render_template(rows, "toml", all_commented=True)
     uncommented = re.sub(r'(?m)^# (?=[a-z_"][^=\n]* = (?!\.\.\.))', "", commented)
     assert tomllib.loads(uncommented) == tomllib.loads(text)

@@ -192,7 +192,10 @@ def _toml(rows: list[Row], all_commented: bool = False) -> str:
             lines += ["", f"[{'.'.join(toml_key(p) for p in section)}]"]
         for r in sections.get(section, []):
             leaf = toml_key(r.key.split(".")[-1])
-            if _holds_null(r.default) or r.placeholder:
+            flag = r.default[1:-1] if r.placeholder and str(r.default).startswith("(--") else None
+            if flag is not None:  # a field a flag sets (the seed, the scene): no key this file may hold
+                text = f"# ({leaf}: give {flag}, not a key here)"
+            elif _holds_null(r.default) or r.placeholder:
                 text = f"# {leaf} = ...  {_one_line(_plain(r.default))}"
             else:
                 text = f"{'# ' if all_commented else ''}{leaf} = {toml_value(r.default)}"
