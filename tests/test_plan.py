@@ -89,6 +89,20 @@ def test_the_batch_size_is_a_recorded_setting_and_the_memo_tells_sizes_apart(tin
     assert r.returncode == 2 and "--device tpu: unknown device" in r.stderr, r.stderr
 
 
+def test_settings_and_the_plan_count_are_checked_before_pairs_are_drawn(tiny_models, tmp_path, cdrb, monkeypatch):
+    """A typo in --set, or a count of plans no machine holds, is refused before the (slow) drawing of many pairs."""
+    from cdrb_cli.stages import plan as plan_stage
+
+    def never(*args):
+        raise AssertionError("pairs drawn before the settings were checked")
+
+    monkeypatch.setattr(plan_stage, "plan_points", never)
+    model = tiny_models["cdrb"].path
+    for extra, needle in ((["--set", "sampler_steps=3"], "unknown setting"), (["-n", "10000"], "plans of")):
+        r = cdrb("plan", model, "--pairs", "100000", *extra, "--out", tmp_path / "p.h5")
+        assert r.returncode == 2 and needle in r.stderr, (extra, r.stderr)
+
+
 def test_a_plan_file_for_other_points_is_never_up_to_date(tiny_models, tmp_path, cdrb):
     """The start/goal points are what a plans file answers: the same command with other points, or another number
     of protocol pairs, must not pass off the old file as its own."""

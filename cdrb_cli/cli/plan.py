@@ -77,7 +77,7 @@ def plan(
     each batch has a random stream of its own, so another size gives other plans)."""
     from cdrb_cli.artifacts import produce
     from cdrb_cli.stages.avoid import load_route_buffer
-    from cdrb_cli.stages.configure import plan_config, route_buffer_path
+    from cdrb_cli.stages.configure import check_plan_count, plan_config, route_buffer_path
     from cdrb_cli.stages.plan import make_plans, plan_points, scene_spec
     from cdrb_cli.torch_utils import check_device_name, setup_torch
 
@@ -93,6 +93,8 @@ def plan(
     check_outputs(force, read, out=out, plot=plot)
     check_device_name(device)  # before an up-to-date output returns without planning
     spec = scene_spec(m, maze_map, typed_flag(SCENE_FLAGS))
+    # the settings and the plan count are checked before any pair is drawn (--pairs 100000 takes a while)
+    check_plan_count(m, pairs or len(start), plan_config(m, settings, seed=seed, scene_file=maze_map))
     s_arr, g_arr = plan_points(spec, start, goal, pairs, seed)
     config = plan_config(m, settings, seed=seed, scene_file=maze_map, starts=s_arr)
     route_art = load_route_buffer(rb_path)
