@@ -346,3 +346,20 @@ def test_an_empty_path_option_is_refused_not_read_as_the_current_folder(small_da
     assert not list(tmp_path.iterdir())
     r = cdrb("cluster", demos.path, "--k", "2", "--out", tmp_path / "b.h5", "--plot", tmp_path / "b.png")
     assert r.returncode == 0, r.stderr  # a given path is untouched by the check
+
+
+def test_a_link_loop_is_one_line_naming_the_path(small_data, tmp_path, cdrb):
+    """Links that point at each other, given as an output, a settings file or an experiment file: a one-line bad-input
+    error naming the path (Python's path resolution raises a bare RuntimeError on them)."""
+    demos, _ = small_data
+    os.symlink(tmp_path / "b", tmp_path / "a")
+    os.symlink(tmp_path / "a", tmp_path / "b")
+    loop = tmp_path / "a"
+    for args in (
+        ["cluster", demos.path, "--k", "2", "--out", loop / "x.h5"],
+        ["select", loop, "--out", tmp_path / "t.toml"],
+        ["train", demos.path, "--config", loop, "--out", tmp_path / "m.h5"],
+    ):
+        r = cdrb(*args)
+        assert r.returncode == 2 and "a link loop" in r.stderr and str(loop) in r.stderr, (args, r.stderr)
+        assert r.stderr.count("\n") == 1

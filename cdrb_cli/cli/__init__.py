@@ -79,6 +79,19 @@ def _refuse_empty_paths(command, args: list[str]) -> None:
             raise BadInput(f"{flag} '': an empty path (it would name the current folder)", hint="give a path")
 
 
+def _link_loop(exc: BaseException) -> str | None:
+    """The path of a symbolic link loop that ``exc`` reports (Python's ``resolve`` raises RuntimeError for one
+    before 3.13, OSError ELOOP from then on, as do the system calls), else None."""
+    import errno
+
+    if isinstance(exc, OSError) and exc.errno == errno.ELOOP:
+        return str(exc.filename) if exc.filename is not None else "a path"
+    prefix = "Symlink loop from "
+    if isinstance(exc, RuntimeError) and str(exc).startswith(prefix):
+        return str(exc)[len(prefix) :].strip("'\"")
+    return None
+
+
 def _stdout_failed(exc: BaseException) -> bool:
     """Whether ``exc`` was raised writing to stdout: the innermost Python frame's line writes to it, or the frame
     belongs to an object that prints to it (rich's console)."""
@@ -209,6 +222,11 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a bug or an environment failure: still one line unless --debug
         if debug:
             raise
+        loop = _link_loop(exc)
+        if loop is not None:  # a path given through links that point at each other: the input is wrong, not cdrb
+            _fail(f"{loop}: its symbolic links point at each other (a link loop)", "give a path that resolves",
+                  EXIT_BAD_INPUT)  # fmt: skip
+            return EXIT_BAD_INPUT
         if isinstance(exc, OSError) and _stdout_failed(exc):  # `cdrb inspect F > /dev/full`, a full disk
             _stdout_to_devnull()
             _fail(f"cannot write the output to stdout ({exc.strerror or exc})", "free space where stdout goes, "
