@@ -19,10 +19,15 @@ from cdrb_cli.errors import BadInput
 
 
 def sha256_file(path: str | Path, chunk: int = 2**20) -> str:
+    """The sha256 of the file's bytes; a file that opens but cannot be read (an I/O error, /proc/self/mem) is a
+    one-line error naming it."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
+        try:
+            while block := f.read(chunk):
+                h.update(block)
+        except OSError as exc:
+            raise BadInput(f"{path}: cannot be read ({exc.strerror or exc})", hint="check the file") from None
     return h.hexdigest()
 
 
@@ -226,12 +231,14 @@ def read_input_text(
     """The text (UTF-8) of an input file that passed :func:`check_input_file`'s checks, read from the descriptor
     that was checked (no race with a swapped file), never more than ``max_bytes``."""
     fd = guarded_fd(Path(path), flag, max_bytes, what, hint)
+    source = f"{flag} {path}" if flag else str(path)
     try:
         with os.fdopen(fd, "rb", closefd=False) as fh:
             data = fh.read(max_bytes + 1)
+    except OSError as exc:  # opened but unreadable: an I/O error, /proc/self/mem
+        raise BadInput(f"{source}: cannot be read ({exc.strerror or exc})", hint=hint) from None
     finally:
         os.close(fd)
-    source = f"{flag} {path}" if flag else str(path)
     if len(data) > max_bytes:
         raise BadInput(f"{source}: larger than {_size_text(max_bytes)}", hint=f"is this the {what}?")
     try:

@@ -363,3 +363,15 @@ def test_a_link_loop_is_one_line_naming_the_path(small_data, tmp_path, cdrb):
         r = cdrb(*args)
         assert r.returncode == 2 and "a link loop" in r.stderr and str(loop) in r.stderr, (args, r.stderr)
         assert r.stderr.count("\n") == 1
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/mem"), reason="needs Linux's /proc")
+def test_a_file_that_opens_but_cannot_be_read_is_one_line(small_data, tmp_path, cdrb):
+    """/proc/self/mem opens and then fails every read (EIO): the error names the file and the flag."""
+    demos, _ = small_data
+    for args, needle in (
+        (["inspect", "/proc/self/mem"], "/proc/self/mem: cannot be read"),
+        (["train", demos.path, "--config", "/proc/self/mem", "--out", tmp_path / "m.h5"], "--config /proc/self/mem"),
+    ):
+        r = cdrb(*args)
+        assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
