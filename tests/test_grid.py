@@ -1477,6 +1477,34 @@ def test_a_finished_curve_is_extended_by_resuming_its_runs(tmp_path):
     assert artifacts.load(model, "model").manifest.state.step == 100
 
 
+def test_a_dry_run_counts_the_snapshot_evals_an_extended_curve_keeps(tmp_path):
+    """Extending a curve resumes its runs, which leave their earlier snapshots as they are: the dry run counts those
+    snapshots' evals as up to date (as the run then finds them), but not where a changed setting starts runs over."""
+    text = TINY.replace('methods = ["mlp", "cdrb"]', 'methods = ["mlp"]').replace("seeds = [0, 1]", "seeds = [0]")
+    text = text.replace('"--set", "batch_size=8"', '"--set", "batch_size=8", "--set", "checkpoint_every=10"')
+    grid = _grid(tmp_path, text.replace("steps = 20", "steps = 50\nsnapshot_at = [20]\nreport = false"))
+    r = _cli("grid", str(grid), "--backend", "pool")
+    assert r.returncode == 0, r.stderr[-2000:]
+    longer = ("--set", "steps=100", "--set", "snapshot_at=[20, 50]")
+
+    def up_to_date(*extra: str) -> list[str]:
+        r = _cli("grid", str(grid), "--dry-run", *longer, *extra)
+        assert r.returncode == 0, r.stderr
+        return [line for line in r.stdout.splitlines() if line.startswith("# up to date:")]
+
+    kept = up_to_date()
+    assert any(" eval " in f" {line} " and "mlp-s0.step20.h5" in line for line in kept), kept
+    assert not any("mlp-s0.step50.h5" in line or "cdrb train" in line for line in kept), kept
+    r = _cli("grid", str(grid), "--backend", "pool", *longer)
+    assert r.returncode == 0, r.stderr[-2000:]
+    summary = json.loads((tmp_path / "runs" / "grid.json").read_text())
+    skipped = {t["id"] for t in summary["tasks"] if t["status"] == "up to date"}
+    assert "eval maze-tight/mlp-s0.step20" in skipped, skipped  # as the dry run said
+    # another learning rate: every run starts over, so no snapshot eval is counted as kept
+    grid.write_text(grid.read_text().replace('"--set", "batch_size=8"', '"--set", "batch_size=8", "--set", "lr=0.002"'))
+    assert not any(" eval " in f" {line} " for line in up_to_date("--set", "steps=150")), "kept across a restart"
+
+
 def test_a_variant_may_give_its_settings_as_a_table(tmp_path):
     """A table of settings is the same command as its --set flags (so the same memo key), keys in the table's order;
     a setting the grid sets itself is refused when the file is read."""

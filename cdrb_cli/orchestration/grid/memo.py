@@ -207,12 +207,53 @@ def up_to_date(spec: GridSpec, tasks: list[Task], cache: dict) -> dict[str, bool
     def visit(task: Task) -> bool:
         if task.id not in fresh:
             deps = [by_id[d] for d in task.deps if d in by_id]
-            fresh[task.id] = all(visit(d) for d in deps) and is_done(spec, task, cache)
+            fresh[task.id] = all(visit(d) or _reads_only_kept(spec, task, d, cache) for d in deps) and is_done(
+                spec, task, cache
+            )
         return fresh[task.id]
 
     for task in tasks:
         visit(task)
     return fresh
+
+
+def _reads_only_kept(spec: GridSpec, task: Task, dep: Task, cache: dict) -> bool:
+    """Whether ``task`` reads only outputs of ``dep`` that ``dep``, run again, leaves as they are: snapshots of a
+    training that resumes (:func:`_kept_snapshot`), such as the evals of a learning curve's early points when the
+    curve is extended."""
+    read = [str(p) for p in task.inputs if p in dep.outputs]
+    return bool(read) and all(_kept_snapshot(spec, dep, path, cache) for path in read)
+
+
+def _kept_snapshot(spec: GridSpec, train: Task, path: str, cache: dict) -> bool:
+    """Whether the training task ``train``, run again, keeps its output ``path``: a snapshot that the run its memo
+    records wrote (the same bytes now), at a step before the one that run reached, when the command asks for what
+    that run did up to its length and snapshots, with the same inputs (so it resumes that run, never starts over,
+    and writes only snapshots past its checkpoint)."""
+    import re
+
+    found = re.search(r"\.step(\d+)\.h5$", path)
+    memo = _memo(spec, train) if train.kind == "train" and found else None
+    if memo is None or not isinstance(memo.get("asked"), dict) or not isinstance(memo.get("outputs"), dict):
+        return False
+    now = _fingerprint(train, cache)
+
+    def run_of(asked: dict) -> dict:  # what a run is, whatever its length and snapshots
+        options = asked.get("options") if isinstance(asked.get("options"), dict) else {}
+        settings = asked.get("settings") if isinstance(asked.get("settings"), list) else []
+        return {**asked, "options": {k: v for k, v in options.items() if k != "snapshot_at"},
+                "settings": [kv for kv in settings if not (isinstance(kv, list) and kv[:1] == ["steps"])]}  # fmt: skip
+
+    reached = [kv[1] for kv in memo["asked"].get("settings") or [] if isinstance(kv, list) and kv[:1] == ["steps"]]
+    return (
+        run_of(memo["asked"]) == run_of(now["asked"])
+        and memo.get("inputs") == now["inputs"]
+        and memo["outputs"].get(path) is not None
+        and memo["outputs"].get(path) == now["outputs"].get(path)
+        and len(reached) == 1
+        and str(reached[0]).isdigit()
+        and int(found.group(1)) < int(reached[0])
+    )
 
 
 def written_here(spec: GridSpec, task: Task, cache: dict) -> bool:
