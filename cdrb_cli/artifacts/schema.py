@@ -51,8 +51,14 @@ def export(folder: str | Path) -> list[Path]:
 
 
 def drift(folder: str | Path) -> list[str]:
-    """Names of schema files that are missing from ``folder`` or differ from the models."""
+    """Names of schema files that are missing from ``folder`` or differ from the models; a ``folder`` that is not
+    one is a one-line error."""
     folder = Path(folder)
+    if not folder.is_dir():
+        raise BadInput(
+            f"{folder}: {'is not a folder' if folder.exists() else 'no such folder'}",
+            hint="give the folder of the schema files",
+        )
     stale = []
     for name, text in schemas().items():
         path = folder / name

@@ -73,11 +73,6 @@ def schema_check(folder: Path = typer.Argument(Path("schemas"), help="Folder hol
     """Exit 1 if the schema files in FOLDER differ from the pydantic models (run `cdrb schema export`)."""
     from cdrb_cli.artifacts.schema import drift
 
-    if not folder.is_dir():
-        raise BadInput(
-            f"{folder}: {'is not a folder' if folder.exists() else 'no such folder'}",
-            hint="give the folder of the schema files",
-        )
     stale = drift(folder)
     if stale:
         raise CdrbError(f"{folder}: schemas out of date: {', '.join(stale)}", hint=f"run `cdrb schema export {folder}`")
