@@ -1494,6 +1494,8 @@ def test_a_dry_run_counts_the_snapshot_evals_an_extended_curve_keeps(tmp_path):
 
     kept = up_to_date()
     assert any(" eval " in f" {line} " and "mlp-s0.step20.h5" in line for line in kept), kept
+    # other data: the runs start over from new demos, so nothing they wrote is kept
+    assert not any(" eval " in f" {line} " for line in up_to_date("--set", "demos=41")), "kept across new data"
     assert not any("mlp-s0.step50.h5" in line or "cdrb train" in line for line in kept), kept
     r = _cli("grid", str(grid), "--backend", "pool", *longer)
     assert r.returncode == 0, r.stderr[-2000:]

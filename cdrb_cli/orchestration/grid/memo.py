@@ -207,9 +207,11 @@ def up_to_date(spec: GridSpec, tasks: list[Task], cache: dict) -> dict[str, bool
     def visit(task: Task) -> bool:
         if task.id not in fresh:
             deps = [by_id[d] for d in task.deps if d in by_id]
-            fresh[task.id] = all(visit(d) or _reads_only_kept(spec, task, d, cache) for d in deps) and is_done(
-                spec, task, cache
-            )
+            fresh[task.id] = all(
+                visit(d)
+                or (all(visit(by_id[i]) for i in d.deps if i in by_id) and _reads_only_kept(spec, task, d, cache))
+                for d in deps
+            ) and is_done(spec, task, cache)  # (a dependency whose own inputs are redone keeps nothing)
         return fresh[task.id]
 
     for task in tasks:
