@@ -354,7 +354,7 @@ def test_a_flag_and_a_set_that_reach_one_field_in_other_spellings_are_refused():
     assert len(run_settings(None, ["avoid.best_of=4"], [("--avoid tuned", "avoid", "tuned")], {})) == 2
 
 
-def test_one_file_or_the_set_flags_reaching_a_field_twice_is_refused(tmp_path):
+def test_one_file_reaching_a_field_twice_is_refused_and_the_last_set_wins(tmp_path):
     """Within one source too, a shortcut and the field it writes are one field given twice (one would silently
     win); an ``avoid`` mode with an avoid field, or the shortcut with another field, is no clash."""
     from cdrb_cli.cli.options import run_settings
@@ -366,8 +366,9 @@ def test_one_file_or_the_set_flags_reaching_a_field_twice_is_refused(tmp_path):
     clash.write_text('replan = "every:20"\n"replan.every" = 30\n')
     with pytest.raises(BadInput, match="both set replan.every"):
         run_settings(clash, [], [], {})
-    with pytest.raises(BadInput, match=re.escape("--set replan=every:20 with --set replan.every=30 both set")):
-        run_settings(None, ["replan=every:20", "replan.every=30"], [], {})
+    # the --set flags have an order: the last one wins, as documented
+    last = run_settings(None, ["replan=every:20", "replan.every=30", "n=2", "n=3"], [], {})
+    assert [(s.path, s.value) for s in last][-2:] == [(("n",), 2), (("n",), 3)]
     fine = tmp_path / "fine.toml"
     fine.write_text('avoid = "tuned"\n"avoid.best_of" = 4\nreplan = "every:20"\n"replan.repair_k" = 3\n')
     assert len(run_settings(fine, [], [], {})) == 4

@@ -133,8 +133,7 @@ def run_settings(config_file: Path | None, sets: list[str], flags: list[tuple[st
     given = [Setting(tuple(key.split(".")), value, source) for source, key, value in flags]
     given += moved_settings(moved)
     sets_ = parse_set(sets)
-    for one_source in (items, sets_):
-        each_field_once(one_source)
+    each_field_once(items)  # a file has no order to let one key win; a repeated --set keeps its last value
     given_once_anyhow(given, sets_)
     return items + given + sets_
 

@@ -100,7 +100,7 @@ def fields_of(settings: Sequence[Setting]) -> list[Setting]:
 
 
 def each_field_once(settings: Sequence[Setting]) -> None:
-    """Refuse one source (a config file, the ``--set`` flags) that reaches a field twice in different spellings
+    """Refuse one source without an order (a config file) that reaches a field twice in different spellings
     (``controller = "pd"`` and ``controller.name = "waypoint"``, ``replan = "every:20"`` and ``replan.every = 30``):
     which would win is not what either says."""
     seen: dict[tuple[str, ...], Setting] = {}
