@@ -148,6 +148,10 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + "\n[resources.training]\ncpus = 2\n", "training"),
         (TINY + "\n[resources.collect]\ncpus = inf\n", "resources.collect.cpus"),
         (TINY + "\n[resources.eval]\ngpus = nan\n", "resources.eval.gpus"),
+        (TINY + "\n[resources.train]\ncpus = true\n", "resources.train.cpus"),  # not read as 1
+        (TINY + '\n[resources.train]\ncpus = "2"\n', "resources.train.cpus"),
+        (TINY + "\n[resources.train]\ncpus = 1e300\n", "resources.train.cpus"),
+        (TINY + "\n[resources.eval]\ngpus = true\n", "resources.eval.gpus"),
         (TINY + '\n[[variants]]\nname = "a/b"\n', "variants.0.name"),
         (TINY + '\n[[settings]]\ntrain = ["--stepz", "5"]\n', "'--stepz' is not a `cdrb train` option"),
         (TINY + '\n[[variants]]\nname = "v"\neval = ["--max-lagg=0.6"]\n', "is not a `cdrb eval` option"),
@@ -1100,9 +1104,12 @@ def test_a_grid_never_writes_over_its_own_files_or_a_users_summary(tmp_path):
 
     own = _grid(tmp_path, TINY.replace('out = "runs"', 'out = "."'), name="grid.json")  # a TOML file named grid.json
     before = own.read_text()
-    with pytest.raises(BadInput, match="write over its own input file"):
+    with pytest.raises(BadInput, match="the grid file's or the current folder, not a folder of the grid's own"):
         grid(own, backend="pool", workers=1)
     assert own.read_text() == before
+    for empty in ("", " "):  # "" would be "." to a path, " " a folder named so
+        with pytest.raises(BadInput, match=f"out = {empty!r}: an empty path"):
+            load_grid(_grid(tmp_path, TINY.replace('out = "runs"', f'out = "{empty}"')))
     (tmp_path / "runs").mkdir()
     mine = tmp_path / "runs" / "grid.json"
     mine.write_text("my notes\n")

@@ -153,6 +153,9 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     raw = read_toml(Path(path), "grid file")  # read as given: a link out of its folder is refused
     path = Path(path).resolve()
     cwd_out, set_keys, variant_names = _apply_overrides(raw, overrides)
+    if isinstance(raw.get("out"), str) and not raw["out"].strip():  # "" is "." to a Path, " " a folder named so
+        raise BadInput(f"{_origin(path, overrides, 'out')}: out = {raw['out']!r}: an empty path",
+                       hint='name the folder of the grid\'s artifacts, e.g. out = "runs/NAME"')  # fmt: skip
     try:
         spec = GridSpec.model_validate(raw)
     except ValidationError as exc:
@@ -175,6 +178,9 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     spec.variants = _pick_variants(spec._file_variants, variant_names, path, overrides)
     spec._sources = read
     spec.out = cwd_out or (path.parent / spec.out).resolve()
+    if spec.out == (Path.cwd().resolve() if cwd_out else path.parent):  # its artifacts among the experiment files
+        raise BadInput(f"{_origin(path, overrides, 'out')}: out = {spec.out}: the grid file's or the current folder, "
+                       "not a folder of the grid's own", hint='e.g. out = "runs/NAME"')  # fmt: skip
     check_flags(spec, path)
     _check_out(spec.out, _origin(path, overrides, "out"))
     _check_reuse(spec, path, overrides, set_keys)

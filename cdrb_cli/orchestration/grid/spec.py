@@ -169,11 +169,22 @@ class Extension(Scoped):
 
 
 class Resources(_Strict):
+    # strict: true is no count of cores and "2" no number (a grid file's values are read as written)
     cpus: float = Field(
-        1.0, gt=0, allow_inf_nan=False, description="CPU cores a task of this kind asks Ray for (and its torch threads)"
+        1.0,
+        gt=0,
+        le=1024,
+        strict=True,
+        allow_inf_nan=False,
+        description="CPU cores a task of this kind asks Ray for (and its torch threads; at most 1024)",
     )
     gpus: float = Field(
-        0.0, ge=0, allow_inf_nan=False, description="GPUs a task of this kind asks Ray for (fractions share one GPU)"
+        0.0,
+        ge=0,
+        le=64,
+        strict=True,
+        allow_inf_nan=False,
+        description="GPUs a task of this kind asks Ray for (fractions share one GPU; at most 64)",
     )
 
 
