@@ -149,6 +149,7 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + "\n[resources.collect]\ncpus = inf\n", "resources.collect.cpus"),
         (TINY + "\n[resources.eval]\ngpus = nan\n", "resources.eval.gpus"),
         (TINY + "\n[resources.train]\ncpus = true\n", "resources.train.cpus"),  # not read as 1
+        (TINY + '\n[[settings]]\ncluster = ["--seed", "7"]\n', "the grid sets this `cdrb cluster` option itself"),
         (TINY + '\n[resources.train]\ncpus = "2"\n', "resources.train.cpus"),
         (TINY + "\n[resources.train]\ncpus = 1e300\n", "resources.train.cpus"),
         (TINY + "\n[resources.eval]\ngpus = true\n", "resources.eval.gpus"),

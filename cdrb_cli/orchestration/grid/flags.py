@@ -16,7 +16,7 @@ from cdrb_cli.settings import clip
 #: ``train = ["--method", "diffuser"]`` would file a Diffuser under the grid's MLP name
 GRID_OPTIONS = {
     "collect": {"episodes", "seed", "out"},
-    "cluster": {"out"},
+    "cluster": {"seed", "out"},
     "train": {"method", "preset", "seed", "buffer", "snapshot_at", "out", "device", "log_dir"},
     "eval": {"seeds", "stream", "episodes", "out", "device"},
 }
