@@ -116,7 +116,11 @@ class Variant(Scoped):
     the grid's base models (OUT/ENV/METHOD-sSEED.h5, trained once with no variant flags), e.g. a controller, a plan
     clock, a sampler, denoising steps or a re-planning trigger tried on one trained model."""
 
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.=-]*$", description="folder name of the variant's runs")
+    name: str = Field(
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.=-]*$",
+        max_length=64,
+        description="folder name of the variant's runs (at most 64 characters: it is also part of file names)",
+    )
     methods: list[str] | None = Field(None, description="the methods this variant applies to (default: all)")
     envs: list[str] | None = Field(None, description="the environments this variant applies to (default: all)")
     cluster: Flags = Field(
