@@ -151,6 +151,7 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + "\n[resources.train]\ncpus = true\n", "resources.train.cpus"),  # not read as 1
         (TINY + '\n[[settings]]\ncluster = ["--seed", "7"]\n', "the grid sets this `cdrb cluster` option itself"),
         (TINY + f'\n[[variants]]\nname = "{"a" * 300}"\n', "at most 64 characters"),  # a file name too long later
+        (TINY + '\n[[settings]]\neval = ["--config", "."]\n', ": not a regular file"),
         (TINY + '\n[resources.train]\ncpus = "2"\n', "resources.train.cpus"),
         (TINY + "\n[resources.train]\ncpus = 1e300\n", "resources.train.cpus"),
         (TINY + "\n[resources.eval]\ngpus = true\n", "resources.eval.gpus"),

@@ -89,6 +89,9 @@ def _check_flag_list(flags: list[str], command: str, where: str, out: Path) -> N
         if entry.reads_file and not Path(inline).exists() and not Path(inline).resolve().is_relative_to(out.resolve()):
             raise BadInput(f"{where}: {option} {clip(inline, 300)}: no such file", hint="fix the path (relative to the "
                            "file that names it)")  # fmt: skip
+        if entry.reads_file and Path(inline).exists() and not Path(inline).is_file():  # a folder, a device
+            raise BadInput(f"{where}: {option} {clip(inline, 300)}: not a regular file",
+                           hint="name the file itself")  # fmt: skip
 
 
 def check_flags(spec: GridSpec, path: Path) -> None:
