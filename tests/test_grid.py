@@ -1110,10 +1110,14 @@ def test_a_grid_never_writes_over_its_own_files_or_a_users_summary(tmp_path):
     with pytest.raises(BadInput, match="the grid file's or the current folder, not a folder of the grid's own"):
         grid(own, backend="pool", workers=1)
     assert own.read_text() == before
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "maze-tight").write_text("my notes\n")  # where the environment's folder goes
+    with pytest.raises(BadInput, match="maze-tight: is a file where the grid keeps a folder of artifacts"):
+        grid(_grid(tmp_path, TINY), dry_run=True)
+    (tmp_path / "runs" / "maze-tight").unlink()
     for empty in ("", " "):  # "" would be "." to a path, " " a folder named so
         with pytest.raises(BadInput, match=f"out = {empty!r}: an empty path"):
             load_grid(_grid(tmp_path, TINY.replace('out = "runs"', f'out = "{empty}"')))
-    (tmp_path / "runs").mkdir()
     mine = tmp_path / "runs" / "grid.json"
     mine.write_text("my notes\n")
     with pytest.raises(BadInput, match="exists and is not a grid summary"):

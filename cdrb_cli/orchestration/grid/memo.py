@@ -286,9 +286,15 @@ def check_outputs(spec: GridSpec, tasks: list[Task]) -> None:
         raise BadInput(f"out = {spec.out}: is a file, not a folder", hint="choose a folder for the grid's artifacts")
     sources = {p.resolve() for p in spec._sources}
     summary = spec.out / "grid.json"
+    folders: set[Path] = set()
     for out in [summary] + [p for t in tasks for p in t.outputs]:
         if out.resolve() in sources:
             raise BadInput(f"{out}: the grid would write over its own input file", hint="choose another `out` folder")
+        folders.update(f for f in out.parents if f.is_relative_to(spec.out) and f != spec.out)
+    for folder in sorted(folders):  # an environment's or a variant's folder that is a file: every task there fails
+        if folder.exists() and not folder.is_dir():
+            raise BadInput(f"{folder}: is a file where the grid keeps a folder of artifacts",
+                           hint="move the file away, or choose another `out` folder")  # fmt: skip
     if summary.exists():
         text = read_small(summary, 1 << 26)
         try:
