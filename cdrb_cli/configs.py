@@ -304,7 +304,13 @@ class PlanConfig(Record):
     n: int = Field(gt=0, le=10_000, description="plans per start/goal pair")
     sample_steps: int | None = Field(None, gt=0, description="denoising steps (None: all)")
     use_ema: bool = Field(True, description="plan with the EMA weights (false: the raw weights)")
-    keep_iterates: int = Field(0, ge=0, description="intermediate iterates kept per plan (`--plot` draws them)")
+    keep_iterates: int = Field(
+        0,
+        ge=0,
+        le=100_000,
+        description="intermediate iterates kept per plan, evenly spaced over the denoising steps (`--plot` draws "
+        "them); at most one per step, so a number past the steps keeps every step",
+    )
     batch: int | None = Field(
         256,
         gt=0,

@@ -29,7 +29,7 @@ from cdrb_cli.schema_base import Record
 
 #: current schema version of each kind ("MAJOR.MINOR"); bump MINOR for added optional fields, MAJOR otherwise (and
 #: add a migration from the old major to artifacts/migrations.py)
-SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.8", "model": "2.17", "plans": "2.11", "eval": "2.20"}
+SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.8", "model": "2.17", "plans": "2.12", "eval": "2.20"}
 #: files of this version and later must carry the content checksum (older ones may; one present is always checked)
 CHECKSUM_SINCE = (2, 1)
 
