@@ -3,6 +3,7 @@ so a pipeline can tell whether a stage is up to date (same config, same parents)
 
 from __future__ import annotations
 
+import re
 import typing
 from typing import Annotated, ClassVar, Literal
 
@@ -413,13 +414,12 @@ class ReplanConfig(Record):
         mode, _, value = text.strip().partition(":")
         if mode == "never" and not value:
             return {"mode": "never"}
-        try:
-            if mode == "every" and value:
-                return {"mode": "every", "every": int(value)}
-            if mode == "deviation" and value:
-                return {"mode": "deviation", "deviation": float(value)}
-        except ValueError:
-            pass
+        # plain ASCII numbers: Python's int and float would also read 1_0, other scripts' digits, nan and inf
+        value = value.strip()
+        if mode == "every" and re.fullmatch(r"[0-9]{1,12}", value):
+            return {"mode": "every", "every": int(value)}
+        if mode == "deviation" and re.fullmatch(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]{1,3})?", value):
+            return {"mode": "deviation", "deviation": float(value)}
         raise ValueError("expected never, every:N or deviation:D")
 
     def label(self) -> str:

@@ -235,6 +235,9 @@ def test_eval_cli_closed_loop(models, tmp_path, cdrb):
         (["--replan", "sometimes:3"], "--replan sometimes:3: expected never, every:N or deviation:D"),
         (["--replan", "every:0"], "--replan every:0"),
         (["--replan", "every:x"], "--replan every:x: expected never"),
+        (["--replan", "every:1_0"], "--replan every:1_0: expected never"),  # Python's int would read 10
+        (["--replan", "every:\u0665"], "expected never"),  # an Arabic-Indic 5
+        (["--replan", "deviation:nan"], "expected never"),
         (["--replan", "deviation:-1"], "--replan deviation:-1"),
         (["--set", "replan.repair_k=2"], "set a replan mode too"),
         (["--replan", "every:10", "--set", "replan.repair_k=999"], "--set replan.repair_k=999: the model has T = "),
