@@ -19,6 +19,7 @@ state. Every call is deterministic given ``seed`` (and the torch thread count, s
 from __future__ import annotations
 
 import itertools
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -87,7 +88,13 @@ def _path(value, name: str) -> Path:
     """A file or folder argument: a str or os.PathLike, as a Path."""
     if not isinstance(value, (str, Path)) and not hasattr(value, "__fspath__"):
         raise BadInput(f"{name} = {clip(repr(value), 40)}: not a path", hint=f"pass {name} as a str or a Path")
-    if isinstance(value, str) and not value.strip():  # Path("") is ".", the working folder: never what was meant
+    try:
+        value = os.fsdecode(value)  # an os.PathLike may give bytes, which Path does not take
+    except (TypeError, ValueError):
+        raise BadInput(
+            f"{name} = {clip(repr(value), 40)}: not a path", hint=f"pass {name} as a str or a Path"
+        ) from None
+    if not value.strip():  # Path("") is ".", the working folder: never what was meant
         raise BadInput(f"{name} = {value!r}: an empty path", hint=f"pass {name} as a file's path")
     return Path(value)
 
@@ -218,7 +225,10 @@ class Planner:
             raise BadInput(f"flag = {clip(repr(flag), 40)}: not a point's name", hint='pass "start" or "goal"')
         name = flag.lstrip("-")
         if type(point).__module__.split(".")[0] == "torch" and hasattr(point, "detach"):  # a tensor, maybe with grad
-            point = point.detach().cpu().numpy()
+            point = point.detach().cpu()
+            if str(point.dtype) in ("torch.bfloat16", "torch.float16"):  # numpy has no bfloat16: widen it exactly
+                point = point.double()
+            point = point.numpy()
         if np.ma.isMaskedArray(point):  # the cast would take a masked entry's hidden value
             if np.ma.getmaskarray(point).any():
                 raise BadInput(f"{name}: masked values, not numbers", hint="fill them first, e.g. point.filled(0.0)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import os
 import re
 from pathlib import Path
 
@@ -167,9 +168,18 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         assert needle in err.value.line() and "\n" not in err.value.line(), err.value.line()
     import torch
 
-    # a tensor that takes part in autograd is its values, as a list of them is
+    # a tensor that takes part in autograd, or of a type numpy lacks (bfloat16), is its values, as a list of them is
+    listed = planner.plan([0.0, 0.0], [6.0, 6.0], seed=1).features
     tensor = planner.plan(torch.tensor([0.0, 0.0], requires_grad=True), [6.0, 6.0], seed=1)
-    np.testing.assert_array_equal(tensor.features, planner.plan([0.0, 0.0], [6.0, 6.0], seed=1).features)
+    np.testing.assert_array_equal(tensor.features, listed)
+    half = planner.plan(torch.tensor([0.0, 0.0], dtype=torch.bfloat16), [6.0, 6.0], seed=1)
+    np.testing.assert_array_equal(half.features, listed)
+
+    class BytesPath:  # os.PathLike may return bytes
+        def __fspath__(self):
+            return os.fsencode(str(model.path))
+
+    assert api.Planner(BytesPath()).plan([0.0, 0.0], [6.0, 6.0], seed=1).features.shape == listed.shape
     assert artifacts.load(tmp_path / "e.h5", "eval").manifest.summary.per_seed[0].episodes == 1  # not overwritten
     assert api.Planner(model.path, settings={"n": 3}).plan([0, 0], [6, 6]).states.shape[0] == 3
     # episodes, seeds and the stream left out are the CLI's defaults, so a settings dict may give them

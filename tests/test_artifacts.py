@@ -497,3 +497,16 @@ def test_a_file_another_process_holds_open_for_writing_is_said_so_not_called_cor
         holder.kill()
         holder.wait()
     assert artifacts.load(path).manifest.kind == "demos"  # released: it reads
+
+
+def test_load_refuses_what_is_no_path_or_no_kind(tmp_path):
+    """The package's loader, called from Python: a kind that is none of the artifact kinds, or a path that is
+    none, is one line, not a valid file called corrupt or a bare TypeError."""
+    from cdrb_cli import load
+
+    p = write(tmp_path / "d.h5", "demos")
+    for path, kind, needle in ((p, 1, "kind = 1: not an artifact kind"), (p, "bogus", "not an artifact kind"),
+                               (None, None, "path = None: not a path"), (b"d.h5", None, "not a path")):  # fmt: skip
+        with pytest.raises(ArtifactError, match=needle):
+            load(path, kind=kind)
+    assert load(str(p), kind="demos").manifest.kind == "demos"

@@ -106,12 +106,17 @@ def load(path: str | Path, kind: str | None = None) -> ArtifactBase:
     library can loop forever or crash on some corrupted files, and that must not hang or kill cdrb. Bytes this
     process wrote, or has read so before, skip the probe (:func:`~cdrb_cli.artifacts.core.known_safe`: by their
     sha256, which the artifact records anyway); a fork costs 30-60 ms in a process that has imported torch."""
-    path = Path(path)
+    from cdrb_cli.settings import clip
+
+    if not isinstance(path, (str, os.PathLike)) or isinstance(path, bytes):
+        raise ArtifactError(f"path = {clip(repr(path), 60)}: not a path", hint="pass a str or a pathlib.Path")
+    if kind is not None and kind not in KINDS:
+        raise ArtifactError(f"kind = {clip(repr(kind), 60)}: not an artifact kind",
+                            hint=f"one of {', '.join(KINDS)}, or None for any")  # fmt: skip
+    path = Path(os.fsdecode(path))
     try:
         is_file = path.is_file()
     except OSError as exc:  # e.g. a name too long for the file system: no file there to read
-        from cdrb_cli.settings import clip
-
         raise ArtifactError(f"{clip(path, 80)}: cannot be read ({exc.strerror})", hint="check the path") from None
     sha = sha256_file(path) if is_file else None  # a non-file: the reader's checks say what it is
     if not known_safe(sha) and _guarded_probe(path, kind, sha) and sha is not None:
