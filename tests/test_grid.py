@@ -1491,6 +1491,14 @@ def test_a_finished_curve_is_extended_by_resuming_its_runs(tmp_path):
     assert artifacts.load(model, "model").manifest.state.step == 100
 
 
+def test_demos_for_an_environment_the_grid_does_not_run_is_warned_of(tmp_path, capsys):
+    path = _grid(tmp_path, TINY + "\n[demos_for]\nmaze = 50\n")
+    load_grid(path)
+    assert "demos_for: maze: not among the grid's environments" in capsys.readouterr().err
+    load_grid(path, ['envs=["maze-tight"]'])  # narrowed on purpose: no word
+    assert "demos_for" not in capsys.readouterr().err
+
+
 def test_a_dry_run_counts_the_snapshot_evals_an_extended_curve_keeps(tmp_path):
     """Extending a curve resumes its runs, which leave their earlier snapshots as they are: the dry run counts those
     snapshots' evals as up to date (as the run then finds them), but not where a changed setting starts runs over."""

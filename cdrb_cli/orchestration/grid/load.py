@@ -281,6 +281,10 @@ def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_key
                            hint="`cdrb envs` lists them") from None  # fmt: skip
     for m in spec.methods:
         METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
+    idle = [e for e in spec.demos_for if e not in spec.envs]
+    if idle and "envs" not in set_keys:  # (a grid narrowed with --set envs leaves entries idle on purpose)
+        ui.warn(f"{_origin(path, overrides, 'demos_for')}: demos_for: {', '.join(idle)}: not among the grid's "
+                "environments, so it does nothing here")  # fmt: skip
     check_commands(spec, path)
     # settings may name envs and methods the grid does not run (one settings table for several grids), but every
     # name must exist: a typo would silently apply nothing
