@@ -164,7 +164,10 @@ def test_export_opens_with_minari_and_import_of_export_is_the_same_demos(tmp_pat
         assert ds.env_spec.id == "PointMaze_UMaze-v3" and ds.env_spec.kwargs["continuing_task"] is True
     else:  # walls no gymnasium registry has: no env_spec, the description names the cdrb environment
         assert ds.env_spec is None
+    (tmp_path / "back.h5").write_text("my notes\n")  # not written over without --force
     r = _cli("import", "minari", "cdrb/demo-v0", "--out", tmp_path / "back.h5", "--seed", "1")
+    assert r.returncode == 2 and "file exists" in r.stderr and (tmp_path / "back.h5").read_text() == "my notes\n"
+    r = _cli("import", "minari", "cdrb/demo-v0", "--out", tmp_path / "back.h5", "--seed", "1", "--force")
     assert r.returncode == 0, r.stderr
     back = artifacts.load(tmp_path / "back.h5", "demos")
     assert back.manifest.env.id == env

@@ -128,6 +128,19 @@ def _official_file(path, lengths=(7, 5), obs_dim=2, pickled=False):
     return arrays
 
 
+def test_an_import_never_writes_over_a_file_without_force_nor_over_its_input(cdrb, tmp_path):
+    src = tmp_path / "pointmaze-medium-navigate-v0-val.npz"
+    _official_file(src)
+    before = src.read_bytes()
+    r = cdrb("import", "npz", src, "--out", src, "--force")
+    assert r.returncode == 2 and "is an input of this command" in r.stderr and src.read_bytes() == before, r.stderr
+    mine = tmp_path / "notes.txt"
+    mine.write_text("my notes\n")
+    r = cdrb("import", "npz", src, "--out", mine)
+    assert r.returncode == 2 and "file exists" in r.stderr and mine.read_text() == "my notes\n", r.stderr
+    assert cdrb("import", "npz", src, "--out", mine, "--force").returncode == 0
+
+
 def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
     from cdrb_cli import artifacts
 

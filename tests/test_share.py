@@ -45,7 +45,13 @@ def test_export_import_and_the_api_give_the_same_model_and_plans(tiny_models, fo
     card = (folder / "README.md").read_text()
     assert "# cdrb on maze-tight" in card and "| centre-start/corner-goal | test, seeds 0 x 2 |" in card
 
-    r = cdrb("import", "model", folder, "--out", tmp_path / "back.h5")
+    mine = tmp_path / "back.h5"
+    mine.write_text("my notes\n")
+    for out, needle in ((mine, "file exists"), (folder / "model.safetensors", "inside the imported folder")):
+        r = cdrb("import", "model", folder, "--out", out)  # nothing written over without --force, nor what is read
+        assert r.returncode == 2 and needle in r.stderr, r.stderr
+    assert mine.read_text() == "my notes\n"
+    r = cdrb("import", "model", folder, "--out", tmp_path / "back.h5", "--force")
     assert r.returncode == 0, r.stderr
     back = artifacts.load(tmp_path / "back.h5", "model")
     assert back.data_sha256 == model.data_sha256 and back.manifest == model.manifest

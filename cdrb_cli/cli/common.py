@@ -230,6 +230,16 @@ def check_outputs(force: bool, inputs=(), **outputs: Path | None) -> None:
             check_output(Path(path), force, flag, inputs, suffixes=PICTURES)
 
 
+def check_import_out(force: bool, out: Path, source: Path | None) -> None:
+    """The ``--out`` of an import, before any work: an existing file only with ``--force``, and never the imported
+    file or a file inside the imported folder (writing there would destroy what is read)."""
+    from cdrb_cli.artifacts import check_output
+
+    if source is not None and source.is_dir() and out.absolute().resolve().is_relative_to(source.resolve()):
+        raise BadInput(f"--out {out}: inside the imported folder {source}", hint="write the artifact elsewhere")
+    check_output(out, force, "--out", [source] if source is not None and source.is_file() else [])
+
+
 def check_positive(flag: str, value) -> None:
     if value is not None and value <= 0:
         raise BadInput(f"{flag} {value}: must be positive", hint=f"pass {flag} N with N > 0")

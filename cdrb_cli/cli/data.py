@@ -13,6 +13,7 @@ from cdrb_cli.cli.common import (
     JsonOpt,
     SeedOpt,
     app,
+    check_import_out,
     check_outputs,
     check_video_folder,
     choice,
@@ -181,7 +182,7 @@ def import_minari(
     D4RL/pointmaze/umaze-v2 --out umaze.h5[/cyan], then cluster and train as usual."""
     from cdrb_cli.stages.minari_io import import_minari as run_import
 
-    check_outputs(force, out=out)
+    check_import_out(force, out, Path(dataset) if Path(dataset).exists() else None)
     demos = run_import(dataset, out, env=env, valid_fraction=valid_fraction, seed=seed)
     s = demos.manifest.summary
     ui.log(
@@ -208,7 +209,7 @@ def import_npz(
     pointmaze-medium-navigate-v0.npz --out demos.h5[/cyan]"""
     from cdrb_cli.stages.dataset_files import import_file as run_import
 
-    check_outputs(force, out=out)
+    check_import_out(force, out, file)
     s = run_import(file, out, env=env, valid_fraction=valid_fraction, seed=seed).manifest.summary
     ui.log(f"{file.name}: {s.episodes} episodes, {s.steps} steps, states inside obstacles: {s.states_in_walls}")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)

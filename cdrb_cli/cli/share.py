@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from cdrb_cli import ui
-from cdrb_cli.cli.common import ForceOpt, JsonOpt, app, check_outputs, file_path, load_artifact
+from cdrb_cli.cli.common import ForceOpt, JsonOpt, app, check_import_out, file_path, load_artifact
 from cdrb_cli.cli.data import import_app
 from cdrb_cli.errors import BadInput
 
@@ -102,7 +102,7 @@ def import_model(
     valid model's. Example: [cyan]cdrb import model shared/cdrb-maze-tight --out model.h5[/cyan]"""
     from cdrb_cli.stages.share import import_folder
 
-    check_outputs(force, out=out)
+    check_import_out(force, out, folder)
     model = import_folder(folder, out)
     ui.log(f"{model.manifest.config.method.name} on {model.manifest.env.id}: {len(model.arrays)} arrays")
     ui.emit({"path": str(out), "data_sha256": model.data_sha256} if as_json else out, as_json=as_json)
