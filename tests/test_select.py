@@ -845,3 +845,24 @@ def test_tuned_files_under_a_shared_budget_give_planners_one_length_and_no_map_a
         "e / diffuser: executed by fetch-push-path, which reads the map",
         "e: planners at [5000, 10000] steps",
     ]
+
+
+def test_a_candidates_evals_of_models_trained_otherwise_are_refused_without_the_models(tmp_path):
+    """The seeds of one candidate are pooled: an eval whose recorded training digest differs (a model retrained with
+    other settings, then moved away) is refused; evals that record none (older files) are not judged."""
+    from cdrb_cli import artifacts
+    from cdrb_cli.errors import BadInput
+    from cdrb_cli.orchestration.select_evals import trained_alike
+    from tests.factories import build
+
+    def ev(name: str, digest: str | None):
+        manifest, arrays = build("eval")
+        summary = manifest.summary.model_copy(update={"model_training": digest})
+        manifest = manifest.model_copy(update={"summary": summary})
+        artifacts.save(tmp_path / name, "eval", manifest, arrays)
+        return artifacts.load(tmp_path / name, "eval")
+
+    same = [ev("a.h5", "1" * 64), ev("b.h5", "1" * 64), ev("c.h5", None)]
+    trained_alike(same)
+    with pytest.raises(BadInput, match="d.h5: evaluates a model trained with other settings than"):
+        trained_alike([*same, ev("d.h5", "2" * 64)])

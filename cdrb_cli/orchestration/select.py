@@ -26,7 +26,7 @@ from cdrb_cli.orchestration.grid import (
     flags_for,
     without_setting,
 )
-from cdrb_cli.orchestration.select_evals import checked_eval
+from cdrb_cli.orchestration.select_evals import checked_eval, trained_alike
 from cdrb_cli.settings import toml_string, toml_value
 from cdrb_cli.stages.metrics import mean_or_none, std_or_none
 
@@ -109,6 +109,7 @@ def candidates(spec: GridSpec, tasks: list | None = None) -> list[Candidate]:
     unchecked: list[Path] = []
     for cand in found.values():
         evals = [checked_eval(spec, by_output[p], p, unchecked, trains, makers) for p in cand.evals]
+        trained_alike(evals)
         cand.models = [_model_scores(seed, per_seed(ev)) for seed, ev in zip(cand.training_seeds, evals, strict=True)]
         cand.success_std = seed_spread(cand.models)
         per = [r for ev in evals for r in per_seed(ev)]

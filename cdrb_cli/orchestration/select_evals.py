@@ -130,6 +130,20 @@ def checked_eval(
     return ev
 
 
+def trained_alike(evals: list) -> None:
+    """Refuse one candidate's evals (its training seeds) whose models were trained with other settings, by the
+    digest each eval records of its model's training: caught even where the model files are no longer there."""
+    first = next((ev for ev in evals if ev.manifest.summary.model_training is not None), None)
+    for ev in evals:
+        digest = ev.manifest.summary.model_training
+        if first is not None and digest is not None and digest != first.manifest.summary.model_training:
+            raise BadInput(
+                f"{ev.path}: evaluates a model trained with other settings than {first.path}'s (net, learning rate, "
+                "method parameters...), which this grid trains alike as seeds of one run",
+                hint="run `cdrb grid` on the same file (same --set/--include): it trains and measures them again",
+            )
+
+
 #: the artifact kind each data-making task writes
 _MADE = {"collect": "demos", "cluster": "buffer"}
 
