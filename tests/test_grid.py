@@ -152,6 +152,12 @@ collect = ["--set", 'expert.routes=["over"]']
         (TINY + '\n[[settings]]\ncluster = ["--seed", "7"]\n', "the grid sets this `cdrb cluster` option itself"),
         (TINY + f'\n[[variants]]\nname = "{"a" * 300}"\n', "at most 64 characters"),  # a file name too long later
         (TINY + '\n[[settings]]\neval = ["--config", "."]\n', ": not a regular file"),
+        (  # a settings entry and a variant reach one field: every eval would refuse it
+            TINY + '\n[[settings]]\neval = { replan = "every:20" }\n[[variants]]\nname = "e40"\n'
+            'eval = ["--replan", "every:40"]\n',
+            "in variant e40: eval flags: --replan every:40 with --set replan=",
+        ),
+        (TINY + '\n[[settings]]\ntrain = ["--set", "steps=5", "--steps", "6"]\n', "train flags: --steps 6 with"),
         (TINY + '\n[resources.train]\ncpus = "2"\n', "resources.train.cpus"),
         (TINY + "\n[resources.train]\ncpus = 1e300\n", "resources.train.cpus"),
         (TINY + "\n[resources.eval]\ngpus = true\n", "resources.eval.gpus"),
@@ -1633,7 +1639,8 @@ def test_a_variant_whose_evals_would_all_fail_is_refused_when_the_grid_is_read(t
     text += f'\n[[variants]]\nname = "bad"\n{scoped}\neval = {eval_}\n'
     proc = _cli("grid", str(_grid(tmp_path, text)), "--dry-run")
     lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2 and len(lines) == 1 and "in variant bad: eval flags" in lines[0], proc.stderr
+    named = ("in variant bad: eval flags", "variants[0].eval")  # the variant, as the check that caught it names it
+    assert proc.returncode == 2 and len(lines) == 1 and any(n in lines[0] for n in named), proc.stderr
     assert words in lines[0] and "grid.toml" in lines[0], lines[0]
 
 

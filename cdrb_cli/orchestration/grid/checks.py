@@ -88,7 +88,10 @@ def _train_config(spec: GridSpec, env_spec, env: str, method: str, v: Variant, p
         return None
     steps = None if options.get("steps") is None else int(options["steps"])
     preset = options.get("preset") or spec.preset
-    items = user_settings(method, options.get("net"), preset, steps, sets=[f"{k}={x}" for k, x in sets])
+    try:
+        items = user_settings(method, options.get("net"), preset, steps, sets=[f"{k}={x}" for k, x in sets])
+    except BadInput as exc:  # a flag and a --set of one field: the command refuses it, so every training would
+        raise BadInput(f"{_where(path, env, method, v)}: train flags: {exc.message}", hint=exc.hint) from None
     buffer = None
     if METHODS.get(method).needs_buffer:
         cluster = parse_command(["cluster", "demos.h5", *cluster_flags_for(spec, env, method, v)])[1]
@@ -111,6 +114,7 @@ def _check_eval(spec: GridSpec, env_spec, env: str, method: str, v: Variant, con
     if options.get("config_file") is not None:
         return
     where = f"{_where(path, env, method, v)}: eval flags"
+    _given_once(flags, "eval", where)
     settings = []
     for key, text in sets:
         if key.startswith("--"):  # an option's value the command refuses (check_flags names most of them)
@@ -129,5 +133,33 @@ def _check_eval(spec: GridSpec, env_spec, env: str, method: str, v: Variant, con
     try:
         scene = None if scene_file is None else family_of(env_spec).with_map(env_spec, Path(scene_file), "--scene")
         eval_config(model, settings, scene_file=None if scene_file is None else Path(scene_file), scene=scene)
+    except BadInput as exc:
+        raise BadInput(f"{where}: {exc.message}", hint=exc.hint) from None
+
+
+def _given_once(flags: list[str], command: str, where: str) -> None:
+    """Refuse the flags of a task in which an option and a ``--set`` reach one field (``--replan every:40`` from a
+    variant, ``--set replan=...`` from a settings entry), as the command itself would, in every task."""
+    from cdrb_cli.orchestration.grid.commands import options
+    from cdrb_cli.orchestration.grid.flags import walk_options
+    from cdrb_cli.settings import Setting, parse_set
+    from cdrb_cli.stages.configure import given_once_anyhow
+
+    given, sets = [], []
+    for token, entry, value in walk_options(flags, options(command)):
+        if entry is None:
+            continue
+        if entry.param == "sets":
+            sets.append(str(value))
+            continue
+        value = value if entry.takes_value else entry.flag_value
+        try:
+            pair = entry.to_setting(value) if entry.to_setting is not None else None
+        except Exception:  # a value the command refuses: the other checks name it
+            pair = None
+        if pair is not None:
+            given.append(Setting(tuple(pair[0].split(".")), pair[1], f"{token.partition('=')[0]} {value}"))
+    try:
+        given_once_anyhow(given, parse_set(sets))
     except BadInput as exc:
         raise BadInput(f"{where}: {exc.message}", hint=exc.hint) from None
