@@ -1497,6 +1497,16 @@ def test_a_finished_curve_is_extended_by_resuming_its_runs(tmp_path):
     assert artifacts.load(model, "model").manifest.state.step == 100
 
 
+def test_a_method_no_variant_covers_is_warned_of(tmp_path, capsys):
+    """With variants, only they run: a method or an environment none of them applies to is left out, and said so."""
+    variant = '\n[[variants]]\nname = "b2"\nmethods = ["cdrb"]\neval = { avoid = { best_of = 2 } }\n'
+    path = _grid(tmp_path, TINY + variant)
+    assert not any("mlp" in t.id for t in expand(load_grid(path)) if t.kind in ("train", "eval"))
+    assert "no variant applies to mlp on maze-tight" in capsys.readouterr().err
+    load_grid(path, ['methods=["cdrb"]'])  # narrowed on purpose: no word
+    assert "no variant applies" not in capsys.readouterr().err
+
+
 def test_demos_for_an_environment_the_grid_does_not_run_is_warned_of(tmp_path, capsys):
     path = _grid(tmp_path, TINY + "\n[demos_for]\nmaze = 50\n")
     load_grid(path)

@@ -281,6 +281,11 @@ def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_key
                            hint="`cdrb envs` lists them") from None  # fmt: skip
     for m in spec.methods:
         METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
+    bare = [f"{m} on {e}" for e in spec.envs for m in spec.methods if not any(v.applies(e, m) for v in spec.variants)]
+    if spec.variants and bare and not {"variants", "envs", "methods"} & set_keys:  # (narrowed on purpose: quiet)
+        # with variants, only they run: a pair none of them covers is left out entirely
+        ui.warn(f"{_origin(path, overrides, 'variants')}: no variant applies to {clip(', '.join(bare), 200)}, so "
+                "the grid neither trains nor evaluates it")  # fmt: skip
     idle = [e for e in spec.demos_for if e not in spec.envs]
     if idle and "envs" not in set_keys:  # (a grid narrowed with --set envs leaves entries idle on purpose)
         ui.warn(f"{_origin(path, overrides, 'demos_for')}: demos_for: {', '.join(idle)}: not among the grid's "
