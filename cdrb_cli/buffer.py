@@ -102,13 +102,18 @@ def kmeans_buffer(
     """Indices of ``k`` real points representing ``points``: k-means (scikit-learn, fitted on at most
     ``fit_sample`` random points), each centroid snapped to its nearest point of the full set (duplicates
     dropped). Returns (sorted unique indices, inertia of the fit)."""
+    import warnings
+
     from scipy.spatial import cKDTree
     from sklearn.cluster import KMeans
+    from sklearn.exceptions import ConvergenceWarning
 
     rng = np.random.default_rng(seed)
     fit = points if len(points) <= fit_sample else points[rng.choice(len(points), fit_sample, replace=False)]
     km = KMeans(n_clusters=k, n_init=n_init, max_iter=max_iter, random_state=seed)
-    km.fit(fit.astype(np.float32))
+    with warnings.catch_warnings():  # fewer distinct points than k: the caller says so in its own words
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        km.fit(fit.astype(np.float32))
     _, idx = cKDTree(points).query(km.cluster_centers_.astype(np.float64))
     return np.unique(idx), float(km.inertia_)
 

@@ -312,6 +312,17 @@ def test_cluster_refuses_demos_without_train_episodes_and_a_one_state_buffer(sma
     r = cdrb("cluster", small_data[0].path, "--k", "1", "--out", tmp_path / "b.h5")
     assert r.returncode == 2 and "--k 1: " in r.stderr and "diameter 0" in r.stderr
     assert not (tmp_path / "b.h5").exists()
+    # demos that never move: the data is what is wrong, whatever --k (none given here), and said once
+    still = factories.write(tmp_path / "still.h5", "demos")
+    with factories.tampered(still) as f:
+        f["steps/observations"][...] = 0.5
+    r = cdrb("cluster", still, "--out", tmp_path / "b.h5")
+    assert r.returncode == 2 and "every demonstration state is the same point" in r.stderr, r.stderr
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "--k" not in errors[0], r.stderr
+    # more clusters than distinct states: said in cdrb's words, without scikit-learn's warning
+    r = cdrb("cluster", small_data[0].path, "--k", "200", "--out", tmp_path / "b.h5")
+    assert "ConvergenceWarning" not in r.stderr, r.stderr
 
 
 def test_starts_anywhere_get_the_time_the_farthest_free_cell_needs(tmp_path):

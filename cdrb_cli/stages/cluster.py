@@ -45,6 +45,12 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
         )
     norm = Normalizer.fit(feats[train_rows])
     z = norm.normalize(feats[rows])
+    if not np.ptp(z, axis=0).any():  # every state the same: no buffer to diffuse over, whatever k
+        raise BadInput(
+            f"{demos.path}: every demonstration state is the same point, and CDRB's balls grow up to the buffer's "
+            "diameter",
+            hint="cluster demos that move; check how they were collected or imported",
+        )
     if config.k > len(rows):
         raise BadInput(
             f"--k {config.k}: larger than the {len(rows)} buffer states", hint=f"use --k {len(rows)} or less (0 = all)"
@@ -56,13 +62,15 @@ def cluster(demos, config: ClusterConfig, out: Path) -> artifacts.Buffer:
             keep = np.arange(len(rows))
         else:
             keep, inertia = kmeans_buffer(z, config.k, seed=config.seed, n_init=config.n_init, max_iter=config.max_iter)
+    if config.k and len(keep) < config.k:
+        ui.warn(f"--k {config.k}: the demos hold fewer distinct states, so the buffer has {len(keep)}")
     points = z[keep].astype(np.float32)
     extent = diameter(points)
     if extent <= 0:
         raise BadInput(
             f"--k {config.k}: every state of the buffer of {demos.path} would be the same point (diameter 0), and "
             f"CDRB's balls grow up to the buffer's diameter",
-            hint="use --k 2 or more, on demos that visit more than one state",
+            hint="use --k 2 or more",
         )
     # which buffer states the demonstrations connect (geodesic balls measure along it): each row's episode
     episode = np.repeat(np.arange(len(demos.episode_start)), demos.episode_length)
