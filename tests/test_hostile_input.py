@@ -319,6 +319,14 @@ def test_quickstart_refuses_an_empty_method_list(tmp_path, cdrb, methods):
     assert r.returncode == 2 and "--methods" in r.stderr and not (tmp_path / "qs").exists(), r.stderr
 
 
+def test_quickstart_refuses_a_bad_env_or_k_before_writing_anything(tmp_path, cdrb):
+    for args, needle in ((["--env", "nope"], "--env nope: unknown environment"),
+                         (["--k", "100000000", "--episodes", "2"], "--k 100000000: more than the")):  # fmt: skip
+        r = cdrb("quickstart", *args, "--out", tmp_path / "qs")
+        assert r.returncode == 2 and needle in r.stderr and "--maze-map" not in r.stderr, r.stderr
+        assert not (tmp_path / "qs").exists()
+
+
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
 def test_stdout_that_cannot_be_written_is_one_line(small_data):
     """Output sent to a full device: the error says stdout is what failed, not a bare OSError."""

@@ -175,10 +175,17 @@ def quickstart(
 
     method_list = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods is not None else DEFAULT_METHODS
     check_methods(method_list, "--methods")
-    make_spec(env or DEFAULT_ENV)
+    try:
+        spec = make_spec(env or DEFAULT_ENV)
+    except BadInput as exc:
+        raise BadInput(f"--env {env}: {exc.message}", hint="`cdrb envs` lists them") from None
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out}: exists and is not a folder", hint="pass a folder path")
     check_positive("--steps", steps)
+    most = episodes * spec.episode_limit  # the states the demos can hold at most: a larger --k is a typo
+    if k is not None and k > most:
+        raise BadInput(f"--k {k}: more than the {most:,} states {episodes} demos can hold at most",
+                       hint="use --k 1000, the default, or 0 for the full buffer")  # fmt: skip
     res = run_quickstart(
         out,
         env=env or DEFAULT_ENV,
