@@ -319,6 +319,13 @@ def test_quickstart_refuses_an_empty_method_list(tmp_path, cdrb, methods):
     assert r.returncode == 2 and "--methods" in r.stderr and not (tmp_path / "qs").exists(), r.stderr
 
 
+def test_videos_without_video_is_refused_not_ignored(tiny_models, tmp_path, cdrb):
+    for args in (["collect", "maze-tight", "-n", "3", "--videos", "2"],
+                 ["eval", tiny_models["mlp"].path, "-n", "1", "--seeds", "0", "--videos", "5"]):  # fmt: skip
+        r = cdrb(*args, "--out", tmp_path / "x.h5")
+        assert r.returncode == 2 and "goes with --video DIR" in r.stderr and not (tmp_path / "x.h5").exists()
+
+
 def test_quickstart_refuses_a_bad_env_or_k_before_writing_anything(tmp_path, cdrb):
     for args, needle in ((["--env", "nope"], "--env nope: unknown environment"),
                          (["--k", "100000000", "--episodes", "2"], "--k 100000000: more than the")):  # fmt: skip

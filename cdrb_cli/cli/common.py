@@ -263,6 +263,14 @@ def _check_can_make(folder: Path, flag: str) -> None:
     check_writable(first, flag, folder)
 
 
+def gif_count(video: Path | None, videos: int | None) -> int:
+    """How many GIFs a command writes: ``--videos`` (default 3) with ``--video``, none without; a ``--videos``
+    without ``--video`` is refused (it would be ignored)."""
+    if videos is not None and video is None:
+        raise BadInput(f"--videos {videos}: goes with --video DIR", hint="add --video DIR, or drop --videos")
+    return 0 if video is None else (3 if videos is None else videos)
+
+
 def check_video_folder(video: Path, out: Path | None = None) -> None:
     """--video names a folder (made if missing), checked before any work: not an existing file, under a folder
     that can be made and written (not under a file), and not the folder of the run's own --out (a GIF could take

@@ -19,6 +19,7 @@ from cdrb_cli.cli.common import (
     choice,
     expert_registry,
     file_path,
+    gif_count,
     literal_values,
     load_artifact,
     registered,
@@ -64,7 +65,9 @@ def collect(
         parser=file_path,
     ),
     video: Path | None = typer.Option(None, "--video", help="Write GIFs of the first demos to this folder."),
-    videos: int = typer.Option(3, "--videos", min=1, max=100, help="How many demo GIFs with --video."),
+    videos: int | None = typer.Option(
+        None, "--videos", min=1, max=100, help="How many demo GIFs with --video (default 3)."
+    ),
     workers: int | None = typer.Option(
         None,
         "--workers",
@@ -97,6 +100,7 @@ def collect(
     from cdrb_cli.stages.collect import check_workers, collect_config
     from cdrb_cli.stages.collect import collect as run_collect
 
+    gif_count(video, videos)  # --videos without --video: refused before any work
     if video is not None:
         from cdrb_cli.envs.render import choose_gl_backend
 
@@ -128,7 +132,7 @@ def collect(
     if video is not None:
         from cdrb_cli.envs.render import demo_gifs
 
-        demo_gifs(demos, video, videos)
+        demo_gifs(demos, video, gif_count(video, videos))
         ui.log(f"demo GIFs: {video}/")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 

@@ -18,6 +18,7 @@ from cdrb_cli.cli.common import (
     check_video_folder,
     choice,
     file_path,
+    gif_count,
     report_gifs,
     trained_model,
 )
@@ -76,7 +77,9 @@ SceneOpt = typer.Option(
 )
 VideoOpt = typer.Option(None, "--video", help="Write rollout GIFs of the first episodes to this folder.")
 EvalOutOpt = typer.Option(Path("eval.h5"), "--out", "-o", help="Eval artifact to write.", parser=file_path)
-VideosOpt = typer.Option(3, "--videos", min=1, hidden=True, help="How many rollout GIFs with --video.")
+VideosOpt = typer.Option(
+    None, "--videos", min=1, max=100, hidden=True, help="How many rollout GIFs with --video (default 3)."
+)
 KeepPlansOpt = typer.Option(
     True, "--plans/--no-plans", hidden=True, help="Keep each episode's (first) plan in the eval artifact."
 )
@@ -104,7 +107,7 @@ def eval_cmd(
     seed: int = SeedOpt,
     force: bool = ForceOpt,
     as_json: bool = JsonOpt,
-    videos: int = VideosOpt,
+    videos: int | None = VideosOpt,
     keep_plans: bool = KeepPlansOpt,
     replan_plot: Path | None = ReplanPlotOpt,
     allow_partial: bool = AllowPartialOpt,
@@ -158,7 +161,7 @@ def eval_cmd(
     if config.avoid.label() != "plain":
         ui.log(f"avoiding obstacles: {config.avoid.label()}")
     started = time.time()
-    outputs = dict(keep_plans=keep_plans, video_dir=video, videos=videos if video else 0, replan_plot=replan_plot)
+    outputs = dict(keep_plans=keep_plans, video_dir=video, videos=gif_count(video, videos), replan_plot=replan_plot)
     ev = eval_artifact(m, config, out, force=force, device=setup_torch(device), scene=scene, route_buffer=route_art,
                        **outputs)  # fmt: skip
     s = ev.manifest.summary
