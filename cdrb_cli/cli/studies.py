@@ -66,7 +66,8 @@ def report(
     """Compare eval artifacts in a Table-1-style report (success mean ± std over seeds, plus planned states in
     obstacles, executed collisions, path length and planning time), with optional pictures.
 
-    Evals of one environment must share a protocol (seeds, episodes, controller); mixing is an error."""
+    Evals of one environment must share a protocol (episodes, start/goal protocol, stream); the seeds of one
+    method must also share every eval setting (controller, sampler...) and training; mixing is an error."""
     from cdrb_cli.stages import docs_blocks, report_figures
     from cdrb_cli.stages import report as rep
     from cdrb_cli.stages.report_summary import render_summary

@@ -123,7 +123,8 @@ def plot_training(path: str | Path, out: Path) -> Path:
     art = load(path)
     if art.kind != "model":
         raise BadInput(
-            f"--plot: {path} is a {art.kind} artifact; --plot draws a model's training curve",
+            f"--plot: {path} is {'an' if art.kind[0] in 'aeiou' else 'a'} {art.kind} artifact; --plot draws a "
+            "model's training curve",
             hint="pass a model (.h5 written by `cdrb train`), or drop --plot",
         )
     steps = np.asarray(art.arrays.get("curve/step", np.zeros(0)))
