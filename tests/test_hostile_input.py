@@ -319,6 +319,13 @@ def test_quickstart_refuses_an_empty_method_list(tmp_path, cdrb, methods):
     assert r.returncode == 2 and "--methods" in r.stderr and not (tmp_path / "qs").exists(), r.stderr
 
 
+def test_an_eval_of_a_hundred_million_episodes_is_refused(tiny_models, tmp_path, cdrb):
+    seeds = ",".join(map(str, range(1000)))
+    r = cdrb("eval", tiny_models["mlp"].path, "-n", "100000", "--seeds", seeds, "--out", tmp_path / "e.h5")
+    assert r.returncode == 2 and "100,000,000 episodes: more than the 1,000,000 one eval runs" in r.stderr, r.stderr
+    assert not (tmp_path / "e.h5").exists()
+
+
 def test_videos_without_video_is_refused_not_ignored(tiny_models, tmp_path, cdrb):
     for args in (["collect", "maze-tight", "-n", "3", "--videos", "2"],
                  ["eval", tiny_models["mlp"].path, "-n", "1", "--seeds", "0", "--videos", "5"]):  # fmt: skip

@@ -349,6 +349,10 @@ def _toward_waypoints(path: tuple[str, ...]) -> bool:
     return path[:1] == ("replan",) and path[1:2] not in (("repair_k",), ("repair_steps",))
 
 
+#: the most episodes one eval runs (episodes x seeds): days of simulation on a workstation, so more is a typo
+MAX_EVAL_EPISODES = 1_000_000
+
+
 def eval_config(
     model,
     settings: Sequence[Setting] = (),
@@ -400,6 +404,12 @@ def eval_config(
         settings = [*start_base(model, settings, base["avoid"]), *settings]
     given = [s for s in settings if s.path not in (("avoid",), ("sampler",), ("protocol",))]
     config = _avoid_record(validate(EvalConfig, apply(base, given), settings, "eval"))
+    if config.episodes * len(config.seeds) > MAX_EVAL_EPISODES:
+        raise BadInput(
+            f"{named(settings, ('episodes',), config.episodes)} x {len(config.seeds)} seeds = "
+            f"{config.episodes * len(config.seeds):,} episodes: more than the {MAX_EVAL_EPISODES:,} one eval runs",
+            hint="give fewer episodes or seeds, e.g. Table 1's 100 x 5, or split the seeds over several evals",
+        )
     check_avoid(model, config.avoid, settings)
     if scene_file is not None or protocol in family.extra_protocols:  # a protocol that cannot draw fails here
         where = spec if scene_file is None else scene or family.with_map(spec, Path(scene_file))
