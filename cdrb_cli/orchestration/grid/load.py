@@ -195,6 +195,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         except BadInput as exc:
             raise BadInput(f"{_origin(path, overrides, 'tensorboard')}: tensorboard = true: {exc.message}",
                            hint=exc.hint) from None  # fmt: skip
+    _warn_idle(spec, path, overrides, set_keys)
     return spec
 
 
@@ -267,6 +268,20 @@ def _check_reuse(spec: GridSpec, path: Path, overrides: list[str], set_keys: set
             ui.warn(f"reuse: {folder}: no grid has run there (it has no .grid/), so nothing is reused from it")
 
 
+def _warn_idle(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
+    """Warn, once the grid is known to be sound, of what it names but does not run: a method and environment no
+    variant applies to, a ``demos_for`` entry for an environment it does not run (quiet where --set narrowed it)."""
+    bare = [f"{m} on {e}" for e in spec.envs for m in spec.methods if not any(v.applies(e, m) for v in spec.variants)]
+    if spec.variants and bare and not {"variants", "envs", "methods"} & set_keys:  # (narrowed on purpose: quiet)
+        # with variants, only they run: a pair none of them covers is left out entirely
+        ui.warn(f"{_origin(path, overrides, 'variants')}: no variant applies to {clip(', '.join(bare), 200)}, so "
+                "the grid neither trains nor evaluates it")  # fmt: skip
+    idle = [e for e in spec.demos_for if e not in spec.envs]
+    if idle and "envs" not in set_keys:  # (a grid narrowed with --set envs leaves entries idle on purpose)
+        ui.warn(f"{_origin(path, overrides, 'demos_for')}: demos_for: {', '.join(idle)}: not among the grid's "
+                "environments, so it does nothing here")  # fmt: skip
+
+
 def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_keys: set[str]) -> None:
     """Every environment and method the grid, its settings and its variants name exists; variant names are
     distinct folders."""
@@ -281,15 +296,6 @@ def _check_names_given(spec: GridSpec, path: Path, overrides: list[str], set_key
                            hint="`cdrb envs` lists them") from None  # fmt: skip
     for m in spec.methods:
         METHODS.get(m, f"{_origin(path, overrides, 'methods')}: methods")
-    bare = [f"{m} on {e}" for e in spec.envs for m in spec.methods if not any(v.applies(e, m) for v in spec.variants)]
-    if spec.variants and bare and not {"variants", "envs", "methods"} & set_keys:  # (narrowed on purpose: quiet)
-        # with variants, only they run: a pair none of them covers is left out entirely
-        ui.warn(f"{_origin(path, overrides, 'variants')}: no variant applies to {clip(', '.join(bare), 200)}, so "
-                "the grid neither trains nor evaluates it")  # fmt: skip
-    idle = [e for e in spec.demos_for if e not in spec.envs]
-    if idle and "envs" not in set_keys:  # (a grid narrowed with --set envs leaves entries idle on purpose)
-        ui.warn(f"{_origin(path, overrides, 'demos_for')}: demos_for: {', '.join(idle)}: not among the grid's "
-                "environments, so it does nothing here")  # fmt: skip
     check_commands(spec, path)
     # settings may name envs and methods the grid does not run (one settings table for several grids), but every
     # name must exist: a typo would silently apply nothing
