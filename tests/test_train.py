@@ -816,3 +816,21 @@ def test_a_bfloat16_training_step_runs_the_network_in_bfloat16_and_keeps_float32
         assert all(p.dtype == torch.float32 for p in method.net.parameters())
         out[precision] = loss
     assert out["bfloat16"] == pytest.approx(out["float32"], rel=0.05)
+
+
+def test_resume_messages_name_what_blocks_it_and_dry_run_checks_the_device(small_data, tmp_path, cdrb):
+    """--resume lists only the settings that block continuing (a longer --steps does not), a file that is no model
+    is named once without advising --force, and --dry-run refuses an unknown device as the run does."""
+    from tests.factories import write
+
+    demos, buffer = small_data
+    args = ["train", demos.path, "--buffer", buffer.path, *TINY_FLAGS]
+    out = tmp_path / "m.h5"
+    assert cdrb(*args, "--steps", "20", "--out", out).returncode == 0
+    r = cdrb(*args, "--steps", "40", "--set", "lr=0.1", "--resume", "--out", out)
+    assert r.returncode == 2 and "other settings: lr" in r.stderr and "steps" not in r.stderr.split("settings:")[1]
+    ev = write(tmp_path / "e.h5", "eval")
+    r = cdrb(*args, "--steps", "40", "--resume", "--out", ev)
+    assert r.returncode == 2 and r.stderr.count(str(ev)) == 1 and "--force" not in r.stderr, r.stderr
+    r = cdrb(*args, "--steps", "5", "--dry-run", "--device", "mps")
+    assert r.returncode == 2 and "--device mps: unknown device" in r.stderr, r.stderr

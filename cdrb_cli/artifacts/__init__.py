@@ -369,6 +369,8 @@ def existing(
             what = "a finished model" if state.finished else "a checkpoint"
             return Existing("resumable", art, f"it is {what} at step {state.step}")
     keys = differences(art.manifest.config.model_dump(mode="json"), config.model_dump(mode="json"))
+    if state is not None:  # a checkpoint continues to a longer run: its length is no difference that blocks it
+        keys = [k for k in keys if k not in resumable] or keys
     return Existing("different", art, f"it was made with other settings: {', '.join(keys[:4]) or 'config'}")
 
 

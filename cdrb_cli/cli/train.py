@@ -110,6 +110,9 @@ def train(
     snapshots = int_values(snapshot_at, "--snapshot-at", "step counts", "1000,3000") if snapshot_at else []
     check_snapshots(config, snapshots)  # a dry run refuses what the run would
     if dry_run:
+        from cdrb_cli.torch_utils import check_device_name
+
+        check_device_name(device)
         ui.log(f"{n_params:,} parameters (about {n_params * TRAIN_BYTES_PER_PARAMETER / 2**20:,.0f} MiB to train)")
         ui.emit(config.model_dump(mode="json"), as_json=True)
         return

@@ -264,6 +264,8 @@ def _train_or_resume(demos, buffer, config, out, parents, force, resume, auto, r
     if found.status == "resumable" and (resume or auto):
         return train(demos, buffer, config, out, resume=found.artifact, **run), "resumed"
     if resume:
+        if found.status == "invalid":  # not a model at all (its reason names the file): --force would write over it
+            raise BadInput(f"--resume: {found.reason}", hint="--out names the checkpoint of `cdrb train` to continue")
         missing = found.status == "missing"
         hint = "run without --resume to start training" if missing else "use the same inputs and settings, or --force"
         raise BadInput(f"--resume: {out}: {found.reason}", hint=hint)
