@@ -61,8 +61,6 @@ def _error(text: str) -> None:
 def _refuse_empty_paths(command, args: list[str]) -> None:
     """Refuse an empty value of a path option (``--video ''``, ``--out=``): ``Path("")`` is the current folder, so
     a shell variable that was never set would write there."""
-    from pathlib import Path
-
     cmd, rest = command, list(args)
     while rest and hasattr(cmd, "commands") and rest[0] in cmd.commands:
         cmd, rest = cmd.commands[rest[0]], rest[1:]

@@ -100,7 +100,7 @@ def collect(
     from cdrb_cli.stages.collect import check_workers, collect_config
     from cdrb_cli.stages.collect import collect as run_collect
 
-    gif_count(video, videos)  # --videos without --video: refused before any work
+    gifs = gif_count(video, videos)  # --videos without --video: refused before any work
     if video is not None:
         from cdrb_cli.envs.render import choose_gl_backend
 
@@ -132,7 +132,7 @@ def collect(
     if video is not None:
         from cdrb_cli.envs.render import demo_gifs
 
-        demo_gifs(demos, video, gif_count(video, videos))
+        demo_gifs(demos, video, gifs)
         ui.log(f"demo GIFs: {video}/")
     ui.emit({"path": str(out), "summary": s.model_dump()} if as_json else out, as_json=as_json)
 
