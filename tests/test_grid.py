@@ -205,8 +205,8 @@ collect = ["--set", 'expert.routes=["over"]']
             "in variant v: train flags: --set horizon=15",
         ),
         # out: a file, under a file, a control character
-        (TINY.replace('out = "runs"', 'out = "grid.toml"'), "is a file, not a folder"),
-        (TINY.replace('out = "runs"', 'out = "grid.toml/sub"'), "is a file, not a folder"),
+        (TINY.replace('out = "runs"', 'out = "grid.toml"'), "is not a folder"),
+        (TINY.replace('out = "runs"', 'out = "grid.toml/sub"'), "is not a folder"),
         (TINY.replace('out = "runs"', 'out = "ru\\nns"'), "has a control character"),
         (TINY.replace('out = "runs"', 'out = "/proc/cdrb-grid"'), "out = /proc/cdrb-grid: cannot write in /proc"),
         # a collection on a map file: the command refuses an env and --maze-map both given, so every one would fail
@@ -270,7 +270,7 @@ def test_missing_grid_file_and_ray_flags(tmp_path):
     assert proc.returncode == 2 and "/dev/zero: not a grid file" in proc.stderr
     (tmp_path / "afile").write_text("x")
     proc = _cli("grid", str(_grid(tmp_path)), "--set", f"out={tmp_path / 'afile'}", "--backend", "pool")
-    assert proc.returncode == 2 and "is a file, not a folder" in proc.stderr
+    assert proc.returncode == 2 and "is not a folder" in proc.stderr
     assert (tmp_path / "afile").read_text() == "x"
 
 

@@ -381,3 +381,16 @@ def test_a_huge_columns_is_bounded(tmp_path):
     r = run_cdrb("train", "--help", env={"COLUMNS": "20000000"})
     assert r.returncode == 0 and "--config" in r.stdout, r.stderr
     assert max(len(line) for line in r.stdout.splitlines()) <= 1000
+
+
+def test_check_can_make_finds_the_nearest_existing_folder(tmp_path):
+    from cdrb_cli.artifacts.outputs import check_can_make
+
+    assert check_can_make(tmp_path / "a" / "b" / "c", "--x") == tmp_path
+    (tmp_path / "a").mkdir()
+    assert check_can_make(tmp_path / "a" / "b", "--x") == tmp_path / "a"
+    assert check_can_make(tmp_path / "a", "--x") == tmp_path / "a"
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(BadInput, match=r"--x shown: .*/f is not a folder"):
+        check_can_make(tmp_path / "f" / "sub", "--x", shown="shown")
+    assert (tmp_path / "f").read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a", "f"]

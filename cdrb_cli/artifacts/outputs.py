@@ -128,7 +128,21 @@ def distinct_outputs(**outputs: Path | None) -> None:
         seen[key] = flag
 
 
-def check_writable(folder: Path, flag: str, path: Path) -> None:
+def check_can_make(path: Path, flag: str, shown: Path | str | None = None, hint: str | None = None) -> Path:
+    """Files can be made on ``path``'s way: the nearest of it and its ancestors that exists is a folder a file can
+    be made in (tried, see :func:`check_writable`), else a one-line error naming ``flag`` and ``shown`` (default
+    ``path``). Returns that folder."""
+    nearest = Path(path)
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    shown = path if shown is None else shown
+    if not nearest.is_dir():
+        raise BadInput(f"{flag} {shown}: {nearest} is not a folder", hint=hint or "choose a folder path")
+    check_writable(nearest, flag, shown)
+    return nearest
+
+
+def check_writable(folder: Path, flag: str, path: Path | str) -> None:
     """A file can be made in the existing ``folder`` (tried and removed: permission bits do not tell everything,
     root passes them on /proc or a read-only mount), else a one-line error naming ``flag`` and ``path``. A fresh
     random name each time, so a probe an interrupted run left behind never collides with a later one."""

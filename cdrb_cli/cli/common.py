@@ -252,15 +252,9 @@ def _check_can_make(folder: Path, flag: str) -> None:
         raise BadInput(f"{flag} {folder}: a link to nothing", hint="pass a folder path")
     if folder.exists() and not folder.is_dir():
         raise BadInput(f"{flag} {folder}: exists and is not a folder", hint="pass a folder path")
-    first = folder
-    while not first.exists() and first != first.parent:
-        first = first.parent
-    if not first.is_dir() or not os.access(first, os.W_OK | os.X_OK):
-        what = "is not a folder" if not first.is_dir() else "is not writable"
-        raise BadInput(f"{flag} {folder}: {first} {what}", hint="pass a folder that can be made and written")
-    from cdrb_cli.artifacts.outputs import check_writable
+    from cdrb_cli.artifacts.outputs import check_can_make
 
-    check_writable(first, flag, folder)
+    check_can_make(folder, flag, hint="pass a folder that can be made and written")
 
 
 def gif_count(video: Path | None, videos: int | None) -> int:

@@ -346,7 +346,7 @@ def _export_root(root: Path | None, dataset_id: str) -> Path:
     """The absolute datasets folder an export writes under (``--root``, else ``MINARI_DATASETS_PATH`` or Minari's
     default), checked before any work: no link loop on the way to the dataset's folder, and the nearest folder
     that exists on that way is a folder a file can be made in (one-line errors naming the flag or variable)."""
-    from cdrb_cli.artifacts.outputs import check_writable
+    from cdrb_cli.artifacts.outputs import check_can_make
 
     given = "--root" if root is not None else ("MINARI_DATASETS_PATH" if os.environ.get("MINARI_DATASETS_PATH")
                                                else "Minari's datasets folder")  # fmt: skip
@@ -358,12 +358,7 @@ def _export_root(root: Path | None, dataset_id: str) -> Path:
         raise BadInput(f"{given} {root}: cannot be followed ({exc})", hint=hint) from None
     if root.exists() and not root.is_dir():
         raise BadInput(f"{given} {root}: not a folder", hint=hint)
-    nearest = root / dataset_id
-    while not nearest.exists() and nearest != nearest.parent:
-        nearest = nearest.parent
-    if not nearest.is_dir():
-        raise BadInput(f"{given} {root}: {nearest} is not a folder", hint=hint)
-    check_writable(nearest, given, root)
+    check_can_make(root / dataset_id, given, root, hint)
     return root
 
 

@@ -445,17 +445,11 @@ def _check_out(out: Path, where: str) -> None:
     """The grid's ``out`` is a folder or can become one (no file on its path, files can be made in the nearest
     folder that exists), and its name has no control characters (every task's command line names files under it,
     one line per task)."""
-    from cdrb_cli.artifacts.outputs import check_writable, has_control_character
+    from cdrb_cli.artifacts.outputs import check_can_make, has_control_character
 
     if has_control_character(str(out)):
         raise BadInput(f"{where}: out {clip(repr(str(out)), 80)}: has a control character", hint="rename the folder")
-    for folder in (out, *out.parents):
-        if folder.exists():
-            if not folder.is_dir():
-                raise BadInput(f"{where}: out = {out}: {folder} is a file, not a folder",
-                               hint="choose a folder for the grid's artifacts")  # fmt: skip
-            check_writable(folder, f"{where}: out =", out)
-            break
+    check_can_make(out, f"{where}: out =", hint="choose a folder for the grid's artifacts")
 
 
 def _check_names(where: str, methods: list[str] | None, envs: list[str] | None) -> None:
