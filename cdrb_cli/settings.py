@@ -17,9 +17,9 @@ import re
 import types
 import typing
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from pydantic import BaseModel, ValidationError
 
@@ -58,6 +58,8 @@ class Setting:
     path: Path_
     value: Any
     source: str
+    #: from a settings file: checked even where a later setting overrides it (a file is reused as it is)
+    from_file: bool = False
 
     @property
     def key(self) -> str:
@@ -219,7 +221,7 @@ def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
         if s.path in seen:
             raise BadInput(f"{source}: {clip(s.key, 60)} is given twice", hint="give each setting once")
         seen.add(s.path)
-    return settings
+    return [replace(s, from_file=True) for s in settings]
 
 
 def lookup(settings: Sequence[Setting], path: Path_) -> Setting | None:
@@ -280,29 +282,71 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
                 raise BadInput(f"{clip(s.source)}: a {shown} is not a setting value", hint=hint) from None
         raise BadInput(f"{what} settings: {exc}", hint=hint) from None
     try:
-        return model.model_validate_json(text, strict=True, context={"strict": True})
+        config = model.model_validate_json(text, strict=True, context={"strict": True})
     except ValidationError as exc:
-        err = exc.errors()[0]
-        # tagged unions add the tag to the location (("net", "unet", "dim")): drop it
-        loc = _field_loc(model, err.get("loc", ()))
-        key = ".".join(str(p) for p in loc)
-        msg = err.get("msg", "invalid").replace("valid array", "valid list")  # JSON says array; settings say list
-        if err.get("type") == "extra_forbidden":
-            msg = f"unknown setting {clip(repr(key), 60)}"
-        elif err.get("type") == "list_type":
-            msg += " (a list: write 1,4,8, or [512] for a single value)"
-        setting = source_of(settings, loc)
-        where = clip(setting.source if setting is not None else f"{what} {key}")
-        if err.get("type") == "value_error":  # a check across several fields of a record: name those it names
-            inside = [s for s in settings if tuple(s.path[: len(loc)]) == tuple(map(str, loc))]
-            named = [s for s in inside if _names(msg, s.path[len(loc) :])]
-            given = list(dict.fromkeys(s.source for s in named or (inside if len(loc) else [])))
-            if given:  # (one alone too: with an empty location the last setting applied is no clue)
-                where = clip(" with ".join(given), 200)
-            elif not given and setting is None and not loc:
-                where = f"{what} settings"
-        more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-        raise BadInput(f"{where}: {msg}{more}", hint=f"`cdrb config {what}` lists every setting") from None
+        _refuse(model, exc, settings, what)
+    _check_overridden(model, data, settings, what)
+    return config
+
+
+def _check_overridden(model: type[BaseModel], data: dict, settings: Sequence[Setting], what: str) -> None:
+    """A settings file's value that a later setting (a flag, ``--set``) overrides is still checked: the file is
+    reused as it is, elsewhere without the override. Its own value is written over the one that won and the
+    record validated again; only an error at that very field is its own (others belong to the whole)."""
+    for s in settings:
+        later = lookup(settings, s.path)
+        if not s.from_file or later is s or not _holds(data, s.path, later.value):
+            continue
+        try:
+            model.model_validate_json(json.dumps(apply(data, [s])), strict=True, context={"strict": True})
+        except (ValidationError, TypeError, ValueError, RecursionError) as exc:
+            errors = exc.errors() if isinstance(exc, ValidationError) else []
+            mine = [e for e in errors if tuple(map(str, _field_loc(model, e.get("loc", ())))) == s.path]
+            if mine or not isinstance(exc, ValidationError):
+                msg = _message(mine[0], s.path) if mine else "not a setting value"
+                raise BadInput(
+                    f"{clip(s.source)}: {msg}",
+                    hint=f"fix the file ({clip(later.source, 60)} overrides it here, not where the file is reused)",
+                ) from None
+
+
+def _holds(data: dict, path: Path_, value: Any) -> bool:
+    """Whether ``data`` holds ``value`` at ``path`` (the setting that won was written there as it is)."""
+    node: Any = data
+    for part in path:
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return node == value and type(node) is type(value)
+
+
+def _refuse(model: type[BaseModel], exc: ValidationError, settings: Sequence[Setting], what: str) -> NoReturn:
+    """The first error of a validation, as one line against the setting that caused it."""
+    err = exc.errors()[0]
+    loc = _field_loc(model, err.get("loc", ()))  # tagged unions add the tag (("net", "unet", "dim")): dropped
+    msg = _message(err, loc)
+    setting = source_of(settings, loc)
+    where = clip(setting.source if setting is not None else f"{what} {'.'.join(str(p) for p in loc)}")
+    if err.get("type") == "value_error":  # a check across several fields of a record: name those it names
+        inside = [s for s in settings if tuple(s.path[: len(loc)]) == tuple(map(str, loc))]
+        named = [s for s in inside if _names(msg, s.path[len(loc) :])]
+        given = list(dict.fromkeys(s.source for s in named or (inside if len(loc) else [])))
+        if given:  # (one alone too: with an empty location the last setting applied is no clue)
+            where = clip(" with ".join(given), 200)
+        elif not given and setting is None and not loc:
+            where = f"{what} settings"
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    raise BadInput(f"{where}: {msg}{more}", hint=f"`cdrb config {what}` lists every setting") from None
+
+
+def _message(err: dict, loc: Sequence[Any]) -> str:
+    """A validation error's message in the words of settings."""
+    msg = err.get("msg", "invalid").replace("valid array", "valid list")  # JSON says array; settings say list
+    if err.get("type") == "extra_forbidden":
+        return f"unknown setting {clip(repr('.'.join(str(p) for p in loc)), 60)}"
+    if err.get("type") == "list_type":
+        msg += " (a list: write 1,4,8, or [512] for a single value)"
+    return msg
 
 
 def _names(message: str, path: Sequence[str]) -> bool:

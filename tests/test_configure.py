@@ -63,6 +63,15 @@ def test_every_spelling_gives_one_config(tiny_models, tmp_path):
     assert by_set == by_file == by_keyword
     assert by_set.replan.mode == "every" and by_set.replan.every == 40 and by_set.avoid.best_of == 3
     assert eval_config(model).episodes == 100 and eval_config(model).seeds == [0, 1, 2, 3, 4]
+    # a file's value that a later setting overrides is still checked; a valid one is overridden as asked
+    toml.write_text('avoid = "plain"\n[controller]\nlook_ahead = "two"\n')
+    with pytest.raises(BadInput, match=r"run.toml: controller.look_ahead: Input should be a valid integer"):
+        eval_config(model, [*read_config_file(toml), *parse_set(["controller.look_ahead=2"])])
+    toml.write_text('avoid = "plain"\n[controller]\nlook_ahead = 1\n')
+    both = [*read_config_file(toml), *parse_set(["controller.look_ahead=2", "avoid=plain"])]
+    assert eval_config(model, both).controller.look_ahead == 2
+    toml.write_text('avoid = "plain"\n')  # a whole-record choice, read before validation, is overridden too
+    assert plan_config(model, [*read_config_file(toml), *parse_set(["avoid=tuned"])]).avoid != AvoidConfig()
 
 
 def test_a_scene_is_avoided_by_default(tiny_models):

@@ -58,7 +58,7 @@ def test_config_files(tmp_path):
     }
     js = tmp_path / "run.json"
     js.write_text(json.dumps({"net": {"dim": 8}}))
-    assert read_config_file(js) == [Setting(("net", "dim"), 8, f"--config {js}: net.dim")]
+    assert read_config_file(js) == [Setting(("net", "dim"), 8, f"--config {js}: net.dim", from_file=True)]
     twice = tmp_path / "twice.json"  # one key in two spellings: one value would be lost without a word
     twice.write_text(json.dumps({"net": {"dim": 8}, "net.dim": 16}))
     with pytest.raises(BadInput, match="net.dim is given twice"):
@@ -202,6 +202,18 @@ def test_config_file_errors_name_the_key(small_data, tmp_path, cdrb):
     bad.write_text("lr = inf\n")
     r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", bad, "--dry-run")
     assert r.returncode == 2 and f"--config {bad}: lr: Input should be a finite number" in r.stderr
+    # overridden by --set or a flag, the file's value is still checked (the file is reused elsewhere as it is)
+    for override in (["--set", "lr=0.001"], ["--set", "lr=0.001", "--steps", "3"]):
+        r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", bad, *override, "--dry-run")
+        assert r.returncode == 2 and f"--config {bad}: lr: Input should be a finite number" in r.stderr, r.stderr
+        assert "overrides it here" in r.stderr and r.stderr.count("\n") == 1
+    bad.write_text('steps = "many"\n')
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", bad, "--steps", "3", "--dry-run")
+    assert r.returncode == 2 and f"--config {bad}: steps: Input should be a valid integer" in r.stderr, r.stderr
+    # a valid file value overridden is fine, and the override wins
+    bad.write_text("steps = 5\nlr = 0.01\n")
+    r = cdrb("train", demos.path, "--buffer", buffer.path, "--config", bad, "--steps", "3", "--dry-run")
+    assert r.returncode == 0, r.stderr
 
 
 def test_a_second_run_names_the_settings_that_differ(small_data, tmp_path, cdrb):
