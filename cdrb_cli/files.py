@@ -66,6 +66,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        if _landing is not None:  # inside together(): it lands with the others
+            _landing.append((tmp, path))
+            return
         _before_rename_hook(tmp, path)
         os.replace(tmp, path)
         _fsync_dir(folder)
@@ -77,6 +80,38 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         if isinstance(exc, OSError):
             _raise_if_full(exc, path)
         raise
+
+
+#: the finished temp files of the innermost together() block, with the paths they are renamed to at its end
+_landing: list[tuple[Path, Path]] | None = None
+
+
+@contextmanager
+def together() -> Iterator[None]:
+    """The :func:`atomic_path` writes inside the block land together at its end, or none of them: each is written
+    and fsynced to its temp file as it goes and renamed into place only once the block succeeds, so a command with
+    several outputs (a report and its --docs page, a settings file and its tables) never leaves some of them when
+    a later one fails (a full disk). Nothing inside the block may read back what it wrote. Nested blocks are one."""
+    global _landing
+    if _landing is not None:
+        yield
+        return
+    _landing = []
+    try:
+        yield
+        with interrupts.polled():  # Ctrl-C is answered after the renames, not between them
+            for tmp, path in _landing:
+                _before_rename_hook(tmp, path)
+                os.replace(tmp, path)
+        for folder in dict.fromkeys(path.parent for _, path in _landing):
+            _fsync_dir(folder)
+    except BaseException:
+        for tmp, _ in _landing:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        raise
+    finally:
+        _landing = None
 
 
 #: write errors that say the file does not fit (a full disk, a quota, the process's file-size limit), with the fix

@@ -243,6 +243,33 @@ def test_report_checks_every_output_before_writing_one(evals, tmp_path, cdrb):
     assert r.returncode == 2 and "--paper-figures goes with --paper" in r.stderr
 
 
+def test_report_outputs_land_together_or_not_at_all(evals, tmp_path, cdrb, monkeypatch):
+    """The last output failing to fit (a full disk) leaves none of the earlier ones: the picture, the --docs page
+    and the report are written to temp files and renamed only once all are written."""
+    import errno
+    import pathlib
+
+    doc = tmp_path / "doc.md"
+    page = "a\n<!-- t:begin -->\n<!-- t:end -->\nb\n"
+    doc.write_text(page)
+    write_text = pathlib.Path.write_text
+
+    def full_for_the_report(self, *args, **kwargs):
+        if self.name.startswith(".r.md.tmp-"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(pathlib.Path, "write_text", full_for_the_report)
+    flags = ["--docs", doc, "--block", "t", "--plot", tmp_path / "b.png", "--out", tmp_path / "r.md"]
+    r = cdrb("report", evals["cdrb"].path, *flags)
+    assert r.returncode == 2 and "no space left on device while writing it" in r.stderr, r.stderr
+    assert doc.read_text() == page and sorted(p.name for p in tmp_path.iterdir()) == ["doc.md"]
+    monkeypatch.undo()
+    r = cdrb("report", evals["cdrb"].path, *flags)
+    assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "r.md")
+    assert (tmp_path / "b.png").stat().st_size > 0 and "| cdrb" in doc.read_text()
+
+
 def test_report_formats_and_pictures(evals, tmp_path, cdrb):
     paths = [evals[m].path for m in ("cdrb", "diffuser", "mlp")]
     r = cdrb(

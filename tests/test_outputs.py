@@ -394,3 +394,25 @@ def test_check_can_make_finds_the_nearest_existing_folder(tmp_path):
     with pytest.raises(BadInput, match=r"--x shown: .*/f is not a folder"):
         check_can_make(tmp_path / "f" / "sub", "--x", shown="shown")
     assert (tmp_path / "f").read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a", "f"]
+
+
+def test_writes_inside_together_land_at_its_end_or_not_at_all(tmp_path):
+    from cdrb_cli.files import atomic_path, together
+
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    a.write_text("old")
+    with together():
+        with atomic_path(a) as tmp:
+            tmp.write_text("new")
+        with together(), atomic_path(b) as tmp:  # a nested block is the outer one
+            tmp.write_text("b")
+        assert a.read_text() == "old" and not b.exists()
+    assert a.read_text() == "new" and b.read_text() == "b"
+    with pytest.raises(RuntimeError), together():
+        with atomic_path(a) as tmp:
+            tmp.write_text("newer")
+        raise RuntimeError("a later output failed")
+    assert a.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+    with atomic_path(a) as tmp:  # outside a block: at once
+        tmp.write_text("now")
+    assert a.read_text() == "now"

@@ -108,19 +108,24 @@ def report(
         report_figures.with_plans(arts)
     if docs is not None:
         docs_blocks.check_docs_block(docs, block, text, read)
-    if plot is not None:
-        report_figures.plot_bars(rows, plot)
-        ui.log(f"picture: {plot}")
-    if plans_plot is not None:
-        report_figures.plot_side_by_side(arts, plans_plot)
-        ui.log(f"picture: {plans_plot}")
-    if docs is not None:
-        docs_blocks.write_docs_block(docs, block, text, read)
-    if out is not None:
-        from cdrb_cli.artifacts import atomic_path, claim_output
+    from cdrb_cli.files import together
 
-        with claim_output(out, force, "--out", read), atomic_path(out) as tmp:
-            tmp.write_text(text)
+    with together():  # the pictures, the page and the report land together or not at all
+        if plot is not None:
+            report_figures.plot_bars(rows, plot)
+        if plans_plot is not None:
+            report_figures.plot_side_by_side(arts, plans_plot)
+        if docs is not None:
+            docs_blocks.write_docs_block(docs, block, text, read)
+        if out is not None:
+            from cdrb_cli.artifacts import atomic_path, claim_output
+
+            with claim_output(out, force, "--out", read), atomic_path(out) as tmp:
+                tmp.write_text(text)
+    for picture in (plot, plans_plot):
+        if picture is not None:
+            ui.log(f"picture: {picture}")
+    if out is not None:
         ui.emit(out)
     elif docs is not None:
         ui.emit(docs)

@@ -512,19 +512,22 @@ def select(
             f"{env} / {method}: {c.name} (success {c.success:.1f}%, through an obstacle "
             f"{'n/a' if c.crossing is None else f'{c.crossing:.1f}%'}, collisions {c.collision:.1f}%)"
         )
-    with artifacts.claim_output(out, force, "--out", inputs), artifacts.atomic_path(out) as tmp:
-        tmp.write_text(settings_text(spec, Path(grid_file), best, Path(out).resolve().parent))
-    if table is not None:
-        fmt = "csv" if table.suffix == ".csv" else "markdown"
-        with artifacts.claim_output(table, force, "--table", inputs), artifacts.atomic_path(table) as tmp:
-            tmp.write_text(table_text(table_rows(cands, best), fmt))
-    if curves is not None:
-        from cdrb_cli.stages.report import render
+    from cdrb_cli.files import together
 
-        with artifacts.claim_output(curves, force, "--curves", inputs), artifacts.atomic_path(curves) as tmp:
-            tmp.write_text(render(curve_rows(cands), "csv"))
-    if docs is not None:
-        from cdrb_cli.stages.docs_blocks import write_docs_block
+    with together():  # the settings file, its tables and the page land together or not at all
+        with artifacts.claim_output(out, force, "--out", inputs), artifacts.atomic_path(out) as tmp:
+            tmp.write_text(settings_text(spec, Path(grid_file), best, Path(out).resolve().parent))
+        if table is not None:
+            fmt = "csv" if table.suffix == ".csv" else "markdown"
+            with artifacts.claim_output(table, force, "--table", inputs), artifacts.atomic_path(table) as tmp:
+                tmp.write_text(table_text(table_rows(cands, best), fmt))
+        if curves is not None:
+            from cdrb_cli.stages.report import render
 
-        write_docs_block(docs, block, summary, inputs)
+            with artifacts.claim_output(curves, force, "--curves", inputs), artifacts.atomic_path(curves) as tmp:
+                tmp.write_text(render(curve_rows(cands), "csv"))
+        if docs is not None:
+            from cdrb_cli.stages.docs_blocks import write_docs_block
+
+            write_docs_block(docs, block, summary, inputs)
     return out
