@@ -34,6 +34,12 @@ SCHEMA_VERSIONS = {"demos": "2.7", "buffer": "2.8", "model": "2.17", "plans": "2
 CHECKSUM_SINCE = (2, 1)
 
 
+def _feature_dim(manifest) -> int:
+    """The width of a buffer's points: the state, and the action too when clustered on ``state-action``."""
+    e = manifest.env
+    return e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
+
+
 class ParentRef(Record):
     """An input artifact: its kind, the path it was read from, the sha256 of its bytes and of its data (what the
     file says, without when and how it was written: :meth:`~cdrb_cli.artifacts.core.ArtifactBase.data_sha256`)."""
@@ -232,9 +238,7 @@ class Buffer(ArtifactBase):
 
     @classmethod
     def dims(cls, manifest):
-        e = manifest.env
-        d = e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
-        return {"feature_dim": d}
+        return {"feature_dim": _feature_dim(manifest)}
 
     @classmethod
     def check_data(cls, manifest, arrays):
@@ -293,9 +297,7 @@ class Model(ArtifactBase):
 
     @classmethod
     def dims(cls, manifest):
-        e = manifest.env
-        d = e.obs_dim + (e.action_dim if manifest.config.features == "state-action" else 0)
-        return {"feature_dim": d}
+        return {"feature_dim": _feature_dim(manifest)}
 
     @classmethod
     def check_data(cls, manifest, arrays):
