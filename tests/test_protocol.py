@@ -213,3 +213,23 @@ def test_a_point_agent_inside_a_box_collides():
     assert in_boxes(inside, ob).all()
     across = np.stack([inside[0] - [2, 0, 0, 0], inside[0] + [2, 0, 0, 0]])[None]
     assert path_crosses_boxes(across, ob).all()
+
+
+def test_a_point_agent_cannot_pass_where_two_boxes_touch():
+    """A point agent's segment is as closed as its states: passing through the corner two boxes share (a gap of no
+    width), or grazing a corner, crosses, as a state there collides; missing the corner by a hair does not. The
+    vectorised slab test answers each segment as the one-segment test does."""
+    from cdrb_cli.envs.geometry import BoxObstacles, in_boxes, segments_hit_boxes
+
+    ob = BoxObstacles(dims=[0, 1], centers=[[0.5, 0.5], [-0.5, -0.5]], half_sizes=[[0.5, 0.5]] * 2,
+                      low=[-5, -5], high=[5, 5])  # fmt: skip
+    through = np.array([[[-1.0, 1.0], [1.0, -1.0]]])
+    assert in_boxes(np.zeros((1, 2)), ob).all() and path_crosses_boxes(through, ob).all()
+    graze = np.array([[[-1.0, 0.0], [1.0, 2.0]]])  # touches the first box at its corner (0, 1) only
+    assert path_crosses_boxes(graze, ob).all()
+    assert not path_crosses_boxes(graze + [0.0, 1e-6], ob).any()
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(-2, 2, (200, 2)), rng.uniform(-2, 2, (200, 2))
+    c, h = np.asarray(ob.centers), np.asarray(ob.half_sizes)
+    want = [segment_hits_boxes(x, y, c, h, 0.0) for x, y in zip(a, b)]
+    assert segments_hit_boxes(a, b, c, h).tolist() == want and 0 < sum(want) < 200

@@ -128,21 +128,37 @@ def segment_box_distance(
 
 
 def segment_hits_boxes(a: np.ndarray, b: np.ndarray, centers: np.ndarray, half_sizes: np.ndarray, tol: float) -> bool:
-    """Whether the one segment [a, b] (d,) meets any box grown by ``tol`` on every side: the slab test, exact and
-    closed-form (the segment's parameter interval inside each grown box is the intersection of its intervals between
-    each pair of faces). The boxes grown by ``tol`` per axis contain those grown by ``tol`` in Euclidean distance,
-    so this answers ``segment_box_distance(a, b) < tol`` except within ``tol * sqrt(d)`` of an edge."""
+    """Whether the one segment [a, b] (d,) meets any box grown by ``tol`` on every side (:func:`segments_hit_boxes`).
+    The boxes grown by ``tol`` per axis contain those grown by ``tol`` in Euclidean distance, so this answers
+    ``segment_box_distance(a, b) < tol`` except within ``tol * sqrt(d)`` of an edge."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return bool(segments_hit_boxes(a[None], b[None], centers, half_sizes, tol)[0])
+
+
+def segments_hit_boxes(
+    a: np.ndarray, b: np.ndarray, centers: np.ndarray, half_sizes: np.ndarray, tol: float = 0.0, chunk: int = 8192
+) -> np.ndarray:
+    """Boolean over segments [a, b] (..., d): whether each meets a closed box grown by ``tol`` on every side, by the
+    slab test, exact and closed-form (the segment's parameter interval inside each box is the intersection of its
+    intervals between each pair of faces): a segment that only touches a box's corner or edge meets it."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    shape = a.shape[:-1]
+    fa, fd = a.reshape(-1, a.shape[-1]), (b - a).reshape(-1, a.shape[-1])
+    out = np.zeros(fa.shape[0], dtype=bool)
     if len(centers) == 0:
-        return False
-    a, d = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)
-    low, high = centers - half_sizes - tol - a, centers + half_sizes + tol - a  # the faces, relative to a
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = low / d, high / d
-    still = d == 0  # parallel to that pair of faces: inside the slab for every t, or never
-    inside = (low <= 0) & (high >= 0)
-    enter = np.where(still, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=-1)
-    leave = np.where(still, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=-1)
-    return bool(np.any((enter <= leave) & (enter <= 1.0) & (leave >= 0.0)))
+        return out.reshape(shape)
+    centers, half_sizes = np.asarray(centers, dtype=np.float64), np.asarray(half_sizes, dtype=np.float64)
+    for s in range(0, fa.shape[0], chunk):
+        p, d = fa[s : s + chunk, None, :], fd[s : s + chunk, None, :]
+        low, high = centers - half_sizes - tol - p, centers + half_sizes + tol - p  # the faces, relative to a
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = low / d, high / d
+        still = d == 0  # parallel to that pair of faces: inside the slab for every t, or never
+        inside = (low <= 0) & (high >= 0)
+        enter = np.where(still, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=-1)
+        leave = np.where(still, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=-1)
+        out[s : s + chunk] = np.any((enter <= leave) & (enter <= 1.0) & (leave >= 0.0), axis=-1)
+    return out.reshape(shape)
 
 
 def path_crosses_boxes(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarray:
@@ -151,8 +167,11 @@ def path_crosses_boxes(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarra
     states = np.asarray(states)
     pts = states[..., obstacles.dims].astype(np.float64)
     centers, halves = box_arrays(obstacles)
-    within = max(obstacles.inflate, 1e-12)
-    seg = _touches(segment_box_distance(pts[..., :-1, :], pts[..., 1:, :], centers, halves, within), obstacles.inflate)
+    a, b = pts[..., :-1, :], pts[..., 1:, :]
+    if obstacles.inflate > 0:
+        seg = segment_box_distance(a, b, centers, halves, obstacles.inflate) < obstacles.inflate
+    else:  # a point agent: the exact test, as closed as in_boxes (a segment through the corner two boxes share)
+        seg = segments_hit_boxes(a, b, centers, halves)
     return in_boxes(states, obstacles).any(axis=-1) | seg.any(axis=-1)
 
 
