@@ -114,6 +114,33 @@ def test_bfs_and_stock_envs():
     assert spec.horizon == 168 and spec.plan_stride == 2 and spec.success_radius == 0.45
 
 
+def test_longest_start_goal_path_against_a_search_from_each_goal():
+    """The longest start-to-goal grid distance (and from any free cell) as its definition gives it: the largest
+    finite distance of a breadth-first search from each goal cell, over random maps with walls, several starts
+    and goals, and cells that reach no goal."""
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(60):
+        h, w = rng.integers(3, 12, 2)
+        g = np.where(rng.random((h, w)) < 0.3, "#", ".")
+        free = np.argwhere(g == ".")
+        if len(free) < 2:
+            continue
+        for c in free[rng.choice(len(free), min(4, len(free)), replace=False)]:
+            g[tuple(c)] = rng.choice(["S", "G", "C"])
+        g[tuple(free[0])], g[tuple(free[-1])] = "S", "G"
+        try:
+            m = MazeGeometry(parse_map("\n".join("".join(r) for r in g), "t"))
+        except BadInput:  # no start reaches a goal: refused
+            continue
+        for anywhere in (False, True):
+            starts = np.argwhere(m.free) if anywhere else m.start_cells
+            want = max(int(max(m.bfs(goal)[tuple(starts.T)].max(), 0)) for goal in m.goal_cells)
+            assert m.longest_start_goal_path(anywhere) == want
+        checked += 1
+    assert checked > 30
+
+
 def test_unknown_env():
     with pytest.raises(BadInput, match="unknown environment"):
         make_spec("moon")
