@@ -510,3 +510,46 @@ def test_load_refuses_what_is_no_path_or_no_kind(tmp_path):
         with pytest.raises(ArtifactError, match=needle):
             load(path, kind=kind)
     assert load(str(p), kind="demos").manifest.kind == "demos"
+
+
+def _rewrite(path, name, dtype):
+    """Store one dataset as ``dtype`` and re-sign the file, as another writer following docs/format.md would."""
+    from cdrb_cli.artifacts.core import CHECKSUM_ATTR, content_sha256
+
+    with h5py.File(path, "r+") as f:
+        data = f[name][()]
+        del f[name]
+        f.create_dataset(name, data=data.astype(dtype))
+        arrays = {}
+        f.visititems(lambda n, o: arrays.__setitem__(n, o[()]) if isinstance(o, h5py.Dataset) else None)
+        payload = bytes(arrays.pop("manifest"))
+        f.attrs[CHECKSUM_ATTR] = content_sha256(payload, arrays)
+    return data
+
+
+def test_another_byte_order_or_half_floats_read_as_numbers(tmp_path, recwarn):
+    """A big-endian dataset reads in this machine's byte order (torch takes no other) with its values and its
+    checksum intact; half floats read without overflow warnings from the magnitude check."""
+    p = write(tmp_path / "d.h5", "demos")
+    want = _rewrite(p, "steps/observations", ">f4")
+    got = artifacts.load(p, "demos").arrays["steps/observations"]
+    assert got.dtype.isnative and np.array_equal(got, want)
+    import torch
+
+    assert torch.as_tensor(got).shape == want.shape
+    _rewrite(p, "steps/observations", "f2")
+    assert np.allclose(artifacts.load(p, "demos").arrays["steps/observations"], want, atol=1e-2)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+def test_a_manifest_nested_past_recursion_is_not_valid_json(tmp_path):
+    p = write(tmp_path / "d.h5", "demos")
+    with h5py.File(p, "r") as f:
+        m = json.loads(f["manifest"][()].decode())
+    m["summary"] = json.loads("[" * 50 + "]" * 50)
+    _set_manifest(p, m, "2.7")
+    with h5py.File(p, "r+") as f:
+        text = f["manifest"][()].decode().replace("[" * 50 + "]" * 50, "[" * 100000 + "]" * 100000)
+        del f["manifest"]
+        f["manifest"] = np.bytes_(text)
+    assert "/manifest is not valid JSON" in _err(p)

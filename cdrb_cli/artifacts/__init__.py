@@ -29,6 +29,7 @@ from cdrb_cli.artifacts.core import (
     known_safe,
     load_arrays,
     mark_safe,
+    native_order,
     parse_version,
     read_h5,
     sha256_file,
@@ -218,6 +219,7 @@ def _load(path: Path, kind: str | None, sha: str | None = None) -> ArtifactBase:
             check_shapes(path, datasets, cls.datasets, cls.groups, cls.dims(manifest))
             arrays = load_arrays(path, datasets)
             verify_content(path, f, arrays, required=parse_version(version) >= CHECKSUM_SINCE)
+            arrays = native_order(arrays)
             if old:
                 arrays = migrate_arrays(found_kind, major, arrays)
             arrays = backfill_arrays(found_kind, arrays, parse_version(version))

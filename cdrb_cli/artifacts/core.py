@@ -154,7 +154,10 @@ def write_h5(path: str | Path, kind: str, version: str, manifest: Record, arrays
 
 
 def in_bounds(arr: np.ndarray) -> bool:
-    """Every value finite and within +-MAX_MAGNITUDE: one pass over the array (NaN and inf fail the comparison)."""
+    """Every value finite and within +-MAX_MAGNITUDE: one pass over the array (NaN and inf fail the comparison).
+    A half-precision float cannot hold the bound (it would overflow to inf): finite is enough there."""
+    if arr.dtype.itemsize < 4:
+        return bool(np.isfinite(arr).all())
     return bool((np.abs(arr) <= MAX_MAGNITUDE).all())
 
 
@@ -328,7 +331,7 @@ def read_h5(
             )
         try:
             manifest = json.loads(man[()].decode("ascii"))
-        except (UnicodeDecodeError, ValueError, OSError):
+        except (UnicodeDecodeError, ValueError, OSError, RecursionError):  # (nested deeper than Python follows)
             raise ArtifactError(f"{path}: /{MANIFEST} is not valid JSON", hint="re-create it") from None
         if not isinstance(manifest, dict):
             raise ArtifactError(f"{path}: /{MANIFEST} is not a JSON object", hint="re-create it")
@@ -427,6 +430,12 @@ def verify_content(path: Path, f: h5py.File, arrays: Mapping[str, np.ndarray], r
             f"{path}: content does not match its checksum (the file was changed or damaged)",
             hint="re-create it with the command that wrote it",
         )
+
+
+def native_order(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The arrays in this machine's byte order (another writer's may differ; torch takes only the native one),
+    converted after the checksum, which covers the bytes as stored."""
+    return {k: v if v.dtype.isnative else v.astype(v.dtype.newbyteorder("=")) for k, v in arrays.items()}
 
 
 def load_arrays(path: Path, datasets: Mapping[str, h5py.Dataset]) -> dict[str, np.ndarray]:
