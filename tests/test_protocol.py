@@ -233,3 +233,20 @@ def test_a_point_agent_cannot_pass_where_two_boxes_touch():
     c, h = np.asarray(ob.centers), np.asarray(ob.half_sizes)
     want = [segment_hits_boxes(x, y, c, h, 0.0) for x, y in zip(a, b)]
     assert segments_hit_boxes(a, b, c, h).tolist() == want and 0 < sum(want) < 200
+
+
+def test_a_state_that_is_not_a_point_collides():
+    """A NaN or infinite state (a diverged sampler's) is in collision, and its plan crosses: a NaN compares false
+    with every bound and every distance, and passed as free."""
+    from cdrb_cli.envs.geometry import in_boxes
+
+    spec = make_spec("maze-tight")
+    fam, ob = family_of(spec), spec.obstacles
+    g = MazeGeometry(spec.scene.maze)
+    start = np.array([*g.cell_to_xy(g.start_cells[0]), 0.0, 0.0])
+    for bad in (np.nan, np.inf):
+        mid = start.copy()
+        mid[0] = bad
+        path = np.stack([start, mid, start])[None]
+        assert in_boxes(mid[None], ob).all() and not in_boxes(start[None], ob).any()
+        assert path_crosses_boxes(path, ob).all() and fam.path_in_collision(spec, path).all()

@@ -68,13 +68,14 @@ def _touches(distance: np.ndarray, inflate: float) -> np.ndarray:
 
 def in_boxes(states: np.ndarray, obstacles: BoxObstacles) -> np.ndarray:
     """Boolean mask over states (..., D): True where the agent (a ball of radius ``obstacles.inflate`` centred at
-    the state's obstacle dimensions) overlaps a box, or its centre lies outside ``[low, high]``."""
+    the state's obstacle dimensions) overlaps a box, or its centre lies outside ``[low, high]`` or is not a finite
+    point (a NaN compares false with every bound, and would otherwise pass as free)."""
     states = np.asarray(states)
     pts = states[..., obstacles.dims].astype(np.float64)
     centers, halves = box_arrays(obstacles)
     hit = _touches(box_distance(pts, centers, halves), obstacles.inflate)
     low, high = np.asarray(obstacles.low), np.asarray(obstacles.high)
-    outside = np.any((pts < low) | (pts > high), axis=-1)
+    outside = np.any((pts < low) | (pts > high) | ~np.isfinite(pts), axis=-1)
     return hit | outside
 
 
@@ -106,24 +107,26 @@ def segment_box_distance(
     def dist(p, c, h):
         return np.sqrt(np.square(np.maximum(np.abs(p - c) - h, 0.0)).sum(-1))
 
-    for s in range(0, fa.shape[0], chunk):
-        p0, d = fa[s : s + chunk, None, :], (fb - fa)[s : s + chunk, None, :]
-        best = np.minimum(dist(p0, centers[None], half_sizes[None]), dist(p0 + d, centers[None], half_sizes[None]))
-        need = best > 0
-        if within is not None:
-            need &= best - np.linalg.norm(d, axis=-1) / 2 < within
-        i, j = np.nonzero(need)
-        if i.size:
-            p, dd, c, h = p0[i, 0], d[i, 0], centers[j], half_sizes[j]
-            lo, hi = np.zeros(i.size), np.ones(i.size)
-            for _ in range(iters):
-                m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
-                left = dist(p + m1[:, None] * dd, c, h) <= dist(p + m2[:, None] * dd, c, h)
-                hi = np.where(left, m2, hi)
-                lo = np.where(left, lo, m1)
-            mid = dist(p + ((lo + hi) / 2)[:, None] * dd, c, h)
-            best[i, j] = np.minimum(best[i, j], mid)
-        out[s : s + chunk] = best.min(axis=1)
+    # a state that is no point (NaN, inf) gives NaN here; in_boxes counts it as a collision
+    with np.errstate(invalid="ignore"):
+        for s in range(0, fa.shape[0], chunk):
+            p0, d = fa[s : s + chunk, None, :], (fb - fa)[s : s + chunk, None, :]
+            best = np.minimum(dist(p0, centers[None], half_sizes[None]), dist(p0 + d, centers[None], half_sizes[None]))
+            need = best > 0
+            if within is not None:
+                need &= best - np.linalg.norm(d, axis=-1) / 2 < within
+            i, j = np.nonzero(need)
+            if i.size:
+                p, dd, c, h = p0[i, 0], d[i, 0], centers[j], half_sizes[j]
+                lo, hi = np.zeros(i.size), np.ones(i.size)
+                for _ in range(iters):
+                    m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+                    left = dist(p + m1[:, None] * dd, c, h) <= dist(p + m2[:, None] * dd, c, h)
+                    hi = np.where(left, m2, hi)
+                    lo = np.where(left, lo, m1)
+                mid = dist(p + ((lo + hi) / 2)[:, None] * dd, c, h)
+                best[i, j] = np.minimum(best[i, j], mid)
+            out[s : s + chunk] = best.min(axis=1)
     return out.reshape(shape)
 
 
