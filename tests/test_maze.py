@@ -141,6 +141,42 @@ def test_longest_start_goal_path_against_a_search_from_each_goal():
     assert checked > 30
 
 
+def test_detour_pairs_against_a_search_from_each_goal():
+    """The pairs whose shortest path a map lengthens (or cuts) against its trained map, as the definition gives
+    them from one breadth-first search per goal cell in each map, over random maps with walls added."""
+    rng = np.random.default_rng(1)
+    checked = 0
+    for _ in range(40):
+        h, w = rng.integers(4, 11, 2)
+        g = np.where(rng.random((h, w)) < 0.2, "#", ".")
+        free = np.argwhere(g == ".")
+        if len(free) < 6:
+            continue
+        for c in free[rng.choice(len(free), 5, replace=False)]:
+            g[tuple(c)] = rng.choice(["S", "G", "C"])
+        g[tuple(free[0])], g[tuple(free[-1])] = "S", "G"
+        blocked = g.copy()
+        plain = np.argwhere(g == ".")
+        for c in plain[rng.choice(len(plain), min(3, len(plain)), replace=False)] if len(plain) else []:
+            blocked[tuple(c)] = "#"
+        try:
+            trained = MazeGeometry(parse_map("\n".join("".join(r) for r in g), "t"))
+            here = MazeGeometry(parse_map("\n".join("".join(r) for r in blocked), "t"))
+        except BadInput:
+            continue
+        want = [
+            [*s, *goal]
+            for goal in here.goal_cells
+            for s in here.start_cells
+            if (s != goal).any()
+            and here.bfs(goal)[tuple(s)] >= 0
+            and (trained.bfs(goal)[tuple(s)] < 0 or here.bfs(goal)[tuple(s)] > trained.bfs(goal)[tuple(s)])
+        ]
+        assert here.detour_pairs(trained).tolist() == want
+        checked += bool(want)
+    assert checked > 5
+
+
 def test_unknown_env():
     with pytest.raises(BadInput, match="unknown environment"):
         make_spec("moon")

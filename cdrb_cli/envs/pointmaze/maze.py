@@ -261,31 +261,34 @@ class MazeGeometry:
                 return True
         return False
 
-    def longest_start_goal_path(self, anywhere: bool = False) -> int:
-        """The largest grid distance (cells) from any start cell (``anywhere``: any free cell) to any goal cell
-        reachable from it: a breadth-first search from each goal cell, in compiled code a block of goals at a time
-        (a 100 x 100 map of start+goal cells is 10,000 searches over 10,000 cells)."""
+    def grid_distances(self, sources, block: int = 256):
+        """Grid distances (cells, 4-connected) from each source cell, a block of sources at a time: yields arrays
+        (sources in the block, rows, cols), -1 where unreachable or a wall. :meth:`bfs` for many sources at once,
+        in compiled code (a 100 x 100 map of start+goal cells asks 10,000 searches over 10,000 cells)."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import shortest_path
 
         index = np.full(self.grid.shape, -1, dtype=np.int64)
-        index[self.free] = np.arange(int(self.free.sum()))
+        n = int(self.free.sum())
+        index[self.free] = np.arange(n)
         pairs = []
         for a, b in ((index[:, :-1], index[:, 1:]), (index[:-1, :], index[1:, :])):  # 4-connected neighbours
             both = (a >= 0) & (b >= 0)
             pairs.append(np.stack([a[both], b[both]]))
         edges = np.concatenate(pairs, axis=1)
-        n = int(self.free.sum())
         graph = coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr()
-        starts = index[self.free] if anywhere else index[tuple(self.start_cells.T)]
-        goals = index[tuple(self.goal_cells.T)]
-        best = 0
-        for k in range(0, len(goals), 256):
-            d = shortest_path(graph, directed=False, unweighted=True, indices=goals[k : k + 256])[:, starts]
-            reached = d[np.isfinite(d)]
-            if reached.size:
-                best = max(best, int(reached.max()))
-        return best
+        sources = index[tuple(np.asarray(sources, dtype=np.int64).reshape(-1, 2).T)]
+        for k in range(0, len(sources), block):
+            d = shortest_path(graph, directed=False, unweighted=True, indices=sources[k : k + block])
+            out = np.full((len(d), *self.grid.shape), -1, dtype=np.int64)
+            out[:, self.free] = np.where(np.isfinite(d), d, -1).astype(np.int64)
+            yield out
+
+    def longest_start_goal_path(self, anywhere: bool = False) -> int:
+        """The largest grid distance (cells) from any start cell (``anywhere``: any free cell) to any goal cell
+        reachable from it."""
+        starts = tuple((np.argwhere(self.free) if anywhere else self.start_cells).T)
+        return max([0, *(int(d[:, starts[0], starts[1]].max()) for d in self.grid_distances(self.goal_cells))])
 
     # -------------------------------------------------------------- walls
     @cached_property
@@ -351,12 +354,16 @@ class MazeGeometry:
         """Every (start cell, goal cell) pair of this map's protocol whose shortest path here is longer than in the
         ``trained`` map (a route the training map had is blocked), as rows (si, sj, gi, gj)."""
         out = []
-        for g in self.goal_cells:
-            here, before = self.bfs(g), trained.bfs(g)
-            for s in self.start_cells:
-                a, b = here[tuple(s)], before[tuple(s)]
-                if (s != g).any() and a >= 0 and (b < 0 or a > b):
+        goals, si = self.goal_cells, tuple(self.start_cells.T)
+        blocks = zip(self.grid_distances(goals), trained.grid_distances(goals))
+        k = 0
+        for here, before in blocks:
+            a, b = here[:, si[0], si[1]], before[:, si[0], si[1]]  # (goals in the block, starts)
+            for gi, si_ in zip(*np.nonzero((a >= 0) & ((b < 0) | (a > b)))):
+                g, s = goals[k + gi], self.start_cells[si_]
+                if (s != g).any():
                     out.append([*s, *g])
+            k += len(here)
         return np.asarray(out, dtype=np.int64).reshape(-1, 4)
 
     def exit_label(self, states: np.ndarray) -> str:
