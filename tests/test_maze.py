@@ -114,6 +114,20 @@ def test_bfs_and_stock_envs():
     assert spec.horizon == 168 and spec.plan_stride == 2 and spec.success_radius == 0.45
 
 
+def _random_grid(rng, sizes: tuple[int, int], wall: float, marks: int, min_free: int = 2):
+    """A random map's cells: walls with probability ``wall``, up to ``marks`` free cells marked S, G or C, and a
+    start and a goal at the first and last free cells; None when fewer than ``min_free`` cells are free."""
+    h, w = rng.integers(*sizes, 2)
+    g = np.where(rng.random((h, w)) < wall, "#", ".")
+    free = np.argwhere(g == ".")
+    if len(free) < min_free:
+        return None
+    for c in free[rng.choice(len(free), min(marks, len(free)), replace=False)]:
+        g[tuple(c)] = rng.choice(["S", "G", "C"])
+    g[tuple(free[0])], g[tuple(free[-1])] = "S", "G"
+    return g
+
+
 def test_longest_start_goal_path_against_a_search_from_each_goal():
     """The longest start-to-goal grid distance (and from any free cell) as its definition gives it: the largest
     finite distance of a breadth-first search from each goal cell, over random maps with walls, several starts
@@ -121,14 +135,9 @@ def test_longest_start_goal_path_against_a_search_from_each_goal():
     rng = np.random.default_rng(0)
     checked = 0
     for _ in range(60):
-        h, w = rng.integers(3, 12, 2)
-        g = np.where(rng.random((h, w)) < 0.3, "#", ".")
-        free = np.argwhere(g == ".")
-        if len(free) < 2:
+        g = _random_grid(rng, (3, 12), 0.3, 4)
+        if g is None:
             continue
-        for c in free[rng.choice(len(free), min(4, len(free)), replace=False)]:
-            g[tuple(c)] = rng.choice(["S", "G", "C"])
-        g[tuple(free[0])], g[tuple(free[-1])] = "S", "G"
         try:
             m = MazeGeometry(parse_map("\n".join("".join(r) for r in g), "t"))
         except BadInput:  # no start reaches a goal: refused
@@ -147,14 +156,9 @@ def test_detour_pairs_against_a_search_from_each_goal():
     rng = np.random.default_rng(1)
     checked = 0
     for _ in range(40):
-        h, w = rng.integers(4, 11, 2)
-        g = np.where(rng.random((h, w)) < 0.2, "#", ".")
-        free = np.argwhere(g == ".")
-        if len(free) < 6:
+        g = _random_grid(rng, (4, 11), 0.2, 5, min_free=6)
+        if g is None:
             continue
-        for c in free[rng.choice(len(free), 5, replace=False)]:
-            g[tuple(c)] = rng.choice(["S", "G", "C"])
-        g[tuple(free[0])], g[tuple(free[-1])] = "S", "G"
         blocked = g.copy()
         plain = np.argwhere(g == ".")
         for c in plain[rng.choice(len(plain), min(3, len(plain)), replace=False)] if len(plain) else []:
