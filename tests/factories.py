@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 
 import h5py
 import numpy as np
@@ -209,6 +210,14 @@ def tampered(path):
             f.attrs[CHECKSUM_ATTR] = content_sha256(payload, arrays)
         except Exception:  # something the reader refuses before the checksum anyway
             pass
+
+
+def edit_manifest(f, edit) -> None:
+    """Apply ``edit`` to the JSON manifest of the open artifact ``f`` (inside :func:`tampered`, which re-signs)."""
+    manifest = json.loads(bytes(f["manifest"][()]))
+    edit(manifest)
+    del f["manifest"]
+    f["manifest"] = np.bytes_(json.dumps(manifest).encode())
 
 
 class RandomActions:

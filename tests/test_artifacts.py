@@ -355,6 +355,10 @@ def test_virtual_and_external_storage_are_refused(tmp_path):
     [
         ("demos", "episodes/start", lambda a: a - 1, "do not tile the steps"),
         ("demos", "episodes/length", lambda a: a + 1, "do not tile the steps"),
+        ("demos", "episodes/success", lambda a: ~a, "summary.success_rate is 1, but episodes/success gives 0"),
+        ("demos", "episodes/valid", lambda a: ~a, "summary.train_episodes is 5, but the arrays hold 0"),
+        ("demos", "episodes/seed", lambda a: a * 0 - 2, "seed below -1"),
+        ("demos", "steps/observations", lambda a: a + 1e17, "far outside the environment's"),
         ("buffer", "source_index", lambda a: a - 10**6, "negative rows"),
         ("buffer", "points", lambda a: a + 1e17, "far outside the normalized range"),
         ("buffer", "normalizer/low", lambda a: a + 1e6, "normalizer/low exceeds"),
@@ -375,6 +379,28 @@ def test_indices_that_point_outside_the_data_are_refused(tmp_path, kind, name, v
     arrays[name] = value(arrays[name])
     path = artifacts.save(tmp_path / f"{kind}.h5", kind, manifest, arrays)
     assert needle in _err(path)
+
+
+@pytest.mark.parametrize(
+    "part, field, value, needle",
+    [
+        ("summary", "episodes", 6, "summary.episodes is 6, but the arrays hold 5"),
+        ("summary", "steps", 1, "summary.steps is 1"),
+        ("summary", "max_length", 99, "summary.max_length is 99"),
+        ("summary", "valid_episodes", 2, "summary.valid_episodes is 2"),
+        ("summary", "success_rate", 0.5, "summary.success_rate is 0.5"),
+        ("config", "episodes", 7, "config.episodes is 7"),
+        ("config", "env", "umaze", "config.env 'umaze' is not the environment"),
+    ],
+)
+def test_a_demos_manifest_that_contradicts_its_arrays_is_refused(tmp_path, part, field, value, needle):
+    """Every writer computes the demos summary from the arrays it stores, so a summary (or a config) that says
+    otherwise was edited: reports and splits would quote it, and it is refused on load."""
+    manifest, arrays = build("demos")
+    edited = getattr(manifest, part).model_copy(update={field: value})
+    path = artifacts.save(tmp_path / "demos.h5", "demos", manifest.model_copy(update={part: edited}), arrays)
+    assert needle in _err(path)
+    assert artifacts.load(artifacts.save(tmp_path / "ok.h5", "demos", manifest, arrays), "demos").n_episodes == 5
 
 
 def test_episode_lengths_whose_sums_wrap_around_are_refused(tmp_path):

@@ -307,6 +307,7 @@ def test_cluster_refuses_demos_without_train_episodes_and_a_one_state_buffer(sma
     demos = factories.write(tmp_path / "held-out.h5", "demos")
     with factories.tampered(demos) as f:
         f["episodes/valid"][...] = True
+        factories.edit_manifest(f, lambda m: m["summary"].update(train_episodes=0, valid_episodes=5))
     r = cdrb("cluster", demos, "--split", "all", "--k", "2", "--out", tmp_path / "b.h5")
     assert r.returncode == 2 and "no train episodes" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = cdrb("cluster", small_data[0].path, "--k", "1", "--out", tmp_path / "b.h5")

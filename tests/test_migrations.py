@@ -8,7 +8,6 @@ The tolerances are far below what another seed changes (checked for the plans an
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from cdrb_cli.methods.config import train_config
 from cdrb_cli.stages.evaluate import evaluate
 from cdrb_cli.stages.plan import make_plans
 from cdrb_cli.stages.train import train
+from tests.factories import edit_manifest
 
 V1 = Path(__file__).resolve().parent / "data" / "v1"
 KINDS = ("demos", "buffer", "model", "plans", "eval")
@@ -118,11 +118,7 @@ def test_eval_1_0_had_no_gated_clock(tmp_path):
     p = tmp_path / "e.h5"
     shutil.copy(V1 / "eval.h5", p)
     with h5py.File(p, "r+") as f:
-        m = json.loads(f["manifest"][()].decode())
-        m["config"].pop("max_lag")
-        m["schema_version"] = "1.0"
-        del f["manifest"]
-        f["manifest"] = np.bytes_(json.dumps(m).encode())
+        edit_manifest(f, lambda m: (m["config"].pop("max_lag"), m.update(schema_version="1.0")))
         f.attrs["cdrb_schema_version"] = "1.0"
     art = artifacts.load(p, "eval")
     assert art.migrated_from == "1.0" and art.manifest.config.controller.max_lag is None
@@ -143,15 +139,16 @@ def test_2_2_renames(tmp_path, version, schedule, sampler):
 
     path = write(tmp_path / "m.h5", "model")
     with tampered(path) as f:
-        m = json.loads(bytes(f["manifest"][()]))
-        m["schema_version"] = version
-        m["config"]["method"]["schedule"] = "log"
-        if version == "2.1":  # as a 2.1 file was: the old sampler name, no end_actions field
-            m["config"]["method"]["sampler"] = "alg1"
-            del m["config"]["method"]["end_actions"]
+
+        def edit(m):
+            m["schema_version"] = version
+            m["config"]["method"]["schedule"] = "log"
+            if version == "2.1":  # as a 2.1 file was: the old sampler name, no end_actions field
+                m["config"]["method"]["sampler"] = "alg1"
+                del m["config"]["method"]["end_actions"]
+
+        edit_manifest(f, edit)
         f.attrs["cdrb_schema_version"] = version
-        del f["manifest"]
-        f["manifest"] = np.bytes_(json.dumps(m).encode())
     method = artifacts.load(path, "model").manifest.config.method
     assert (method.schedule, method.sampler) == (schedule, sampler)
     assert method.end_actions == ("kept" if version == "2.1" else "degraded")
@@ -164,12 +161,8 @@ def test_a_2_2_file_reads_with_the_goal_pinned_like_the_start(tmp_path):
 
     path = write(tmp_path / "m.h5", "model")
     with tampered(path) as f:
-        m = json.loads(bytes(f["manifest"][()]))
-        m["schema_version"] = "2.2"
-        m["env"].pop("pinned_end_dims")
+        edit_manifest(f, lambda m: (m.update(schema_version="2.2"), m["env"].pop("pinned_end_dims")))
         f.attrs["cdrb_schema_version"] = "2.2"
-        del f["manifest"]
-        f["manifest"] = np.bytes_(json.dumps(m).encode())
     env = artifacts.load(path, "model").manifest.env
     assert env.pinned_end_dims is None and env.pin_end_dims == env.pin_dims
 

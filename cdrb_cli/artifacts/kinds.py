@@ -159,7 +159,7 @@ class Demos(ArtifactBase):
             return "episodes/start and episodes/length do not tile the steps (episodes must follow each other)"
         if int(length.sum()) != n:
             return f"the episodes cover {int(length.sum())} steps, but there are {n}"
-        return None
+        return _demos_summary_problem(manifest, arrays) or _demos_states_problem(manifest, arrays)
 
     @property
     def n_episodes(self) -> int:
@@ -174,6 +174,50 @@ class Demos(ArtifactBase):
             return np.arange(self.n_episodes)
         mask = self.episode_valid if split == "valid" else ~self.episode_valid
         return np.flatnonzero(mask)
+
+
+def _demos_summary_problem(manifest, arrays) -> str | None:
+    """What the demos manifest says about its episodes that the arrays contradict (every writer computes the
+    summary from the arrays it stores), or None."""
+    length, success, valid = arrays["episodes/length"], arrays["episodes/success"], arrays["episodes/valid"]
+    s, episodes = manifest.summary, len(length)
+    if manifest.config.env != manifest.env.id:
+        return f"config.env {manifest.config.env!r} is not the environment the file holds ({manifest.env.id!r})"
+    counts = {
+        "config.episodes": (manifest.config.episodes, episodes),
+        "summary.episodes": (s.episodes, episodes),
+        "summary.steps": (s.steps, int(length.sum())),
+        "summary.max_length": (s.max_length, int(length.max())),
+        "summary.train_episodes": (s.train_episodes, int((~valid).sum())),
+        "summary.valid_episodes": (s.valid_episodes, int(valid.sum())),
+    }
+    for key, (said, held) in counts.items():
+        if said != held:
+            return f"{key} is {said}, but the arrays hold {held}"
+    rate = float(np.mean(success))
+    if not abs(s.success_rate - rate) <= 1e-9:
+        return f"summary.success_rate is {s.success_rate:g}, but episodes/success gives {rate:g}"
+    if (arrays["episodes/seed"] < -1).any():
+        return "episodes/seed holds a seed below -1 (-1 marks an episode without one)"
+    return None
+
+
+def _demos_states_problem(manifest, arrays) -> str | None:
+    """States far outside the environment (beyond its bounds by more than their own extent, in the dimensions
+    its obstacles cover): no simulator step puts a robot there, and one such value skews every normalizer."""
+    obstacles = manifest.env.obstacles
+    low, high = np.asarray(obstacles.low), np.asarray(obstacles.high)
+    span = high - low
+    pts = arrays["steps/observations"][:, obstacles.dims]
+    far = (pts < low - span) | (pts > high + span)
+    if far.any():
+        row, col = (int(v) for v in np.argwhere(far)[0])
+        label = manifest.env.state_labels[obstacles.dims[col]]
+        return (
+            f"steps/observations row {row} puts {label} at {float(pts[row, col]):.3g}, far outside the "
+            f"environment's [{low[col]:g}, {high[col]:g}]"
+        )
+    return None
 
 
 #: how far outside the normalizer's [-1, 1] a stored buffer point may lie (a buffer of other demos than the model's
