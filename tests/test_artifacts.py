@@ -579,3 +579,15 @@ def test_a_manifest_nested_past_recursion_is_not_valid_json(tmp_path):
         del f["manifest"]
         f["manifest"] = np.bytes_(text)
     assert "/manifest is not valid JSON" in _err(p)
+
+
+@pytest.mark.parametrize("seed", ["0", -1, True, 1.0, 2**32])
+def test_a_manifest_seed_is_a_seed_the_commands_take(tmp_path, seed):
+    """``--seed`` takes 0..2**32-1; a manifest whose seed is a string, a negative number, a bool or a float was not
+    written by a command, and is refused rather than coerced."""
+    from tests.factories import edit_manifest
+
+    path = write(tmp_path / "m.h5", "model")
+    with tampered(path) as f:
+        edit_manifest(f, lambda m: m.update(seed=seed))
+    assert "manifest field 'seed' is invalid" in _err(path)

@@ -9,6 +9,7 @@ from pydantic import Field, model_validator
 
 from cdrb_cli.artifacts.core import ArtifactBase, DatasetSpec, GroupSpec
 from cdrb_cli.configs import (
+    MAX_SEED,
     ClusterConfig,
     ClusterSummary,
     CollectConfig,
@@ -61,7 +62,7 @@ class ManifestBase(Record):
     cdrb_version: str
     created_at: str
     argv: list[str]
-    seed: int
+    seed: int = Field(ge=0, le=MAX_SEED, strict=True, description="the command's --seed")
     git_sha: str | None = None
     versions: dict[str, str]
     parents: list[ParentRef]
