@@ -46,6 +46,18 @@ def test_parse_bad_maps(text, needle):
     assert "\n" not in str(info.value)
 
 
+def test_a_row_written_after_a_hash_and_space_is_named_when_the_map_lacks_its_cells():
+    """``# `` starts a comment, so ``# S..#`` (a wall row with a space after its first ``#``) is not a row: the error
+    about the missing start cell names that line; comments in prose, and maps that lack nothing, say nothing."""
+    with pytest.raises(BadInput) as info:
+        parse_map("#####\n# S..#\n#...#\n#..G#\n#####\n", "bad", source="bad.txt")
+    assert "no start cell" in str(info.value) and "line 2 is read as a comment" in info.value.hint
+    with pytest.raises(BadInput) as info:
+        parse_map("# start cell S, goal cell G\n#####\n#S..#\n#####\n", "bad", source="bad.txt")
+    assert "no goal cell" in str(info.value) and "comment" not in info.value.hint
+    assert parse_map("# S.G\n#####\n#S.G#\n#####\n", "ok").rows == ["#####", "#S.G#", "#####"]
+
+
 def test_bad_map_error_names_line(tmp_path):
     with pytest.raises(BadInput, match=r"bad.txt:3:4: unknown map character"):
         parse_map("#####\n#S.G#\n#..?#\n#####\n", "bad", source="bad.txt")

@@ -85,16 +85,35 @@ def _is_comment(line: str) -> bool:
     return line.startswith("//") or line.startswith("# ")
 
 
+def _looks_like_row(line: str) -> bool:
+    """A ``# `` comment made only of map characters and spaces, holding a start or goal cell (``# S..#``): most
+    likely a wall row written with a space after its first ``#``."""
+    cells = line.replace(" ", "")
+    return set(cells) <= set(MAP_CHARS) and any(c in "SGC" for c in cells)
+
+
 def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
     """Parse map text into a :class:`MazeLayout`; every problem is a one-line :class:`BadInput` naming the line."""
     rows: list[tuple[int, str]] = []
+    row_like: list[int] = []  # comment lines that look like rows, named when the map lacks what they hold
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.rstrip()
         if not line.strip() or _is_comment(line):
+            if line.startswith("# ") and _looks_like_row(line):
+                row_like.append(lineno)
             continue
         rows.append((lineno, line.strip()))
+
+    def hint(text: str) -> str:
+        if not row_like:
+            return text
+        return (
+            f"{text}; line {row_like[0]} is read as a comment (a line starting with '# ' is one): write map rows "
+            "without spaces"
+        )
+
     if not rows:
-        raise BadInput(f"{source}: the map is empty", hint="write rows of # . S G, one per line")
+        raise BadInput(f"{source}: the map is empty", hint=hint("write rows of # . S G, one per line"))
     width = len(rows[0][1])
     for lineno, row in rows:
         if len(row) != width:
@@ -138,17 +157,17 @@ def parse_map(text: str, name: str, source: str = "<map>") -> MazeLayout:
     if len(rows) * width > MAX_CELLS:
         raise BadInput(f"{source}: map has {len(rows) * width} cells, more than {MAX_CELLS}", hint="use a smaller map")
     if len(rows) < 3 or width < 3:
-        raise BadInput(f"{source}: map must be at least 3x3 cells", hint="add rows or columns")
+        raise BadInput(f"{source}: map must be at least 3x3 cells", hint=hint("add rows or columns"))
     cells = "".join(r for _, r in rows)
     if not any(c in "SC" for c in cells):
-        raise BadInput(f"{source}: map has no start cell", hint="mark at least one free cell with S (or C)")
+        raise BadInput(f"{source}: map has no start cell", hint=hint("mark at least one free cell with S (or C)"))
     if not any(c in "GC" for c in cells):
-        raise BadInput(f"{source}: map has no goal cell", hint="mark at least one free cell with G (or C)")
+        raise BadInput(f"{source}: map has no goal cell", hint=hint("mark at least one free cell with G (or C)"))
     # the protocol draws a start cell and a different goal cell reachable from it
     if not _has_pair(tuple(r for _, r in rows)):
         raise BadInput(
             f"{source}: no start cell can reach a goal cell other than itself",
-            hint="open a path, or mark another goal cell",
+            hint=hint("open a path, or mark another goal cell"),
         )
     return MazeLayout(name=name, rows=[r for _, r in rows])
 
