@@ -330,3 +330,18 @@ def test_a_map_record_without_a_start_goal_pair_is_refused_however_it_was_made()
         with pytest.raises(ValidationError, match=needle):
             MazeLayout(name="x", rows=rows)
     assert MazeLayout(name="x", rows=["#####", "#S.G#", "#####"]).rows[1] == "#S.G#"
+
+
+def test_every_map_reader_refuses_a_settings_file_and_envs_shows_the_rows_to_copy(tmp_path):
+    """A .toml or .json file is a scene or settings file, never a map, whichever command reads it (collect and envs
+    as plan's scene does); the rows a new scene starts from are in `cdrb envs --json`, as the hints say."""
+    from cdrb_cli.envs.pointmaze.maze import load_map_file
+
+    for name in ("x.toml", "x.JSON"):
+        (tmp_path / name).write_text("#####\n#S.G#\n#####\n")
+        with pytest.raises(BadInput, match=r"--maze-map .*: a settings file \(\.(toml|JSON)\), not a map"):
+            load_map_file(tmp_path / name)
+    (tmp_path / "x.txt").write_text("#####\n#S.G#\n#####\n")
+    assert load_map_file(tmp_path / "x.txt").rows == ["#####", "#S.G#", "#####"]
+    rows = {e["id"]: e.get("rows") for e in list_envs()}
+    assert rows["maze-tight"] == make_spec("maze-tight").scene.maze.rows

@@ -284,7 +284,8 @@ class PointMazeFamily(EnvFamily):
 
     def details(self, spec: EnvSpec) -> dict[str, Any]:
         g = MazeGeometry(spec.scene.maze)
-        return {"starts": int(len(g.start_cells)), "goals": int(len(g.goal_cells))}
+        # the rows too: a new scene for a trained model is a copy of its map with walls drawn in
+        return {"starts": int(len(g.start_cells)), "goals": int(len(g.goal_cells)), "rows": list(spec.scene.maze.rows)}
 
     def make_env(self, spec: EnvSpec):
         from cdrb_cli.envs.pointmaze.env import PointMaze

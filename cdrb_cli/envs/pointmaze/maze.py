@@ -181,6 +181,11 @@ def load_map_file(path: str | Path, flag: str = "--maze-map") -> MazeLayout:
     from cdrb_cli.files import read_input_text
 
     path = Path(path)
+    if path.suffix.lower() in (".toml", ".json"):  # what every map reader refuses, a scene's with_map included
+        raise BadInput(
+            f"{flag} {path}: a settings file ({path.suffix}), not a map",
+            hint="pass a map text file (.txt) of rows of # . S G (`cdrb envs --json` shows the stock maps' rows)",
+        )
     text = read_input_text(path, flag, MAX_MAP_BYTES, "map file", "pass a text file of rows of # . S G")
     # the byte-order mark some Windows editors put first is not a map character (their \r\n ends lines as \n does)
     return parse_map(text.removeprefix("\ufeff"), name=path.stem, source=str(path))
