@@ -280,3 +280,24 @@ def read_input_text(
         return data.decode("utf-8")
     except UnicodeDecodeError:
         raise BadInput(f"{source}: not a text file (not UTF-8)", hint=f"pass the {what} itself") from None
+
+
+def parse_toml(text: str, source: str, hint: str) -> dict:
+    """TOML text as a table; whatever the parser refuses is one :class:`BadInput` line naming ``source``: bad
+    syntax, arrays or tables nested past the recursion limit, an integer of more digits than Python converts. A
+    leading byte-order mark (some editors write one) is not part of the text."""
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    try:
+        return tomllib.loads(text.removeprefix("\ufeff"))
+    except RecursionError:  # the parser reads nested arrays and tables recursively
+        raise BadInput(f"{source}: arrays or tables nested too deep to read", hint=hint) from None
+    except ValueError as exc:  # TOMLDecodeError, and int()'s refusal of a number of thousands of digits
+        if "integer string conversion" in str(exc):
+            limit = getattr(__import__("sys"), "get_int_max_str_digits", lambda: 4300)()
+            raise BadInput(f"{source}: holds an integer of more than {limit} digits", hint=hint) from None
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BadInput(f"{source}: not valid TOML ({first[:160]})", hint=hint) from None

@@ -193,26 +193,20 @@ def _flatten(data: dict, prefix: Path_, source: str) -> list[Setting]:
 
 def read_config_file(path: str | Path, flag: str = "--config") -> list[Setting]:
     """Settings from a TOML (``.toml``) or JSON file."""
-    from cdrb_cli.files import read_input_text
+    from cdrb_cli.files import parse_toml, read_input_text
 
     path = Path(path)
     source = f"{flag} {path}"
     text = read_input_text(path, flag, MAX_CONFIG_BYTES, "settings file", "pass a TOML or JSON file")
-    try:
-        if path.suffix.lower() == ".json":
+    hint = "fix the file; `cdrb config` prints a template"
+    if path.suffix.lower() != ".json":
+        data = parse_toml(text, source, hint=hint)
+    else:
+        try:
             data = loads_json(text)
-        else:
-            try:
-                import tomllib
-            except ImportError:  # Python 3.10
-                import tomli as tomllib
-            data = tomllib.loads(text)
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
-        kind = "JSON" if path.suffix.lower() == ".json" else "TOML"
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise BadInput(
-            f"{source}: not valid {kind} ({first})", hint="fix the file; `cdrb config` prints a template"
-        ) from None
+        except (ValueError, RecursionError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise BadInput(f"{source}: not valid JSON ({first})", hint=hint) from None
     if not isinstance(data, dict):
         raise BadInput(f"{source}: expected a table of settings", hint="write KEY = VALUE lines")
     settings = _flatten(data, (), source)

@@ -59,6 +59,45 @@ def test_maps_beyond_the_layout_bounds_are_one_line_naming_the_file(tmp_path, cd
 
 
 # ------------------------------------------------------------------------------------------------ deep TOML
+def test_a_number_of_thousands_of_digits_is_one_line_in_every_reader(tmp_path, cdrb):
+    """Python's int() refuses numbers of more than 4300 digits with a ValueError: each TOML reader (settings, scene,
+    grid and figures files, `grid --set`) and each integer-list flag says so in one line naming the flag or file."""
+    from cdrb_cli.cli.common import int_values
+    from cdrb_cli.envs.fetch.scenes import load_scene_change
+    from cdrb_cli.orchestration.grid.load import parse_override
+    from cdrb_cli.settings import read_config_file
+    from cdrb_cli.stages.report import paper_figures
+
+    big = "9" * 5000
+    path = tmp_path / "big.toml"
+    path.write_text(f"n = {big}\n")
+    for read, flag in [(read_config_file, "--config"), (load_scene_change, "--scene"), (paper_figures, "--paper")]:
+        with pytest.raises(BadInput, match=f"{flag}.* {path}: holds an integer of more than 4300 digits"):
+            read(path)
+    with pytest.raises(BadInput, match="--set n=9+...: .*a number too long"):
+        parse_override(f"n={big}")
+    with pytest.raises(BadInput, match="a number of more than 20 digits") as info:
+        int_values(big, "--seeds", "integers", "0,1")
+    assert len(str(info.value)) < 300
+    grid = tmp_path / "grid.toml"
+    grid.write_text(f'out = "runs"\nenvs = ["maze-tight"]\nmethods = ["mlp"]\nseeds = [0]\nsteps = {big}\n')
+    line = _one_line(cdrb("grid", grid, "--dry-run"))
+    assert line.startswith(f"error: {grid}: holds an integer of more than")
+
+
+def test_a_byte_order_mark_does_not_change_a_toml_file(tmp_path):
+    """Some editors start a UTF-8 file with a byte-order mark; a map file reads the same with one, and so does
+    every TOML file (tomllib itself refuses it)."""
+    from cdrb_cli.envs.fetch.scenes import load_scene_change
+
+    text = "[[boxes]]\ncenter = [1.455, 0.749, 0.47]\nhalf = [0.005, 0.125, 0.30]\n"
+    plain, marked = tmp_path / "closed.toml", tmp_path / "marked" / "closed.toml"
+    marked.parent.mkdir()
+    plain.write_text(text)
+    marked.write_text("\ufeff" + text)
+    assert load_scene_change(marked) == load_scene_change(plain)
+
+
 def test_toml_nested_thousands_deep_is_one_line(tmp_path, cdrb):
     """`report --paper-figures`, `grid --set` and Fetch `--scene` files parse TOML recursively: a value nested
     3000 deep is one line naming the flag, not a RecursionError."""
@@ -78,7 +117,7 @@ def test_toml_nested_thousands_deep_is_one_line(tmp_path, cdrb):
     from cdrb_cli.envs.fetch.scenes import load_scene_change
 
     for path in (arrays, tables):  # a Fetch scene file, parsed the same way
-        with pytest.raises(BadInput, match="--scene .*not valid TOML"):
+        with pytest.raises(BadInput, match="--scene .*nested too deep"):
             load_scene_change(path)
 
     deep = "seeds=" + "[" * 3000 + "]" * 3000

@@ -789,8 +789,15 @@ def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
         (
             "[[boxes]]\ncenter = [1.34, 0.45, 0.56]\nhalf = [0.2, 0.12, 0.16]\n"
             "[[boxes]]\ncenter = [1.34, 1.05, 0.56]\nhalf = [0.2, 0.12, 0.16]\n",
-            "leave no room to draw",
+            "leave (almost) no room to draw",
         ),
+        # a pocket of room that one draw in thousands finds: the first episode seed's draw succeeds, others fail
+        (
+            "[[boxes]]\ncenter = [1.34, 0.50, 0.47745]\nhalf = [0.25, 0.13, 0.17745]\n"
+            "[[boxes]]\ncenter = [1.34, 1.00, 0.47745]\nhalf = [0.25, 0.13, 0.17745]\n",
+            "(0% of candidate draws kept, fewer than 1%)",
+        ),
+        ("[[boxes]]\ncenter = [1" + "0" * 5000 + ", 0.5, 0.5]\nhalf = [0.1, 0.1, 0.1]\n", "integer of more than"),
         # a roof on the corridor's walls: clear of the gripper, but the arm's wrist reaches through it at the start
         ("[[boxes]]\ncenter = [1.30, 0.749, 0.78]\nhalf = [0.16, 0.125, 0.01]\n", "cuts through the robot's wrist"),
     ],

@@ -188,22 +188,27 @@ def load_artifact(path: Path, kind: str):
 def int_values(text: str, flag: str, what: str, example: str) -> list[int]:
     """A non-empty comma-separated list of integers, each written in ASCII digits (``what`` and ``example`` word the
     errors): an empty item (``0,,1``), ``1_0`` or other scripts' digits, which Python's int() reads, are typos."""
-    from cdrb_cli.settings import comma_items
+    from cdrb_cli.settings import clip, comma_items
 
     items = comma_items(text)
     if items == [""]:
         raise BadInput(f"{flag} is empty", hint=f"e.g. {example}")
     if not all(re.fullmatch(r"[+-]?[0-9]+", v) for v in items):
-        raise BadInput(f"{flag} {text!r}: not a comma-separated list of {what}", hint=f"e.g. {example}")
+        raise BadInput(f"{flag} {clip(text)!r}: not a comma-separated list of {what}", hint=f"e.g. {example}")
+    # (int() refuses numbers of thousands of digits, and no count or seed here has more than 20)
+    if any(len(v.lstrip("+-")) > 20 for v in items):
+        raise BadInput(f"{flag} {clip(text)!r}: a number of more than 20 digits", hint=f"e.g. {example}")
     return [int(v) for v in items]
 
 
 def parse_seeds(text: str, flag: str) -> list[int]:
+    from cdrb_cli.settings import clip
+
     values = int_values(text, flag, "integers", "0,1,2,3,4")
     if len(set(values)) != len(values):
-        raise BadInput(f"{flag} {text!r}: repeated values", hint="list each seed once")
+        raise BadInput(f"{flag} {clip(text)!r}: repeated values", hint="list each seed once")
     if any(not 0 <= v < 2**32 for v in values):
-        raise BadInput(f"{flag} {text!r}: seeds are 32-bit (0 to 4294967295)", hint="e.g. 0,1,2,3,4")
+        raise BadInput(f"{flag} {clip(text)!r}: seeds are 32-bit (0 to 4294967295)", hint="e.g. 0,1,2,3,4")
     return values
 
 

@@ -21,7 +21,7 @@ def read_selection(path: Path | None):
     from cdrb_cli.orchestration.grid import SettingsFile, read_toml
     from cdrb_cli.orchestration.grid.spec import validated
 
-    raw = read_toml(path, "settings file")
+    raw = read_toml(path, "settings file", "--config")
     if not (isinstance(raw.get("settings"), list) and isinstance(raw.get("meta"), dict)):
         return None
     return validated(SettingsFile, raw, path)

@@ -28,7 +28,7 @@ from cdrb_cli.configs import ROUTE_STEPS, AvoidConfig, EvalConfig, PlanConfig, R
 from cdrb_cli.envs.registry import family_of
 from cdrb_cli.errors import BadInput
 from cdrb_cli.methods.registry import METHODS
-from cdrb_cli.settings import Setting, apply, from_api, from_mapping, given_once, lookup, validate
+from cdrb_cli.settings import Setting, apply, clip, from_api, from_mapping, given_once, lookup, validate
 
 #: ``avoid = ...`` values
 AVOID_MODES = ("plain", "tuned")
@@ -75,7 +75,7 @@ def expand(settings: Sequence[Setting]) -> list[Setting]:
             try:
                 fields = ReplanConfig.parse(s.value)
             except ValueError as exc:
-                raise BadInput(f"{s.source}: {exc}", hint=_REPLAN_HINT) from None
+                raise BadInput(f"{clip(s.source)}: {clip(str(exc))}", hint=_REPLAN_HINT) from None
             out += [Setting(("replan", k), v, s.source) for k, v in fields.items()]
         elif s.path == ("controller",) and isinstance(s.value, str):
             out.append(Setting(("controller", "name"), s.value, s.source))

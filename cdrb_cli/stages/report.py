@@ -39,24 +39,15 @@ def paper_figures(path: Path | None = None) -> dict[str, dict[str, tuple[float, 
     in a top-level ``others = [...]``: published methods this project does not implement (OGBench's six)."""
     from importlib import resources
 
-    import tomllib
-
     from cdrb_cli.artifacts.core import read_input_text
+    from cdrb_cli.files import parse_toml
 
     where = path or PAPER_FIGURES
     if path is not None:
         text = read_input_text(path, "--paper-figures", 1 << 20, "figures file", "give a TOML file")
     else:
         text = resources.files("cdrb_cli").joinpath(PAPER_FIGURES).read_text()
-    try:
-        raw = tomllib.loads(text)
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise BadInput(f"--paper-figures {where}: cannot read it ({exc})", hint="give a TOML file") from None
-    except RecursionError:  # tomllib parses nested arrays and tables recursively
-        raise BadInput(
-            f"--paper-figures {where}: arrays or tables nested too deep to read",
-            hint="see cdrb_cli/paper_table1.toml for the shape",
-        ) from None
+    raw = parse_toml(text, f"--paper-figures {where}", hint="see cdrb_cli/paper_table1.toml for the shape")
     import math
 
     from cdrb_cli.envs.registry import make_spec

@@ -59,21 +59,12 @@ def default_name(path: Path, source: str) -> str:
 
 def load_scene_change(path: str | Path, flag: str = "--scene") -> SceneChange:
     """A scene file, read through the guarded reader and checked; every problem is one line naming ``flag``."""
-    try:
-        import tomllib
-    except ImportError:  # Python 3.10
-        import tomli as tomllib
-
-    from cdrb_cli.files import read_input_text
+    from cdrb_cli.files import parse_toml, read_input_text
 
     path = Path(path)
     source = f"{flag} {path}"
     text = read_input_text(path, flag, MAX_SCENE_BYTES, "scene file", "pass a TOML file of [[boxes]]")
-    try:
-        data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise BadInput(f"{source}: not valid TOML ({clip(first, 120)})", hint=HINT) from None
+    data = parse_toml(text, source, hint=HINT)
     if "name" not in data:
         data["name"] = default_name(path, source)
     for i, box in enumerate(data.get("boxes", []) if isinstance(data.get("boxes"), list) else []):
@@ -126,16 +117,17 @@ def _check_arm_clear(spec: EnvSpec, source: str) -> None:
     the simulator after its reset, since the state's collision test models the gripper alone."""
     from cdrb_cli.envs.family import Episode
     from cdrb_cli.envs.fetch.env import FetchEnv
-    from cdrb_cli.envs.fetch.tasks import draw_task
+    from cdrb_cli.envs.fetch.tasks import MIN_DRAW_RATE, draw_task, task_draw_rate
 
     n_walls = len(spec.scene.walls)
-    try:
-        start, goal = draw_task(spec.scene, np.random.default_rng(0))
-    except RuntimeError:
+    rate = task_draw_rate(spec.scene)  # one lucky draw is not enough: every episode seed must find its task
+    if rate < MIN_DRAW_RATE:
         raise BadInput(
-            f"{source}: the boxes leave no room to draw a start and a goal of {spec.id.split('+')[0]}",
+            f"{source}: the boxes leave (almost) no room to draw a start and a goal of {spec.id.split('+')[0]} "
+            f"({100 * rate:.2g}% of candidate draws kept, fewer than {100 * MIN_DRAW_RATE:g}%)",
             hint="use smaller boxes, or put them where the task's blocks and goals are not drawn",
-        ) from None
+        )
+    start, goal = draw_task(spec.scene, np.random.default_rng(0))
     env = FetchEnv(spec)
     try:
         env.reset(Episode(0, start, goal))

@@ -167,7 +167,30 @@ def side(scene: FetchScene, xyz: np.ndarray) -> int:
 
 
 def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) -> tuple[tuple, tuple]:
-    """One episode's (block x-y (empty for reach), goal x-y-z), drawn with ``rng`` by the rules above."""
+    """One episode's (block x-y (empty for reach), goal x-y-z), drawn with ``rng`` by the rules above: the first of
+    ``tries`` candidates that keeps them (RuntimeError when none does)."""
+    attempt = _task_attempt(scene)
+    for _ in range(tries):
+        drawn = attempt(rng)
+        if drawn is not None:
+            return drawn
+    raise RuntimeError(f"no start/goal drawn for the {scene.task} scene in {tries} tries")
+
+
+#: the least share of candidate draws a scene must keep (:func:`task_draw_rate`): at 1%, a draw of 10,000 tries
+#: fails with probability 0.99^10000 ~ 2e-44
+MIN_DRAW_RATE = 0.01
+
+
+def task_draw_rate(scene: FetchScene, n: int = 2000, seed: int = 0) -> float:
+    """The share of ``n`` candidate (start, goal) draws that ``scene`` keeps: boxes that leave a task almost no room
+    make :func:`draw_task` fail on some episode seeds and not others, so a scene is judged by the rate, not one draw."""
+    attempt, rng = _task_attempt(scene), np.random.default_rng(seed)
+    return sum(attempt(rng) is not None for _ in range(n)) / n
+
+
+def _task_attempt(scene: FetchScene):
+    """One candidate draw of the scene's task with a given ``rng``: the (block x-y, goal x-y-z) it keeps, or None."""
     cx, cy = scene.center
     home = np.asarray(scene.home)
     solid = scene.solid
@@ -181,7 +204,7 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
     def on_table(xy) -> bool:  # the footprint inside the table edge by edge_margin
         return bool(x0 + inset <= xy[0] <= x1 - inset and y0 + inset <= xy[1] <= y1 - inset)
 
-    for _ in range(tries):
+    def attempt(rng: np.random.Generator):
         if scene.task == "reach":
             ry = scene.target_range_y or scene.target_range
             goal = np.array(
@@ -193,32 +216,33 @@ def draw_task(scene: FetchScene, rng: np.random.Generator, tries: int = 10_000) 
             )
             goal[2] = max(goal[2], TABLE_TOP + GRIP_ABOVE_TABLE + 0.02)
             if in_boxes(goal, reach_clear):
-                continue
+                return None
             if scene.cross and side(scene, goal) == 0:
-                continue
+                return None
             if np.linalg.norm(goal - home) < scene.min_goal_distance:
-                continue
+                return None
             return (), tuple(float(v) for v in goal)
         block = rng.uniform(-scene.obj_range, scene.obj_range, 2) + (cx, cy)
         if np.linalg.norm(block - home[:2]) < 0.1:
-            continue
+            return None
         block3 = np.array([block[0], block[1], BLOCK_Z])
         if not on_table(block):
-            continue
+            return None
         if in_boxes(block3, clear) or (grasp is not None and in_boxes(block3, grasp)):
-            continue
+            return None
         ry = scene.target_range_y or scene.target_range
         goal = np.array([cx + rng.uniform(-scene.target_range, scene.target_range), cy + rng.uniform(-ry, ry), BLOCK_Z])
         if scene.task == "pick-place" and rng.uniform() < scene.air_fraction:
             goal[2] += rng.uniform(0, scene.air_height)
         if not on_table(goal) or in_boxes(goal, clear) or (grasp is not None and in_boxes(goal, grasp)):
-            continue
+            return None
         if scene.cross and side(scene, goal) == side(scene, block3):
-            continue
+            return None
         if np.linalg.norm(goal - block3) < scene.min_goal_distance:
-            continue
+            return None
         return tuple(float(v) for v in block), tuple(float(v) for v in goal)
-    raise RuntimeError(f"no start/goal drawn for the {scene.task} scene in {tries} tries")
+
+    return attempt
 
 
 def draw_gripper_start(scene: FetchScene, rng: np.random.Generator, block, goal, tries: int = 10_000) -> tuple:

@@ -81,9 +81,9 @@ def parse_override(text: str) -> tuple[str, object]:
         return key.strip(), tomllib.loads(f"v = {value}")["v"]
     except tomllib.TOMLDecodeError:
         return key.strip(), value
-    except RecursionError:  # tomllib parses nested arrays and tables recursively
+    except (RecursionError, ValueError):  # nesting past the recursion limit; an integer of thousands of digits
         raise BadInput(
-            f"--set {clip(text)}: the value nests arrays or tables too deep to read",
+            f"--set {clip(text)}: the value nests arrays or tables too deep, or holds a number too long, to read",
             hint="e.g. --set 'seeds=[0, 1]'",
         ) from None
 

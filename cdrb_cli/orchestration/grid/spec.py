@@ -370,8 +370,8 @@ def read_small(path: Path, limit: int = MAX_FILE_BYTES) -> str | None:
         return None
 
 
-def read_toml(path: Path, what: str) -> dict:
-    import tomllib
+def read_toml(path: Path, what: str, flag: str = "") -> dict:
+    from cdrb_cli.files import parse_toml
 
     if not os.path.lexists(path):
         raise BadInput(f"{path}: no such {what}", hint="see docs/cli.md, `cdrb grid`, for the format")
@@ -382,10 +382,7 @@ def read_toml(path: Path, what: str) -> dict:
             "folder)",
             hint="name the TOML file itself",
         )
-    try:
-        return tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise BadInput(f"{path}: not valid TOML ({str(exc)[:200]})", hint="fix the file") from None
+    return parse_toml(text, f"{flag} {path}".strip(), hint="fix the file")
 
 
 def validated(model: type[BaseModel], raw: dict, path: Path):
