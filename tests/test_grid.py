@@ -1035,6 +1035,9 @@ def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
         match=re.escape('--set envs=maze: envs: Input should be a valid list (a TOML list, e.g. envs=["maze"])'),
     ):
         load_grid(grid, ["envs=maze"])
+    # a list whose brackets are wrong is no TOML, so it arrives as text: not wrapped in a list of itself
+    with pytest.raises(BadInput, match=re.escape("([0,1 is not a TOML list: write e.g. seeds=[0, 1])")):
+        load_grid(grid, ["seeds=[0,1"])
 
 
 def test_grid_set_variants_runs_the_named_arms_only(tmp_path):

@@ -766,8 +766,12 @@ def test_fetch_detour_needs_boxes_that_block_a_route(tmp_path):
         "x.h5: not an artifact (run cdrb collect)",
     )
     corner = _scene_file(tmp_path, "[[boxes]]\ncenter = [1.10, 1.05, 0.45]\nhalf = [0.02, 0.02, 0.02]\n", "corner")
-    with pytest.raises(BadInput, match=r"block the shortest route of 0 of \d+ drawn pairs"):
-        fam.draw_protocol_episodes(fam.with_map(spec, corner), 3, 0, 1, "detour")
+    # none found: said as none (not "fewer than the 1 asked for" of an eval's first check), and fewer episodes
+    # are not offered as the way out
+    for n in (1, 3):
+        with pytest.raises(BadInput, match=r"block the shortest route of none of \d+ drawn pairs \(") as err:
+            fam.draw_protocol_episodes(fam.with_map(spec, corner), n, 0, 1, "detour")
+        assert "fewer episodes" not in err.value.hint
 
 
 @pytest.mark.parametrize(

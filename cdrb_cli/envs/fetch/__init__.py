@@ -263,6 +263,12 @@ class FetchFamily(EnvFamily):
                 out.append(ep)
                 if len(out) == n:
                     return out
+        if not out:  # (fewer episodes would not help; an eval's first check asks for one)
+            raise BadInput(
+                f"protocol {DETOUR}: the boxes of {spec.scene.change} block the shortest route of none of "
+                f"{len(candidates)} drawn pairs",
+                hint="put the boxes where the data's routes go, across the way from a start to its goal",
+            )
         raise BadInput(
             f"protocol {DETOUR}: the boxes of {spec.scene.change} block the shortest route of {len(out)} of "
             f"{len(candidates)} drawn pairs, fewer than the {n} asked for",
@@ -298,6 +304,12 @@ class FetchFamily(EnvFamily):
                     return out
         finally:
             env.close()
+        if not out:  # (fewer episodes would not help; an eval's first check asks for one)
+            raise BadInput(
+                f"protocol {ANYWHERE}: the arm reaches none of {4 * n} drawn pairs' gripper starts in {spec.id} "
+                "without touching a wall",
+                hint="use fewer or smaller boxes, or the stock protocol",
+            )
         raise BadInput(
             f"protocol {ANYWHERE}: the arm reaches {len(out)} of {4 * n} drawn pairs' gripper starts in "
             f"{spec.id} without touching a wall, fewer than the {n} asked for",

@@ -50,8 +50,8 @@ def default_name(path: Path, source: str) -> str:
     name = re.sub(r"[^A-Za-z0-9._-]", "-", path.stem).lstrip("._-")[:64]
     if not name:
         raise BadInput(
-            f"{source}: the scene is named after its file, and {clip(path.name, 80)!r} has no letter or digit to "
-            "name it",
+            f"{source}: the scene is named after its file, and {clip(path.name, 80)!r} has no ASCII letter or "
+            "digit to name it (a scene's name is A-Z, a-z, 0-9, '.', '_', '-')",
             hint='rename the file (e.g. closed-x.toml), or set name = "..." in it',
         )
     return name
