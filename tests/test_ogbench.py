@@ -195,6 +195,14 @@ def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
             "pointmaze-medium-stitch-v0.npz",
             "observations is a 0-d float64",
         ),
+        # finite, under the reader's bound, but a maze away from any map of the family: refused before writing
+        (
+            lambda p: np.savez(
+                p, observations=np.full((4, 2), 1000.0), actions=np.zeros((4, 2)), terminals=np.eye(4)[3]
+            ),
+            "pointmaze-medium-stitch-v0.npz",
+            "far outside the environment's",
+        ),
     ],
 )
 def test_a_bad_official_file_is_refused_in_one_line(cdrb, tmp_path, make, name, message):

@@ -216,10 +216,13 @@ def route_shares(routes: dict[str, dict[str, int]]) -> str:
     return ", ".join(f"{label} {100 * c / n:.0f}%" for label, c in sorted(totals.items(), key=lambda kv: -kv[1]))
 
 
-def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions, goals, seeds, success, routes, t0):
+def write_demos(
+    out: Path, spec: EnvSpec, config: CollectConfig, states, actions, goals, seeds, success, routes, t0, source=None
+):
     """Write per-episode lists (states (T+1, obs), actions (T+1, act) with a zero last row, goals (T+1, goal), reset
     seeds, success) as a demos artifact: flat step arrays, the episode index, the train/valid split drawn from
-    ``config.seed`` and the summary. Shared by collection and by imports."""
+    ``config.seed`` and the summary. Shared by collection and by imports (``source``: the dataset imported, named
+    when its data are what a demos file may not hold; nothing is written then)."""
     seed, episodes = config.seed, len(states)
     lengths_arr = np.array([len(S) for S in states], dtype=np.int64)
     observations = np.concatenate(states).astype(np.float32)
@@ -250,6 +253,12 @@ def write_demos(out: Path, spec: EnvSpec, config: CollectConfig, states, actions
         "episodes/success": np.array(success, dtype=bool),
         "episodes/valid": valid,
     }
+    problem = artifacts.Demos.check_data(manifest, arrays)  # what the reader would refuse is never written
+    if problem is not None:
+        raise BadInput(
+            f"{source or f'collect {spec.id}'}: {problem}",
+            hint=f"is {spec.id} the dataset's environment? (--env)" if source else "report this: the expert's data",
+        )
     artifacts.save(out, "demos", manifest, arrays)
     return artifacts.load(out, "demos")
 

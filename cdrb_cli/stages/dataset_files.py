@@ -30,4 +30,4 @@ def import_file(path: Path, out: Path, env: str | None = None, valid_fraction: f
         raise BadInput(f"--env {spec.id}: its environments read no dataset files", hint="see docs/cli.md")
     states, actions, goals, success, source = read
     config = CollectConfig(env=spec.id, episodes=len(states), expert=source, valid_fraction=valid_fraction, seed=seed)
-    return write_demos(out, spec, config, states, actions, goals, [-1] * len(states), success, {}, t0)
+    return write_demos(out, spec, config, states, actions, goals, [-1] * len(states), success, {}, t0, source=str(path))

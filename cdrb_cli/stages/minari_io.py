@@ -228,7 +228,7 @@ def import_minari(source: str, out: Path, env: str | None = None, valid_fraction
     )
     E = len(states)
     config = CollectConfig(env=spec.id, episodes=E, expert=source_cfg, valid_fraction=valid_fraction, seed=seed)
-    return write_demos(out, spec, config, states, actions, goals, seeds, success, {}, t0)
+    return write_demos(out, spec, config, states, actions, goals, seeds, success, {}, t0, source=source)
 
 
 def _episode_arrays(ep, where: str, spec, source: str):
