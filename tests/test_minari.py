@@ -5,6 +5,7 @@ errors. No network: every dataset lives under a temporary MINARI_DATASETS_PATH."
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -239,7 +240,13 @@ def test_hostile_dataset_folders_are_refused_before_minari_reads_them(tmp_path, 
     folder, main = variant("meta")
     meta = folder / "data" / "metadata.json"
     meta.write_text(meta.read_text()[:-1] + ', "pad": "' + "x" * (2 << 20) + '"}')
+    # an episode count the data file does not hold: Minari would allocate by a billion, or drop episodes silently
+    for name, count in [("many", 10**9), ("fewer", 0)]:
+        folder, main = variant(name)
+        meta = folder / "data" / "metadata.json"
+        meta.write_text(re.sub(r'"total_episodes": *\d+', f'"total_episodes": {count}', meta.read_text()))
     cases = [("fifo", "not a regular file"), ("link", "is a link"), ("bomb", "declare"), ("meta", "larger than")]
+    cases += [("many", "declares 1000000000 episodes, but main_data.hdf5 holds 1"), ("fewer", "declares 0 episodes")]
     for name, words in cases:
         t = time.time()
         r = _cli("import", "minari", f"test/{name}-v0", "--out", tmp_path / "x.h5")

@@ -110,6 +110,32 @@ def check_dataset_folder(folder: Path, source: str) -> None:
             check_foreign_h5(data, MAX_DATASET_OBJECTS)
         except BadInput as exc:
             raise BadInput(f"{source}: {exc.message}", hint=exc.hint) from None
+    for meta in folder.rglob("metadata.json"):
+        _check_episode_count(meta, source)
+
+
+def _check_episode_count(meta: Path, source: str) -> None:
+    """The episode count a Minari metadata.json declares is the number of episodes its data file holds: Minari
+    allocates arrays by the declared count (a billion fills the memory before anything is read) and reads only that
+    many episodes (a smaller count drops the rest silently)."""
+    import json
+
+    import h5py
+
+    data = meta.parent / "main_data.hdf5"
+    try:
+        declared = json.loads(meta.read_text()).get("total_episodes")
+    except (ValueError, AttributeError, RecursionError, UnicodeDecodeError):
+        return  # not a table of metadata: Minari's own reading says what is wrong
+    if not data.is_file() or type(declared) is not int:
+        return
+    with h5py.File(data, "r") as f:
+        held = sum(1 for name in f.keys() if name.startswith("episode_"))
+    if declared != held:
+        raise BadInput(
+            f"{source}: {meta.name} declares {str(declared)[:30]} episodes, but {data.name} holds {held}",
+            hint="the dataset is damaged; re-download or re-create it",
+        )
 
 
 def _sha_files(folder: Path) -> dict[str, str]:
