@@ -225,6 +225,8 @@ class Planner:
             raise BadInput(f"flag = {clip(repr(flag), 40)}: not a point's name", hint='pass "start" or "goal"')
         name = flag.lstrip("-")
         if type(point).__module__.split(".")[0] == "torch" and hasattr(point, "detach"):  # a tensor, maybe with grad
+            if getattr(getattr(point, "device", None), "type", None) == "meta":
+                raise BadInput(f"{name}: a tensor on the meta device (a shape, no values)", hint="e.g. [0.0, 0.0]")
             point = point.detach().cpu()
             if str(point.dtype) in ("torch.bfloat16", "torch.float16"):  # numpy has no bfloat16: widen it exactly
                 point = point.double()
@@ -248,6 +250,8 @@ class Planner:
             kind = np.asarray(point).dtype.kind if isinstance(point, (np.ndarray, list, tuple)) else None
         except (TypeError, ValueError):  # a ragged list: the cast below refuses it
             kind = None
+        if isinstance(items, (list, tuple)) and any(v is None for v in items):  # the cast would read it as NaN
+            raise BadInput(f"{name}: None where a number belongs", hint="e.g. [0.0, 0.0]")
         if isinstance(items, (list, tuple)):
             odd = [v for v in items if isinstance(v, (bool, np.bool_, str, bytes, complex, np.complexfloating,
                                                       np.datetime64, np.timedelta64))]  # fmt: skip
@@ -261,6 +265,11 @@ class Planner:
             raise BadInput(f"{name} = {clip(repr(point), 60)}: not a list of numbers", hint="e.g. [0.0, 0.0]") from None
         if values.ndim != 1 or not len(values):
             raise BadInput(f"{name}: a flat list of numbers, not shape {values.shape}", hint="e.g. [0.0, 0.0]")
+        if len(values) > self.spec.obs_dim:
+            raise BadInput(
+                f"{name}: {len(values):,} numbers, more than the {self.spec.obs_dim} of a {self.spec.id} state",
+                hint="e.g. [0.0, 0.0]",
+            )
         if not np.isfinite(values).all():
             raise BadInput(f"{name} = {clip(repr(values.tolist()), 60)}: not finite", hint="e.g. [0.0, 0.0]")
         return family_of(self.spec).parse_point(self.spec, ",".join(repr(float(v)) for v in values), flag)

@@ -154,14 +154,32 @@ def from_mapping(values: dict[str, Any], source: str = API_SOURCE) -> list[Setti
     return out
 
 
+def _odd_type(value: Any) -> str:
+    """The name of the type in ``value`` that JSON has no form for: the value's own, or that of the first such item
+    of a list (a list of tensors is refused for its tensors, not for being a list)."""
+    if isinstance(value, list):
+        for item in value:
+            try:
+                json.dumps(item)
+            except (TypeError, ValueError, RecursionError):
+                return _odd_type(item)
+    return type(value).__name__
+
+
 def plain(value: Any) -> Any:
-    """``value`` with numpy scalars as Python numbers and numpy arrays, tuples and lists as lists of them (what a
-    setting read from JSON or TOML would hold); anything else unchanged, for the settings' own checks."""
+    """``value`` with numpy scalars as Python numbers and numpy arrays, torch tensors, tuples and lists as lists of
+    them (what a setting read from JSON or TOML would hold); anything else unchanged, for the settings' own
+    checks."""
     kind = type(value).__module__
     if kind == "numpy" and hasattr(value, "item") and getattr(value, "ndim", None) == 0:
         return value.item()
     if kind == "numpy" and hasattr(value, "tolist"):
         return value.tolist()
+    if kind.split(".")[0] == "torch" and hasattr(value, "tolist") and hasattr(value, "detach"):  # a tensor
+        try:
+            return value.detach().cpu().tolist()
+        except (RuntimeError, NotImplementedError):  # a tensor with no values to read (the meta device)
+            return value
     if isinstance(value, (list, tuple)):
         return [plain(v) for v in value]
     return value
@@ -272,8 +290,9 @@ def validate(model: type[BaseModel], data: dict, settings: Sequence[Setting], wh
             try:
                 json.dumps(s.value)
             except (TypeError, ValueError, RecursionError):
-                shown = type(s.value).__name__
-                raise BadInput(f"{clip(s.source)}: a {shown} is not a setting value", hint=hint) from None
+                shown = _odd_type(s.value)
+                article = "an" if shown[:1].lower() in "aeiou" else "a"
+                raise BadInput(f"{clip(s.source)}: {article} {shown} is not a setting value", hint=hint) from None
         raise BadInput(f"{what} settings: {exc}", hint=hint) from None
     try:
         config = model.model_validate_json(text, strict=True, context={"strict": True})

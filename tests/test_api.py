@@ -152,6 +152,9 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         (lambda: planner.plan(np.array([0, 0], "datetime64[s]"), [6, 6]), "start: dates, not real numbers"),
         (lambda: planner.plan([np.timedelta64(1, "s"), 0.0], [6, 6]), "start: time spans, not real numbers"),
         (lambda: planner.plan(np.ma.masked_array([0.0, 9.0], [False, True]), [6, 6]), "start: masked values"),
+        (lambda: planner.plan([None, 0.0], [6, 6]), "start: None where a number belongs"),
+        (lambda: planner.plan([0.0] * 10**5, [6, 6]), "start: 100,000 numbers, more than the 4 of a"),
+        (lambda: planner.plan([0.0, 0.0], __import__("torch").zeros(2, device="meta")), "goal: a tensor on the meta"),
         # the seed is an argument, not a setting: its error names it (not `cdrb config plan`)
         (lambda: planner.plan([0, 0], [6, 6], seed=-1), "seed = -1: not a seed"),
         (lambda: planner.plan([0, 0], [6, 6], steps=10**6), "steps=1000000: the model has T = "),
@@ -161,6 +164,9 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
         # a value JSON has no form for is named with its setting
         (lambda: api.Planner(model.path, settings={"n": {1, 2}}), "settings n={1, 2}: a set is not a setting value"),
         (lambda: api.Planner(model.path, settings={"n": Path("3")}), "settings n=PosixPath('3'): a PosixPath is"),
+        (lambda: api.Planner(model.path, settings={"n": object()}), ": an object is not a setting value"),
+        # a list is refused for what it holds, not for being a list
+        (lambda: api.Planner(model.path, settings={"n": [{1}]}), ": a set is not a setting value"),
     ]
     for call, needle in bad:
         with pytest.raises(BadInput) as err:
@@ -174,6 +180,13 @@ def test_numpy_numbers_are_numbers_and_other_arguments_are_checked(model, tmp_pa
     np.testing.assert_array_equal(tensor.features, listed)
     half = planner.plan(torch.tensor([0.0, 0.0], dtype=torch.bfloat16), [6.0, 6.0], seed=1)
     np.testing.assert_array_equal(half.features, listed)
+    # a setting given as a tensor is the number or list it holds, as a numpy one is
+    from cdrb_cli.settings import from_mapping
+
+    assert [s.value for s in from_mapping({"n": torch.tensor(3), "avoid.weights": torch.tensor([1.0, 2.0])})] == [
+        3,
+        [1.0, 2.0],
+    ]
 
     class BytesPath:  # os.PathLike may return bytes
         def __fspath__(self):
