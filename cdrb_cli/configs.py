@@ -466,7 +466,7 @@ class EvalConfig(Record):
     @classmethod
     def _distinct(cls, seeds: list[int]) -> list[int]:
         if len(set(seeds)) != len(seeds):
-            raise ValueError(f"{seeds}: repeated seeds (each seed's pairs would count twice): list each once")
+            raise ValueError("repeated seeds (each seed's pairs would count twice): list each once")
         return seeds
 
     @model_validator(mode="after")

@@ -141,6 +141,14 @@ def test_an_import_never_writes_over_a_file_without_force_nor_over_its_input(cdr
     assert cdrb("import", "npz", src, "--out", mine, "--force").returncode == 0
 
 
+def test_an_unknown_env_is_named_with_the_imports_flag(cdrb, tmp_path):
+    src = tmp_path / "pointmaze-medium-navigate-v0-val.npz"
+    _official_file(src)
+    r = cdrb("import", "npz", src, "--env", "nope", "--out", tmp_path / "d.h5")
+    assert r.returncode == 2 and "--env 'nope': not an environment" in r.stderr and "--maze-map" not in r.stderr
+    assert not (tmp_path / "d.h5").exists()
+
+
 def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
     from cdrb_cli import artifacts
 
@@ -166,7 +174,7 @@ def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
 @pytest.mark.parametrize(
     ("make", "name", "message"),
     [
-        (lambda p: _official_file(p, pickled=True), "pointmaze-large-stitch-v0.npz", "not a readable .npz file"),
+        (lambda p: _official_file(p, pickled=True), "pointmaze-large-stitch-v0.npz", "object arrays, which are never"),
         (lambda p: _official_file(p, obs_dim=3), "pointmaze-large-stitch-v0.npz", "observations (12, 3)"),
         (lambda p: np.savez(p, observations=np.zeros((3, 2))), "pointmaze-large-stitch-v0.npz", "no actions"),
         (lambda p: _official_file(p), "maze-data.npz", "its name says no environment"),
@@ -174,7 +182,7 @@ def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
         (
             lambda p: np.save(p.with_suffix(".npy"), np.zeros(3)) or p.with_suffix(".npy").rename(p),
             "pointmaze-giant-navigate-v0.npz",
-            "not a readable .npz file (ValueError)",
+            "not a readable .npz file (ValueError: one array, not an archive of named arrays)",
         ),
         (
             lambda p: np.savez(
@@ -194,6 +202,11 @@ def test_an_official_file_imports_episode_by_episode(cdrb, tmp_path):
             lambda p: np.savez(p, observations=np.float64(3.0), actions=np.zeros((4, 2)), terminals=np.eye(4)[3]),
             "pointmaze-medium-stitch-v0.npz",
             "observations is a 0-d float64",
+        ),
+        (
+            lambda p: np.savez(p, observations=np.zeros((0, 2)), actions=np.zeros((0, 2)), terminals=np.zeros(0)),
+            "pointmaze-medium-stitch-v0.npz",
+            "0 rows, fewer than the two of one step (the file is empty or damaged)",
         ),
         # finite, under the reader's bound, but a maze away from any map of the family: refused before writing
         (

@@ -9,11 +9,24 @@ from pathlib import Path
 from cdrb_cli.errors import BadInput
 
 
+def env_for_import(env: str):
+    """The EnvSpec an import's ``--env`` names; an unknown id is one line naming the flag (the registry's own line
+    offers --maze-map, which no import takes)."""
+    from cdrb_cli.envs.registry import make_spec
+
+    try:
+        return make_spec(env)
+    except BadInput as exc:
+        if not exc.message.startswith("unknown environment"):
+            raise
+        raise BadInput(f"--env {env!r}: not an environment of cdrb", hint="`cdrb envs` lists them") from None
+
+
 def import_file(path: Path, out: Path, env: str | None = None, valid_fraction: float = 0.1, seed: int = 0):
     """Read the dataset file ``path`` for ``env`` (default: the environment its name says) and write it as a demos
     artifact."""
     from cdrb_cli.configs import CollectConfig
-    from cdrb_cli.envs.registry import FAMILIES, family_of, make_spec
+    from cdrb_cli.envs.registry import FAMILIES, family_of
     from cdrb_cli.stages.collect import write_demos
 
     t0, path = time.time(), Path(path)
@@ -24,7 +37,7 @@ def import_file(path: Path, out: Path, env: str | None = None, valid_fraction: f
                 f"{path}: its name says no environment (no family reads files so named)",
                 hint="name the environment with --env (`cdrb envs`)",
             )
-    spec = make_spec(env)
+    spec = env_for_import(env)
     read = family_of(spec).read_dataset(spec, path)
     if read is None:
         raise BadInput(f"--env {spec.id}: its environments read no dataset files", hint="see docs/cli.md")

@@ -147,7 +147,9 @@ def _spec_for(dataset, source: str, env: str | None):
     from cdrb_cli.envs.registry import FAMILIES, make_spec
 
     if env is not None:
-        return make_spec(env)
+        from cdrb_cli.stages.dataset_files import env_for_import
+
+        return env_for_import(env)
     gym_spec = dataset.env_spec
     if gym_spec is not None:
         name = re.sub(r"[^A-Za-z0-9_.-]+", "-", dataset.spec.dataset_id).strip("-")

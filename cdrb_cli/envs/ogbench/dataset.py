@@ -73,7 +73,12 @@ def _arrays(path: Path) -> dict[str, np.ndarray]:
         with f:
             return {k: np.asarray(f[k]) for k in KEYS if k in f.files}
     except Exception as exc:  # noqa: BLE001 - any damage (zip, deflate, .npy header, pickled objects): one line
-        raise BadInput(f"{path}: not a readable .npz file ({type(exc).__name__})", hint="check the file") from None
+        if "allow_pickle" in str(exc):  # numpy's refusal to unpickle an object array
+            raise BadInput(
+                f"{path}: holds object arrays, which are never unpickled", hint="save the arrays as numbers"
+            ) from None
+        said = f"{type(exc).__name__}: {' '.join(str(exc).split())[:100]}" if str(exc) else type(exc).__name__
+        raise BadInput(f"{path}: not a readable .npz file ({said})", hint="check the file") from None
 
 
 def _numbers(path: Path, name: str, a: np.ndarray, ndim: int) -> np.ndarray:
@@ -103,6 +108,8 @@ def read_episodes(spec, path: Path):
     act = _numbers(path, "actions", a["actions"], 2)
     term = _numbers(path, "terminals", a["terminals"], 1)
     n = len(obs)
+    if n < 2:
+        raise BadInput(f"{path}: {n} rows, fewer than the two of one step", hint="the file is empty or damaged")
     if obs.shape != (n, spec.obs_dim) or act.shape != (n, spec.action_dim) or term.shape != (n,) or n < 2:
         raise BadInput(
             f"{path}: observations {obs.shape}, actions {act.shape}, terminals {term.shape}; {spec.id} needs "
