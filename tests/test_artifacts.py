@@ -100,7 +100,16 @@ def test_plain_hdf5_is_not_an_artifact(tmp_path):
     p = tmp_path / "plain.h5"
     with h5py.File(p, "w") as f:
         f["x"] = np.arange(3)
-    assert "not a cdrb artifact" in _err(p)
+    assert "not a cdrb artifact (no cdrb_kind/cdrb_schema_version attributes)" in _err(p)
+
+
+@pytest.mark.parametrize("name, value", [("cdrb_schema_version", 2.17), ("cdrb_kind", np.array([1, 2]))])
+def test_a_marker_attribute_of_the_wrong_type_is_named(tmp_path, name, value):
+    """The two marker attributes present but not text are said as such, not as missing."""
+    p = write(tmp_path / "m.h5", "model")
+    with h5py.File(p, "r+") as f:
+        f.attrs[name] = value
+    assert f"not a cdrb artifact ({name} not a text attribute)" in _err(p)
 
 
 def test_wrong_kind(tmp_path):

@@ -288,8 +288,11 @@ def read_h5(
         kind = _attr_str(f, KIND_ATTR)
         version_text = _attr_str(f, VERSION_ATTR)
         if kind is None or version_text is None:
+            there = [a for a in (KIND_ATTR, VERSION_ATTR) if a in f.attrs and _attr_str(f, a) is None]  # not text
             raise ArtifactError(
-                f"{path}: HDF5 file is not a cdrb artifact (no {KIND_ATTR}/{VERSION_ATTR} attributes)",
+                f"{path}: HDF5 file is not a cdrb artifact ("
+                + (f"{'/'.join(there)} not a text attribute" if there else f"no {KIND_ATTR}/{VERSION_ATTR} attributes")
+                + ")",
                 hint="pass a file written by a cdrb command",
             )
         if kind not in current_versions:
