@@ -103,7 +103,7 @@ class TrainConfig(Record):
     stride: int = Field(gt=0, le=100_000, description="environment steps per planned state")
     steps: int = Field(gt=0, le=10**12, description="gradient steps (at most 1e12: far past any run)")
     batch_size: int = Field(gt=0, le=65536, description="training windows per gradient step")
-    lr: float = Field(gt=0, le=1, description="Adam learning rate (at most 1: past it every step overshoots)")
+    lr: float = Field(gt=0, description="Adam learning rate")
     grad_clip: float | None = Field(1.0, gt=0, description="max gradient norm; null disables clipping")
     ema_decay: float = Field(ge=0, lt=1, description="decay of the exponential moving average of the weights")
     ema_start: int = Field(ge=0, description="the EMA copies the weights until this step")
