@@ -286,6 +286,8 @@ def parse_toml(text: str, source: str, hint: str) -> dict:
     """TOML text as a table; whatever the parser refuses is one :class:`BadInput` line naming ``source``: bad
     syntax, arrays or tables nested past the recursion limit, an integer of more digits than Python converts. A
     leading byte-order mark (some editors write one) is not part of the text."""
+    import sys
+
     try:
         import tomllib
     except ImportError:  # Python 3.10
@@ -297,7 +299,7 @@ def parse_toml(text: str, source: str, hint: str) -> dict:
         raise BadInput(f"{source}: arrays or tables nested too deep to read", hint=hint) from None
     except ValueError as exc:  # TOMLDecodeError, and int()'s refusal of a number of thousands of digits
         if "integer string conversion" in str(exc):
-            limit = getattr(__import__("sys"), "get_int_max_str_digits", lambda: 4300)()
+            limit = getattr(sys, "get_int_max_str_digits", lambda: 4300)()  # (Python 3.10.7 on)
             raise BadInput(f"{source}: holds an integer of more than {limit} digits", hint=hint) from None
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BadInput(f"{source}: not valid TOML ({first[:160]})", hint=hint) from None

@@ -257,7 +257,7 @@ def write_demos(
     if problem is not None:
         raise BadInput(
             f"{source or f'collect {spec.id}'}: {problem}",
-            hint=f"is {spec.id} the dataset's environment? (--env)" if source else "report this: the expert's data",
+            hint=f"is {spec.id} the dataset's environment? (--env)" if source else "check the expert (--policy)",
         )
     artifacts.save(out, "demos", manifest, arrays)
     return artifacts.load(out, "demos")
