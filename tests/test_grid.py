@@ -951,7 +951,7 @@ def test_an_extension_runs_some_curves_further_and_keeps_the_rest(tmp_path):
         ("[[extend]]\nsteps = 100\n", r"extend\[0\]: steps 100 does not extend the curve"),
         ('[[extend]]\nmethods = ["nope"]\nsteps = 200\n', r"extend\[0\]: methods"),
         ('[[extend]]\nenvs = ["nope"]\nsteps = 200\n', r"extend\[0\]: envs"),
-        ("[[extend]]\nsteps = 200\nsnapshot = 1\n", "extend.0.snapshot: Extra inputs are not permitted"),
+        ("[[extend]]\nsteps = 200\nsnapshot = 1\n", "extend.0.snapshot: not a key of this file's format"),
     ):
         with pytest.raises(BadInput, match=words):
             load_grid(_grid(tmp_path, text.split("\n[[extend]]")[0] + "\n" + extra))
@@ -1038,6 +1038,8 @@ def test_grid_set_overrides_top_level_keys_only(tmp_path, monkeypatch):
     # a list whose brackets are wrong is no TOML, so it arrives as text: not wrapped in a list of itself
     with pytest.raises(BadInput, match=re.escape("([0,1 is not a TOML list: write e.g. seeds=[0, 1])")):
         load_grid(grid, ["seeds=[0,1"])
+    with pytest.raises(BadInput, match=re.escape('--set out=1: out: a path is written as a string, e.g. "runs/NAME"')):
+        load_grid(grid, ["out=1"])
 
 
 def test_grid_set_variants_runs_the_named_arms_only(tmp_path):

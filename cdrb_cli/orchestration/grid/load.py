@@ -24,6 +24,7 @@ from cdrb_cli.orchestration.grid.spec import (
     SettingsFile,
     Variant,
     anchor_all,
+    error_text,
     read_toml,
     validated,
 )
@@ -161,7 +162,7 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
     except ValidationError as exc:
         err = exc.errors()[0]
         where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
-        msg = err["msg"]
+        msg = error_text(err)
         given = err.get("input")
         if err.get("type") == "list_type" and len(err["loc"]) == 1 and str(given).lstrip().startswith("["):
             # (a `--set` value that is no TOML is taken as text: here a list whose brackets or items are wrong)

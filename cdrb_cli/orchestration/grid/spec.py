@@ -385,13 +385,23 @@ def read_toml(path: Path, what: str, flag: str = "") -> dict:
     return parse_toml(text, f"{flag} {path}".strip(), hint="fix the file")
 
 
+def error_text(err: dict) -> str:
+    """A pydantic error of a grid or settings file in the file's own words: a key the format does not have, a path
+    that is not text; pydantic's message otherwise."""
+    if err.get("type") == "extra_forbidden":
+        return "not a key of this file's format"
+    if err.get("type") in ("path_type", "path_not_str"):
+        return 'a path is written as a string, e.g. "runs/NAME"'
+    return err["msg"]
+
+
 def validated(model: type[BaseModel], raw: dict, path: Path):
     try:
         return model.model_validate(raw)
     except ValidationError as exc:
         err = exc.errors()[0]
         where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
-        raise BadInput(f"{path}: {where}: {err['msg']}", hint="see docs/cli.md, `cdrb grid`") from None
+        raise BadInput(f"{path}: {where}: {error_text(err)}", hint="see docs/cli.md, `cdrb grid`") from None
 
 
 def _anchored(flags: list[str], command: str, base: Path) -> list[str]:
