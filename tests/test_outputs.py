@@ -257,6 +257,10 @@ def test_output_names_too_long_or_with_control_characters_are_one_line(tmp_path,
     r = cdrb("export", ev, "--compact", f"{tmp_path}/e.h5/")
     assert r.returncode == 2 and "names a folder" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert not (tmp_path / "e.h5").exists()
+    # '-', stdout's usual spelling, would be a file named '-' in the current folder
+    r = cdrb("report", ev, "--out", "-", cwd=tmp_path)
+    assert r.returncode == 2 and "'-' would be a file named '-'" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "-").exists()
 
 
 def test_a_failed_run_leaves_no_empty_folders_it_made(tmp_path):

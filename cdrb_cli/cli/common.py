@@ -90,6 +90,8 @@ def file_path(value) -> Path:
     from cdrb_cli.artifacts.outputs import names_a_folder
 
     text = os.fspath(value)
+    if text == "-":  # the usual spelling of stdout, which would be written as a file named '-'
+        raise ValueError("'-' would be a file named '-': leave the option out where the command writes to stdout")
     if names_a_folder(text):
         raise ValueError(f"{text!r} names a folder (it ends with {os.sep!r}); give a file name")
     return Path(text)
