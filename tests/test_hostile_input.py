@@ -401,6 +401,11 @@ def test_an_empty_path_option_is_refused_not_read_as_the_current_folder(small_da
         ["cluster", demos.path, "-o", ""],
         ["cluster", demos.path, "--out="],
         ["collect", "maze", "-n", "1", "--video", "", "--out", tmp_path / "d.h5"],
+        # a repeatable path option, and path arguments (the first, or one of many)
+        ["grid", tmp_path / "g.toml", "--include", "", "--dry-run"],
+        ["inspect", ""],
+        ["report", demos.path, "", "--out", tmp_path / "r.md"],
+        ["import", "npz", "", "--out", tmp_path / "d.h5"],
     ):
         r = cdrb(*args, cwd=tmp_path)
         assert r.returncode == 2 and "an empty path" in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)

@@ -64,17 +64,30 @@ def _refuse_empty_paths(command, args: list[str]) -> None:
     cmd, rest = command, list(args)
     while rest and hasattr(cmd, "commands") and rest[0] in cmd.commands:
         cmd, rest = cmd.commands[rest[0]], rest[1:]
-    paths = set()
+    paths, takes_value, path_args = set(), set(), []
     for param in getattr(cmd, "params", ()):
         described = getattr(param, "type_descriptor", None)
-        if getattr(described, "annotation", None) is Path and getattr(param, "opts", None):
-            paths.update(o for o in param.opts if o.startswith("-"))
+        is_path = getattr(described, "annotation", None) in (Path, list[Path])
+        opts = [o for o in getattr(param, "opts", ()) if o.startswith("-")]
+        if is_path:
+            paths.update(opts)
+        if opts and not getattr(param, "is_flag", False):
+            takes_value.update(opts)
+        if getattr(param, "param_type_name", None) == "argument":
+            path_args.append(param.name.upper() if is_path else None)
+    position = 0  # the positional arguments seen so far (an empty one, where a path goes, is refused too)
     for i, arg in enumerate(rest):
         if arg == "--":
             return
         flag, eq, value = arg.partition("=")
         if flag in paths and (value if eq else (rest[i + 1] if i + 1 < len(rest) else None)) == "":
             raise BadInput(f"{flag} '': an empty path (it would name the current folder)", hint="give a path")
+        if i and rest[i - 1] in takes_value or arg.startswith("-"):
+            continue
+        name = path_args[min(position, len(path_args) - 1)] if path_args else None
+        if arg == "" and name is not None:
+            raise BadInput(f"{name} '': an empty path (it would name the current folder)", hint="give a path")
+        position += 1
 
 
 def _link_loop(exc: BaseException) -> str | None:
