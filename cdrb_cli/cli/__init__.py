@@ -82,7 +82,7 @@ def _refuse_empty_paths(command, args: list[str]) -> None:
         flag, eq, value = arg.partition("=")
         if flag in paths and (value if eq else (rest[i + 1] if i + 1 < len(rest) else None)) == "":
             raise BadInput(f"{flag} '': an empty path (it would name the current folder)", hint="give a path")
-        if i and rest[i - 1] in takes_value or arg.startswith("-"):
+        if (i and rest[i - 1] in takes_value) or arg.startswith("-"):  # an option's value, or an option
             continue
         name = path_args[min(position, len(path_args) - 1)] if path_args else None
         if arg == "" and name is not None:

@@ -110,7 +110,7 @@ def read_episodes(spec, path: Path):
     n = len(obs)
     if n < 2:
         raise BadInput(f"{path}: {n} rows, fewer than the two of one step", hint="the file is empty or damaged")
-    if obs.shape != (n, spec.obs_dim) or act.shape != (n, spec.action_dim) or term.shape != (n,) or n < 2:
+    if obs.shape != (n, spec.obs_dim) or act.shape != (n, spec.action_dim) or term.shape != (n,):
         raise BadInput(
             f"{path}: observations {obs.shape}, actions {act.shape}, terminals {term.shape}; {spec.id} needs "
             f"(N, {spec.obs_dim}), (N, {spec.action_dim}), (N,)",

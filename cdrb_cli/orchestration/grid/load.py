@@ -163,13 +163,12 @@ def load_grid(path: Path, overrides: list[str] = (), extra_includes: list[Path] 
         err = exc.errors()[0]
         where = clip(".".join(str(p) for p in err["loc"]), 80) or "(top level)"
         msg = error_text(err)
-        given = err.get("input")
-        if err.get("type") == "list_type" and len(err["loc"]) == 1 and str(given).lstrip().startswith("["):
-            # (a `--set` value that is no TOML is taken as text: here a list whose brackets or items are wrong)
-            msg += f" ({clip(given, 60)} is not a TOML list: write e.g. {err['loc'][0]}=[0, 1])"
-        elif err.get("type") == "list_type" and len(err["loc"]) == 1:  # a TOML list, even of one value
-            example = clip(json.dumps(given, default=str), 60)
-            msg += f" (a TOML list, e.g. {err['loc'][0]}=[{example}])"
+        given, key = err.get("input"), err["loc"][0] if err["loc"] else ""
+        if err.get("type") == "list_type" and len(err["loc"]) == 1:  # a TOML list, even of one value
+            if str(given).lstrip().startswith("["):  # `--set` text that is no TOML: a list with wrong brackets
+                msg += f" ({clip(given, 60)} is not a TOML list: write e.g. {key}=[0, 1])"
+            else:
+                msg += f" (a TOML list, e.g. {key}=[{clip(json.dumps(given, default=str), 60)}])"
         raise BadInput(f"{_origin(path, overrides, *err['loc'][:1])}: {where}: {msg}",
                        hint="see docs/cli.md, `cdrb grid`") from None  # fmt: skip
     read = [path]
